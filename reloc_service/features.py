@@ -1,0 +1,107 @@
+"""Keypoint detection and description (SIFT, ORB) and Lowe ratio-test matching."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from .errors import ConfigError
+from .frame import Features
+
+FEATURE_KINDS: tuple[str, ...] = ("sift", "orb")
+
+
+@dataclass(frozen=True)
+class FeatureConf:
+    """Detector settings. ``max_features`` caps the strongest keypoints kept."""
+
+    kind: str = "sift"
+    max_features: int = 2000
+
+    def __post_init__(self) -> None:
+        if self.kind not in FEATURE_KINDS:
+            raise ConfigError(f"feature kind {self.kind!r} unknown; expected one of {FEATURE_KINDS}")
+        if self.max_features <= 0:
+            raise ConfigError(f"max_features must be positive, got {self.max_features}")
+
+
+def _create(conf: FeatureConf) -> cv2.Feature2D:
+    if conf.kind == "sift":
+        return cv2.SIFT.create(nfeatures=conf.max_features)
+    # FAST threshold low and a patch size suited to 640x480 images; 8 levels as in ORB-SLAM.
+    return cv2.ORB.create(nfeatures=conf.max_features, scaleFactor=1.2, nlevels=8,
+                          fastThreshold=10)
+
+
+def _features_from_cv(kind: str, keypoints: list[cv2.KeyPoint],
+                      descriptors: npt.NDArray | None) -> Features:
+    n = len(keypoints)
+    width = 128 if kind == "sift" else 32
+    dtype = np.float32 if kind == "sift" else np.uint8
+    desc = np.zeros((0, width), dtype) if descriptors is None or n == 0 else descriptors.astype(dtype)
+    if n == 0:
+        return Features.create(kind, np.zeros((0, 2)), desc)
+    # cv2.KeyPoint_convert is the vectorised path from keypoint objects to coordinates.
+    pts = cv2.KeyPoint_convert(keypoints).astype(np.float64).reshape(-1, 2)
+    sizes = np.fromiter((k.size for k in keypoints), np.float32, n)
+    angles = np.fromiter((k.angle for k in keypoints), np.float32, n)
+    octaves = np.fromiter((k.octave for k in keypoints), np.int64, n)
+    levels = (octaves & 0xFF).astype(np.int8).astype(np.int16) if kind == "sift" else octaves.astype(np.int16)
+    return Features.create(kind, pts, desc, levels=levels, sizes=sizes, angles=angles)
+
+
+def extract(image: npt.NDArray[np.uint8], conf: FeatureConf | None = None, *,
+            mask: npt.NDArray[np.uint8] | None = None) -> Features:
+    """Detect and describe keypoints in a grey (H, W) uint8 image. A detector is created per
+    call (cheap) because OpenCV detectors must not be shared between threads."""
+    conf = conf or FeatureConf()
+    keypoints, descriptors = _create(conf).detectAndCompute(image, mask)
+    return _features_from_cv(conf.kind, list(keypoints), descriptors)
+
+
+def compute_at(image: npt.NDArray[np.uint8], kind: str, keypoints_px: npt.ArrayLike, *,
+               size: float = 12.0) -> tuple[Features, npt.NDArray[np.int64]]:
+    """Describe given keypoint positions (e.g. SVO's features). Returns the features and, for
+    each, the index of the input keypoint it came from (OpenCV drops keypoints too close to the
+    border)."""
+    pts = np.asarray(keypoints_px, dtype=np.float64).reshape(-1, 2)
+    kps = [cv2.KeyPoint(float(x), float(y), size, -1.0, 0.0, 0, i) for i, (x, y) in enumerate(pts)]
+    kps, desc = _create(FeatureConf(kind=kind)).compute(image, kps)
+    origin = np.fromiter((k.class_id for k in kps), np.int64, len(kps))
+    return _features_from_cv(kind, list(kps), desc), origin
+
+
+def match_ratio(desc_query: npt.NDArray, desc_train: npt.NDArray, *, ratio: float = 0.8
+                ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.float32]]:
+    """Lowe's ratio test (thesis 3.1.3): for each query descriptor, its nearest train
+    descriptor if the nearest is closer than ``ratio`` times the second nearest.
+
+    Returns (query indices, train indices, distances), each (M,). Binary (uint8) descriptors use
+    the Hamming distance, float descriptors L2."""
+    if len(desc_query) == 0 or len(desc_train) < 2:
+        empty = np.zeros(0, np.int64)
+        return empty, empty, np.zeros(0, np.float32)
+    if desc_query.dtype == np.uint8:
+        dist, nidx = cv2.batchDistance(desc_query, desc_train, cv2.CV_32S,
+                                       normType=cv2.NORM_HAMMING, K=2)
+        dist = dist.astype(np.float32)
+    else:
+        dist, nidx = _knn2_l2(desc_query.astype(np.float32), desc_train.astype(np.float32))
+    keep = dist[:, 0] < ratio * dist[:, 1]
+    q = np.flatnonzero(keep)
+    return q.astype(np.int64), nidx[keep, 0].astype(np.int64), dist[keep, 0]
+
+
+def _knn2_l2(a: npt.NDArray[np.float32], b: npt.NDArray[np.float32]
+             ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
+    """Two nearest neighbours by L2 through one matrix product (|a|^2 + |b|^2 - 2 a.b)."""
+    d2 = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * (a @ b.T)
+    idx = np.argpartition(d2, 1, axis=1)[:, :2]
+    two = np.take_along_axis(d2, idx, axis=1)
+    order = np.argsort(two, axis=1)
+    idx = np.take_along_axis(idx, order, axis=1)
+    two = np.sqrt(np.maximum(np.take_along_axis(two, order, axis=1), 0.0))
+    return two.astype(np.float32), idx.astype(np.int64)

@@ -1,0 +1,187 @@
+"""Frames, keyframes and their features: grey image, camera, pyramid, small blurry image."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from .cameras import Camera
+from .errors import GeometryError, MapError
+from .geometry import check_pose
+
+Array = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class Features:
+    """Keypoints of one kind (``"sift"``, ``"orb"``) in one image, with what is known of them.
+
+    Attributes (N = number of keypoints):
+        kind: name of the detector/descriptor.
+        keypoints_px: (N, 2) float64 pixel positions in the full-resolution image.
+        levels: (N,) int16 pyramid level (octave) where the keypoint was found.
+        sizes: (N,) float32 keypoint diameter in pixels; angles: (N,) float32 degrees (OpenCV).
+        descriptors: (N, D) float32 (SIFT) or uint8 (ORB, packed bits).
+        landmark_ids: (N,) int64 map landmark of each keypoint, -1 where none.
+        points_world: (N, 3) float64 landmark positions in the world frame, NaN where none.
+    """
+
+    kind: str
+    keypoints_px: Array
+    levels: npt.NDArray[np.int16]
+    sizes: npt.NDArray[np.float32]
+    angles: npt.NDArray[np.float32]
+    descriptors: npt.NDArray[Any]
+    landmark_ids: npt.NDArray[np.int64]
+    points_world: Array
+
+    def __post_init__(self) -> None:
+        n = len(self.keypoints_px)
+        shapes = {"keypoints_px": (self.keypoints_px.shape, (n, 2)),
+                  "levels": (self.levels.shape, (n,)), "sizes": (self.sizes.shape, (n,)),
+                  "angles": (self.angles.shape, (n,)),
+                  "landmark_ids": (self.landmark_ids.shape, (n,)),
+                  "points_world": (self.points_world.shape, (n, 3))}
+        for name, (got, want) in shapes.items():
+            if got != want:
+                raise GeometryError(f"Features.{name}: expected shape {want}, got {got}")
+        if self.descriptors.ndim != 2 or len(self.descriptors) != n:
+            raise GeometryError(f"Features.descriptors: expected ({n}, D), got {self.descriptors.shape}")
+
+    def __len__(self) -> int:
+        return len(self.keypoints_px)
+
+    @classmethod
+    def create(cls, kind: str, keypoints_px: npt.ArrayLike, descriptors: npt.ArrayLike, *,
+               levels: npt.ArrayLike | None = None, sizes: npt.ArrayLike | None = None,
+               angles: npt.ArrayLike | None = None, landmark_ids: npt.ArrayLike | None = None,
+               points_world: npt.ArrayLike | None = None) -> Features:
+        """Build features with defaults: level 0, size 8 px, angle -1, no landmarks."""
+        kp = np.asarray(keypoints_px, dtype=np.float64).reshape(-1, 2)
+        n = len(kp)
+        return cls(
+            kind=kind, keypoints_px=kp,
+            levels=np.zeros(n, np.int16) if levels is None else np.asarray(levels, np.int16),
+            sizes=np.full(n, 8.0, np.float32) if sizes is None else np.asarray(sizes, np.float32),
+            angles=np.full(n, -1.0, np.float32) if angles is None else np.asarray(angles, np.float32),
+            descriptors=np.asarray(descriptors).reshape(n, -1) if n else np.asarray(descriptors),
+            landmark_ids=(np.full(n, -1, np.int64) if landmark_ids is None
+                          else np.asarray(landmark_ids, np.int64)),
+            points_world=(np.full((n, 3), np.nan) if points_world is None
+                          else np.asarray(points_world, np.float64).reshape(n, 3)))
+
+    @property
+    def has_landmark(self) -> npt.NDArray[np.bool_]:
+        """(N,) mask of keypoints associated with a landmark."""
+        return self.landmark_ids >= 0
+
+    def with_landmarks(self, indices: npt.ArrayLike, landmark_ids: npt.ArrayLike,
+                       points_world: npt.ArrayLike) -> Features:
+        """A copy where keypoints ``indices`` get ``landmark_ids`` and ``points_world``."""
+        idx = np.asarray(indices, dtype=np.int64)
+        ids = self.landmark_ids.copy()
+        pts = self.points_world.copy()
+        ids[idx] = np.asarray(landmark_ids, dtype=np.int64)
+        pts[idx] = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        return dataclasses.replace(self, landmark_ids=ids, points_world=pts)
+
+    def cv_keypoints(self, indices: npt.ArrayLike | None = None) -> list[cv2.KeyPoint]:
+        """OpenCV keypoints (for computing descriptors at known positions)."""
+        idx = range(len(self)) if indices is None else np.asarray(indices)
+        return [cv2.KeyPoint(float(self.keypoints_px[i, 0]), float(self.keypoints_px[i, 1]),
+                             float(self.sizes[i]), float(self.angles[i]), 0.0, int(self.levels[i]))
+                for i in idx]
+
+
+def check_grey_image(image: npt.ArrayLike, camera: Camera | None = None) -> npt.NDArray[np.uint8]:
+    """Return ``image`` as a contiguous (H, W) uint8 array; check its size against ``camera``."""
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if img.ndim != 2 or img.dtype != np.uint8:
+        raise GeometryError(f"image: expected (H, W) uint8 grey, got shape {img.shape} {img.dtype}")
+    if camera is not None and (img.shape[1], img.shape[0]) != camera.size:
+        raise GeometryError(f"image: size {img.shape[1]}x{img.shape[0]} does not match the "
+                            f"camera's {camera.width}x{camera.height}")
+    return np.ascontiguousarray(img)
+
+
+@dataclass(eq=False)
+class Frame:
+    """One image to relocalize (or the image part of a keyframe): grey (H, W) uint8 image and
+    the camera that took it.
+
+    ``cache`` holds derived data (pyramid, small blurry image, features of each kind), computed
+    on first use by whichever module needs it; keys are namespaced by that module.
+    """
+
+    image: npt.NDArray[np.uint8]
+    camera: Camera
+    features: dict[str, Features] = field(default_factory=dict)
+    cache: dict[str, Any] = field(default_factory=dict, repr=False)
+    #: Ground-truth pose, set only by evaluation (the ``gt`` place finder refuses to run without).
+    gt_world_from_cam: Array | None = None
+
+    def __post_init__(self) -> None:
+        self.image = check_grey_image(self.image, self.camera)
+        if self.gt_world_from_cam is not None:
+            self.gt_world_from_cam = check_pose(self.gt_world_from_cam, name="gt_world_from_cam")
+
+    def pyramid(self, levels: int) -> list[npt.NDArray[np.uint8]]:
+        """``levels`` images, each half the size of the previous (level 0 = the image)."""
+        key = f"pyramid:{levels}"
+        if key not in self.cache:
+            pyr = [self.image]
+            for _ in range(levels - 1):
+                pyr.append(cv2.pyrDown(pyr[-1]))
+            self.cache[key] = pyr
+        return self.cache[key]
+
+    def small_blurry_image(self, width: int = 40, height: int = 30, sigma: float = 2.5) -> Array:
+        """PTAM's small blurry image (thesis 3.1.1): resized to ``width`` x ``height``, Gaussian
+        blurred with ``sigma``, zero mean; (height, width) float32."""
+        key = f"sbi:{width}x{height}:{sigma}"
+        if key not in self.cache:
+            small = cv2.resize(self.image, (width, height), interpolation=cv2.INTER_AREA)
+            blurred = cv2.GaussianBlur(small.astype(np.float32), (0, 0), sigma)
+            self.cache[key] = blurred - blurred.mean()
+        return self.cache[key]
+
+
+@dataclass(eq=False)
+class Keyframe(Frame):
+    """A mapped frame: a :class:`Frame` with an id, its ``world_from_cam`` pose and metadata.
+
+    ``depth`` is an optional (H, W) float32 Z-depth in metres (NaN where unknown).
+    """
+
+    id: int = -1
+    world_from_cam: Array = field(default_factory=lambda: np.eye(4))
+    timestamp: float | None = None
+    depth: npt.NDArray[np.float32] | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if isinstance(self.id, bool) or not isinstance(self.id, int | np.integer) or self.id < 0:
+            raise MapError(f"keyframe id must be a non-negative integer, got {self.id!r}")
+        self.id = int(self.id)
+        self.world_from_cam = check_pose(self.world_from_cam, name=f"keyframe {self.id} world_from_cam")
+        if self.depth is not None and self.depth.shape != self.image.shape:
+            raise GeometryError(f"keyframe {self.id}: depth shape {self.depth.shape} != image "
+                                f"shape {self.image.shape}")
+
+    @property
+    def position_world(self) -> Array:
+        """(3,) camera centre in the world frame."""
+        return self.world_from_cam[:3, 3]
+
+    def with_features(self, kind: str, features: Features) -> Keyframe:
+        """A shallow copy whose ``features[kind]`` is replaced (image and cache are shared)."""
+        new = dataclasses.replace(self, features={**self.features, kind: features})
+        new.cache = self.cache
+        return new

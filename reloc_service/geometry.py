@@ -1,0 +1,203 @@
+"""SE(3)/SO(3) helpers: 4x4 homogeneous poses, quaternions (x y z w, Hamilton), exp/log, errors.
+
+Poses are named after their frames: ``a_from_b`` maps points in frame b to frame a, and
+compose as ``a_from_c = a_from_b @ b_from_c``. The map convention is ``world_from_cam``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from .errors import GeometryError
+
+Array = npt.NDArray[np.float64]
+
+_ORTHO_TOL = 1e-6
+
+
+def check_rotation(rotation: npt.ArrayLike, *, name: str = "rotation", tol: float = _ORTHO_TOL) -> Array:
+    """Return ``rotation`` as float64 (3, 3) after checking it is finite, orthonormal, det +1."""
+    r = np.asarray(rotation, dtype=np.float64)
+    if r.shape != (3, 3):
+        raise GeometryError(f"{name}: expected a (3, 3) rotation matrix, got shape {r.shape}")
+    if not np.all(np.isfinite(r)):
+        raise GeometryError(f"{name}: rotation has non-finite entries")
+    err = np.abs(r @ r.T - np.eye(3)).max()
+    if err > tol or np.linalg.det(r) < 0:
+        raise GeometryError(f"{name}: not a proper rotation (|R R^T - I| = {err:.2e}, det = "
+                            f"{np.linalg.det(r):.3f}); expected orthonormal with det +1")
+    return r
+
+
+def check_pose(pose: npt.ArrayLike, *, name: str = "world_from_cam", tol: float = _ORTHO_TOL) -> Array:
+    """Return ``pose`` as float64 (4, 4) after checking finite values, a proper rotation and
+    a last row of ``[0, 0, 0, 1]``; raise :class:`GeometryError` naming ``name`` otherwise."""
+    t = np.asarray(pose, dtype=np.float64)
+    if t.shape != (4, 4):
+        raise GeometryError(f"{name}: expected a (4, 4) homogeneous pose, got shape {t.shape}")
+    if not np.all(np.isfinite(t)):
+        raise GeometryError(f"{name}: pose has non-finite entries")
+    if not np.allclose(t[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise GeometryError(f"{name}: last row must be [0 0 0 1], got {t[3].tolist()}")
+    check_rotation(t[:3, :3], name=name, tol=tol)
+    return t
+
+
+def check_points(points: npt.ArrayLike, *, name: str = "points", dim: int = 3) -> Array:
+    """Return ``points`` as float64 (N, dim), checking the shape (values may be NaN)."""
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != dim:
+        raise GeometryError(f"{name}: expected shape (N, {dim}), got {p.shape}")
+    return p
+
+
+def quat_xyzw_to_matrix(q_xyzw: npt.ArrayLike) -> Array:
+    """Unit quaternion (x, y, z, w), Hamilton convention, to a (3, 3) rotation matrix.
+
+    The quaternion is normalised; a zero or non-finite quaternion raises GeometryError."""
+    q = np.asarray(q_xyzw, dtype=np.float64)
+    if q.shape != (4,) or not np.all(np.isfinite(q)):
+        raise GeometryError(f"quaternion: expected 4 finite values x y z w, got {q!r}")
+    n = np.linalg.norm(q)
+    if n < 1e-12:
+        raise GeometryError("quaternion: zero norm")
+    if abs(n - 1.0) > 1e-3:
+        raise GeometryError(f"quaternion: expected unit norm, got {n:.6f}")
+    return Rotation.from_quat(q / n).as_matrix()
+
+
+def matrix_to_quat_xyzw(rotation: npt.ArrayLike) -> Array:
+    """(3, 3) rotation matrix to a unit quaternion (x, y, z, w) with w >= 0."""
+    q = Rotation.from_matrix(check_rotation(rotation, tol=1e-5)).as_quat()
+    return q if q[3] >= 0 else -q
+
+
+def pose_from_tq(t_xyz: npt.ArrayLike, q_xyzw: npt.ArrayLike) -> Array:
+    """Translation (3,) and quaternion (x y z w) to a (4, 4) pose ``a_from_b``."""
+    t = np.asarray(t_xyz, dtype=np.float64)
+    if t.shape != (3,) or not np.all(np.isfinite(t)):
+        raise GeometryError(f"translation: expected 3 finite values, got {t!r}")
+    out = np.eye(4)
+    out[:3, :3] = quat_xyzw_to_matrix(q_xyzw)
+    out[:3, 3] = t
+    return out
+
+
+def pose_to_tq(pose: npt.ArrayLike) -> tuple[Array, Array]:
+    """(4, 4) pose to (translation (3,), quaternion x y z w (4,))."""
+    p = np.asarray(pose, dtype=np.float64)
+    return p[:3, 3].copy(), matrix_to_quat_xyzw(p[:3, :3])
+
+
+def pose_from_tum(values: npt.ArrayLike) -> Array:
+    """``tx ty tz qx qy qz qw`` (7,) to a (4, 4) pose."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.shape != (7,):
+        raise GeometryError(f"pose: expected 7 values tx ty tz qx qy qz qw, got {v.shape}")
+    return pose_from_tq(v[:3], v[3:])
+
+
+def pose_to_tum(pose: npt.ArrayLike) -> Array:
+    """(4, 4) pose to ``tx ty tz qx qy qz qw`` (7,)."""
+    t, q = pose_to_tq(pose)
+    return np.concatenate([t, q])
+
+
+def invert(a_from_b: npt.ArrayLike) -> Array:
+    """Inverse of a rigid transform: returns ``b_from_a``."""
+    p = np.asarray(a_from_b, dtype=np.float64)
+    out = np.eye(4)
+    out[:3, :3] = p[:3, :3].T
+    out[:3, 3] = -p[:3, :3].T @ p[:3, 3]
+    return out
+
+
+def compose(a_from_b: npt.ArrayLike, b_from_c: npt.ArrayLike) -> Array:
+    """``a_from_c = a_from_b @ b_from_c``."""
+    return np.asarray(a_from_b, dtype=np.float64) @ np.asarray(b_from_c, dtype=np.float64)
+
+
+def transform_points(a_from_b: npt.ArrayLike, points_b: npt.ArrayLike) -> Array:
+    """Map (N, 3) points from frame b to frame a."""
+    p = np.asarray(a_from_b, dtype=np.float64)
+    return check_points(points_b) @ p[:3, :3].T + p[:3, 3]
+
+
+def skew(v: npt.ArrayLike) -> Array:
+    """(3,) vector to its (3, 3) cross-product matrix."""
+    x, y, z = np.asarray(v, dtype=np.float64)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def so3_exp(omega: npt.ArrayLike) -> Array:
+    """Rotation vector (3,) (axis * angle, radians) to a (3, 3) rotation matrix."""
+    return Rotation.from_rotvec(np.asarray(omega, dtype=np.float64)).as_matrix()
+
+
+def so3_log(rotation: npt.ArrayLike) -> Array:
+    """(3, 3) rotation matrix to its rotation vector (3,), angle in [0, pi]."""
+    return Rotation.from_matrix(np.asarray(rotation, dtype=np.float64)).as_rotvec()
+
+
+def _left_jacobian(omega: Array) -> Array:
+    theta = np.linalg.norm(omega)
+    k = skew(omega)
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * k
+    return (np.eye(3) + (1 - np.cos(theta)) / theta**2 * k
+            + (theta - np.sin(theta)) / theta**3 * (k @ k))
+
+
+def se3_exp(xi: npt.ArrayLike) -> Array:
+    """Twist ``xi = (rho, omega)`` (6,) to a (4, 4) pose (translation part first)."""
+    v = np.asarray(xi, dtype=np.float64)
+    if v.shape != (6,):
+        raise GeometryError(f"twist: expected shape (6,), got {v.shape}")
+    out = np.eye(4)
+    out[:3, :3] = so3_exp(v[3:])
+    out[:3, 3] = _left_jacobian(v[3:]) @ v[:3]
+    return out
+
+
+def se3_log(pose: npt.ArrayLike) -> Array:
+    """(4, 4) pose to its twist ``(rho, omega)`` (6,); inverse of :func:`se3_exp`."""
+    p = np.asarray(pose, dtype=np.float64)
+    omega = so3_log(p[:3, :3])
+    rho = np.linalg.solve(_left_jacobian(omega), p[:3, 3])
+    return np.concatenate([rho, omega])
+
+
+def rotation_angle(rotation: npt.ArrayLike) -> float:
+    """Angle (radians, in [0, pi]) of a rotation matrix, robust near 0 and pi."""
+    r = np.asarray(rotation, dtype=np.float64)
+    return float(np.linalg.norm(so3_log(r)))
+
+
+def pose_error(world_from_cam_est: npt.ArrayLike, world_from_cam_gt: npt.ArrayLike) -> tuple[float, float]:
+    """Translation error (metres, between camera centres) and rotation error (radians)."""
+    est = np.asarray(world_from_cam_est, dtype=np.float64)
+    gt = np.asarray(world_from_cam_gt, dtype=np.float64)
+    dt = float(np.linalg.norm(est[:3, 3] - gt[:3, 3]))
+    dr = rotation_angle(est[:3, :3].T @ gt[:3, :3])
+    return dt, dr
+
+
+def look_at(eye: npt.ArrayLike, target: npt.ArrayLike, up: npt.ArrayLike = (0.0, 0.0, 1.0)) -> Array:
+    """``world_from_cam`` of a camera at ``eye`` looking at ``target`` (camera x right, y down,
+    z forward) with the image's up direction as close to ``up`` as possible."""
+    eye_w = np.asarray(eye, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - eye_w
+    if np.linalg.norm(z) < 1e-12:
+        raise GeometryError("look_at: eye and target coincide")
+    z /= np.linalg.norm(z)
+    x = np.cross(z, np.asarray(up, dtype=np.float64))
+    if np.linalg.norm(x) < 1e-9:
+        raise GeometryError("look_at: viewing direction is parallel to up")
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    out = np.eye(4)
+    out[:3, :3] = np.column_stack([x, y, z])
+    out[:3, 3] = eye_w
+    return out

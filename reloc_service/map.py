@@ -1,0 +1,239 @@
+"""The keyframe map: keyframes, landmarks with their observations, and a version counter.
+
+Writers serialise on a lock and publish a new immutable :class:`MapState` (copy on write);
+readers call :meth:`KeyframeMap.snapshot` once and see one consistent map for as long as they
+hold it, however many keyframes arrive meanwhile.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+
+import numpy as np
+import numpy.typing as npt
+
+from .errors import MapError
+from .frame import Features, Keyframe
+
+Array = npt.NDArray[np.float64]
+
+#: An observation: (keyframe id, feature kind, keypoint index in that keyframe's features).
+Observation = tuple[int, str, int]
+
+
+@dataclass(frozen=True)
+class Landmark:
+    """A 3D point of the map and the keypoints that observe it."""
+
+    id: int
+    point_world: Array
+    observations: frozenset[Observation]
+
+
+@dataclass(frozen=True)
+class MapState:
+    """An immutable view of the map at one version."""
+
+    keyframes: Mapping[int, Keyframe] = field(default_factory=lambda: MappingProxyType({}))
+    landmarks: Mapping[int, Landmark] = field(default_factory=lambda: MappingProxyType({}))
+    version: int = 0
+    next_landmark_id: int = 0
+
+    def keyframe(self, kf_id: int) -> Keyframe:
+        """The keyframe ``kf_id``; MapError if it is not in the map."""
+        try:
+            return self.keyframes[kf_id]
+        except KeyError:
+            raise MapError(f"no keyframe {kf_id} in the map") from None
+
+    def keyframe_ids(self) -> list[int]:
+        """Keyframe ids in ascending order."""
+        return sorted(self.keyframes)
+
+    def positions_world(self, kf_ids: Iterable[int] | None = None) -> Array:
+        """(K, 3) camera centres of ``kf_ids`` (default: all, ascending id)."""
+        ids = self.keyframe_ids() if kf_ids is None else list(kf_ids)
+        if not ids:
+            return np.zeros((0, 3))
+        return np.stack([self.keyframes[i].world_from_cam[:3, 3] for i in ids])
+
+    def landmark_points(self, landmark_ids: npt.ArrayLike) -> Array:
+        """(L, 3) world points of ``landmark_ids``."""
+        ids = np.asarray(landmark_ids, dtype=np.int64).ravel()
+        if len(ids) == 0:
+            return np.zeros((0, 3))
+        return np.stack([self.landmarks[int(i)].point_world for i in ids])
+
+    def landmark_count(self, kind: str | None = None) -> int:
+        """Number of landmarks (observed through ``kind`` features, if given)."""
+        if kind is None:
+            return len(self.landmarks)
+        return sum(1 for lm in self.landmarks.values()
+                   if any(o[1] == kind for o in lm.observations))
+
+
+class KeyframeMap:
+    """A thread-safe, versioned keyframe map (copy on write; see module docstring)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.RLock()
+        self._state = MapState()
+
+    # -- readers -------------------------------------------------------------------------------
+    def snapshot(self) -> MapState:
+        """The current immutable state; cheap (no copy)."""
+        return self._state
+
+    @property
+    def version(self) -> int:
+        return self._state.version
+
+    def __len__(self) -> int:
+        return len(self._state.keyframes)
+
+    def __contains__(self, kf_id: object) -> bool:
+        return kf_id in self._state.keyframes
+
+    # -- writers -------------------------------------------------------------------------------
+    def add_keyframe(self, keyframe: Keyframe) -> MapState:
+        """Add ``keyframe``, or replace the keyframe with the same id (its old observations and
+        the landmarks left without any are removed first). Keypoints that already carry a
+        landmark id and a 3D point (as SVO sends them) register that landmark: an id unknown to
+        the map creates it, a known one gains an observation."""
+        with self._lock:
+            keyframes = dict(self._state.keyframes)
+            landmarks = dict(self._state.landmarks)
+            if keyframe.id in keyframes:
+                _drop_observations(keyframes.pop(keyframe.id), landmarks)
+            keyframes[keyframe.id] = keyframe
+            next_id = self._state.next_landmark_id
+            for kind, feats in keyframe.features.items():
+                next_id = max(next_id, _register_given_landmarks(keyframe.id, kind, feats, landmarks))
+            return self._publish(keyframes, landmarks, next_id)
+
+    def remove_keyframe(self, kf_id: int) -> MapState:
+        """Remove keyframe ``kf_id`` and its observations; landmarks left with no observation
+        are removed. MapError if the id is unknown."""
+        with self._lock:
+            keyframes = dict(self._state.keyframes)
+            if kf_id not in keyframes:
+                raise MapError(f"cannot remove keyframe {kf_id}: not in the map")
+            landmarks = dict(self._state.landmarks)
+            _drop_observations(keyframes.pop(kf_id), landmarks)
+            return self._publish(keyframes, landmarks, self._state.next_landmark_id)
+
+    def add_landmarks(self, kind: str, points_world: npt.ArrayLike,
+                      observations: Iterable[Iterable[tuple[int, int]]]) -> list[int]:
+        """Create landmarks at ``points_world`` (L, 3), each observed by the given
+        ``(keyframe id, keypoint index)`` pairs of features ``kind``; the keyframes' features are
+        updated to point at them. Returns the new landmark ids. A keypoint that already has a
+        landmark keeps it (that observation is skipped)."""
+        pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        obs_lists = [list(o) for o in observations]
+        if len(obs_lists) != len(pts):
+            raise MapError(f"add_landmarks: {len(pts)} points but {len(obs_lists)} observation lists")
+        with self._lock:
+            keyframes = dict(self._state.keyframes)
+            landmarks = dict(self._state.landmarks)
+            next_id = self._state.next_landmark_id
+            updates: dict[int, list[tuple[int, int, Array]]] = {}
+            new_ids: list[int] = []
+            taken: set[tuple[int, int]] = set()
+            for point, obs in zip(pts, obs_lists, strict=True):
+                fresh = [(k, i) for k, i in obs if k in keyframes and (k, i) not in taken
+                         and keyframes[k].features[kind].landmark_ids[i] < 0]
+                taken.update(fresh)
+                if not fresh:
+                    continue
+                lm_id = next_id
+                next_id += 1
+                landmarks[lm_id] = Landmark(lm_id, point.copy(),
+                                            frozenset((k, kind, int(i)) for k, i in fresh))
+                for k, i in fresh:
+                    updates.setdefault(k, []).append((int(i), lm_id, point))
+                new_ids.append(lm_id)
+            _apply_updates(keyframes, kind, updates)
+            self._publish(keyframes, landmarks, next_id)
+            return new_ids
+
+    def add_observations(self, kind: str, triples: Iterable[tuple[int, int, int]]) -> int:
+        """Attach keypoints to existing landmarks: ``(landmark id, keyframe id, keypoint index)``.
+        Keypoints that already have a landmark, unknown landmarks or keyframes are skipped.
+        Returns the number of observations added."""
+        with self._lock:
+            keyframes = dict(self._state.keyframes)
+            landmarks = dict(self._state.landmarks)
+            updates: dict[int, list[tuple[int, int, Array]]] = {}
+            taken: set[tuple[int, int]] = set()
+            for lm_id, k, i in triples:
+                if lm_id not in landmarks or k not in keyframes or (k, i) in taken:
+                    continue
+                if keyframes[k].features[kind].landmark_ids[i] >= 0:
+                    continue
+                taken.add((k, i))
+                lm = landmarks[lm_id]
+                landmarks[lm_id] = Landmark(lm.id, lm.point_world,
+                                            lm.observations | {(k, kind, int(i))})
+                updates.setdefault(k, []).append((int(i), lm_id, lm.point_world))
+            _apply_updates(keyframes, kind, updates)
+            self._publish(keyframes, landmarks, self._state.next_landmark_id)
+            return len(taken)
+
+    def replace_state(self, state: MapState) -> None:
+        """Install a whole state (used when loading a saved map)."""
+        with self._lock:
+            self._state = state
+
+    def _publish(self, keyframes: dict[int, Keyframe], landmarks: dict[int, Landmark],
+                 next_landmark_id: int) -> MapState:
+        self._state = MapState(MappingProxyType(keyframes), MappingProxyType(landmarks),
+                               self._state.version + 1, next_landmark_id)
+        return self._state
+
+
+def _drop_observations(keyframe: Keyframe, landmarks: dict[int, Landmark]) -> None:
+    """Remove ``keyframe``'s observations from ``landmarks`` (in place); drop emptied ones."""
+    for kind, feats in keyframe.features.items():
+        for idx in np.flatnonzero(feats.landmark_ids >= 0):
+            lm_id = int(feats.landmark_ids[idx])
+            lm = landmarks.get(lm_id)
+            if lm is None:
+                continue
+            remaining = lm.observations - {(keyframe.id, kind, int(idx))}
+            if remaining:
+                landmarks[lm_id] = Landmark(lm.id, lm.point_world, remaining)
+            else:
+                del landmarks[lm_id]
+
+
+def _register_given_landmarks(kf_id: int, kind: str, feats: Features,
+                              landmarks: dict[int, Landmark]) -> int:
+    """Register landmarks that arrive with a keyframe; returns the next free landmark id."""
+    next_id = 0
+    for idx in np.flatnonzero(feats.landmark_ids >= 0):
+        lm_id = int(feats.landmark_ids[idx])
+        obs = (kf_id, kind, int(idx))
+        lm = landmarks.get(lm_id)
+        if lm is None:
+            point = feats.points_world[idx]
+            if not np.all(np.isfinite(point)):
+                raise MapError(f"keyframe {kf_id}: landmark {lm_id} has no finite 3D point")
+            landmarks[lm_id] = Landmark(lm_id, point.copy(), frozenset({obs}))
+        else:
+            landmarks[lm_id] = Landmark(lm.id, lm.point_world, lm.observations | {obs})
+        next_id = max(next_id, lm_id + 1)
+    return next_id
+
+
+def _apply_updates(keyframes: dict[int, Keyframe], kind: str,
+                   updates: dict[int, list[tuple[int, int, Array]]]) -> None:
+    """Write landmark ids and points into the keyframes' features (new keyframe objects)."""
+    for k, rows in updates.items():
+        idx = [r[0] for r in rows]
+        ids = [r[1] for r in rows]
+        pts = np.stack([r[2] for r in rows])
+        kf = keyframes[k]
+        keyframes[k] = kf.with_features(kind, kf.features[kind].with_landmarks(idx, ids, pts))

@@ -1,0 +1,81 @@
+"""Place finders: rank the map's keyframes by how likely the query was taken near them."""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from ..frame import Frame, Keyframe
+from ..map import KeyframeMap
+from ..plugins import Registry, make_conf
+
+PLACE_FINDERS = Registry("place finder")
+register = PLACE_FINDERS.register
+
+
+@dataclass(frozen=True)
+class PlaceCandidate:
+    """A keyframe proposed for a query; ``score`` is higher for more similar (any scale)."""
+
+    keyframe_id: int
+    score: float
+
+
+class PlaceFinder(abc.ABC):
+    """Ranks map keyframes by appearance similarity to a query frame (thesis 4, figure 4.2)."""
+
+    name: ClassVar[str]
+    #: Only for evaluation (needs ground truth); refused by ``create_place_finder`` otherwise.
+    evaluation_only: ClassVar[bool] = False
+    #: Feature kinds keyframes must carry for this place finder.
+    required_features: ClassVar[frozenset[str]] = frozenset()
+
+    @dataclass(frozen=True)
+    class Conf:
+        pass
+
+    def __init__(self, kmap: KeyframeMap, conf: Any) -> None:
+        self.map = kmap
+        self.conf = conf
+
+    @abc.abstractmethod
+    def add_keyframe(self, keyframe: Keyframe) -> None:
+        """Index ``keyframe`` (already in the map)."""
+
+    @abc.abstractmethod
+    def remove_keyframe(self, keyframe: Keyframe) -> None:
+        """Forget ``keyframe`` (already removed from the map)."""
+
+    def train(self) -> None:
+        """Rebuild whatever model needs the whole map (default: nothing to do)."""
+
+    @property
+    def trained(self) -> bool:
+        return True
+
+    @abc.abstractmethod
+    def find_places(self, query: Frame, k: int, *, allowed: set[int] | None = None
+                    ) -> list[PlaceCandidate]:
+        """Up to ``k`` candidates, best first; ``[]`` on an empty map. ``allowed`` restricts
+        the candidates to those keyframe ids (a prior pose with a radius)."""
+
+    def state(self) -> dict[str, Any] | None:
+        """Trained model to persist with the map (msgpack-able), or None."""
+        return None
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        """Restore what :meth:`state` returned."""
+
+
+def create_place_finder(options: dict[str, Any], kmap: KeyframeMap, *, evaluation: bool = False
+                        ) -> PlaceFinder:
+    """``create_place_finder({"name": "sbi", **options}, kmap)``."""
+    from ..errors import ConfigError
+
+    opts = dict(options)
+    name = opts.pop("name", None)
+    cls = PLACE_FINDERS.lookup(str(name))
+    if cls.evaluation_only and not evaluation:
+        raise ConfigError(f"place finder {name!r} uses ground truth and is for evaluation only")
+    return cls(kmap, make_conf(cls.Conf, opts, owner=f"place finder {name}"))

@@ -1,0 +1,71 @@
+"""Pose finders: turn place candidates into a 6-DoF ``world_from_cam`` estimate."""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+import numpy.typing as npt
+
+from ..frame import Frame
+from ..map import MapState
+from ..place.base import PlaceCandidate
+from ..plugins import Registry, make_conf
+
+Array = npt.NDArray[np.float64]
+
+POSE_FINDERS = Registry("pose finder")
+register = POSE_FINDERS.register
+
+
+@dataclass
+class PoseEstimate:
+    """A pose hypothesis and the evidence for it, to be judged by the verification.
+
+    Geometric evidence (from 2D-3D correspondences) is ``num_matches``, ``inliers``,
+    ``reprojection_rms_px`` and ``covariance`` (6x6, twist order (rho, omega), right
+    perturbation ``world_from_cam @ exp(xi)``, metres and radians). Photometric evidence (from
+    image alignment) is ``ncc``: zero-mean normalised cross-correlation of aligned thumbnails.
+    Unknown evidence stays None.
+    """
+
+    world_from_cam: Array
+    keyframe_ids: list[int]
+    num_matches: int = 0
+    inliers: int | None = None
+    reprojection_rms_px: float | None = None
+    covariance: Array | None = None
+    ncc: float | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+    #: (N, 2) query pixels and (N, 3) world points of the inliers, kept for diagnostics/agreement.
+    inlier_px: Array | None = None
+    inlier_points_world: Array | None = None
+
+
+class PoseFinder(abc.ABC):
+    """Finds the query's pose from the place finder's candidates (thesis 4, figure 4.3)."""
+
+    name: ClassVar[str]
+    required_features: ClassVar[frozenset[str]] = frozenset()
+
+    @dataclass(frozen=True)
+    class Conf:
+        pass
+
+    def __init__(self, conf: Any) -> None:
+        self.conf = conf
+
+    @abc.abstractmethod
+    def find_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
+                  ) -> PoseEstimate | None:
+        """Best estimate from ``candidates`` (best first) in map ``state``; None if none."""
+
+
+def create_pose_finder(options: dict[str, Any]) -> PoseFinder:
+    """``create_pose_finder({"name": "p3p", **options})``."""
+    opts = dict(options)
+    name = opts.pop("name", None)
+    cls = POSE_FINDERS.lookup(str(name))
+    return cls(make_conf(cls.Conf, opts, owner=f"pose finder {name}"))

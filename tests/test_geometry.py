@@ -1,0 +1,81 @@
+import numpy as np
+import pytest
+
+from reloc_service import geometry as g
+from reloc_service.errors import GeometryError
+
+
+def random_pose(rng):
+    return g.se3_exp(np.concatenate([rng.normal(size=3), rng.normal(size=3)]))
+
+
+def test_quaternion_round_trip_and_convention():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        q = q if q[3] >= 0 else -q
+        assert np.allclose(g.matrix_to_quat_xyzw(g.quat_xyzw_to_matrix(q)), q, atol=1e-12)
+    # Hamilton x y z w: 90 deg about z maps x to y.
+    q_z90 = [0.0, 0.0, np.sin(np.pi / 4), np.cos(np.pi / 4)]
+    assert np.allclose(g.quat_xyzw_to_matrix(q_z90) @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+
+
+def test_compose_invert_transform():
+    rng = np.random.default_rng(1)
+    a_from_b, b_from_c = random_pose(rng), random_pose(rng)
+    points_c = rng.normal(size=(10, 3))
+    a_from_c = g.compose(a_from_b, b_from_c)
+    assert np.allclose(g.transform_points(a_from_c, points_c),
+                       g.transform_points(a_from_b, g.transform_points(b_from_c, points_c)))
+    assert np.allclose(g.compose(a_from_b, g.invert(a_from_b)), np.eye(4), atol=1e-12)
+
+
+def test_exp_log_round_trip():
+    rng = np.random.default_rng(2)
+    for _ in range(50):
+        xi = np.concatenate([rng.normal(size=3), rng.uniform(-3, 3, size=3) / np.sqrt(3)])
+        assert np.allclose(g.se3_log(g.se3_exp(xi)), xi, atol=1e-9)
+    assert np.allclose(g.se3_exp(np.zeros(6)), np.eye(4))
+
+
+def test_pose_error():
+    rng = np.random.default_rng(3)
+    pose = random_pose(rng)
+    delta = g.se3_exp([0.1, 0.0, 0.0, 0.0, 0.0, np.deg2rad(5)])
+    dt, dr = g.pose_error(pose @ delta, pose)
+    assert dr == pytest.approx(np.deg2rad(5), abs=1e-9)
+    assert dt == pytest.approx(np.linalg.norm((pose @ delta)[:3, 3] - pose[:3, 3]))
+
+
+def test_tum_round_trip():
+    rng = np.random.default_rng(4)
+    pose = random_pose(rng)
+    assert np.allclose(g.pose_from_tum(g.pose_to_tum(pose)), pose, atol=1e-12)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (np.eye(3), "expected a \\(4, 4\\)"),
+    (np.full((4, 4), np.nan), "non-finite"),
+    (np.diag([1.0, 1.0, -1.0, 1.0]), "not a proper rotation"),
+    (np.diag([2.0, 1.0, 1.0, 1.0]), "not a proper rotation"),
+    (np.vstack([np.eye(4)[:3], [0, 0, 1, 1]]), "last row"),
+])
+def test_check_pose_rejects(bad, match):
+    with pytest.raises(GeometryError, match=match):
+        g.check_pose(bad)
+
+
+def test_quaternion_rejects_non_unit_and_nan():
+    with pytest.raises(GeometryError):
+        g.quat_xyzw_to_matrix([0, 0, 0, 2.0])
+    with pytest.raises(GeometryError):
+        g.quat_xyzw_to_matrix([0, 0, np.nan, 1.0])
+
+
+def test_look_at_axes():
+    world_from_cam = g.look_at([0, 0, 1], [2, 0, 1], up=[0, 0, 1])
+    # camera z (forward) along world +x, camera y (down) along world -z
+    assert np.allclose(world_from_cam[:3, 2], [1, 0, 0])
+    assert np.allclose(world_from_cam[:3, 1], [0, 0, -1])
+    g.check_pose(world_from_cam)

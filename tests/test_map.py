@@ -1,0 +1,119 @@
+import threading
+
+import numpy as np
+import pytest
+
+from reloc_service.cameras import PinholeCamera
+from reloc_service.errors import GeometryError, MapError
+from reloc_service.frame import Features, Frame, Keyframe
+from reloc_service.geometry import se3_exp
+from reloc_service.map import KeyframeMap
+
+CAM = PinholeCamera(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5)
+
+
+def make_keyframe(kf_id, n=10, landmark_ids=None, seed=0):
+    rng = np.random.default_rng(seed + kf_id)
+    image = rng.integers(0, 255, size=(48, 64), dtype=np.uint8)
+    feats = Features.create("sift", rng.uniform(0, 60, size=(n, 2)),
+                            rng.normal(size=(n, 128)).astype(np.float32))
+    if landmark_ids is not None:
+        pts = np.where(np.asarray(landmark_ids)[:, None] >= 0, rng.normal(size=(n, 3)), np.nan)
+        feats = Features.create("sift", feats.keypoints_px, feats.descriptors,
+                                landmark_ids=landmark_ids, points_world=pts)
+    pose = se3_exp(np.concatenate([rng.normal(size=3), 0.1 * rng.normal(size=3)]))
+    return Keyframe(image=image, camera=CAM, features={"sift": feats}, id=kf_id, world_from_cam=pose)
+
+
+def test_add_remove_and_version():
+    kmap = KeyframeMap()
+    assert kmap.version == 0
+    kmap.add_keyframe(make_keyframe(0))
+    kmap.add_keyframe(make_keyframe(1))
+    assert len(kmap) == 2 and kmap.version == 2
+    kmap.remove_keyframe(0)
+    assert 0 not in kmap and kmap.version == 3
+    with pytest.raises(MapError, match="not in the map"):
+        kmap.remove_keyframe(0)
+
+
+def test_landmarks_follow_observations():
+    kmap = KeyframeMap()
+    kmap.add_keyframe(make_keyframe(0))
+    kmap.add_keyframe(make_keyframe(1))
+    ids = kmap.add_landmarks("sift", np.zeros((2, 3)), [[(0, 1), (1, 2)], [(0, 3)]])
+    state = kmap.snapshot()
+    assert len(state.landmarks) == 2
+    assert state.keyframe(0).features["sift"].landmark_ids[1] == ids[0]
+    assert state.keyframe(1).features["sift"].landmark_ids[2] == ids[0]
+    # Removing keyframe 0 keeps landmark 0 (still seen by 1) and drops landmark 1.
+    kmap.remove_keyframe(0)
+    state = kmap.snapshot()
+    assert set(state.landmarks) == {ids[0]}
+    assert state.landmarks[ids[0]].observations == frozenset({(1, "sift", 2)})
+
+
+def test_given_landmarks_and_replace():
+    kmap = KeyframeMap()
+    lm = np.full(10, -1)
+    lm[:3] = [7, 8, 9]
+    kmap.add_keyframe(make_keyframe(0, landmark_ids=lm))
+    assert set(kmap.snapshot().landmarks) == {7, 8, 9}
+    # Replacing keyframe 0 with one without landmarks drops them.
+    kmap.add_keyframe(make_keyframe(0))
+    assert len(kmap.snapshot().landmarks) == 0
+    # New landmarks never reuse a given id.
+    kmap.add_keyframe(make_keyframe(1, landmark_ids=lm))
+    new = kmap.add_landmarks("sift", np.zeros((1, 3)), [[(0, 5)]])
+    assert new[0] > 9
+
+
+def test_add_observations_extends_tracks():
+    kmap = KeyframeMap()
+    kmap.add_keyframe(make_keyframe(0))
+    kmap.add_keyframe(make_keyframe(1))
+    (lm,) = kmap.add_landmarks("sift", [[1.0, 2.0, 3.0]], [[(0, 0)]])
+    assert kmap.add_observations("sift", [(lm, 1, 4), (lm, 1, 4), (999, 1, 5)]) == 1
+    f1 = kmap.snapshot().keyframe(1).features["sift"]
+    assert f1.landmark_ids[4] == lm and np.allclose(f1.points_world[4], [1, 2, 3])
+
+
+def test_snapshot_is_consistent_while_writing():
+    kmap = KeyframeMap()
+    kmap.add_keyframe(make_keyframe(0))
+    snap = kmap.snapshot()
+    stop = threading.Event()
+
+    def writer():
+        i = 1
+        while not stop.is_set() and i < 200:
+            kmap.add_keyframe(make_keyframe(i))
+            i += 1
+
+    t = threading.Thread(target=writer)
+    t.start()
+    for _ in range(200):
+        s = kmap.snapshot()
+        assert len(s.keyframes) == s.version  # one keyframe per version in this test
+    stop.set()
+    t.join()
+    assert list(snap.keyframes) == [0] and snap.version == 1
+
+
+def test_frame_validation():
+    with pytest.raises(GeometryError, match="does not match"):
+        Frame(image=np.zeros((10, 10), np.uint8), camera=CAM)
+    with pytest.raises(GeometryError, match="uint8"):
+        Frame(image=np.zeros((48, 64), np.float32), camera=CAM)
+    with pytest.raises(MapError, match="non-negative"):
+        Keyframe(image=np.zeros((48, 64), np.uint8), camera=CAM, id=-3)
+    bad = np.eye(4)
+    bad[0, 0] = np.nan
+    with pytest.raises(GeometryError, match="non-finite"):
+        Keyframe(image=np.zeros((48, 64), np.uint8), camera=CAM, id=1, world_from_cam=bad)
+
+
+def test_small_blurry_image_is_zero_mean():
+    f = Frame(image=np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8), camera=CAM)
+    sbi = f.small_blurry_image()
+    assert sbi.shape == (30, 40) and abs(float(sbi.mean())) < 1e-3
