@@ -84,24 +84,38 @@ def match_ratio(desc_query: npt.NDArray, desc_train: npt.NDArray, *, ratio: floa
     if len(desc_query) == 0 or len(desc_train) < 2:
         empty = np.zeros(0, np.int64)
         return empty, empty, np.zeros(0, np.float32)
-    if desc_query.dtype == np.uint8:
-        dist, nidx = cv2.batchDistance(desc_query, desc_train, cv2.CV_32S,
-                                       normType=cv2.NORM_HAMMING, K=2)
-        dist = dist.astype(np.float32)
+    binary = desc_query.dtype == np.uint8
+    if binary:  # on 0/1 vectors the squared L2 distance is exactly the Hamming distance
+        a = np.unpackbits(desc_query, axis=1).astype(np.float32)
+        b = np.unpackbits(desc_train, axis=1).astype(np.float32)
     else:
-        dist, nidx = _knn2_l2(desc_query.astype(np.float32), desc_train.astype(np.float32))
+        a, b = desc_query.astype(np.float32), desc_train.astype(np.float32)
+    d2, nidx = _knn2_squared(a, b)
+    dist = d2 if binary else np.sqrt(d2)
     keep = dist[:, 0] < ratio * dist[:, 1]
     q = np.flatnonzero(keep)
-    return q.astype(np.int64), nidx[keep, 0].astype(np.int64), dist[keep, 0]
+    return q.astype(np.int64), nidx[keep, 0].astype(np.int64), dist[keep, 0].astype(np.float32)
 
 
-def _knn2_l2(a: npt.NDArray[np.float32], b: npt.NDArray[np.float32]
-             ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
-    """Two nearest neighbours by L2 through one matrix product (|a|^2 + |b|^2 - 2 a.b)."""
-    d2 = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * (a @ b.T)
-    idx = np.argpartition(d2, 1, axis=1)[:, :2]
-    two = np.take_along_axis(d2, idx, axis=1)
-    order = np.argsort(two, axis=1)
-    idx = np.take_along_axis(idx, order, axis=1)
-    two = np.sqrt(np.maximum(np.take_along_axis(two, order, axis=1), 0.0))
-    return two.astype(np.float32), idx.astype(np.int64)
+def _knn2_squared(a: npt.NDArray[np.float32], b: npt.NDArray[np.float32], *,
+                  chunk_elems: int = 1 << 22
+                  ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
+    """Two nearest neighbours by squared L2: one BLAS product (|a|^2 + |b|^2 - 2 a.b), then two
+    argmin passes (cheaper than argpartition); query rows in chunks to bound memory."""
+    bb = (b * b).sum(1)
+    out_d = np.empty((len(a), 2), np.float32)
+    out_i = np.empty((len(a), 2), np.int64)
+    step = max(1, chunk_elems // len(b))
+    for s in range(0, len(a), step):
+        g = a[s:s + step] @ b.T
+        g *= -2.0
+        g += bb
+        rows = np.arange(len(g))
+        i1 = g.argmin(1)
+        d1 = g[rows, i1].copy()
+        g[rows, i1] = np.inf
+        i2 = g.argmin(1)
+        out_d[s:s + step, 0], out_d[s:s + step, 1] = d1, g[rows, i2]
+        out_i[s:s + step, 0], out_i[s:s + step, 1] = i1, i2
+    out_d += (a * a).sum(1)[:, None]
+    return np.maximum(out_d, 0.0), out_i

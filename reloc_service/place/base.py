@@ -28,8 +28,8 @@ class PlaceFinder(abc.ABC):
     name: ClassVar[str]
     #: Only for evaluation (needs ground truth); refused by ``create_place_finder`` otherwise.
     evaluation_only: ClassVar[bool] = False
-    #: Feature kinds keyframes must carry for this place finder.
-    required_features: ClassVar[frozenset[str]] = frozenset()
+    #: Feature kinds keyframes must carry (an instance may set its own from its conf).
+    required_features: frozenset[str] = frozenset()
 
     @dataclass(frozen=True)
     class Conf:

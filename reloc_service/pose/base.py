@@ -48,7 +48,11 @@ class PoseFinder(abc.ABC):
     """Finds the query's pose from the place finder's candidates (thesis 4, figure 4.3)."""
 
     name: ClassVar[str]
-    required_features: ClassVar[frozenset[str]] = frozenset()
+    #: Feature kinds keyframes must carry (an instance may set its own from its conf).
+    required_features: frozenset[str] = frozenset()
+
+    #: True if the finder uses all candidates jointly (landmarks pooled), False if one at a time.
+    pools_candidates: ClassVar[bool] = False
 
     @dataclass(frozen=True)
     class Conf:

@@ -84,8 +84,9 @@ class VerifyConf:
     max_rms_px: float = 2.5
     #: Largest 1-sigma position uncertainty (from the covariance) accepted, metres.
     max_position_sigma_m: float = 0.2
-    #: Smallest normalised cross-correlation accepted for photometric (ESM, none) estimates.
-    min_ncc: float = 0.6
+    #: Smallest normalised cross-correlation accepted for photometric (ESM, none) estimates:
+    #: aligned thumbnails of unrelated photographs reach up to ~0.8, correct alignments >= 0.95.
+    min_ncc: float = 0.85
 
 
 def verify(estimate: PoseEstimate | None, conf: VerifyConf) -> tuple[bool, str, float]:

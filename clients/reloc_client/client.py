@@ -1,0 +1,497 @@
+"""RelocClient: talk to a reloc service over Zenoh (keyframes in, poses out).
+
+Failures are exceptions: :class:`ServiceError` (the service refused, with an
+:class:`ErrorCode`), :class:`ServiceBusy` (its queue is full: retry later; a subclass of
+ServiceError), :class:`NoReplyError` (nothing answered in time; a ``TimeoutError``), and
+:class:`ProtocolError` for arguments that cannot be encoded or replies that do not decode.
+"Not relocalized" is not a failure: it is a :class:`RelocResult` with status NOT_RELOCALIZED.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import logging
+import os
+import queue
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import zenoh
+
+from . import protocol as wire
+from .protocol import ErrorCode, ProtocolError
+
+Array = npt.NDArray[np.float64]
+ImageLike = wire.WireImage | bytes | bytearray | str | os.PathLike[str] | npt.NDArray[Any]
+PoseLike = wire.WirePose | npt.ArrayLike | tuple[Sequence[float], Sequence[float]]
+CameraLike = wire.WireCamera | Mapping[str, Any] | Any  # or any object with .to_dict()
+
+log = logging.getLogger(__name__)
+
+
+class ServiceError(RuntimeError):
+    """The service answered with an error reply: ``code`` and the service's ``message``."""
+
+    def __init__(self, code: ErrorCode, message: str) -> None:
+        super().__init__(f"{ErrorCode(code).value}: {message}")
+        self.code = ErrorCode(code)
+        self.message = message
+
+
+class ServiceBusy(ServiceError):
+    """The service is at capacity (status ``busy`` or error ``BUSY``); retry later."""
+
+
+class NoReplyError(TimeoutError):
+    """No service answered (none serves the map, or the reply did not come in time)."""
+
+
+class RelocStatus(enum.Enum):
+    """Outcome of a relocalization query that the service answered."""
+
+    OK = "ok"
+    NOT_RELOCALIZED = "not_relocalized"
+
+
+@dataclass(frozen=True, eq=False)
+class RelocResult:
+    """A relocalize reply as numpy: ``world_from_cam`` (4, 4) float64 (None unless OK),
+    ``covariance`` (6, 6) (twist (rho, omega), right perturbation, metres and radians) or None,
+    ``timings`` in seconds per stage, ``round_trip_s`` measured by the client."""
+
+    status: RelocStatus
+    method: str
+    world_from_cam: Array | None = None
+    reason: str = ""
+    confidence: float = 0.0
+    inliers: int = 0
+    num_matches: int = 0
+    reprojection_rms_px: float | None = None
+    covariance: Array | None = None
+    matched_keyframe_ids: list[int] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    map_version: int = 0
+    hypotheses: list[RelocResult] = field(default_factory=list)
+    request_id: str | None = None
+    timestamp: float | None = None
+    round_trip_s: float | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status is RelocStatus.OK
+
+    @classmethod
+    def from_reply(cls, reply: wire.RelocalizeReply, round_trip_s: float | None = None
+                   ) -> RelocResult:
+        """Convert a decoded reply; raise ServiceBusy if its status is ``busy``."""
+        if reply.status is wire.ReplyStatus.BUSY:
+            raise ServiceBusy(ErrorCode.BUSY, reply.reason or "service busy; retry later")
+        return cls(
+            status=RelocStatus(reply.status.value), method=reply.method,
+            world_from_cam=None if reply.world_from_cam is None else reply.world_from_cam.matrix(),
+            reason=reply.reason, confidence=reply.confidence, inliers=reply.inliers,
+            num_matches=reply.num_matches, reprojection_rms_px=reply.reprojection_rms_px,
+            covariance=_covariance(reply.covariance),
+            matched_keyframe_ids=list(reply.matched_keyframe_ids), timings=dict(reply.timings),
+            map_version=reply.map_version,
+            hypotheses=[cls._from_hypothesis(h, reply.map_version) for h in reply.hypotheses],
+            request_id=reply.request_id, timestamp=reply.timestamp, round_trip_s=round_trip_s)
+
+    @classmethod
+    def _from_hypothesis(cls, h: wire.Hypothesis, map_version: int) -> RelocResult:
+        return cls(status=RelocStatus.OK, method=h.method, world_from_cam=h.world_from_cam.matrix(),
+                   confidence=h.confidence, inliers=h.inliers, num_matches=h.num_matches,
+                   reprojection_rms_px=h.reprojection_rms_px, covariance=_covariance(h.covariance),
+                   matched_keyframe_ids=list(h.matched_keyframe_ids), map_version=map_version)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict; the pose as ``world_from_cam_tum`` (tx ty tz qx qy qz qw) and as a
+        4x4 row-major ``world_from_cam``."""
+        d: dict[str, Any] = {"status": self.status.value, "method": self.method,
+                             "reason": self.reason}
+        if self.world_from_cam is not None:
+            p = wire.WirePose.from_matrix(self.world_from_cam)
+            d["world_from_cam_tum"] = [*p.t, *p.q]
+            d["world_from_cam"] = self.world_from_cam.tolist()
+        d.update(confidence=self.confidence, inliers=self.inliers, num_matches=self.num_matches,
+                 reprojection_rms_px=self.reprojection_rms_px,
+                 covariance=None if self.covariance is None else self.covariance.tolist(),
+                 matched_keyframe_ids=self.matched_keyframe_ids, map_version=self.map_version,
+                 timings=self.timings, round_trip_s=self.round_trip_s)
+        if self.request_id is not None:
+            d["request_id"] = self.request_id
+        if self.hypotheses:
+            d["hypotheses"] = [h.to_dict() for h in self.hypotheses]
+        return d
+
+
+def _covariance(values: Sequence[float] | None) -> Array | None:
+    return None if values is None else np.array(values, dtype=np.float64).reshape(6, 6)
+
+
+# -- argument conversion (numpy / bytes / files -> wire types) -------------------------------
+
+def to_wire_image(image: ImageLike, *, image_format: str | None = None,
+                  jpeg_quality: int = 90) -> wire.WireImage:
+    """An image argument as a wire image.
+
+    ``image`` may be a :class:`WireImage`; PNG/JPEG file bytes or a path to such a file (sent
+    as is); or a numpy array: (H, W) uint8 is sent raw as ``mono8`` (no OpenCV), a colour
+    (H, W, 3) BGR array as JPEG. ``image_format`` ("mono8", "jpeg", "png") forces the
+    encoding of an array (JPEG/PNG encoding imports OpenCV)."""
+    if isinstance(image, wire.WireImage):
+        return image
+    if isinstance(image, bytes | bytearray | memoryview):
+        return wire.WireImage.from_bytes(bytes(image))
+    if isinstance(image, str | os.PathLike):
+        return wire.WireImage.from_bytes(Path(image).read_bytes())
+    array = np.asarray(image)
+    fmt = image_format or ("mono8" if array.ndim == 2 else "jpeg")
+    if fmt == "mono8":
+        return wire.WireImage.from_array(array)
+    if fmt not in ("jpeg", "png"):
+        raise ValueError(f"image_format: expected 'mono8', 'jpeg' or 'png', got {fmt!r}")
+    import cv2  # only for encoding arrays as JPEG/PNG
+
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if fmt == "jpeg" else []
+    ok, buf = cv2.imencode(f".{'jpg' if fmt == 'jpeg' else 'png'}", array, params)
+    if not ok:
+        raise ValueError(f"could not encode an array of shape {array.shape} {array.dtype} as "
+                         f"{fmt}")
+    return wire.WireImage.from_bytes(buf.tobytes())
+
+
+def to_wire_pose(world_from_cam: PoseLike, path: str = "world_from_cam") -> wire.WirePose:
+    """A (4, 4) matrix, a (t, q) pair (q = x y z w) or a WirePose as a wire pose."""
+    if isinstance(world_from_cam, wire.WirePose):
+        return world_from_cam
+    if isinstance(world_from_cam, tuple | list) and len(world_from_cam) == 2:
+        t, q = world_from_cam
+        return wire.WirePose.from_tq(t, q, path)
+    return wire.WirePose.from_matrix(np.asarray(world_from_cam, dtype=np.float64), path)
+
+
+def to_wire_camera(camera: CameraLike) -> wire.WireCamera:
+    """A camera dict, a WireCamera, or any object with ``to_dict()`` (e.g. a reloc Camera)."""
+    if isinstance(camera, wire.WireCamera):
+        return camera
+    if not isinstance(camera, Mapping) and hasattr(camera, "to_dict"):
+        camera = camera.to_dict()
+    if not isinstance(camera, Mapping):
+        raise TypeError(f"camera: expected a camera dict, got {type(camera).__name__}")
+    return wire.WireCamera.from_dict(camera)
+
+
+def to_wire_features(features: wire.WireFeatures | Mapping[str, Any]) -> wire.WireFeatures:
+    """A WireFeatures, or a dict with ``keypoints_px`` (N, 2) and optional ``landmark_ids``
+    (N,) and ``points_world`` (N, 3) arrays."""
+    if isinstance(features, wire.WireFeatures):
+        return features
+    unknown = set(features) - {"keypoints_px", "landmark_ids", "points_world"}
+    if unknown:
+        raise ValueError(f"features: unknown key(s) {sorted(unknown)}; expected keypoints_px, "
+                         "landmark_ids, points_world")
+    return wire.WireFeatures(**features)
+
+
+def to_wire_depth(depth: wire.WireDepth | npt.ArrayLike | tuple[Any, float]) -> wire.WireDepth:
+    """A WireDepth; an (H, W) float array in metres (NaN = unknown, sent at 1 mm per unit);
+    or a pair (uint16 (H, W) array or 16-bit PNG bytes, metres per unit)."""
+    if isinstance(depth, wire.WireDepth):
+        return depth
+    if isinstance(depth, tuple):
+        raw, mpu = depth
+        if isinstance(raw, bytes | bytearray):
+            header = wire.png_header(bytes(raw))
+            if header is None:
+                raise ValueError("depth: expected 16-bit PNG bytes")
+            return wire.WireDepth(wire.DepthFormat.PNG, header[0], header[1], bytes(raw),
+                                  float(mpu))
+        a = np.asarray(raw)
+        if a.ndim != 2 or a.dtype != np.uint16:
+            raise ValueError(f"depth: expected an (H, W) uint16 array, got {a.shape} {a.dtype}")
+        return wire.WireDepth(wire.DepthFormat.MONO16, a.shape[1], a.shape[0],
+                              a.astype("<u2").tobytes(), float(mpu))
+    return wire.WireDepth.from_metres(depth)
+
+
+# -- the client -------------------------------------------------------------------------------
+
+def make_config(connect: str | Sequence[str] | None = None, *, mode: str | None = None,
+                config: zenoh.Config | None = None) -> zenoh.Config:
+    """A Zenoh config: ``config`` (or the default), in ``mode`` ("client" unless ``config``
+    is given), connecting to ``connect``; multicast scouting is off when endpoints are given."""
+    if mode not in (None, "client", "peer"):
+        raise ValueError(f"mode: expected 'client' or 'peer', got {mode!r}")
+    conf = config if config is not None else zenoh.Config()
+    if mode is not None or config is None:
+        conf.insert_json5("mode", json.dumps(mode or "client"))
+    if connect:
+        endpoints = [connect] if isinstance(connect, str) else list(connect)
+        conf.insert_json5("connect/endpoints", json.dumps(endpoints))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+class RelocClient:
+    """A Zenoh session bound to one map of a reloc service (ConnectionError if the
+    endpoints cannot be reached in client mode).
+
+    >>> with RelocClient("tcp/192.168.1.10:7447", map="lab") as client:
+    ...     result = client.relocalize(grey_image, camera_id="cam0")
+    ...     if result.ok:
+    ...         print(result.world_from_cam)
+
+    ``timeout`` (seconds) is the default for every query. The session opens in the
+    constructor; ``close()`` (or leaving the ``with`` block) closes it.
+    """
+
+    def __init__(self, connect: str | Sequence[str] | None = None, *, map: str,  # noqa: A002
+                 prefix: str = wire.DEFAULT_PREFIX, mode: str | None = None,
+                 config: zenoh.Config | None = None, timeout: float = 10.0,
+                 limits: wire.Limits = wire.DEFAULT_LIMITS) -> None:
+        self.map = wire.check_name(map)
+        self.prefix = wire.check_prefix(prefix)
+        if not timeout > 0:
+            raise ValueError(f"timeout: expected a positive number of seconds, got {timeout}")
+        self.timeout = float(timeout)
+        self.limits = limits
+        try:
+            self.session = zenoh.open(make_config(connect, mode=mode, config=config))
+        except zenoh.ZError as exc:
+            raise ConnectionError(f"cannot open a Zenoh session (connect={connect!r}): "
+                                  f"{str(exc).split(' at ')[0]}") from exc
+
+    # -- life cycle ------------------------------------------------------------------------
+    def close(self) -> None:
+        """Close the Zenoh session (undeclares every subscriber opened through it)."""
+        if not self.session.is_closed():
+            self.session.close()
+
+    def __enter__(self) -> RelocClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"RelocClient(map={self.map!r}, prefix={self.prefix!r})"
+
+    # -- map building (puts: no reply) -----------------------------------------------------
+    def set_camera(self, camera_id: str, camera: CameraLike) -> None:
+        """Put camera ``camera_id`` (a camera dict or object with ``to_dict()``)."""
+        message = wire.CameraPut(wire.check_name(camera_id, "camera id"), to_wire_camera(camera))
+        self._put(wire.keys.camera(self.prefix, self.map, camera_id), message.encode())
+
+    def add_keyframe(self, kf_id: int, image: ImageLike, world_from_cam: PoseLike, *,
+                     camera_id: str | None = None, camera: CameraLike | None = None,
+                     timestamp: float | None = None,
+                     features: wire.WireFeatures | Mapping[str, Any] | None = None,
+                     depth: Any = None, image_format: str | None = None) -> None:
+        """Put keyframe ``kf_id`` (added, or replaced if it exists) with its image,
+        ``world_from_cam`` ((4, 4) or (t, q)), and exactly one of ``camera_id`` / ``camera``.
+
+        A put has no reply: a refused keyframe is reported as a ``keyframe_rejected`` event
+        (see :meth:`subscribe_events`)."""
+        message = wire.KeyframePut(
+            id=kf_id, image=to_wire_image(image, image_format=image_format),
+            world_from_cam=to_wire_pose(world_from_cam), camera_id=camera_id,
+            camera=None if camera is None else to_wire_camera(camera),
+            timestamp=None if timestamp is None else float(timestamp),
+            features=None if features is None else to_wire_features(features),
+            depth=None if depth is None else to_wire_depth(depth))
+        self._put(wire.keys.keyframe(self.prefix, self.map, kf_id), message.encode())
+
+    def remove_keyframe(self, kf_id: int) -> None:
+        """Delete keyframe ``kf_id`` (no reply; an unknown id is ignored by the service)."""
+        self.session.delete(wire.keys.keyframe(self.prefix, self.map, kf_id),
+                            congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def _put(self, key: str, payload: bytes) -> None:
+        # BLOCK, not the default DROP: a map upload must not lose keyframes under load.
+        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    # -- queries ---------------------------------------------------------------------------
+    def relocalize(self, image: ImageLike, *, camera_id: str | None = None,
+                   camera: CameraLike | None = None, method: str | None = None,
+                   prior: tuple[PoseLike, float] | wire.Prior | None = None,
+                   hypotheses: int = 1, timeout: float | None = None,
+                   request_id: str | None = None, timestamp: float | None = None,
+                   image_format: str | None = None) -> RelocResult:
+        """Where was ``image`` taken? ``prior`` is (world_from_cam, radius_m) or a Prior.
+
+        Returns a RelocResult (OK or NOT_RELOCALIZED); raises ServiceBusy, ServiceError,
+        NoReplyError."""
+        if prior is not None and not isinstance(prior, wire.Prior):
+            prior_pose, radius_m = prior
+            prior = wire.Prior(to_wire_pose(prior_pose, "prior.world_from_cam"), float(radius_m))
+        request = wire.RelocalizeRequest(
+            image=to_wire_image(image, image_format=image_format), camera_id=camera_id,
+            camera=None if camera is None else to_wire_camera(camera), method=method,
+            prior=prior, hypotheses=hypotheses, request_id=request_id, timestamp=timestamp)
+        start = time.perf_counter()
+        payload = self._query_one(wire.keys.relocalize(self.prefix, self.map), request.encode(),
+                                  timeout)
+        reply = wire.RelocalizeReply.decode(payload, self.limits)
+        return RelocResult.from_reply(reply, round_trip_s=time.perf_counter() - start)
+
+    def train(self, *, method: str | None = None, wait: bool = False,
+              timeout: float | None = 600.0,
+              on_event: Callable[[wire.Event], None] | None = None) -> wire.TrainReply:
+        """Start training (the service answers at once). With ``wait``, block until the job's
+        ``train_done`` event (``on_event`` sees every event of the job meanwhile); raise
+        ServiceError on ``train_failed`` and TimeoutError after ``timeout`` seconds."""
+        events: queue.Queue[wire.Event] = queue.Queue()
+        # Subscribe before asking, so a fast job's train_done cannot be missed.
+        sub = self.subscribe_events(events.put) if wait else None
+        try:
+            payload = self._query_one(wire.keys.train(self.prefix, self.map),
+                                      wire.TrainRequest(method=method).encode(), None)
+            reply = wire.TrainReply.decode(payload, self.limits)
+            if wait and reply.accepted:
+                self._wait_for_job(events, reply.job_id, timeout, on_event)
+            return reply
+        finally:
+            if sub is not None:
+                sub.undeclare()
+
+    def _wait_for_job(self, events: queue.Queue[wire.Event], job_id: str | None,
+                      timeout: float | None,
+                      on_event: Callable[[wire.Event], None] | None) -> wire.Event:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
+                raise TimeoutError(f"training job {job_id} of map {self.map!r} did not finish "
+                                   f"within {timeout} s")
+            try:
+                event = events.get(timeout=remaining)
+            except queue.Empty:
+                continue
+            if event.fields.get("job_id") != job_id:
+                continue
+            if on_event is not None:
+                on_event(event)
+            if event.kind is wire.EventKind.TRAIN_DONE:
+                return event
+            if event.kind is wire.EventKind.TRAIN_FAILED:
+                code = event.fields.get("code", "INTERNAL")
+                known = code in ErrorCode.__members__.values()
+                raise ServiceError(ErrorCode(code) if known else ErrorCode.INTERNAL,
+                                   str(event.fields.get("message", "training failed")))
+
+    def status(self, *, timeout: float | None = None) -> wire.StatusReply:
+        """The service's status for this map (size, training state, counters, latency)."""
+        payload = self._query_one(wire.keys.status(self.prefix, self.map), None, timeout)
+        return wire.StatusReply.decode(payload, self.limits)
+
+    def keyframes(self, *, images: bool = False, timeout: float | None = None
+                  ) -> list[wire.KeyframeInfo]:
+        """Every stored keyframe (id, camera, pose, ...) sorted by id; with ``images``, each
+        carries its image (large)."""
+        key = wire.keys.keyframes(self.prefix, self.map) + ("?image=true" if images else "")
+        infos = [wire.KeyframeInfo.decode(p, self.limits) for p in self._query_all(key, timeout)]
+        return sorted(infos, key=lambda k: k.id)
+
+    def cameras(self, *, timeout: float | None = None) -> dict[str, wire.WireCamera]:
+        """Every camera the service knows for this map, by id."""
+        puts = [wire.CameraPut.decode(p, self.limits)
+                for p in self._query_all(wire.keys.cameras(self.prefix, self.map), timeout)]
+        return {c.id: c.camera for c in sorted(puts, key=lambda c: c.id)}
+
+    def maps(self, *, timeout: float | None = None) -> list[tuple[str, str]]:
+        """(instance, map) of every live service instance under this prefix (any map)."""
+        found = set()
+        replies = self.session.liveliness().get(wire.keys.liveliness_all(self.prefix),
+                                                timeout=timeout or self.timeout)
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            try:
+                found.add(wire.keys.parse_liveliness(self.prefix, str(reply.ok.key_expr)))
+            except ProtocolError as exc:
+                log.warning("ignoring liveliness token %s: %s", reply.ok.key_expr, exc)
+        return sorted(found)
+
+    def subscribe_events(self, callback: Callable[[wire.Event], None], *,
+                         kinds: Iterable[wire.EventKind | str] | None = None) -> zenoh.Subscriber:
+        """Call ``callback(event)`` for every event of this map (only ``kinds`` if given),
+        in a Zenoh thread: keep it short. Undeclare the returned subscriber to stop."""
+        wanted = None if kinds is None else {wire.EventKind(k) for k in kinds}
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                event = wire.Event.decode(sample.payload.to_bytes(), self.limits)
+            except ProtocolError as exc:
+                log.warning("ignoring malformed event on %s: %s", sample.key_expr, exc)
+                return
+            if wanted is None or event.kind in wanted:
+                try:
+                    callback(event)
+                except Exception:  # a Zenoh thread must not die of a user callback
+                    log.exception("event callback failed")
+
+        return self.session.declare_subscriber(wire.keys.events(self.prefix, self.map),
+                                               on_sample)
+
+    # -- transport -------------------------------------------------------------------------
+    def _query_one(self, key: str, payload: bytes | None, timeout: float | None) -> bytes:
+        """The first successful reply's payload; errors are raised after every replier."""
+        timeout = timeout or self.timeout
+        error: Exception | None = None
+        for reply in self.session.get(key, payload=payload, timeout=timeout):
+            ok, data = _reply_bytes(reply)
+            if ok:
+                return data
+            error = error or self._reply_error(data, key, timeout)
+        raise error or self._no_reply(key, timeout)
+
+    def _query_all(self, key: str, timeout: float | None) -> list[bytes]:
+        """Payloads of every reply (a wildcard query); the first error reply is raised."""
+        timeout = timeout or self.timeout
+        payloads, answered = [], False
+        for reply in self.session.get(key, timeout=timeout,
+                                      consolidation=zenoh.ConsolidationMode.NONE):
+            answered = True
+            ok, data = _reply_bytes(reply)
+            if not ok:
+                raise self._reply_error(data, key, timeout)
+            payloads.append(data)
+        if not answered:
+            raise self._no_reply(key, timeout)
+        return payloads
+
+    def _no_reply(self, key: str, timeout: float) -> NoReplyError:
+        return NoReplyError(f"no reply on {key!r} within {timeout} s: is a reloc service "
+                            f"serving map {self.map!r} under prefix {self.prefix!r} reachable? "
+                            "(`reloc-client maps` lists the live ones)")
+
+    def _reply_error(self, payload: bytes, key: str, timeout: float) -> Exception:
+        try:
+            err = wire.ErrorReply.decode(payload, self.limits)
+        except ProtocolError:
+            # Not ours: Zenoh itself answers "Timeout" when the query's time is up.
+            text = payload.decode("utf-8", "replace")[:200]
+            if text.strip().lower() == "timeout":
+                return NoReplyError(f"no reply on {key!r} within {timeout} s (Zenoh timeout)")
+            return ServiceError(ErrorCode.INTERNAL, f"non-protocol error reply on {key!r}: {text}")
+        cls = ServiceBusy if err.code is ErrorCode.BUSY else ServiceError
+        return cls(err.code, err.message)
+
+
+def _reply_bytes(reply: zenoh.Reply) -> tuple[bool, bytes]:
+    """(is a success, payload) of a Zenoh reply."""
+    if reply.ok is not None:
+        return True, reply.ok.payload.to_bytes()
+    return False, b"" if reply.err is None else reply.err.payload.to_bytes()
+
+
+__all__ = ["RelocClient", "RelocResult", "RelocStatus", "ServiceError", "ServiceBusy",
+           "NoReplyError", "make_config", "to_wire_image", "to_wire_pose", "to_wire_camera",
+           "to_wire_features", "to_wire_depth"]

@@ -1,0 +1,141 @@
+"""``reloc eval``: parse, call :func:`reloc_service.eval.evaluate.evaluate`, print the table,
+write the JSON and the plots. Nothing heavy is imported until the command runs."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+HELP = "evaluate relocalization methods on a dataset (recall, errors, wrong poses, latency)"
+
+DESCRIPTION = """\
+Build the map from DATASET/map.txt, train, relocalize every query of DATASET/queries.txt and
+score it against its ground truth. Several --method options are evaluated on the same map (built
+once). A comma inside one method is a fallback chain ("bow+p3p,sbi+esm"), not two methods.
+Prints one row per method: recall within 5cm/5deg, 25cm/10deg, 50cm/15deg (% of all queries),
+median translation (cm) and rotation (deg) errors of the returned poses, wrong poses (returned
+but beyond 50cm/15deg) and not relocalized (% of all queries), p50/p99 latency (ms)."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = DESCRIPTION
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.add_argument("dataset", nargs="?", help="reloc dataset v1 folder")
+    parser.add_argument("--method", "-m", action="append", default=None, metavar="NAME",
+                        help="method to evaluate (repeat to compare several on one map); "
+                        "see --list-methods")
+    parser.add_argument("--list-methods", action="store_true",
+                        help="list the selectable methods and exit")
+    parser.add_argument("--json", metavar="OUT", help="write every number to OUT "
+                        "(schema: docs/eval_schema.md)")
+    parser.add_argument("--plots", metavar="DIR", help="write the thesis's figures as PNGs to DIR")
+    parser.add_argument("--options", metavar="FILE", help="TOML or JSON file: plugin name -> "
+                        "options table (e.g. [p3p] / [sbi]); [mapping] configures map building")
+    parser.add_argument("--landmarks", choices=["triangulate", "depth"], default="triangulate",
+                        help="landmarks from triangulated matches (default) or from the "
+                        "dataset's depth maps")
+    parser.add_argument("--remote", metavar="ENDPOINT", help="evaluate through a running "
+                        "service at this Zenoh endpoint (e.g. tcp/127.0.0.1:7447)")
+    parser.add_argument("--map", dest="map_name", metavar="NAME",
+                        help="map name on the service (with --remote)")
+    parser.add_argument("--markdown", action="store_true", help="print the table as Markdown")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..errors import RelocError
+
+    if args.list_methods:
+        return _list_methods()
+    problem = _usage_problem(args)
+    if problem:
+        print(f"reloc eval: error: {problem}", file=sys.stderr)
+        return 2
+    try:
+        return _evaluate(args)
+    except (RelocError, OSError) as exc:
+        print(f"reloc eval: error: {exc}", file=sys.stderr)
+        return 1
+
+
+def _usage_problem(args: argparse.Namespace) -> str | None:
+    if not args.dataset:
+        return "expected a DATASET folder (or --list-methods)"
+    if not args.method:
+        return "expected at least one --method NAME (see --list-methods)"
+    if bool(args.remote) != bool(args.map_name):
+        return "--remote ENDPOINT and --map NAME go together"
+    return None
+
+
+def _list_methods() -> int:
+    from ..relocalizers.factory import list_methods
+
+    methods = list_methods()
+    width = max((len(m["method"]) for m in methods), default=6)
+    for m in methods:
+        flag = " [evaluation only]" if m["evaluation_only"] else ""
+        print(f"{m['method']:<{width}}  {m['description']}{flag}")
+    if not methods:
+        print("no relocalization method is installed", file=sys.stderr)
+    return 0
+
+
+def load_options(path: str | Path) -> dict[str, Any]:
+    """Plugin options from a TOML or JSON file: a table of tables (plugin name -> options)."""
+    from ..errors import ConfigError
+
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read options file {path}: {exc.strerror}") from exc
+    try:
+        if path.suffix.lower() == ".json":
+            data = json.loads(text)
+        else:
+            import tomllib
+
+            data = tomllib.loads(text)
+    except (ValueError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'TOML'}: "
+                          f"{exc}") from exc
+    bad = [k for k, v in data.items() if not isinstance(v, dict)] if isinstance(data, dict) else []
+    if not isinstance(data, dict) or bad:
+        raise ConfigError(f"{path}: expected a table of tables (plugin name -> options, e.g. "
+                          f"[p3p] max_candidates = 3); not tables: {bad or type(data).__name__}")
+    return data
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from ..eval import report
+    from ..eval.evaluate import RemoteSpec, evaluate
+
+    options = load_options(args.options) if args.options else None
+    remote = RemoteSpec(args.remote, args.map_name) if args.remote else None
+    result = evaluate(args.dataset, args.method, options=options, landmarks=args.landmarks,
+                      progress=not args.no_progress, remote=remote)
+    print(report.format_header(result))
+    print()
+    print(report.format_markdown(result) if args.markdown else report.format_table(result))
+    _print_failures(result)
+    if args.json:
+        print(f"json: {result.write_json(args.json)}")
+    if args.plots:
+        from ..eval.plots import plot_result
+
+        for path in plot_result(result, args.plots):
+            print(f"plot: {path}")
+    return 0
+
+
+def _print_failures(result: Any) -> None:
+    from ..eval.report import format_failures
+
+    for m in result.methods:
+        text = format_failures(m, limit=3)
+        if text:
+            print(f"\n{m.method}: most common reasons for no pose\n{text}")

@@ -1,0 +1,138 @@
+"""Pure evaluation metrics: recall at error thresholds, wrong-pose rate, percentiles, and the rank
+of the chosen keyframe among the ground-truth-closest ones (thesis figure 3.2).
+
+Conventions: per-query arrays have one entry per query; a query that returned no pose has
+``returned`` False and NaN errors. Rates are fractions of *all* queries, in [0, 1].
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+Array = npt.NDArray[np.float64]
+
+#: (translation metres, rotation degrees) thresholds of the recall columns.
+RECALL_THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.25, 10.0), (0.50, 15.0))
+#: A returned pose worse than this (translation metres, rotation degrees) is *wrong*.
+WRONG_THRESHOLD: tuple[float, float] = (0.50, 15.0)
+
+
+def threshold_key(t_max_m: float, r_max_deg: float) -> str:
+    """Stable name of a threshold pair in reports and JSON, e.g. ``"5cm_5deg"``."""
+    return f"{t_max_m * 100:g}cm_{r_max_deg:g}deg"
+
+
+def _arrays(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.ArrayLike
+            ) -> tuple[Array, Array, npt.NDArray[np.bool_]]:
+    t = np.asarray(t_err_m, dtype=np.float64).ravel()
+    r = np.asarray(r_err_deg, dtype=np.float64).ravel()
+    ok = np.asarray(returned, dtype=bool).ravel()
+    if not (len(t) == len(r) == len(ok)):
+        raise ValueError(f"per-query arrays differ in length: t {len(t)}, r {len(r)}, "
+                         f"returned {len(ok)}")
+    if np.any(ok & ~(np.isfinite(t) & np.isfinite(r))):
+        raise ValueError("a returned pose has a non-finite error; expected finite errors for "
+                         "every returned pose")
+    return t, r, ok
+
+
+def within(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.ArrayLike,
+           t_max_m: float, r_max_deg: float) -> npt.NDArray[np.bool_]:
+    """(Q,) mask of queries that returned a pose within both thresholds (inclusive)."""
+    t, r, ok = _arrays(t_err_m, r_err_deg, returned)
+    with np.errstate(invalid="ignore"):
+        return ok & (t <= t_max_m) & (r <= r_max_deg)
+
+
+def recall(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.ArrayLike,
+           t_max_m: float, r_max_deg: float) -> float:
+    """Fraction of all queries with a returned pose within ``t_max_m`` and ``r_max_deg``;
+    NaN when there is no query."""
+    mask = within(t_err_m, r_err_deg, returned, t_max_m, r_max_deg)
+    return float(mask.mean()) if len(mask) else math.nan
+
+
+def recalls(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.ArrayLike,
+            thresholds: tuple[tuple[float, float], ...] = RECALL_THRESHOLDS) -> dict[str, float]:
+    """``{threshold_key: recall}`` for each (metres, degrees) pair of ``thresholds``."""
+    return {threshold_key(t, r): recall(t_err_m, r_err_deg, returned, t, r)
+            for t, r in thresholds}
+
+
+def wrong_mask(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.ArrayLike,
+               t_max_m: float = WRONG_THRESHOLD[0], r_max_deg: float = WRONG_THRESHOLD[1]
+               ) -> npt.NDArray[np.bool_]:
+    """(Q,) mask of *wrong* poses: returned, but beyond ``t_max_m`` or ``r_max_deg``."""
+    t, r, ok = _arrays(t_err_m, r_err_deg, returned)
+    with np.errstate(invalid="ignore"):
+        return ok & ((t > t_max_m) | (r > r_max_deg))
+
+
+def wrong_rate(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.ArrayLike,
+               t_max_m: float = WRONG_THRESHOLD[0], r_max_deg: float = WRONG_THRESHOLD[1]
+               ) -> float:
+    """Fraction of all queries with a wrong pose (see :func:`wrong_mask`); NaN if no query."""
+    mask = wrong_mask(t_err_m, r_err_deg, returned, t_max_m, r_max_deg)
+    return float(mask.mean()) if len(mask) else math.nan
+
+
+def not_relocalized_rate(returned: npt.ArrayLike) -> float:
+    """Fraction of all queries that returned no pose; NaN if no query."""
+    ok = np.asarray(returned, dtype=bool).ravel()
+    return float((~ok).mean()) if len(ok) else math.nan
+
+
+def percentile(values: npt.ArrayLike, q: float) -> float:
+    """The ``q``-th percentile (0..100, linear interpolation) of the finite ``values``; NaN
+    when there is none."""
+    v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    return float(np.percentile(v, q)) if len(v) else math.nan
+
+
+def median_errors(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.ArrayLike
+                  ) -> tuple[float, float]:
+    """Median translation (m) and rotation (deg) errors over returned poses; NaN if none."""
+    t, r, ok = _arrays(t_err_m, r_err_deg, returned)
+    return percentile(t[ok], 50.0), percentile(r[ok], 50.0)
+
+
+def closest_ranks(query_positions_world: npt.ArrayLike, keyframe_positions_world: npt.ArrayLike,
+                  chosen_index: npt.ArrayLike) -> npt.NDArray[np.int64]:
+    """Rank k (1 = closest) of each query's chosen keyframe among all keyframes ordered by the
+    distance of their camera centre to the query's ground-truth centre (thesis figure 3.2).
+
+    Args:
+        query_positions_world: (Q, 3) ground-truth query camera centres.
+        keyframe_positions_world: (K, 3) keyframe camera centres.
+        chosen_index: (Q,) row of the chosen keyframe in ``keyframe_positions_world``, -1 for
+            none.
+
+    Returns:
+        (Q,) int64 ranks; a tie counts in the chosen keyframe's favour (rank = 1 + the number
+        of keyframes strictly closer); 0 where ``chosen_index`` is -1.
+    """
+    q = np.asarray(query_positions_world, dtype=np.float64).reshape(-1, 3)
+    kf = np.asarray(keyframe_positions_world, dtype=np.float64).reshape(-1, 3)
+    chosen = np.asarray(chosen_index, dtype=np.int64).ravel()
+    if len(chosen) != len(q):
+        raise ValueError(f"chosen_index: expected {len(q)} entries (one per query), got "
+                         f"{len(chosen)}")
+    if np.any((chosen < -1) | (chosen >= len(kf))):
+        raise ValueError(f"chosen_index: expected -1 or a row in [0, {len(kf)}), got "
+                         f"{chosen[(chosen < -1) | (chosen >= len(kf))][:5].tolist()}")
+    dist = np.linalg.norm(q[:, None, :] - kf[None, :, :], axis=2)  # (Q, K)
+    has = chosen >= 0
+    chosen_dist = dist[np.arange(len(q)), np.where(has, chosen, 0)] if len(kf) else np.zeros(len(q))
+    ranks = 1 + np.sum(dist < chosen_dist[:, None], axis=1)
+    return np.where(has, ranks, 0).astype(np.int64)
+
+
+def rank_histogram(ranks: npt.ArrayLike) -> dict[int, int]:
+    """``{k: count}`` over the positive ``ranks`` (0 = no keyframe chosen is left out), sorted."""
+    r = np.asarray(ranks, dtype=np.int64).ravel()
+    values, counts = np.unique(r[r > 0], return_counts=True)
+    return {int(v): int(c) for v, c in zip(values, counts, strict=True)}

@@ -1,0 +1,133 @@
+"""PTAM place finder: sum of squared differences of small blurry images (thesis 3.1.1)."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from ..errors import ConfigError
+from ..frame import Frame, Keyframe
+from ..map import KeyframeMap
+from .base import PlaceCandidate, PlaceFinder, register
+
+Thumbs = npt.NDArray[np.float32]
+
+
+@register("sbi")
+class SmallBlurryImageFinder(PlaceFinder):
+    """Ranks keyframes by ``-SSD`` between zero-mean 40x30 thumbnails blurred with sigma 2.5.
+
+    All keyframe thumbnails live in one contiguous (K, w*h) float32 matrix with their squared
+    norms, so scoring every keyframe is one matrix-vector product:
+    ``SSD = |a|^2 + |b|^2 - 2 a.b``. Adding appends a row; removing swaps the last row into
+    the freed one, so the matrix never has holes.
+    """
+
+    @dataclass(frozen=True)
+    class Conf:
+        width: int = 40
+        height: int = 30
+        blur_sigma: float = 2.5
+
+        def __post_init__(self) -> None:
+            if self.width <= 0 or self.height <= 0 or self.blur_sigma < 0:
+                raise ConfigError(f"sbi: expected positive width/height and blur_sigma >= 0, "
+                                  f"got {self.width}x{self.height}, sigma {self.blur_sigma}")
+
+    def __init__(self, kmap: KeyframeMap, conf: SmallBlurryImageFinder.Conf) -> None:
+        super().__init__(kmap, conf)
+        self._lock = threading.Lock()
+        self._dim = conf.width * conf.height
+        self._thumbs: Thumbs = np.zeros((16, self._dim), np.float32)
+        self._sq_norms = np.zeros(16, np.float32)
+        self._ids = np.zeros(16, np.int64)
+        self._row_of: dict[int, int] = {}
+        self.train()
+
+    def __len__(self) -> int:
+        return len(self._row_of)
+
+    def thumbnail(self, frame: Frame) -> Thumbs:
+        """(w*h,) float32 zero-mean small blurry image of ``frame`` (cached on the frame)."""
+        c = self.conf
+        return np.ascontiguousarray(
+            frame.small_blurry_image(c.width, c.height, c.blur_sigma), np.float32).ravel()
+
+    def add_keyframe(self, keyframe: Keyframe) -> None:
+        """Index ``keyframe``; a keyframe with an id already indexed is replaced."""
+        thumb = self.thumbnail(keyframe)
+        with self._lock:
+            row = self._row_of.get(keyframe.id)
+            if row is None:
+                row = len(self._row_of)
+                self._grow(row + 1)
+                self._row_of[keyframe.id] = row
+                self._ids[row] = keyframe.id
+            self._thumbs[row] = thumb
+            self._sq_norms[row] = float(thumb @ thumb)
+
+    def remove_keyframe(self, keyframe: Keyframe) -> None:
+        """Forget ``keyframe`` (swap-remove); unknown ids are ignored."""
+        with self._lock:
+            row = self._row_of.pop(keyframe.id, None)
+            if row is None:
+                return
+            last = len(self._row_of)  # index of the last used row, now that one id is gone
+            if row != last:
+                moved = int(self._ids[last])
+                self._thumbs[row] = self._thumbs[last]
+                self._sq_norms[row] = self._sq_norms[last]
+                self._ids[row] = moved
+                self._row_of[moved] = row
+
+    def train(self) -> None:
+        """Re-index every keyframe of the map (also run at construction)."""
+        with self._lock:
+            self._row_of.clear()
+        for keyframe in self.map.snapshot().keyframes.values():
+            self.add_keyframe(keyframe)
+
+    def find_places(self, query: Frame, k: int, *, allowed: set[int] | None = None
+                    ) -> list[PlaceCandidate]:
+        """Up to ``k`` keyframes by decreasing ``-SSD`` (restricted to ``allowed`` ids)."""
+        thumb = self.thumbnail(query)
+        with self._lock:
+            n = len(self._row_of)
+            scores = self._scores(thumb, n)
+            ids = self._ids[:n].copy()
+        if allowed is not None:
+            scores[~np.isin(ids, np.fromiter(allowed, np.int64, len(allowed)))] = -np.inf
+        return _top_k(ids, scores, k)
+
+    def _scores(self, thumb: Thumbs, n: int) -> npt.NDArray[np.float32]:
+        """(n,) ``-SSD`` of ``thumb`` against the first ``n`` rows, one matrix-vector product."""
+        cross = self._thumbs[:n] @ thumb
+        ssd = self._sq_norms[:n] + np.float32(thumb @ thumb) - 2.0 * cross
+        return -np.maximum(ssd, 0.0, dtype=np.float32)
+
+    def _grow(self, rows: int) -> None:
+        """Double the capacity until ``rows`` fit (amortised O(1) appends)."""
+        cap = len(self._ids)
+        if rows <= cap:
+            return
+        new_cap = max(rows, 2 * cap)
+        thumbs = np.zeros((new_cap, self._dim), np.float32)
+        thumbs[:cap] = self._thumbs
+        self._thumbs = thumbs
+        self._sq_norms = np.concatenate([self._sq_norms, np.zeros(new_cap - cap, np.float32)])
+        self._ids = np.concatenate([self._ids, np.zeros(new_cap - cap, np.int64)])
+
+
+def _top_k(ids: npt.NDArray[np.int64], scores: npt.NDArray[np.floating], k: int
+           ) -> list[PlaceCandidate]:
+    """The ``k`` best finite scores, best first (ties broken by keyframe id)."""
+    valid = np.flatnonzero(np.isfinite(scores))
+    if k <= 0 or len(valid) == 0:
+        return []
+    if k < len(valid):
+        valid = valid[np.argpartition(-scores[valid], k - 1)[:k]]
+    order = valid[np.lexsort((ids[valid], -scores[valid]))]
+    return [PlaceCandidate(int(ids[i]), float(scores[i])) for i in order]

@@ -1,0 +1,58 @@
+"""The trivial pose finder: the best candidate keyframe's pose, unchanged (thesis 4, fig. 4.3)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from ..errors import ConfigError
+from ..frame import Frame
+from ..map import MapState
+from ..place.base import PlaceCandidate
+from .base import PoseEstimate, PoseFinder, register
+
+
+def zncc(a: npt.ArrayLike, b: npt.ArrayLike) -> float:
+    """Zero-mean normalised cross-correlation of two same-shape images, in [-1, 1]
+    (0 when either is constant)."""
+    x = np.asarray(a, dtype=np.float64).ravel()
+    y = np.asarray(b, dtype=np.float64).ravel()
+    x = x - x.mean()
+    y = y - y.mean()
+    denom = float(np.sqrt((x @ x) * (y @ y)))
+    return float(x @ y) / denom if denom > 1e-12 else 0.0
+
+
+@register("none")
+class KeyframePoseFinder(PoseFinder):
+    """Answers the best candidate keyframe's ``world_from_cam``; the evidence for verification
+    is the NCC of the query's and the keyframe's small blurry images."""
+
+    @dataclass(frozen=True)
+    class Conf:
+        width: int = 40
+        height: int = 30
+        blur_sigma: float = 2.5
+
+        def __post_init__(self) -> None:
+            if self.width <= 0 or self.height <= 0 or self.blur_sigma < 0:
+                raise ConfigError(f"none: expected positive width/height and blur_sigma >= 0, "
+                                  f"got {self.width}x{self.height}, sigma {self.blur_sigma}")
+
+    def find_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
+                  ) -> PoseEstimate | None:
+        """The first candidate still in ``state``, with its thumbnail NCC; None if none is."""
+        start = time.perf_counter()
+        keyframe = next((state.keyframes[c.keyframe_id] for c in candidates
+                         if c.keyframe_id in state.keyframes), None)
+        if keyframe is None:
+            return None
+        c = self.conf
+        ncc = zncc(query.small_blurry_image(c.width, c.height, c.blur_sigma),
+                   keyframe.small_blurry_image(c.width, c.height, c.blur_sigma))
+        return PoseEstimate(world_from_cam=keyframe.world_from_cam.copy(),
+                            keyframe_ids=[keyframe.id], ncc=ncc,
+                            timings={"pose": time.perf_counter() - start})

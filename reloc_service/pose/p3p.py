@@ -1,0 +1,309 @@
+"""P3P pose finder (thesis 3.1.3, improved): query features matched to the landmarks of the
+top candidate keyframes, pose by P3P in LO-RANSAC (PoseLib), refined through the real camera
+model, with the reprojection RMS and a 6x6 covariance as evidence for verification."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+import numpy.typing as npt
+import poselib
+
+from .. import features as feature_lib
+from ..cameras import Camera
+from ..errors import ConfigError, GeometryError
+from ..frame import Features, Frame, Keyframe
+from ..geometry import invert, se3_exp, transform_points
+from ..map import MapState
+from ..place.base import PlaceCandidate
+from .base import PoseEstimate, PoseFinder, register
+
+Array = npt.NDArray[np.float64]
+
+#: Step of the central differences of the distortion Jacobian (normalised coordinates).
+_DISTORT_STEP = 1e-6
+
+
+@dataclass(frozen=True)
+class PnPConf:
+    """Robust absolute-pose settings shared by every P3P user (this module, ferns)."""
+
+    #: RANSAC inlier threshold and final inlier gate, pixels.
+    max_reproj_error_px: float = 5.0
+    min_iterations: int = 50
+    max_iterations: int = 10000
+    success_prob: float = 0.9999
+    seed: int = 0
+    #: Gauss-Newton steps through the real (distorted) camera model after PoseLib.
+    refine_iterations: int = 1
+    #: Floor of the residual standard deviation used for the covariance, pixels (keypoints
+    #: are not more precise than this, however well a few of them happen to fit).
+    min_sigma_px: float = 0.25
+
+    def __post_init__(self) -> None:
+        if self.max_reproj_error_px <= 0:
+            raise ConfigError(f"max_reproj_error_px must be positive, "
+                              f"got {self.max_reproj_error_px}")
+        if not 0 < self.min_iterations <= self.max_iterations:
+            raise ConfigError(f"expected 0 < min_iterations <= max_iterations, got "
+                              f"{self.min_iterations}, {self.max_iterations}")
+        if not 0 < self.success_prob < 1:
+            raise ConfigError(f"success_prob must be in (0, 1), got {self.success_prob}")
+        if self.refine_iterations < 0 or self.min_sigma_px < 0:
+            raise ConfigError("refine_iterations and min_sigma_px must be >= 0")
+
+
+def solve_pnp(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Camera,
+              conf: PnPConf | None = None) -> PoseEstimate | None:
+    """Robust ``world_from_cam`` from (N, 2) distorted query pixels and their (N, 3) world
+    points; None with fewer than 4 usable correspondences or no RANSAC consensus.
+
+    The pixels are undistorted to the ideal pinhole camera with the same K, so PoseLib sees a
+    PINHOLE camera whatever the model; the result is then refined and judged through the real
+    model. ``keyframe_ids`` of the estimate is empty (the caller knows them).
+    """
+    solved = solve_pnp_indexed(query_px, points_world, camera, conf)
+    return None if solved is None else solved[0]
+
+
+def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Camera,
+                      conf: PnPConf | None = None
+                      ) -> tuple[PoseEstimate, npt.NDArray[np.int64]] | None:
+    """:func:`solve_pnp`, also returning the (I,) indices of the inlier correspondences."""
+    conf = conf or PnPConf()
+    start = time.perf_counter()
+    px = np.asarray(query_px, dtype=np.float64).reshape(-1, 2)
+    pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    if len(px) != len(pts):
+        raise GeometryError(f"solve_pnp: expected as many points as pixels, "
+                            f"got {len(pts)} and {len(px)}")
+    ideal_px = camera.undistort_pixels(px)
+    usable = np.flatnonzero(np.isfinite(ideal_px).all(1) & np.isfinite(pts).all(1))
+    if len(usable) < 4:
+        return None
+    world_from_cam = ransac_pinhole(ideal_px[usable], pts[usable], camera, conf)
+    if world_from_cam is None:
+        return None
+    world_from_cam, inliers = _refine(world_from_cam, px, pts, camera, conf)
+    if len(inliers) < 4:
+        return None
+    est = _estimate(world_from_cam, px[inliers], pts[inliers], camera, conf, len(px),
+                    time.perf_counter() - start)
+    return est, inliers
+
+
+def ransac_pinhole(ideal_px: Array, points_world: Array, camera: Camera, conf: PnPConf
+                   ) -> Array | None:
+    """PoseLib P3P LO-RANSAC (with its own refinement) on (N, 2) pixels of the ideal pinhole
+    camera with ``camera``'s K and (N, 3) world points; ``world_from_cam`` or None."""
+    camera_dict = {"model": "PINHOLE", "width": camera.width, "height": camera.height,
+                   "params": [camera.fx, camera.fy, camera.cx, camera.cy]}
+    ransac_opt = {"max_reproj_error": conf.max_reproj_error_px,
+                  "min_iterations": conf.min_iterations, "max_iterations": conf.max_iterations,
+                  "success_prob": conf.success_prob, "seed": conf.seed}
+    pose, info = poselib.estimate_absolute_pose(ideal_px, points_world, camera_dict, ransac_opt, {})
+    if info["num_inliers"] < 4:
+        return None
+    cam_from_world = np.eye(4)
+    cam_from_world[:3, :] = pose.Rt  # PoseLib's pose maps world points into the camera
+    if not np.all(np.isfinite(cam_from_world)):
+        return None
+    return invert(cam_from_world)
+
+
+def _refine(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
+            conf: PnPConf) -> tuple[Array, npt.NDArray[np.int64]]:
+    """Gauss-Newton on the inliers' reprojection error through the real camera model; returns
+    the refined pose and the final inlier indices (residual below the threshold)."""
+    inliers = _inliers(world_from_cam, px, points_world, camera, conf)
+    for _ in range(conf.refine_iterations):
+        if len(inliers) < 4:
+            break
+        residual, jac = _residuals_and_jacobian(world_from_cam, px[inliers], points_world[inliers],
+                                                camera)
+        step, *_ = np.linalg.lstsq(jac, residual.ravel(), rcond=None)
+        world_from_cam = world_from_cam @ se3_exp(step)
+        if np.linalg.norm(step) < 1e-12:
+            break
+    return world_from_cam, _inliers(world_from_cam, px, points_world, camera, conf)
+
+
+def _inliers(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
+             conf: PnPConf) -> npt.NDArray[np.int64]:
+    """Indices whose reprojection error (real camera model) is below the threshold."""
+    projected = camera.project(transform_points(invert(world_from_cam), points_world))
+    with np.errstate(invalid="ignore"):
+        err = np.linalg.norm(px - projected, axis=1)
+        return np.flatnonzero(err < conf.max_reproj_error_px)
+
+
+def _residuals_and_jacobian(world_from_cam: Array, px: Array, points_world: Array,
+                            camera: Camera) -> tuple[Array, Array]:
+    """(N, 2) residuals ``px - project(points)`` and the (2N, 6) Jacobian of the projection
+    w.r.t. a right perturbation ``world_from_cam @ exp(xi)``, ``xi = (rho, omega)``."""
+    points_cam = transform_points(invert(world_from_cam), points_world)
+    residual = px - camera.project(points_cam)
+    d_px = _projection_jacobian(camera, points_cam)  # (N, 2, 3)
+    # cam_from_world becomes exp(-xi) @ cam_from_world, so p_cam moves by -rho + [p_cam]x omega:
+    # d px / d rho = -d_px, d px / d omega = d_px @ [p_cam]x (columns written out).
+    x, y, z = (points_cam[:, None, i] for i in range(3))
+    a0, a1, a2 = d_px[:, :, 0], d_px[:, :, 1], d_px[:, :, 2]
+    jac = np.stack([-a0, -a1, -a2, a1 * z - a2 * y, a2 * x - a0 * z, a0 * y - a1 * x], axis=2)
+    return residual, jac.reshape(-1, 6)
+
+
+def _projection_jacobian(camera: Camera, points_cam: Array) -> Array:
+    """(N, 2, 3) derivative of pixels w.r.t. camera-frame points: K * distortion * pinhole."""
+    inv_z = 1.0 / points_cam[:, 2]
+    xy = points_cam[:, :2] * inv_z[:, None]
+    # Central differences keep this model-agnostic: every Camera only has to distort.
+    h = _DISTORT_STEP
+    d_dx = (camera.distort(xy + [h, 0.0]) - camera.distort(xy - [h, 0.0])) / (2 * h)  # (N, 2)
+    d_dy = (camera.distort(xy + [0.0, h]) - camera.distort(xy - [0.0, h])) / (2 * h)
+    # d xy / d p = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
+    d_dz = -(d_dx * xy[:, :1] + d_dy * xy[:, 1:])
+    out = np.stack([d_dx, d_dy, d_dz], axis=2) * inv_z[:, None, None]
+    out[:, 0] *= camera.fx
+    out[:, 1] *= camera.fy
+    return out
+
+
+def _estimate(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
+              conf: PnPConf, num_matches: int, elapsed: float) -> PoseEstimate:
+    """The estimate with the inliers' RMS and the Gauss-Newton covariance
+    ``sigma^2 (J^T J)^-1`` (sigma from the residuals, floored at ``min_sigma_px``)."""
+    residual, jac = _residuals_and_jacobian(world_from_cam, px, points_world, camera)
+    sq = float((residual**2).sum())
+    dof = max(residual.size - 6, 1)
+    sigma2 = max(sq / dof, conf.min_sigma_px**2)
+    try:
+        covariance: Array = sigma2 * np.linalg.inv(jac.T @ jac).astype(np.float64)
+    except np.linalg.LinAlgError:  # degenerate geometry: unknown, so infinitely uncertain
+        covariance = np.full((6, 6), np.inf)
+    return PoseEstimate(world_from_cam=world_from_cam, keyframe_ids=[], num_matches=num_matches,
+                        inliers=len(px), reprojection_rms_px=float(np.sqrt(sq / len(px))),
+                        covariance=covariance, timings={"solve": elapsed},
+                        inlier_px=px.copy(), inlier_points_world=points_world.copy())
+
+
+@register("p3p")
+class P3PPoseFinder(PoseFinder):
+    """Matches query features (SIFT, or ORB as the fast path) to the landmarks seen by all the
+    candidate keyframes at once, then :func:`solve_pnp`."""
+
+    #: The multi relocalizer gives this pose finder a whole group of candidates (pooled).
+    pools_candidates: ClassVar[bool] = True
+
+    @dataclass(frozen=True)
+    class Conf(PnPConf):
+        kind: str = "sift"
+        max_features: int = 2000
+        #: Lowe's ratio (thesis 3.1.3).
+        ratio: float = 0.8
+
+        def __post_init__(self) -> None:
+            super().__post_init__()
+            feature_lib.FeatureConf(kind=self.kind, max_features=self.max_features)
+            if not 0 < self.ratio <= 1:
+                raise ConfigError(f"p3p: ratio must be in (0, 1], got {self.ratio}")
+
+    def __init__(self, conf: P3PPoseFinder.Conf) -> None:
+        super().__init__(conf)
+        self.required_features = frozenset({conf.kind})
+
+    def find_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
+                  ) -> PoseEstimate | None:
+        """Pose from the landmarks of all ``candidates`` still in ``state``; None if none is.
+
+        When too few matches survive for a pose, the estimate is the best keyframe's pose with
+        zero inliers, so the verification refuses it with the counts as the reason."""
+        keyframes = [state.keyframes[c.keyframe_id] for c in candidates
+                     if c.keyframe_id in state.keyframes]
+        if not keyframes:
+            return None
+        timings: dict[str, float] = {}
+        feats = self.query_features(query, timings)
+        start = time.perf_counter()
+        q_idx, rows, pool = self.match_landmarks(feats, keyframes)
+        timings["match"] = time.perf_counter() - start
+        solved = solve_pnp_indexed(feats.keypoints_px[q_idx], pool.points_world[rows],
+                                   query.camera, self.conf)
+        if solved is None:
+            return PoseEstimate(world_from_cam=keyframes[0].world_from_cam.copy(),
+                                keyframe_ids=[kf.id for kf in keyframes], num_matches=len(q_idx),
+                                inliers=0, timings=timings)
+        est, inliers = solved
+        est.keyframe_ids = pool.keyframes_of(rows[inliers], [kf.id for kf in keyframes])
+        est.timings = {**timings, **est.timings}
+        return est
+
+    def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
+        """The query's features of ``conf.kind``, extracted once and cached on the frame."""
+        kind = self.conf.kind
+        start = time.perf_counter()
+        if kind not in query.features:
+            conf = feature_lib.FeatureConf(kind=kind, max_features=self.conf.max_features)
+            query.features[kind] = feature_lib.extract(query.image, conf)
+        timings["features"] = time.perf_counter() - start
+        return query.features[kind]
+
+    def match_landmarks(self, feats: Features, keyframes: list[Keyframe]
+                        ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], LandmarkPool]:
+        """Ratio-test matches of the query ``feats`` to the pooled landmarks of ``keyframes``:
+        (M,) query indices, (M,) pool rows (one query keypoint per landmark) and the pool."""
+        pool = LandmarkPool.gather(keyframes, self.conf.kind)
+        q_idx, rows, dist = feature_lib.match_ratio(feats.descriptors, pool.descriptors,
+                                                    ratio=self.conf.ratio)
+        keep = _best_per_landmark(pool.landmark_ids[rows], dist)
+        return q_idx[keep], rows[keep], pool
+
+
+@dataclass(frozen=True)
+class LandmarkPool:
+    """The landmarks seen by some keyframes, one row per landmark (L rows): the descriptor of
+    its observation in the best-ranked keyframe, its id, world point and that keyframe."""
+
+    descriptors: npt.NDArray[Any]
+    landmark_ids: npt.NDArray[np.int64]
+    points_world: Array
+    keyframe_rows: npt.NDArray[np.int64]
+
+    @classmethod
+    def gather(cls, keyframes: list[Keyframe], kind: str) -> LandmarkPool:
+        """Pool ``kind`` landmarks of ``keyframes`` (best first). A landmark seen by several
+        keyframes keeps one row: duplicates would fail Lowe's ratio test against themselves."""
+        feats = [kf.features.get(kind) for kf in keyframes]
+        local = [np.zeros(0, np.int64) if f is None else np.flatnonzero(f.landmark_ids >= 0)
+                 for f in feats]
+        if not sum(len(i) for i in local):
+            width, dtype = (128, np.float32) if kind == "sift" else (32, np.uint8)
+            return cls(np.zeros((0, width), dtype), np.zeros(0, np.int64), np.zeros((0, 3)),
+                       np.zeros(0, np.int64))
+        ids = np.concatenate([f.landmark_ids[i] for f, i in zip(feats, local, strict=True)
+                              if f is not None])
+        kf_rows = np.repeat(np.arange(len(feats)), [len(i) for i in local])
+        # The first occurrence is in the best-ranked keyframe; sorted, rows stay grouped by
+        # keyframe, so only the kept descriptors are copied (not every observation's).
+        first = np.sort(np.unique(ids, return_index=True)[1])
+        rows, idx = kf_rows[first], np.concatenate(local)[first]
+        picks = [(feats[r], idx[rows == r]) for r in np.unique(rows)]
+        return cls(np.concatenate([f.descriptors[i] for f, i in picks if f is not None]),
+                   ids[first], np.concatenate([f.points_world[i] for f, i in picks
+                                               if f is not None]), rows)
+
+    def keyframes_of(self, rows: npt.NDArray[np.int64], keyframe_ids: list[int]) -> list[int]:
+        """Ids of the keyframes whose landmarks (pool ``rows``) gave inliers, most first."""
+        counts = np.bincount(self.keyframe_rows[rows], minlength=len(keyframe_ids))
+        order = np.argsort(-counts, kind="stable")
+        return [keyframe_ids[i] for i in order if counts[i] > 0]
+
+
+def _best_per_landmark(landmark_ids: npt.NDArray[np.int64], dist: npt.NDArray[np.float32]
+                       ) -> npt.NDArray[np.int64]:
+    """Indices of the matches to keep: for each landmark, the query keypoint nearest to it."""
+    order = np.lexsort((dist, landmark_ids))
+    _, first = np.unique(landmark_ids[order], return_index=True)
+    return np.sort(order[first])

@@ -1,0 +1,102 @@
+"""Fallback chains (``"bow+p3p,sbi+esm"``): relocalizers tried in order until one verifies."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from ..errors import ConfigError, NotTrainedError
+from ..frame import Frame, Keyframe
+from ..map import KeyframeMap
+from .base import Prior, Relocalizer, RelocResult, register
+from .factory import create_relocalizer
+
+
+@register("chain")
+class ChainRelocalizer(Relocalizer):
+    """Asks each step in turn; the first verified answer wins (its ``method`` names the step),
+    with the timings of every step tried summed. Features a step extracts are cached on the
+    query frame, so a later step of the same kind does not extract them again."""
+
+    def __init__(self, kmap: KeyframeMap, steps: list[Relocalizer]) -> None:
+        super().__init__(kmap)
+        if not steps:
+            raise ConfigError("chain: expected at least one relocalizer")
+        self.steps = steps
+
+    @classmethod
+    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]],
+                     *, evaluation: bool = False) -> ChainRelocalizer:
+        """Build each comma-separated step of ``spec`` with the factory."""
+        parts = [p.strip() for p in spec.split(",")]
+        if not all(parts):
+            raise ConfigError(f"chain: empty step in {spec!r}; expected e.g. 'bow+p3p,sbi+esm'")
+        return cls(kmap, [create_relocalizer(p, kmap, options=options, evaluation=evaluation)
+                          for p in parts])
+
+    @property
+    def method(self) -> str:
+        return ",".join(step.method for step in self.steps)
+
+    @property
+    def required_features(self) -> frozenset[str]:
+        return frozenset().union(*(step.required_features for step in self.steps))
+
+    def add_keyframe(self, keyframe: Keyframe) -> None:
+        for step in self.steps:
+            step.add_keyframe(keyframe)
+
+    def remove_keyframe(self, keyframe: Keyframe) -> None:
+        for step in self.steps:
+            step.remove_keyframe(keyframe)
+
+    def train(self, *, progress: bool = False) -> None:
+        for step in self.steps:
+            step.train(progress=progress)
+
+    @property
+    def trained(self) -> bool:
+        return all(step.trained for step in self.steps)
+
+    def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
+                   ) -> RelocResult:
+        """The first step's verified result, or NOT_RELOCALIZED with every step's reason.
+        A step that is not trained yet is skipped (its reason says so)."""
+        timings: dict[str, float] = {}
+        reasons: list[str] = []
+        map_version = self.map.version
+        for step in self.steps:
+            try:
+                result = step.relocalize(query, prior=prior, hypotheses=hypotheses)
+            except NotTrainedError as exc:
+                reasons.append(f"{step.method}: not trained ({exc})")
+                continue
+            for stage, seconds in result.timings.items():
+                timings[stage] = timings.get(stage, 0.0) + seconds
+            map_version = result.map_version
+            if result.ok:
+                result.timings = timings
+                return result
+            reasons.append(f"{step.method}: {result.reason}")
+        return RelocResult.failure(self.method, "; ".join(reasons), timings=timings,
+                                   map_version=map_version)
+
+    def save(self, directory: Path) -> None:
+        """Each step saves into its own sub-directory (``0_bow_p3p``, ...)."""
+        for i, step in enumerate(self.steps):
+            sub = directory / _step_dir(i, step.method)
+            sub.mkdir(parents=True, exist_ok=True)
+            step.save(sub)
+
+    def load(self, directory: Path) -> bool:
+        """Restore every step that has something saved; True if any did."""
+        loaded = [step.load(directory / _step_dir(i, step.method))
+                  for i, step in enumerate(self.steps)
+                  if (directory / _step_dir(i, step.method)).is_dir()]
+        return any(loaded)
+
+
+def _step_dir(index: int, method: str) -> str:
+    return f"{index}_{re.sub(r'[^A-Za-z0-9]+', '_', method)}"

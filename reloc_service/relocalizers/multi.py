@@ -1,0 +1,234 @@
+"""The multi relocalizer (thesis chapter 4, MultipleRelocalizer): a place finder proposes
+keyframes, a pose finder turns them into a pose, the shared verification judges it."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConfigError, NotTrainedError
+from ..frame import Frame, Keyframe
+from ..geometry import pose_error
+from ..map import KeyframeMap, MapState
+from ..place.base import PlaceCandidate, PlaceFinder, create_place_finder
+from ..plugins import make_conf
+from ..pose.base import PoseFinder, create_pose_finder
+from .base import Prior, Relocalizer, RelocResult, VerifyConf, register, result_from_estimate
+
+
+@register("multi")
+class MultiRelocalizer(Relocalizer):
+    """``"<place>+<pose>"``: candidates from the place finder, split into groups (one keyframe
+    per group, or ``num_candidates`` pooled keyframes for pose finders that pool, like p3p),
+    each group answered by the pose finder and verified, best group first."""
+
+    @dataclass(frozen=True)
+    class Conf:
+        #: Keyframes pooled into one group for pose finders that pool candidates (p3p).
+        num_candidates: int = 5
+        #: Groups tried, in place-finder order, until one verifies (1 = thesis behaviour).
+        max_groups: int = 1
+        #: Accept only when two independent candidate groups verify and agree.
+        require_agreement: bool = False
+        agreement_max_distance_m: float = 0.25
+        agreement_max_angle_rad: float = 0.087
+
+        def __post_init__(self) -> None:
+            if self.num_candidates < 1 or self.max_groups < 1:
+                raise ConfigError(f"multi: num_candidates and max_groups must be >= 1, got "
+                                  f"{self.num_candidates}, {self.max_groups}")
+            if self.agreement_max_distance_m <= 0 or self.agreement_max_angle_rad <= 0:
+                raise ConfigError("multi: agreement thresholds must be positive")
+
+    def __init__(self, kmap: KeyframeMap, place: PlaceFinder, pose: PoseFinder, *,
+                 conf: MultiRelocalizer.Conf | None = None, verify_conf: VerifyConf | None = None
+                 ) -> None:
+        super().__init__(kmap)
+        self.place = place
+        self.pose = pose
+        self.conf = conf or MultiRelocalizer.Conf()
+        self.verify_conf = verify_conf or VerifyConf()
+
+    @classmethod
+    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]],
+                     *, evaluation: bool = False) -> MultiRelocalizer:
+        """Build ``"<place>+<pose>"``; ``options[name]`` configures each part, ``"multi"``
+        this class and ``"verify"`` the verification."""
+        parts = [p.strip() for p in spec.split("+")]
+        if len(parts) != 2 or not all(parts):
+            raise ConfigError(f"multi relocalizer: expected '<place>+<pose>' (e.g. 'sbi+p3p'), "
+                              f"got {spec!r}")
+        place_name, pose_name = parts
+        place = create_place_finder({**options.get(place_name, {}), "name": place_name}, kmap,
+                                    evaluation=evaluation)
+        pose = create_pose_finder({**options.get(pose_name, {}), "name": pose_name})
+        conf = make_conf(cls.Conf, options.get("multi"), owner="relocalizer multi")
+        verify_conf = make_conf(VerifyConf, options.get("verify"), owner="verify")
+        return cls(kmap, place, pose, conf=conf, verify_conf=verify_conf)
+
+    @property
+    def method(self) -> str:
+        return f"{self.place.name}+{self.pose.name}"
+
+    @property
+    def required_features(self) -> frozenset[str]:
+        return frozenset(self.place.required_features) | frozenset(self.pose.required_features)
+
+    @property
+    def group_size(self) -> int:
+        """Keyframes per candidate group handed to the pose finder."""
+        return self.conf.num_candidates if self.pose.pools_candidates else 1
+
+    def add_keyframe(self, keyframe: Keyframe) -> None:
+        self.place.add_keyframe(keyframe)
+
+    def remove_keyframe(self, keyframe: Keyframe) -> None:
+        self.place.remove_keyframe(keyframe)
+
+    def train(self, *, progress: bool = False) -> None:
+        self.place.train()
+
+    @property
+    def trained(self) -> bool:
+        return self.place.trained
+
+    def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
+                   ) -> RelocResult:
+        """Place candidates -> groups -> pose -> verification; the first verified group
+        answers, with up to ``hypotheses - 1`` further verified groups in ``hypotheses``."""
+        if not self.place.trained:
+            raise NotTrainedError(f"{self.method}: the {self.place.name} place finder needs "
+                                  "train()")
+        state = self.map.snapshot()
+        timings: dict[str, float] = {}
+        start = time.perf_counter()
+        allowed = _allowed_ids(state, prior)
+        groups = self._candidate_groups(query, state, allowed, max(1, hypotheses))
+        timings["place"] = time.perf_counter() - start
+        if not groups:
+            return RelocResult.failure(self.method, _no_candidate_reason(state, allowed),
+                                       timings=timings, map_version=state.version)
+        results = self._answer_groups(query, groups, state, timings, max(1, hypotheses))
+        return self._combine(results, timings, state.version, max(1, hypotheses))
+
+    def _candidate_groups(self, query: Frame, state: MapState, allowed: set[int] | None,
+                          hypotheses: int) -> list[list[PlaceCandidate]]:
+        """Candidates (still in ``state``) split into consecutive groups, best first."""
+        if allowed is not None and not allowed:
+            return []
+        n_groups = max(self.conf.max_groups, hypotheses, 2 if self.conf.require_agreement else 1)
+        size = self.group_size
+        found = self.place.find_places(query, size * n_groups, allowed=allowed)
+        found = [c for c in found if c.keyframe_id in state.keyframes]
+        return [found[i:i + size] for i in range(0, len(found), size)]
+
+    def _answer_groups(self, query: Frame, groups: list[list[PlaceCandidate]], state: MapState,
+                       timings: dict[str, float], hypotheses: int) -> list[RelocResult]:
+        """Pose and verify group after group until enough have verified; every result."""
+        wanted = max(hypotheses, 2 if self.conf.require_agreement else 1)
+        results: list[RelocResult] = []
+        for group in groups:
+            estimate = self.pose.find_pose(query, group, state)
+            if estimate is not None:
+                _add_timings(timings, estimate.timings)
+            start = time.perf_counter()
+            result = result_from_estimate(estimate, self.verify_conf, method=self.method,
+                                          map_version=state.version, timings={})
+            _add_timings(timings, {"verify": time.perf_counter() - start})
+            results.append(result)
+            if sum(r.ok for r in results) >= wanted:
+                break
+        return results
+
+    def _combine(self, results: list[RelocResult], timings: dict[str, float],
+                 map_version: int, hypotheses: int) -> RelocResult:
+        """The first verified result (with up to ``hypotheses - 1`` other verified ones,
+        most confident first), or a failure naming every group's reason; applies the
+        agreement check."""
+        verified = [r for r in results if r.ok]
+        if not verified:
+            return _failure(self.method, results, timings, map_version)
+        if self.conf.require_agreement:
+            refusal = self._disagreement(verified)
+            if refusal:
+                return RelocResult.failure(self.method, refusal, timings=timings,
+                                           map_version=map_version)
+        best, *others = verified
+        best.timings = timings
+        best.hypotheses = sorted(others, key=lambda r: -r.confidence)[:hypotheses - 1]
+        return best
+
+    def _disagreement(self, verified: list[RelocResult]) -> str:
+        """Why two independent groups do not agree, or "" when they do."""
+        if len(verified) < 2:
+            return "agreement check: fewer than two candidate groups verified"
+        first, second = verified[0].world_from_cam, verified[1].world_from_cam
+        assert first is not None and second is not None
+        dist, angle = pose_error(first, second)
+        if dist > self.conf.agreement_max_distance_m or angle > self.conf.agreement_max_angle_rad:
+            return (f"agreement check: independent hypotheses disagree by {dist:.2f} m and "
+                    f"{np.degrees(angle):.1f} deg")
+        return ""
+
+    def save(self, directory: Path) -> None:
+        """Write the place finder's trained model (if any) as ``place_<name>.msgpack``."""
+        state = self.place.state()
+        if state is not None:
+            import msgpack  # only needed when a place finder has a model to persist
+
+            (directory / f"place_{self.place.name}.msgpack").write_bytes(
+                msgpack.packb(state, use_bin_type=True))
+
+    def load(self, directory: Path) -> bool:
+        """Restore what :meth:`save` wrote; False if there is nothing for this place finder."""
+        path = directory / f"place_{self.place.name}.msgpack"
+        if not path.is_file():
+            return False
+        import msgpack
+
+        self.place.load_state(msgpack.unpackb(path.read_bytes(), raw=False, strict_map_key=False))
+        return True
+
+
+def _allowed_ids(state: MapState, prior: Prior | None) -> set[int] | None:
+    """Keyframe ids whose centre lies within the prior's radius; None without a prior."""
+    if prior is None:
+        return None
+    ids = np.array(state.keyframe_ids(), np.int64)
+    if len(ids) == 0:
+        return set()
+    dist = np.linalg.norm(state.positions_world(ids.tolist()) - prior.world_from_cam[:3, 3], axis=1)
+    return set(ids[dist <= prior.radius_m].tolist())
+
+
+def _no_candidate_reason(state: MapState, allowed: set[int] | None) -> str:
+    if not state.keyframes:
+        return "the map has no keyframe"
+    if allowed is not None and not allowed:
+        return "no keyframe within the prior's radius"
+    return "the place finder proposed no keyframe"
+
+
+def _add_timings(total: dict[str, float], more: Mapping[str, float]) -> None:
+    """Sum ``more`` into ``total`` stage by stage (in place)."""
+    for stage, seconds in more.items():
+        total[stage] = total.get(stage, 0.0) + seconds
+
+
+def _failure(method: str, results: list[RelocResult], timings: dict[str, float],
+             map_version: int) -> RelocResult:
+    """NOT_RELOCALIZED carrying the first group's evidence and every group's reason."""
+    first = results[0]
+    reasons = [r.reason for r in results]
+    reason = reasons[0] if len(reasons) == 1 else "; ".join(
+        f"group {i + 1}: {r}" for i, r in enumerate(reasons))
+    return RelocResult.failure(method, reason, inliers=first.inliers,
+                               num_matches=first.num_matches,
+                               reprojection_rms_px=first.reprojection_rms_px,
+                               matched_keyframe_ids=first.matched_keyframe_ids, timings=timings,
+                               map_version=map_version)

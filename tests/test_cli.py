@@ -1,0 +1,150 @@
+"""The ``reloc`` command line: instant help (no heavy imports), subcommand parsing, errors."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from reloc_service.cli import main as cli_main
+from reloc_service.cli.eval import load_options
+from reloc_service.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+HEAVY = ("numpy", "cv2", "scipy", "zenoh", "matplotlib", "poselib", "skimage")
+
+
+def _python(code: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                          text=True, timeout=60)
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["eval", "--help"], ["--version"]])
+def test_help_imports_nothing_heavy_and_is_fast(argv):
+    code = f"""
+import sys, time
+start = time.perf_counter()
+from reloc_service.cli.main import main
+try:
+    main({argv!r})
+except SystemExit:
+    pass
+elapsed = time.perf_counter() - start
+heavy = sorted(m for m in sys.modules if m.split('.')[0] in {HEAVY!r})
+print('RESULT', elapsed, ','.join(heavy), file=sys.stderr)
+"""
+    proc = _python(code)
+    line = [x for x in proc.stderr.splitlines() if x.startswith("RESULT")][0].split(" ")
+    elapsed, heavy = float(line[1]), line[2] if len(line) > 2 else ""
+    assert heavy == "", f"reloc {' '.join(argv)} imported {heavy}"
+    assert elapsed < 0.3, f"reloc {' '.join(argv)} took {elapsed:.3f} s beyond interpreter start"
+    assert "usage: reloc" in proc.stdout or "reloc 0." in proc.stdout
+
+
+def test_every_subcommand_is_listed(capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli_main.main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for name in ("synth", "dataset", "eval", "serve", "bench", "demo", "router"):
+        assert name in out
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit):
+        cli_main.main(["--version"])
+    assert capsys.readouterr().out.startswith("reloc 0.")
+
+
+def test_no_command_prints_help_and_fails(capsys):
+    assert cli_main.main([]) == 2
+    assert "usage: reloc" in capsys.readouterr().err
+
+
+def test_eval_arguments_parse():
+    parser = cli_main.build_parser("eval")
+    args = parser.parse_args(["eval", "DS", "--method", "gt+none", "-m", "bow+p3p,sbi+esm",
+                              "--json", "o.json", "--plots", "p", "--landmarks", "depth"])
+    assert args.dataset == "DS"
+    assert args.method == ["gt+none", "bow+p3p,sbi+esm"]
+    assert (args.json, args.plots, args.landmarks) == ("o.json", "p", "depth")
+    with pytest.raises(SystemExit):
+        parser.parse_args(["eval", "DS", "--landmarks", "lidar"])
+
+
+def test_eval_usage_errors(capsys):
+    assert cli_main.main(["eval", "--method", "gt+none"]) == 2
+    assert "DATASET" in capsys.readouterr().err
+    assert cli_main.main(["eval", "somewhere"]) == 2
+    assert "--method" in capsys.readouterr().err
+    assert cli_main.main(["eval", "somewhere", "-m", "gt+none", "--remote", "tcp/x:1"]) == 2
+    assert "--map" in capsys.readouterr().err
+
+
+def test_eval_missing_dataset_is_a_clear_error(tmp_path, capsys):
+    assert cli_main.main(["eval", str(tmp_path / "nope"), "-m", "gt+none", "--no-progress"]) == 1
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_eval_list_methods(capsys):
+    assert cli_main.main(["eval", "--list-methods"]) == 0
+    out = capsys.readouterr().out
+    from reloc_service.relocalizers.factory import list_methods
+
+    for m in list_methods():
+        assert m["method"] in out
+
+
+@pytest.mark.parametrize("command,module", [("serve", "reloc_service.service.cli"),
+                                            ("bench", "reloc_service.bench.cli"),
+                                            ("demo", "reloc_service.service.demo"),
+                                            ("router", "reloc_service.service.router")])
+def test_delegated_commands_parse_or_say_they_are_missing(command, module, capsys, monkeypatch):
+    from reloc_service.cli._delegate import import_optional
+
+    if import_optional(module) is not None:
+        parser = cli_main.build_parser(command)
+        with pytest.raises(SystemExit) as exc:
+            parser.parse_args([command, "--help"])
+        assert exc.value.code == 0
+        return
+    assert cli_main.main([command, "--anything", "x"]) == 2
+    err = capsys.readouterr().err
+    assert f"reloc {command}: not available" in err and module in err
+
+
+def test_synth_and_dataset_subcommands_are_wired():
+    args = cli_main.build_parser("dataset").parse_args(["dataset", "check", "DS"])
+    assert args.dataset_command == "check" and args.dataset == "DS"
+    with pytest.raises(SystemExit) as exc:
+        cli_main.build_parser("synth").parse_args(["synth", "--help"])
+    assert exc.value.code == 0
+
+
+def test_load_options_toml_and_json(tmp_path):
+    toml = tmp_path / "o.toml"
+    toml.write_text('[p3p]\nratio = 0.7\n[mapping]\nmin_parallax_deg = 2.0\n')
+    assert load_options(toml) == {"p3p": {"ratio": 0.7}, "mapping": {"min_parallax_deg": 2.0}}
+    js = tmp_path / "o.json"
+    js.write_text(json.dumps({"sbi": {"width": 40}}))
+    assert load_options(js) == {"sbi": {"width": 40}}
+
+
+def test_load_options_errors(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("ratio = 0.7\n")
+    with pytest.raises(ConfigError, match="table of tables"):
+        load_options(bad)
+    broken = tmp_path / "broken.json"
+    broken.write_text("{")
+    with pytest.raises(ConfigError, match="not valid JSON"):
+        load_options(broken)
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_options(tmp_path / "missing.toml")
+
+
+def test_module_entry_point_runs():
+    proc = subprocess.run([sys.executable, "-m", "reloc_service.cli.main", "--version"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and proc.stdout.startswith("reloc ")

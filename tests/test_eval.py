@@ -1,0 +1,358 @@
+"""``evaluate``: scoring, summaries, the JSON schema, tables, plots and an end-to-end run."""
+
+import json
+import math
+import sys
+import types
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from reloc_service.cameras import PinholeCamera
+from reloc_service.data.dataset import DatasetEntry, write_dataset
+from reloc_service.errors import ConfigError, DatasetError
+from reloc_service.eval import evaluate as ev
+from reloc_service.eval import metrics, plots, report
+from reloc_service.geometry import look_at, pose_to_tum, se3_exp
+from reloc_service.relocalizers.base import RelocResult, RelocStatus
+
+CAMERA = PinholeCamera(width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5)
+
+
+def _pose(x: float, y: float = 0.0) -> np.ndarray:
+    return look_at((x, y, 1.0), (x, 3.0, 1.0))
+
+
+def _ok(world_from_cam, **kw) -> RelocResult:
+    return RelocResult(status=RelocStatus.OK, method=kw.pop("method", "fake"),
+                       world_from_cam=world_from_cam, **kw)
+
+
+# -- scoring single results ------------------------------------------------------------------
+
+def test_record_from_result_measures_translation_and_rotation_error():
+    gt = _pose(0.0)
+    est = gt @ se3_exp([0.0, 0.0, 0.0, 0.0, math.radians(2.0), 0.0])
+    est[:3, 3] += [0.03, 0.04, 0.0]
+    rec = ev.record_from_result("q.png", _ok(est, confidence=0.7, inliers=42,
+                                             matched_keyframe_ids=[3],
+                                             timings={"solve": 0.002}), gt, 12.5)
+    assert rec.returned and rec.status == "ok"
+    assert rec.t_err_m == pytest.approx(0.05)
+    assert rec.r_err_deg == pytest.approx(2.0)
+    assert (rec.latency_ms, rec.confidence, rec.inliers) == (12.5, 0.7, 42)
+    assert rec.timings_ms == {"solve": pytest.approx(2.0)}
+    assert rec.est_world_from_cam == pytest.approx(pose_to_tum(est).tolist())
+
+
+def test_record_from_failure_has_no_error():
+    rec = ev.record_from_result("q.png", RelocResult.failure("fake", "too few inliers",
+                                                             matched_keyframe_ids=[1]),
+                                _pose(0.0), 3.0)
+    assert not rec.returned and rec.status == "not_relocalized"
+    assert rec.t_err_m is None and rec.r_err_deg is None and rec.est_world_from_cam is None
+    assert rec.reason == "too few inliers" and rec.matched_keyframe_ids == [1]
+
+
+def _records() -> list[ev.QueryRecord]:
+    """Five queries: errors 1 cm, 10 cm, 30 cm, 1 m (wrong), and one not relocalized."""
+    gt = _pose(0.0)
+    recs = []
+    for i, dx in enumerate([0.01, 0.10, 0.30, 1.0]):
+        est = gt.copy()
+        est[0, 3] += dx
+        recs.append(ev.record_from_result(f"q{i}.png", _ok(est), gt, 10.0 * (i + 1)))
+    recs.append(ev.record_from_result("q4.png", RelocResult.failure("fake", "no"), gt, 50.0))
+    return recs
+
+
+def test_summarize_by_hand():
+    s = ev.summarize(_records())
+    assert (s.queries, s.relocalized) == (5, 4)
+    assert s.recall == {"5cm_5deg": pytest.approx(0.2), "25cm_10deg": pytest.approx(0.4),
+                        "50cm_15deg": pytest.approx(0.6)}
+    assert s.wrong_rate == pytest.approx(0.2)
+    assert s.not_relocalized_rate == pytest.approx(0.2)
+    assert s.median_t_err_m == pytest.approx(0.20)
+    assert s.mean_t_err_m == pytest.approx((0.01 + 0.10 + 0.30 + 1.0) / 4)
+    assert s.latency_p50_ms == pytest.approx(30.0)
+    assert s.latency_p99_ms == pytest.approx(40.0 + 0.96 * 10.0)
+
+
+def _result(records=None) -> ev.EvalResult:
+    records = records if records is not None else _records()
+    map_info = ev.MapInfo(keyframes=2, landmarks=10, landmark_source="triangulate",
+                          build_time_s=0.5, train_time_s=0.1, median_landmark_error_m=None,
+                          keyframe_ids=[0, 1],
+                          keyframe_positions_world=[[0.0, 0.0, 1.0], [0.5, 0.1, 1.0]])
+    return ev.EvalResult(dataset={"root": "/x/toy", "name": "toy", "map_frames": 2,
+                                  "query_frames": len(records), "depth_frames": 0,
+                                  "cameras": {}},
+                         map=map_info, methods=[ev.MethodResult("fake", ev.summarize(records),
+                                                                records)],
+                         machine=ev.machine_info(), backend="in-process", options={},
+                         created_utc="2026-01-01T00:00:00+00:00")
+
+
+def test_json_is_strict_and_round_trips(tmp_path):
+    result = _result()
+    path = result.write_json(tmp_path / "sub" / "out.json")
+    data = json.loads(path.read_text())
+    assert data["schema_version"] == ev.SCHEMA_VERSION
+    summary = data["methods"][0]["summary"]
+    assert summary["recall"]["5cm_5deg"] == pytest.approx(0.2)
+    assert data["methods"][0]["queries"][4]["t_err_m"] is None  # not NaN: strict JSON
+    back = ev.EvalResult.from_dict(data)
+    assert back.methods[0].summary == result.methods[0].summary
+    assert back.methods[0].queries == result.methods[0].queries
+    with pytest.raises(ConfigError, match="schema_version"):
+        ev.EvalResult.from_dict({**data, "schema_version": 99})
+
+
+def test_schema_document_names_every_field():
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "eval_schema.md").read_text()
+    data = _result().to_dict()
+    fields = set(data) | set(data["map"]) | set(data["methods"][0]) \
+        | set(data["methods"][0]["summary"]) | set(data["methods"][0]["queries"][0]) \
+        | set(data["machine"])
+    missing = sorted(f for f in fields if f"`{f}`" not in doc)
+    assert not missing, f"docs/eval_schema.md does not describe {missing}"
+
+
+def test_machine_info():
+    info = ev.machine_info()
+    assert info["cores"] >= 1 and info["python"].count(".") == 2
+    assert info["libraries"]["numpy"] == np.__version__
+
+
+def test_table_rows_and_markdown():
+    result = _result()
+    (row,) = report.table_rows(result)
+    assert row == ["fake", "20.0", "40.0", "60.0", "20.00", "0.00", "20.0", "20.0", "30.0",
+                   "49.6"]
+    table = report.format_table(result)
+    assert table.splitlines()[0].split()[:2] == ["method", "@5cm/5deg"]
+    assert report.format_markdown(result).count("\n") == 2
+    assert "1  no" in report.format_failures(result.methods[0])
+    assert "2 keyframes, 10 landmarks" in report.format_header(result)
+
+
+def test_failure_reasons_are_grouped_by_their_words():
+    gt = _pose(0.0)
+    reasons = ["ncc 0.32 < 0.85", "ncc 0.41 < 0.85", "too few inliers (3 < 20)"]
+    recs = [ev.record_from_result("q.png", RelocResult.failure("m", r), gt, 1.0) for r in reasons]
+    method = ev.MethodResult("m", ev.summarize(recs), recs)
+    assert report.format_failures(method).splitlines() == [
+        "   2  e.g. ncc 0.32 < 0.85", "   1  too few inliers (3 < 20)"]
+
+
+def test_plots_are_written(tmp_path):
+    pytest.importorskip("matplotlib")
+    records = _records()
+    for r, k in zip(records, [1, 1, 2, 4, 1], strict=True):
+        r.rank = k
+    result = _result(records)
+    result.methods[0].summary = ev.summarize(records)
+    paths = plots.plot_result(result, tmp_path / "plots")
+    assert sorted(p.name for p in paths) == ["fake_rank.png", "fake_terror.png",
+                                             "fake_topview.png"]
+    for p in paths:
+        assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_plots_without_matplotlib_say_how_to_install(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
+    with pytest.raises(ConfigError, match=r"pip install reloc\[plots\]"):
+        plots.plot_error_histogram(_result().methods[0], tmp_path / "x.png")
+
+
+def test_plot_axes_pick_largest_extent():
+    pts = np.array([[0, 0, 0], [0.1, 5.0, 2.0], [0.05, -1.0, 0.5]])
+    assert plots.plot_axes(pts) == (1, 2)
+    assert plots.method_slug("bow+p3p,sbi+esm") == "bow-p3p_sbi-esm"
+
+
+# -- evaluate() through the Backend seam ------------------------------------------------------
+
+def _tiny_dataset(root: Path, n_map: int = 4, n_query: int = 3) -> Path:
+    """A toy dataset (random images): map frames along x every 0.5 m, queries in between."""
+    rng = np.random.default_rng(0)
+    images = root / "images"
+    images.mkdir(parents=True)
+    entries = []
+    for name, xs in (("map", np.arange(n_map) * 0.5), ("query", np.arange(n_query) * 0.5 + 0.2)):
+        rows = []
+        for i, x in enumerate(xs):
+            path = f"images/{name}{i}.png"
+            cv2.imwrite(str(root / path), rng.integers(0, 255, (48, 64), dtype=np.uint8))
+            rows.append(DatasetEntry(path, "cam", _pose(float(x))))
+        entries.append(rows)
+    write_dataset(root, {"cam": CAMERA}, entries[0], entries[1])
+    return root
+
+
+class FakeBackend:
+    """Answers each query with the nearest keyframe's pose (the gt+none idea) and refuses the
+    last query: a backend that tests the orchestration without any relocalizer."""
+
+    description = "fake"
+
+    def __init__(self) -> None:
+        self.keyframes: dict[int, np.ndarray] = {}
+        self.trained = False
+        self.closed = False
+        self.calls: list[str] = []
+
+    def add_keyframe(self, kf_id, image, camera, world_from_cam, *, depth):
+        assert image.shape == (camera.height, camera.width) and depth is None
+        self.keyframes[kf_id] = world_from_cam
+
+    def train(self, *, progress):
+        self.trained = True
+
+    def relocalize(self, image, camera, *, method, gt_world_from_cam):
+        assert self.trained
+        self.calls.append(method)
+        if len(self.calls) % 3 == 0:
+            return RelocResult.failure(method, "refused on purpose", matched_keyframe_ids=[0])
+        ids = sorted(self.keyframes)
+        dist = [np.linalg.norm(self.keyframes[i][:3, 3] - gt_world_from_cam[:3, 3]) for i in ids]
+        best = ids[int(np.argmin(dist))]
+        return _ok(self.keyframes[best], method=method, matched_keyframe_ids=[best])
+
+    def map_counts(self):
+        return len(self.keyframes), 0
+
+    def landmark_errors_m(self, dataset):
+        return None
+
+    def close(self):
+        self.closed = True
+
+
+@pytest.fixture
+def fake_remote(monkeypatch):
+    backend = FakeBackend()
+    module = types.ModuleType("reloc_service.eval.remote")
+    module.make_remote_backend = lambda spec, **kw: backend  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "reloc_service.eval.remote", module)
+    return backend
+
+
+def test_evaluate_orchestrates_a_backend(tmp_path, fake_remote):
+    root = _tiny_dataset(tmp_path / "toy")
+    result = ev.evaluate(root, ["a", "b"], progress=False,
+                         remote=ev.RemoteSpec("tcp/127.0.0.1:1", "toy"))
+    assert fake_remote.closed and fake_remote.calls == ["a"] * 3 + ["b"] * 3
+    assert result.backend == "fake" and result.map.keyframes == 4
+    assert [m.method for m in result.methods] == ["a", "b"]
+    a = result.method("a")
+    # queries at x = 0.2, 0.7, 1.2: nearest keyframes 0.0, 0.5, 1.0 -> 0.2 m errors; 3rd refused
+    assert [q.returned for q in a.queries] == [True, True, False]
+    assert [q.t_err_m for q in a.queries[:2]] == [pytest.approx(0.2)] * 2
+    # keyframe 0 (x = 0) is the 4th closest to x = 1.2 (after 1.0, 1.5 and 0.5)
+    assert [q.rank for q in a.queries] == [1, 1, 4]
+    assert a.summary.recall["25cm_10deg"] == pytest.approx(2 / 3)
+    assert a.summary.rank_histogram == {1: 2, 4: 1}
+    assert result.map.keyframe_positions_world[1] == pytest.approx([0.5, 0.0, 1.0])
+
+
+def test_evaluate_errors(tmp_path, fake_remote):
+    root = _tiny_dataset(tmp_path / "toy")
+    with pytest.raises(ConfigError, match="more than once"):
+        ev.evaluate(root, ["a", "a"], progress=False, remote=ev.RemoteSpec("e", "m"))
+    with pytest.raises(DatasetError, match="depth"):
+        ev.evaluate(root, "a", landmarks="depth", progress=False, remote=ev.RemoteSpec("e", "m"))
+    (root / "queries.txt").write_text("# none\n")
+    with pytest.raises(DatasetError, match="no queries"):
+        ev.evaluate(root, "a", progress=False, remote=ev.RemoteSpec("e", "m"))
+
+
+def test_remote_without_remote_module_is_a_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "reloc_service.eval.remote", None)  # as if not installed
+    root = _tiny_dataset(tmp_path / "toy")
+    with pytest.raises(ConfigError, match="remote evaluation is not available"):
+        ev.evaluate(root, "a", progress=False, remote=ev.RemoteSpec("tcp/x:1", "m"))
+
+
+# -- end to end: the synthetic desk at a quarter scale, the engine, gt+none, the CLI ------------
+
+@pytest.fixture(scope="module")
+def small_desk(tmp_path_factory) -> Path:
+    """``reloc synth --preset desk --scale 0.25`` (160x120, 10 map + 10 queries, with depth)."""
+    synth = pytest.importorskip("reloc_service.synth")
+    pytest.importorskip("reloc_service.engine")
+    root = tmp_path_factory.mktemp("eval") / "desk"
+    synth.render_dataset("desk", root, seed=0, workers=1, progress=False, scale=0.25)
+    return root
+
+
+def _check_consistent(method: dict) -> None:
+    """Summary numbers recomputed from the per-query records of the JSON."""
+    qs, s = method["queries"], method["summary"]
+    t = [math.nan if q["t_err_m"] is None else q["t_err_m"] for q in qs]
+    r = [math.nan if q["r_err_deg"] is None else q["r_err_deg"] for q in qs]
+    ok = [q["returned"] for q in qs]
+    assert all((q["t_err_m"] is None) != q["returned"] for q in qs)
+    for key, value in metrics.recalls(t, r, ok).items():
+        assert s["recall"][key] == pytest.approx(value)
+    assert s["wrong_rate"] == pytest.approx(metrics.wrong_rate(t, r, ok))
+    assert s["not_relocalized_rate"] == pytest.approx(1 - sum(ok) / len(ok))
+    assert s["relocalized"] == sum(ok)
+    assert s["recall"]["50cm_15deg"] + s["wrong_rate"] + s["not_relocalized_rate"] \
+        == pytest.approx(1.0)
+    assert s["latency_p50_ms"] == pytest.approx(np.percentile([q["latency_ms"] for q in qs], 50))
+    ranks = [q["rank"] for q in qs if q["rank"] is not None]
+    assert sum(s["rank_histogram"].values()) == len(ranks)
+
+
+def _check_gt_none(data: dict) -> None:
+    """gt+none answers with the pose of the keyframe the ground truth says is nearest."""
+    (method,) = data["methods"]
+    kf = np.array(data["map"]["keyframe_positions_world"])
+    for q in method["queries"]:
+        gt = np.array(q["gt_world_from_cam"][:3])
+        kf_id = q["matched_keyframe_ids"][0]
+        # the gt place finder also weighs viewing direction: nearly always the closest centre
+        assert q["rank"] == 1 + int(np.sum(np.linalg.norm(kf - gt, axis=1)
+                                           < np.linalg.norm(kf[kf_id] - gt)))
+        assert q["rank"] <= 2
+        if q["returned"]:
+            assert q["t_err_m"] == pytest.approx(np.linalg.norm(kf[kf_id] - gt))
+            assert q["est_world_from_cam"][:3] == pytest.approx(kf[kf_id].tolist())
+
+
+def test_eval_cli_end_to_end_gt_none(small_desk, tmp_path, capsys):
+    from reloc_service.cli.main import main
+
+    out = tmp_path / "out.json"
+    status = main(["eval", str(small_desk), "--method", "gt+none", "--json", str(out),
+                   "--plots", str(tmp_path / "plots"), "--no-progress"])
+    stdout = capsys.readouterr().out
+    assert status == 0, stdout
+    assert "gt+none" in stdout and "@5cm/5deg" in stdout and "plot: " in stdout
+    data = json.loads(out.read_text())
+    assert data["schema_version"] == ev.SCHEMA_VERSION
+    assert (data["dataset"]["map_frames"], data["dataset"]["query_frames"]) == (10, 10)
+    assert data["map"]["keyframes"] == 10 and data["map"]["landmarks"] > 0
+    assert data["map"]["landmark_source"] == "triangulate"
+    assert data["map"]["build_time_s"] > 0 and data["map"]["median_landmark_error_m"] < 0.05
+    assert data["backend"] == "in-process" and data["machine"]["cores"] >= 1
+    (method,) = data["methods"]
+    assert method["method"] == "gt+none" and len(method["queries"]) == 10
+    _check_consistent(method)
+    _check_gt_none(data)
+    assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == [
+        "gt-none_rank.png", "gt-none_terror.png", "gt-none_topview.png"]
+
+
+def test_evaluate_depth_landmarks_and_several_methods(small_desk):
+    result = ev.evaluate(small_desk, ["gt+none", "sbi+none"], landmarks="depth", progress=False)
+    assert result.map.landmark_source == "depth" and result.map.landmarks > 0
+    # landmarks lifted from the very depth maps they are scored against
+    assert result.map.median_landmark_error_m < 1e-3
+    assert [m.method for m in result.methods] == ["gt+none", "sbi+none"]
+    for m in result.to_dict()["methods"]:
+        _check_consistent(m)

@@ -1,0 +1,58 @@
+import cv2
+import numpy as np
+import pytest
+import skimage.data
+
+from reloc_service.errors import ConfigError
+from reloc_service.features import FeatureConf, compute_at, extract, match_ratio
+
+
+@pytest.fixture(scope="module")
+def image():
+    return cv2.resize(skimage.data.camera(), (320, 240))
+
+
+@pytest.mark.parametrize("kind", ["sift", "orb"])
+def test_extract_and_self_match(image, kind):
+    feats = extract(image, FeatureConf(kind, 500))
+    assert 50 < len(feats) <= 500
+    assert feats.descriptors.dtype == (np.float32 if kind == "sift" else np.uint8)
+    # Matching against a permuted copy of itself recovers the permutation.
+    perm = np.random.default_rng(0).permutation(len(feats))
+    q, t, d = match_ratio(feats.descriptors, feats.descriptors[perm])
+    assert len(q) > 0.8 * len(feats)
+    assert np.all(perm[t] == q)
+    assert np.all(d < 1e-2)
+
+
+def test_ratio_test_rejects_ambiguous():
+    rng = np.random.default_rng(1)
+    train = rng.normal(size=(2, 128)).astype(np.float32)
+    train[1] = train[0] + 1e-3  # two near-identical candidates: ambiguous
+    q, _, _ = match_ratio(train[:1] + 1e-2, train)
+    assert len(q) == 0
+
+
+def test_hamming_matches_brute_force():
+    rng = np.random.default_rng(2)
+    a = rng.integers(0, 256, size=(40, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, size=(300, 32), dtype=np.uint8)
+    b[:40] = a
+    b[:40, 0] ^= 1  # one bit away
+    q, t, d = match_ratio(a, b)
+    ref = cv2.batchDistance(a, b, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)[1][:, 0]
+    assert np.array_equal(t, ref[q]) and np.all(d == 1)
+
+
+def test_compute_at_given_positions(image):
+    pts = np.array([[100.0, 100.0], [150.0, 120.0], [1.0, 1.0]])
+    feats, origin = compute_at(image, "sift", pts)
+    assert set(origin) <= {0, 1, 2} and 0 in origin and 1 in origin
+    assert np.allclose(feats.keypoints_px, pts[origin])
+
+
+def test_conf_errors():
+    with pytest.raises(ConfigError, match="unknown"):
+        FeatureConf("akaze")
+    with pytest.raises(ConfigError, match="positive"):
+        FeatureConf("sift", 0)

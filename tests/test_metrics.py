@@ -1,0 +1,100 @@
+"""Evaluation metrics on hand-made numbers."""
+
+import math
+
+import numpy as np
+import pytest
+
+from reloc_service.eval import metrics
+
+NAN = math.nan
+# Six queries: four returned, two not (their errors are NaN).
+T = [0.01, 0.20, 0.40, 0.90, NAN, NAN]  # metres
+R = [1.0, 12.0, 3.0, 2.0, NAN, NAN]  # degrees
+OK = [True, True, True, True, False, False]
+
+
+def test_recall_counts_only_returned_poses_within_both_thresholds():
+    assert metrics.recall(T, R, OK, 0.05, 5.0) == pytest.approx(1 / 6)
+    # 0.20 m passes 25 cm but 12 deg fails 10 deg; 0.40 m fails 25 cm.
+    assert metrics.recall(T, R, OK, 0.25, 10.0) == pytest.approx(1 / 6)
+    # 50 cm / 15 deg: 0.01, 0.20 (12 deg <= 15), 0.40 pass; 0.90 m fails.
+    assert metrics.recall(T, R, OK, 0.50, 15.0) == pytest.approx(3 / 6)
+
+
+def test_recall_thresholds_are_inclusive():
+    assert metrics.recall([0.05], [5.0], [True], 0.05, 5.0) == 1.0
+    assert metrics.recall([0.0501], [5.0], [True], 0.05, 5.0) == 0.0
+
+
+def test_recalls_keys():
+    got = metrics.recalls(T, R, OK)
+    assert list(got) == ["5cm_5deg", "25cm_10deg", "50cm_15deg"]
+    assert got["50cm_15deg"] == pytest.approx(0.5)
+
+
+def test_wrong_rate_is_fraction_of_all_queries():
+    # Only the 0.90 m pose is wrong.
+    assert metrics.wrong_rate(T, R, OK) == pytest.approx(1 / 6)
+    assert metrics.wrong_mask(T, R, OK).tolist() == [False, False, False, True, False, False]
+    # A rotation beyond 15 deg alone makes a pose wrong.
+    assert metrics.wrong_rate([0.01], [16.0], [True]) == 1.0
+
+
+def test_not_relocalized_rate():
+    assert metrics.not_relocalized_rate(OK) == pytest.approx(2 / 6)
+    assert math.isnan(metrics.not_relocalized_rate([]))
+
+
+def test_rates_partition_the_queries():
+    within_wrong = metrics.recall(T, R, OK, 0.5, 15.0) + metrics.wrong_rate(T, R, OK)
+    assert within_wrong + metrics.not_relocalized_rate(OK) == pytest.approx(1.0)
+
+
+def test_median_errors_over_returned_only():
+    med_t, med_r = metrics.median_errors(T, R, OK)
+    assert med_t == pytest.approx((0.20 + 0.40) / 2)
+    assert med_r == pytest.approx((2.0 + 3.0) / 2)
+    assert all(math.isnan(v) for v in metrics.median_errors([NAN], [NAN], [False]))
+
+
+def test_percentile_ignores_nan_and_interpolates():
+    values = [10.0, 20.0, NAN, 30.0, 40.0]
+    assert metrics.percentile(values, 50) == pytest.approx(25.0)
+    assert metrics.percentile(values, 99) == pytest.approx(30.0 + 0.97 * 10.0)
+    assert math.isnan(metrics.percentile([], 50))
+
+
+def test_returned_pose_with_nan_error_is_rejected():
+    with pytest.raises(ValueError, match="non-finite"):
+        metrics.recall([NAN], [1.0], [True], 0.05, 5.0)
+    with pytest.raises(ValueError, match="length"):
+        metrics.recall([0.1, 0.2], [1.0], [True], 0.05, 5.0)
+
+
+def test_closest_ranks_by_hand():
+    keyframes = np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0], [3.0, 0, 0]])
+    queries = np.array([[0.1, 0, 0],   # order 0, 1, 2, 3
+                        [2.2, 0, 0],   # order 2, 3, 1, 0
+                        [1.5, 0, 0],   # 1 and 2 tie at 0.5
+                        [0.0, 5, 0]])
+    chosen = [0, 1, 2, -1]
+    assert metrics.closest_ranks(queries, keyframes, chosen).tolist() == [1, 3, 1, 0]
+    assert metrics.closest_ranks(queries, keyframes, [3, 0, 1, 0]).tolist() == [4, 4, 1, 1]
+
+
+def test_closest_ranks_checks_indices():
+    with pytest.raises(ValueError, match="expected -1 or a row"):
+        metrics.closest_ranks(np.zeros((1, 3)), np.zeros((2, 3)), [2])
+    with pytest.raises(ValueError, match="one per query"):
+        metrics.closest_ranks(np.zeros((2, 3)), np.zeros((2, 3)), [0])
+
+
+def test_rank_histogram_skips_zero():
+    assert metrics.rank_histogram([1, 1, 2, 0, 5, 1]) == {1: 3, 2: 1, 5: 1}
+    assert metrics.rank_histogram([]) == {}
+
+
+def test_threshold_key():
+    assert metrics.threshold_key(0.05, 5.0) == "5cm_5deg"
+    assert metrics.threshold_key(0.25, 10) == "25cm_10deg"

@@ -1,0 +1,221 @@
+"""P3P pose finder: exact poses through every camera model, covariance, refusal, matching."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from reloc_service import features as feature_lib
+from reloc_service.bench.multi_bench import PlanarScene, planar_scene, query_pose
+from reloc_service.cameras import Camera, camera_from_dict
+from reloc_service.errors import ConfigError
+from reloc_service.frame import Features, Frame, Keyframe
+from reloc_service.geometry import invert, look_at, pose_error, se3_log, transform_points
+from reloc_service.map import KeyframeMap
+from reloc_service.place.base import PlaceCandidate
+from reloc_service.pose.base import create_pose_finder
+from reloc_service.pose.p3p import LandmarkPool, PnPConf, solve_pnp
+from reloc_service.relocalizers.base import VerifyConf, position_sigma_m, result_from_estimate
+
+DISTORTIONS = {"pinhole": [], "radtan": [-0.28, 0.07, 1e-4, -2e-4],
+               "equidistant": [0.05, -0.01, 0.003, -0.001], "fov": [0.9]}
+
+
+def make_camera(model: str, width: int = 640, height: int = 480) -> Camera:
+    return camera_from_dict({"model": model, "width": width, "height": height, "fx": 420.0,
+                             "fy": 415.0, "cx": (width - 1) / 2 + 3, "cy": (height - 1) / 2 - 2,
+                             "distortion": DISTORTIONS[model]})
+
+
+def correspondences(camera: Camera, world_from_cam: np.ndarray, n: int,
+                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 2) distorted pixels over the whole image and their (n, 3) world points, 1.5-6 m."""
+    px = rng.uniform([0, 0], [camera.width - 1, camera.height - 1], (n, 2))
+    bearings = camera.unproject(px)
+    points_cam = bearings / bearings[:, 2:] * rng.uniform(1.5, 6.0, n)[:, None]
+    return camera.project(points_cam), transform_points(world_from_cam, points_cam)
+
+
+TRUE_POSE = look_at([0.4, -0.3, -4.0], [0.1, 0.2, 0.0], up=[0, -1, 0])
+
+
+@pytest.mark.parametrize("model", sorted(DISTORTIONS))
+def test_recovers_pose_exactly_with_half_outliers(model):
+    rng = np.random.default_rng(0)
+    camera = make_camera(model)
+    px, points = correspondences(camera, TRUE_POSE, 200, rng)
+    outliers = rng.permutation(200)[:100]
+    px[outliers] = rng.uniform([0, 0], [camera.width, camera.height], (100, 2))
+    est = solve_pnp(px, points, camera)
+    assert est is not None
+    dt, dr = pose_error(est.world_from_cam, TRUE_POSE)
+    assert dt < 1e-9 and dr < 1e-9
+    assert est.num_matches == 200 and 100 <= est.inliers <= 103  # a random outlier may fit
+    assert est.reprojection_rms_px < 0.5
+    assert est.inlier_px.shape == (est.inliers, 2)
+    assert est.inlier_points_world.shape == (est.inliers, 3)
+    assert "solve" in est.timings
+    assert result_from_estimate(est, VerifyConf(), method="p3p", map_version=0, timings={}).ok
+
+
+@pytest.mark.parametrize("model", sorted(DISTORTIONS))
+def test_jacobian_matches_finite_differences(model):
+    from reloc_service.geometry import se3_exp
+    from reloc_service.pose.p3p import _residuals_and_jacobian
+
+    rng = np.random.default_rng(6)
+    camera = make_camera(model)
+    px, points = correspondences(camera, TRUE_POSE, 20, rng)
+    _, jac = _residuals_and_jacobian(TRUE_POSE, px, points, camera)
+    numeric = np.zeros_like(jac)
+    h = 1e-6
+    for k in range(6):
+        step = np.zeros(6)
+        step[k] = h
+        plus = _residuals_and_jacobian(TRUE_POSE @ se3_exp(step), px, points, camera)[0]
+        minus = _residuals_and_jacobian(TRUE_POSE @ se3_exp(-step), px, points, camera)[0]
+        numeric[:, k] = -(plus - minus).ravel() / (2 * h)  # residual = px - projection
+    assert np.allclose(jac, numeric, rtol=1e-4, atol=1e-3)
+
+
+def test_covariance_matches_monte_carlo_and_shrinks_with_more_inliers():
+    rng = np.random.default_rng(1)
+    camera = make_camera("radtan")
+    conf = PnPConf(min_sigma_px=0.0)
+    sigmas = {}
+    for n in (30, 300):
+        clean, points = correspondences(camera, TRUE_POSE, n, rng)
+        twists, covariances = [], []
+        for _ in range(60):
+            est = solve_pnp(clean + rng.normal(0.0, 1.0, clean.shape), points, camera, conf)
+            twists.append(se3_log(invert(TRUE_POSE) @ est.world_from_cam))
+            covariances.append(est.covariance)
+        predicted = np.sqrt(np.diag(np.mean(covariances, axis=0)))
+        empirical = np.sqrt(np.diag(np.cov(np.array(twists).T)))
+        assert np.all(np.abs(empirical / predicted - 1.0) < 0.35), (empirical, predicted)
+        sigmas[n] = position_sigma_m(np.mean(covariances, axis=0))
+    assert sigmas[300] < 0.5 * sigmas[30]
+
+
+def test_covariance_is_floored_for_noise_free_data():
+    rng = np.random.default_rng(2)
+    camera = make_camera("pinhole")
+    px, points = correspondences(camera, TRUE_POSE, 50, rng)
+    floored = solve_pnp(px, points, camera, PnPConf(min_sigma_px=0.5))
+    raw = solve_pnp(px, points, camera, PnPConf(min_sigma_px=0.0))
+    assert position_sigma_m(floored.covariance) > 1e3 * position_sigma_m(raw.covariance)
+
+
+def test_random_correspondences_are_refused():
+    rng = np.random.default_rng(3)
+    camera = make_camera("pinhole")
+    refused = 0
+    for _ in range(5):
+        px = rng.uniform([0, 0], [640, 480], (300, 2))
+        points = rng.uniform([-3, -3, 2], [3, 3, 8], (300, 3))
+        est = solve_pnp(px, points, camera)
+        result = result_from_estimate(est, VerifyConf(), method="p3p", map_version=0, timings={})
+        refused += not result.ok
+    assert refused == 5
+
+
+def test_too_few_or_mismatched_correspondences():
+    camera = make_camera("pinhole")
+    rng = np.random.default_rng(4)
+    px, points = correspondences(camera, TRUE_POSE, 3, rng)
+    assert solve_pnp(px, points, camera) is None
+    with pytest.raises(ValueError, match="as many points as pixels"):
+        solve_pnp(px, points[:2], camera)
+
+
+def test_unknown_options_raise():
+    with pytest.raises(ConfigError, match="unknown option"):
+        create_pose_finder({"name": "p3p", "threshold": 3.0})
+    with pytest.raises(ConfigError):
+        create_pose_finder({"name": "p3p", "kind": "surf"})
+    finder = create_pose_finder({"name": "p3p", "kind": "orb", "max_reproj_error_px": 4})
+    assert finder.required_features == {"orb"}
+    assert finder.conf.max_reproj_error_px == 4.0
+
+
+def test_landmark_pool_keeps_one_row_per_landmark_from_the_best_keyframe():
+    camera = make_camera("pinhole", 64, 48)
+    image = np.zeros((48, 64), np.uint8)
+
+    def keyframe(kf_id: int, ids: list[int], value: float) -> Keyframe:
+        n = len(ids)
+        feats = Features.create("sift", np.full((n, 2), 10.0), np.full((n, 128), value, np.float32),
+                                landmark_ids=ids, points_world=np.array(ids, float)[:, None]
+                                * np.ones(3))
+        return Keyframe(image=image, camera=camera, id=kf_id, features={"sift": feats})
+
+    pool = LandmarkPool.gather([keyframe(7, [3, -1, 5], 1.0), keyframe(2, [5, 9], 2.0)], "sift")
+    assert sorted(pool.landmark_ids.tolist()) == [3, 5, 9]
+    row5 = int(np.flatnonzero(pool.landmark_ids == 5)[0])
+    assert pool.descriptors[row5, 0] == 1.0 and pool.keyframe_rows[row5] == 0
+    assert np.allclose(pool.points_world[row5], 5.0)
+    assert len(LandmarkPool.gather([keyframe(1, [-1], 0.0)], "sift").landmark_ids) == 0
+
+
+# -- image based: a textured plane with a small map ---------------------------------------------
+
+@pytest.fixture(scope="module")
+def scene() -> PlanarScene:
+    camera = camera_from_dict({"model": "pinhole", "width": 320, "height": 240, "fx": 250.0,
+                               "fy": 250.0, "cx": 159.5, "cy": 119.5})
+    from reloc_service.bench.multi_bench import keyframe_grid
+
+    return planar_scene(keyframe_grid(3, 2), kinds=("sift", "orb"), camera=camera,
+                        max_features=1000)
+
+
+def candidates_near(scene: PlanarScene, world_from_cam: np.ndarray, k: int) -> list[PlaceCandidate]:
+    state = scene.map.snapshot()
+    ids = state.keyframe_ids()
+    dist = np.linalg.norm(state.positions_world(ids) - world_from_cam[:3, 3], axis=1)
+    return [PlaceCandidate(ids[i], -float(dist[i])) for i in np.argsort(dist)[:k]]
+
+
+@pytest.mark.parametrize("kind", ["sift", "orb"])
+def test_find_pose_on_rendered_images(scene, kind, monkeypatch):
+    finder = create_pose_finder({"name": "p3p", "kind": kind, "max_features": 1000})
+    gt = query_pose(0)
+    query = Frame(scene.render(gt), scene.camera)
+    calls = []
+    real_extract = feature_lib.extract
+    monkeypatch.setattr(feature_lib, "extract",
+                        lambda *a, **k: calls.append(1) or real_extract(*a, **k))
+    state = scene.map.snapshot()
+    est = finder.find_pose(query, candidates_near(scene, gt, 3), state)
+    assert est is not None and est.inliers >= 50
+    dt, dr = pose_error(est.world_from_cam, gt)
+    assert dt < 0.01 and np.degrees(dr) < 0.5
+    assert set(est.keyframe_ids) <= {c.keyframe_id for c in candidates_near(scene, gt, 3)}
+    assert {"features", "match", "solve"} <= est.timings.keys()
+    assert result_from_estimate(est, VerifyConf(), method="p3p", map_version=0, timings={}).ok
+    finder.find_pose(query, candidates_near(scene, gt, 2), state)
+    assert len(calls) == 1 and kind in query.features  # extracted once, cached on the query
+
+
+def test_find_pose_without_enough_matches_is_refused(scene):
+    finder = create_pose_finder({"name": "p3p"})
+    rng = np.random.default_rng(5)
+    noise = rng.integers(0, 255, (240, 320)).astype(np.uint8)
+    state = scene.map.snapshot()
+    est = finder.find_pose(Frame(noise, scene.camera), candidates_near(scene, query_pose(0), 3),
+                           state)
+    result = result_from_estimate(est, VerifyConf(), method="p3p", map_version=0, timings={})
+    assert not result.ok and result.reason
+    assert finder.find_pose(Frame(noise, scene.camera), [PlaceCandidate(999, 0.0)], state) is None
+
+
+def test_find_pose_with_keyframes_lacking_features_is_refused():
+    camera = make_camera("pinhole", 64, 48)
+    kmap = KeyframeMap()
+    kmap.add_keyframe(Keyframe(image=np.zeros((48, 64), np.uint8), camera=camera, id=0))
+    finder = create_pose_finder({"name": "p3p"})
+    est = finder.find_pose(Frame(np.zeros((48, 64), np.uint8), camera), [PlaceCandidate(0, 0.0)],
+                           kmap.snapshot())
+    assert est is not None and est.inliers == 0 and est.num_matches == 0
+    assert not result_from_estimate(est, VerifyConf(), method="p3p", map_version=0,
+                                    timings={}).ok
