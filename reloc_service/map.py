@@ -111,7 +111,8 @@ class KeyframeMap:
             keyframes[keyframe.id] = keyframe
             next_id = self._state.next_landmark_id
             for kind, feats in keyframe.features.items():
-                next_id = max(next_id, _register_given_landmarks(keyframe.id, kind, feats, landmarks))
+                given_next = _register_given_landmarks(keyframe.id, kind, feats, landmarks)
+                next_id = max(next_id, given_next)
             return self._publish(keyframes, landmarks, next_id)
 
     def remove_keyframe(self, kf_id: int) -> MapState:
@@ -134,7 +135,8 @@ class KeyframeMap:
         pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
         obs_lists = [list(o) for o in observations]
         if len(obs_lists) != len(pts):
-            raise MapError(f"add_landmarks: {len(pts)} points but {len(obs_lists)} observation lists")
+            raise MapError(f"add_landmarks: {len(pts)} points but {len(obs_lists)} "
+                           "observation lists")
         with self._lock:
             keyframes = dict(self._state.keyframes)
             landmarks = dict(self._state.landmarks)
@@ -182,6 +184,29 @@ class KeyframeMap:
             self._publish(keyframes, landmarks, self._state.next_landmark_id)
             return len(taken)
 
+    def move_landmarks(self, landmark_ids: npt.ArrayLike, points_world: npt.ArrayLike) -> MapState:
+        """Move landmarks to new world points (L, 3), in the landmarks and in the features of
+        the keyframes observing them (after a re-refinement with more observations)."""
+        ids = np.asarray(landmark_ids, dtype=np.int64).ravel()
+        pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        if len(ids) != len(pts):
+            raise MapError(f"move_landmarks: {len(ids)} ids but {len(pts)} points")
+        with self._lock:
+            if len(ids) == 0:
+                return self._state
+            order = np.argsort(ids)
+            ids, pts = ids[order], pts[order]
+            keyframes = dict(self._state.keyframes)
+            landmarks = dict(self._state.landmarks)
+            observers: set[int] = set()
+            for lm_id, point in zip(ids.tolist(), pts, strict=True):
+                lm = landmarks[lm_id]
+                landmarks[lm_id] = Landmark(lm.id, point.copy(), lm.observations)
+                observers.update(o[0] for o in lm.observations)
+            for k in observers:
+                keyframes[k] = _with_moved_points(keyframes[k], ids, pts)
+            return self._publish(keyframes, landmarks, self._state.next_landmark_id)
+
     def replace_state(self, state: MapState) -> None:
         """Install a whole state (used when loading a saved map)."""
         with self._lock:
@@ -226,6 +251,18 @@ def _register_given_landmarks(kf_id: int, kind: str, feats: Features,
             landmarks[lm_id] = Landmark(lm.id, lm.point_world, lm.observations | {obs})
         next_id = max(next_id, lm_id + 1)
     return next_id
+
+
+def _with_moved_points(keyframe: Keyframe, sorted_ids: npt.NDArray[np.int64],
+                       points_world: Array) -> Keyframe:
+    """``keyframe`` with the points of landmarks ``sorted_ids`` replaced by ``points_world``."""
+    for kind, feats in keyframe.features.items():
+        idx = np.flatnonzero(np.isin(feats.landmark_ids, sorted_ids))
+        if len(idx):
+            pos = np.searchsorted(sorted_ids, feats.landmark_ids[idx])
+            keyframe = keyframe.with_features(
+                kind, feats.with_landmarks(idx, feats.landmark_ids[idx], points_world[pos]))
+    return keyframe
 
 
 def _apply_updates(keyframes: dict[int, Keyframe], kind: str,

@@ -42,6 +42,8 @@ class PoseEstimate:
     #: (N, 2) query pixels and (N, 3) world points of the inliers, kept for diagnostics/agreement.
     inlier_px: Array | None = None
     inlier_points_world: Array | None = None
+    #: (width, height) of the query image, to judge how the inliers spread over it.
+    image_size: tuple[int, int] | None = None
 
 
 class PoseFinder(abc.ABC):

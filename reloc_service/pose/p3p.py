@@ -186,7 +186,8 @@ def _estimate(world_from_cam: Array, px: Array, points_world: Array, camera: Cam
     return PoseEstimate(world_from_cam=world_from_cam, keyframe_ids=[], num_matches=num_matches,
                         inliers=len(px), reprojection_rms_px=float(np.sqrt(sq / len(px))),
                         covariance=covariance, timings={"solve": elapsed},
-                        inlier_px=px.copy(), inlier_points_world=points_world.copy())
+                        inlier_px=px.copy(), inlier_points_world=points_world.copy(),
+                        image_size=camera.size)
 
 
 @register("p3p")

@@ -82,6 +82,11 @@ class VerifyConf:
     min_inliers: int = 20
     min_inlier_ratio: float = 0.15
     max_rms_px: float = 2.5
+    #: Inliers must fall in at least this many cells of a ``coverage_grid`` x ``coverage_grid``
+    #: grid over the image: a pose supported by one small patch (a repeated poster, a logo) is
+    #: the classic perceptual-aliasing wrong pose, however small its reprojection error.
+    min_inlier_cells: int = 4
+    coverage_grid: int = 4
     #: Largest 1-sigma position uncertainty (from the covariance) accepted, metres.
     max_position_sigma_m: float = 0.2
     #: Smallest normalised cross-correlation accepted for photometric (ESM, none) estimates:
@@ -115,6 +120,10 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
         return False, f"inlier ratio too low ({ratio:.2f} < {conf.min_inlier_ratio})", 0.0
     if rms > conf.max_rms_px:
         return False, f"reprojection RMS too high ({rms:.2f} px > {conf.max_rms_px})", 0.0
+    cells = inlier_cells(est, conf.coverage_grid)
+    if cells is not None and cells < conf.min_inlier_cells:
+        return False, (f"inliers cover too little of the image ({cells} < {conf.min_inlier_cells} "
+                       f"cells of {conf.coverage_grid}x{conf.coverage_grid})"), 0.0
     sigma = position_sigma_m(est.covariance)
     if sigma > conf.max_position_sigma_m:
         return False, f"position too uncertain ({sigma:.3f} m > {conf.max_position_sigma_m})", 0.0
@@ -123,6 +132,17 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
     c_ratio = min(1.0, ratio / (3 * conf.min_inlier_ratio))
     c_rms = float(np.exp(-((rms / conf.max_rms_px) ** 2)))
     return True, "", float(np.clip(c_inl * c_ratio * c_rms, 0.0, 1.0))
+
+
+def inlier_cells(estimate: PoseEstimate, grid: int) -> int | None:
+    """Number of cells of a ``grid`` x ``grid`` partition of the image holding an inlier; None
+    when the estimate does not say where its inliers are."""
+    if estimate.inlier_px is None or estimate.image_size is None or len(estimate.inlier_px) == 0:
+        return None
+    width, height = estimate.image_size
+    col = np.clip((estimate.inlier_px[:, 0] + 0.5) * grid // width, 0, grid - 1).astype(int)
+    row = np.clip((estimate.inlier_px[:, 1] + 0.5) * grid // height, 0, grid - 1).astype(int)
+    return len(np.unique(row * grid + col))
 
 
 def position_sigma_m(covariance: Array | None) -> float:

@@ -1,0 +1,383 @@
+"""The engine shared by ``reloc eval`` and the service: the keyframe map, its builder and the
+live relocalizers, safe for many querying threads and one mapping thread.
+
+Concurrency: the builder works on :attr:`Engine.map` under a writer mutex while queries go
+on; relocalizers see the map through read-only views pinned to the last *published* state.
+Publishing (pinning the views to the new state and telling the relocalizers) takes the write
+side of a readers-writer lock, so a query (read side) sees one consistent map version from
+start to end. Training builds a fresh relocalizer off-lock over a pinned snapshot, then,
+under the write lock, replays the keyframes changed since and swaps it in.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import tempfile
+import threading
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import numpy.typing as npt
+
+from .cameras import Camera
+from .errors import ConfigError, MapError
+from .frame import Frame, Keyframe
+from .map import KeyframeMap, MapState
+from .mapping import MapBuilder, MappingConf
+from .progress import progress as progress_bar
+from .relocalizers.base import Prior, Relocalizer, RelocResult
+from .relocalizers.factory import create_relocalizer
+from .storage import load_map, model_dir_name, save_map
+from .triangulation import TriangulationConf
+
+__all__ = ["Engine", "EngineConf", "MappingConf", "MapView", "ReadWriteLock", "TriangulationConf"]
+
+Array = npt.NDArray[Any]
+
+
+@dataclass(frozen=True)
+class EngineConf:
+    """Methods kept ready (the first is the default), plugin options (plugin name -> option
+    dict, as :func:`create_relocalizer` takes them) and the map building configuration."""
+
+    methods: tuple[str, ...] = ("sbi+p3p",)
+    options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    mapping: MappingConf = field(default_factory=MappingConf)
+
+    def __post_init__(self) -> None:
+        methods = tuple(self.methods) if isinstance(self.methods, list | tuple) else None
+        if not methods or not all(isinstance(m, str) and m.strip() for m in methods):
+            raise ConfigError(f"engine.methods: expected a non-empty list of method strings "
+                              f"(e.g. ['sbi+p3p']), got {self.methods!r}")
+        object.__setattr__(self, "methods", tuple(m.strip() for m in methods))
+        if not isinstance(self.options, Mapping) or not all(
+                isinstance(v, Mapping) for v in self.options.values()):
+            raise ConfigError(f"engine.options: expected plugin name -> option table, got "
+                              f"{self.options!r}")
+        object.__setattr__(self, "options", MappingProxyType(
+            {k: MappingProxyType(dict(v)) for k, v in self.options.items()}))
+        if isinstance(self.mapping, Mapping):
+            object.__setattr__(self, "mapping", MappingConf.from_options(self.mapping))
+
+    @property
+    def default_method(self) -> str:
+        return self.methods[0]
+
+
+class ReadWriteLock:
+    """Many readers or one writer. A waiting writer holds back new readers, so a stream of
+    queries cannot starve keyframe updates. Not reentrant."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition(threading.Lock())
+        self._readers = 0
+        self._writing = False
+        self._writers_waiting = 0
+
+    @contextmanager
+    def read(self) -> Iterator[None]:
+        with self._cond:
+            while self._writing or self._writers_waiting:
+                self._cond.wait()
+            self._readers += 1
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._readers -= 1
+                if self._readers == 0:
+                    self._cond.notify_all()
+
+    @contextmanager
+    def write(self) -> Iterator[None]:
+        with self._cond:
+            self._writers_waiting += 1
+            try:
+                while self._writing or self._readers:
+                    self._cond.wait()
+            finally:
+                self._writers_waiting -= 1
+            self._writing = True
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._writing = False
+                self._cond.notify_all()
+
+
+class MapView(KeyframeMap):
+    """A read-only :class:`KeyframeMap` showing one pinned :class:`MapState` (what a
+    relocalizer is given; the engine re-pins it when it publishes)."""
+
+    def __init__(self, state: MapState | None = None) -> None:
+        super().__init__()
+        self._pinned = state if state is not None else MapState()
+
+    def pin(self, state: MapState) -> None:
+        self._pinned = state
+
+    def snapshot(self) -> MapState:
+        return self._pinned
+
+    @property
+    def version(self) -> int:
+        return self._pinned.version
+
+    def __len__(self) -> int:
+        return len(self._pinned.keyframes)
+
+    def __contains__(self, kf_id: object) -> bool:
+        return kf_id in self._pinned.keyframes
+
+    def _read_only(self, *_: Any, **__: Any) -> Any:
+        raise MapError("a relocalizer's map view is read-only; change the map through the engine")
+
+    add_keyframe = remove_keyframe = add_landmarks = add_observations = replace_state = _read_only
+
+
+@dataclass
+class _Live:
+    """A relocalizer in service and the view it reads the map through."""
+
+    relocalizer: Relocalizer
+    view: MapView
+
+
+class Engine:
+    """Map, builder and relocalizers behind one API (see module docstring)."""
+
+    def __init__(self, conf: EngineConf | None = None, *, evaluation: bool = False) -> None:
+        self.conf = conf or EngineConf()
+        self.evaluation = evaluation
+        #: The map the builder writes (may be ahead of what relocalizers see: :meth:`status`).
+        self.map = KeyframeMap()
+        self._rw = ReadWriteLock()
+        self._writer = threading.Lock()           # serialises map changes
+        self._save_lock = threading.Lock()
+        self._method_locks: dict[str, threading.Lock] = {}
+        self._meta = threading.Lock()             # guards _method_locks and _building
+        self._building: dict[str, int] = {}       # method -> base version of builds in flight
+        self._journal: list[tuple[int, int]] = []  # (published version, keyframe id changed)
+        self._published = self.map.snapshot()
+        self._live: dict[str, _Live] = {}
+        kinds: set[str] = set()
+        for method in self.conf.methods:
+            live = self._create(method, self._published)
+            kinds |= live.relocalizer.required_features
+            self._live[method] = live
+        self.builder = MapBuilder(self.map, self.conf.mapping.with_kinds(sorted(kinds)))
+
+    # -- map changes (write) -------------------------------------------------------------------
+    def add_keyframe(self, kf_id: int, image: npt.ArrayLike, camera: Camera, world_from_cam: Array,
+                     *, depth: npt.ArrayLike | None = None, timestamp: float | None = None,
+                     given_keypoints_px: npt.ArrayLike | None = None,
+                     given_landmark_ids: npt.ArrayLike | None = None,
+                     given_points_world: npt.ArrayLike | None = None) -> Keyframe:
+        """Add (or replace) a posed keyframe: features and landmarks (see
+        :meth:`MapBuilder.add_keyframe`), then every live relocalizer learns it."""
+        with self._writer:
+            old = self.map.snapshot().keyframes.get(kf_id)
+            keyframe = self.builder.add_keyframe(
+                kf_id, image, camera, world_from_cam, depth=depth, timestamp=timestamp,
+                given_keypoints_px=given_keypoints_px, given_landmark_ids=given_landmark_ids,
+                given_points_world=given_points_world)
+            with self._rw.write():
+                self._publish([kf_id])
+                for live in self._live.values():
+                    if old is not None:
+                        live.relocalizer.remove_keyframe(old)
+                    live.relocalizer.add_keyframe(keyframe)
+        return keyframe
+
+    def remove_keyframe(self, kf_id: int) -> Keyframe:
+        """Remove keyframe ``kf_id`` from the map and every relocalizer; MapError if unknown."""
+        with self._writer:
+            keyframe = self.builder.remove_keyframe(kf_id)
+            with self._rw.write():
+                self._publish([kf_id])
+                for live in self._live.values():
+                    live.relocalizer.remove_keyframe(keyframe)
+        return keyframe
+
+    def _publish(self, changed: Sequence[int]) -> None:
+        """Under the write lock: show the builder's map to every relocalizer; journal the
+        keyframes ``changed`` for builds in flight."""
+        self._published = self.map.snapshot()
+        for live in self._live.values():
+            live.view.pin(self._published)
+        with self._meta:
+            if self._building:
+                self._journal.extend((self._published.version, k) for k in changed)
+            else:
+                self._journal.clear()
+
+    # -- queries (read) ------------------------------------------------------------------------
+    def relocalize(self, query: Frame, *, method: str | None = None, prior: Prior | None = None,
+                   hypotheses: int = 1) -> RelocResult:
+        """The query's pose by ``method`` (default: the first configured). A method not yet
+        built is created, fed every keyframe and trained first (blocking this caller only)."""
+        method = (method or self.conf.default_method).strip()
+        start = time.perf_counter()
+        build = 0.0
+        if method not in self._live:
+            self._build_and_swap(method, progress=False, only_if_missing=True)
+            build = time.perf_counter() - start
+        wait_start = time.perf_counter()
+        with self._rw.read():
+            waited = time.perf_counter() - wait_start
+            live = self._live[method]
+            version = live.view.version
+            result = live.relocalizer.relocalize(query, prior=prior, hypotheses=hypotheses)
+        result.map_version = version
+        result.timings["engine_wait"] = waited
+        if build:
+            result.timings["engine_build"] = build
+        result.timings["engine_total"] = time.perf_counter() - start
+        return result
+
+    def status(self) -> dict[str, Any]:
+        """Keyframes, landmarks and version of the published map; each method's state."""
+        with self._rw.read():
+            state = self._published
+            methods = {m: {"trained": bool(live.relocalizer.trained),
+                           "default": m == self.conf.default_method,
+                           "map_version": live.view.version}
+                       for m, live in self._live.items()}
+        with self._meta:
+            building = sorted(self._building)
+        return {"keyframes": len(state.keyframes), "landmarks": len(state.landmarks),
+                "map_version": state.version, "default_method": self.conf.default_method,
+                "methods": methods, "building": building,
+                "feature_kinds": list(self.builder.conf.feature_kinds)}
+
+    @property
+    def methods(self) -> list[str]:
+        """Methods with a live relocalizer."""
+        return list(self._live)
+
+    def relocalizer(self, method: str) -> Relocalizer | None:
+        """The live relocalizer answering ``method`` (None if not built yet)."""
+        live = self._live.get(method)
+        return None if live is None else live.relocalizer
+
+    # -- training (off-lock build, then swap) --------------------------------------------------
+    def train(self, methods: Sequence[str] | None = None, *, progress: bool = False) -> None:
+        """(Re)build and train ``methods`` (default: every live one) from the current map
+        without blocking queries; each is swapped in when ready."""
+        for method in (methods if methods is not None else list(self._live)):
+            self._build_and_swap(method.strip(), progress=progress, only_if_missing=False)
+
+    def _method_lock(self, method: str) -> threading.Lock:
+        with self._meta:
+            return self._method_locks.setdefault(method, threading.Lock())
+
+    def _create(self, method: str, state: MapState) -> _Live:
+        view = MapView(state)
+        relocalizer = create_relocalizer(method, view, options=self.conf.options,
+                                         evaluation=self.evaluation)
+        return _Live(relocalizer, view)
+
+    def _build_and_swap(self, method: str, *, progress: bool, only_if_missing: bool) -> None:
+        with self._method_lock(method):
+            if only_if_missing and method in self._live:
+                return
+            fresh = self._create(method, MapState())
+            self._ensure_kinds(fresh.relocalizer.required_features)
+            base = self._register_build(method)
+            try:
+                fresh.view.pin(base)
+                self._feed(fresh.relocalizer, base, progress=progress, desc=f"{method}: keyframes")
+                fresh.relocalizer.train(progress=progress)
+                with self._rw.write():
+                    self._replay(fresh, base)
+                    self._live[method] = fresh
+            finally:
+                with self._meta:
+                    self._building.pop(method, None)
+
+    def _register_build(self, method: str) -> MapState:
+        """The published state a build starts from, with journaling switched on for it."""
+        with self._rw.read(), self._meta:
+            self._building[method] = self._published.version
+            return self._published
+
+    @staticmethod
+    def _feed(relocalizer: Relocalizer, state: MapState, *, progress: bool, desc: str) -> None:
+        ids = state.keyframe_ids()
+        for kf_id in (progress_bar(ids, desc=desc) if progress else ids):
+            relocalizer.add_keyframe(state.keyframes[kf_id])
+
+    def _replay(self, fresh: _Live, base: MapState) -> None:
+        """Under the write lock: bring a relocalizer built on ``base`` up to the published
+        state by replaying the keyframes changed since."""
+        current = self._published
+        with self._meta:
+            changed = list(dict.fromkeys(k for v, k in self._journal if v > base.version))
+        fresh.view.pin(current)
+        for kf_id in changed:
+            if kf_id in base.keyframes:
+                fresh.relocalizer.remove_keyframe(base.keyframes[kf_id])
+            if kf_id in current.keyframes:
+                fresh.relocalizer.add_keyframe(current.keyframes[kf_id])
+
+    def _ensure_kinds(self, kinds: frozenset[str]) -> None:
+        """Extract feature kinds a new method needs and the map lacks (a write, rare)."""
+        if set(kinds) <= set(self.builder.conf.feature_kinds):
+            return
+        with self._writer:
+            updated = self.builder.add_feature_kinds(sorted(kinds))
+            with self._rw.write():
+                self._publish(updated)
+
+    # -- persistence ---------------------------------------------------------------------------
+    def save(self, directory: str | Path) -> Path:
+        """Save the published map and every live relocalizer's models (consistent with it);
+        returns the snapshot. Queries go on meanwhile: the read lock is held only while the
+        relocalizers write their models (into a scratch directory), not for the map files."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        with self._save_lock, tempfile.TemporaryDirectory(dir=directory, prefix=".models-") as tmp:
+            with self._rw.read():
+                state = self._published
+                for method, live in self._live.items():
+                    (Path(tmp) / model_dir_name(method)).mkdir()
+                    live.relocalizer.save(Path(tmp) / model_dir_name(method))
+                methods = list(self._live)
+            models = {m: functools.partial(_move_contents, Path(tmp) / model_dir_name(m))
+                      for m in methods}
+            return save_map(state, directory, models=models)
+
+    @classmethod
+    def load(cls, directory: str | Path, conf: EngineConf | None = None, *,
+             evaluation: bool = False, progress: bool = False) -> Engine:
+        """An engine over the map saved in ``directory``: each configured method gets every
+        keyframe, then its saved models (or is trained when it has none)."""
+        state, models_dir = load_map(directory)
+        engine = cls(conf, evaluation=evaluation)
+        engine.map.replace_state(state)
+        engine.builder.add_feature_kinds(engine.builder.conf.feature_kinds)
+        with engine._rw.write():
+            engine._publish([])
+        for method, live in engine._live.items():
+            engine._feed(live.relocalizer, engine._published, progress=progress,
+                         desc=f"{method}: keyframes")
+            path = models_dir / model_dir_name(method) if models_dir is not None else None
+            if path is None or not path.is_dir() or not live.relocalizer.load(path):
+                live.relocalizer.train(progress=progress)
+        return engine
+
+    def close(self) -> None:
+        """Nothing to release (kept for backends that expect it)."""
+
+
+def _move_contents(source: Path, target: Path) -> None:
+    """Move everything in ``source`` into the existing directory ``target`` (same file system)."""
+    for child in source.iterdir():
+        os.replace(child, target / child.name)

@@ -1,0 +1,415 @@
+"""Map persistence: a whole map saved as an immutable snapshot directory, switched atomically.
+
+Layout of a map directory ``MAP``::
+
+    MAP/CURRENT                     names the current snapshot: ``snapshots/000012``
+    MAP/snapshots/000012/
+        manifest.json               format, versions, keyframes, and a SHA-256 of every file
+        images/<id>.png             grey keyframe images
+        depth/<id>.npy              float32 Z-depth maps (keyframes that have one)
+        features/<id>.<kind>.npz    keypoints, levels, sizes, angles, descriptors, landmarks
+        landmarks.npz               landmark ids, points and observations (CSR)
+        models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote
+
+A save writes a new snapshot (every file fsynced, the manifest last), then replaces
+``CURRENT`` with :func:`os.replace` and prunes older snapshots, so a crash at any moment
+leaves the previous snapshot loadable. One process writes a map directory at a time.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import re
+import shutil
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from .cameras import camera_from_dict
+from .errors import CameraError, GeometryError, MapError, StorageError
+from .frame import Features, Keyframe
+from .map import Landmark, MapState
+
+FORMAT = "reloc map"
+FORMAT_VERSION = 1
+CURRENT_FILE = "CURRENT"
+SNAPSHOTS_DIR = "snapshots"
+MANIFEST_FILE = "manifest.json"
+MODELS_DIR = "models"
+#: Snapshots kept after a save: the new one and the one it replaced.
+KEEP_SNAPSHOTS = 2
+
+FEATURE_FIELDS = ("keypoints_px", "levels", "sizes", "angles", "descriptors", "landmark_ids",
+                  "points_world")
+LANDMARK_FIELDS = ("ids", "points_world", "obs_offsets", "obs_keyframe", "obs_kind",
+                   "obs_keypoint", "kinds")
+
+ModelWriter = Callable[[Path], None]
+
+
+def model_dir_name(method: str) -> str:
+    """Directory name under ``models/`` for a method string (safe characters only)."""
+    return re.sub(r"[^A-Za-z0-9._+,=-]", "_", method) or "_"
+
+
+# -- writing ----------------------------------------------------------------------------------
+
+class _SnapshotWriter:
+    """Writes files into a new snapshot directory, fsynced, recording their checksums."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.files: dict[str, dict[str, Any]] = {}
+
+    def write(self, relpath: str, data: bytes) -> str:
+        path = self.root / relpath
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        self.files[relpath] = {"sha256": hashlib.sha256(data).hexdigest(), "size": len(data)}
+        return relpath
+
+    def record_tree(self, relroot: str) -> None:
+        """Checksum (and fsync) every file written by someone else under ``relroot``."""
+        for path in sorted((self.root / relroot).rglob("*")):
+            if path.is_file():
+                data = path.read_bytes()
+                _fsync_path(path)
+                rel = path.relative_to(self.root).as_posix()
+                self.files[rel] = {"sha256": hashlib.sha256(data).hexdigest(), "size": len(data)}
+
+
+def _fsync_path(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_tree(root: Path) -> None:
+    """fsync every directory under ``root`` (and ``root``), so new entries are durable."""
+    for path in [root, *sorted(p for p in root.rglob("*") if p.is_dir())]:
+        _fsync_path(path)
+
+
+def _npz_bytes(arrays: Mapping[str, Any]) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **dict(arrays))
+    return buf.getvalue()
+
+
+def _npy_bytes(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=False)
+    return buf.getvalue()
+
+
+def _png_bytes(image: npt.NDArray[np.uint8]) -> bytes:
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise StorageError("could not encode a keyframe image as PNG")
+    return buf.tobytes()
+
+
+def _write_keyframe(writer: _SnapshotWriter, kf: Keyframe) -> dict[str, Any]:
+    entry: dict[str, Any] = {
+        "id": kf.id, "camera": kf.camera.to_dict(), "world_from_cam": kf.world_from_cam.tolist(),
+        "timestamp": None if kf.timestamp is None else float(kf.timestamp),
+        "image": writer.write(f"images/{kf.id}.png", _png_bytes(kf.image)),
+        "depth": None, "features": {}}
+    if kf.depth is not None:
+        entry["depth"] = writer.write(f"depth/{kf.id}.npy", _npy_bytes(kf.depth.astype(np.float32)))
+    for kind, feats in sorted(kf.features.items()):
+        arrays = {name: getattr(feats, name) for name in FEATURE_FIELDS}
+        entry["features"][kind] = writer.write(f"features/{kf.id}.{kind}.npz", _npz_bytes(arrays))
+    return entry
+
+
+def _landmark_arrays(state: MapState) -> dict[str, np.ndarray]:
+    """Landmarks as flat arrays; observations in CSR form (``obs_offsets`` (L+1,))."""
+    ids = np.array(sorted(state.landmarks), dtype=np.int64)
+    kinds = sorted({o[1] for lm in state.landmarks.values() for o in lm.observations})
+    kind_index = {k: i for i, k in enumerate(kinds)}
+    obs = [sorted(state.landmarks[i].observations) for i in ids.tolist()]
+    flat = [o for group in obs for o in group]
+    return {
+        "ids": ids,
+        "points_world": (np.stack([state.landmarks[i].point_world for i in ids.tolist()])
+                         if len(ids) else np.zeros((0, 3))),
+        "obs_offsets": np.concatenate([[0], np.cumsum([len(g) for g in obs])]).astype(np.int64),
+        "obs_keyframe": np.array([o[0] for o in flat], dtype=np.int64),
+        "obs_kind": np.array([kind_index[o[1]] for o in flat], dtype=np.int16),
+        "obs_keypoint": np.array([o[2] for o in flat], dtype=np.int64),
+        "kinds": np.array(kinds, dtype=np.str_) if kinds else np.zeros(0, dtype="<U1"),
+    }
+
+
+def _new_snapshot_dir(directory: Path) -> Path:
+    """Create ``snapshots/<n>`` with n above every existing snapshot (atomic mkdir)."""
+    snaps = directory / SNAPSHOTS_DIR
+    snaps.mkdir(parents=True, exist_ok=True)
+    numbers = [int(p.name) for p in snaps.iterdir() if p.name.isdigit()]
+    n = max(numbers, default=0) + 1
+    while True:
+        path = snaps / f"{n:06d}"
+        try:
+            path.mkdir()
+            return path
+        except FileExistsError:
+            n += 1
+
+
+def _switch_current(directory: Path, snapshot: Path) -> None:
+    """Atomically point ``CURRENT`` at ``snapshot`` (write, fsync, rename, fsync directory)."""
+    tmp = directory / (CURRENT_FILE + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(snapshot.relative_to(directory).as_posix() + "\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, directory / CURRENT_FILE)
+    _fsync_path(directory)
+
+
+def _prune(directory: Path, keep: Path, previous: Path | None) -> None:
+    """Remove snapshots other than ``keep`` and ``previous`` (including crashed saves)."""
+    kept = {keep.name, previous.name if previous is not None else ""}
+    for path in (directory / SNAPSHOTS_DIR).iterdir():
+        if path.name not in kept and path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+
+
+def save_map(state: MapState, directory: str | Path, *,
+             models: Mapping[str, ModelWriter] | None = None) -> Path:
+    """Save ``state`` (and models: method -> writer called with its own empty directory) as a
+    new snapshot of map directory ``directory``; returns the snapshot path."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    previous = _current_or_none(directory)
+    snapshot = _new_snapshot_dir(directory)
+    writer = _SnapshotWriter(snapshot)
+    keyframes = [_write_keyframe(writer, state.keyframes[k]) for k in state.keyframe_ids()]
+    landmarks = writer.write("landmarks.npz", _npz_bytes(_landmark_arrays(state)))
+    model_dirs: dict[str, str] = {}
+    for method, write_model in (models or {}).items():
+        rel = f"{MODELS_DIR}/{model_dir_name(method)}"
+        (snapshot / rel).mkdir(parents=True, exist_ok=True)
+        write_model(snapshot / rel)
+        writer.record_tree(rel)
+        model_dirs[method] = rel
+    manifest = {"format": FORMAT, "format_version": FORMAT_VERSION,
+                "map_version": int(state.version), "next_landmark_id": int(state.next_landmark_id),
+                "keyframes": keyframes, "landmarks": landmarks, "models": model_dirs,
+                "files": writer.files}
+    writer.write(MANIFEST_FILE, json.dumps(manifest, indent=1).encode("utf-8"))
+    _fsync_tree(snapshot)
+    _fsync_path(snapshot.parent)
+    _switch_current(directory, snapshot)
+    _prune(directory, snapshot, previous)
+    return snapshot
+
+
+# -- reading ----------------------------------------------------------------------------------
+
+def _current_or_none(directory: Path) -> Path | None:
+    try:
+        return current_snapshot(directory)
+    except StorageError:
+        return None
+
+
+def current_snapshot(directory: str | Path) -> Path:
+    """The snapshot directory ``CURRENT`` names; StorageError if there is none."""
+    directory = Path(directory)
+    current = directory / CURRENT_FILE
+    if not current.is_file():
+        raise StorageError(f"{directory}: no saved map (missing {CURRENT_FILE}); expected a "
+                           f"directory written by save_map")
+    text = current.read_text(encoding="utf-8", errors="replace").strip()
+    if not re.fullmatch(rf"{SNAPSHOTS_DIR}/\d+", text):
+        raise StorageError(f"{current}: expected '{SNAPSHOTS_DIR}/<number>', got {text[:80]!r}")
+    snapshot = directory / text
+    if not snapshot.is_dir():
+        raise StorageError(f"{current}: names {text!r}, which does not exist")
+    return snapshot
+
+
+class _SnapshotReader:
+    """Reads files of a snapshot, checking size and SHA-256 against the manifest."""
+
+    def __init__(self, root: Path, files: Mapping[str, Any]) -> None:
+        self.root = root
+        self.files = files
+
+    def read(self, relpath: str) -> bytes:
+        path = self.root / relpath
+        expected = self.files.get(relpath)
+        if not isinstance(expected, dict) or "sha256" not in expected:
+            raise StorageError(f"{path}: not listed with a checksum in {MANIFEST_FILE}")
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise StorageError(f"{path}: cannot read ({exc.strerror}); the map is damaged") from exc
+        if len(data) != expected.get("size", len(data)):
+            raise StorageError(f"{path}: {len(data)} bytes, expected {expected['size']} "
+                               f"(truncated or damaged)")
+        digest = hashlib.sha256(data).hexdigest()
+        if digest != expected["sha256"]:
+            raise StorageError(f"{path}: checksum mismatch (sha256 {digest[:12]}..., expected "
+                               f"{str(expected['sha256'])[:12]}...); the file is damaged")
+        return data
+
+    def npz(self, relpath: str, fields: tuple[str, ...]) -> dict[str, np.ndarray]:
+        try:
+            with np.load(io.BytesIO(self.read(relpath)), allow_pickle=False) as data:
+                missing = [f for f in fields if f not in data.files]
+                if missing:
+                    raise StorageError(f"{self.root / relpath}: missing array(s) {missing}; "
+                                       f"expected {list(fields)}")
+                return {f: data[f] for f in fields}
+        except (ValueError, OSError, EOFError) as exc:
+            raise StorageError(f"{self.root / relpath}: not a readable .npz ({exc})") from exc
+
+    def verify_tree(self, relroot: str) -> None:
+        for rel in self.files:
+            if rel.startswith(relroot + "/"):
+                self.read(rel)
+
+
+def _read_manifest(snapshot: Path) -> dict[str, Any]:
+    path = snapshot / MANIFEST_FILE
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise StorageError(f"{path}: missing; the snapshot is incomplete") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise StorageError(f"{path}: not valid JSON ({exc}); expected the map manifest") from exc
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        got = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
+        raise StorageError(f"{path}: format {got!r}, expected {FORMAT!r}")
+    version = manifest.get("format_version")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise StorageError(f"{path}: format_version {version!r}, expected a positive integer")
+    if version > FORMAT_VERSION:
+        raise StorageError(f"{path}: written by a newer reloc (format version {version}; this "
+                           f"version reads up to {FORMAT_VERSION}); upgrade reloc to load it")
+    for key, kind in (("keyframes", list), ("files", dict), ("models", dict),
+                      ("map_version", int), ("next_landmark_id", int), ("landmarks", str)):
+        if not isinstance(manifest.get(key), kind):
+            raise StorageError(f"{path}: field {key!r} missing or not a {kind.__name__}")
+    return manifest
+
+
+def _read_image(reader: _SnapshotReader, relpath: str) -> npt.NDArray[np.uint8]:
+    data = np.frombuffer(reader.read(relpath), np.uint8)
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if image is None or image.ndim != 2 or image.dtype != np.uint8:
+        raise StorageError(f"{reader.root / relpath}: expected a grey 8-bit PNG")
+    return np.asarray(image, dtype=np.uint8)
+
+
+def _read_keyframe(reader: _SnapshotReader, entry: Mapping[str, Any]) -> Keyframe:
+    where = f"{reader.root / MANIFEST_FILE}: keyframe {entry.get('id')!r}"
+    try:
+        features = {}
+        for kind, rel in dict(entry["features"]).items():
+            arrays = reader.npz(rel, FEATURE_FIELDS)
+            features[kind] = Features(kind=kind, **arrays)
+        depth = None
+        if entry.get("depth") is not None:
+            depth = np.load(io.BytesIO(reader.read(entry["depth"])), allow_pickle=False)
+        timestamp = entry.get("timestamp")
+        return Keyframe(image=_read_image(reader, entry["image"]),
+                        camera=camera_from_dict(entry["camera"]), features=features,
+                        id=entry["id"],
+                        world_from_cam=np.array(entry["world_from_cam"], np.float64),
+                        timestamp=None if timestamp is None else float(timestamp), depth=depth)
+    except StorageError:
+        raise
+    except (KeyError, TypeError, ValueError, GeometryError, CameraError, MapError) as exc:
+        raise StorageError(f"{where}: {exc}") from exc
+
+
+def _read_landmarks(reader: _SnapshotReader, relpath: str,
+                    keyframes: Mapping[int, Keyframe]) -> dict[int, Landmark]:
+    a = reader.npz(relpath, LANDMARK_FIELDS)
+    where = reader.root / relpath
+    n, n_obs = len(a["ids"]), len(a["obs_keyframe"])
+    offsets = a["obs_offsets"]
+    if (a["points_world"].shape != (n, 3) or offsets.shape != (n + 1,) or offsets[0] != 0
+            or offsets[-1] != n_obs or np.any(np.diff(offsets) < 0)
+            or len(a["obs_kind"]) != n_obs or len(a["obs_keypoint"]) != n_obs):
+        raise StorageError(f"{where}: inconsistent landmark arrays (ids {n}, points "
+                           f"{a['points_world'].shape}, {n_obs} observations)")
+    kinds = [str(k) for k in a["kinds"]]
+    _check_observations(where, a, kinds, keyframes)
+    obs = list(zip(a["obs_keyframe"].tolist(), [kinds[k] for k in a["obs_kind"].tolist()],
+                   a["obs_keypoint"].tolist(), strict=True))
+    bounds = offsets.tolist()
+    return {lm_id: Landmark(lm_id, a["points_world"][i].copy(),
+                            frozenset(obs[bounds[i]:bounds[i + 1]]))
+            for i, lm_id in enumerate(a["ids"].tolist())}
+
+
+def _check_observations(where: Path, a: Mapping[str, np.ndarray], kinds: list[str],
+                        keyframes: Mapping[int, Keyframe]) -> None:
+    """Every observation names a saved keyframe, a saved feature kind and a keypoint index."""
+    if len(a["obs_kind"]) == 0:
+        return
+    if a["obs_kind"].min() < 0 or a["obs_kind"].max() >= len(kinds):
+        raise StorageError(f"{where}: observation kind index outside {kinds}")
+    kf_ids = np.array(sorted(keyframes), dtype=np.int64)
+    pos = np.searchsorted(kf_ids, a["obs_keyframe"])
+    known = (kf_ids[np.minimum(pos, len(kf_ids) - 1)] == a["obs_keyframe"] if len(kf_ids)
+             else np.zeros(len(pos), bool))
+    if not known.all():
+        unknown = np.unique(a["obs_keyframe"][~known])[:5].tolist()
+        raise StorageError(f"{where}: observations of unknown keyframe(s) {unknown}")
+    sizes = np.array([[len(keyframes[k].features[kind]) if kind in keyframes[k].features else 0
+                       for kind in kinds] for k in kf_ids.tolist()], dtype=np.int64)
+    size = sizes[pos, a["obs_kind"].astype(np.int64)]
+    bad = (a["obs_keypoint"] < 0) | (a["obs_keypoint"] >= size)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise StorageError(f"{where}: observation of keyframe {int(a['obs_keyframe'][i])} "
+                           f"{kinds[int(a['obs_kind'][i])]} keypoint {int(a['obs_keypoint'][i])} "
+                           f"outside [0, {int(size[i])})")
+
+
+def load_map(directory: str | Path) -> tuple[MapState, Path | None]:
+    """The map saved in ``directory`` and its models directory (None if no model was saved);
+    StorageError naming the file if the map is missing, damaged or from a newer version."""
+    snapshot = current_snapshot(directory)
+    manifest = _read_manifest(snapshot)
+    reader = _SnapshotReader(snapshot, manifest["files"])
+    keyframes: dict[int, Keyframe] = {}
+    for entry in manifest["keyframes"]:
+        kf = _read_keyframe(reader, entry)
+        if kf.id in keyframes:
+            raise StorageError(f"{snapshot / MANIFEST_FILE}: keyframe {kf.id} listed twice")
+        keyframes[kf.id] = kf
+    landmarks = _read_landmarks(reader, manifest["landmarks"], keyframes)
+    state = MapState(MappingProxyType(keyframes), MappingProxyType(landmarks),
+                     manifest["map_version"], manifest["next_landmark_id"])
+    models = snapshot / MODELS_DIR
+    if not manifest["models"]:
+        return state, None
+    reader.verify_tree(MODELS_DIR)
+    return state, models
+
+
+def saved_models(directory: str | Path) -> dict[str, Path]:
+    """Method string -> model directory of the current snapshot (empty if none)."""
+    snapshot = current_snapshot(directory)
+    manifest = _read_manifest(snapshot)
+    return {method: snapshot / rel for method, rel in manifest["models"].items()}

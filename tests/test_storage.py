@@ -1,0 +1,274 @@
+"""Map persistence: exact round trip, atomic snapshots, pruning, and clear errors for damaged
+or newer maps."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from reloc_service import storage
+from reloc_service.errors import StorageError
+from reloc_service.frame import Keyframe
+from reloc_service.map import KeyframeMap, MapState
+from reloc_service.storage import (
+    FEATURE_FIELDS,
+    current_snapshot,
+    load_map,
+    model_dir_name,
+    save_map,
+    saved_models,
+)
+
+
+def _assert_states_equal(a: MapState, b: MapState) -> None:
+    assert (a.version, a.next_landmark_id) == (b.version, b.next_landmark_id)
+    assert a.keyframe_ids() == b.keyframe_ids()
+    for k in a.keyframe_ids():
+        ka, kb = a.keyframes[k], b.keyframes[k]
+        assert ka.camera == kb.camera and ka.timestamp == kb.timestamp
+        assert np.array_equal(ka.world_from_cam, kb.world_from_cam)
+        assert np.array_equal(ka.image, kb.image) and kb.image.dtype == np.uint8
+        assert (ka.depth is None) == (kb.depth is None)
+        if ka.depth is not None:
+            assert np.array_equal(ka.depth, kb.depth, equal_nan=True)
+        assert sorted(ka.features) == sorted(kb.features)
+        for kind in ka.features:
+            for name in FEATURE_FIELDS:
+                va, vb = getattr(ka.features[kind], name), getattr(kb.features[kind], name)
+                assert va.dtype == vb.dtype, name
+                assert np.array_equal(va, vb, equal_nan=True), name
+    assert sorted(a.landmarks) == sorted(b.landmarks)
+    for i, lm in a.landmarks.items():
+        assert np.array_equal(lm.point_world, b.landmarks[i].point_world)
+        assert lm.observations == b.landmarks[i].observations
+
+
+@pytest.fixture(scope="module")
+def rich_state(synthetic_scene, synthetic_map) -> MapState:
+    """The synthetic map with a depth map, a timestamp-less keyframe and ORB features too."""
+    from reloc_service.features import FeatureConf, extract
+    from reloc_service.mapping import MapBuilder
+
+    kmap = KeyframeMap()
+    kmap.replace_state(synthetic_map)
+    kf = synthetic_map.keyframes[1]
+    kmap.add_keyframe(kf.with_features("orb", extract(kf.image, FeatureConf("orb", 300))))
+    MapBuilder(kmap).add_keyframe(9, synthetic_scene.query_images[0], synthetic_scene.camera,
+                                  synthetic_scene.query_poses[0],
+                                  depth=synthetic_scene.query_depths[0])
+    return kmap.snapshot()
+
+
+def test_round_trip_is_exact(tmp_path, rich_state):
+    written = []
+
+    def write_model(directory: Path) -> None:
+        written.append(directory)
+        (directory / "model.bin").write_bytes(b"\x00\x01model")
+        (directory / "sub").mkdir()
+        (directory / "sub" / "more.json").write_text("{}")
+
+    snapshot = save_map(rich_state, tmp_path / "map", models={"sbi+p3p": write_model})
+    assert snapshot == current_snapshot(tmp_path / "map")
+    assert written == [snapshot / "models" / model_dir_name("sbi+p3p")]
+    state, models = load_map(tmp_path / "map")
+    _assert_states_equal(rich_state, state)
+    assert state.keyframes[9].timestamp is None and state.keyframes[0].timestamp == 0.0
+    assert state.keyframes[9].depth is not None
+    assert models == snapshot / "models"
+    assert (models / "sbi+p3p" / "model.bin").read_bytes() == b"\x00\x01model"
+    assert saved_models(tmp_path / "map") == {"sbi+p3p": models / "sbi+p3p"}
+    # The loaded state works as a map.
+    kmap = KeyframeMap()
+    kmap.replace_state(state)
+    kmap.remove_keyframe(0)
+
+
+def test_empty_map_round_trip(tmp_path):
+    save_map(MapState(), tmp_path)
+    state, models = load_map(tmp_path)
+    _assert_states_equal(MapState(), state)
+    assert models is None
+
+
+def test_model_dir_names_are_safe():
+    assert model_dir_name("sbi+p3p") == "sbi+p3p"
+    assert model_dir_name("bow+p3p,sbi+esm") == "bow+p3p,sbi+esm"
+    assert "/" not in model_dir_name("../x/y") and model_dir_name("") == "_"
+
+
+def _tiny_state(synthetic_map: MapState, n: int) -> MapState:
+    kmap = KeyframeMap()
+    kmap.replace_state(synthetic_map)
+    for k in synthetic_map.keyframe_ids()[n:]:
+        kmap.remove_keyframe(k)
+    return kmap.snapshot()
+
+
+def test_older_snapshots_are_pruned(tmp_path, synthetic_map):
+    for n in (1, 2, 3):
+        save_map(_tiny_state(synthetic_map, n), tmp_path)
+    names = sorted(p.name for p in (tmp_path / "snapshots").iterdir())
+    assert names == ["000002", "000003"]
+    assert len(load_map(tmp_path)[0].keyframes) == 3
+
+
+def test_crash_in_a_model_writer_keeps_the_previous_snapshot(tmp_path, synthetic_map):
+    first = _tiny_state(synthetic_map, 2)
+    save_map(first, tmp_path)
+
+    def crash(directory: Path) -> None:
+        (directory / "half.bin").write_bytes(b"x")
+        raise KeyboardInterrupt("power cut")
+
+    with pytest.raises(KeyboardInterrupt):
+        save_map(synthetic_map, tmp_path, models={"m": crash})
+    state, _ = load_map(tmp_path)
+    _assert_states_equal(first, state)
+    # The next save replaces the debris.
+    save_map(synthetic_map, tmp_path)
+    _assert_states_equal(synthetic_map, load_map(tmp_path)[0])
+    assert len(list((tmp_path / "snapshots").iterdir())) == 2
+
+
+@pytest.mark.parametrize("when", ["manifest", "switch"])
+def test_crash_before_the_switch_keeps_the_previous_snapshot(tmp_path, synthetic_map, monkeypatch,
+                                                             when):
+    first = _tiny_state(synthetic_map, 2)
+    save_map(first, tmp_path)
+
+    def boom(*args, **kwargs):
+        raise OSError("disk full")
+
+    if when == "switch":
+        monkeypatch.setattr(storage.os, "replace", boom)
+    else:
+        real_write = storage._SnapshotWriter.write
+
+        def write(self, relpath, data):
+            if relpath == storage.MANIFEST_FILE:
+                real_write(self, relpath, data[: len(data) // 2])
+                raise OSError("crash while writing the manifest")
+            return real_write(self, relpath, data)
+
+        monkeypatch.setattr(storage._SnapshotWriter, "write", write)
+    with pytest.raises(OSError):
+        save_map(synthetic_map, tmp_path)
+    monkeypatch.undo()
+    _assert_states_equal(first, load_map(tmp_path)[0])
+
+
+def _saved(tmp_path: Path, synthetic_map: MapState) -> Path:
+    save_map(_tiny_state(synthetic_map, 2), tmp_path,
+             models={"m": lambda d: (d / "w").write_text("1")})
+    return current_snapshot(tmp_path)
+
+
+def test_truncated_file_is_named(tmp_path, synthetic_map):
+    snap = _saved(tmp_path, synthetic_map)
+    path = snap / "features" / "1.sift.npz"
+    path.write_bytes(path.read_bytes()[:100])
+    with pytest.raises(StorageError, match=r"1\.sift\.npz.*truncated"):
+        load_map(tmp_path)
+
+
+def test_checksum_mismatch_is_named(tmp_path, synthetic_map):
+    snap = _saved(tmp_path, synthetic_map)
+    path = snap / "landmarks.npz"
+    data = bytearray(path.read_bytes())
+    data[-10] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(StorageError, match=r"landmarks\.npz.*checksum mismatch"):
+        load_map(tmp_path)
+
+
+def test_damaged_model_file_is_named(tmp_path, synthetic_map):
+    snap = _saved(tmp_path, synthetic_map)
+    (snap / "models" / "m" / "w").write_text("2")
+    with pytest.raises(StorageError, match=r"models/m/w.*checksum"):
+        load_map(tmp_path)
+
+
+def test_missing_file_is_named(tmp_path, synthetic_map):
+    snap = _saved(tmp_path, synthetic_map)
+    (snap / "images" / "0.png").unlink()
+    with pytest.raises(StorageError, match=r"0\.png.*cannot read"):
+        load_map(tmp_path)
+
+
+def test_bad_manifest_json(tmp_path, synthetic_map):
+    snap = _saved(tmp_path, synthetic_map)
+    (snap / "manifest.json").write_text("{not json")
+    with pytest.raises(StorageError, match=r"manifest\.json.*not valid JSON"):
+        load_map(tmp_path)
+
+
+def _edit_manifest(snap: Path, **changes) -> None:
+    manifest = json.loads((snap / "manifest.json").read_text())
+    manifest.update(changes)
+    (snap / "manifest.json").write_text(json.dumps(manifest))
+
+
+def test_newer_format_version_is_refused(tmp_path, synthetic_map):
+    snap = _saved(tmp_path, synthetic_map)
+    _edit_manifest(snap, format_version=storage.FORMAT_VERSION + 1)
+    with pytest.raises(StorageError, match=r"newer reloc .*format version 2.*reads up to 1"):
+        load_map(tmp_path)
+
+
+def test_wrong_format_and_fields(tmp_path, synthetic_map):
+    snap = _saved(tmp_path, synthetic_map)
+    _edit_manifest(snap, format="something else")
+    with pytest.raises(StorageError, match="expected 'reloc map'"):
+        load_map(tmp_path)
+    _edit_manifest(snap, format=storage.FORMAT, keyframes={"0": 1})
+    with pytest.raises(StorageError, match="'keyframes' missing or not a list"):
+        load_map(tmp_path)
+
+
+def test_bad_keyframe_entry_is_named(tmp_path, synthetic_map):
+    snap = _saved(tmp_path, synthetic_map)
+    manifest = json.loads((snap / "manifest.json").read_text())
+    manifest["keyframes"][1]["world_from_cam"] = [[1, 0, 0]]
+    (snap / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(StorageError, match=r"keyframe 1.*world_from_cam"):
+        load_map(tmp_path)
+
+
+def test_missing_or_bad_current(tmp_path, synthetic_map):
+    with pytest.raises(StorageError, match="no saved map.*CURRENT"):
+        load_map(tmp_path)
+    _saved(tmp_path, synthetic_map)
+    (tmp_path / "CURRENT").write_text("../../etc\n")
+    with pytest.raises(StorageError, match="CURRENT.*expected 'snapshots/<number>'"):
+        load_map(tmp_path)
+    (tmp_path / "CURRENT").write_text("snapshots/000099\n")
+    with pytest.raises(StorageError, match="does not exist"):
+        load_map(tmp_path)
+
+
+def test_saved_files_are_synced_before_the_switch(tmp_path, synthetic_map, monkeypatch):
+    """Every written file and directory is fsynced before CURRENT is replaced."""
+    events: list[str] = []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(storage.os, "fsync", lambda fd: (events.append("fsync"), real_fsync(fd))[1])
+    def replace(a, b):
+        events.append(f"replace {Path(b).name}")
+        real_replace(a, b)
+
+    monkeypatch.setattr(storage.os, "replace", replace)
+    save_map(_tiny_state(synthetic_map, 2), tmp_path)
+    switch = events.index("replace CURRENT")
+    files = [p for p in current_snapshot(tmp_path).rglob("*")]
+    assert events[:switch].count("fsync") >= len(files) + 1
+    assert events[switch + 1:] == ["fsync"]           # the directory, after the rename
+
+
+def test_keyframe_type_survives(tmp_path, synthetic_map):
+    save_map(synthetic_map, tmp_path)
+    state, _ = load_map(tmp_path)
+    assert all(isinstance(kf, Keyframe) for kf in state.keyframes.values())
