@@ -1,0 +1,319 @@
+"""The service: maps, worker pools, the single writer and the Zenoh layer, started and stopped
+together.
+
+Zenoh callbacks only enqueue (:class:`Service` is the :class:`~.zenoh_io.Dispatcher`):
+relocalize queries go to a bounded pool of worker threads (full: "busy" at once), status /
+train / map-copy queries to a small control pool, and keyframe and camera puts to one writer
+thread that journals then applies them in arrival order.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import urllib.parse
+from collections.abc import Callable
+from typing import Any
+
+from reloc_client import protocol as wire
+from reloc_client.protocol import ErrorCode, EventKind
+
+from ..engine import EngineConf, MappingConf
+from ..errors import ConfigError
+from . import handlers
+from .config import ServiceConf
+from .runtime import MapRuntime, check_storage, open_engine
+from .workers import WorkerPool, stop_on_signals
+from .zenoh_io import PendingQuery, QueryKind, ZenohLayer, open_session
+
+log = logging.getLogger(__name__)
+
+#: Queue of the control pool (status, train, keyframes/cameras gets).
+CONTROL_QUEUE = 64
+
+
+def map_dirname(map_name: str) -> str:
+    """A directory name for ``map_name`` (percent-encoded; never ``.`` or ``..``)."""
+    quoted = urllib.parse.quote(map_name, safe="")
+    return "%2E" + quoted[1:] if quoted.startswith(".") else quoted
+
+
+def map_name_of(dirname: str) -> str:
+    return urllib.parse.unquote(dirname)
+
+
+class Service:
+    """A reloc service for ``conf``: :meth:`start`, then :meth:`stop` (or ``with``)."""
+
+    def __init__(self, conf: ServiceConf) -> None:
+        self.conf = conf
+        self.instance = conf.instance
+        self.prefix = wire.check_prefix(conf.service.prefix)
+        self.limits = conf.limits.to_wire()
+        self.storage = conf.storage_path
+        methods = conf.service.methods
+        # The engine's default is its first method.
+        self.methods = (conf.service.default_method,
+                        *[m for m in methods if m != conf.service.default_method])
+        self.engine_conf = EngineConf(methods=self.methods, options=conf.options,
+                                      mapping=MappingConf.from_options(conf.mapping))
+        self.maps: dict[str, MapRuntime] = {}
+        self._maps_lock = threading.Lock()
+        self.session: Any = None
+        self.layer: ZenohLayer | None = None
+        self.relocalize_pool: WorkerPool | None = None
+        self.control_pool: WorkerPool | None = None
+        self.writer: WorkerPool | None = None
+        self._stopped = threading.Event()
+        self.started_at = time.monotonic()
+
+    # -- life cycle ------------------------------------------------------------------------------
+    def start(self) -> Service:
+        """Restore stored maps, create configured ones, open Zenoh and declare everything."""
+        self._check_methods()
+        if self.storage is not None:
+            check_storage(self.storage)
+        for name in self._stored_map_names() + sorted(self.conf.maps):
+            if name not in self.maps:
+                self.maps[name] = self._open_map(name)
+        s = self.conf.service
+        self.relocalize_pool = WorkerPool("relocalize", workers=s.workers,
+                                          queue_size=s.queue_size)
+        self.control_pool = WorkerPool("control", workers=1, queue_size=CONTROL_QUEUE)
+        self.writer = WorkerPool("writer", workers=1, queue_size=s.writer_queue_size)
+        self.session = open_session(self.conf.zenoh)
+        self.layer = ZenohLayer(self.session, self.prefix, self.instance, self)
+        for name in sorted(self.maps):
+            self.layer.serve_map(name)
+        log.info("reloc service %s serving %s under %r (zenoh %s, listen %s, connect %s)",
+                 self.instance, sorted(self.maps) or "no map yet", self.prefix,
+                 self.conf.zenoh.mode, list(self.conf.zenoh.listen),
+                 list(self.conf.zenoh.connect))
+        return self
+
+    def stop(self, *, final_snapshot: bool = True) -> None:
+        """Undeclare (clients see the liveliness tokens go), finish queued work, flush the
+        journals, take final snapshots, close the session."""
+        if self._stopped.is_set():
+            return
+        self._stopped.set()
+        if self.layer is not None:
+            self.layer.withdraw()          # clients see the maps go; no more puts arrive
+        for pool in (self.relocalize_pool, self.control_pool, self.writer):
+            if pool is not None:           # queued work finishes; new queries get "busy"
+                pool.close(timeout=30.0)
+        if self.layer is not None:
+            self.layer.close()
+        for rt in list(self.maps.values()):
+            try:
+                rt.close(final_snapshot=final_snapshot)
+            except Exception as exc:
+                log.error("map %s: closing failed: %s", rt.name, exc)
+        if self.session is not None and not self.session.is_closed():
+            self.session.close()
+        log.info("reloc service %s stopped", self.instance)
+
+    def __enter__(self) -> Service:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def run_forever(self, stop: threading.Event | None = None) -> None:
+        """Serve until ``stop`` is set (default: until SIGINT or SIGTERM), then :meth:`stop`
+        cleanly."""
+        stop = stop or stop_on_signals()
+        try:
+            while not stop.wait(0.5):
+                pass
+        finally:
+            self.stop()
+
+    def wait_idle(self, timeout: float = 30.0) -> bool:
+        """Wait until queued keyframe puts are applied (tests, demo)."""
+        return self.writer is None or self.writer.join(timeout)
+
+    # -- maps ------------------------------------------------------------------------------------
+    def _check_methods(self) -> None:
+        """Build every method once on an empty map: bad names or options fail at start."""
+        from ..engine import Engine
+
+        try:
+            Engine(self.engine_conf)
+        except ConfigError as exc:
+            raise ConfigError(f"service.methods / [options]: {exc}") from exc
+
+    def _stored_map_names(self) -> list[str]:
+        if self.storage is None or not self.storage.is_dir():
+            return []
+        names = []
+        for path in sorted(self.storage.iterdir()):
+            if path.is_dir() and ((path / "journal").is_dir() or (path / "map").is_dir()):
+                name = map_name_of(path.name)
+                try:
+                    names.append(wire.check_name(name))
+                except wire.ProtocolError:
+                    log.warning("ignoring storage directory %s: not a map name", path)
+        return names
+
+    def _open_map(self, name: str) -> MapRuntime:
+        directory = None if self.storage is None else self.storage / map_dirname(name)
+        start = time.perf_counter()
+        engine = open_engine(directory, self.engine_conf)
+        rt = MapRuntime(name, engine, instance=self.instance, limits=self.limits,
+                        methods=self.methods, default_method=self.methods[0],
+                        directory=directory, publish=self._publish_event,
+                        snapshot_every=self.conf.service.snapshot_every,
+                        fsync=self.conf.service.fsync)
+        if directory is not None:
+            check_storage(directory)
+            replayed = rt.restore()
+            state = rt.map_state()
+            log.info("map %s: %d keyframes restored (%d journal records replayed) in %.1f s",
+                     name, len(state.keyframes), replayed, time.perf_counter() - start)
+            trained = all(m["trained"] for m in engine.status()["methods"].values())
+            if len(state.keyframes) and not trained and self.conf.service.train_on_load:
+                rt.start_training(None)
+        return rt
+
+    def _map_for_put(self, name: str) -> MapRuntime | None:
+        """The runtime of ``name``; created (and served) if new maps are allowed."""
+        rt = self.maps.get(name)
+        if rt is not None or not self.conf.service.allow_new_maps or self._stopped.is_set():
+            return rt
+        with self._maps_lock:
+            if name not in self.maps:
+                self.maps[name] = self._open_map(name)
+                if self.layer is not None:
+                    self.layer.serve_map(name)
+                log.info("map %s created by its first put", name)
+            return self.maps[name]
+
+    def _publish_event(self, map_name: str, kind: EventKind, fields: dict[str, Any]) -> None:
+        payload = wire.Event(kind, map_name, time.time(), fields).encode()
+        if self.layer is not None and map_name in self.maps:
+            self.layer.publish_event(map_name, payload)
+        elif self.session is not None and not self.session.is_closed():
+            self.session.put(wire.keys.events(self.prefix, map_name), payload)
+
+    # -- dispatcher (called in Zenoh threads: enqueue only) --------------------------------------
+    def on_keyframe_sample(self, map_name: str, kf_id: int, payload: bytes | None) -> None:
+        if payload is None:
+            self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
+                        lambda rt: rt.delete_keyframe(kf_id))
+        else:
+            self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
+                        lambda rt: rt.put_keyframe(kf_id, payload))
+
+    def on_camera_sample(self, map_name: str, camera_id: str, payload: bytes | None) -> None:
+        if payload is None:
+            self._reject(map_name, EventKind.CAMERA_REJECTED, camera_id, ErrorCode.BAD_VALUE,
+                         "cameras cannot be deleted; put the camera again to change it")
+            return
+        self._write(map_name, EventKind.CAMERA_REJECTED, camera_id,
+                    lambda rt: rt.put_camera(camera_id, payload))
+
+    def on_bad_key(self, key: str, problem: str) -> None:
+        log.info("ignoring a sample on %s: %s", key, problem)
+
+    def on_query(self, map_name: str, kind: QueryKind, query: PendingQuery) -> None:
+        rt = self.maps.get(map_name)
+        if rt is None:  # undeclared meanwhile
+            query.reply_err(wire.encode_error(ErrorCode.UNKNOWN_MAP,
+                                              f"map {map_name!r} is not served"))
+            return
+        if kind is QueryKind.RELOCALIZE:
+            assert self.relocalize_pool is not None
+            if not self.relocalize_pool.submit(lambda queued: self._relocalize(rt, query,
+                                                                               queued)):
+                rt.stats.count("busy")
+                query.reply(handlers.busy_reply(
+                    f"all {self.conf.service.workers} workers busy and "
+                    f"{self.conf.service.queue_size} queries waiting; retry later"))
+                query.finish()
+            return
+        assert self.control_pool is not None
+        if not self.control_pool.submit(lambda _queued: self._control(rt, kind, query)):
+            rt.stats.count("busy")
+            query.reply_err(wire.encode_error(ErrorCode.BUSY, "control queue full; retry"))
+
+    # -- jobs (worker threads) -------------------------------------------------------------------
+    def _write(self, map_name: str, kind: EventKind, ident: Any,
+               apply: Callable[[MapRuntime], None]) -> None:
+        def job(_queued: float) -> None:
+            try:
+                rt = self._map_for_put(map_name)
+            except Exception as exc:
+                code, message = handlers.error_of(exc)
+                self._reject(map_name, kind, ident, code, message)
+                return
+            if rt is None:
+                self._reject(map_name, kind, ident, ErrorCode.UNKNOWN_MAP,
+                             f"map {map_name!r} is not served and this service does not create "
+                             "maps (service.allow_new_maps = false)")
+                return
+            apply(rt)
+            if rt.wants_snapshot():
+                rt.start_snapshot()
+
+        assert self.writer is not None
+        if not self.writer.submit(job):
+            self._reject(map_name, kind, ident, ErrorCode.BUSY,
+                         f"writer queue full ({self.conf.service.writer_queue_size} puts "
+                         "waiting); put again later")
+
+    def _reject(self, map_name: str, kind: EventKind, ident: Any, code: ErrorCode,
+                message: str) -> None:
+        rt = self.maps.get(map_name)
+        if rt is not None:
+            rt.stats.count("rejected")
+        self._publish_event(map_name, kind, {"id": ident, "code": code.value,
+                                             "message": message})
+
+    def _relocalize(self, rt: MapRuntime, query: PendingQuery, queued_s: float) -> None:
+        try:
+            query.reply(handlers.relocalize(rt, query.payload, queued_s=queued_s))
+        except Exception as exc:
+            rt.stats.count("errors")
+            query.reply_err(handlers.error_reply(exc))
+        finally:
+            query.finish()
+
+    def _control(self, rt: MapRuntime, kind: QueryKind, query: PendingQuery) -> None:
+        try:
+            if kind is QueryKind.STATUS:
+                query.reply(handlers.status(rt, query.payload))
+            elif kind is QueryKind.TRAIN:
+                query.reply(handlers.train(rt, query.payload))
+            elif kind is QueryKind.KEYFRAMES:
+                images = query.parameters.get("image", "false").lower() in ("true", "1", "yes")
+                for kf_id, payload in handlers.keyframe_infos(rt, images=images):
+                    key = wire.keys.keyframe(self.prefix, rt.name, kf_id)
+                    if query.wants(key):
+                        query.reply(payload, key)
+            elif kind is QueryKind.CAMERAS:
+                for camera_id, payload in handlers.camera_puts(rt):
+                    key = wire.keys.camera(self.prefix, rt.name, camera_id)
+                    if query.wants(key):
+                        query.reply(payload, key)
+        except Exception as exc:
+            rt.stats.count("errors")
+            query.reply_err(handlers.error_reply(exc))
+        finally:
+            query.finish()
+
+
+def serve(conf: ServiceConf) -> int:
+    """Run a service for ``conf`` until SIGINT/SIGTERM; the exit status. The signal handlers
+    are installed first, so a signal during start-up (restoring maps) still stops cleanly."""
+    stop = stop_on_signals()
+    service = Service(conf)
+    try:
+        service.start()
+    except BaseException:
+        service.stop(final_snapshot=False)
+        raise
+    service.run_forever(stop)
+    return 0
+

@@ -1,0 +1,257 @@
+"""The service configuration: a TOML file (``config/default.toml``) read strictly into frozen
+dataclasses; explicit command-line flags override it.
+
+Layout (every section and key optional; the embedded default equals ``config/default.toml``)::
+
+    [zenoh]     mode, listen, connect, multicast_scouting, config_file (a Zenoh JSON5 file)
+    [service]   instance, prefix, storage, workers, queue_size, methods, default_method, ...
+    [limits]    max_payload_bytes, max_image_pixels, max_features, max_hypotheses
+    [maps.NAME] maps served from the start (a table, possibly empty, per map)
+    [options.PLUGIN]  plugin options (``[options.sbi]``, ``[options.p3p]``, ``[options.verify]``)
+    [mapping]   map-building options (the engine's MappingConf)
+
+An unknown section or key is a :class:`ConfigError` naming it and the allowed ones.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import socket
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+from ..errors import ConfigError
+from ..plugins import make_conf
+
+ZENOH_MODES = ("peer", "client", "router")
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+DEFAULT_CONFIG_FILE = Path(__file__).resolve().parents[2] / "config" / "default.toml"
+
+
+@dataclass(frozen=True)
+class ZenohConf:
+    """How the service joins Zenoh. ``config_file`` (a Zenoh JSON5 file) is read first; the
+    keys here are applied on top of it (an empty list leaves the file's value)."""
+
+    mode: str = "peer"
+    listen: tuple[str, ...] = (DEFAULT_LISTEN,)
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    config_file: str = ""
+
+    def __post_init__(self) -> None:
+        if self.mode not in ZENOH_MODES:
+            raise ConfigError(f"zenoh.mode: expected one of {list(ZENOH_MODES)}, got "
+                              f"{self.mode!r}")
+        for name in ("listen", "connect"):
+            endpoints = getattr(self, name)
+            object.__setattr__(self, name, _str_tuple(endpoints, f"zenoh.{name}"))
+            for ep in getattr(self, name):
+                if "/" not in ep:
+                    raise ConfigError(f"zenoh.{name}: expected endpoints like "
+                                      f"'tcp/127.0.0.1:7447', got {ep!r}")
+
+
+@dataclass(frozen=True)
+class LimitsConf:
+    """Sizes above which a request is refused before it is parsed (docs/protocol.md)."""
+
+    max_payload_bytes: int = 32 * 1024 * 1024
+    max_image_pixels: int = 4096 * 4096
+    max_features: int = 50_000
+    max_hypotheses: int = 32
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            if getattr(self, f.name) < 1:
+                raise ConfigError(f"limits.{f.name}: expected a positive integer, got "
+                                  f"{getattr(self, f.name)}")
+
+    def to_wire(self) -> Any:
+        """The protocol's :class:`~reloc_client.protocol.Limits`."""
+        from reloc_client import protocol as wire
+
+        return wire.Limits(max_payload_bytes=self.max_payload_bytes,
+                           max_image_pixels=self.max_image_pixels,
+                           max_features=self.max_features, max_hypotheses=self.max_hypotheses)
+
+
+@dataclass(frozen=True)
+class ServiceSection:
+    """The service itself: names, threads, queues, storage, methods."""
+
+    #: Instance name in liveliness tokens; empty: ``<hostname>-<pid>``.
+    instance: str = ""
+    prefix: str = "reloc"
+    #: Directory of journals and snapshots (``~`` expanded; relative to the working
+    #: directory); empty: keep maps in memory only (nothing survives a restart).
+    storage: str = "~/.local/share/reloc/maps"
+    #: Threads answering relocalize queries (OpenCV, NumPy and PoseLib release the GIL).
+    workers: int = 2
+    #: Relocalize queries waiting for a worker; one more is answered "busy" at once.
+    queue_size: int = 8
+    #: Keyframe puts/deletes waiting for the writer; one more is rejected (BUSY event).
+    writer_queue_size: int = 512
+    #: A put on a map that is not served creates it (else the put is ignored).
+    allow_new_maps: bool = True
+    #: Journal records between background snapshots (0: snapshot only after training and at
+    #: shutdown).
+    snapshot_every: int = 200
+    #: fsync every journal record (off only for benchmarks of the non-durable path).
+    fsync: bool = True
+    #: Methods every map serves (each a method or a fallback chain) and the default one.
+    methods: tuple[str, ...] = ("sbi+p3p",)
+    default_method: str = "sbi+p3p"
+    #: Train a map's methods after loading it if no trained models were restored.
+    train_on_load: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "methods", _str_tuple(self.methods, "service.methods"))
+        for name in ("workers", "queue_size", "writer_queue_size"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"service.{name}: expected an integer >= 1, got "
+                                  f"{getattr(self, name)}")
+        if self.snapshot_every < 0:
+            raise ConfigError(f"service.snapshot_every: expected >= 0, got {self.snapshot_every}")
+        if not self.methods:
+            raise ConfigError("service.methods: expected at least one method, e.g. ['sbi+p3p']")
+        if self.default_method not in self.methods:
+            raise ConfigError(f"service.default_method: {self.default_method!r} is not one of "
+                              f"service.methods {list(self.methods)}")
+        _check_names(self.prefix, self.instance)
+
+
+@dataclass(frozen=True)
+class MapConf:
+    """A map served from the start (``[maps.NAME]``); nothing to set yet besides its name."""
+
+
+@dataclass(frozen=True)
+class ServiceConf:
+    """The whole configuration of ``reloc serve``."""
+
+    zenoh: ZenohConf = field(default_factory=ZenohConf)
+    service: ServiceSection = field(default_factory=ServiceSection)
+    limits: LimitsConf = field(default_factory=LimitsConf)
+    maps: Mapping[str, MapConf] = field(default_factory=lambda: MappingProxyType({}))
+    #: Plugin name -> options (passed to the engine, checked by each plugin's Conf).
+    options: Mapping[str, Mapping[str, Any]] = field(
+        default_factory=lambda: MappingProxyType({}))
+    #: Map-building options (the engine's MappingConf).
+    mapping: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+
+    @property
+    def instance(self) -> str:
+        """The instance name: configured, or ``<hostname>-<pid>`` made a valid key chunk."""
+        if self.service.instance:
+            return self.service.instance
+        host = "".join(c if c.isalnum() or c in "-_." else "-" for c in socket.gethostname())
+        return f"{host or 'reloc'}-{os.getpid()}"
+
+    @property
+    def storage_path(self) -> Path | None:
+        """The storage directory, or None when maps are kept in memory only."""
+        if not self.service.storage:
+            return None
+        return Path(os.path.expanduser(self.service.storage)).absolute()
+
+
+_SECTIONS: dict[str, type] = {"zenoh": ZenohConf, "service": ServiceSection,
+                              "limits": LimitsConf}
+_TOP_KEYS = sorted([*_SECTIONS, "maps", "options", "mapping"])
+
+
+def parse_config(data: Mapping[str, Any], *, source: str = "config") -> ServiceConf:
+    """Build a :class:`ServiceConf` from a parsed TOML document; ConfigError names the first
+    unknown section or key and lists the allowed ones."""
+    unknown = sorted(set(data) - set(_TOP_KEYS))
+    if unknown:
+        raise ConfigError(f"{source}: unknown section(s) {unknown}; expected some of {_TOP_KEYS}")
+    sections: dict[str, Any] = {
+        name: make_conf(cls, _table(data.get(name, {}), f"{source}: [{name}]"),
+                        owner=f"{source}: [{name}]")
+        for name, cls in _SECTIONS.items()}
+    maps = {name: make_conf(MapConf, _table(t, f"{source}: [maps.{name}]"),
+                            owner=f"{source}: [maps.{name}]")
+            for name, t in _table(data.get("maps", {}), f"{source}: [maps]").items()}
+    _check_names(None, None, maps=list(maps))
+    options = {name: MappingProxyType(dict(_table(t, f"{source}: [options.{name}]")))
+               for name, t in _table(data.get("options", {}), f"{source}: [options]").items()}
+    mapping = dict(_table(data.get("mapping", {}), f"{source}: [mapping]"))
+    return ServiceConf(zenoh=sections["zenoh"], service=sections["service"],
+                       limits=sections["limits"], maps=MappingProxyType(maps),
+                       options=MappingProxyType(options), mapping=MappingProxyType(mapping))
+
+
+def load_config(path: str | Path | None = None) -> ServiceConf:
+    """Read the TOML file ``path``; None gives the embedded default (``config/default.toml``
+    holds the same values)."""
+    if path is None:
+        return ServiceConf()
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc.strerror or exc}") from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    conf = parse_config(data, source=str(path))
+    zc = conf.zenoh
+    if zc.config_file and not Path(zc.config_file).is_absolute():
+        # A Zenoh config file named in a TOML file is relative to that file.
+        zc = dataclasses.replace(zc, config_file=str(path.parent / zc.config_file))
+        conf = dataclasses.replace(conf, zenoh=zc)
+    return conf
+
+
+def with_overrides(conf: ServiceConf, *, mode: str | None = None,
+                   listen: Sequence[str] | None = None, connect: Sequence[str] | None = None,
+                   storage: str | None = None, workers: int | None = None,
+                   instance: str | None = None, prefix: str | None = None) -> ServiceConf:
+    """``conf`` with the explicitly given command-line values replacing the file's."""
+    z: dict[str, Any] = {k: v for k, v in (("mode", mode), ("listen", listen),
+                                           ("connect", connect)) if v is not None}
+    s: dict[str, Any] = {k: v for k, v in (("storage", storage), ("workers", workers),
+                                           ("instance", instance), ("prefix", prefix))
+                         if v is not None}
+    for key in ("listen", "connect"):
+        if key in z:
+            z[key] = tuple(z[key])
+    return dataclasses.replace(conf, zenoh=dataclasses.replace(conf.zenoh, **z),
+                               service=dataclasses.replace(conf.service, **s))
+
+
+def _table(value: Any, where: str) -> Mapping[str, Any]:
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{where}: expected a table, got {type(value).__name__} {value!r}")
+    return value
+
+
+def _str_tuple(value: Any, where: str) -> tuple[str, ...]:
+    if isinstance(value, str) or not isinstance(value, Sequence):
+        raise ConfigError(f"{where}: expected a list of strings, got {value!r}")
+    if not all(isinstance(v, str) and v for v in value):
+        raise ConfigError(f"{where}: expected non-empty strings, got {list(value)!r}")
+    return tuple(value)
+
+
+def _check_names(prefix: str | None, instance: str | None, *, maps: Sequence[str] = ()) -> None:
+    """Prefix, instance and map names must be valid key chunks (protocol.check_name)."""
+    from reloc_client import protocol as wire
+
+    try:
+        if prefix is not None:
+            wire.check_prefix(prefix)
+        if instance:
+            wire.check_name(instance, "service.instance")
+        for name in maps:
+            wire.check_name(name, f"[maps.{name}]")
+    except wire.ProtocolError as exc:
+        raise ConfigError(exc.message) from None

@@ -1,0 +1,120 @@
+"""Worker threads behind bounded queues: Zenoh callbacks only enqueue, the work runs here.
+
+A :class:`WorkerPool` never blocks its caller: :meth:`WorkerPool.submit` returns False at once
+when the queue is full, and the caller answers "busy". With ``workers=1`` it is the service's
+single writer, which applies keyframe puts in arrival order. Threads (not processes) suffice:
+OpenCV, NumPy and PoseLib release the GIL in the heavy parts (measured in
+``reloc_service.bench.service_bench``).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import signal
+import threading
+import time
+from collections.abc import Callable
+from types import FrameType
+
+log = logging.getLogger(__name__)
+
+#: A job receives the seconds it waited in the queue.
+Job = Callable[[float], None]
+
+_STOP = object()
+
+
+class WorkerPool:
+    """``workers`` daemon threads serving a queue of at most ``queue_size`` waiting jobs."""
+
+    def __init__(self, name: str, *, workers: int, queue_size: int) -> None:
+        if workers < 1 or queue_size < 1:
+            raise ValueError(f"{name}: expected workers >= 1 and queue_size >= 1, got "
+                             f"{workers}, {queue_size}")
+        self.name = name
+        self._queue: queue.Queue[object] = queue.Queue(maxsize=queue_size)
+        self._threads = [threading.Thread(target=self._serve, name=f"{name}-{i}", daemon=True)
+                         for i in range(workers)]
+        self._closed = False
+        self._lock = threading.Lock()
+        self._busy = 0
+        self._idle = threading.Condition(self._lock)
+        for t in self._threads:
+            t.start()
+
+    def submit(self, job: Job) -> bool:
+        """Queue ``job``; False (without waiting) if the queue is full or the pool closed."""
+        if self._closed:
+            return False
+        try:
+            self._queue.put_nowait((job, time.perf_counter()))
+        except queue.Full:
+            return False
+        return True
+
+    @property
+    def pending(self) -> int:
+        """Jobs waiting (not counting those running)."""
+        return self._queue.qsize()
+
+    def join(self, timeout: float | None = None) -> bool:
+        """Wait until every queued job has finished; False on timeout."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._idle:
+            while self._queue.qsize() or self._busy:
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return False
+                self._idle.wait(0.05 if remaining is None else min(0.05, remaining))
+        return True
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Finish the queued jobs, then stop the threads (waiting up to ``timeout`` s)."""
+        if self._closed:
+            return
+        self._closed = True
+        deadline = time.monotonic() + timeout
+        for _ in self._threads:
+            while True:  # the queue may be full: wait for room for each stop marker
+                try:
+                    self._queue.put(_STOP, timeout=max(0.01, deadline - time.monotonic()))
+                    break
+                except queue.Full:
+                    if time.monotonic() > deadline:
+                        log.warning("%s: queue still full at shutdown", self.name)
+                        break
+        for t in self._threads:
+            t.join(max(0.0, deadline - time.monotonic()))
+
+    def _serve(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            job: Job
+            queued_at: float
+            job, queued_at = item  # type: ignore[misc]
+            with self._lock:
+                self._busy += 1
+            try:
+                job(time.perf_counter() - queued_at)
+            except Exception:  # a job reports its own errors; this is the last resort
+                log.exception("%s: job failed", self.name)
+            finally:
+                with self._idle:
+                    self._busy -= 1
+                    self._idle.notify_all()
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM (call from the main thread)."""
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: FrameType | None) -> None:
+        log.info("signal %s: shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+    return stop

@@ -1,0 +1,265 @@
+"""The thin Zenoh layer: session configuration, declarations per served map, and callbacks that
+only copy the payload and hand it to a dispatcher (the work runs in worker threads).
+
+Key expressions (``reloc_client.protocol.keys``), for each served map ``<map>``:
+``<prefix>/<map>/{relocalize,train,status}`` queryables, ``keyframes/**`` and ``cameras/**``
+queryables (copying a map), subscribers on ``<prefix>/*/keyframes/*`` and
+``<prefix>/*/cameras/*`` (puts and deletes, any map: the first keyframe may create one), a
+publisher on ``<prefix>/<map>/events`` and a liveliness token ``<prefix>/@live/<instance>/<map>``.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import logging
+import re
+import threading
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Protocol
+
+import zenoh
+from reloc_client import protocol as wire
+
+from ..errors import ConfigError
+from .config import ZenohConf
+
+log = logging.getLogger(__name__)
+
+
+def zenoh_config(conf: ZenohConf) -> zenoh.Config:
+    """A Zenoh config: ``conf.config_file`` (JSON5) if given, then mode, endpoints and
+    multicast scouting from ``conf`` on top."""
+    if conf.config_file:
+        path = Path(conf.config_file)
+        if not path.is_file():
+            raise ConfigError(f"zenoh.config_file: no such file {path}")
+        try:
+            zc = zenoh.Config.from_file(str(path))
+        except Exception as exc:  # zenoh raises its own error type for bad JSON5
+            raise ConfigError(f"zenoh.config_file {path}: {exc}") from exc
+    else:
+        zc = zenoh.Config()
+    _insert(zc, "mode", conf.mode)
+    if conf.listen:
+        _insert(zc, "listen/endpoints", list(conf.listen))
+    if conf.connect:
+        _insert(zc, "connect/endpoints", list(conf.connect))
+    _insert(zc, "scouting/multicast/enabled", conf.multicast_scouting)
+    return zc
+
+
+def _insert(zc: zenoh.Config, key: str, value: object) -> None:
+    try:
+        zc.insert_json5(key, json.dumps(value))
+    except Exception as exc:
+        raise ConfigError(f"zenoh config {key} = {value!r}: {exc}") from exc
+
+
+class QueryKind(enum.Enum):
+    """The queryables of one map."""
+
+    RELOCALIZE = "relocalize"
+    TRAIN = "train"
+    STATUS = "status"
+    KEYFRAMES = "keyframes"
+    CAMERAS = "cameras"
+
+
+class PendingQuery:
+    """A Zenoh query whose answer is produced later in another thread. Replies go on
+    ``reply_key`` (the queryable's own key) unless told otherwise; :meth:`finish` (or the
+    first error reply) ends the query exactly once."""
+
+    __slots__ = ("_query", "payload", "parameters", "key_expr", "reply_key", "_lock", "_done")
+
+    def __init__(self, query: zenoh.Query, reply_key: str) -> None:
+        self._query = query
+        self.payload = query.payload.to_bytes() if query.payload is not None else b""
+        self.parameters: dict[str, str] = (
+            {k: v for k, v in query.parameters}  # type: ignore[attr-defined]
+            if query.parameters is not None else {})
+        self.key_expr = str(query.key_expr)
+        self.reply_key = reply_key
+        self._lock = threading.Lock()
+        self._done = False
+
+    def wants(self, key: str) -> bool:
+        """Whether a reply on ``key`` answers this query (its key expression intersects)."""
+        return zenoh.KeyExpr(self.key_expr).intersects(zenoh.KeyExpr(key))
+
+    def reply(self, payload: bytes, key: str | None = None) -> None:
+        with self._lock:
+            if not self._done:
+                self._query.reply(key or self.reply_key, payload)
+
+    def reply_err(self, payload: bytes) -> None:
+        with self._lock:
+            if not self._done:
+                self._query.reply_err(payload)
+        self.finish()
+
+    def finish(self) -> None:
+        """Send the final reply marker (the client's get returns)."""
+        with self._lock:
+            if not self._done:
+                self._done = True
+                self._query.drop()
+
+
+class Dispatcher(Protocol):
+    """What the Zenoh callbacks call; every method must return quickly."""
+
+    def on_keyframe_sample(self, map_name: str, kf_id: int, payload: bytes | None) -> None:
+        """A put (payload) or delete (None) on ``<prefix>/<map>/keyframes/<id>``."""
+
+    def on_camera_sample(self, map_name: str, camera_id: str, payload: bytes | None) -> None:
+        """A put or delete on ``<prefix>/<map>/cameras/<id>``."""
+
+    def on_bad_key(self, key: str, problem: str) -> None:
+        """A sample on a key that does not parse (bad map name or id)."""
+
+    def on_query(self, map_name: str, kind: QueryKind, query: PendingQuery) -> None:
+        """A query on one of the map's queryables."""
+
+
+class ZenohLayer:
+    """Declarations on ``session`` under ``prefix``; :meth:`serve_map` adds a map's."""
+
+    def __init__(self, session: zenoh.Session, prefix: str, instance: str,
+                 dispatcher: Dispatcher) -> None:
+        self.session = session
+        self.prefix = wire.check_prefix(prefix)
+        self.instance = wire.check_name(instance, "instance name")
+        self.dispatcher = dispatcher
+        self._maps: dict[str, list[object]] = {}
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._tokens: dict[str, zenoh.LivelinessToken] = {}
+        self._lock = threading.Lock()
+        self._subscribers = [
+            session.declare_subscriber(f"{self.prefix}/*/keyframes/*", self._on_keyframe),
+            session.declare_subscriber(f"{self.prefix}/*/cameras/*", self._on_camera)]
+
+    # -- per map ---------------------------------------------------------------------------
+    def serve_map(self, map_name: str) -> None:
+        """Declare ``map_name``'s queryables, events publisher and liveliness token."""
+        with self._lock:
+            if map_name in self._maps:
+                return
+            k = wire.keys
+            entities: list[object] = [
+                self._queryable(k.relocalize(self.prefix, map_name), map_name,
+                                QueryKind.RELOCALIZE),
+                self._queryable(k.train(self.prefix, map_name), map_name, QueryKind.TRAIN),
+                self._queryable(k.status(self.prefix, map_name), map_name, QueryKind.STATUS),
+                self._queryable(k.keyframes(self.prefix, map_name), map_name,
+                                QueryKind.KEYFRAMES),
+                self._queryable(k.cameras(self.prefix, map_name), map_name, QueryKind.CAMERAS)]
+            self._publishers[map_name] = self.session.declare_publisher(
+                k.events(self.prefix, map_name))
+            entities.append(self._publishers[map_name])
+            self._maps[map_name] = entities
+            # The token last: a client that sees it can use every key at once.
+            self._tokens[map_name] = self.session.liveliness().declare_token(
+                k.liveliness(self.prefix, self.instance, map_name))
+
+    def served_maps(self) -> list[str]:
+        with self._lock:
+            return sorted(self._maps)
+
+    def publish_event(self, map_name: str, payload: bytes) -> None:
+        """Publish an encoded Event on the map's events key (ignored once closed)."""
+        publisher = self._publishers.get(map_name)
+        if publisher is None:
+            return
+        try:
+            publisher.put(payload)
+        except Exception as exc:  # the session may be closing
+            log.debug("event on %s not published: %s", map_name, exc)
+
+    def withdraw(self) -> None:
+        """Undeclare the liveliness tokens (clients see the maps go) and the put subscribers;
+        queryables stay until :meth:`close`, so queries already queued still get answers."""
+        with self._lock:
+            tokens, self._tokens = self._tokens, {}
+            subscribers, self._subscribers = self._subscribers, []
+        for entity in [*tokens.values(), *subscribers]:
+            _undeclare(entity)
+
+    def close(self) -> None:
+        """Undeclare everything."""
+        self.withdraw()
+        with self._lock:
+            maps, self._maps = self._maps, {}
+            self._publishers = {}
+        for entities in maps.values():
+            for entity in reversed(entities):
+                _undeclare(entity)
+
+    # -- callbacks (Zenoh threads: copy, parse the key, hand over) -------------------------
+    def _queryable(self, key: str, map_name: str, kind: QueryKind) -> zenoh.Queryable:
+        dispatcher = self.dispatcher
+
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                dispatcher.on_query(map_name, kind, PendingQuery(query, key))
+            except Exception:  # never let an exception reach Zenoh's thread
+                log.exception("query on %s failed in the dispatcher", key)
+
+        return self.session.declare_queryable(key, on_query)
+
+    def _on_keyframe(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            map_name, kf_id = wire.keys.parse_keyframe(self.prefix, key)
+        except wire.ProtocolError as exc:
+            self.dispatcher.on_bad_key(key, exc.message)
+            return
+        self.dispatcher.on_keyframe_sample(map_name, kf_id, _sample_payload(sample))
+
+    def _on_camera(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            map_name, camera_id = wire.keys.parse_camera(self.prefix, key)
+        except wire.ProtocolError as exc:
+            self.dispatcher.on_bad_key(key, exc.message)
+            return
+        self.dispatcher.on_camera_sample(map_name, camera_id, _sample_payload(sample))
+
+
+def _sample_payload(sample: zenoh.Sample) -> bytes | None:
+    if sample.kind == zenoh.SampleKind.DELETE:
+        return None
+    return sample.payload.to_bytes()
+
+
+def _undeclare(entity: object) -> None:
+    try:
+        entity.undeclare()  # type: ignore[attr-defined]
+    except Exception as exc:
+        log.debug("undeclare failed: %s", exc)
+
+
+def open_session(conf: ZenohConf) -> zenoh.Session:
+    """Open a Zenoh session for ``conf``; a clear ConfigError when an endpoint is taken."""
+    try:
+        return zenoh.open(zenoh_config(conf))
+    except ConfigError:
+        raise
+    except Exception as exc:
+        reason = re.sub(r" at [^ ]+\.rs:\d+\.?", "", str(exc))   # drop Rust source paths
+        raise ConfigError(f"cannot open the Zenoh session (mode {conf.mode}, listen "
+                          f"{list(conf.listen)}, connect {list(conf.connect)}): {reason}"
+                          ) from exc
+
+
+def wait_closed(sessions: Iterable[zenoh.Session]) -> None:
+    """Close ``sessions`` (ignoring ones already closed)."""
+    for s in sessions:
+        try:
+            if not s.is_closed():
+                s.close()
+        except Exception as exc:
+            log.debug("closing a session failed: %s", exc)
+
