@@ -264,7 +264,7 @@ def test_load_refuses_a_model_of_other_keyframes(scene: Scene, trained: FernsRel
 
 def test_max_classes_keeps_the_most_observed_landmarks(scene: Scene) -> None:
     kmap = scene.map()
-    reloc = FernsRelocalizer(kmap, FernsConf(**{**FAST, "max_classes": 100}))
+    reloc = FernsRelocalizer(kmap, FernsConf(**{**FAST, "max_classes": 100, "partition": "select"}))
     reloc.train()
     assert reloc.num_classes == 100
     seen = {lm.id: len(lm.observations) for lm in kmap.snapshot().landmarks.values()}

@@ -90,7 +90,7 @@ class FernsConf:
     online: bool = True
     workers: int = 2
     max_classes: int = 2000
-    partition: str = "select"
+    partition: str = "regions"
     kind: str = "sift"
     detector: str = "sift"
     max_query_keypoints: int = 1000

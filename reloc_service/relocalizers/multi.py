@@ -32,7 +32,7 @@ class MultiRelocalizer(Relocalizer):
         #: Keyframes pooled into one group for pose finders that pool candidates (p3p).
         num_candidates: int = 5
         #: Groups tried, in place-finder order, until one verifies (1 = thesis behaviour).
-        max_groups: int = 1
+        max_groups: int = 3
         #: Accept only when two independent candidate groups verify and agree.
         require_agreement: bool = False
         agreement_max_distance_m: float = 0.25

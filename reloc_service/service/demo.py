@@ -122,7 +122,7 @@ def _plots(result: Any, work: Path, *, keep: bool) -> None:
 
     out = work / "plots" if keep else Path(tempfile.mkdtemp(prefix="reloc-demo-plots-"))
     paths = plot_result(result, out)
-    print(f"4/4 plots ({len(paths)}) in {out}")
+    print(f"4/4 {len(paths)} plots written to {out}:")
     for p in paths:
         print(f"  {p}")
 
