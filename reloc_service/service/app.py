@@ -16,6 +16,8 @@ import urllib.parse
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+import zenoh
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode, EventKind
 
@@ -67,6 +69,11 @@ class Service:
         self.writer: WorkerPool | None = None
         self._stopped = threading.Event()
         self.started_at = time.monotonic()
+        #: While a bootstrap runs: (map, keyframe id) -> (pose, timestamp) copied from a peer;
+        #: a buffered live put identical to its copy is not applied twice.
+        self._bootstrap_window = False
+        self._elsewhere: dict[str, tuple[float, bool]] = {}   # map -> (when, served elsewhere)
+        self._bootstrapped: dict[tuple[str, int], tuple[Any, Any]] = {}
 
     # -- life cycle ------------------------------------------------------------------------------
     def start(self) -> Service:
@@ -83,7 +90,10 @@ class Service:
         self.control_pool = WorkerPool("control", workers=1, queue_size=CONTROL_QUEUE)
         self.writer = WorkerPool("writer", workers=1, queue_size=s.writer_queue_size)
         self.session = open_session(self.conf.zenoh)
+        bootstrap = _Bootstrap(self) if s.bootstrap_from_peers else None
         self.layer = ZenohLayer(self.session, self.prefix, self.instance, self)
+        if bootstrap is not None:   # subscribed (puts buffer in the writer queue): now copy
+            bootstrap.run()
         for name in sorted(self.maps):
             self.layer.serve_map(name)
         log.info("reloc service %s serving %s under %r (zenoh %s, listen %s, connect %s)",
@@ -202,9 +212,26 @@ class Service:
         if payload is None:
             self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
                         lambda rt: rt.delete_keyframe(kf_id))
+        elif self._bootstrap_window:
+            self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
+                        lambda rt: self._put_unless_copied(rt, kf_id, payload))
         else:
             self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
                         lambda rt: rt.put_keyframe(kf_id, payload))
+
+    def _put_unless_copied(self, rt: MapRuntime, kf_id: int, payload: bytes) -> None:
+        """A put buffered during the bootstrap: skipped if the copy already holds it."""
+        copied = self._bootstrapped.get((rt.name, kf_id))
+        if copied is not None:
+            try:
+                put = wire.KeyframePut.decode(payload, rt.limits)
+            except wire.ProtocolError:
+                put = None
+            if (put is not None and put.timestamp == copied[1]
+                    and np.allclose(put.world_from_cam.matrix(), copied[0], atol=1e-9)):
+                rt.stats.count("bootstrap_duplicates")
+                return
+        rt.put_keyframe(kf_id, payload)
 
     def on_camera_sample(self, map_name: str, camera_id: str, payload: bytes | None) -> None:
         if payload is None:
@@ -233,6 +260,14 @@ class Service:
                     f"{self.conf.service.queue_size} queries waiting; retry later"))
                 query.finish()
             return
+        if kind is QueryKind.KEYFRAMES:
+            # Answered by the writer after the puts already received, so a replica that
+            # subscribed before asking (bootstrap_from_peers) misses none of them.
+            assert self.writer is not None
+            if not self.writer.submit(lambda _queued: self._copy_after_writes(rt, query)):
+                rt.stats.count("busy")
+                query.reply_err(wire.encode_error(ErrorCode.BUSY, "writer queue full; retry"))
+            return
         assert self.control_pool is not None
         if not self.control_pool.submit(lambda _queued: self._control(rt, kind, query)):
             rt.stats.count("busy")
@@ -248,6 +283,9 @@ class Service:
                 code, message = handlers.error_of(exc)
                 self._reject(map_name, kind, ident, code, message)
                 return
+            if rt is None and self._served_elsewhere(map_name):
+                log.debug("put on map %s ignored: another instance serves it", map_name)
+                return
             if rt is None:
                 self._reject(map_name, kind, ident, ErrorCode.UNKNOWN_MAP,
                              f"map {map_name!r} is not served and this service does not create "
@@ -262,6 +300,25 @@ class Service:
             self._reject(map_name, kind, ident, ErrorCode.BUSY,
                          f"writer queue full ({self.conf.service.writer_queue_size} puts "
                          "waiting); put again later")
+
+    def _served_elsewhere(self, map_name: str) -> bool:
+        """Whether another live instance serves ``map_name`` (its liveliness token; cached
+        for a few seconds): then a put on it is that shard's, not an error here."""
+        now = time.monotonic()
+        cached = self._elsewhere.get(map_name)
+        if cached is not None and now - cached[0] < 2.0:
+            return cached[1]
+        found = False
+        try:
+            key = f"{self.prefix}/@live/*/{wire.check_name(map_name)}"
+            for reply in self.session.liveliness().get(key, timeout=1.0):
+                if reply.ok is not None and not str(reply.ok.key_expr).startswith(
+                        f"{self.prefix}/@live/{self.instance}/"):
+                    found = True
+        except Exception as exc:  # a closing session, a bad name: not served elsewhere
+            log.debug("liveliness get for map %s failed: %s", map_name, exc)
+        self._elsewhere[map_name] = (now, found)
+        return found
 
     def _reject(self, map_name: str, kind: EventKind, ident: Any, code: ErrorCode,
                 message: str) -> None:
@@ -279,6 +336,10 @@ class Service:
             query.reply_err(handlers.error_reply(exc))
         finally:
             query.finish()
+
+    def _copy_after_writes(self, rt: MapRuntime, query: PendingQuery) -> None:
+        rt.wait_snapshot()
+        self._control(rt, QueryKind.KEYFRAMES, query)
 
     def _control(self, rt: MapRuntime, kind: QueryKind, query: PendingQuery) -> None:
         try:
@@ -302,6 +363,90 @@ class Service:
             query.reply_err(handlers.error_reply(exc))
         finally:
             query.finish()
+
+
+class _Bootstrap:
+    """Copy the served maps from running replicas (``service.bootstrap_from_peers``).
+
+    A gate job holds the writer while the gets run, so keyframe puts arriving meanwhile wait
+    in the writer queue (bounded by ``writer_queue_size``); the gate then applies the copies
+    (journaled like any put) and the writer goes on with the buffered puts, in order."""
+
+    #: Seconds for each get (a replica sending hundreds of keyframe images needs a while).
+    TIMEOUT = 60.0
+
+    def __init__(self, service: Service) -> None:
+        self.service = service
+        self.fetched: list[tuple[MapRuntime, str, Any, bytes]] = []
+        self._ready = threading.Event()
+        self._done = threading.Event()
+        service._bootstrap_window = True
+        assert service.writer is not None
+        if not service.writer.submit(self._apply):
+            raise RuntimeError("the writer queue refused the bootstrap job")
+
+    def run(self) -> None:
+        """Fetch cameras and keyframes of every served map, let the writer apply them, wait."""
+        svc = self.service
+        try:
+            for name, rt in sorted(svc.maps.items()):
+                for key, payload in self._get(wire.keys.cameras(svc.prefix, name)):
+                    self.fetched.append((rt, "cam", key, payload))
+                for key, payload in self._get(wire.keys.keyframes(svc.prefix, name)
+                                              + "?image=true"):
+                    self.fetched.append((rt, "kf", key, payload))
+        finally:
+            self._ready.set()
+        if not self._done.wait(self.TIMEOUT * 2):
+            log.error("bootstrap: the writer did not apply the copied maps in time")
+
+    def _get(self, key: str) -> list[tuple[str, bytes]]:
+        out = []
+        for reply in self.service.session.get(
+                key, timeout=self.TIMEOUT, target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE):
+            if reply.ok is not None:
+                out.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+            else:
+                log.warning("bootstrap: an error reply to %s: %r", key,
+                            reply.err.payload.to_bytes()[:200] if reply.err else b"")
+        return out
+
+    def _apply(self, _queued: float) -> None:
+        svc = self.service
+        try:
+            if not self._ready.wait(self.TIMEOUT * 4):   # start-up failed before the gets
+                return
+            counts: dict[str, int] = {}
+            for rt, op, _key, payload in self.fetched:
+                try:
+                    if op == "cam":
+                        put = wire.CameraPut.decode(payload, rt.limits)
+                        if rt.camera(put.id) is None:
+                            rt.put_camera(put.id, payload)
+                        continue
+                    info = wire.KeyframeInfo.decode(payload, rt.limits)
+                    if info.image is None or (rt.name, info.id) in svc._bootstrapped:
+                        continue   # a second replica's copy of the same keyframe
+                    use_id = info.camera_id is not None and rt.camera(info.camera_id) is not None
+                    message = wire.KeyframePut(
+                        id=info.id, image=info.image, world_from_cam=info.world_from_cam,
+                        camera_id=info.camera_id if use_id else None,
+                        camera=None if use_id else info.camera, timestamp=info.timestamp)
+                    rt.put_keyframe(info.id, message.encode())
+                    svc._bootstrapped[(rt.name, info.id)] = (info.world_from_cam.matrix(),
+                                                             info.timestamp)
+                    counts[rt.name] = counts.get(rt.name, 0) + 1
+                except Exception as exc:
+                    log.warning("bootstrap: map %s: a copied %s was not applied: %s", rt.name,
+                                op, exc)
+            for name, rt in svc.maps.items():
+                rt.stats.count("bootstrap_keyframes", counts.get(name, 0))
+            log.info("bootstrap: copied %s keyframes from running replicas",
+                     counts or "no")
+        finally:
+            svc._bootstrap_window = False
+            self._done.set()
 
 
 def serve(conf: ServiceConf) -> int:

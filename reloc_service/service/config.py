@@ -99,6 +99,10 @@ class ServiceSection:
     writer_queue_size: int = 512
     #: A put on a map that is not served creates it (else the put is ignored).
     allow_new_maps: bool = True
+    #: On start, copy each served map's cameras and keyframes from a running replica (a get
+    #: on ``<prefix>/<map>/keyframes/**?image=true``) before answering queries; keyframe puts
+    #: arriving meanwhile are buffered in the writer queue and applied after the copy.
+    bootstrap_from_peers: bool = False
     #: Journal records between background snapshots (0: snapshot only after training and at
     #: shutdown).
     snapshot_every: int = 200

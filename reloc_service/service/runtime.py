@@ -390,6 +390,12 @@ class MapRuntime:
                      duration_s=time.perf_counter() - start, map_version=self.map_state().version)
         self.start_snapshot()   # the trained models survive a restart
 
+    def wait_snapshot(self, timeout: float = 60.0) -> None:
+        """Wait for a running snapshot (its deferred puts are applied when it ends)."""
+        thread = self._snapshot_thread
+        if thread is not None and thread.is_alive():
+            thread.join(timeout)
+
     def training_thread(self) -> threading.Thread | None:
         with self._job_lock:
             return None if self._job is None else self._job.thread

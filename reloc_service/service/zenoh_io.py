@@ -137,9 +137,9 @@ class ZenohLayer:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._tokens: dict[str, zenoh.LivelinessToken] = {}
         self._lock = threading.Lock()
-        self._subscribers = [
-            session.declare_subscriber(f"{self.prefix}/*/keyframes/*", self._on_keyframe),
-            session.declare_subscriber(f"{self.prefix}/*/cameras/*", self._on_camera)]
+        # One subscriber for keyframes and cameras: samples of two subscribers may be delivered
+        # out of order, and a keyframe must not overtake the camera it was sent after.
+        self._subscribers = [session.declare_subscriber(f"{self.prefix}/*/*/*", self._on_put)]
 
     # -- per map ---------------------------------------------------------------------------
     def serve_map(self, map_name: str) -> None:
@@ -208,6 +208,13 @@ class ZenohLayer:
                 log.exception("query on %s failed in the dispatcher", key)
 
         return self.session.declare_queryable(key, on_query)
+
+    def _on_put(self, sample: zenoh.Sample) -> None:
+        kind = str(sample.key_expr)[len(self.prefix) + 1:].split("/")[1:2]
+        if kind == ["keyframes"]:
+            self._on_keyframe(sample)
+        elif kind == ["cameras"]:
+            self._on_camera(sample)
 
     def _on_keyframe(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)

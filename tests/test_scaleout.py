@@ -1,0 +1,227 @@
+"""Scale-out behind one Zenoh router, on loopback: shards (each instance serves its own maps,
+clients only name a map), replicas (two instances serve one map; both receive every keyframe
+put, queries reach both and the client keeps the first answer), a replica that starts late
+copies the map from a running one (``bootstrap_from_peers``) without gaps or duplicates, and
+queries go on when a replica process is killed."""
+# ruff: noqa: E402
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
+
+import dataclasses
+import json
+import os
+import re
+import signal
+import subprocess
+import threading
+import time
+
+import pytest
+import zenoh
+from reloc_client.client import NoReplyError, RelocClient, ServiceError
+from service_support import ROOT, Events, endpoint, free_port, wait_until
+
+from reloc_service.service.app import Service
+from reloc_service.service.config import ServiceConf, load_config, with_overrides
+
+GROUND = ROOT / "deploy" / "ground"
+
+
+def open_router(port: int) -> zenoh.Session:
+    conf = zenoh.Config.from_file(str(ROOT / "config" / "router.json5"))
+    conf.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
+    return zenoh.open(conf)
+
+
+def ground_conf(name: str, port: int, storage: Path, **service) -> ServiceConf:
+    """deploy/ground/<name>.toml joining the router on ``port`` without credentials."""
+    conf = with_overrides(load_config(GROUND / f"{name}.toml"), connect=[endpoint(port)],
+                          storage=str(storage))
+    return dataclasses.replace(conf, zenoh=dataclasses.replace(conf.zenoh, config_file=""),
+                               service=dataclasses.replace(conf.service, workers=1,
+                                                           **service))
+
+
+def test_shards_serve_their_own_maps_and_clients_are_unaware(synthetic_scene, tmp_path):
+    scene = synthetic_scene
+    port = free_port()
+    with open_router(port), \
+            Service(ground_conf("service-a", port, tmp_path / "a")) as shard_a, \
+            Service(ground_conf("service-b", port, tmp_path / "b")) as shard_b, \
+            RelocClient(endpoint(port), map="drone1", timeout=10) as c1, \
+            RelocClient(endpoint(port), map="drone2", timeout=10) as c2:
+        ev1, ev2 = Events(c1), Events(c2)
+        assert sorted(c1.maps()) == [("ground-a", "drone1"), ("ground-a", "lab"),
+                                     ("ground-b", "drone2")]
+        for client, ev in ((c1, ev1), (c2, ev2)):
+            client.set_camera("cam0", scene.camera)
+            ev.wait("camera_added", id="cam0")
+            for kf_id in range(2):
+                client.add_keyframe(kf_id, scene.keyframe_images[kf_id],
+                                    scene.keyframe_poses[kf_id], camera_id="cam0")
+            ev.wait("keyframe_added", id=1)
+        assert c1.status().instance == "ground-a" and c2.status().instance == "ground-b"
+        assert [k.id for k in c1.keyframes()] == [0, 1] == [k.id for k in c2.keyframes()]
+        assert sorted(shard_a.maps) == ["drone1", "lab"] and sorted(shard_b.maps) == ["drone2"]
+        time.sleep(0.5)
+        # the shard that does not serve a map stays silent: no spurious rejection
+        for ev in (ev1, ev2):
+            assert not [e for e in ev.drain() if e.kind.value.endswith("_rejected")], ev.seen
+        ev1.close()
+        ev2.close()
+
+
+def _stream(client: RelocClient, scene, ids: range, pause: float) -> None:
+    for kf_id in ids:
+        i = kf_id % len(scene.keyframe_images)
+        client.add_keyframe(kf_id, scene.keyframe_images[i], scene.keyframe_poses[i],
+                            camera_id="cam0", timestamp=float(kf_id))
+        time.sleep(pause)
+
+
+def test_late_replica_bootstraps_then_follows_the_stream(synthetic_scene, tmp_path):
+    scene = synthetic_scene
+    port = free_port()
+    n = 12
+    with open_router(port), \
+            Service(ground_conf("service-a", port, tmp_path / "a")) as first, \
+            RelocClient(endpoint(port), map="drone1", timeout=20) as client:
+        events = Events(client)
+        client.set_camera("cam0", scene.camera)
+        events.wait("camera_added", id="cam0")
+        _stream(client, scene, range(6), 0.0)                # the first replica has a map
+        events.wait("keyframe_added", id=5, timeout=60)
+        # the second replica starts while keyframes keep coming (during and after its copy)
+        started: list[Service] = []
+        starter = threading.Thread(target=lambda: started.append(Service(
+            ground_conf("service-replica", port, tmp_path / "a2")).start()))
+        starter.start()
+        _stream(client, scene, range(6, n - 3), 0.1)
+        starter.join(60)
+        second = started[0]
+        try:
+            _stream(client, scene, range(n - 3, n), 0.05)     # after the copy: live only
+            assert first.wait_idle(60) and second.wait_idle(60)
+            rt1, rt2 = first.maps["drone1"], second.maps["drone1"]
+            wait_until(lambda: len(rt2.map_state().keyframes) == n, timeout=30)
+            s1, s2 = rt1.status(), rt2.status()
+            # no gap: every keyframe on both; no duplicate: each applied once (one version each)
+            assert rt1.map_state().keyframe_ids() == rt2.map_state().keyframe_ids() \
+                == list(range(n))
+            assert s1.map_version == s2.map_version > n, (s1.map_version, s2.map_version)
+            copied = s2.counters.get("bootstrap_keyframes", 0)
+            assert 6 <= copied <= n - 3 and s2.counters.get("keyframes_put") == n, s2.counters
+            print(f"\nbootstrap: {copied} keyframes copied, {n - copied} from the live stream, "
+                  f"{s2.counters.get('bootstrap_duplicates', 0)} buffered duplicates skipped")
+            assert s2.cameras == ("cam0",)
+            for kf_id in (0, n - 1):     # the same keyframe (pose) in both replicas
+                k1 = rt1.map_state().keyframes[kf_id]
+                k2 = rt2.map_state().keyframes[kf_id]
+                assert abs(k1.world_from_cam - k2.world_from_cam).max() < 1e-9
+                assert (k1.image == k2.image).all()
+            # both replicas answer the same map; the client gets one answer
+            assert {i for i, m in client.maps() if m == "drone1"} == {"ground-a", "ground-a2"}
+        finally:
+            second.stop()
+        events.close()
+
+
+# -- real processes ---------------------------------------------------------------------------
+
+def _spawn(args: list[str], log: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "reloc_service.cli.main", *args], cwd=ROOT,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)},
+                            stdout=open(log, "ab"), stderr=subprocess.STDOUT)
+
+
+def _write_toml(tmp: Path, name: str, port: int, **service) -> Path:
+    text = (GROUND / f"{name}.toml").read_text().replace(
+        'config_file = "service-zenoh.json5"', "").replace(
+        "tcp/127.0.0.1:7447", endpoint(port))
+    for key, value in service.items():
+        line = f"{key} = {json.dumps(value)}"
+        text, n = re.subn(rf"^{key} = .*$", line, text, flags=re.M)
+        if n == 0:
+            text = text.replace("[service]\n", f"[service]\n{line}\n")
+    path = tmp / f"{name}-{len(list(tmp.glob('*.toml')))}.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.slow
+def test_processes_router_replicas_and_clients_survive_a_killed_replica(synthetic_scene,
+                                                                         tmp_path):
+    scene = synthetic_scene
+    port = free_port()
+    procs = [_spawn(["router", "--listen", endpoint(port)], tmp_path / "router.log")]
+    try:
+        client = wait_until(lambda: _try_client(port), timeout=30, interval=0.2)
+        a = _write_toml(tmp_path, "service-a", port, instance="rep-1",
+                        storage=str(tmp_path / "s1"))
+        procs.append(_spawn(["serve", "--config", str(a)], tmp_path / "rep1.log"))
+        wait_until(lambda: ("rep-1", "drone1") in client.maps(timeout=1), timeout=60)
+        events = Events(client)
+        client.set_camera("cam0", scene.camera)
+        for kf_id in range(len(scene.keyframe_images)):
+            client.add_keyframe(kf_id, scene.keyframe_images[kf_id],
+                                scene.keyframe_poses[kf_id], camera_id="cam0")
+        events.wait("keyframe_added", id=len(scene.keyframe_images) - 1, timeout=60)
+        b = _write_toml(tmp_path, "service-replica", port, instance="rep-2",
+                        storage=str(tmp_path / "s2"))
+        procs.append(_spawn(["serve", "--config", str(b)], tmp_path / "rep2.log"))
+        wait_until(lambda: ("rep-2", "drone1") in client.maps(timeout=1), timeout=90)
+        # several clients query while a replica dies
+        results: list[tuple[float, str]] = []
+        stop = threading.Event()
+
+        def worker() -> None:
+            with RelocClient(endpoint(port), map="drone1", timeout=20) as c:
+                i = 0
+                while not stop.is_set():
+                    try:
+                        r = c.relocalize(scene.query_images[i % 3], camera_id="cam0")
+                        results.append((time.monotonic(), "ok" if r.ok else "not"))
+                    except (ServiceError, NoReplyError) as exc:
+                        results.append((time.monotonic(), type(exc).__name__))
+                    i += 1
+
+        threads = [threading.Thread(target=worker) for _ in range(3)]
+        for t in threads:
+            t.start()
+        wait_until(lambda: len(results) >= 6, timeout=120)
+        killed_at = time.monotonic()
+        procs[1].send_signal(signal.SIGKILL)
+        procs[1].wait(10)
+        wait_until(lambda: sum(t > killed_at + 1 for t, _ in results) >= 6, timeout=120)
+        stop.set()
+        for t in threads:
+            t.join(60)
+        after = [s for t, s in results if t > killed_at]
+        assert after and all(s in ("ok", "ServiceBusy") for s in after), after
+        assert all(s in ("ok", "ServiceBusy") for _, s in results), results
+        assert [i for i, m in client.maps() if m == "drone1"] == ["rep-2"]
+        print(f"\nreplicas: {len(results)} queries by 3 clients, {len(after)} after the kill, "
+              f"outcomes {sorted(set(s for _, s in results))}")
+        events.close()
+        client.close()
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+                try:
+                    p.wait(30)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+
+
+def _try_client(port: int) -> RelocClient | None:
+    try:
+        return RelocClient(endpoint(port), map="drone1", timeout=20)
+    except ConnectionError:
+        return None
