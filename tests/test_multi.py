@@ -223,7 +223,7 @@ def test_empty_map_and_untrained_place_finder(scene):
 def test_none_answers_the_keyframe_pose_with_ncc_evidence(scene):
     kmap = fresh_map(scene)
     kf = kmap.snapshot().keyframe(6)
-    reloc = create_relocalizer("sbi+none", kmap)
+    reloc = create_relocalizer("sbi+none", kmap, options={"multi": {"require_agreement": False}})
     result = reloc.relocalize(Frame(kf.image.copy(), CAMERA))
     assert result.ok and np.array_equal(result.world_from_cam, kf.world_from_cam)
     assert result.matched_keyframe_ids == [6] and result.confidence > 0.9
@@ -239,6 +239,22 @@ def test_none_answers_the_keyframe_pose_with_ncc_evidence(scene):
     assert more.ok and more.matched_keyframe_ids == [6]
     assert [h.matched_keyframe_ids for h in more.hypotheses] == [[50]]
     assert np.array_equal(more.hypotheses[0].world_from_cam, twin_pose)
+
+
+def test_photometric_pose_needs_two_agreeing_keyframes(scene):
+    kmap = fresh_map(scene)
+    kf = kmap.snapshot().keyframe(6)
+    reloc = create_relocalizer("sbi+none", kmap)  # agreement implied by the none pose finder
+    alone = reloc.relocalize(Frame(kf.image.copy(), CAMERA))
+    assert not alone.ok and "agreement check" in alone.reason
+    twin_pose = kf.world_from_cam.copy()
+    twin_pose[:3, 3] += [0.05, 0.0, 0.0]
+    twin = Keyframe(image=scene.render(twin_pose), camera=CAMERA, id=50, world_from_cam=twin_pose)
+    kmap.add_keyframe(twin)
+    reloc.add_keyframe(twin)
+    assert reloc.relocalize(Frame(kf.image.copy(), CAMERA)).ok
+    # Geometric pose finders are not held to it by default.
+    assert create_relocalizer("sbi+p3p", kmap).require_agreement is False
 
 
 def test_zncc():

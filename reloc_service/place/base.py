@@ -47,7 +47,7 @@ class PlaceFinder(abc.ABC):
     def remove_keyframe(self, keyframe: Keyframe) -> None:
         """Forget ``keyframe`` (already removed from the map)."""
 
-    def train(self) -> None:
+    def train(self) -> None:  # noqa: B027 (optional hook)
         """Rebuild whatever model needs the whole map (default: nothing to do)."""
 
     @property
@@ -64,7 +64,7 @@ class PlaceFinder(abc.ABC):
         """Trained model to persist with the map (msgpack-able), or None."""
         return None
 
-    def load_state(self, state: dict[str, Any]) -> None:
+    def load_state(self, state: dict[str, Any]) -> None:  # noqa: B027 (optional hook)
         """Restore what :meth:`state` returned."""
 
 

@@ -55,6 +55,9 @@ class PoseFinder(abc.ABC):
 
     #: True if the finder uses all candidates jointly (landmarks pooled), False if one at a time.
     pools_candidates: ClassVar[bool] = False
+    #: True for photometric finders (none, esm): aligned images prove similar views, not the
+    #: camera's position, so two candidate keyframes must independently agree on the pose.
+    needs_agreement: ClassVar[bool] = False
 
     @dataclass(frozen=True)
     class Conf:

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
@@ -240,6 +240,8 @@ def pose_from_rotation(world_from_kf: Array, query_from_kf: Array) -> Array:
 class EsmPoseFinder(PoseFinder):
     """PTAM relocaliser: SE(2) ESM alignment of thumbnails, then a rotation about the
     keyframe's centre (thesis 3.1.2); evidence is the NCC of the aligned thumbnails."""
+
+    needs_agreement: ClassVar[bool] = True
 
     @dataclass(frozen=True)
     class Conf:

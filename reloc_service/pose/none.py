@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import numpy.typing as npt
@@ -30,6 +31,8 @@ def zncc(a: npt.ArrayLike, b: npt.ArrayLike) -> float:
 class KeyframePoseFinder(PoseFinder):
     """Answers the best candidate keyframe's ``world_from_cam``; the evidence for verification
     is the NCC of the query's and the keyframe's small blurry images."""
+
+    needs_agreement: ClassVar[bool] = True
 
     @dataclass(frozen=True)
     class Conf:

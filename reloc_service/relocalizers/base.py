@@ -203,7 +203,7 @@ class Relocalizer(abc.ABC):
     def remove_keyframe(self, keyframe: Keyframe) -> None:
         """Forget ``keyframe`` (already removed from the map)."""
 
-    def train(self, *, progress: bool = False) -> None:
+    def train(self, *, progress: bool = False) -> None:  # noqa: B027 (optional hook)
         """(Re)build models from the whole map; default: nothing to train."""
 
     @property
@@ -215,7 +215,7 @@ class Relocalizer(abc.ABC):
                    ) -> RelocResult:
         """The query's ``world_from_cam``, verified, or NOT_RELOCALIZED with a reason."""
 
-    def save(self, directory: Path) -> None:
+    def save(self, directory: Path) -> None:  # noqa: B027 (optional hook)
         """Write trained models into ``directory`` (created by the caller); default: none."""
 
     def load(self, directory: Path) -> bool:

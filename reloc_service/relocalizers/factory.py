@@ -40,9 +40,7 @@ def create_relocalizer(spec: str, kmap: KeyframeMap, *, options: Options | None 
     spec = spec.strip()
     if not spec:
         raise ConfigError("empty method; expected e.g. 'sbi+p3p', 'ferns' or 'bow+p3p,sbi+esm'")
-    if "," in spec:
-        return RELOCALIZERS.lookup("chain").from_options(spec, kmap, options or {}, evaluation=evaluation)
-    kind = "multi" if "+" in spec else spec
+    kind = "chain" if "," in spec else "multi" if "+" in spec else spec
     return RELOCALIZERS.lookup(kind).from_options(spec, kmap, options or {}, evaluation=evaluation)
 
 

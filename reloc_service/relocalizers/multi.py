@@ -33,8 +33,9 @@ class MultiRelocalizer(Relocalizer):
         num_candidates: int = 5
         #: Groups tried, in place-finder order, until one verifies (1 = thesis behaviour).
         max_groups: int = 3
-        #: Accept only when two independent candidate groups verify and agree.
-        require_agreement: bool = False
+        #: Accept only when two independent candidate groups verify and agree; None: only for
+        #: pose finders whose evidence is photometric (``PoseFinder.needs_agreement``).
+        require_agreement: bool | None = None
         agreement_max_distance_m: float = 0.25
         agreement_max_angle_rad: float = 0.087
 
@@ -84,6 +85,13 @@ class MultiRelocalizer(Relocalizer):
         """Keyframes per candidate group handed to the pose finder."""
         return self.conf.num_candidates if self.pose.pools_candidates else 1
 
+    @property
+    def require_agreement(self) -> bool:
+        """Configured, or implied by a photometric pose finder (see ``needs_agreement``)."""
+        if self.conf.require_agreement is None:
+            return self.pose.needs_agreement
+        return self.conf.require_agreement
+
     def add_keyframe(self, keyframe: Keyframe) -> None:
         self.place.add_keyframe(keyframe)
 
@@ -121,7 +129,7 @@ class MultiRelocalizer(Relocalizer):
         """Candidates (still in ``state``) split into consecutive groups, best first."""
         if allowed is not None and not allowed:
             return []
-        n_groups = max(self.conf.max_groups, hypotheses, 2 if self.conf.require_agreement else 1)
+        n_groups = max(self.conf.max_groups, hypotheses, 2 if self.require_agreement else 1)
         size = self.group_size
         found = self.place.find_places(query, size * n_groups, allowed=allowed)
         found = [c for c in found if c.keyframe_id in state.keyframes]
@@ -130,7 +138,7 @@ class MultiRelocalizer(Relocalizer):
     def _answer_groups(self, query: Frame, groups: list[list[PlaceCandidate]], state: MapState,
                        timings: dict[str, float], hypotheses: int) -> list[RelocResult]:
         """Pose and verify group after group until enough have verified; every result."""
-        wanted = max(hypotheses, 2 if self.conf.require_agreement else 1)
+        wanted = max(hypotheses, 2 if self.require_agreement else 1)
         results: list[RelocResult] = []
         for group in groups:
             estimate = self.pose.find_pose(query, group, state)
@@ -153,7 +161,7 @@ class MultiRelocalizer(Relocalizer):
         verified = [r for r in results if r.ok]
         if not verified:
             return _failure(self.method, results, timings, map_version)
-        if self.conf.require_agreement:
+        if self.require_agreement:
             refusal = self._disagreement(verified)
             if refusal:
                 return RelocResult.failure(self.method, refusal, timings=timings,
