@@ -11,7 +11,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .cameras import Camera
-from .errors import GeometryError, MapError
+from .errors import ConfigError, GeometryError, MapError
 from .geometry import check_pose
 
 Array = npt.NDArray[np.float64]
@@ -109,6 +109,21 @@ def check_grey_image(image: npt.ArrayLike, camera: Camera | None = None) -> npt.
         raise GeometryError(f"image: size {img.shape[1]}x{img.shape[0]} does not match the "
                             f"camera's {camera.width}x{camera.height}")
     return np.ascontiguousarray(img)
+
+
+@dataclass(frozen=True)
+class ThumbnailConf:
+    """PTAM's small blurry image (thesis 3.1.1): size in pixels and Gaussian blur sigma."""
+
+    width: int = 40
+    height: int = 30
+    blur_sigma: float = 2.5
+
+    def __post_init__(self) -> None:
+        if self.width <= 0 or self.height <= 0 or self.blur_sigma < 0:
+            raise ConfigError(f"small blurry image: expected positive width/height and "
+                              f"blur_sigma >= 0, got {self.width}x{self.height}, "
+                              f"sigma {self.blur_sigma}")
 
 
 @dataclass(eq=False)

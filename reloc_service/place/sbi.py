@@ -8,8 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from ..errors import ConfigError
-from ..frame import Frame, Keyframe
+from ..frame import Frame, Keyframe, ThumbnailConf
 from ..map import KeyframeMap
 from .base import PlaceCandidate, PlaceFinder, register
 
@@ -27,15 +26,8 @@ class SmallBlurryImageFinder(PlaceFinder):
     """
 
     @dataclass(frozen=True)
-    class Conf:
-        width: int = 40
-        height: int = 30
-        blur_sigma: float = 2.5
-
-        def __post_init__(self) -> None:
-            if self.width <= 0 or self.height <= 0 or self.blur_sigma < 0:
-                raise ConfigError(f"sbi: expected positive width/height and blur_sigma >= 0, "
-                                  f"got {self.width}x{self.height}, sigma {self.blur_sigma}")
+    class Conf(ThumbnailConf):
+        pass
 
     def __init__(self, kmap: KeyframeMap, conf: SmallBlurryImageFinder.Conf) -> None:
         super().__init__(kmap, conf)

@@ -9,8 +9,7 @@ from typing import ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from ..errors import ConfigError
-from ..frame import Frame
+from ..frame import Frame, ThumbnailConf
 from ..map import MapState
 from ..place.base import PlaceCandidate
 from .base import PoseEstimate, PoseFinder, register
@@ -35,15 +34,8 @@ class KeyframePoseFinder(PoseFinder):
     needs_agreement: ClassVar[bool] = True
 
     @dataclass(frozen=True)
-    class Conf:
-        width: int = 40
-        height: int = 30
-        blur_sigma: float = 2.5
-
-        def __post_init__(self) -> None:
-            if self.width <= 0 or self.height <= 0 or self.blur_sigma < 0:
-                raise ConfigError(f"none: expected positive width/height and blur_sigma >= 0, "
-                                  f"got {self.width}x{self.height}, sigma {self.blur_sigma}")
+    class Conf(ThumbnailConf):
+        pass
 
     def find_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
                   ) -> PoseEstimate | None:
