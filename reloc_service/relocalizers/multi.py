@@ -165,7 +165,8 @@ class MultiRelocalizer(Relocalizer):
             refusal = self._disagreement(verified)
             if refusal:
                 return RelocResult.failure(self.method, refusal, timings=timings,
-                                           map_version=map_version)
+                                           map_version=map_version,
+                                           matched_keyframe_ids=verified[0].matched_keyframe_ids)
         best, *others = verified
         best.timings = timings
         best.hypotheses = sorted(others, key=lambda r: -r.confidence)[:hypotheses - 1]
