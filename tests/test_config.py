@@ -50,6 +50,7 @@ def test_unknown_keys_name_the_key_and_the_allowed_ones(doc, named):
     ({"zenoh": {"listen": "tcp/127.0.0.1:7447"}}, "list of strings"),
     ({"service": {"workers": 0}}, "service.workers"),
     ({"service": {"workers": "2"}}, "expected int"),
+    ({"service": {"opencv_threads": -1}}, "service.opencv_threads"),
     ({"service": {"default_method": "ferns"}}, "default_method"),
     ({"service": {"prefix": "a/*"}}, "prefix"),
     ({"maps": {"bad name": {}}}, "whitespace"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import tomllib
 from pathlib import Path
 
 # reloc_client lives in clients/ (importable once the distribution is installed).
@@ -11,6 +12,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
 import pytest  # noqa: E402
 
 from reloc_service.bench import service_bench as sb  # noqa: E402
+from reloc_service.service.config import load_config  # noqa: E402
 
 
 def bench_data(scene) -> sb.BenchData:
@@ -30,3 +32,21 @@ def test_latency_and_throughput_benchmarks_return_their_numbers(synthetic_scene)
     throughput = sb.bench_throughput(data, clients=(1, 2), duration_s=0.5, rounds=1)
     assert [r["clients"] for r in throughput["runs"]] == [1, 2]
     assert all(r["queries_per_s"] > 0 and r["ok"] > 0 for r in throughput["runs"])
+
+
+def test_toml_text_round_trips_a_service_config_through_the_service_loader(tmp_path):
+    doc = {"zenoh": {"mode": "peer", "listen": ["tcp/127.0.0.1:7447"],
+                     "multicast_scouting": False},
+           "service": {"instance": "bench-1", "storage": str(tmp_path / "s \"q\""),
+                       "workers": 3, "opencv_threads": 1, "fsync": False,
+                       "methods": ["sbi+p3p", "ferns"], "default_method": "ferns"},
+           "options": {"ferns": {"online": False, "min_posterior": 0.05}},
+           "maps": {"bench": {}}}
+    path = tmp_path / "service.toml"
+    path.write_text(sb.toml_text(doc))
+    assert tomllib.loads(path.read_text()) == doc
+    conf = load_config(path)
+    assert conf.service.workers == 3 and conf.service.opencv_threads == 1
+    assert conf.service.storage == str(tmp_path / "s \"q\"")
+    assert dict(conf.options["ferns"]) == {"online": False, "min_posterior": 0.05}
+    assert set(conf.maps) == {"bench"}

@@ -105,6 +105,14 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
     return lines + [""]
 
 
+def _outlier_sweep(planar: Mapping[str, Any]) -> str:
+    """'; with outliers added: 50% 3.4x, 80% 7.0x' from the planar PoseLib sweep, if run."""
+    sweep = planar.get("poselib_vs_opencv", {})
+    parts = [f"{key.split('_', 1)[1]} {_f(row['opencv_over_poselib'], 1)}x"
+             for key, row in sweep.items() if key.startswith("outliers_") and key != "outliers_0%"]
+    return "; with outliers added to planar matches: " + ", ".join(parts) if parts else ""
+
+
 def headline_lines(result: Mapping[str, Any]) -> list[str]:
     """The headline ratios as Markdown bullets (also printed at the end of a run)."""
     h = result.get("headline", {})
@@ -128,7 +136,10 @@ def headline_lines(result: Mapping[str, Any]) -> list[str]:
                 f"(median {_f(pnp['correspondences_median'], 0)} per query, "
                 f"{pnp['queries']} queries): {_f(pnp['poselib_ms_median'], 2)} ms vs "
                 f"{_f(pnp['opencv_ms_median'], 2)} ms, OpenCV takes "
-                f"**{_f(pnp['opencv_over_poselib'], 1)}x** PoseLib's time.")
+                f"**{_f(pnp['opencv_over_poselib'], 1)}x** PoseLib's time"
+                + (f" (median inlier ratio {_pct(pnp['inlier_ratio_median'])}, so both stop "
+                   "after few iterations)" if "inlier_ratio_median" in pnp else "")
+                + _outlier_sweep(result.get("planar", {})) + ".")
     lat = result.get("latency", {})
     if "methods" in lat:
         parts = [f"`{k}` {_f(m['over_limit'], 2)}x" for k, m in lat["methods"].items()]
@@ -148,8 +159,9 @@ def headline_lines(result: Mapping[str, Any]) -> list[str]:
     if big:
         lines.append(
             f"- **Memory at {big['keyframes']} keyframes** ({big['landmarks']} landmarks): "
-            f"**{_f(big['map_rss_mb'], 0)} MB** resident for the map and every method's "
-            f"model; loaded in {_f(big['engine_load_s'], 1)} s.")
+            f"**{_f(big['map_rss_mb'], 0)} MB** resident for the map and the models of "
+            f"{', '.join(f'`{m}`' for m in big['p50_ms'])}; `Engine.load` in "
+            f"{_f(big['engine_load_s'], 1)} s.")
     return lines
 
 
@@ -191,9 +203,11 @@ def _notes() -> list[str]:
             "training here, and `Engine.load` feeds every keyframe to the relocalizer "
             "before restoring its saved model, so with online training it would retrain "
             "ferns from scratch on every load (the load times would then measure training).",
-            "- The Zenoh service runs in the benchmark's process (a peer on a free loopback "
-            "port, multicast scouting off), serving the map saved with its trained models; "
-            "clients are `reloc_client.RelocClient`s with their own sessions.",
+            "- The Zenoh service (a peer on a free loopback port, multicast scouting off, "
+            "`opencv_threads = 1`) serves the map saved with its trained models; for the "
+            "latency section it runs in the benchmark's process, for throughput it is "
+            "`reloc serve` in its own process, as deployed; clients are "
+            "`reloc_client.RelocClient`s with their own sessions.",
             "- Reproduce with the command at the top; `--quick` runs the same code on a "
             "half-size scene and small maps (the CI smoke run, no thresholds).", ""]
 
@@ -349,9 +363,12 @@ def _scaling(s: Mapping[str, Any]) -> list[str]:
              f"How the big maps were made: {s['how']}. Latencies are p50 ms of the same "
              "queries (JPEG decode included); \"alone\" is the place finder's `find_places` "
              "on a query whose features are already extracted; map RSS is the resident "
-             "memory a fresh process gains by `Engine.load` of the saved map with every "
-             "method's trained model; train s is `Engine.load` of the map without models "
-             "(every method trained).", ""]
+             "memory a fresh process gains by `Engine.load` of the saved map with the "
+             "trained models of these methods; train s is `Engine.load` of the map without "
+             "models (every method trained); every size, the scene's own map included, goes "
+             "through the same save, load and train. Ferns is not probed here: its classes are capped per "
+             "model, so its query cost does not grow with keyframes (the ferns section "
+             "sweeps the number of classes instead).", ""]
             + _table(header, rows)
             + ["Recall at 5 cm / 5 deg on the same queries (distractors must not be "
                "proposed):", ""] + _table(recall_header, recall_rows)

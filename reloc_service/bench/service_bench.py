@@ -20,7 +20,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -172,46 +172,63 @@ def running_service(methods: Sequence[str], *, workers: int = 2, queue_size: int
         finally:
             service.stop()
         return
-    with tempfile.TemporaryDirectory(prefix="reloc-bench-service-") as tmp:
-        config = Path(tmp) / "service.toml"
-        config.write_text(_toml(doc))
-        child = subprocess.Popen([sys.executable, "-m", "reloc_service.bench.service_bench",
-                                  "serve", str(config)], stdout=subprocess.DEVNULL,
-                                 stderr=subprocess.PIPE)
+    with tempfile.TemporaryDirectory(prefix="reloc-bench-service-") as tmp, service_process(
+            doc, Path(tmp), module="reloc_service.bench.service_bench", map_name="bench"):
+        yield endpoint
+
+
+@contextmanager
+def service_process(doc: Mapping[str, Any], folder: Path, *,
+                    module: str = "reloc_service.cli.main", map_name: str) -> Iterator[None]:
+    """``python -m MODULE serve --config`` of the service config ``doc`` in a child process,
+    until it answers on ``map_name``; SIGTERM on exit. Its config and log are kept in
+    ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    config, log_path = folder / "service.toml", folder / "service.log"
+    config.write_text(toml_text(doc))
+    with open(log_path, "wb") as log:
+        child = subprocess.Popen([sys.executable, "-m", module, "serve", "--config", str(config)],
+                                 stdout=log, stderr=subprocess.STDOUT)
         try:
-            _wait_ready(child, endpoint)
-            yield endpoint
+            wait_ready(child, doc["zenoh"]["listen"][0], map_name=map_name, log=log_path)
+            yield
         finally:
             child.send_signal(signal.SIGTERM)
             try:
-                child.wait(30)
+                child.wait(60)
             except subprocess.TimeoutExpired:
                 child.kill()
                 child.wait()
 
 
-def _toml(doc: dict[str, Any]) -> str:
-    """A TOML document of tables of strings, numbers, booleans and lists of strings."""
+def toml_text(doc: Mapping[str, Any], prefix: str = "") -> str:
+    """A TOML document from nested dicts of strings, numbers, booleans and lists of them
+    (JSON's spelling of those is valid TOML); nested dicts become ``[a.b]`` tables."""
     import json
 
-    lines = []
-    for section, table in doc.items():
-        if section == "maps":
-            lines += [f"[maps.{name}]" for name in table]
-            continue
-        lines.append(f"[{section}]")
-        lines += [f"{k} = {json.dumps(v)}" for k, v in table.items()]
-    return "\n".join(lines) + "\n"
+    scalars = [f"{k} = {json.dumps(v)}" for k, v in doc.items() if not isinstance(v, Mapping)]
+    lines = ([f"[{prefix}]"] if prefix else []) + scalars
+    text = "\n".join(lines) + "\n" if lines else ""
+    for k, v in doc.items():
+        if isinstance(v, Mapping):
+            text += toml_text(v, f"{prefix}.{k}" if prefix else k)
+    return text
 
 
-def _wait_ready(child: subprocess.Popen[bytes], endpoint: str, timeout: float = 120.0) -> None:
+def wait_ready(child: subprocess.Popen[bytes], endpoint: str, timeout: float = 120.0, *,
+               map_name: str = "bench", log: Path | None = None) -> None:
+    """Wait until the service ``child`` answers a status query on ``map_name``; RuntimeError
+    with the end of its stderr (or of ``log``) if it exits first."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if child.poll() is not None:
-            err = child.stderr.read().decode(errors="replace") if child.stderr else ""
+            if child.stderr is not None:
+                err = child.stderr.read().decode(errors="replace")
+            else:
+                err = log.read_text(errors="replace") if log is not None and log.exists() else ""
             raise RuntimeError(f"the bench service exited with {child.returncode}: {err[-2000:]}")
         try:
-            with RelocClient(endpoint, map="bench", timeout=2) as client:
+            with RelocClient(endpoint, map=map_name, timeout=2) as client:
                 client.status(timeout=1)
                 return
         except (ConnectionError, TimeoutError):
@@ -450,7 +467,7 @@ def _load() -> list[float]:
 
 
 def _serve_main(config: str) -> int:
-    """``python -m reloc_service.bench.service_bench serve CONFIG``: the service of
+    """``python -m reloc_service.bench.service_bench serve --config CONFIG``: the service of
     :func:`running_service` (with the echo relocalizer registered)."""
     import logging
 
@@ -463,6 +480,6 @@ def _serve_main(config: str) -> int:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 3 or sys.argv[1] != "serve":
-        sys.exit("usage: python -m reloc_service.bench.service_bench serve CONFIG.toml")
-    sys.exit(_serve_main(sys.argv[2]))
+    if len(sys.argv) != 4 or sys.argv[1:3] != ["serve", "--config"]:
+        sys.exit("usage: python -m reloc_service.bench.service_bench serve --config CONFIG.toml")
+    sys.exit(_serve_main(sys.argv[3]))

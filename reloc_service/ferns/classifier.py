@@ -45,6 +45,9 @@ MAX_TESTS = 16
 MAX_CLASS_SAMPLES = 1 << 20
 #: Buffered (fern, leaf, class) increments merged into the model beyond this many.
 _FLUSH_ENTRIES = 8_000_000
+#: Scores held at once while classifying (patches x classes): 256 K float32, 1 MB, which
+#: stays in cache.
+SCORE_BLOCK_FLOATS = 1 << 18
 
 
 @dataclass(frozen=True)
@@ -206,14 +209,30 @@ class FernScorer:
         """Best ``top_k`` classes of each of N patches: ((N, k) class labels, (N, k)
         posteriors with a uniform prior (eq. 3.19), best first). ``allowed`` (C,) restricts the
         classes (column order of :attr:`class_ids`); rows with no allowed class get
-        posterior 0."""
+        posterior 0.
+
+        Patches are scored in blocks of about :data:`SCORE_BLOCK_FLOATS` scores: the dense
+        N x C matrix of a whole query (tens of MB) would be allocated, page-faulted and
+        streamed through memory on every query, and its cost would swing with the state of
+        the allocator."""
+        leaves = np.asarray(leaves)
+        n, c = len(leaves), self.num_classes
+        k = min(top_k, c)
+        labels, posts = np.zeros((n, k), np.int64), np.zeros((n, k), np.float32)
+        if k == 0 or n == 0:
+            return labels, posts
+        block = max(1, SCORE_BLOCK_FLOATS // c)
+        for start in range(0, n, block):
+            rows = slice(start, start + block)
+            labels[rows], posts[rows] = self._classify_block(leaves[rows], k, allowed)
+        return labels, posts
+
+    def _classify_block(self, leaves: npt.NDArray[Any], k: int,
+                        allowed: npt.NDArray[np.bool_] | None
+                        ) -> tuple[IntArray, npt.NDArray[np.float32]]:
         s = self.scores(leaves)
         if allowed is not None:
             s[:, ~np.asarray(allowed, bool)] = -np.inf
-        n, c = s.shape
-        k = min(top_k, c)
-        if k == 0 or n == 0:
-            return np.zeros((n, k), np.int64), np.zeros((n, k), np.float32)
         top = _top_k(s, k)
         top_s = np.take_along_axis(s, top, axis=1)
         # Softmax over all classes, shifted by the best score of each row (in place).

@@ -79,6 +79,10 @@ class Service:
     def start(self) -> Service:
         """Restore stored maps, create configured ones, open Zenoh and declare everything."""
         self._check_methods()
+        if self.conf.service.opencv_threads:
+            import cv2
+
+            cv2.setNumThreads(self.conf.service.opencv_threads)
         if self.storage is not None:
             check_storage(self.storage)
         for name in self._stored_map_names() + sorted(self.conf.maps):

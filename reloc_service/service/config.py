@@ -93,6 +93,10 @@ class ServiceSection:
     storage: str = "~/.local/share/reloc/maps"
     #: Threads answering relocalize queries (OpenCV, NumPy and PoseLib release the GIL).
     workers: int = 2
+    #: OpenCV's own threads (``cv2.setNumThreads``, process-wide); 0 keeps OpenCV's default
+    #: (every core, best latency for one query at a time). With as many workers as cores,
+    #: 1 avoids workers fighting over cores inside OpenCV.
+    opencv_threads: int = 0
     #: Relocalize queries waiting for a worker; one more is answered "busy" at once.
     queue_size: int = 8
     #: Keyframe puts/deletes waiting for the writer; one more is rejected (BUSY event).
@@ -120,6 +124,9 @@ class ServiceSection:
             if getattr(self, name) < 1:
                 raise ConfigError(f"service.{name}: expected an integer >= 1, got "
                                   f"{getattr(self, name)}")
+        if self.opencv_threads < 0:
+            raise ConfigError(f"service.opencv_threads: expected >= 0 (0: OpenCV's default), "
+                              f"got {self.opencv_threads}")
         if self.snapshot_every < 0:
             raise ConfigError(f"service.snapshot_every: expected >= 0, got {self.snapshot_every}")
         if not self.methods:
