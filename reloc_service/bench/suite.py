@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import socket
 import sys
 import tempfile
 import threading
@@ -350,64 +349,21 @@ def _save_for_service(engine: Engine, storage: Path) -> Path:
     return storage
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+def _service(ws: Workspace, group: str, *, process: bool = False
+             ) -> contextlib.AbstractContextManager[str]:
+    """The loopback service of ``group``'s saved map (see :mod:`.loopback`)."""
+    from .loopback import loopback_service
+
+    return loopback_service(ws.storage[group], ws.methods(group), ws.options[group],
+                            map_name=MAP_NAME, workers=ws.conf.service_workers,
+                            queue_size=ws.conf.service_queue, process=process)
 
 
-@contextlib.contextmanager
-def loopback_service(storage: Path, methods: Sequence[str],
-                     options: Mapping[str, Mapping[str, Any]], *, workers: int = 2,
-                     queue_size: int = 8, process: bool = False) -> Iterator[str]:
-    """A reloc service serving the map saved in ``storage`` (a Zenoh peer on a free loopback
-    port, multicast scouting off, OpenCV on one thread per worker); yields its endpoint.
-    ``process``: ``reloc serve`` in a child process, as deployed (no GIL shared with the
-    clients), else a :class:`Service` in this process."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
-    doc = {"zenoh": {"mode": "peer", "listen": [endpoint], "multicast_scouting": False},
-           "service": {"instance": f"bench-{endpoint.rsplit(':', 1)[1]}", "storage": str(storage),
-                       "methods": list(methods), "default_method": methods[0],
-                       "workers": workers, "opencv_threads": 1, "queue_size": queue_size,
-                       "allow_new_maps": False, "snapshot_every": 0, "fsync": False,
-                       "train_on_load": True},
-           "options": {k: dict(v) for k, v in options.items()}}
-    if process:
-        from .service_bench import service_process
+def _client(endpoint: str, camera: Camera) -> Any:
+    """A client on map :data:`MAP_NAME` whose camera :data:`CAMERA_ID` is applied."""
+    from .loopback import camera_client
 
-        with service_process(doc, storage.parent / f"service-{endpoint.rsplit(':', 1)[1]}",
-                             map_name=MAP_NAME):
-            yield endpoint
-        return
-    from ..service.app import Service
-    from ..service.config import parse_config
-
-    service = Service(parse_config(doc)).start()
-    try:
-        yield endpoint
-    finally:
-        service.stop(final_snapshot=False)
-
-
-def _client(endpoint: str, camera: Camera, *, timeout: float = 120.0) -> Any:
-    """A :class:`RelocClient` on map :data:`MAP_NAME` whose camera :data:`CAMERA_ID` the
-    service has applied."""
-    from ..service import ensure_client_importable
-
-    ensure_client_importable()
-    from reloc_client.client import NoReplyError, RelocClient
-
-    client = RelocClient(endpoint, map=MAP_NAME, timeout=timeout)
-    client.set_camera(CAMERA_ID, camera)
-    deadline = time.perf_counter() + 30.0
-    while True:
-        with contextlib.suppress(NoReplyError):  # no reply at all while no camera is known
-            if CAMERA_ID in client.cameras(timeout=1.0):
-                return client
-        if time.perf_counter() > deadline:
-            client.close()
-            raise TimeoutError(f"the service did not apply camera {CAMERA_ID!r} within 30 s")
-        time.sleep(0.05)
+    return camera_client(endpoint, MAP_NAME, CAMERA_ID, camera)
 
 
 # -- section: latency --------------------------------------------------------------------------
@@ -420,9 +376,7 @@ def bench_latency(ws: Workspace) -> dict[str, Any]:
     with contextlib.ExitStack() as stack:
         clients = {}
         for group in ws.engines:
-            endpoint = stack.enter_context(loopback_service(
-                ws.storage[group], ws.methods(group), ws.options[group],
-                workers=conf.service_workers, queue_size=conf.service_queue))
+            endpoint = stack.enter_context(_service(ws, group))
             clients[group] = stack.enter_context(_client(endpoint, q.camera))
         for v in VARIANTS:  # warm-up: first call of each path
             relocalize_jpeg(ws.engines[v.group], q.jpegs[0], q.camera, v.method)
@@ -585,9 +539,7 @@ def bench_throughput(ws: Workspace, method: str = "sbi+p3p") -> dict[str, Any]:
     ``service_workers`` workers; "busy" replies are counted apart."""
     conf, q = ws.conf, ws.queries
     runs = []
-    with loopback_service(ws.storage["default"], ws.methods("default"), ws.options["default"],
-                          workers=conf.service_workers, queue_size=conf.service_queue,
-                          process=True) as endpoint:
+    with _service(ws, "default", process=True) as endpoint:
         with _client(endpoint, q.camera) as client:
             client.relocalize(q.jpegs[0], camera_id=CAMERA_ID, method=method)  # warm-up
         for n in progress(list(conf.throughput_clients), desc="throughput (client counts)"):

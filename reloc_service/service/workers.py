@@ -3,8 +3,8 @@
 A :class:`WorkerPool` never blocks its caller: :meth:`WorkerPool.submit` returns False at once
 when the queue is full, and the caller answers "busy". With ``workers=1`` it is the service's
 single writer, which applies keyframe puts in arrival order. Threads (not processes) suffice:
-OpenCV, NumPy and PoseLib release the GIL in the heavy parts (measured in
-``reloc_service.bench.service_bench``).
+OpenCV, NumPy and PoseLib release the GIL in the heavy parts (measured by ``reloc bench``:
+two threads querying one engine against one, in its throughput section).
 """
 
 from __future__ import annotations
