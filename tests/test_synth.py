@@ -311,3 +311,35 @@ def test_refuses_to_write_into_a_foreign_folder(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="not empty"):
         render_dataset(SMALL_DESK, tmp_path, seed=0, workers=1, progress=False, scale=0.1)
     assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
+def test_a_killed_render_worker_fails_the_run_instead_of_hanging(tmp_path) -> None:
+    import multiprocessing
+    import os
+    import signal
+    import threading
+    import time
+
+    outcome: list[BaseException | None] = []
+
+    def render() -> None:
+        try:
+            render_dataset("desk", tmp_path / "desk", seed=0, scale=0.5, workers=2,
+                           progress=False)
+            outcome.append(None)
+        except BaseException as exc:  # noqa: BLE001 - handed to the test thread
+            outcome.append(exc)
+
+    thread = threading.Thread(target=render, daemon=True)
+    thread.start()
+    # Mid-render, as when the kernel kills a worker for memory: once a frame is written.
+    deadline = time.monotonic() + 60
+    while (not any((tmp_path / "desk" / "images").rglob("*.png"))
+           and time.monotonic() < deadline and thread.is_alive()):
+        time.sleep(0.01)
+    children = multiprocessing.active_children()
+    assert children, "the render started no worker process"
+    os.kill(children[0].pid, signal.SIGKILL)
+    thread.join(60)
+    assert not thread.is_alive(), "render_dataset hung after a worker was killed"
+    assert isinstance(outcome[0], DatasetError) and "worker process died" in str(outcome[0])

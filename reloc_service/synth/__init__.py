@@ -133,11 +133,22 @@ def _run_jobs(jobs: list[_Job], state: tuple[Any, ...], *, workers: int, show: b
         _drain(map(_render_job, jobs), len(jobs), f"synth {state[2].name}", show)
         return
     import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
 
-    # "spawn": a forked child inherits OpenCV's thread pool in a broken state and can hang
+    # "spawn": a forked child inherits OpenCV's thread pool in a broken state and can hang.
+    # An executor, not multiprocessing.Pool: a worker that dies (killed, out of memory) fails
+    # the run with an error instead of leaving it waiting forever for the lost frame.
     context = multiprocessing.get_context("spawn")
-    with context.Pool(workers, initializer=_init_worker, initargs=(state, True)) as pool:
-        _drain(pool.imap_unordered(_render_job, jobs), len(jobs), f"synth {state[2].name}", show)
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
+                             initargs=(state, True)) as pool:
+        futures = [pool.submit(_render_job, job) for job in jobs]
+        try:
+            _drain((f.result() for f in as_completed(futures)), len(jobs),
+                   f"synth {state[2].name}", show)
+        except BrokenProcessPool as exc:
+            raise DatasetError(f"a synth worker process died ({exc}); rerun, or render with "
+                               "one process (workers=1) to see its error") from exc
 
 
 def _drain(done: Iterator[str], total: int, desc: str, show: bool) -> None:
