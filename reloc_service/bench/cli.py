@@ -137,8 +137,8 @@ def headline_lines(result: Mapping[str, Any]) -> list[str]:
                 f"{pnp['queries']} queries): {_f(pnp['poselib_ms_median'], 2)} ms vs "
                 f"{_f(pnp['opencv_ms_median'], 2)} ms, OpenCV takes "
                 f"**{_f(pnp['opencv_over_poselib'], 1)}x** PoseLib's time"
-                + (f" (median inlier ratio {_pct(pnp['inlier_ratio_median'])}, so both stop "
-                   "after few iterations)" if "inlier_ratio_median" in pnp else "")
+                + (f" (median inlier ratio {_pct(pnp['inlier_ratio_median'])})"
+                   if "inlier_ratio_median" in pnp else "")
                 + _outlier_sweep(result.get("planar", {})) + ".")
     lat = result.get("latency", {})
     if "methods" in lat:

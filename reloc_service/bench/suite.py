@@ -29,7 +29,7 @@ import tempfile
 import threading
 import time
 import traceback
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -481,14 +481,14 @@ def _pnp_on_our_matches(ws: Workspace) -> dict[str, Any]:
     test), then PoseLib and OpenCV RANSAC on them (:func:`multi_bench.compare_pnp`)."""
     from ..pose.p3p import P3PPoseFinder
     from ..relocalizers.multi import MultiRelocalizer
-    from .multi_bench import compare_pnp
+    from .multi_bench import compare_pnp, one_cv_thread
 
     q = ws.queries
     reloc = ws.engines["default"].relocalizer("sbi+p3p")
     assert isinstance(reloc, MultiRelocalizer) and isinstance(reloc.pose, P3PPoseFinder)
     state = ws.engines["default"].map.snapshot()
     rows = []
-    with _one_cv_thread():
+    with one_cv_thread():
         for i in progress(range(len(q)), desc="PoseLib vs OpenCV RANSAC"):
             frame = Frame(decode_jpeg(q.jpegs[i]), q.camera)
             candidates = reloc.place.find_places(frame, reloc.group_size)
@@ -519,16 +519,6 @@ def _pnp_on_our_matches(ws: Workspace) -> dict[str, Any]:
             "opencv_t_err_m_median": err("opencv", "error_m"),
             "poselib_failures": sum(r["poselib"]["error_m"] is None for r in rows),
             "opencv_failures": sum(r["opencv"]["error_m"] is None for r in rows)}
-
-
-@contextlib.contextmanager
-def _one_cv_thread() -> Iterator[None]:
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(before)
 
 
 # -- section: throughput -----------------------------------------------------------------------
