@@ -15,7 +15,8 @@ from reloc_service.bench import scaling
 from reloc_service.bench.cli import add_arguments, headline_lines
 from reloc_service.bench.multi_bench import keyframe_grid, planar_scene, query_pose
 from reloc_service.bench.peers import PlainMap, PlainOpenCVPipeline
-from reloc_service.bench.suite import QUICK, SECTIONS, QuerySet, SuiteConf, failed_sections
+from reloc_service.bench.samples import QuerySet
+from reloc_service.bench.suite import QUICK, SECTIONS, SuiteConf, failed_sections
 from reloc_service.geometry import pose_error
 
 

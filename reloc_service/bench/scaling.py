@@ -197,7 +197,7 @@ def probe_map(map_dir: Path, queries_dir: Path, methods: Sequence[str],
     from ..relocalizers.factory import load_plugins
     from ..storage import load_map
     from .machine import rss_mb
-    from .suite import QuerySet
+    from .samples import QuerySet
 
     cv2.setNumThreads(1)
     load_plugins()
@@ -231,7 +231,7 @@ def probe_map(map_dir: Path, queries_dir: Path, methods: Sequence[str],
 def _probe_methods(engine: Any, queries: Any, methods: Sequence[str], repeats: int
                    ) -> dict[str, Any]:
     """Every query by every method in turn (so load changes hit all alike), one warm-up."""
-    from .suite import relocalize_jpeg, summarize_samples
+    from .samples import relocalize_jpeg, summarize_samples
 
     for method in methods:
         relocalize_jpeg(engine, queries.jpegs[0], queries.camera, method)
@@ -249,7 +249,7 @@ def _place_finder_times(engine: Any, queries: Any, methods: Sequence[str], repea
     """Median ms of ``find_places(query, 5)`` alone, per place finder of ``methods``, on
     frames whose SIFT features are already extracted (BoW needs them; SBI does not)."""
     from ..frame import Frame
-    from .suite import decode_jpeg
+    from .samples import decode_jpeg
 
     out: dict[str, float] = {}
     for method in methods:
@@ -271,7 +271,7 @@ def _place_finder_times(engine: Any, queries: Any, methods: Sequence[str], repea
 
 def _probe_plain(engine: Any, queries: Any, count: int) -> dict[str, Any]:
     from .peers import PlainMap, PlainOpenCVPipeline
-    from .suite import summarize_plain
+    from .samples import summarize_plain
 
     start = time.perf_counter()
     plain = PlainMap.from_state(engine.map.snapshot())
@@ -301,7 +301,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     result = probe_map(args.map, args.queries, json.loads(args.methods),
                        json.loads(args.options), repeats=args.repeats,
                        plain_queries=args.plain_queries)
-    from .suite import json_safe
+    from .samples import json_safe
 
     print(json.dumps(json_safe(result), allow_nan=False))
     return 0

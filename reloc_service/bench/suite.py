@@ -3,7 +3,8 @@ scene the suite renders itself, against what a user would otherwise use (plain O
 against the limit of the work itself (JPEG decode + feature extraction).
 
 :func:`run_suite` returns a plain dict (the JSON ``reloc bench --json`` writes); the CLI
-formats it. Sections, each a function of a shared :class:`Workspace`:
+formats it. Sections, each a function of a shared :class:`~.workspace.Workspace` (the scene,
+its trained engines, the run's sizes; measurement helpers in :mod:`.samples`):
 
 - ``latency``: per method, in-process (:class:`Engine`) and over Zenoh on loopback, p50/p99
   and the per-stage breakdown, and the decode + features limit of the same queries;
@@ -24,346 +25,53 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import sys
 import tempfile
 import threading
 import time
 import traceback
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
-import numpy.typing as npt
 
-from ..cameras import Camera, camera_from_dict
-from ..engine import Engine, EngineConf, MappingConf
-from ..eval import metrics
+from ..engine import EngineConf
 from ..features import FeatureConf, extract
 from ..frame import Frame
-from ..geometry import pose_error
 from ..progress import progress
 from ..relocalizers.base import RelocResult
 from .machine import load_average, machine_record
-
-Array = npt.NDArray[np.float64]
-
-SECTIONS = ("latency", "peers", "throughput", "scaling", "ferns", "planar")
-#: Name of the map the loopback services serve, and the camera id queries name.
-MAP_NAME = "bench"
-CAMERA_ID = "cam0"
-JPEG_QUALITY = 90
-#: Pose thresholds (metres, degrees) of the headline recall.
-HEADLINE_RECALL = "5cm_5deg"
-
-
-@dataclass(frozen=True)
-class Variant:
-    """A method as benchmarked: its label, method string, the engine group holding it (one
-    engine per plugin options) and the features whose extraction is its limit."""
-
-    label: str
-    method: str
-    group: str
-    limit: str
-
-
-#: The ORB fast path's options (multi_bench's preset: 500 query features, 3 candidates).
-ORB_OPTIONS: dict[str, dict[str, Any]] = {"p3p": {"kind": "orb", "max_features": 500},
-                                          "multi": {"num_candidates": 3}}
-
-VARIANTS: tuple[Variant, ...] = (
-    Variant("sbi+esm", "sbi+esm", "default", "sift"),
-    Variant("sbi+p3p", "sbi+p3p", "default", "sift"),
-    Variant("sbi+p3p orb", "sbi+p3p", "orb", "orb"),
-    Variant("bow+p3p", "bow+p3p", "default", "sift"),
-    Variant("ferns", "ferns", "default", "sift"),
+from .samples import (
+    JPEG_QUALITY,
+    QuerySet,
+    decode_jpeg,
+    json_safe,
+    pct_ms,
+    relocalize_jpeg,
+    stage_medians_ms,
+    summarize_plain,
+    summarize_samples,
+)
+from .workspace import (
+    CAMERA_ID,
+    FULL,
+    HEADLINE_RECALL,
+    MAP_NAME,
+    ORB_OPTIONS,
+    QUICK,
+    SECTIONS,
+    VARIANTS,
+    SuiteConf,
+    Workspace,
+    group_client,
+    group_service,
+    prepare,
+    say,
 )
 
-
-@dataclass(frozen=True)
-class SuiteConf:
-    """Sizes of one run. ``scale`` shrinks the rendered 640x480 images (quick runs)."""
-
-    name: str
-    preset: str = "desk"
-    scale: float = 1.0
-    seed: int = 0
-    #: Measured passes over the queries (after one warm-up query per method).
-    repeats: int = 5
-    ferns_options: Mapping[str, Any] = field(default_factory=dict)
-    throughput_clients: tuple[int, ...] = (1, 2, 4, 8)
-    throughput_seconds: float = 10.0
-    service_workers: int = 2
-    service_queue: int = 8
-    map_sizes: tuple[int, ...] = (10, 100, 1000)
-    unique_distractors: int = 50
-    scaling_repeats: int = 2
-    scaling_plain_queries: int = 3
-    #: Methods probed at every map size. Ferns is left out: its classes are capped per model
-    #: (``max_classes``), so its query cost does not grow with keyframes (the ``ferns``
-    #: section sweeps classes instead), and training it on the 1000-keyframe map took over
-    #: 10 minutes and 12 GB, beyond this benchmark's budget.
-    scaling_methods: tuple[str, ...] = ("sbi+esm", "sbi+p3p", "bow+p3p")
-    ferns_classes: tuple[int, ...] = (200, 500, 1000, 2000, 5000)
-    ferns_warps: int = 100
-    ferns_online_landmarks: int = 1000
-    ferns_repeats: int = 10
-    sections: tuple[str, ...] = SECTIONS
-
-    def __post_init__(self) -> None:
-        unknown = sorted(set(self.sections) - set(SECTIONS))
-        if unknown:
-            raise ValueError(f"unknown bench section(s) {unknown}; expected some of {SECTIONS}")
-        if self.repeats < 1 or not self.throughput_clients or not self.map_sizes:
-            raise ValueError("repeats >= 1, throughput_clients and map_sizes are required")
-
-
-QUICK = SuiteConf("quick", scale=0.5, repeats=2, ferns_options={"num_warps": 20},
-                  throughput_clients=(1, 2, 4, 8), throughput_seconds=2.0,
-                  map_sizes=(10, 40), unique_distractors=6, scaling_repeats=1,
-                  scaling_plain_queries=2, ferns_classes=(200, 500), ferns_warps=10,
-                  ferns_online_landmarks=200, ferns_repeats=3,
-                  sections=tuple(s for s in SECTIONS if s != "planar"))
-FULL = SuiteConf("full")
-
-
-# -- queries -----------------------------------------------------------------------------------
-
-@dataclass(eq=False)
-class QuerySet:
-    """Query images as the drone sends them (JPEG bytes), their ground-truth
-    ``world_from_cam`` and the camera."""
-
-    camera: Camera
-    jpegs: list[bytes]
-    gts: list[Array]
-
-    def __len__(self) -> int:
-        return len(self.jpegs)
-
-    @classmethod
-    def from_images(cls, camera: Camera, images: Sequence[npt.NDArray[np.uint8]],
-                    gts: Sequence[Array], quality: int = JPEG_QUALITY) -> QuerySet:
-        jpegs = []
-        for image in images:
-            ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
-            if not ok:
-                raise ValueError("JPEG encoding failed")
-            jpegs.append(buf.tobytes())
-        return cls(camera, jpegs, [np.asarray(g, np.float64) for g in gts])
-
-    def save(self, directory: Path) -> Path:
-        """Write ``camera.json``, ``gt.npy`` and ``NNNN.jpg`` into ``directory``."""
-        import json
-
-        directory.mkdir(parents=True, exist_ok=True)
-        (directory / "camera.json").write_text(json.dumps(self.camera.to_dict()))
-        np.save(directory / "gt.npy", np.stack(self.gts))
-        for i, jpeg in enumerate(self.jpegs):
-            (directory / f"{i:04d}.jpg").write_bytes(jpeg)
-        return directory
-
-    @classmethod
-    def load(cls, directory: Path) -> QuerySet:
-        import json
-
-        camera = camera_from_dict(json.loads((directory / "camera.json").read_text()))
-        gts = list(np.load(directory / "gt.npy"))
-        jpegs = [(directory / f"{i:04d}.jpg").read_bytes() for i in range(len(gts))]
-        return cls(camera, jpegs, gts)
-
-
-def decode_jpeg(jpeg: bytes) -> npt.NDArray[np.uint8]:
-    image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise ValueError("query does not decode")
-    return np.asarray(image, np.uint8)
-
-
-def relocalize_jpeg(engine: Engine, jpeg: bytes, camera: Camera, method: str) -> RelocResult:
-    """What the service does with a query, in-process: decode, Frame, ``Engine.relocalize``.
-    ``timings`` gains ``decode`` and ``wall`` (the whole, seconds)."""
-    start = time.perf_counter()
-    image = decode_jpeg(jpeg)
-    decoded = time.perf_counter()
-    result = engine.relocalize(Frame(image, camera), method=method)
-    result.timings["decode"] = decoded - start
-    result.timings["wall"] = time.perf_counter() - start
-    return result
-
-
-# -- statistics --------------------------------------------------------------------------------
-
-def pct_ms(seconds: Sequence[float], q: float) -> float:
-    """The ``q``-th percentile of ``seconds`` in milliseconds (NaN for no value)."""
-    values = [s for s in seconds if s is not None and math.isfinite(s)]
-    return 1e3 * float(np.percentile(values, q)) if values else math.nan
-
-
-def stage_medians_ms(timings: Sequence[Mapping[str, float]]) -> dict[str, float]:
-    """Median milliseconds of every stage over ``timings`` (a missing stage counts 0)."""
-    stages = sorted({k for t in timings for k in t})
-    return {k: 1e3 * float(np.median([t.get(k, 0.0) for t in timings])) for k in stages}
-
-
-def accuracy(poses: Sequence[Array | None], gts: Sequence[Array]) -> dict[str, Any]:
-    """Recall at the eval thresholds, the rate of returned poses and of wrong ones."""
-    t = np.full(len(poses), np.nan)
-    r = np.full(len(poses), np.nan)
-    ok = np.array([p is not None for p in poses], bool)
-    for i, (pose, gt) in enumerate(zip(poses, gts, strict=True)):
-        if pose is not None:
-            dt, dr = pose_error(pose, gt)
-            t[i], r[i] = dt, math.degrees(dr)
-    return {"recall": metrics.recalls(t, r, ok), "returned_rate": float(ok.mean()) if len(ok)
-            else math.nan, "wrong_rate": metrics.wrong_rate(t, r, ok),
-            "median_t_err_m": float(np.nanmedian(t)) if ok.any() else math.nan}
-
-
-def summarize_samples(samples: Sequence[tuple[int, RelocResult]], queries: QuerySet
-                      ) -> dict[str, Any]:
-    """p50/p99 of the whole (``wall``), stage medians and accuracy of (query index, result)
-    samples from :func:`relocalize_jpeg`."""
-    walls = [r.timings["wall"] for _, r in samples]
-    return {"samples": len(samples), "p50_ms": pct_ms(walls, 50), "p99_ms": pct_ms(walls, 99),
-            "mean_ms": 1e3 * float(np.mean(walls)) if walls else math.nan,
-            "stages_ms": stage_medians_ms([r.timings for _, r in samples]),
-            **accuracy([r.world_from_cam if r.ok else None for _, r in samples],
-                       [queries.gts[i] for i, _ in samples])}
-
-
-def summarize_plain(samples: Sequence[tuple[int, Any]], queries: QuerySet) -> dict[str, Any]:
-    """As :func:`summarize_samples`, for :class:`~.peers.PlainResult` samples."""
-    walls = [sum(r.timings.values()) for _, r in samples]
-    return {"samples": len(samples), "p50_ms": pct_ms(walls, 50), "p99_ms": pct_ms(walls, 99),
-            "stages_ms": stage_medians_ms([r.timings for _, r in samples]),
-            "matches_median": float(np.median([r.matches for _, r in samples])) if samples
-            else math.nan,
-            **accuracy([r.world_from_cam for _, r in samples],
-                       [queries.gts[i] for i, _ in samples])}
-
-
-def json_safe(value: Any) -> Any:
-    """``value`` with NumPy scalars as Python numbers and NaN/inf as None (strict JSON)."""
-    if isinstance(value, float | np.floating):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    if isinstance(value, Mapping):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [json_safe(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return json_safe(value.tolist())
-    return value
-
-
-def _say(message: str) -> None:
-    print(f"[reloc bench] {message}", file=sys.stderr, flush=True)
-
-
-# -- workspace: the scene, its map, the engines ------------------------------------------------
-
-@dataclass(eq=False)
-class Workspace:
-    """What every section shares: the queries, one engine per options group (trained, over
-    the same map) and each engine's saved map in a service storage folder."""
-
-    conf: SuiteConf
-    tmp: Path
-    queries: QuerySet
-    engines: dict[str, Engine]
-    options: dict[str, dict[str, dict[str, Any]]]
-    storage: dict[str, Path]
-    info: dict[str, Any]
-
-    def methods(self, group: str) -> list[str]:
-        return [v.method for v in VARIANTS if v.group == group]
-
-
-def group_options(conf: SuiteConf) -> dict[str, dict[str, dict[str, Any]]]:
-    """Plugin options of each engine group."""
-    # Ferns trains online as keyframes arrive; nothing arrives after training here, and
-    # Engine.load would otherwise retrain ferns while it feeds the keyframes, before
-    # restoring the saved model, which the load times would then include.
-    return {"default": {"ferns": {"online": False, **conf.ferns_options}},
-            "orb": {k: dict(v) for k, v in ORB_OPTIONS.items()}}
-
-
-def prepare(conf: SuiteConf, tmp: Path) -> Workspace:
-    """Render the scene, build its map (SIFT and ORB landmarks, triangulated), train every
-    method, and save each group's engine into a service storage folder."""
-    from ..data.dataset import read_dataset
-    from ..synth import render_dataset
-
-    info: dict[str, Any] = {"preset": conf.preset, "scale": conf.scale, "seed": conf.seed}
-    start = time.perf_counter()
-    _say(f"rendering preset {conf.preset!r} at scale {conf.scale}")
-    root = render_dataset(conf.preset, tmp / "dataset", seed=conf.seed, scale=conf.scale,
-                          progress=True)
-    info["render_s"] = time.perf_counter() - start
-    ds = read_dataset(root)
-    camera = ds.camera(ds.map_entries[0])
-    queries = QuerySet.from_images(camera, [ds.load_image(e) for e in ds.query_entries],
-                                   [np.array(e.world_from_cam) for e in ds.query_entries])
-    options = group_options(conf)
-    ws = Workspace(conf, tmp, queries, {}, options, {}, info)
-    default = Engine(EngineConf(methods=tuple(ws.methods("default")), options=options["default"],
-                                mapping=MappingConf(feature_kinds=("sift", "orb"))))
-    start = time.perf_counter()
-    for kf_id, entry in progress(list(enumerate(ds.map_entries)), desc="map keyframes"):
-        default.add_keyframe(kf_id, ds.load_image(entry), camera, np.array(entry.world_from_cam))
-    info["build_s"] = time.perf_counter() - start
-    info["train_s"] = {}
-    for method in ws.methods("default"):
-        start = time.perf_counter()
-        default.train([method], progress=True)
-        info["train_s"][method] = time.perf_counter() - start
-    status = default.status()
-    info.update(keyframes=status["keyframes"], landmarks=status["landmarks"],
-                queries=len(queries), image=f"{camera.width}x{camera.height}",
-                camera_model=camera.model, jpeg_quality=JPEG_QUALITY,
-                jpeg_kb_median=float(np.median([len(j) for j in queries.jpegs])) / 1024)
-    ws.engines["default"] = default
-    ws.storage["default"] = _save_for_service(default, tmp / "storage-default")
-    start = time.perf_counter()
-    orb = Engine.load(ws.storage["default"] / MAP_NAME / "map",
-                      EngineConf(methods=tuple(ws.methods("orb")), options=options["orb"]))
-    info["engine_load_s"] = time.perf_counter() - start
-    ws.engines["orb"] = orb
-    ws.storage["orb"] = _save_for_service(orb, tmp / "storage-orb")
-    return ws
-
-
-def _save_for_service(engine: Engine, storage: Path) -> Path:
-    """Save ``engine`` where a service with ``storage`` finds map :data:`MAP_NAME`."""
-    from ..service.app import map_dirname
-
-    engine.save(storage / map_dirname(MAP_NAME) / "map")
-    return storage
-
-
-def _service(ws: Workspace, group: str, *, process: bool = False
-             ) -> contextlib.AbstractContextManager[str]:
-    """The loopback service of ``group``'s saved map (see :mod:`.loopback`)."""
-    from .loopback import loopback_service
-
-    return loopback_service(ws.storage[group], ws.methods(group), ws.options[group],
-                            map_name=MAP_NAME, workers=ws.conf.service_workers,
-                            queue_size=ws.conf.service_queue, process=process)
-
-
-def _client(endpoint: str, camera: Camera) -> Any:
-    """A client on map :data:`MAP_NAME` whose camera :data:`CAMERA_ID` is applied."""
-    from .loopback import camera_client
-
-    return camera_client(endpoint, MAP_NAME, CAMERA_ID, camera)
+__all__ = ["FULL", "QUICK", "SECTIONS", "SuiteConf", "failed_sections", "run_suite"]
 
 
 # -- section: latency --------------------------------------------------------------------------
@@ -376,8 +84,8 @@ def bench_latency(ws: Workspace) -> dict[str, Any]:
     with contextlib.ExitStack() as stack:
         clients = {}
         for group in ws.engines:
-            endpoint = stack.enter_context(_service(ws, group))
-            clients[group] = stack.enter_context(_client(endpoint, q.camera))
+            endpoint = stack.enter_context(group_service(ws, group))
+            clients[group] = stack.enter_context(group_client(endpoint, q.camera))
         for v in VARIANTS:  # warm-up: first call of each path
             relocalize_jpeg(ws.engines[v.group], q.jpegs[0], q.camera, v.method)
             clients[v.group].relocalize(q.jpegs[0], camera_id=CAMERA_ID, method=v.method)
@@ -529,8 +237,8 @@ def bench_throughput(ws: Workspace, method: str = "sbi+p3p") -> dict[str, Any]:
     ``service_workers`` workers; "busy" replies are counted apart."""
     conf, q = ws.conf, ws.queries
     runs = []
-    with _service(ws, "default", process=True) as endpoint:
-        with _client(endpoint, q.camera) as client:
+    with group_service(ws, "default", process=True) as endpoint:
+        with group_client(endpoint, q.camera) as client:
             client.relocalize(q.jpegs[0], camera_id=CAMERA_ID, method=method)  # warm-up
         for n in progress(list(conf.throughput_clients), desc="throughput (client counts)"):
             runs.append(_throughput_run(endpoint, q, method, n, conf.throughput_seconds))
@@ -785,7 +493,7 @@ def run_suite(conf: SuiteConf, *, command: str = "", workdir: Path | None = None
 
 def _run_section(result: dict[str, Any], name: str, fn: Callable[[], Any]) -> Any:
     """``fn()`` timed; on an exception, ``result[name]`` records it and None is returned."""
-    _say(f"{name} ...")
+    say(f"{name} ...")
     start = time.perf_counter()
     try:
         value = fn()
@@ -794,7 +502,7 @@ def _run_section(result: dict[str, Any], name: str, fn: Callable[[], Any]) -> An
         result[name] = {"error": f"{type(exc).__name__}: {exc}"}
         return None
     result.setdefault("section_seconds", {})[name] = time.perf_counter() - start
-    _say(f"{name} done in {time.perf_counter() - start:.1f} s")
+    say(f"{name} done in {time.perf_counter() - start:.1f} s")
     return value
 
 
