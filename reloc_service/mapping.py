@@ -233,7 +233,7 @@ class MapBuilder:
 class _DepthDataset(Protocol):
     map_entries: Sequence[Any]
 
-    def load_depth(self, entry: Any) -> npt.NDArray[np.float32] | None: ...
+    def load_truth_depth(self, entry: Any) -> npt.NDArray[np.float32] | None: ...
 
 
 def first_observations(state: MapState, kind: str | None = None
@@ -263,7 +263,8 @@ def landmark_errors(kmap_state: MapState, dataset: _DepthDataset, *, kind: str |
                     entries: Mapping[int, Any] | None = None, max_depth_jump: float = 0.03,
                     return_range: bool = False) -> Array | tuple[Array, Array]:
     """Distance (metres, (L,)) of each landmark to its ground truth: the pixel of its first
-    observation lifted with the dataset's depth map of that keyframe. Keyframe ids index
+    observation lifted with the dataset's ground-truth depth map of that keyframe (its sensor
+    depth map where it has no ground truth). Keyframe ids index
     ``dataset.map_entries`` unless ``entries`` maps them. Landmarks whose ground truth is
     unknown (no depth map, no depth or a depth discontinuity at the pixel) are left out.
     With ``return_range``, also the range (L,) from the first observing camera to the
@@ -271,7 +272,7 @@ def landmark_errors(kmap_state: MapState, dataset: _DepthDataset, *, kind: str |
     errors, ranges = [], []
     for kf_id, (lm_ids, px) in first_observations(kmap_state, kind).items():
         entry = entries[kf_id] if entries is not None else dataset.map_entries[kf_id]
-        depth = dataset.load_depth(entry)
+        depth = dataset.load_truth_depth(entry)
         if depth is None:
             continue
         kf = kmap_state.keyframes[kf_id]

@@ -47,12 +47,18 @@ class TriangulationConf:
     #: scale, see :func:`keypoint_sigmas`; the epipolar check is scaled likewise).
     max_reprojection_px: float = 2.0
     #: Smallest angle between the new keyframe's ray and another observing ray, degrees.
-    min_parallax_deg: float = 1.5
+    #: 0: parallax matters only through the depth precision it buys, which the uncertainty
+    #: gate below measures (stereo rigs and VIO keyframes a few centimetres apart make points
+    #: of small parallax that are still precise enough to use).
+    min_parallax_deg: float = 0.0
     #: Largest 1-sigma depth uncertainty of a new point along the new keyframe's ray, as a
     #: fraction of its range, from the refinement's information matrix with a localisation
     #: noise of ``keypoint_sigma_px`` times the keypoint's scale (short baselines and coarse
-    #: keypoints make uncertain points).
-    max_depth_uncertainty: float = 0.02
+    #: keypoints make uncertain points). 1/3 keeps the 3-sigma depth interval in front of the
+    #: camera, so the point's direction and side are certain: an uncertain point still
+    #: constrains the rotation and, seen from near its keyframes, the position; the P3P inlier
+    #: test and the verification judge how well it fits a query.
+    max_depth_uncertainty: float = 1.0 / 3.0
     keypoint_sigma_px: float = 0.5
     #: Depth range accepted in every observing view, metres.
     min_depth_m: float = 0.05
@@ -777,9 +783,9 @@ def triangulate_keyframe(kmap: KeyframeMap, kf_id: int, neighbour_ids: Iterable[
                          ) -> TriangulationStats:
     """Landmarks of keyframe ``kf_id`` (already in ``kmap``) for features ``kind``, matching
     against ``neighbour_ids`` only: matches to existing landmarks extend their tracks (in both
-    directions), the remaining matches are triangulated (or, when the keyframe has a depth map
-    and ``use_depth``, every free keypoint with a valid depth becomes a landmark), and extended
-    tracks are re-refined. """
+    directions); when the keyframe has a depth map and ``use_depth``, every free keypoint with a
+    valid depth becomes a landmark; the remaining free matches are triangulated; extended
+    tracks are re-refined."""
     conf = conf or TriangulationConf()
     stats = TriangulationStats()
     state = kmap.snapshot()
@@ -792,8 +798,8 @@ def triangulate_keyframe(kmap: KeyframeMap, kf_id: int, neighbour_ids: Iterable[
     stats.extended = len(extended) + len(extended_out)
     if use_depth and kf.depth is not None:
         _create_from_depth(kmap, kf_id, kind, matches, conf, stats)
-    else:
-        _create_by_triangulation(kmap, kf_id, kind, matches, conf, stats)
+    # Keypoints the depth map does not cover (holes, range, discontinuities) are triangulated.
+    _create_by_triangulation(kmap, kf_id, kind, matches, conf, stats)
     if conf.refine_tracks:
         stats.refined = _refine_tracks(kmap, kind, np.concatenate([extended, extended_out]), conf)
     return stats

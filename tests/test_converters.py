@@ -183,7 +183,8 @@ def test_cli_from_tum(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
     assert code == 0, capsys.readouterr().err
     out = capsys.readouterr().out
     # frames 0..11 are in [0, 0.4] s: map 0 3 6 9, queries 2 5 8 11 (frame 5 has no depth)
-    assert "map frames: 4 (4 with depth)" in out and "query frames: 4 (3 with depth" in out
+    assert "map frames: 4 (4 with depth, 0 with truth depth)" in out
+    assert "query frames: 4 (3 with depth" in out
     assert run_cli("dataset", "check", "--images", str(tmp_path / "out")) == 0
     assert run_cli("dataset", "from-tum", str(src), str(tmp_path / "o2"), "--map-stride", "2",
                    "--query-offset", "4") == 1

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 import cv2
@@ -45,14 +46,16 @@ def random_poses(n: int, seed: int = 0) -> list[np.ndarray]:
 
 
 def write_files(root: Path, *, cameras: object | None = None, map_txt: str | None = None,
-                queries_txt: str | None = None, depth_txt: str | None = None) -> Path:
+                queries_txt: str | None = None, depth_txt: str | None = None,
+                truth_depth_txt: str | None = None) -> Path:
     """A hand-written dataset folder; ``None`` leaves a file out (cameras/map get defaults)."""
     root.mkdir(parents=True, exist_ok=True)
     if cameras is None:
         cameras = {"cam": CAMERAS["pinhole"].to_dict()}
     (root / "cameras.json").write_text(cameras if isinstance(cameras, str) else json.dumps(cameras))
     (root / "map.txt").write_text(map_txt if map_txt is not None else f"a.png cam {IDENTITY}\n")
-    for name, text in (("queries.txt", queries_txt), ("depth.txt", depth_txt)):
+    for name, text in (("queries.txt", queries_txt), ("depth.txt", depth_txt),
+                       ("truth_depth.txt", truth_depth_txt)):
         if text is not None:
             (root / name).write_text(text)
     return root
@@ -192,6 +195,25 @@ def test_malformed_depth_lines(tmp_path: Path, case: str, text: str, where: str,
     assert where in str(info.value) and expected in str(info.value), str(info.value)
 
 
+@pytest.mark.parametrize(("case", "text", "where", "expected"), DEPTH_ERRORS,
+                         ids=[c[0] for c in DEPTH_ERRORS])
+def test_malformed_truth_depth_lines_name_truth_depth_file(tmp_path: Path, case: str, text: str,
+                                                           where: str, expected: str) -> None:
+    write_files(tmp_path, queries_txt=f"q.png cam {IDENTITY}\n", depth_txt="a.png d/a.png 1e-3\n",
+                truth_depth_txt=text)
+    with pytest.raises(DatasetError) as info:
+        read_dataset(tmp_path)
+    assert f"truth_{where}" in str(info.value) and expected in str(info.value), str(info.value)
+
+
+def test_truth_depth_file_is_optional(tmp_path: Path) -> None:
+    """Datasets written before truth_depth.txt existed read as before."""
+    write_files(tmp_path, queries_txt=f"q.png cam {IDENTITY}\n", depth_txt="q.png dq.png 1e-3\n")
+    ds = read_dataset(tmp_path)
+    assert ds.truth_depth == {} and ds.depth == {"q.png": ("dq.png", 1e-3)}
+    assert Dataset(ds.root, ds.cameras, ds.map_entries).truth_depth == {}  # positional as before
+
+
 def test_depth_may_name_query_images(tmp_path: Path) -> None:
     write_files(tmp_path, queries_txt=f"q.png cam {IDENTITY}\n", depth_txt="q.png dq.png 1e-3\n")
     assert read_dataset(tmp_path).depth == {"q.png": ("dq.png", 1e-3)}
@@ -250,6 +272,18 @@ def test_write_rejects_inconsistent_input(tmp_path: Path) -> None:
     assert not (tmp_path / "map.txt").exists(), "nothing is written when validation fails"
 
 
+def test_write_rejects_bad_truth_depth_naming_its_file(tmp_path: Path) -> None:
+    cams = {"cam": CAMERAS["pinhole"]}
+    entry = DatasetEntry("a.png", "cam", np.eye(4))
+    with pytest.raises(DatasetError, match=r"truth_depth\.txt: 'x\.png' is not a map or query"):
+        write_dataset(tmp_path, cams, [entry], [], truth_depth={"x.png": ("d.png", 0.001)})
+    with pytest.raises(DatasetError, match=r"truth_depth\.txt: .* expected a positive number"):
+        write_dataset(tmp_path, cams, [entry], [], truth_depth={"a.png": ("d.png", math.nan)})
+    with pytest.raises(DatasetError, match=r"truth_depth\.txt: .*absolute"):
+        write_dataset(tmp_path, cams, [entry], [], truth_depth={"a.png": ("/d.png", 0.001)})
+    assert not (tmp_path / "map.txt").exists()
+
+
 def test_rewrite_without_depth_removes_stale_depth_file(tmp_path: Path) -> None:
     cams = {"cam": CAMERAS["pinhole"]}
     entry = DatasetEntry("a.png", "cam", np.eye(4))
@@ -258,6 +292,10 @@ def test_rewrite_without_depth_removes_stale_depth_file(tmp_path: Path) -> None:
     write_dataset(tmp_path, cams, [DatasetEntry("b.png", "cam", np.eye(4))], [])
     ds = read_dataset(tmp_path)
     assert ds.depth == {} and [e.image_path for e in ds.map_entries] == ["b.png"]
+    write_dataset(tmp_path, cams, [entry], [], truth_depth={"a.png": ("t.png", 0.001)})
+    assert (tmp_path / "truth_depth.txt").is_file() and not (tmp_path / "depth.txt").exists()
+    write_dataset(tmp_path, cams, [entry], [])
+    assert not (tmp_path / "truth_depth.txt").exists()
 
 
 def test_read_camera_json_accepts_dict_or_single_camera_file(tmp_path: Path) -> None:
@@ -339,6 +377,39 @@ def test_load_depth(tmp_path: Path) -> None:
     assert ds.load_depth(ds.map_entries[3]) is None
 
 
+def test_truth_depth_round_trip_and_fallback_to_sensor_depth(tmp_path: Path) -> None:
+    """truth_depth.txt round-trips; load_truth_depth prefers it, falls back to depth.txt (a
+    real RGB-D dataset's only depth), else None; load_depth never reads the truth."""
+    truth_raw = np.full((24, 32), 1500, np.uint16)
+    sensor_raw = np.full((24, 32), 1503, np.uint16)
+    sensor_raw[5, 6] = 0  # a sensor hole
+    (tmp_path / "d").mkdir()
+    cv2.imwrite(str(tmp_path / "d/truth_a.png"), truth_raw)
+    cv2.imwrite(str(tmp_path / "d/sensor.png"), sensor_raw)
+    names = ("a.png", "b.png", "c.png")
+    entries = [DatasetEntry(n, "cam", np.eye(4)) for n in names]
+    sensor = {"a.png": ("d/sensor.png", 0.001), "b.png": ("d/sensor.png", 0.001)}
+    truth = {"a.png": ("d/truth_a.png", 0.001), "q.png": ("d/truth_a.png", 0.001)}
+    write_dataset(tmp_path, {"cam": CAMERAS["pinhole"]}, entries,
+                  [DatasetEntry("q.png", "cam", np.eye(4))], sensor, truth_depth=truth)
+    assert (tmp_path / "truth_depth.txt").read_text().startswith(
+        "# reloc dataset v1: ground-truth depth maps, for scoring only\n")
+    assert not list(tmp_path.glob(".*.tmp")), "temporary files left behind"
+
+    ds = read_dataset(tmp_path)
+    assert ds.truth_depth == truth and ds.depth == sensor
+    a, b, c = ds.map_entries
+    truth_a, sensor_a = ds.load_truth_depth(a), ds.load_depth(a)
+    assert truth_a is not None and sensor_a is not None
+    np.testing.assert_allclose(truth_a, 1.5, rtol=1e-6)
+    assert np.isnan(sensor_a[5, 6]) and np.nanmax(sensor_a) == pytest.approx(1.503)
+    fallback = ds.load_truth_depth(b)
+    assert fallback is not None and np.isnan(fallback[5, 6])  # sensor depth: the best there is
+    assert ds.load_truth_depth(c) is None and ds.load_depth(c) is None
+    query_truth = ds.load_truth_depth(ds.query_entries[0])
+    assert query_truth is not None and ds.load_depth(ds.query_entries[0]) is None
+
+
 # -- reloc dataset check ---------------------------------------------------------------------
 
 def run_cli(*argv: str) -> int:
@@ -356,7 +427,7 @@ def test_cli_check_prints_summary(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert run_cli("dataset", "check", str(tmp_path)) == 0
     out = capsys.readouterr().out
     assert "fov 32x24" in out and "map frames: 3" in out
-    assert "query frames: 2 (0 with depth, 1 also in the map)" in out
+    assert "query frames: 2 (0 with depth, 0 with truth depth, 1 also in the map)" in out
     x_min = min(p[0, 3] for p in poses)
     assert f"x [{x_min:.3f}," in out
 

@@ -2,6 +2,7 @@
 
 import json
 import math
+import shutil
 import sys
 import types
 from pathlib import Path
@@ -337,7 +338,7 @@ def test_eval_cli_end_to_end_gt_none(small_desk, tmp_path, capsys):
     assert data["schema_version"] == ev.SCHEMA_VERSION
     assert (data["dataset"]["map_frames"], data["dataset"]["query_frames"]) == (10, 10)
     assert data["map"]["keyframes"] == 10 and data["map"]["landmarks"] > 0
-    assert data["map"]["landmark_source"] == "triangulate"
+    assert data["map"]["landmark_source"] == "auto"
     assert data["map"]["build_time_s"] > 0 and data["map"]["median_landmark_error_m"] < 0.05
     assert data["backend"] == "in-process" and data["machine"]["cores"] >= 1
     (method,) = data["methods"]
@@ -348,11 +349,28 @@ def test_eval_cli_end_to_end_gt_none(small_desk, tmp_path, capsys):
         "gt-none_rank.png", "gt-none_terror.png", "gt-none_topview.png"]
 
 
-def test_evaluate_depth_landmarks_and_several_methods(small_desk):
-    result = ev.evaluate(small_desk, ["gt+none", "sbi+none"], landmarks="depth", progress=False)
+def _as_rgbd(dataset: Path, out: Path) -> Path:
+    """A copy of a synthetic dataset whose exact depth is given as sensor depth (depth.txt)."""
+    shutil.copytree(dataset, out)
+    (out / "truth_depth.txt").rename(out / "depth.txt")
+    return out
+
+
+def test_evaluate_depth_landmarks_and_several_methods(small_desk, tmp_path):
+    rgbd = _as_rgbd(small_desk, tmp_path / "desk")
+    result = ev.evaluate(rgbd, ["gt+none", "sbi+none"], landmarks="depth", progress=False)
     assert result.map.landmark_source == "depth" and result.map.landmarks > 0
     # landmarks lifted from the very depth maps they are scored against
     assert result.map.median_landmark_error_m < 1e-3
     assert [m.method for m in result.methods] == ["gt+none", "sbi+none"]
     for m in result.to_dict()["methods"]:
         _check_consistent(m)
+
+
+def test_depth_given_means_depth_used_without_a_flag(small_desk, tmp_path):
+    rgbd = _as_rgbd(small_desk, tmp_path / "desk")
+    auto = ev.evaluate(rgbd, ["gt+none"], progress=False)
+    triangulated = ev.evaluate(rgbd, ["gt+none"], landmarks="triangulate", progress=False)
+    assert auto.map.landmark_source == "auto"
+    assert auto.map.median_landmark_error_m < 1e-3 < triangulated.map.median_landmark_error_m
+    assert auto.map.landmarks > triangulated.map.landmarks

@@ -27,7 +27,7 @@ class FakeDataset:
         self.map_entries = list(range(len(scene.keyframe_depths)))
         self.depths = scene.keyframe_depths
 
-    def load_depth(self, entry: int) -> np.ndarray:
+    def load_truth_depth(self, entry: int) -> np.ndarray:
         return self.depths[entry]
 
 

@@ -109,7 +109,8 @@ def _bilinear(img: np.ndarray, px: np.ndarray) -> np.ndarray:
 
 
 def _depth(root: Path, entry_path: str) -> np.ndarray:
-    raw = cv2.imread(str(root / entry_path.replace("images/", "depth/")), cv2.IMREAD_UNCHANGED)
+    raw = cv2.imread(str(root / entry_path.replace("images/", "truth_depth/")),
+                     cv2.IMREAD_UNCHANGED)
     assert raw is not None and raw.dtype == np.uint16
     return raw.astype(np.float64) * 0.001
 
@@ -181,9 +182,12 @@ def test_dataset_files_and_metadata(desk: Path) -> None:
     cam = data.cameras["cam0"]
     assert cam.model == "radtan" and (cam.width, cam.height) == (160, 120)
     assert len(data.map_entries) == 3 and len(data.query_entries) == 2
+    # a monocular preset: exact depth for scoring only, no sensor depth for the map builder
+    assert data.depth == {} and not (desk / "depth.txt").exists()
     for entry in data.map_entries + data.query_entries:
         assert data.load_image(entry).shape == (120, 160)
-        depth = data.load_depth(entry)
+        assert data.load_depth(entry) is None
+        depth = data.load_truth_depth(entry)
         assert depth is not None and np.nanmin(depth) > 0.3 and np.nanmax(depth) < 6.0
     assert data.map_entries[0].image_path == "images/map/000000.png"
     meta = json.loads((desk / "synth.json").read_text())
@@ -196,9 +200,9 @@ def test_same_seed_gives_identical_files_with_any_worker_count(desk: Path,
                                                                tmp_path: Path) -> None:
     again = render_dataset(SMALL_DESK, tmp_path / "again", seed=0, workers=1, progress=False,
                            scale=SCALE)  # the fixture used a pool of 2
-    for sub in ("images", "depth"):
+    for sub in ("images", "truth_depth"):
         assert _files(desk, sub) == _files(again, sub)
-    for name in ("map.txt", "queries.txt", "cameras.json", "synth.json"):
+    for name in ("map.txt", "queries.txt", "cameras.json", "synth.json", "truth_depth.txt"):
         assert (desk / name).read_bytes() == (again / name).read_bytes()
 
 

@@ -3,8 +3,15 @@
 import numpy as np
 import pytest
 
+from reloc_service.errors import ConfigError
 from reloc_service.pose.base import PoseEstimate
-from reloc_service.relocalizers.base import RelocStatus, VerifyConf, result_from_estimate, verify
+from reloc_service.relocalizers.base import (
+    RelocStatus,
+    VerifyConf,
+    log10_false_alarms,
+    result_from_estimate,
+    verify,
+)
 
 
 def estimate(n=100, matches=150, rms=0.8, spread=1.0, cov_sigma=0.01, ncc=None, geometric=True):
@@ -13,7 +20,8 @@ def estimate(n=100, matches=150, rms=0.8, spread=1.0, cov_sigma=0.01, ncc=None, 
     return PoseEstimate(world_from_cam=np.eye(4), keyframe_ids=[3], num_matches=matches,
                         inliers=n if geometric else None, reprojection_rms_px=rms if geometric else None,
                         covariance=np.eye(6) * cov_sigma**2 if geometric else None, ncc=ncc,
-                        inlier_px=px, image_size=(640, 480))
+                        inlier_px=px, image_size=(640, 480),
+                        inlier_threshold_px=5.0 if geometric else None)
 
 
 def test_good_estimate_accepted_with_confidence():
@@ -22,8 +30,8 @@ def test_good_estimate_accepted_with_confidence():
 
 
 @pytest.mark.parametrize("kwargs, words", [
-    (dict(n=10), "too few inliers"),
-    (dict(n=30, matches=1000), "inlier ratio"),
+    (dict(n=8), "too few inliers"),
+    (dict(n=12, matches=1000), "could be chance"),
     (dict(rms=4.0), "reprojection RMS"),
     (dict(spread=0.2), "cover too little"),
     (dict(cov_sigma=0.5), "too uncertain"),
@@ -55,3 +63,41 @@ def test_result_carries_evidence():
     refused = result_from_estimate(estimate(n=5), VerifyConf(), method="sbi+p3p", map_version=7,
                                    timings={})
     assert refused.world_from_cam is None and "too few inliers" in refused.reason
+
+
+def test_twelve_spread_inliers_pass_forty_on_one_patch_do_not():
+    assert verify(estimate(n=12, matches=30), VerifyConf())[0]
+    ok, reason, _ = verify(estimate(n=40, matches=60, spread=0.2), VerifyConf())
+    assert not ok and "cover too little" in reason
+
+
+def test_false_alarms_fall_with_inliers_and_rise_with_matches_and_threshold():
+    base = log10_false_alarms(100, 20, 5.0, (640, 480))
+    assert log10_false_alarms(100, 30, 5.0, (640, 480)) < base < -3
+    assert log10_false_alarms(1000, 20, 5.0, (640, 480)) > base
+    assert log10_false_alarms(100, 20, 20.0, (640, 480)) > base
+    assert log10_false_alarms(100, 3, 5.0, (640, 480)) == float("inf")
+
+
+def test_guided_estimates_are_judged_on_their_unguided_consensus():
+    grown = estimate(n=200, matches=1000)
+    grown.unguided_evidence = (1000, 12)       # 12 of 1000 before guided matching: chance
+    ok, reason, _ = verify(grown, VerifyConf())
+    assert not ok and "could be chance (12 of 1000" in reason
+    grown.unguided_evidence = (40, 20)
+    assert verify(grown, VerifyConf())[0]
+
+
+def test_derived_rms_gate_follows_the_inlier_threshold():
+    est = estimate(rms=3.0)
+    assert verify(est, VerifyConf())[0]                 # below 5 / sqrt(2) = 3.54 px
+    est.inlier_threshold_px = 3.0                        # gate 2.12 px
+    assert "reprojection RMS" in verify(est, VerifyConf())[1]
+    assert "reprojection RMS" in verify(estimate(rms=3.0), VerifyConf(max_rms_px=2.0))[1]
+
+
+@pytest.mark.parametrize("options", [dict(max_false_alarms=0), dict(min_inliers=3),
+                                     dict(max_rms_px=-1.0)])
+def test_bad_options_rejected(options):
+    with pytest.raises(ConfigError):
+        VerifyConf(**options)

@@ -34,9 +34,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plots", metavar="DIR", help="write the thesis's figures as PNGs to DIR")
     parser.add_argument("--options", metavar="FILE", help="TOML or JSON file: plugin name -> "
                         "options table (e.g. [p3p] / [sbi]); [mapping] configures map building")
-    parser.add_argument("--landmarks", choices=["triangulate", "depth"], default="triangulate",
-                        help="landmarks from triangulated matches (default) or from the "
-                        "dataset's depth maps")
+    parser.add_argument("--landmarks", choices=["auto", "triangulate", "depth"], default="auto",
+                        help="auto (default): keypoints lifted with the dataset's depth maps "
+                        "where a keyframe has one, the rest triangulated; triangulate: ignore "
+                        "depth maps; depth: require one for every keyframe")
     parser.add_argument("--remote", metavar="ENDPOINT", help="evaluate through a running "
                         "service at this Zenoh endpoint (e.g. tcp/127.0.0.1:7447)")
     parser.add_argument("--map", dest="map_name", metavar="NAME",

@@ -124,6 +124,7 @@ def _load_everything(dataset: Dataset) -> None:
     for entry in progress(dataset.map_entries + dataset.query_entries, desc="images"):
         dataset.load_image(entry)
         dataset.load_depth(entry)
+        dataset.load_truth_depth(entry)
 
 
 def format_summary(dataset: Dataset) -> str:
@@ -137,11 +138,14 @@ def format_summary(dataset: Dataset) -> str:
     lines = [f"dataset {dataset.root}", f"cameras: {len(dataset.cameras)}"]
     lines += [f"  {cid}: {_describe_camera(cam)}" for cid, cam in dataset.cameras.items()]
     lines.append(f"map frames: {len(dataset.map_entries)} "
-                 f"({sum(e.image_path in dataset.depth for e in dataset.map_entries)} with depth)")
+                 f"({sum(e.image_path in dataset.depth for e in dataset.map_entries)} with depth, "
+                 f"{sum(e.image_path in dataset.truth_depth for e in dataset.map_entries)} with "
+                 "truth depth)")
     n_depth = sum(e.image_path in dataset.depth for e in dataset.query_entries)
+    n_truth = sum(e.image_path in dataset.truth_depth for e in dataset.query_entries)
     n_shared = sum(e.image_path in map_paths for e in dataset.query_entries)
     lines.append(f"query frames: {len(dataset.query_entries)} ({n_depth} with depth, "
-                 f"{n_shared} also in the map)")
+                 f"{n_truth} with truth depth, {n_shared} also in the map)")
     if len(centres):
         low, high = centres.min(axis=0), centres.max(axis=0)
         length = float(np.linalg.norm(np.diff(map_centres, axis=0), axis=1).sum())

@@ -1,5 +1,5 @@
-"""Reloc dataset v1: ``cameras.json``, ``map.txt``, ``queries.txt``, ``depth.txt``; strict reading
-that names file and line, atomic writing.
+"""Reloc dataset v1: ``cameras.json``, ``map.txt``, ``queries.txt``, ``depth.txt``,
+``truth_depth.txt``; strict reading that names file and line, atomic writing.
 
 Layout of a dataset folder ``DATASET``::
 
@@ -7,6 +7,11 @@ Layout of a dataset folder ``DATASET``::
     map.txt       <image path> <camera id> tx ty tz qx qy qz qw     one line per map keyframe
     queries.txt   same layout, the pose is ground truth used only for scoring (optional)
     depth.txt     <image path> <16-bit depth png> <metres per unit>  (optional)
+    truth_depth.txt  same layout (optional)
+
+``depth.txt`` is sensor depth the user has (an RGB-D camera): the map builder may use it.
+``truth_depth.txt`` is ground-truth depth used only for scoring (landmark accuracy), never to
+build the map (a synthetic monocular or stereo dataset has it, but no ``depth.txt``).
 
 Poses are ``world_from_cam`` (camera x right, y down, z forward), quaternions Hamilton x y z w.
 ``#`` at the start of a line or of a whitespace-separated token starts a comment; blank lines
@@ -41,6 +46,7 @@ CAMERAS_FILE = "cameras.json"
 MAP_FILE = "map.txt"
 QUERIES_FILE = "queries.txt"
 DEPTH_FILE = "depth.txt"
+TRUTH_DEPTH_FILE = "truth_depth.txt"
 
 POSE_LINE = "<image path> <camera id> tx ty tz qx qy qz qw"
 DEPTH_LINE = "<image path> <depth png path> <metres per unit>"
@@ -81,6 +87,7 @@ class Dataset:
     map_entries: list[DatasetEntry]
     query_entries: list[DatasetEntry] = field(default_factory=list)
     depth: dict[str, tuple[str, float]] = field(default_factory=dict)
+    truth_depth: dict[str, tuple[str, float]] = field(default_factory=dict)
 
     def camera(self, entry: DatasetEntry) -> Camera:
         """The camera that took ``entry``'s image."""
@@ -103,12 +110,21 @@ class Dataset:
     def load_depth(self, entry: DatasetEntry) -> npt.NDArray[np.float32] | None:
         """(H, W) float32 depth in metres along the optical axis, NaN where the sensor had no
         value (raw 0); None if ``depth.txt`` lists no depth map for ``entry``."""
+        item = self.depth.get(entry.image_path)
+        return None if item is None else self._read_depth_png(entry, *item)
+
+    def load_truth_depth(self, entry: DatasetEntry) -> npt.NDArray[np.float32] | None:
+        """Ground-truth depth of ``entry`` for scoring, as :meth:`load_depth`: the map of
+        ``truth_depth.txt`` if it lists one, else the sensor depth of ``depth.txt`` (real RGB-D
+        datasets have only that), else None."""
+        item = self.truth_depth.get(entry.image_path)
+        return self.load_depth(entry) if item is None else self._read_depth_png(entry, *item)
+
+    def _read_depth_png(self, entry: DatasetEntry, depth_path: str,
+                        metres_per_unit: float) -> npt.NDArray[np.float32]:
+        """Decode one 16-bit depth PNG of ``entry`` to metres (NaN where raw is 0)."""
         import cv2
 
-        item = self.depth.get(entry.image_path)
-        if item is None:
-            return None
-        depth_path, metres_per_unit = item
         path = self.root / depth_path
         raw = _decode_image(path, cv2.IMREAD_UNCHANGED)
         if raw.ndim != 2 or raw.dtype != np.uint16:
@@ -279,8 +295,9 @@ def read_pose_file(path: str | Path, *, cameras: Mapping[str, Camera]) -> list[D
 
 def read_depth_file(path: str | Path, *,
                     image_paths: Iterable[str]) -> dict[str, tuple[str, float]]:
-    """Read ``depth.txt`` lines ``<image> <depth png> <metres per unit>``; every image must be
-    one of ``image_paths`` (map or queries) and metres per unit must be positive."""
+    """Read ``depth.txt`` (or ``truth_depth.txt``) lines ``<image> <depth png> <metres per
+    unit>``; every image must be one of ``image_paths`` (map or queries), listed once, and
+    metres per unit must be positive."""
     path = Path(path)
     known = set(image_paths)
     depth: dict[str, tuple[str, float]] = {}
@@ -316,10 +333,11 @@ def read_dataset(root: str | Path) -> Dataset:
     map_entries = read_pose_file(root / MAP_FILE, cameras=cameras)
     query_entries = (read_pose_file(root / QUERIES_FILE, cameras=cameras)
                      if (root / QUERIES_FILE).is_file() else [])
-    depth = (read_depth_file(root / DEPTH_FILE,
-                             image_paths=[e.image_path for e in map_entries + query_entries])
-             if (root / DEPTH_FILE).is_file() else {})
-    return Dataset(root, cameras, map_entries, query_entries, depth)
+    image_paths = [e.image_path for e in map_entries + query_entries]
+    depth, truth_depth = ((read_depth_file(root / name, image_paths=image_paths)
+                           if (root / name).is_file() else {})
+                          for name in (DEPTH_FILE, TRUTH_DEPTH_FILE))
+    return Dataset(root, cameras, map_entries, query_entries, depth, truth_depth)
 
 
 # -- writing ---------------------------------------------------------------------------------
@@ -343,36 +361,44 @@ def write_pose_file(path: str | Path, entries: Iterable[DatasetEntry], *, title:
     _write_atomic(Path(path), header + "".join(f"{line}\n" for line in lines))
 
 
-def write_depth_file(path: str | Path, depth: Mapping[str, tuple[str, float]]) -> None:
-    """Write ``depth.txt`` atomically."""
+def write_depth_file(path: str | Path, depth: Mapping[str, tuple[str, float]], *,
+                     title: str = "depth maps") -> None:
+    """Write ``depth.txt`` (or ``truth_depth.txt``) atomically."""
     lines = [f"{image} {png} {float(mpu)!r}\n" for image, (png, mpu) in depth.items()]
-    _write_atomic(Path(path), f"# {FORMAT}: depth maps\n# {DEPTH_LINE}\n" + "".join(lines))
+    _write_atomic(Path(path), f"# {FORMAT}: {title}\n# {DEPTH_LINE}\n" + "".join(lines))
 
 
 def write_dataset(root: str | Path, cameras: Mapping[str, Camera],
                   map_entries: Iterable[DatasetEntry], query_entries: Iterable[DatasetEntry],
-                  depth: Mapping[str, tuple[str, float]] | None = None) -> None:
-    """Validate, then write ``cameras.json``, ``map.txt``, ``queries.txt`` and ``depth.txt``
-    (removed when ``depth`` is empty) under ``root``, each atomically. Images are the caller's."""
+                  depth: Mapping[str, tuple[str, float]] | None = None, *,
+                  truth_depth: Mapping[str, tuple[str, float]] | None = None) -> None:
+    """Validate, then write ``cameras.json``, ``map.txt``, ``queries.txt``, ``depth.txt``
+    (sensor depth) and ``truth_depth.txt`` (ground truth for scoring only) under ``root``,
+    each atomically; a depth file whose mapping is empty is removed (a stale one would not
+    match). Images and depth PNGs are the caller's."""
     root = Path(root)
     map_entries, query_entries = list(map_entries), list(query_entries)
-    depth = dict(depth or {})
-    _check_for_writing(cameras, map_entries, query_entries, depth)
+    depth, truth_depth = dict(depth or {}), dict(truth_depth or {})
+    _check_for_writing(cameras, map_entries, query_entries,
+                       {DEPTH_FILE: depth, TRUTH_DEPTH_FILE: truth_depth})
     root.mkdir(parents=True, exist_ok=True)
     camera_lines = [f"  {json.dumps(cid)}: {json.dumps(camera.to_dict())}"
                     for cid, camera in cameras.items()]
     _write_atomic(root / CAMERAS_FILE, "{\n" + ",\n".join(camera_lines) + "\n}\n")
     write_pose_file(root / MAP_FILE, map_entries, title="map keyframes")
     write_pose_file(root / QUERIES_FILE, query_entries, title="queries, ground-truth poses")
-    if depth:
-        write_depth_file(root / DEPTH_FILE, depth)
-    else:
-        (root / DEPTH_FILE).unlink(missing_ok=True)  # a stale depth.txt would not match
+    for name, maps, title in ((DEPTH_FILE, depth, "sensor depth maps"),
+                              (TRUTH_DEPTH_FILE, truth_depth,
+                               "ground-truth depth maps, for scoring only")):
+        if maps:
+            write_depth_file(root / name, maps, title=title)
+        else:
+            (root / name).unlink(missing_ok=True)  # a stale depth file would not match
 
 
 def _check_for_writing(cameras: Mapping[str, Camera], map_entries: list[DatasetEntry],
                        query_entries: list[DatasetEntry],
-                       depth: dict[str, tuple[str, float]]) -> None:
+                       depth_files: Mapping[str, dict[str, tuple[str, float]]]) -> None:
     for camera_id, camera in cameras.items():
         problem = camera_id_problem(camera_id)
         if problem or not isinstance(camera, Camera):
@@ -387,15 +413,16 @@ def _check_for_writing(cameras: Mapping[str, Camera], map_entries: list[DatasetE
                 raise DatasetError(f"{name}: duplicate image path {entry.image_path!r}")
             seen.add(entry.image_path)
     known = {e.image_path for e in map_entries + query_entries}
-    for image_path, (depth_path, metres_per_unit) in depth.items():
-        problem = image_path_problem(depth_path)
-        if image_path not in known:
-            problem = f"{image_path!r} is not a map or query image"
-        if problem:
-            raise DatasetError(f"{DEPTH_FILE}: {problem}")
-        if not (math.isfinite(metres_per_unit) and metres_per_unit > 0):
-            raise DatasetError(f"{DEPTH_FILE}: metres per unit of {image_path!r} is "
-                               f"{metres_per_unit}; expected a positive number")
+    for name, depth in depth_files.items():
+        for image_path, (depth_path, metres_per_unit) in depth.items():
+            problem = image_path_problem(depth_path)
+            if image_path not in known:
+                problem = f"{image_path!r} is not a map or query image"
+            if problem:
+                raise DatasetError(f"{name}: {problem}")
+            if not (math.isfinite(metres_per_unit) and metres_per_unit > 0):
+                raise DatasetError(f"{name}: metres per unit of {image_path!r} is "
+                                   f"{metres_per_unit}; expected a positive number")
 
 
 # -- helpers ---------------------------------------------------------------------------------

@@ -46,11 +46,17 @@ _LIBRARIES = ("numpy", "scipy", "opencv-python-headless", "poselib", "eclipse-ze
 
 
 class LandmarkSource(enum.Enum):
-    """Where the map's landmarks come from: triangulated matches between posed keyframes, or
-    the dataset's depth maps."""
+    """Where the map's landmarks come from: ``auto`` lifts keypoints with the dataset's depth
+    where a keyframe has a depth map and triangulates the rest (what the service does with
+    keyframes that carry depth); ``triangulate`` ignores depth maps; ``depth`` requires one
+    for every keyframe."""
 
+    AUTO = "auto"
     TRIANGULATE = "triangulate"
     DEPTH = "depth"
+
+    def uses_depth(self) -> bool:
+        return self is not LandmarkSource.TRIANGULATE
 
 
 @dataclass(frozen=True)
@@ -161,6 +167,9 @@ class MapInfo:
     median_landmark_error_m: float | None
     keyframe_ids: list[int]
     keyframe_positions_world: list[list[float]]
+    #: Landmarks observed by each keyframe (keyframe_ids order); None when the backend cannot
+    #: tell (remote maps).
+    landmarks_per_keyframe: list[int] | None = None
 
 
 @dataclass
@@ -238,7 +247,7 @@ def _json_safe(value: Any) -> Any:
 
 def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
              options: Mapping[str, Any] | None = None,
-             landmarks: LandmarkSource | str = LandmarkSource.TRIANGULATE,
+             landmarks: LandmarkSource | str = LandmarkSource.AUTO,
              progress: bool = True, remote: RemoteSpec | None = None) -> EvalResult:
     """Build the map of ``dataset_root``, train, and score every query with each method.
 
@@ -248,7 +257,8 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
             ``"bow+p3p,sbi+esm"``) or several, evaluated on one shared map.
         options: plugin name -> option dict (as in the service config); ``"mapping"`` holds
             the map-building options.
-        landmarks: triangulate (default) or take landmarks from the dataset's depth maps.
+        landmarks: ``auto`` (default: depth where the dataset gives it, triangulation
+            elsewhere), ``triangulate`` or ``depth`` (see :class:`LandmarkSource`).
         progress: draw progress bars on stderr.
         remote: run through a service instead of in-process.
     """
@@ -326,7 +336,7 @@ def _build_map(backend: Backend, dataset: Dataset, source: LandmarkSource,
         entries = progress_bar(entries, total=len(dataset.map_entries), desc="map")
     for kf_id, entry in entries:
         image = dataset.load_image(entry)
-        depth = dataset.load_depth(entry) if source is LandmarkSource.DEPTH else None
+        depth = dataset.load_depth(entry) if source.uses_depth() else None
         start = time.perf_counter()
         backend.add_keyframe(kf_id, image, dataset.camera(entry), entry.world_from_cam,
                              depth=depth)
@@ -414,14 +424,17 @@ def summarize(records: Sequence[QueryRecord]) -> MethodSummary:
 def _map_info(backend: Backend, dataset: Dataset, source: LandmarkSource, build_s: float,
               train_s: float) -> MapInfo:
     n_kf, n_lm = backend.map_counts()
-    errors = backend.landmark_errors_m(dataset) if dataset.depth else None
+    per_keyframe = getattr(backend, "landmarks_per_keyframe", None)
+    errors = (backend.landmark_errors_m(dataset) if dataset.depth or dataset.truth_depth
+              else None)
     median = metrics.percentile(errors, 50) if errors is not None else math.nan
     return MapInfo(keyframes=n_kf, landmarks=n_lm, landmark_source=source.value,
                    build_time_s=build_s, train_time_s=train_s,
                    median_landmark_error_m=None if math.isnan(median) else median,
                    keyframe_ids=list(range(len(dataset.map_entries))),
                    keyframe_positions_world=[e.world_from_cam[:3, 3].tolist()
-                                             for e in dataset.map_entries])
+                                             for e in dataset.map_entries],
+                   landmarks_per_keyframe=None if per_keyframe is None else per_keyframe())
 
 
 def _dataset_info(dataset: Dataset) -> dict[str, Any]:
@@ -488,6 +501,14 @@ class InProcessBackend:
     def map_counts(self) -> tuple[int, int]:
         state = self.engine.map.snapshot()
         return len(state.keyframes), len(state.landmarks)
+
+    def landmarks_per_keyframe(self) -> list[int]:
+        """Distinct landmarks each keyframe observes (any feature kind), in id order."""
+        state = self.engine.map.snapshot()
+        return [len(np.unique(np.concatenate([f.landmark_ids[f.landmark_ids >= 0]
+                                              for f in state.keyframes[k].features.values()]
+                                             or [np.zeros(0, np.int64)])))
+                for k in state.keyframe_ids()]
 
     def landmark_errors_m(self, dataset: Dataset) -> Array | None:
         try:

@@ -7,6 +7,8 @@ import math
 import re
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from .metrics import RECALL_THRESHOLDS, WRONG_THRESHOLD, threshold_key
 
 if TYPE_CHECKING:
@@ -67,6 +69,10 @@ def format_header(result: EvalResult) -> str:
     d, mp = result.dataset, result.map
     lm_err = ("" if mp.median_landmark_error_m is None
               else f", median landmark error {100 * mp.median_landmark_error_m:.2f} cm")
+    if mp.landmarks_per_keyframe:
+        per_kf = np.asarray(mp.landmarks_per_keyframe)
+        lm_err = (f", per keyframe median {np.median(per_kf):.0f} min {per_kf.min()} max "
+                  f"{per_kf.max()}{lm_err}")
     return "\n".join([
         f"dataset {d['name']} ({d['root']}): {d['map_frames']} map frames, "
         f"{d['query_frames']} queries; backend {result.backend}",

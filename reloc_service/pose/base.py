@@ -44,6 +44,16 @@ class PoseEstimate:
     inlier_points_world: Array | None = None
     #: (width, height) of the query image, to judge how the inliers spread over it.
     image_size: tuple[int, int] | None = None
+    #: Reprojection error (pixels) under which a correspondence counted as an inlier: with
+    #: the image size, the chance that a random correspondence agrees with a wrong pose.
+    inlier_threshold_px: float | None = None
+    #: Correspondences drawn per hypothesis by the minimal solver (3 for P3P).
+    sample_size: int = 3
+    #: (matches, inliers) of the consensus found without a pose prior, when the estimate was
+    #: then grown by guided matching: the false-alarm test judges these, since matches found
+    #: around projections agree with the pose by construction. None: ``num_matches``,
+    #: ``inliers``.
+    unguided_evidence: tuple[int, int] | None = None
 
 
 class PoseFinder(abc.ABC):

@@ -20,6 +20,7 @@ from ..geometry import invert, se3_exp, transform_points
 from ..map import MapState
 from ..place.base import PlaceCandidate
 from .base import PoseEstimate, PoseFinder, register
+from .guided import GuidedConf, nearest_keyframes, search_by_projection
 
 Array = npt.NDArray[np.float64]
 
@@ -187,7 +188,7 @@ def _estimate(world_from_cam: Array, px: Array, points_world: Array, camera: Cam
                         inliers=len(px), reprojection_rms_px=float(np.sqrt(sq / len(px))),
                         covariance=covariance, timings={"solve": elapsed},
                         inlier_px=px.copy(), inlier_points_world=points_world.copy(),
-                        image_size=camera.size)
+                        image_size=camera.size, inlier_threshold_px=conf.max_reproj_error_px)
 
 
 @register("p3p")
@@ -204,6 +205,11 @@ class P3PPoseFinder(PoseFinder):
         max_features: int = 2000
         #: Lowe's ratio (thesis 3.1.3).
         ratio: float = 0.8
+        #: Grow a first pose by guided matching (search by projection, :mod:`.guided`) over
+        #: the landmarks of the candidates and of the keyframes near that pose, then re-solve.
+        guided: bool = True
+        #: Keyframes near the first pose whose landmarks guided matching projects.
+        guided_keyframes: int = 10
 
         def __post_init__(self) -> None:
             super().__post_init__()
@@ -238,8 +244,46 @@ class P3PPoseFinder(PoseFinder):
                                 inliers=0, timings=timings)
         est, inliers = solved
         est.keyframe_ids = pool.keyframes_of(rows[inliers], [kf.id for kf in keyframes])
+        if self.conf.guided:
+            est = self._grow(query, feats, est, keyframes, state, q_idx,
+                             pool.landmark_ids[rows])
         est.timings = {**timings, **est.timings}
         return est
+
+    def _grow(self, query: Frame, feats: Features, est: PoseEstimate, keyframes: list[Keyframe],
+              state: MapState, q_idx: npt.NDArray[np.int64],
+              landmark_ids: npt.NDArray[np.int64]) -> PoseEstimate:
+        """``est`` re-solved on its matches plus those found by projecting the landmarks of
+        ``keyframes`` and of the keyframes near ``est`` into the query; ``est`` itself when
+        that does not add inliers. The estimate keeps the unguided evidence for the
+        false-alarm test."""
+        start = time.perf_counter()
+        conf = GuidedConf(local_keyframes=self.conf.guided_keyframes)
+        ids = [kf.id for kf in keyframes]
+        near = nearest_keyframes(state, est.world_from_cam, conf.local_keyframes,
+                                 conf.max_view_angle_deg)
+        local = keyframes + [state.keyframes[k] for k in near if k not in ids]
+        pool = LandmarkPool.gather(local, self.conf.kind)
+        radius = conf.window_factor * self.conf.max_reproj_error_px
+        g_idx, g_rows = search_by_projection(feats, query.camera, est.world_from_cam,
+                                             pool.descriptors, pool.points_world, radius, conf)
+        q_all, rows_all = _union(g_idx, g_rows, q_idx, pool.rows_of(landmark_ids))
+        solved = solve_pnp_indexed(feats.keypoints_px[q_all], pool.points_world[rows_all],
+                                   query.camera, self.conf)
+        elapsed = time.perf_counter() - start
+        seed = (est.num_matches, int(est.inliers or 0))
+        if solved is None or solved[0].inliers is None or solved[0].inliers <= seed[1]:
+            est.unguided_evidence = seed
+            est.timings["guided"] = elapsed
+            return est
+        grown, inliers = solved
+        # Name the candidates that support the pose (the place finder's answer, as without
+        # guided matching); keyframes pulled in around the pose only lent their landmarks.
+        supporting = pool.keyframes_of(rows_all[inliers], [kf.id for kf in local])
+        grown.keyframe_ids = [k for k in supporting if k in ids] or est.keyframe_ids
+        grown.unguided_evidence = seed
+        grown.timings = {"solve": est.timings.get("solve", 0.0), "guided": elapsed}
+        return grown
 
     def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
         """The query's features of ``conf.kind``, extracted once and cached on the frame."""
@@ -295,11 +339,33 @@ class LandmarkPool:
                    ids[first], np.concatenate([f.points_world[i] for f, i in picks
                                                if f is not None]), rows)
 
+    def rows_of(self, landmark_ids: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+        """(M,) pool row of each landmark id; -1 where the pool does not hold it."""
+        if len(self.landmark_ids) == 0:
+            return np.full(len(landmark_ids), -1, np.int64)
+        order = np.argsort(self.landmark_ids, kind="stable")
+        pos = np.clip(np.searchsorted(self.landmark_ids[order], landmark_ids), 0, len(order) - 1)
+        return np.where(self.landmark_ids[order][pos] == landmark_ids, order[pos], -1
+                        ).astype(np.int64)
+
     def keyframes_of(self, rows: npt.NDArray[np.int64], keyframe_ids: list[int]) -> list[int]:
         """Ids of the keyframes whose landmarks (pool ``rows``) gave inliers, most first."""
         counts = np.bincount(self.keyframe_rows[rows], minlength=len(keyframe_ids))
         order = np.argsort(-counts, kind="stable")
         return [keyframe_ids[i] for i in order if counts[i] > 0]
+
+
+def _union(first_q: npt.NDArray[np.int64], first_rows: npt.NDArray[np.int64],
+           second_q: npt.NDArray[np.int64], second_rows: npt.NDArray[np.int64]
+           ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """Correspondences (query index, pool row) of both lists, the first list winning where a
+    query keypoint or a pool row appears in both; rows of -1 are dropped."""
+    q = np.concatenate([first_q, second_q])
+    rows = np.concatenate([first_rows, second_rows])
+    valid = np.flatnonzero(rows >= 0)
+    keep = np.sort(valid[np.unique(q[valid], return_index=True)[1]])
+    keep = np.sort(keep[np.unique(rows[keep], return_index=True)[1]])
+    return q[keep], rows[keep]
 
 
 def _best_per_landmark(landmark_ids: npt.NDArray[np.int64], dist: npt.NDArray[np.float32]

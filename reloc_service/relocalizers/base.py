@@ -9,12 +9,14 @@ from __future__ import annotations
 import abc
 import enum
 from dataclasses import dataclass, field
+from math import lgamma
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
 
+from ..errors import ConfigError
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap
 from ..plugins import Registry
@@ -76,12 +78,28 @@ class RelocResult:
 
 @dataclass(frozen=True)
 class VerifyConf:
-    """Thresholds of the verification. Defaults are generic (not tuned to one scene): P3P
-    needs a clear consensus (absolute and relative) with a small reprojection error."""
+    """Thresholds of the verification, each from statistics or geometry rather than from a
+    scene: a geometric estimate passes when its consensus could not have arisen by chance
+    (:func:`log10_false_alarms`), its inliers spread over the image, its residuals look like
+    measurement noise rather than like random agreement, and its position is well determined.
+    """
 
-    min_inliers: int = 20
-    min_inlier_ratio: float = 0.15
-    max_rms_px: float = 2.5
+    #: Largest expected number of false alarms (a-contrario, Moisan & Stival 2004): the number
+    #: of wrong poses that a consensus this large would produce by chance, per query. 1e-3 per
+    #: query keeps chance agreement an order of magnitude below the 1 % wrong-pose budget,
+    #: after the few candidate groups and fallback methods a query tries.
+    max_false_alarms: float = 1e-3
+    #: A floor under the statistical test: with fewer inliers the residual RMS and the
+    #: covariance that the other tests read are themselves unreliable (the relative standard
+    #: error of a variance from 2k - 6 residuals exceeds 1/sqrt(2 * 14) ~ 19 % below k = 10).
+    min_inliers: int = 10
+    #: Optional fixed gate on inliers / matches (0: off; the false-alarm test already weighs
+    #: the inliers against the number of matches).
+    min_inlier_ratio: float = 0.0
+    #: Largest inlier RMS, pixels; None: derived from the estimate's inlier threshold t as
+    #: t / sqrt(2), the RMS of residuals spread uniformly over the inlier disc, i.e. what
+    #: agreement by chance looks like (measurement noise concentrates residuals near zero).
+    max_rms_px: float | None = None
     #: Inliers must fall in at least this many cells of a ``coverage_grid`` x ``coverage_grid``
     #: grid over the image: a pose supported by one small patch (a repeated poster, a logo) is
     #: the classic perceptual-aliasing wrong pose, however small its reprojection error.
@@ -92,6 +110,15 @@ class VerifyConf:
     #: Smallest normalised cross-correlation accepted for photometric (ESM, none) estimates:
     #: aligned thumbnails of unrelated photographs reach up to ~0.8, correct alignments >= 0.95.
     min_ncc: float = 0.85
+
+    def __post_init__(self) -> None:
+        if not 0 < self.max_false_alarms <= 1:
+            raise ConfigError(f"verify.max_false_alarms must be in (0, 1], got "
+                              f"{self.max_false_alarms}")
+        if self.min_inliers < 4:
+            raise ConfigError(f"verify.min_inliers must be >= 4, got {self.min_inliers}")
+        if self.max_rms_px is not None and self.max_rms_px <= 0:
+            raise ConfigError(f"verify.max_rms_px must be positive, got {self.max_rms_px}")
 
 
 def verify(estimate: PoseEstimate | None, conf: VerifyConf) -> tuple[bool, str, float]:
@@ -110,16 +137,43 @@ def verify(estimate: PoseEstimate | None, conf: VerifyConf) -> tuple[bool, str, 
     return False, "estimate carries no evidence to verify", 0.0
 
 
+def log10_false_alarms(num_matches: int, inliers: int, threshold_px: float,
+                       image_size: tuple[int, int], sample_size: int = 3) -> float:
+    """log10 of the number of false alarms of a consensus (ORSA, Moisan & Stival 2004): the
+    expected number of subsets of ``inliers`` among ``num_matches`` correspondences that a
+    wrong pose, fitted to ``sample_size`` of them, would explain within ``threshold_px`` by
+    chance. Under the background model a wrong pose sends each correspondence to a uniformly
+    random pixel, which lands within the threshold with probability ``p = pi t^2 / area``:
+    ``NFA = (n - s) C(n, k) C(k, s) p^(k - s)``."""
+    n, k, s = int(num_matches), int(inliers), int(sample_size)
+    if k <= s or n < k:
+        return float("inf")
+    width, height = image_size
+    p = min(np.pi * threshold_px**2 / (width * height), 1.0)
+    return float(np.log10(max(n - s, 1)) + _log10_binomial(n, k) + _log10_binomial(k, s)
+                 + (k - s) * np.log10(p))
+
+
+def _log10_binomial(n: int, k: int) -> float:
+    return float((lgamma(n + 1) - lgamma(k + 1) - lgamma(n - k + 1)) / np.log(10))
+
+
 def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, float]:
     inliers = int(est.inliers or 0)
     ratio = inliers / max(est.num_matches, 1)
     rms = est.reprojection_rms_px if est.reprojection_rms_px is not None else np.inf
+    max_rms = _max_rms_px(est, conf)
     if inliers < conf.min_inliers:
         return False, f"too few inliers ({inliers} < {conf.min_inliers})", 0.0
+    nfa = _log10_nfa(est)
+    if nfa > np.log10(conf.max_false_alarms):
+        matches, seed = est.unguided_evidence or (est.num_matches, inliers)
+        return False, (f"consensus could be chance ({seed} of {matches} matches, "
+                       f"10^{nfa:.1f} false alarms > {conf.max_false_alarms:g})"), 0.0
     if ratio < conf.min_inlier_ratio:
         return False, f"inlier ratio too low ({ratio:.2f} < {conf.min_inlier_ratio})", 0.0
-    if rms > conf.max_rms_px:
-        return False, f"reprojection RMS too high ({rms:.2f} px > {conf.max_rms_px})", 0.0
+    if rms > max_rms:
+        return False, f"reprojection RMS too high ({rms:.2f} px > {max_rms:.2f})", 0.0
     cells = inlier_cells(est, conf.coverage_grid)
     if cells is not None and cells < conf.min_inlier_cells:
         return False, (f"inliers cover too little of the image ({cells} < {conf.min_inlier_cells} "
@@ -128,10 +182,28 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
     if sigma > conf.max_position_sigma_m:
         return False, f"position too uncertain ({sigma:.3f} m > {conf.max_position_sigma_m})", 0.0
     # Each factor saturates: many inliers, a clear majority, a small RMS.
-    c_inl = 1.0 - np.exp(-(inliers - conf.min_inliers + 1) / conf.min_inliers)
-    c_ratio = min(1.0, ratio / (3 * conf.min_inlier_ratio))
-    c_rms = float(np.exp(-((rms / conf.max_rms_px) ** 2)))
+    c_inl = 1.0 - np.exp(-(inliers - conf.min_inliers + 1) / (2 * conf.min_inliers))
+    c_ratio = min(1.0, ratio / 0.45)
+    c_rms = float(np.exp(-((rms / max_rms) ** 2)))
     return True, "", float(np.clip(c_inl * c_ratio * c_rms, 0.0, 1.0))
+
+
+def _log10_nfa(est: PoseEstimate) -> float:
+    """:func:`log10_false_alarms` of ``est``; -inf (no evidence against) when it does not say
+    its threshold or image size (estimates from other sources)."""
+    if est.inlier_threshold_px is None or est.image_size is None:
+        return -float("inf")
+    matches, inliers = est.unguided_evidence or (est.num_matches, int(est.inliers or 0))
+    return log10_false_alarms(matches, inliers, est.inlier_threshold_px, est.image_size,
+                              est.sample_size)
+
+
+def _max_rms_px(est: PoseEstimate, conf: VerifyConf) -> float:
+    if conf.max_rms_px is not None:
+        return conf.max_rms_px
+    if est.inlier_threshold_px is None:
+        return 2.5   # an estimate that does not say its threshold: the former fixed gate
+    return est.inlier_threshold_px / np.sqrt(2.0)
 
 
 def inlier_cells(estimate: PoseEstimate, grid: int) -> int | None:

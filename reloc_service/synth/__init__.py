@@ -3,7 +3,10 @@
 A room or desk scene of textured rectangles and boxes (real photographs from scikit-image,
 at known physical sizes) is ray cast per pixel through the camera model, along a training lap
 (map keyframes) and a different test lap (queries); poses and Z-depth are exact. The result is
-a reloc dataset v1 (see :mod:`reloc_service.data.dataset`) plus ``synth.json``::
+a reloc dataset v1 (see :mod:`reloc_service.data.dataset`) plus ``synth.json``. The exact
+depth is listed in ``truth_depth.txt`` (for scoring only); only a preset with an RGB-D
+``depth_sensor`` writes ``depth.txt``, with sensor-like depth. A preset with a ``rig`` renders
+every map pose with each of its cameras (``images/<kind>/<camera id>/``)::
 
     from reloc_service.synth import render_dataset
     render_dataset("room", Path("data/room"), seed=0)
@@ -25,7 +28,7 @@ import numpy.typing as npt
 
 from ..errors import ConfigError, DatasetError
 from .cli import add_synth_arguments, main_synth
-from .presets import PRESETS, Degradation, Preset, get_preset
+from .presets import CAMERA_ID, PRESETS, Degradation, Preset, get_preset
 
 if TYPE_CHECKING:
     from .renderer import Nuisance
@@ -35,8 +38,7 @@ __all__ = ["PRESETS", "Degradation", "Preset", "add_synth_arguments", "get_prese
            "main_synth", "render_dataset"]
 
 SYNTH_FILE = "synth.json"
-CAMERA_ID = "cam0"
-DEPTH_METRES_PER_UNIT = 0.001
+DEPTH_METRES_PER_UNIT = 0.001  # exact depth in mm: 65.5 m range, 0.5 mm rounding
 _KIND_CODE = {"map": 0, "query": 1}
 
 
@@ -57,21 +59,24 @@ def render_dataset(preset: str | Preset, out: Path, *, seed: int = 0, workers: i
         raise ConfigError(f"render_dataset: expected 0 < scale <= 4 and workers >= 1, got "
                           f"scale={scale}, workers={workers}")
     out = Path(out)
-    camera = preset.camera if scale == 1.0 else preset.camera.scaled(scale)
-    _prepare_folder(out)
+    _check_folder(out)
+    cameras = {cid: cam if scale == 1.0 else cam.scaled(scale)
+               for cid, cam in preset.cameras.items()}
     scene = build_scene(preset.scene, seed)
     map_poses, query_poses = make_trajectories(preset.trajectory, preset.n_map, preset.n_query,
                                                seed)
-    nuisances = _draw_nuisances(preset, camera, query_poses, scene, seed)
-    jobs = ([_Job("map", i, pose, None) for i, pose in enumerate(map_poses)]
-            + [_Job("query", i, pose, nuisances[i]) for i, pose in enumerate(query_poses)])
-    _run_jobs(jobs, (scene, camera, preset, seed, out), workers=workers, show=progress)
+    nuisances = _draw_nuisances(preset, cameras[CAMERA_ID], query_poses, scene, seed)
+    jobs = _make_jobs(preset, map_poses, query_poses, nuisances)
+    _prepare_folder(out, jobs, sensor_depth=preset.depth_sensor is not None)
+    _run_jobs(jobs, (scene, cameras, preset, seed, out), workers=workers, show=progress)
 
-    entries = {kind: [DatasetEntry(job.image_path, CAMERA_ID, job.world_from_cam)
+    entries = {kind: [DatasetEntry(job.image_path, job.camera_id, job.world_from_cam)
                       for job in jobs if job.kind == kind] for kind in _KIND_CODE}
-    depth = {job.image_path: (job.depth_path, DEPTH_METRES_PER_UNIT) for job in jobs}
-    write_dataset(out, {CAMERA_ID: camera}, entries["map"], entries["query"], depth)
-    _write_json(out / SYNTH_FILE, _synth_record(preset, camera, seed, scale, jobs))
+    truth = {job.image_path: (job.truth_depth_path, DEPTH_METRES_PER_UNIT) for job in jobs}
+    sensor = ({job.image_path: (job.sensor_depth_path, preset.depth_sensor.metres_per_unit)
+               for job in jobs} if preset.depth_sensor is not None else {})
+    write_dataset(out, cameras, entries["map"], entries["query"], sensor, truth_depth=truth)
+    _write_json(out / SYNTH_FILE, _synth_record(preset, cameras, seed, scale, jobs))
     return out
 
 
@@ -79,23 +84,61 @@ def render_dataset(preset: str | Preset, out: Path, *, seed: int = 0, workers: i
 
 @dataclass(frozen=True, eq=False)
 class _Job:
-    """One frame to render and where its image and depth go (relative to the dataset)."""
+    """One frame to render and where its image and depth go (relative to the dataset). Rig
+    presets put each camera's frames in a folder of its own (``folder`` = ``"cam1/"``)."""
 
     kind: str  # "map" or "query"
-    index: int
+    index: int  # of the trajectory pose (both images of a stereo pair share it)
     world_from_cam: npt.NDArray[np.float64]
     nuisance: Nuisance | None
+    camera_id: str = CAMERA_ID
+    camera_index: int = 0  # 0 for cam0, k for the preset's rig[k - 1]
+    folder: str = ""
 
     @property
     def image_path(self) -> str:
-        return f"images/{self.kind}/{self.index:06d}.png"
+        return f"images/{self.kind}/{self.folder}{self.index:06d}.png"
 
     @property
-    def depth_path(self) -> str:
-        return f"depth/{self.kind}/{self.index:06d}.png"
+    def truth_depth_path(self) -> str:
+        return f"truth_depth/{self.kind}/{self.folder}{self.index:06d}.png"
+
+    @property
+    def sensor_depth_path(self) -> str:
+        return f"depth/{self.kind}/{self.folder}{self.index:06d}.png"
+
+    def rng(self, seed: int, stream: int) -> np.random.Generator:
+        """Stream 0: image noise (cam0's keeps the key it always had, so single-camera presets
+        render as before); stream 2: the depth sensor (1 is the query nuisances', drawn in
+        :func:`_draw_nuisances`)."""
+        key = [seed, _KIND_CODE[self.kind], self.index]
+        if stream or self.camera_index:
+            key += [stream, self.camera_index]
+        return np.random.default_rng(key)
 
 
-_STATE: tuple[Any, ...] = ()  # (scene, camera, preset, seed, out) in a worker
+def _make_jobs(preset: Preset, map_poses: list[npt.NDArray[np.float64]],
+               query_poses: list[npt.NDArray[np.float64]],
+               nuisances: list[Nuisance | None]) -> list[_Job]:
+    """Map jobs pose by pose (cam0, then each rig camera: a stereo pair is two consecutive
+    rows), then the cam0 query jobs."""
+    from ..geometry import compose
+
+    folder = f"{CAMERA_ID}/" if preset.rig else ""
+    jobs = []
+    for i, pose in enumerate(map_poses):
+        jobs.append(_Job("map", i, pose, None, folder=folder))
+        for k, rig_cam in enumerate(preset.rig, 1):
+            cam0_from_cam = np.eye(4)
+            cam0_from_cam[:3, 3] = rig_cam.offset_m
+            jobs.append(_Job("map", i, compose(pose, cam0_from_cam), None, rig_cam.camera_id, k,
+                             f"{rig_cam.camera_id}/"))
+    jobs += [_Job("query", i, pose, nuisances[i], folder=folder)
+             for i, pose in enumerate(query_poses)]
+    return jobs
+
+
+_STATE: tuple[Any, ...] = ()  # (scene, cameras, preset, seed, out) in a worker
 
 
 def _init_worker(state: tuple[Any, ...], single_threaded: bool) -> None:
@@ -108,22 +151,35 @@ def _init_worker(state: tuple[Any, ...], single_threaded: bool) -> None:
 
 
 def _render_job(job: _Job) -> str:
-    """Render one frame and write its 8-bit image and 16-bit depth (mm) PNGs."""
+    """Render one frame and write its 8-bit image, its exact 16-bit depth (mm) and, for an
+    RGB-D preset, its sensor depth PNGs."""
     import cv2
 
     from .renderer import render_frame
 
-    scene, camera, preset, seed, out = _STATE
-    rng = np.random.default_rng([seed, _KIND_CODE[job.kind], job.index])
-    frame = render_frame(scene, camera, job.world_from_cam, rng=rng,
-                         supersample=preset.supersample, noise_sigma=preset.noise_sigma,
-                         nuisance=job.nuisance)
-    depth_units = np.clip(np.rint(frame.depth / DEPTH_METRES_PER_UNIT), 0, 65535)
-    for rel, data in ((job.image_path, frame.image), (job.depth_path,
-                                                       depth_units.astype(np.uint16))):
+    scene, cameras, preset, seed, out = _STATE
+    frame = render_frame(scene, cameras[job.camera_id], job.world_from_cam,
+                         rng=job.rng(seed, 0), supersample=preset.supersample,
+                         noise_sigma=preset.noise_sigma, nuisance=job.nuisance)
+    truth = _depth_png(frame.depth, DEPTH_METRES_PER_UNIT)
+    files: list[tuple[str, npt.NDArray[Any]]] = [(job.image_path, frame.image),
+                                                  (job.truth_depth_path, truth)]
+    if preset.depth_sensor is not None:
+        from .depth_sensor import sensor_depth
+
+        sensed = sensor_depth(frame.depth, frame.cos_incidence, preset.depth_sensor,
+                              job.rng(seed, 2))
+        files.append((job.sensor_depth_path,
+                       _depth_png(sensed, preset.depth_sensor.metres_per_unit)))
+    for rel, data in files:
         if not cv2.imwrite(str(out / rel), data):
             raise DatasetError(f"cannot write {out / rel}")
     return job.image_path
+
+
+def _depth_png(depth: npt.NDArray[np.float32], metres_per_unit: float) -> npt.NDArray[np.uint16]:
+    """Metres (0: none) to 16-bit units, rounded to the nearest unit (the quantisation)."""
+    return np.clip(np.rint(depth / metres_per_unit), 0, 65535).astype(np.uint16)
 
 
 def _run_jobs(jobs: list[_Job], state: tuple[Any, ...], *, workers: int, show: bool) -> None:
@@ -173,20 +229,29 @@ def _draw_nuisances(preset: Preset, camera: Any, query_poses: list[npt.NDArray[n
 
 # -- files -----------------------------------------------------------------------------------
 
-def _prepare_folder(out: Path) -> None:
-    """Create ``out``; clear the frames of an earlier synth run there; refuse other content."""
+def _check_folder(out: Path) -> None:
+    """Refuse an ``out`` that is a file or holds anything but an earlier synth run."""
     if out.exists() and not out.is_dir():
         raise DatasetError(f"{out} exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not (out / SYNTH_FILE).is_file():
         raise DatasetError(f"{out} is not empty and holds no {SYNTH_FILE}; refusing to write a "
                            "synthetic dataset over other files (choose an empty or new folder)")
-    for sub in ("images", "depth"):
+
+
+def _prepare_folder(out: Path, jobs: list[_Job], *, sensor_depth: bool) -> None:
+    """Clear the frames of an earlier synth run in ``out``; create the folders the ``jobs``
+    write into."""
+    _check_folder(out)
+    for sub in ("images", "depth", "truth_depth"):
         shutil.rmtree(out / sub, ignore_errors=True)
-        for kind in _KIND_CODE:
-            (out / sub / kind).mkdir(parents=True, exist_ok=True)
+    for job in jobs:
+        paths = [job.image_path, job.truth_depth_path] + ([job.sensor_depth_path]
+                                                          if sensor_depth else [])
+        for rel in paths:
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
 
 
-def _synth_record(preset: Preset, camera: Any, seed: int, scale: float,
+def _synth_record(preset: Preset, cameras: dict[str, Any], seed: int, scale: float,
                   jobs: list[_Job]) -> dict[str, Any]:
     """What ``synth.json`` records: enough to regenerate the dataset and to know its nuisances."""
     return {
@@ -195,9 +260,13 @@ def _synth_record(preset: Preset, camera: Any, seed: int, scale: float,
         "n_map": preset.n_map, "n_query": preset.n_query, "supersample": preset.supersample,
         "noise_sigma_grey_levels": preset.noise_sigma,
         "degradation": asdict(preset.degradation) if preset.degradation else None,
-        "camera_id": CAMERA_ID, "camera": camera.to_dict(),
+        "camera_id": CAMERA_ID, "camera": cameras[CAMERA_ID].to_dict(),
+        "rig": {c.camera_id: {"cam0_from_cam_translation_m": list(c.offset_m),
+                              "camera": cameras[c.camera_id].to_dict()} for c in preset.rig},
         "depth": {"metres_per_unit": DEPTH_METRES_PER_UNIT, "kind": "z along the optical axis",
-                  "no_hit": 0},
+                  "no_hit": 0, "file": "truth_depth.txt"},
+        "depth_sensor": ({**asdict(preset.depth_sensor), "file": "depth.txt"}
+                         if preset.depth_sensor else None),
         "textures": "scikit-image sample photographs (bundled)",
         "query_nuisances": {job.image_path: job.nuisance.summary() for job in jobs
                             if job.nuisance is not None},

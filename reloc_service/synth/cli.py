@@ -33,8 +33,8 @@ def main_synth(args: argparse.Namespace) -> int:
     if args.list:
         for name, p in sorted(PRESETS.items()):
             cam = p.camera
-            print(f"{name:10s} {p.n_map:3d} map {p.n_query:3d} query  {cam.width}x{cam.height} "
-                  f"{cam.model:8s} {p.description}")
+            print(f"{name:17s} {p.n_map_frames:3d} map {p.n_query:3d} query  "
+                  f"{cam.width}x{cam.height} {cam.model:8s} {p.description}")
         return 0
     if args.preset is None or args.out is None:
         print("reloc synth: --preset and --out are required (or --list)", file=sys.stderr)
@@ -52,7 +52,7 @@ def main_synth(args: argparse.Namespace) -> int:
         print(f"reloc synth: {exc}", file=sys.stderr)
         return 1
     p = PRESETS[args.preset]
-    print(f"wrote {out}: {p.n_map} map + {p.n_query} query frames, seed {args.seed}, "
+    print(f"wrote {out}: {p.n_map_frames} map + {p.n_query} query frames, seed {args.seed}, "
           f"{time.perf_counter() - start:.1f} s")
     return 0
 

@@ -343,10 +343,13 @@ def motion_blur(image: F32, length_px: float, angle: float) -> F32:
 
 @dataclass(frozen=True)
 class RenderedFrame:
-    """One rendered frame: (H, W) uint8 image, (H, W) float32 Z-depth in metres (0: no hit)."""
+    """One rendered frame: (H, W) uint8 image, (H, W) float32 Z-depth in metres (0: no hit)
+    and (H, W) float32 cosine of the angle between each pixel's ray and the surface normal it
+    hits (1: head-on, 0: grazing or no hit), which depth sensors care about."""
 
     image: npt.NDArray[np.uint8]
     depth: F32
+    cos_incidence: F32
 
 
 _GRIDS: dict[tuple[Camera, int], RayGrid] = {}
@@ -379,10 +382,20 @@ def render_frame(scene: Scene, camera: Camera, world_from_cam: Array, *,
     centre_hits = cast_rays(scene, cam_from_world, centre)
     z = np.where(np.isfinite(centre_hits.t), centre_hits.t * centre.rays[2], 0.0)
     depth = centre.to_image(z.astype(np.float32))
+    cos_incidence = centre.to_image(_cos_incidence(scene, world_from_cam, centre, centre_hits))
     if nuisance is not None:
         image = motion_blur(image, nuisance.blur_px, nuisance.blur_angle)
         image = np.clip(image * np.float32(nuisance.gain), 0, 1) ** np.float32(nuisance.gamma)
     image = image + rng.standard_normal(image.shape, dtype=np.float32) * np.float32(
         noise_sigma / 255.0)
     pixels = np.clip(np.rint(image * 255.0), 0, 255).astype(np.uint8)
-    return RenderedFrame(pixels, np.ascontiguousarray(depth))
+    return RenderedFrame(pixels, np.ascontiguousarray(depth), np.ascontiguousarray(cos_incidence))
+
+
+def _cos_incidence(scene: Scene, world_from_cam: Array, grid: RayGrid, hits: Hits) -> F32:
+    """(N,) -(ray . normal) of every ray's hit (front faces only, so in (0, 1]); 0 if none."""
+    out = np.zeros(hits.t.shape, dtype=np.float32)
+    hit = np.flatnonzero(hits.quad >= 0)
+    normals_cam = (scene.normals @ world_from_cam[:3, :3]).astype(np.float32)[hits.quad[hit]]
+    out[hit] = -np.einsum("ij,ji->i", normals_cam, grid.rays[:, hit])
+    return out

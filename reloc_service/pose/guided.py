@@ -1,0 +1,143 @@
+"""Guided matching (search by projection, as ORB-SLAM's relocalization does): once a first pose
+exists, project the landmarks of the local map into the query and match each only against the
+query keypoints in a window around its projection, where blur, exposure change or a crowd of
+similar descriptors no longer hide the right match from a global ratio test."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial import cKDTree
+
+from ..cameras import Camera
+from ..frame import Features
+from ..geometry import invert, transform_points
+from ..map import MapState
+
+Array = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+#: Query keypoints examined around each projection (the window rarely holds more).
+_WINDOW_NEIGHBOURS = 8
+#: Descriptor pairs sampled to estimate the distance distribution of unrelated features.
+_BACKGROUND_SAMPLE = 256
+
+
+@dataclass(frozen=True)
+class GuidedConf:
+    """Search-by-projection settings."""
+
+    #: Window radius as a multiple of the pose's inlier threshold: the first pose reprojects
+    #: its inliers within one threshold, landmarks elsewhere in the image within about two.
+    window_factor: float = 2.0
+    #: Ratio of the best to the second-best descriptor distance inside the window (ORB-SLAM's
+    #: search by projection uses 0.9: the window already excludes most confusers).
+    window_ratio: float = 0.9
+    #: A match must also be closer than this quantile of the distances between unrelated
+    #: descriptors (estimated on each query): a chance pair passes with at most this
+    #: probability, however empty the window.
+    background_quantile: float = 0.01
+    #: Keyframes near the first pose whose landmarks are projected (besides the candidates).
+    local_keyframes: int = 10
+    #: Largest angle between a local keyframe's optical axis and the first pose's, degrees.
+    max_view_angle_deg: float = 60.0
+
+
+def nearest_keyframes(state: MapState, world_from_cam: Array, count: int,
+                      max_view_angle_deg: float) -> list[int]:
+    """Up to ``count`` keyframe ids of ``state``, nearest centre to ``world_from_cam``'s first,
+    among those whose optical axis is within ``max_view_angle_deg`` of its optical axis."""
+    ids = state.keyframe_ids()
+    if not ids or count <= 0:
+        return []
+    poses = np.stack([state.keyframes[k].world_from_cam for k in ids])
+    angle = np.arccos(np.clip(poses[:, :3, 2] @ world_from_cam[:3, 2], -1.0, 1.0))
+    dist = np.linalg.norm(poses[:, :3, 3] - world_from_cam[:3, 3], axis=1)
+    ok = np.flatnonzero(angle <= np.deg2rad(max_view_angle_deg))
+    return [ids[i] for i in ok[np.argsort(dist[ok], kind="stable")][:count]]
+
+
+def project_into(camera: Camera, world_from_cam: Array, points_world: Array
+                 ) -> tuple[Array, npt.NDArray[np.bool_]]:
+    """(N, 2) pixels of world points seen from ``world_from_cam`` and the mask of those in
+    front of the camera and inside the image."""
+    points_cam = transform_points(invert(world_from_cam), points_world)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        px = camera.project(points_cam)
+        width, height = camera.size
+        visible = ((points_cam[:, 2] > 0) & np.isfinite(px).all(axis=1)
+                   & (px[:, 0] >= -0.5) & (px[:, 0] <= width - 0.5)
+                   & (px[:, 1] >= -0.5) & (px[:, 1] <= height - 0.5))
+    return px, visible
+
+
+def background_distance(query_desc: npt.NDArray[Any], map_desc: npt.NDArray[Any],
+                        quantile: float, rng_seed: int = 0) -> float:
+    """The ``quantile`` of distances between query and map descriptors drawn at random (almost
+    all unrelated pairs): a match closer than this is unlikely to be chance."""
+    if len(query_desc) == 0 or len(map_desc) == 0:
+        return 0.0
+    rng = np.random.default_rng(rng_seed)
+    a = _as_float(query_desc[rng.integers(0, len(query_desc), _BACKGROUND_SAMPLE)])
+    b = _as_float(map_desc[rng.integers(0, len(map_desc), _BACKGROUND_SAMPLE)])
+    d2 = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * a @ b.T
+    return float(np.quantile(_distance(np.maximum(d2, 0.0), query_desc), quantile))
+
+
+def search_by_projection(feats: Features, camera: Camera, world_from_cam: Array,
+                         map_desc: npt.NDArray[Any], points_world: Array, radius_px: float,
+                         conf: GuidedConf) -> tuple[IntArray, IntArray]:
+    """Matches of map landmarks (descriptors (L, D), points (L, 3)) to query keypoints within
+    ``radius_px`` of their projection under ``world_from_cam``: (M,) query keypoint indices
+    and (M,) landmark rows, one landmark per keypoint and one keypoint per landmark."""
+    empty = np.zeros(0, np.int64)
+    if len(feats) < 2 or len(points_world) == 0:
+        return empty, empty
+    px, visible = project_into(camera, world_from_cam, points_world)
+    rows = np.flatnonzero(visible)
+    k = min(_WINDOW_NEIGHBOURS, len(feats))
+    _, near = cKDTree(feats.keypoints_px).query(px[rows], k=k, distance_upper_bound=radius_px)
+    near = near.reshape(len(rows), k)
+    in_window = near < len(feats)
+    dist = _window_distances(feats.descriptors, map_desc[rows], np.where(in_window, near, 0))
+    dist[~in_window] = np.inf
+    order = np.argsort(dist, axis=1)
+    best = np.take_along_axis(dist, order[:, :1], axis=1)[:, 0]
+    second = (np.take_along_axis(dist, order[:, 1:2], axis=1)[:, 0] if k > 1
+              else np.full(len(rows), np.inf))
+    limit = background_distance(feats.descriptors, map_desc, conf.background_quantile)
+    ok = np.isfinite(best) & (best < conf.window_ratio * second) & (best < limit)
+    query_idx = near[np.arange(len(rows)), order[:, 0]][ok].astype(np.int64)
+    return _one_to_one(query_idx, rows[ok].astype(np.int64), best[ok])
+
+
+def _window_distances(query_desc: npt.NDArray[Any], landmark_desc: npt.NDArray[Any],
+                      near: IntArray) -> Array:
+    """(L, K) descriptor distance of each landmark to its K window keypoints."""
+    a = _as_float(query_desc)[near]                       # (L, K, D)
+    b = _as_float(landmark_desc)[:, None, :]              # (L, 1, D)
+    d2 = np.einsum("lkd,lkd->lk", a - b, a - b)
+    return _distance(d2, query_desc)
+
+
+def _one_to_one(query_idx: IntArray, rows: IntArray, dist: Array) -> tuple[IntArray, IntArray]:
+    """Keep, for each query keypoint, its closest landmark."""
+    order = np.lexsort((dist, query_idx))
+    _, first = np.unique(query_idx[order], return_index=True)
+    keep = np.sort(order[first])
+    return query_idx[keep], rows[keep]
+
+
+def _as_float(desc: npt.NDArray[Any]) -> npt.NDArray[np.float32]:
+    """Descriptors as float vectors; binary ones as bits (squared L2 = Hamming distance)."""
+    if desc.dtype == np.uint8:
+        return np.unpackbits(desc, axis=-1).astype(np.float32)
+    return desc.astype(np.float32)
+
+
+def _distance(d2: Array, desc: npt.NDArray[Any]) -> Array:
+    """Squared L2 on bits is the Hamming distance; on float descriptors take the root."""
+    return np.asarray(d2, np.float64) if desc.dtype == np.uint8 else np.sqrt(d2)
