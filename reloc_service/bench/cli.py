@@ -29,7 +29,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write PNG plots into DIR (needs matplotlib)")
     parser.add_argument("--only", metavar="SECTION", action="append",
                         help="run only this section (repeatable); one of: latency, peers, "
-                             "throughput, scaling, ferns, planar")
+                             "throughput, scaling, ferns, planar, accuracy (accuracy runs "
+                             "only when named here or when --dataset/--preset is given)")
+    parser.add_argument("--dataset", metavar="DIR", type=Path, action="append",
+                        help="accuracy section: a reloc dataset to score (repeatable); with "
+                             "--dataset or --preset only the sets named are scored, else the "
+                             "presets desk (--quick) or desk, room, room-hard plus every set "
+                             "under ../shared/data/real/*/")
+    parser.add_argument("--preset", metavar="NAME", action="append",
+                        help="accuracy section: a synthetic preset to render and score "
+                             "(repeatable; see `reloc synth --list`)")
     parser.add_argument("--workdir", metavar="DIR", type=Path,
                         help="keep the rendered scene and maps in DIR (default: a temporary "
                              "folder, removed afterwards)")
@@ -40,17 +49,31 @@ def main(args: argparse.Namespace) -> int:
     from . import suite
 
     conf = suite.QUICK if args.quick else suite.FULL
+    datasets, presets = getattr(args, "dataset", None), getattr(args, "preset", None)
+    run_accuracy = "accuracy" in (args.only or []) or bool(datasets or presets)
     if args.only:
-        unknown = sorted(set(args.only) - set(suite.SECTIONS))
+        unknown = sorted(set(args.only) - set(suite.SECTIONS) - {"accuracy"})
         if unknown:
             print(f"reloc bench: unknown section(s) {unknown}; expected some of "
-                  f"{list(suite.SECTIONS)}", file=sys.stderr)
+                  f"{[*suite.SECTIONS, 'accuracy']}", file=sys.stderr)
             return 2
         conf = dataclasses.replace(conf, sections=tuple(s for s in suite.SECTIONS
                                                         if s in args.only))
+    acc_conf = None
+    if run_accuracy:
+        from . import accuracy
+
+        acc_conf = accuracy.conf_from_args(quick=args.quick, presets=presets,
+                                           datasets=datasets, seed=conf.seed)
+        problem = accuracy.check_conf(acc_conf)
+        if problem:
+            print(f"reloc bench: {problem}", file=sys.stderr)
+            return 2
     if args.workdir is not None:
         args.workdir.mkdir(parents=True, exist_ok=True)
     result = suite.run_suite(conf, command=command_line(), workdir=args.workdir)
+    if acc_conf is not None:
+        accuracy.run_into(result, acc_conf, args.workdir)
     if args.plots is not None:
         from .plots import plot_all
 
@@ -67,7 +90,15 @@ def main(args: argparse.Namespace) -> int:
         args.markdown.write_text(render_markdown(result, plots_dir=plots_rel),
                                  encoding="utf-8")
     print("\n".join(headline_lines(result)))
+    acc = result.get("accuracy")
+    if acc and "error" not in acc:
+        from .accuracy import note_lines, table_lines
+
+        print("\n".join(["", "Accuracy (recall@5cm/5deg / recall@25cm/10deg / wrong / p50):",
+                         *table_lines(acc), *note_lines(acc)]))
     failed = suite.failed_sections(result)
+    if acc and (acc.get("failed_datasets") or acc.get("failed_columns")):
+        failed.append(f"accuracy ({', '.join([*acc['failed_datasets'], *acc['failed_columns']])})")
     if failed:
         print(f"reloc bench: section(s) failed: {', '.join(failed)}", file=sys.stderr)
         return 1
@@ -180,7 +211,7 @@ def render_markdown(result: Mapping[str, Any], *, plots_dir: Path | None = None)
                 for p in result["plots"]] + [""]
     for name, fn in (("scene", _scene), ("latency", _latency), ("peers", _peers),
                      ("throughput", _throughput), ("scaling", _scaling), ("ferns", _ferns),
-                     ("planar", _planar)):
+                     ("planar", _planar), ("accuracy", _accuracy)):
         section = result.get(name)
         if not section:
             continue
@@ -312,6 +343,12 @@ def _peers(p: Mapping[str, Any]) -> list[str]:
                 f"{_f(1e3 * (pnp['opencv_t_err_m_median'] or math.nan), 1)} mm (OpenCV); "
                 f"failures {pnp['poselib_failures']} vs {pnp['opencv_failures']}.", ""]
     return out
+
+
+def _accuracy(a: Mapping[str, Any]) -> list[str]:
+    from .accuracy import markdown_lines
+
+    return markdown_lines(a)
 
 
 def _throughput(t: Mapping[str, Any]) -> list[str]:

@@ -33,7 +33,7 @@ Array = npt.NDArray[np.float64]
 
 #: Lowe's ratio, as in our matcher and in the SIFT paper.
 RATIO = 0.8
-#: A user accepts a pose with at least this many RANSAC inliers (our verification's minimum).
+#: A user accepts a pose with at least this many RANSAC inliers (a common hand-picked gate).
 MIN_INLIERS = 20
 
 
@@ -84,11 +84,26 @@ class PlainMap:
     def keyframes(self) -> int:
         return len(self.starts) - 1
 
-    def per_keyframe(self) -> tuple[list[npt.NDArray[np.float32]], npt.NDArray[np.int64]]:
-        """The descriptors of each keyframe that has some (views), and the first row of each."""
+    def per_keyframe(self, min_rows: int = 2
+                     ) -> tuple[list[npt.NDArray[np.float32]], npt.NDArray[np.int64]]:
+        """The descriptors of each keyframe that has some (views), and the first row of each.
+
+        A keyframe with fewer than ``min_rows`` descriptors (the k of ``knnMatch``) shares the
+        set of the next keyframe (the previous one at the end): OpenCV's
+        ``BFMatcher.knnMatch`` over a collection returns garbage image and train indices for
+        every query descriptor as soon as one train set holds fewer than k rows (seen with
+        OpenCV 5.0.0). Sets stay contiguous row ranges, so ``start + trainIdx`` holds."""
         nonempty = np.flatnonzero(np.diff(self.starts) > 0)
-        return ([self.descriptors[self.starts[k]:self.starts[k + 1]] for k in nonempty],
-                self.starts[nonempty])
+        firsts = [int(self.starts[k]) for k in nonempty]
+        merged: list[int] = []
+        for first in firsts:
+            if not merged or first - merged[-1] >= min_rows:
+                merged.append(first)
+        if len(merged) > 1 and len(self) - merged[-1] < min_rows:
+            merged.pop()
+        return ([self.descriptors[a:b] for a, b in zip(merged, [*merged[1:], len(self)],
+                                                       strict=True)],
+                np.asarray(merged, np.int64))
 
 
 @dataclass
