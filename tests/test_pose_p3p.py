@@ -219,3 +219,15 @@ def test_find_pose_with_keyframes_lacking_features_is_refused():
     assert est is not None and est.inliers == 0 and est.num_matches == 0
     assert not result_from_estimate(est, VerifyConf(), method="p3p", map_version=0,
                                     timings={}).ok
+
+
+def test_chance_agreement_is_higher_for_bunched_correspondences():
+    from reloc_service.pose.p3p import chance_agreement
+
+    rng = np.random.default_rng(0)
+    spread = np.column_stack([rng.uniform(0, 640, 200), rng.uniform(0, 480, 200)])
+    bunched = rng.normal((320.0, 240.0), 8.0, (200, 2))
+    uniform = np.pi * 25 / (640 * 480)
+    assert chance_agreement(spread, spread, 5.0, (640, 480)) < 5 * uniform
+    assert chance_agreement(bunched, bunched, 5.0, (640, 480)) > 100 * uniform
+    assert chance_agreement(spread[:1], spread[:1], 5.0, (640, 480)) == uniform

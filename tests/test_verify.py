@@ -101,3 +101,18 @@ def test_derived_rms_gate_follows_the_inlier_threshold():
 def test_bad_options_rejected(options):
     with pytest.raises(ConfigError):
         VerifyConf(**options)
+
+
+def test_consensus_bunched_where_chance_agreement_is_likely_is_refused():
+    est = estimate(n=14, matches=60)
+    assert verify(est, VerifyConf())[0]
+    est.chance_probability = 0.05             # keypoints and points crowd one small patch
+    ok, reason, _ = verify(est, VerifyConf())
+    assert not ok and "could be chance" in reason
+
+
+def test_inlier_floor_applies_before_guided_matching_too():
+    grown = estimate(n=60, matches=80)
+    grown.unguided_evidence = (12, 6)
+    ok, reason, _ = verify(grown, VerifyConf())
+    assert not ok and "before guided matching (6 < 10)" in reason

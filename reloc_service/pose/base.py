@@ -49,6 +49,11 @@ class PoseEstimate:
     inlier_threshold_px: float | None = None
     #: Correspondences drawn per hypothesis by the minimal solver (3 for P3P).
     sample_size: int = 3
+    #: Probability that a correspondence agrees with the pose by chance, from the data: the
+    #: share of (keypoint, point) pairings across the inliers that agree within the
+    #: threshold, at least ``pi t^2 / area``. Inliers bunched on one patch (a poster) make
+    #: chance agreement likely; spread ones do not. None: the uniform value.
+    chance_probability: float | None = None
     #: (matches, inliers) of the consensus found without a pose prior, when the estimate was
     #: then grown by guided matching: the false-alarm test judges these, since matches found
     #: around projections agree with the pose by construction. None: ``num_matches``,

@@ -172,11 +172,30 @@ def _projection_jacobian(camera: Camera, points_cam: Array) -> Array:
     return out
 
 
+def chance_agreement(projected_px: Array, px: Array, threshold_px: float,
+                     image_size: tuple[int, int], *, max_points: int = 400) -> float:
+    """Probability that a correspondence agrees within ``threshold_px`` by chance, estimated
+    on the data: the share of mismatched pairings (point j projected at ``projected_px[j]``
+    against keypoint ``px[i]``, i != j) that agree, at least the uniform ``pi t^2 / area``.
+    At most ``max_points`` evenly chosen correspondences are paired (a fixed cost)."""
+    width, height = image_size
+    uniform = float(np.pi * threshold_px**2 / (width * height))
+    n = len(px)
+    if n < 2:
+        return uniform
+    idx = np.unique(np.linspace(0, n - 1, min(n, max_points)).astype(np.int64))
+    d2 = ((projected_px[idx][:, None, :] - px[idx][None, :, :]) ** 2).sum(axis=2)
+    np.fill_diagonal(d2, np.inf)
+    m = len(idx)
+    return max(uniform, float(np.count_nonzero(d2 < threshold_px**2)) / (m * (m - 1)))
+
+
 def _estimate(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
               conf: PnPConf, num_matches: int, elapsed: float) -> PoseEstimate:
     """The estimate with the inliers' RMS and the Gauss-Newton covariance
     ``sigma^2 (J^T J)^-1`` (sigma from the residuals, floored at ``min_sigma_px``)."""
     residual, jac = _residuals_and_jacobian(world_from_cam, px, points_world, camera)
+    chance = chance_agreement(px - residual, px, conf.max_reproj_error_px, camera.size)
     sq = float((residual**2).sum())
     dof = max(residual.size - 6, 1)
     sigma2 = max(sq / dof, conf.min_sigma_px**2)
@@ -188,7 +207,8 @@ def _estimate(world_from_cam: Array, px: Array, points_world: Array, camera: Cam
                         inliers=len(px), reprojection_rms_px=float(np.sqrt(sq / len(px))),
                         covariance=covariance, timings={"solve": elapsed},
                         inlier_px=px.copy(), inlier_points_world=points_world.copy(),
-                        image_size=camera.size, inlier_threshold_px=conf.max_reproj_error_px)
+                        image_size=camera.size, inlier_threshold_px=conf.max_reproj_error_px,
+                        chance_probability=chance)
 
 
 @register("p3p")

@@ -85,13 +85,13 @@ class VerifyConf:
     """
 
     #: Largest expected number of false alarms (a-contrario, Moisan & Stival 2004): the number
-    #: of wrong poses that a consensus this large would produce by chance, per query. 1e-3 per
-    #: query keeps chance agreement an order of magnitude below the 1 % wrong-pose budget,
-    #: after the few candidate groups and fallback methods a query tries.
-    max_false_alarms: float = 1e-3
-    #: A floor under the statistical test: with fewer inliers the residual RMS and the
-    #: covariance that the other tests read are themselves unreliable (the relative standard
-    #: error of a variance from 2k - 6 residuals exceeds 1/sqrt(2 * 14) ~ 19 % below k = 10).
+    #: of wrong poses that a consensus this large would produce by chance, per query: the 1 %
+    #: wrong-pose budget of a drone.
+    max_false_alarms: float = 1e-2
+    #: A floor under the statistical test, for the consensus found without a pose prior and
+    #: for the final one: with fewer inliers the residual RMS and the covariance that the
+    #: other tests read are themselves unreliable (the relative standard error of a variance
+    #: from 2k - 6 residuals exceeds 1/sqrt(2 * 14) ~ 19 % below k = 10).
     min_inliers: int = 10
     #: Optional fixed gate on inliers / matches (0: off; the false-alarm test already weighs
     #: the inliers against the number of matches).
@@ -138,18 +138,20 @@ def verify(estimate: PoseEstimate | None, conf: VerifyConf) -> tuple[bool, str, 
 
 
 def log10_false_alarms(num_matches: int, inliers: int, threshold_px: float,
-                       image_size: tuple[int, int], sample_size: int = 3) -> float:
+                       image_size: tuple[int, int], sample_size: int = 3, *,
+                       chance_probability: float | None = None) -> float:
     """log10 of the number of false alarms of a consensus (ORSA, Moisan & Stival 2004): the
     expected number of subsets of ``inliers`` among ``num_matches`` correspondences that a
     wrong pose, fitted to ``sample_size`` of them, would explain within ``threshold_px`` by
-    chance. Under the background model a wrong pose sends each correspondence to a uniformly
-    random pixel, which lands within the threshold with probability ``p = pi t^2 / area``:
-    ``NFA = (n - s) C(n, k) C(k, s) p^(k - s)``."""
+    chance: ``NFA = (n - s) C(n, k) C(k, s) p^(k - s)``. ``p`` is the chance that one
+    correspondence agrees: at least ``pi t^2 / area`` (a wrong pose sends it to a uniformly
+    random pixel), more where the data say so (``chance_probability``)."""
     n, k, s = int(num_matches), int(inliers), int(sample_size)
     if k <= s or n < k:
         return float("inf")
     width, height = image_size
-    p = min(np.pi * threshold_px**2 / (width * height), 1.0)
+    p = np.pi * threshold_px**2 / (width * height)
+    p = min(max(p, chance_probability or 0.0), 1.0)
     return float(np.log10(max(n - s, 1)) + _log10_binomial(n, k) + _log10_binomial(k, s)
                  + (k - s) * np.log10(p))
 
@@ -165,6 +167,9 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
     max_rms = _max_rms_px(est, conf)
     if inliers < conf.min_inliers:
         return False, f"too few inliers ({inliers} < {conf.min_inliers})", 0.0
+    if est.unguided_evidence is not None and est.unguided_evidence[1] < conf.min_inliers:
+        return False, (f"too few inliers before guided matching ({est.unguided_evidence[1]} "
+                       f"< {conf.min_inliers})"), 0.0
     nfa = _log10_nfa(est)
     if nfa > np.log10(conf.max_false_alarms):
         matches, seed = est.unguided_evidence or (est.num_matches, inliers)
@@ -195,7 +200,7 @@ def _log10_nfa(est: PoseEstimate) -> float:
         return -float("inf")
     matches, inliers = est.unguided_evidence or (est.num_matches, int(est.inliers or 0))
     return log10_false_alarms(matches, inliers, est.inlier_threshold_px, est.image_size,
-                              est.sample_size)
+                              est.sample_size, chance_probability=est.chance_probability)
 
 
 def _max_rms_px(est: PoseEstimate, conf: VerifyConf) -> float:
