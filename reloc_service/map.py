@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 
 import numpy as np
@@ -31,6 +31,10 @@ class Landmark:
     id: int
     point_world: Array
     observations: frozenset[Observation]
+    #: 1-sigma uncertainty of the point along the ray of the keyframe that created it,
+    #: metres (from the triangulation's information matrix); 0 where unknown (depth maps,
+    #: client-given points).
+    depth_sigma_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -127,16 +131,22 @@ class KeyframeMap:
             return self._publish(keyframes, landmarks, self._state.next_landmark_id)
 
     def add_landmarks(self, kind: str, points_world: npt.ArrayLike,
-                      observations: Iterable[Iterable[tuple[int, int]]]) -> list[int]:
+                      observations: Iterable[Iterable[tuple[int, int]]], *,
+                      depth_sigmas_m: npt.ArrayLike | None = None) -> list[int]:
         """Create landmarks at ``points_world`` (L, 3), each observed by the given
-        ``(keyframe id, keypoint index)`` pairs of features ``kind``; the keyframes' features are
-        updated to point at them. Returns the new landmark ids. A keypoint that already has a
-        landmark keeps it (that observation is skipped)."""
+        ``(keyframe id, keypoint index)`` pairs of features ``kind``, with their depth
+        uncertainty (L,) if known; the keyframes' features are updated to point at them.
+        Returns the new landmark ids. A keypoint that already has a landmark keeps it (that
+        observation is skipped)."""
         pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
         obs_lists = [list(o) for o in observations]
         if len(obs_lists) != len(pts):
             raise MapError(f"add_landmarks: {len(pts)} points but {len(obs_lists)} "
                            "observation lists")
+        sigmas = (np.zeros(len(pts)) if depth_sigmas_m is None
+                  else np.asarray(depth_sigmas_m, dtype=np.float64).reshape(-1))
+        if len(sigmas) != len(pts) or not np.all(np.isfinite(sigmas) & (sigmas >= 0)):
+            raise MapError(f"add_landmarks: expected {len(pts)} finite depth sigmas >= 0")
         with self._lock:
             keyframes = dict(self._state.keyframes)
             landmarks = dict(self._state.landmarks)
@@ -144,7 +154,7 @@ class KeyframeMap:
             updates: dict[int, list[tuple[int, int, Array]]] = {}
             new_ids: list[int] = []
             taken: set[tuple[int, int]] = set()
-            for point, obs in zip(pts, obs_lists, strict=True):
+            for point, obs, sigma in zip(pts, obs_lists, sigmas.tolist(), strict=True):
                 fresh = [(k, i) for k, i in obs if k in keyframes and (k, i) not in taken
                          and keyframes[k].features[kind].landmark_ids[i] < 0]
                 taken.update(fresh)
@@ -153,7 +163,8 @@ class KeyframeMap:
                 lm_id = next_id
                 next_id += 1
                 landmarks[lm_id] = Landmark(lm_id, point.copy(),
-                                            frozenset((k, kind, int(i)) for k, i in fresh))
+                                            frozenset((k, kind, int(i)) for k, i in fresh),
+                                            sigma)
                 for k, i in fresh:
                     updates.setdefault(k, []).append((int(i), lm_id, point))
                 new_ids.append(lm_id)
@@ -177,8 +188,7 @@ class KeyframeMap:
                     continue
                 taken.add((k, i))
                 lm = landmarks[lm_id]
-                landmarks[lm_id] = Landmark(lm.id, lm.point_world,
-                                            lm.observations | {(k, kind, int(i))})
+                landmarks[lm_id] = replace(lm, observations=lm.observations | {(k, kind, int(i))})
                 updates.setdefault(k, []).append((int(i), lm_id, lm.point_world))
             _apply_updates(keyframes, kind, updates)
             self._publish(keyframes, landmarks, self._state.next_landmark_id)
@@ -201,7 +211,7 @@ class KeyframeMap:
             observers: set[int] = set()
             for lm_id, point in zip(ids.tolist(), pts, strict=True):
                 lm = landmarks[lm_id]
-                landmarks[lm_id] = Landmark(lm.id, point.copy(), lm.observations)
+                landmarks[lm_id] = replace(lm, point_world=point.copy())
                 observers.update(o[0] for o in lm.observations)
             for k in observers:
                 keyframes[k] = _with_moved_points(keyframes[k], ids, pts)
@@ -229,7 +239,7 @@ def _drop_observations(keyframe: Keyframe, landmarks: dict[int, Landmark]) -> No
                 continue
             remaining = lm.observations - {(keyframe.id, kind, int(idx))}
             if remaining:
-                landmarks[lm_id] = Landmark(lm.id, lm.point_world, remaining)
+                landmarks[lm_id] = replace(lm, observations=remaining)
             else:
                 del landmarks[lm_id]
 
@@ -248,7 +258,7 @@ def _register_given_landmarks(kf_id: int, kind: str, feats: Features,
                 raise MapError(f"keyframe {kf_id}: landmark {lm_id} has no finite 3D point")
             landmarks[lm_id] = Landmark(lm_id, point.copy(), frozenset({obs}))
         else:
-            landmarks[lm_id] = Landmark(lm.id, lm.point_world, lm.observations | {obs})
+            landmarks[lm_id] = replace(lm, observations=lm.observations | {obs})
         next_id = max(next_id, lm_id + 1)
     return next_id
 

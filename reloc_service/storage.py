@@ -8,7 +8,7 @@ Layout of a map directory ``MAP``::
         images/<id>.png             grey keyframe images
         depth/<id>.npy              float32 Z-depth maps (keyframes that have one)
         features/<id>.<kind>.npz    keypoints, levels, sizes, angles, descriptors, landmarks
-        landmarks.npz               landmark ids, points and observations (CSR)
+        landmarks.npz               landmark ids, points, depth sigmas and observations (CSR)
         models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
@@ -51,6 +51,8 @@ FEATURE_FIELDS = ("keypoints_px", "levels", "sizes", "angles", "descriptors", "l
                   "points_world")
 LANDMARK_FIELDS = ("ids", "points_world", "obs_offsets", "obs_keyframe", "obs_kind",
                    "obs_keypoint", "kinds")
+#: Arrays added since the first snapshot format; older snapshots read without them.
+OPTIONAL_LANDMARK_FIELDS = ("depth_sigmas_m",)
 
 ModelWriter = Callable[[Path], None]
 
@@ -152,6 +154,8 @@ def _landmark_arrays(state: MapState) -> dict[str, np.ndarray]:
         "obs_kind": np.array([kind_index[o[1]] for o in flat], dtype=np.int16),
         "obs_keypoint": np.array([o[2] for o in flat], dtype=np.int64),
         "kinds": np.array(kinds, dtype=np.str_) if kinds else np.zeros(0, dtype="<U1"),
+        "depth_sigmas_m": np.array([state.landmarks[i].depth_sigma_m for i in ids.tolist()],
+                                   dtype=np.float64),
     }
 
 
@@ -269,14 +273,16 @@ class _SnapshotReader:
                                f"{str(expected['sha256'])[:12]}...); the file is damaged")
         return data
 
-    def npz(self, relpath: str, fields: tuple[str, ...]) -> dict[str, np.ndarray]:
+    def npz(self, relpath: str, fields: tuple[str, ...], *, optional: tuple[str, ...] = ()
+            ) -> dict[str, np.ndarray]:
+        """The arrays ``fields`` (all required) and those of ``optional`` that are present."""
         try:
             with np.load(io.BytesIO(self.read(relpath)), allow_pickle=False) as data:
                 missing = [f for f in fields if f not in data.files]
                 if missing:
                     raise StorageError(f"{self.root / relpath}: missing array(s) {missing}; "
                                        f"expected {list(fields)}")
-                return {f: data[f] for f in fields}
+                return {f: data[f] for f in (*fields, *optional) if f in data.files}
         except (ValueError, OSError, EOFError) as exc:
             raise StorageError(f"{self.root / relpath}: not a readable .npz ({exc})") from exc
 
@@ -342,9 +348,12 @@ def _read_keyframe(reader: _SnapshotReader, entry: Mapping[str, Any]) -> Keyfram
 
 def _read_landmarks(reader: _SnapshotReader, relpath: str,
                     keyframes: Mapping[int, Keyframe]) -> dict[int, Landmark]:
-    a = reader.npz(relpath, LANDMARK_FIELDS)
+    a = reader.npz(relpath, LANDMARK_FIELDS, optional=OPTIONAL_LANDMARK_FIELDS)
     where = reader.root / relpath
     n, n_obs = len(a["ids"]), len(a["obs_keyframe"])
+    sigmas = a.get("depth_sigmas_m", np.zeros(n))
+    if sigmas.shape != (n,) or not np.all(np.isfinite(sigmas) & (sigmas >= 0)):
+        raise StorageError(f"{where}: depth_sigmas_m: expected {n} finite values >= 0")
     offsets = a["obs_offsets"]
     if (a["points_world"].shape != (n, 3) or offsets.shape != (n + 1,) or offsets[0] != 0
             or offsets[-1] != n_obs or np.any(np.diff(offsets) < 0)
@@ -357,7 +366,7 @@ def _read_landmarks(reader: _SnapshotReader, relpath: str,
                    a["obs_keypoint"].tolist(), strict=True))
     bounds = offsets.tolist()
     return {lm_id: Landmark(lm_id, a["points_world"][i].copy(),
-                            frozenset(obs[bounds[i]:bounds[i + 1]]))
+                            frozenset(obs[bounds[i]:bounds[i + 1]]), float(sigmas[i]))
             for i, lm_id in enumerate(a["ids"].tolist())}
 
 

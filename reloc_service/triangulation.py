@@ -144,13 +144,15 @@ class ViewObservations:
 
 @dataclass(eq=False)
 class TrackResult:
-    """Triangulated points (P, 3) world, their :class:`TrackStatus` (P,) and, per view, the
-    mask of observations kept (the others were outliers of an accepted point or belong to a
-    rejected point)."""
+    """Triangulated points (P, 3) world, their :class:`TrackStatus` (P,), their 1-sigma depth
+    uncertainty (P,) along the reference view's ray in metres (inf where undetermined) and,
+    per view, the mask of observations kept (the others were outliers of an accepted point or
+    belong to a rejected point)."""
 
     points_world: Array
     status: npt.NDArray[np.int8]
     kept: list[npt.NDArray[np.bool_]]
+    depth_sigmas_m: Array
 
     @property
     def accepted(self) -> npt.NDArray[np.bool_]:
@@ -372,12 +374,16 @@ def triangulate_tracks(views: Sequence[ViewObservations], num_points: int,
                         for v, d, r in zip(views, bad_depth, bad_reproj, strict=True)]
         x = refine_points(x, inlier_views, iterations=conf.refine_iterations,
                           min_depth=conf.min_depth_m)
-    status = _classify(x, views, inlier_views, first_bad_depth, conf)
+    uncertainty = depth_uncertainty(x, inlier_views, conf.keypoint_sigma_px)
+    status = _classify(x, views, inlier_views, first_bad_depth, uncertainty, conf)
     ok = status == TrackStatus.OK
     in_any = [np.isin(v.point_index, iv.point_index)
               for v, iv in zip(views, inlier_views, strict=True)]
     kept = [k & ok[v.point_index] for v, k in zip(views, in_any, strict=True)]
-    return TrackResult(points_world=x, status=status, kept=kept)
+    with np.errstate(invalid="ignore"):
+        sigmas = uncertainty * np.linalg.norm(x - views[0].centre_world, axis=1)
+    return TrackResult(points_world=x, status=status, kept=kept,
+                       depth_sigmas_m=np.where(np.isfinite(sigmas), sigmas, np.inf))
 
 
 def _two_view_hypotheses(views: Sequence[ViewObservations], num_points: int,
@@ -422,9 +428,10 @@ def _observation_faults(points_world: Array, views: Sequence[ViewObservations],
 
 def _classify(points_world: Array, views: Sequence[ViewObservations],
               inlier_views: Sequence[ViewObservations],
-              first_bad_depth: list[npt.NDArray[np.bool_]],
+              first_bad_depth: list[npt.NDArray[np.bool_]], uncertainty: Array,
               conf: TriangulationConf) -> npt.NDArray[np.int8]:
-    """:class:`TrackStatus` (P,) of the refined points over their inlier observations."""
+    """:class:`TrackStatus` (P,) of the refined points over their inlier observations, given
+    their relative depth ``uncertainty`` (P,) (:func:`depth_uncertainty`)."""
     n = len(points_world)
     status = np.zeros(n, np.int8)
     count = np.zeros(n, np.int64)
@@ -441,7 +448,6 @@ def _classify(points_world: Array, views: Sequence[ViewObservations],
         final_depth[v.point_index[d]] = True
         final_reproj[v.point_index[r]] = True
     parallax = parallax_angles(points_world, inlier_views)
-    uncertainty = depth_uncertainty(points_world, inlier_views, conf.keypoint_sigma_px)
     lost = ~ref_kept | (count < 2)
     # Later rules first: the first failing rule in (degenerate, depth, reprojection, parallax,
     # uncertain) order wins.
@@ -719,7 +725,8 @@ def _create_by_triangulation(kmap: KeyframeMap, kf_id: int, kind: str, matches: 
     accepted = np.flatnonzero(result.accepted)
     kf_ids = [kf_id] + [int(n) for n in np.unique(matches.other[rows])]
     obs = _observation_lists(kf_ids, views, keypoints, result.kept, accepted)
-    stats.created += len(kmap.add_landmarks(kind, result.points_world[accepted], obs))
+    stats.created += len(kmap.add_landmarks(kind, result.points_world[accepted], obs,
+                                            depth_sigmas_m=result.depth_sigmas_m[accepted]))
 
 
 def _create_from_depth(kmap: KeyframeMap, kf_id: int, kind: str, matches: _Matches,

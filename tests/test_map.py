@@ -117,3 +117,17 @@ def test_small_blurry_image_is_zero_mean():
     f = Frame(image=np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8), camera=CAM)
     sbi = f.small_blurry_image()
     assert sbi.shape == (30, 40) and abs(float(sbi.mean())) < 1e-3
+
+
+def test_depth_sigmas_follow_landmarks_through_updates():
+    kmap = KeyframeMap()
+    for k in range(2):
+        kmap.add_keyframe(make_keyframe(k))
+    ids = kmap.add_landmarks("sift", [[0, 0, 2.0], [1, 0, 3.0]], [[(0, 0)], [(0, 1)]],
+                             depth_sigmas_m=[0.05, 0.4])
+    kmap.add_observations("sift", [(ids[0], 1, 0)])
+    kmap.move_landmarks([ids[1]], [[1.0, 0.1, 3.1]])
+    state = kmap.snapshot()
+    assert [state.landmarks[i].depth_sigma_m for i in ids] == [0.05, 0.4]
+    with pytest.raises(MapError):
+        kmap.add_landmarks("sift", [[0, 0, 1.0]], [[(1, 2)]], depth_sigmas_m=[float("nan")])

@@ -45,6 +45,7 @@ def _assert_states_equal(a: MapState, b: MapState) -> None:
     for i, lm in a.landmarks.items():
         assert np.array_equal(lm.point_world, b.landmarks[i].point_world)
         assert lm.observations == b.landmarks[i].observations
+        assert lm.depth_sigma_m == b.landmarks[i].depth_sigma_m
 
 
 @pytest.fixture(scope="module")
@@ -272,3 +273,18 @@ def test_keyframe_type_survives(tmp_path, synthetic_map):
     save_map(synthetic_map, tmp_path)
     state, _ = load_map(tmp_path)
     assert all(isinstance(kf, Keyframe) for kf in state.keyframes.values())
+
+
+def test_round_trip_keeps_depth_sigmas_and_reads_snapshots_without_them(tmp_path, rich_state,
+                                                                        monkeypatch):
+    sigmas = [lm.depth_sigma_m for lm in rich_state.landmarks.values()]
+    assert any(s > 0 for s in sigmas)          # triangulated landmarks carry their uncertainty
+    save_map(rich_state, tmp_path / "new")
+    state, _ = load_map(tmp_path / "new")
+    _assert_states_equal(rich_state, state)
+    real = storage._landmark_arrays
+    monkeypatch.setattr(storage, "_landmark_arrays",       # a snapshot from before the field
+                        lambda st: {k: v for k, v in real(st).items() if k != "depth_sigmas_m"})
+    save_map(rich_state, tmp_path / "old")
+    old, _ = load_map(tmp_path / "old")
+    assert all(lm.depth_sigma_m == 0.0 for lm in old.landmarks.values())

@@ -43,6 +43,10 @@ class PnPConf:
     #: Floor of the residual standard deviation used for the covariance, pixels (keypoints
     #: are not more precise than this, however well a few of them happen to fit).
     min_sigma_px: float = 0.25
+    #: Localisation noise of a query keypoint, pixels: with a landmark's depth uncertainty
+    #: projected into the query (``s`` pixels), its residual weighs ``1 / (1 + (s / this)^2)``
+    #: in the refinement and the covariance.
+    keypoint_sigma_px: float = 1.0
 
     def __post_init__(self) -> None:
         if self.max_reproj_error_px <= 0:
@@ -53,6 +57,8 @@ class PnPConf:
                               f"{self.min_iterations}, {self.max_iterations}")
         if not 0 < self.success_prob < 1:
             raise ConfigError(f"success_prob must be in (0, 1), got {self.success_prob}")
+        if self.keypoint_sigma_px <= 0:
+            raise ConfigError(f"keypoint_sigma_px must be positive, got {self.keypoint_sigma_px}")
         if self.refine_iterations < 0 or self.min_sigma_px < 0:
             raise ConfigError("refine_iterations and min_sigma_px must be >= 0")
 
@@ -70,10 +76,37 @@ def solve_pnp(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Came
     return None if solved is None else solved[0]
 
 
+@dataclass(frozen=True, eq=False)
+class PointUncertainty:
+    """How well N world points are known: 1-sigma ``depth_sigmas_m`` (N,) along the rays from
+    ``ray_origins_world`` (N, 3) (the centre of a keyframe that observes each)."""
+
+    depth_sigmas_m: Array
+    ray_origins_world: Array
+
+    def pixel_sigmas(self, world_from_cam: Array, points_world: Array, camera: Camera,
+                     rows: npt.NDArray[np.int64] | slice = slice(None)) -> Array:
+        """(M,) the depth uncertainty of points ``rows`` as seen from ``world_from_cam``:
+        pixels between a point and the point moved one sigma along its ray."""
+        pts = points_world
+        ray = pts - self.ray_origins_world[rows]
+        ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
+        moved = pts + self.depth_sigmas_m[rows, None] * ray
+        cam_from_world = invert(world_from_cam)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            shift = (camera.project(transform_points(cam_from_world, moved))
+                     - camera.project(transform_points(cam_from_world, pts)))
+            sigma = np.linalg.norm(shift, axis=1)
+        return np.where(np.isfinite(sigma), sigma, np.inf)
+
+
 def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Camera,
-                      conf: PnPConf | None = None
+                      conf: PnPConf | None = None, *,
+                      uncertainty: PointUncertainty | None = None
                       ) -> tuple[PoseEstimate, npt.NDArray[np.int64]] | None:
-    """:func:`solve_pnp`, also returning the (I,) indices of the inlier correspondences."""
+    """:func:`solve_pnp`, also returning the (I,) indices of the inlier correspondences. With
+    ``uncertainty`` (of the N points), each residual is weighted by how precisely its point is
+    known as seen from the pose: an uncertain point still constrains the rotation."""
     conf = conf or PnPConf()
     start = time.perf_counter()
     px = np.asarray(query_px, dtype=np.float64).reshape(-1, 2)
@@ -88,12 +121,23 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
     world_from_cam = ransac_pinhole(ideal_px[usable], pts[usable], camera, conf)
     if world_from_cam is None:
         return None
-    world_from_cam, inliers = _refine(world_from_cam, px, pts, camera, conf)
+    world_from_cam, inliers = _refine(world_from_cam, px, pts, camera, conf, uncertainty)
     if len(inliers) < 4:
         return None
+    weights = _weights(world_from_cam, pts, inliers, camera, conf, uncertainty)
     est = _estimate(world_from_cam, px[inliers], pts[inliers], camera, conf, len(px),
-                    time.perf_counter() - start)
+                    time.perf_counter() - start, weights)
     return est, inliers
+
+
+def _weights(world_from_cam: Array, points_world: Array, rows: npt.NDArray[np.int64],
+             camera: Camera, conf: PnPConf, uncertainty: PointUncertainty | None) -> Array:
+    """(M,) residual weights of points ``rows``: ``1 / (1 + (s / keypoint_sigma)^2)`` with
+    ``s`` their depth uncertainty in the query's pixels; ones without ``uncertainty``."""
+    if uncertainty is None:
+        return np.ones(len(rows))
+    s = uncertainty.pixel_sigmas(world_from_cam, points_world[rows], camera, rows)
+    return 1.0 / (1.0 + (s / conf.keypoint_sigma_px) ** 2)
 
 
 def ransac_pinhole(ideal_px: Array, points_world: Array, camera: Camera, conf: PnPConf
@@ -116,16 +160,20 @@ def ransac_pinhole(ideal_px: Array, points_world: Array, camera: Camera, conf: P
 
 
 def _refine(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
-            conf: PnPConf) -> tuple[Array, npt.NDArray[np.int64]]:
-    """Gauss-Newton on the inliers' reprojection error through the real camera model; returns
-    the refined pose and the final inlier indices (residual below the threshold)."""
+            conf: PnPConf, uncertainty: PointUncertainty | None = None
+            ) -> tuple[Array, npt.NDArray[np.int64]]:
+    """Gauss-Newton on the inliers' reprojection error (weighted, see :func:`_weights`)
+    through the real camera model; returns the refined pose and the final inlier indices
+    (residual below the threshold)."""
     inliers = _inliers(world_from_cam, px, points_world, camera, conf)
     for _ in range(conf.refine_iterations):
         if len(inliers) < 4:
             break
         residual, jac = _residuals_and_jacobian(world_from_cam, px[inliers], points_world[inliers],
                                                 camera)
-        step, *_ = np.linalg.lstsq(jac, residual.ravel(), rcond=None)
+        root_w = np.repeat(np.sqrt(_weights(world_from_cam, points_world, inliers, camera, conf,
+                                            uncertainty)), 2)
+        step, *_ = np.linalg.lstsq(jac * root_w[:, None], residual.ravel() * root_w, rcond=None)
         world_from_cam = world_from_cam @ se3_exp(step)
         if np.linalg.norm(step) < 1e-12:
             break
@@ -173,7 +221,7 @@ def _projection_jacobian(camera: Camera, points_cam: Array) -> Array:
 
 
 def chance_agreement(projected_px: Array, px: Array, threshold_px: float,
-                     image_size: tuple[int, int], *, max_points: int = 400) -> float:
+                     image_size: tuple[int, int], *, max_points: int = 200) -> float:
     """Probability that a correspondence agrees within ``threshold_px`` by chance, estimated
     on the data: the share of mismatched pairings (point j projected at ``projected_px[j]``
     against keypoint ``px[i]``, i != j) that agree, at least the uniform ``pi t^2 / area``.
@@ -191,16 +239,20 @@ def chance_agreement(projected_px: Array, px: Array, threshold_px: float,
 
 
 def _estimate(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
-              conf: PnPConf, num_matches: int, elapsed: float) -> PoseEstimate:
-    """The estimate with the inliers' RMS and the Gauss-Newton covariance
-    ``sigma^2 (J^T J)^-1`` (sigma from the residuals, floored at ``min_sigma_px``)."""
+              conf: PnPConf, num_matches: int, elapsed: float, weights: Array | None = None
+              ) -> PoseEstimate:
+    """The estimate with the inliers' RMS and the weighted Gauss-Newton covariance
+    ``sigma^2 (J^T W J)^-1`` (sigma from the weighted residuals, floored at
+    ``min_sigma_px``)."""
     residual, jac = _residuals_and_jacobian(world_from_cam, px, points_world, camera)
     chance = chance_agreement(px - residual, px, conf.max_reproj_error_px, camera.size)
+    w = np.ones(len(px)) if weights is None else weights
     sq = float((residual**2).sum())
     dof = max(residual.size - 6, 1)
-    sigma2 = max(sq / dof, conf.min_sigma_px**2)
+    sigma2 = max(float((w[:, None] * residual**2).sum()) / dof, conf.min_sigma_px**2)
+    w_rows = np.repeat(w, 2)
     try:
-        covariance: Array = sigma2 * np.linalg.inv(jac.T @ jac).astype(np.float64)
+        covariance: Array = sigma2 * np.linalg.inv(jac.T @ (jac * w_rows[:, None]))
     except np.linalg.LinAlgError:  # degenerate geometry: unknown, so infinitely uncertain
         covariance = np.full((6, 6), np.inf)
     return PoseEstimate(world_from_cam=world_from_cam, keyframe_ids=[], num_matches=num_matches,
@@ -228,6 +280,9 @@ class P3PPoseFinder(PoseFinder):
         #: Grow a first pose by guided matching (search by projection, :mod:`.guided`) over
         #: the landmarks of the candidates and of the keyframes near that pose, then re-solve.
         guided: bool = True
+        #: ... when the first pose has fewer inliers than this (ORB-SLAM's relocalization
+        #: searches by projection below 50 inliers; above, the pose stands on its own).
+        guided_below_inliers: int = 50
         #: Keyframes near the first pose whose landmarks guided matching projects.
         guided_keyframes: int = 10
 
@@ -257,14 +312,15 @@ class P3PPoseFinder(PoseFinder):
         q_idx, rows, pool = self.match_landmarks(feats, keyframes)
         timings["match"] = time.perf_counter() - start
         solved = solve_pnp_indexed(feats.keypoints_px[q_idx], pool.points_world[rows],
-                                   query.camera, self.conf)
+                                   query.camera, self.conf,
+                                   uncertainty=pool.uncertainty(state, keyframes, rows))
         if solved is None:
             return PoseEstimate(world_from_cam=keyframes[0].world_from_cam.copy(),
                                 keyframe_ids=[kf.id for kf in keyframes], num_matches=len(q_idx),
                                 inliers=0, timings=timings)
         est, inliers = solved
         est.keyframe_ids = pool.keyframes_of(rows[inliers], [kf.id for kf in keyframes])
-        if self.conf.guided:
+        if self.conf.guided and (est.inliers or 0) < self.conf.guided_below_inliers:
             est = self._grow(query, feats, est, keyframes, state, q_idx,
                              pool.landmark_ids[rows])
         est.timings = {**timings, **est.timings}
@@ -289,7 +345,8 @@ class P3PPoseFinder(PoseFinder):
                                              pool.descriptors, pool.points_world, radius, conf)
         q_all, rows_all = _union(g_idx, g_rows, q_idx, pool.rows_of(landmark_ids))
         solved = solve_pnp_indexed(feats.keypoints_px[q_all], pool.points_world[rows_all],
-                                   query.camera, self.conf)
+                                   query.camera, self.conf,
+                                   uncertainty=pool.uncertainty(state, local, rows_all))
         elapsed = time.perf_counter() - start
         seed = (est.num_matches, int(est.inliers or 0))
         if solved is None or solved[0].inliers is None or solved[0].inliers <= seed[1]:
@@ -358,6 +415,16 @@ class LandmarkPool:
         return cls(np.concatenate([f.descriptors[i] for f, i in picks if f is not None]),
                    ids[first], np.concatenate([f.points_world[i] for f, i in picks
                                                if f is not None]), rows)
+
+    def uncertainty(self, state: MapState, keyframes: list[Keyframe],
+                    rows: npt.NDArray[np.int64]) -> PointUncertainty:
+        """The depth uncertainty of the landmarks of pool ``rows`` (``keyframes`` as given to
+        :meth:`gather`), along the rays from the keyframe each row came from."""
+        lms = state.landmarks
+        sigmas = np.array([lms[i].depth_sigma_m if i in lms else 0.0
+                           for i in self.landmark_ids[rows].tolist()], np.float64)
+        centres = np.array([kf.position_world for kf in keyframes]).reshape(-1, 3)
+        return PointUncertainty(sigmas, centres[self.keyframe_rows[rows]])
 
     def rows_of(self, landmark_ids: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
         """(M,) pool row of each landmark id; -1 where the pool does not hold it."""
