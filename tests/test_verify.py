@@ -113,6 +113,8 @@ def test_consensus_bunched_where_chance_agreement_is_likely_is_refused():
 
 def test_inlier_floor_applies_before_guided_matching_too():
     grown = estimate(n=60, matches=80)
-    grown.unguided_evidence = (12, 6)
+    grown.unguided_evidence = (12, 5)
     ok, reason, _ = verify(grown, VerifyConf())
-    assert not ok and "before guided matching (6 < 10)" in reason
+    assert not ok and "before guided matching (5 < 6)" in reason
+    grown.unguided_evidence = (12, 8)
+    assert verify(grown, VerifyConf())[0]

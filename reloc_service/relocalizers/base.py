@@ -88,11 +88,13 @@ class VerifyConf:
     #: of wrong poses that a consensus this large would produce by chance, per query: the 1 %
     #: wrong-pose budget of a drone.
     max_false_alarms: float = 1e-2
-    #: A floor under the statistical test, for the consensus found without a pose prior and
-    #: for the final one: with fewer inliers the residual RMS and the covariance that the
-    #: other tests read are themselves unreliable (the relative standard error of a variance
-    #: from 2k - 6 residuals exceeds 1/sqrt(2 * 14) ~ 19 % below k = 10).
+    #: A floor under the statistical test: with fewer inliers the residual RMS and the
+    #: covariance that the other tests read are themselves unreliable (the relative standard
+    #: error of a variance from 2k - 6 residuals exceeds 1/sqrt(2 * 14) ~ 19 % below k = 10).
     min_inliers: int = 10
+    #: The first pose, before guided matching grew it, must have at least this many inliers:
+    #: the three that determined it and as many independent ones that confirm it.
+    min_unguided_inliers: int = 6
     #: Optional fixed gate on inliers / matches (0: off; the false-alarm test already weighs
     #: the inliers against the number of matches).
     min_inlier_ratio: float = 0.0
@@ -115,8 +117,9 @@ class VerifyConf:
         if not 0 < self.max_false_alarms <= 1:
             raise ConfigError(f"verify.max_false_alarms must be in (0, 1], got "
                               f"{self.max_false_alarms}")
-        if self.min_inliers < 4:
-            raise ConfigError(f"verify.min_inliers must be >= 4, got {self.min_inliers}")
+        if self.min_inliers < 4 or self.min_unguided_inliers < 4:
+            raise ConfigError(f"verify.min_inliers and min_unguided_inliers must be >= 4, got "
+                              f"{self.min_inliers}, {self.min_unguided_inliers}")
         if self.max_rms_px is not None and self.max_rms_px <= 0:
             raise ConfigError(f"verify.max_rms_px must be positive, got {self.max_rms_px}")
 
@@ -167,9 +170,9 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
     max_rms = _max_rms_px(est, conf)
     if inliers < conf.min_inliers:
         return False, f"too few inliers ({inliers} < {conf.min_inliers})", 0.0
-    if est.unguided_evidence is not None and est.unguided_evidence[1] < conf.min_inliers:
+    if est.unguided_evidence is not None and est.unguided_evidence[1] < conf.min_unguided_inliers:
         return False, (f"too few inliers before guided matching ({est.unguided_evidence[1]} "
-                       f"< {conf.min_inliers})"), 0.0
+                       f"< {conf.min_unguided_inliers})"), 0.0
     nfa = _log10_nfa(est)
     if nfa > np.log10(conf.max_false_alarms):
         matches, seed = est.unguided_evidence or (est.num_matches, inliers)

@@ -15,6 +15,7 @@ from .base import RELOCALIZERS, Relocalizer
 PLUGIN_MODULES = (
     "reloc_service.place.sbi", "reloc_service.place.gt", "reloc_service.place.bow",
     "reloc_service.pose.none", "reloc_service.pose.esm", "reloc_service.pose.p3p",
+    "reloc_service.pose.fivept",
     "reloc_service.relocalizers.multi", "reloc_service.relocalizers.chain",
     "reloc_service.relocalizers.ferns",
 )
