@@ -64,6 +64,20 @@ class MapState:
             return np.zeros((0, 3))
         return np.stack([self.keyframes[i].world_from_cam[:3, 3] for i in ids])
 
+    def nearest_keyframes(self, world_from_cam: Array, count: int, max_view_angle_deg: float,
+                          *, exclude: int | None = None) -> list[int]:
+        """Up to ``count`` keyframe ids (not ``exclude``), nearest centre to
+        ``world_from_cam``'s first, among those whose optical axis is within
+        ``max_view_angle_deg`` of its optical axis (keyframes that see what it sees)."""
+        ids = [k for k in self.keyframe_ids() if k != exclude]
+        if not ids or count <= 0:
+            return []
+        poses = np.stack([self.keyframes[k].world_from_cam for k in ids])
+        angle = np.arccos(np.clip(poses[:, :3, 2] @ world_from_cam[:3, 2], -1.0, 1.0))
+        dist = np.linalg.norm(poses[:, :3, 3] - world_from_cam[:3, 3], axis=1)
+        ok = np.flatnonzero(angle <= np.deg2rad(max_view_angle_deg))
+        return [ids[i] for i in ok[np.argsort(dist[ok], kind="stable")][:count]]
+
     def landmark_points(self, landmark_ids: npt.ArrayLike) -> Array:
         """(L, 3) world points of ``landmark_ids``."""
         ids = np.asarray(landmark_ids, dtype=np.int64).ravel()

@@ -84,15 +84,8 @@ def select_neighbours(state: MapState, keyframe: Keyframe, count: int, max_view_
                       ) -> list[int]:
     """Up to ``count`` keyframe ids of ``state`` (not ``keyframe`` itself), nearest centre
     first, among those whose optical axis is within ``max_view_angle_deg`` of ``keyframe``'s."""
-    ids = [k for k in state.keyframe_ids() if k != keyframe.id]
-    if not ids or count == 0:
-        return []
-    poses = np.stack([state.keyframes[k].world_from_cam for k in ids])
-    axis = keyframe.world_from_cam[:3, 2]
-    angle = np.arccos(np.clip(poses[:, :3, 2] @ axis, -1.0, 1.0))
-    dist = np.linalg.norm(poses[:, :3, 3] - keyframe.position_world, axis=1)
-    ok = np.flatnonzero(angle <= np.deg2rad(max_view_angle_deg))
-    return [ids[i] for i in ok[np.argsort(dist[ok], kind="stable")][:count]]
+    return state.nearest_keyframes(keyframe.world_from_cam, count, max_view_angle_deg,
+                                   exclude=keyframe.id)
 
 
 def _given_features(image: npt.NDArray[np.uint8], kind: str, keypoints_px: Array,

@@ -265,3 +265,19 @@ def test_uncertain_points_weigh_less_in_the_refinement():
     err_plain = pose_error(plain[0].world_from_cam, TRUE_POSE)[0]
     err_weighted = pose_error(weighted[0].world_from_cam, TRUE_POSE)[0]
     assert err_weighted < 0.5 * err_plain
+
+
+def test_guided_matching_grows_a_weak_first_pose(scene):
+    import cv2
+
+    gt = query_pose(0)
+    blurred = cv2.GaussianBlur(scene.render(gt), (0, 0), 1.5)
+    dark = np.clip(blurred.astype(np.float64) * 0.5 + 20, 0, 255).astype(np.uint8)
+    state, cands = scene.map.snapshot(), candidates_near(scene, gt, 3)
+    plain = create_pose_finder({"name": "p3p", "guided": False}).find_pose(
+        Frame(dark, scene.camera), cands, state)
+    grown = create_pose_finder({"name": "p3p"}).find_pose(Frame(dark, scene.camera), cands, state)
+    assert plain.inliers < 50 and grown.inliers > plain.inliers
+    assert grown.unguided_evidence == (plain.num_matches, plain.inliers)
+    assert pose_error(grown.world_from_cam, gt)[0] < 0.02
+    assert "guided" in grown.timings

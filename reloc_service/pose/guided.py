@@ -15,7 +15,6 @@ from scipy.spatial import cKDTree
 from ..cameras import Camera
 from ..frame import Features
 from ..geometry import invert, transform_points
-from ..map import MapState
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -44,20 +43,6 @@ class GuidedConf:
     local_keyframes: int = 10
     #: Largest angle between a local keyframe's optical axis and the first pose's, degrees.
     max_view_angle_deg: float = 60.0
-
-
-def nearest_keyframes(state: MapState, world_from_cam: Array, count: int,
-                      max_view_angle_deg: float) -> list[int]:
-    """Up to ``count`` keyframe ids of ``state``, nearest centre to ``world_from_cam``'s first,
-    among those whose optical axis is within ``max_view_angle_deg`` of its optical axis."""
-    ids = state.keyframe_ids()
-    if not ids or count <= 0:
-        return []
-    poses = np.stack([state.keyframes[k].world_from_cam for k in ids])
-    angle = np.arccos(np.clip(poses[:, :3, 2] @ world_from_cam[:3, 2], -1.0, 1.0))
-    dist = np.linalg.norm(poses[:, :3, 3] - world_from_cam[:3, 3], axis=1)
-    ok = np.flatnonzero(angle <= np.deg2rad(max_view_angle_deg))
-    return [ids[i] for i in ok[np.argsort(dist[ok], kind="stable")][:count]]
 
 
 def project_into(camera: Camera, world_from_cam: Array, points_world: Array

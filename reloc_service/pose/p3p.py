@@ -20,7 +20,7 @@ from ..geometry import invert, se3_exp, transform_points
 from ..map import MapState
 from ..place.base import PlaceCandidate
 from .base import PoseEstimate, PoseFinder, register
-from .guided import GuidedConf, nearest_keyframes, search_by_projection
+from .guided import GuidedConf, search_by_projection
 
 Array = npt.NDArray[np.float64]
 
@@ -336,8 +336,8 @@ class P3PPoseFinder(PoseFinder):
         start = time.perf_counter()
         conf = GuidedConf(local_keyframes=self.conf.guided_keyframes)
         ids = [kf.id for kf in keyframes]
-        near = nearest_keyframes(state, est.world_from_cam, conf.local_keyframes,
-                                 conf.max_view_angle_deg)
+        near = state.nearest_keyframes(est.world_from_cam, conf.local_keyframes,
+                                       conf.max_view_angle_deg)
         local = keyframes + [state.keyframes[k] for k in near if k not in ids]
         pool = LandmarkPool.gather(local, self.conf.kind)
         radius = conf.window_factor * self.conf.max_reproj_error_px

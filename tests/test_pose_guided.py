@@ -1,0 +1,53 @@
+"""Guided matching (search by projection): windows around projected landmarks, descriptor
+tests inside them, and the P3P pose finder growing a weak first pose with it."""
+
+import numpy as np
+
+from reloc_service.cameras import PinholeCamera
+from reloc_service.frame import Features
+from reloc_service.geometry import look_at, se3_exp, transform_points
+from reloc_service.pose.guided import GuidedConf, background_distance, search_by_projection
+
+CAMERA = PinholeCamera(640, 480, fx=500.0, fy=500.0, cx=319.5, cy=239.5)
+WORLD_FROM_CAM = look_at([0.0, 0.0, -3.0], [0.0, 0.0, 0.0], up=[0, -1, 0])
+
+
+def _scene(n: int = 300, seed: int = 0):
+    """Landmarks in front of the camera, SIFT-like descriptors, and query keypoints at their
+    exact projections carrying the same descriptors with a little noise."""
+    rng = np.random.default_rng(seed)
+    px = rng.uniform([20, 20], [620, 460], (n, 2))
+    bearings = CAMERA.unproject(px)
+    points_cam = bearings / bearings[:, 2:] * rng.uniform(2.0, 5.0, n)[:, None]
+    points_world = transform_points(WORLD_FROM_CAM, points_cam)
+    desc = rng.integers(0, 256, (n, 128)).astype(np.float32)
+    query_desc = np.clip(desc + rng.normal(0, 8, desc.shape), 0, 255).astype(np.float32)
+    return Features.create("sift", px, query_desc), desc, points_world
+
+
+def test_finds_landmarks_near_their_projection_under_a_slightly_wrong_pose():
+    feats, desc, points = _scene()
+    off = WORLD_FROM_CAM @ se3_exp([0.01, -0.01, 0.0, 0.0, 0.002, 0.0])   # ~1-4 px off
+    q, rows = search_by_projection(feats, CAMERA, off, desc, points, 10.0, GuidedConf())
+    assert len(q) > 0.95 * len(feats)
+    assert np.array_equal(q, rows)                 # keypoint i is the projection of landmark i
+    assert len(np.unique(q)) == len(q) and len(np.unique(rows)) == len(rows)
+
+
+def test_windows_keep_far_landmarks_out_and_foreign_descriptors_fail():
+    feats, desc, points = _scene()
+    far = WORLD_FROM_CAM @ se3_exp([0.3, 0.0, 0.0, 0.0, 0.0, 0.0])        # ~50 px off
+    q, _ = search_by_projection(feats, CAMERA, far, desc, points, 10.0, GuidedConf())
+    assert len(q) < 0.1 * len(feats)
+    foreign = np.random.default_rng(9).integers(0, 256, desc.shape).astype(np.float32)
+    q, _ = search_by_projection(feats, CAMERA, WORLD_FROM_CAM, foreign, points, 10.0,
+                                GuidedConf())
+    assert len(q) < 0.05 * len(feats)
+
+
+def test_background_distance_is_a_low_quantile_of_unrelated_pairs():
+    feats, desc, _ = _scene()
+    limit = background_distance(feats.descriptors, desc, 0.01)
+    matched = np.linalg.norm(feats.descriptors - desc, axis=1)
+    assert np.median(matched) < limit
+    assert background_distance(feats.descriptors[:0], desc, 0.01) == 0.0
