@@ -318,3 +318,28 @@ def test_save_and_load_the_place_finders_model(scene, tmp_path):
     other = WithModel(scene.map, SmallBlurryImageFinder.Conf())
     assert MultiRelocalizer(scene.map, other, create_pose_finder({"name": "p3p"})).load(tmp_path)
     assert other.loaded == {"words": b"\x00\x01\x02", "k": 3, "ids": [4, 5]}
+
+
+@dataclass
+class WeakFirst(FixedPoses):
+    """Answers ``poses`` in turn; the first needed guided matching (a weak first pose)."""
+
+    def find_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
+                  ) -> PoseEstimate | None:
+        est = super().find_pose(query, candidates, state)
+        if self.calls == 1:
+            est.unguided_evidence = (40, 12)
+        return est
+
+
+def test_weak_first_answer_contradicted_by_the_next_group_is_ambiguous(scene):
+    place = create_place_finder({"name": "sbi"}, scene.map)
+    query = Frame(scene.render(query_pose(0)), CAMERA)
+    a, b = downward_pose(0.0, 0.0, 1.2), downward_pose(1.5, 0.0, 1.2)
+    conf = MultiRelocalizer.Conf(num_candidates=3)
+    refused = MultiRelocalizer(scene.map, place, WeakFirst([a, b]), conf=conf).relocalize(query)
+    assert not refused.ok and refused.reason.startswith("ambiguous places")
+    confirmed = MultiRelocalizer(scene.map, place, WeakFirst([a, a]), conf=conf)
+    assert confirmed.relocalize(query).ok and confirmed.pose.calls == 2
+    strong = MultiRelocalizer(scene.map, place, FixedPoses([a, b]), conf=conf)
+    assert strong.relocalize(query).ok and strong.pose.calls == 1    # not weak: one group

@@ -17,7 +17,7 @@ from ..geometry import pose_error
 from ..map import KeyframeMap, MapState
 from ..place.base import PlaceCandidate, PlaceFinder, create_place_finder
 from ..plugins import make_conf
-from ..pose.base import PoseFinder, create_pose_finder
+from ..pose.base import PoseEstimate, PoseFinder, create_pose_finder
 from .base import Prior, Relocalizer, RelocResult, VerifyConf, register, result_from_estimate
 
 
@@ -121,8 +121,9 @@ class MultiRelocalizer(Relocalizer):
         if not groups:
             return RelocResult.failure(self.method, _no_candidate_reason(state, allowed),
                                        timings=timings, map_version=state.version)
-        results = self._answer_groups(query, groups, state, timings, max(1, hypotheses))
-        return self._combine(results, timings, state.version, max(1, hypotheses))
+        results, weak_first = self._answer_groups(query, groups, state, timings,
+                                                  max(1, hypotheses))
+        return self._combine(results, weak_first, timings, state.version, max(1, hypotheses))
 
     def _candidate_groups(self, query: Frame, state: MapState, allowed: set[int] | None,
                           hypotheses: int) -> list[list[PlaceCandidate]]:
@@ -136,10 +137,14 @@ class MultiRelocalizer(Relocalizer):
         return [found[i:i + size] for i in range(0, len(found), size)]
 
     def _answer_groups(self, query: Frame, groups: list[list[PlaceCandidate]], state: MapState,
-                       timings: dict[str, float], hypotheses: int) -> list[RelocResult]:
-        """Pose and verify group after group until enough have verified; every result."""
+                       timings: dict[str, float], hypotheses: int
+                       ) -> tuple[list[RelocResult], bool]:
+        """Pose and verify group after group until enough have verified; every result, and
+        whether the first verified one was weak (:func:`_weak`: then the next group is heard
+        too)."""
         wanted = max(hypotheses, 2 if self.require_agreement else 1)
         results: list[RelocResult] = []
+        weak_first = False
         for group in groups:
             estimate = self.pose.find_pose(query, group, state)
             if estimate is not None:
@@ -149,22 +154,26 @@ class MultiRelocalizer(Relocalizer):
                                           map_version=state.version, timings={})
             _add_timings(timings, {"verify": time.perf_counter() - start})
             results.append(result)
+            if result.ok and sum(r.ok for r in results) == 1 and _weak(estimate):
+                weak_first = True
+                wanted = max(wanted, 2)
             if sum(r.ok for r in results) >= wanted:
                 break
-        return results
+        return results, weak_first
 
-    def _combine(self, results: list[RelocResult], timings: dict[str, float],
+    def _combine(self, results: list[RelocResult], weak_first: bool, timings: dict[str, float],
                  map_version: int, hypotheses: int) -> RelocResult:
         """The first verified result (with up to ``hypotheses - 1`` other verified ones,
         most confident first), or a failure naming every group's reason; applies the
-        agreement check."""
+        agreement check, and refuses a weak first answer that another group contradicts."""
         verified = [r for r in results if r.ok]
         if not verified:
             return _failure(self.method, results, timings, map_version)
-        if self.require_agreement:
+        if self.require_agreement or (weak_first and len(verified) > 1):
             refusal = self._disagreement(verified)
             if refusal:
-                return RelocResult.failure(self.method, refusal, timings=timings,
+                prefix = "" if self.require_agreement else "ambiguous places: "
+                return RelocResult.failure(self.method, prefix + refusal, timings=timings,
                                            map_version=map_version,
                                            matched_keyframe_ids=verified[0].matched_keyframe_ids)
         best, *others = verified
@@ -202,6 +211,13 @@ class MultiRelocalizer(Relocalizer):
 
         self.place.load_state(msgpack.unpackb(path.read_bytes(), raw=False, strict_map_key=False))
         return True
+
+
+def _weak(estimate: PoseEstimate | None) -> bool:
+    """An answer that needed guided matching to verify (its first pose had few inliers): the
+    kind a repeated texture elsewhere in the map can produce, so the next candidate group is
+    heard too, and a verified answer there that disagrees makes the query ambiguous."""
+    return estimate is not None and estimate.unguided_evidence is not None
 
 
 def _allowed_ids(state: MapState, prior: Prior | None) -> set[int] | None:
