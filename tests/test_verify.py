@@ -8,7 +8,7 @@ from reloc_service.pose.base import PoseEstimate
 from reloc_service.relocalizers.base import (
     RelocStatus,
     VerifyConf,
-    log10_false_alarms,
+    log10_false_alarms_px,
     result_from_estimate,
     verify,
 )
@@ -72,11 +72,11 @@ def test_twelve_spread_inliers_pass_forty_on_one_patch_do_not():
 
 
 def test_false_alarms_fall_with_inliers_and_rise_with_matches_and_threshold():
-    base = log10_false_alarms(100, 20, 5.0, (640, 480))
-    assert log10_false_alarms(100, 30, 5.0, (640, 480)) < base < -3
-    assert log10_false_alarms(1000, 20, 5.0, (640, 480)) > base
-    assert log10_false_alarms(100, 20, 20.0, (640, 480)) > base
-    assert log10_false_alarms(100, 3, 5.0, (640, 480)) == float("inf")
+    base = log10_false_alarms_px(100, 20, 5.0, (640, 480))
+    assert log10_false_alarms_px(100, 30, 5.0, (640, 480)) < base < -3
+    assert log10_false_alarms_px(1000, 20, 5.0, (640, 480)) > base
+    assert log10_false_alarms_px(100, 20, 20.0, (640, 480)) > base
+    assert log10_false_alarms_px(100, 3, 5.0, (640, 480)) == float("inf")
 
 
 def test_guided_estimates_are_judged_on_their_unguided_consensus():

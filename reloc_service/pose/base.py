@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field
+from math import lgamma
 from typing import Any, ClassVar
 
 import numpy as np
@@ -59,6 +60,20 @@ class PoseEstimate:
     #: around projections agree with the pose by construction. None: ``num_matches``,
     #: ``inliers``.
     unguided_evidence: tuple[int, int] | None = None
+
+
+def log10_false_alarms(num_matches: int, inliers: int, sample_size: int, p: float) -> float:
+    """log10 of the number of false alarms of a consensus (ORSA, Moisan & Stival 2004): the
+    expected number of subsets of ``inliers`` among ``num_matches`` correspondences that a
+    wrong model, fitted to ``sample_size`` of them, would explain by chance when each agrees
+    with probability ``p``: ``NFA = (n - s) C(n, k) C(k, s) p^(k - s)``; inf when
+    ``k <= s``."""
+    n, k, s = int(num_matches), int(inliers), int(sample_size)
+    if k <= s or n < k:
+        return float("inf")
+    # log C(n, k) + log C(k, s) = log n! - log (n - k)! - log s! - log (k - s)!
+    log_c = lgamma(n + 1) - lgamma(n - k + 1) - lgamma(s + 1) - lgamma(k - s + 1)
+    return float(np.log10(max(n - s, 1)) + log_c / np.log(10) + (k - s) * np.log10(p))
 
 
 class PoseFinder(abc.ABC):

@@ -20,7 +20,6 @@ import dataclasses
 import functools
 import time
 from collections.abc import Callable
-from math import lgamma
 from typing import ClassVar
 
 import numpy as np
@@ -34,7 +33,7 @@ from ..frame import Features, Frame, Keyframe
 from ..geometry import invert, se3_exp
 from ..map import MapState
 from ..place.base import PlaceCandidate
-from .base import PoseEstimate, PoseFinder, register
+from .base import PoseEstimate, PoseFinder, log10_false_alarms, register
 
 Array = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
@@ -217,7 +216,7 @@ class FivePointPoseFinder(PoseFinder):
         # gate (rotation), or the band along an epipolar line at most the diagonal long.
         area = np.pi * 2 * gate**2 if rotation else 2 * gate * np.hypot(*k_cam.size)
         p = min(area / (k_cam.width * k_cam.height), 1.0)
-        if _log10_false_alarms(n, int(inliers.sum()), 2 if rotation else 5, p) > np.log10(
+        if log10_false_alarms(n, int(inliers.sum()), 2 if rotation else 5, p) > np.log10(
                 _MAX_FALSE_ALARMS):
             return None
         # Parallax: the inliers' transfer RMS beyond its noise (2 images x 2 axes).
@@ -355,15 +354,6 @@ def _cross(a: Array, b: Array) -> Array:
     return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
                      a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
-
-
-def _log10_false_alarms(n: int, k: int, s: int, p: float) -> float:
-    """log10 NFA of k inliers among n matches for a model fitted to s of them, each agreeing
-    by chance with probability p (ORSA, Moisan & Stival 2004): ``(n-s) C(n,k) C(k,s) p^(k-s)``."""
-    if k <= s:
-        return np.inf
-    log_c = lgamma(n + 1) - lgamma(n - k + 1) - lgamma(s + 1) - lgamma(k - s + 1)
-    return float(np.log10(max(n - s, 1)) + log_c / np.log(10) + (k - s) * np.log10(p))
 
 
 def _gric(errors_px: Array, sigma_px: float, d: int, k: int) -> float:

@@ -9,7 +9,6 @@ from __future__ import annotations
 import abc
 import enum
 from dataclasses import dataclass, field
-from math import lgamma
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -20,7 +19,7 @@ from ..errors import ConfigError
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap
 from ..plugins import Registry
-from ..pose.base import PoseEstimate
+from ..pose.base import PoseEstimate, log10_false_alarms
 
 Array = npt.NDArray[np.float64]
 
@@ -140,27 +139,17 @@ def verify(estimate: PoseEstimate | None, conf: VerifyConf) -> tuple[bool, str, 
     return False, "estimate carries no evidence to verify", 0.0
 
 
-def log10_false_alarms(num_matches: int, inliers: int, threshold_px: float,
-                       image_size: tuple[int, int], sample_size: int = 3, *,
-                       chance_probability: float | None = None) -> float:
-    """log10 of the number of false alarms of a consensus (ORSA, Moisan & Stival 2004): the
-    expected number of subsets of ``inliers`` among ``num_matches`` correspondences that a
-    wrong pose, fitted to ``sample_size`` of them, would explain within ``threshold_px`` by
-    chance: ``NFA = (n - s) C(n, k) C(k, s) p^(k - s)``. ``p`` is the chance that one
-    correspondence agrees: at least ``pi t^2 / area`` (a wrong pose sends it to a uniformly
-    random pixel), more where the data say so (``chance_probability``)."""
-    n, k, s = int(num_matches), int(inliers), int(sample_size)
-    if k <= s or n < k:
-        return float("inf")
+def log10_false_alarms_px(num_matches: int, inliers: int, threshold_px: float,
+                          image_size: tuple[int, int], sample_size: int = 3, *,
+                          chance_probability: float | None = None) -> float:
+    """:func:`~reloc_service.pose.base.log10_false_alarms` of a consensus within
+    ``threshold_px``: a correspondence agrees by chance with probability at least
+    ``pi t^2 / area`` (a wrong pose sends it to a uniformly random pixel), more where the data
+    say so (``chance_probability``)."""
     width, height = image_size
     p = np.pi * threshold_px**2 / (width * height)
     p = min(max(p, chance_probability or 0.0), 1.0)
-    return float(np.log10(max(n - s, 1)) + _log10_binomial(n, k) + _log10_binomial(k, s)
-                 + (k - s) * np.log10(p))
-
-
-def _log10_binomial(n: int, k: int) -> float:
-    return float((lgamma(n + 1) - lgamma(k + 1) - lgamma(n - k + 1)) / np.log(10))
+    return log10_false_alarms(num_matches, inliers, sample_size, p)
 
 
 def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, float]:
@@ -202,8 +191,8 @@ def _log10_nfa(est: PoseEstimate) -> float:
     if est.inlier_threshold_px is None or est.image_size is None:
         return -float("inf")
     matches, inliers = est.unguided_evidence or (est.num_matches, int(est.inliers or 0))
-    return log10_false_alarms(matches, inliers, est.inlier_threshold_px, est.image_size,
-                              est.sample_size, chance_probability=est.chance_probability)
+    return log10_false_alarms_px(matches, inliers, est.inlier_threshold_px, est.image_size,
+                                 est.sample_size, chance_probability=est.chance_probability)
 
 
 def _max_rms_px(est: PoseEstimate, conf: VerifyConf) -> float:
