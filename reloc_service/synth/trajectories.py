@@ -61,11 +61,18 @@ class EllipseLap:
         outward = np.arctan2(np.sin(s) / ay, np.cos(s) / ax)
         yaw = (outward + self.yaw_swing * np.sin(3 * s)
                + self.yaw_offset * np.sin(2 * s + self.yaw_offset_phase))
-        pitch = self.pitch + _tilt(rng, self.tilt_sigma, n)
-        roll = _tilt(rng, self.tilt_sigma, n)
-        eyes = np.column_stack([x, y, z])
-        return [camera_pose(e, e + _direction(yw, p), r)
-                for e, yw, p, r in zip(eyes, yaw, pitch, roll, strict=True)]
+        return _jittered_poses(np.column_stack([x, y, z]), yaw, self.pitch, self.tilt_sigma, rng)
+
+
+def _jittered_poses(eyes: Array, yaw: Array, pitch: float, tilt_sigma: float,
+                    rng: np.random.Generator) -> list[Array]:
+    """Poses at ``eyes`` (N, 3) heading ``yaw`` (N,), pitched ``pitch`` plus per-frame pitch
+    then roll jitter of ``tilt_sigma`` (drawn in that order)."""
+    n = len(eyes)
+    pitches = pitch + _tilt(rng, tilt_sigma, n)
+    roll = _tilt(rng, tilt_sigma, n)
+    return [camera_pose(e, e + _direction(yw, p), r)
+            for e, yw, p, r in zip(eyes, yaw, pitches, roll, strict=True)]
 
 
 @dataclass(frozen=True)
@@ -122,11 +129,7 @@ class CorridorPass:
         slope = self.weave * 2 * np.pi * np.cos(angle) / (x1 - x0)  # dy / dx of the path
         yaw = (self.heading_gain * np.arctan(slope)
                + self.yaw_offset * np.sin(2 * np.pi * s + self.yaw_offset_phase))
-        pitch = self.pitch + _tilt(rng, self.tilt_sigma, n)
-        roll = _tilt(rng, self.tilt_sigma, n)
-        eyes = np.column_stack([x, y, z])
-        return [camera_pose(e, e + _direction(yw, p), r)
-                for e, yw, p, r in zip(eyes, yaw, pitch, roll, strict=True)]
+        return _jittered_poses(np.column_stack([x, y, z]), yaw, self.pitch, self.tilt_sigma, rng)
 
 
 @dataclass(frozen=True)
