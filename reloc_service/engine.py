@@ -32,7 +32,7 @@ from .map import KeyframeMap, MapState
 from .mapping import MapBuilder, MappingConf
 from .progress import progress as progress_bar
 from .relocalizers.base import Prior, Relocalizer, RelocResult
-from .relocalizers.factory import create_relocalizer
+from .relocalizers.factory import DEFAULT_METHOD, create_relocalizer
 from .storage import load_map, model_dir_name, save_map
 from .triangulation import TriangulationConf
 
@@ -46,7 +46,7 @@ class EngineConf:
     """Methods kept ready (the first is the default), plugin options (plugin name -> option
     dict, as :func:`create_relocalizer` takes them) and the map building configuration."""
 
-    methods: tuple[str, ...] = ("sbi+p3p",)
+    methods: tuple[str, ...] = (DEFAULT_METHOD,)
     options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     mapping: MappingConf = field(default_factory=MappingConf)
 

@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 
 from reloc_service.eval.evaluate import evaluate
+from reloc_service.relocalizers.factory import DEFAULT_METHOD
 
 FIXTURE = Path(__file__).parent / "data" / "tum_fr1_rpy_mini"
 
 
 @pytest.fixture(scope="module")
 def result():
-    return evaluate(FIXTURE, ["sbi+p3p", "bow+p3p"], progress=False)
+    return evaluate(FIXTURE, ["sbi+p3p", "bow+p3p", DEFAULT_METHOD], progress=False)
 
 
 def test_short_baseline_keyframes_make_landmarks(result):
@@ -22,7 +23,7 @@ def test_short_baseline_keyframes_make_landmarks(result):
     assert np.median(per_keyframe) >= 100, per_keyframe
 
 
-@pytest.mark.parametrize("method", ["sbi+p3p", "bow+p3p"])
+@pytest.mark.parametrize("method", ["sbi+p3p", "bow+p3p", DEFAULT_METHOD])
 def test_every_query_relocalized_and_none_wrong(result, method):
     summary = result.method(method).summary
     # The benchmark's ground truth is good to 1-3 cm and 0.3-0.7 deg on this fast-rotation

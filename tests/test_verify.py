@@ -118,3 +118,43 @@ def test_inlier_floor_applies_before_guided_matching_too():
     assert not ok and "before guided matching (5 < 6)" in reason
     grown.unguided_evidence = (12, 8)
     assert verify(grown, VerifyConf())[0]
+
+
+def _patch_estimate(half_size_m, depth_spread_m=0.0, n=80, sigma_m=0.003, seed=1):
+    """Inliers on a square of ``half_size_m`` facing a camera (f 460, 640x480) 2 m away,
+    each point pushed off the plane by up to ``depth_spread_m``: pixels and world points."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-half_size_m, half_size_m, (n, 2))
+    z = 2.0 + rng.uniform(-depth_spread_m, depth_spread_m, n) + rng.normal(0, sigma_m, n)
+    pts = np.column_stack([xy, z])
+    px = 460.0 * pts[:, :2] / pts[:, 2:] + [320.0, 240.0]
+    est = estimate(n=n, matches=n + 10)
+    est.inlier_px, est.inlier_points_world = px, pts
+    est.inlier_sigmas_m = np.full(n, sigma_m)
+    return est
+
+
+def test_support_on_one_small_planar_patch_is_refused():
+    # A 40 cm print 2 m away fills about 1/12 of the image: a copy of it elsewhere (another
+    # poster, a print on a board) would give the same consensus.
+    ok, reason, _ = verify(_patch_estimate(0.2), VerifyConf())
+    assert not ok and "one small planar patch" in reason
+
+
+def test_small_support_in_depth_or_planar_support_over_the_image_is_accepted():
+    assert verify(_patch_estimate(0.2, depth_spread_m=0.4), VerifyConf())[0]  # a 3-D object
+    assert verify(_patch_estimate(1.5), VerifyConf())[0]                       # a whole wall
+
+
+def test_noisy_plane_is_one_plane_and_a_bump_is_not():
+    from reloc_service.relocalizers.base import on_one_plane
+
+    rng = np.random.default_rng(2)
+    sig = np.full(300, 0.01)
+    rejected = 0
+    for _ in range(100):
+        pts = np.column_stack([rng.uniform(-1, 1, (300, 2)), rng.normal(0, 0.01, 300)])
+        rejected += not on_one_plane(pts, sig)
+    assert rejected <= 5  # the test's false rejection is 1 %
+    pts[:60, 2] += 0.1    # a fifth of the points 10 sigma off the plane
+    assert not on_one_plane(pts, sig)

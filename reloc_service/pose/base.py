@@ -43,6 +43,10 @@ class PoseEstimate:
     #: (N, 2) query pixels and (N, 3) world points of the inliers, kept for diagnostics/agreement.
     inlier_px: Array | None = None
     inlier_points_world: Array | None = None
+    #: (N,) 1-sigma position uncertainty of each inlier's world point, metres (its depth
+    #: uncertainty, at least what one pixel of keypoint noise means at its range); None:
+    #: unknown. With the points, it tells whether the support is one plane.
+    inlier_sigmas_m: Array | None = None
     #: (width, height) of the query image, to judge how the inliers spread over it.
     image_size: tuple[int, int] | None = None
     #: Reprojection error (pixels) under which a correspondence counted as an inlier: with

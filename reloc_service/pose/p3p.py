@@ -127,7 +127,19 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
     weights = _weights(world_from_cam, pts, inliers, camera, conf, uncertainty)
     est = _estimate(world_from_cam, px[inliers], pts[inliers], camera, conf, len(px),
                     time.perf_counter() - start, weights)
+    est.inlier_sigmas_m = _point_sigmas(world_from_cam, pts[inliers], camera, conf,
+                                        None if uncertainty is None
+                                        else uncertainty.depth_sigmas_m[inliers])
     return est, inliers
+
+
+def _point_sigmas(world_from_cam: Array, points_world: Array, camera: Camera, conf: PnPConf,
+                  depth_sigmas_m: Array | None) -> Array:
+    """(N,) 1-sigma position uncertainty of world points, metres: their depth uncertainty,
+    at least the ``keypoint_sigma_px`` of a keypoint at their range from ``world_from_cam``."""
+    ranges = np.linalg.norm(points_world - world_from_cam[:3, 3], axis=1)
+    floor = ranges * conf.keypoint_sigma_px / max(camera.fx, camera.fy)
+    return floor if depth_sigmas_m is None else np.maximum(depth_sigmas_m, floor)
 
 
 def _weights(world_from_cam: Array, points_world: Array, rows: npt.NDArray[np.int64],

@@ -14,6 +14,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
+from scipy import stats
+from scipy.spatial import ConvexHull, QhullError
 
 from ..errors import ConfigError
 from ..frame import Frame, Keyframe
@@ -175,6 +177,10 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
     if cells is not None and cells < conf.min_inlier_cells:
         return False, (f"inliers cover too little of the image ({cells} < {conf.min_inlier_cells} "
                        f"cells of {conf.coverage_grid}x{conf.coverage_grid})"), 0.0
+    patch, min_patch = planar_patch_fraction(est), conf.min_inlier_cells / conf.coverage_grid**2
+    if patch is not None and patch < min_patch:
+        return False, (f"inliers lie on one small planar patch ({patch:.0%} of the image < "
+                       f"{min_patch:.0%}): a copy of it elsewhere would fit as well"), 0.0
     sigma = position_sigma_m(est.covariance)
     if sigma > conf.max_position_sigma_m:
         return False, f"position too uncertain ({sigma:.3f} m > {conf.max_position_sigma_m})", 0.0
@@ -212,6 +218,46 @@ def inlier_cells(estimate: PoseEstimate, grid: int) -> int | None:
     col = np.clip((estimate.inlier_px[:, 0] + 0.5) * grid // width, 0, grid - 1).astype(int)
     row = np.clip((estimate.inlier_px[:, 1] + 0.5) * grid // height, 0, grid - 1).astype(int)
     return len(np.unique(row * grid + col))
+
+
+def planar_patch_fraction(estimate: PoseEstimate) -> float | None:
+    """Share of the image inside the inliers' convex hull when their world points lie on one
+    plane (:func:`on_one_plane`); None when they do not, or when the estimate does not say.
+
+    A pose whose whole support is one planar patch is fixed relative to that patch only: a
+    print, a screen or a second copy of a poster elsewhere gives the same consensus, so such a
+    patch must cover as much of the image as the coverage test asks of any support."""
+    pts, sigmas, px = estimate.inlier_points_world, estimate.inlier_sigmas_m, estimate.inlier_px
+    if pts is None or sigmas is None or px is None or estimate.image_size is None:
+        return None
+    if len(pts) < 4 or not on_one_plane(pts, sigmas):
+        return None
+    width, height = estimate.image_size
+    try:
+        area = ConvexHull(np.asarray(px, np.float64)).volume  # in 2-D, volume is the area
+    except (QhullError, ValueError):  # collinear or repeated pixels: no area
+        area = 0.0
+    return float(area / (width * height))
+
+
+def on_one_plane(points_world: Array, sigmas_m: Array, *, false_rejection: float = 0.01) -> bool:
+    """Whether (N, 3) points with 1-sigma uncertainties (N,) are consistent with one plane:
+    after a plane fit on the points within 3 sigma of it, no more of them lie beyond 3 sigma
+    than Gaussian noise puts there (at most the binomial ``1 - false_rejection`` quantile of
+    N draws with probability ``P(|z| > 3)``)."""
+    pts = np.asarray(points_world, np.float64)
+    sig = np.maximum(np.asarray(sigmas_m, np.float64), 1e-9)
+    keep = np.ones(len(pts), bool)
+    z = np.zeros(len(pts))
+    for _ in range(3):
+        if keep.sum() < 3:
+            return False
+        centre = pts[keep].mean(axis=0)
+        normal = np.linalg.svd(pts[keep] - centre, full_matrices=False)[2][2]
+        z = np.abs((pts - centre) @ normal) / sig
+        keep = z < 3.0
+    tail = 2.0 * stats.norm.sf(3.0)
+    return int(np.count_nonzero(~keep)) <= stats.binom.ppf(1.0 - false_rejection, len(pts), tail)
 
 
 def position_sigma_m(covariance: Array | None) -> float:

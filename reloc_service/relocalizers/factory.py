@@ -22,6 +22,12 @@ PLUGIN_MODULES = (
 
 Options = Mapping[str, Mapping[str, Any]]
 
+#: The method the engine and the service use when none is named: bag-of-words retrieval
+#: (rotation and exposure invariant) with P3P, and when it cannot verify, the small blurry
+#: image (which still ranks heavily blurred queries) with P3P. One set of defaults for every
+#: data set: see the README's results table.
+DEFAULT_METHOD = "bow+p3p,sbi+p3p"
+
 
 def load_plugins() -> None:
     """Import every plugin module so its ``@register`` runs; missing ones are skipped."""

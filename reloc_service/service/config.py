@@ -27,6 +27,7 @@ from typing import Any
 
 from ..errors import ConfigError
 from ..plugins import make_conf
+from ..relocalizers.factory import DEFAULT_METHOD
 
 ZENOH_MODES = ("peer", "client", "router")
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
@@ -113,8 +114,8 @@ class ServiceSection:
     #: fsync every journal record (off only for benchmarks of the non-durable path).
     fsync: bool = True
     #: Methods every map serves (each a method or a fallback chain) and the default one.
-    methods: tuple[str, ...] = ("sbi+p3p",)
-    default_method: str = "sbi+p3p"
+    methods: tuple[str, ...] = (DEFAULT_METHOD,)
+    default_method: str = DEFAULT_METHOD
     #: Train a map's methods after loading it if no trained models were restored.
     train_on_load: bool = True
 
