@@ -1,4 +1,5 @@
-"""PTAM place finder: sum of squared differences of small blurry images (thesis 3.1.1)."""
+"""PTAM place finder: small blurry images compared whole (thesis 3.1.1), by normalised
+cross-correlation."""
 
 from __future__ import annotations
 
@@ -17,7 +18,11 @@ Thumbs = npt.NDArray[np.float32]
 
 @register("sbi")
 class SmallBlurryImageFinder(PlaceFinder):
-    """Ranks keyframes by ``-SSD`` between zero-mean 40x30 thumbnails blurred with sigma 2.5.
+    """Ranks keyframes by ``-SSD`` between zero-mean, unit-norm 40x30 thumbnails blurred with
+    sigma 2.5, i.e. by their normalised cross-correlation (``SSD = 2 - 2 NCC``). PTAM subtracts
+    the mean only; dividing by the norm too makes the score invariant to the camera's gain as
+    well as to its offset, the first-order model of an exposure change (a query taken with
+    another exposure time or auto-gain than the keyframes).
 
     All keyframe thumbnails live in one contiguous (K, w*h) float32 matrix with their squared
     norms, so scoring every keyframe is one matrix-vector product:
@@ -43,10 +48,13 @@ class SmallBlurryImageFinder(PlaceFinder):
         return len(self._row_of)
 
     def thumbnail(self, frame: Frame) -> Thumbs:
-        """(w*h,) float32 zero-mean small blurry image of ``frame`` (cached on the frame)."""
+        """(w*h,) float32 zero-mean, unit-norm small blurry image of ``frame`` (zero for a
+        flat image)."""
         c = self.conf
-        return np.ascontiguousarray(
-            frame.small_blurry_image(c.width, c.height, c.blur_sigma), np.float32).ravel()
+        thumb = np.asarray(frame.small_blurry_image(c.width, c.height, c.blur_sigma),
+                           np.float32).ravel()
+        norm = float(np.linalg.norm(thumb))
+        return np.ascontiguousarray(thumb / norm if norm > 1e-6 else np.zeros_like(thumb))
 
     def add_keyframe(self, keyframe: Keyframe) -> None:
         """Index ``keyframe``; a keyframe with an id already indexed is replaced."""
