@@ -76,8 +76,6 @@ def test_eval_arguments_parse():
 def test_eval_usage_errors(capsys):
     assert cli_main.main(["eval", "--method", "gt+none"]) == 2
     assert "DATASET" in capsys.readouterr().err
-    assert cli_main.main(["eval", "somewhere"]) == 2
-    assert "--method" in capsys.readouterr().err
     assert cli_main.main(["eval", "somewhere", "-m", "gt+none", "--remote", "tcp/x:1"]) == 2
     assert "--map" in capsys.readouterr().err
 
@@ -85,6 +83,16 @@ def test_eval_usage_errors(capsys):
 def test_eval_missing_dataset_is_a_clear_error(tmp_path, capsys):
     assert cli_main.main(["eval", str(tmp_path / "nope"), "-m", "gt+none", "--no-progress"]) == 1
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_eval_without_method_evaluates_the_default_method(tmp_path, capsys, monkeypatch):
+    from reloc_service.cli import eval as cli_eval
+    from reloc_service.relocalizers.factory import DEFAULT_METHOD
+
+    seen = {}
+    monkeypatch.setattr(cli_eval, "_evaluate", lambda args: seen.setdefault("m", args.method) and 0)
+    assert cli_main.main(["eval", str(tmp_path)]) == 0
+    assert seen["m"] == [DEFAULT_METHOD]
 
 
 def test_eval_list_methods(capsys):

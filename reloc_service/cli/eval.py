@@ -25,8 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("dataset", nargs="?", help="reloc dataset v1 folder")
     parser.add_argument("--method", "-m", action="append", default=None, metavar="NAME",
-                        help="method to evaluate (repeat to compare several on one map); "
-                        "see --list-methods")
+                        help="method to evaluate (repeat to compare several on one map; "
+                        "default: the service's default method); see --list-methods")
     parser.add_argument("--list-methods", action="store_true",
                         help="list the selectable methods and exit")
     parser.add_argument("--json", metavar="OUT", help="write every number to OUT "
@@ -55,6 +55,10 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         print(f"reloc eval: error: {problem}", file=sys.stderr)
         return 2
+    if not args.method:
+        from ..relocalizers.factory import DEFAULT_METHOD
+
+        args.method = [DEFAULT_METHOD]
     try:
         return _evaluate(args)
     except (RelocError, OSError) as exc:
@@ -65,8 +69,6 @@ def run(args: argparse.Namespace) -> int:
 def _usage_problem(args: argparse.Namespace) -> str | None:
     if not args.dataset:
         return "expected a DATASET folder (or --list-methods)"
-    if not args.method:
-        return "expected at least one --method NAME (see --list-methods)"
     if bool(args.remote) != bool(args.map_name):
         return "--remote ENDPOINT and --map NAME go together"
     return None
