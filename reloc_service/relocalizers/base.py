@@ -106,6 +106,9 @@ class VerifyConf:
     #: Inliers must fall in at least this many cells of a ``coverage_grid`` x ``coverage_grid``
     #: grid over the image: a pose supported by one small patch (a repeated poster, a logo) is
     #: the classic perceptual-aliasing wrong pose, however small its reprojection error.
+    #: Inliers that all lie on one plane must also enclose that share of the image
+    #: (``min_inlier_cells / coverage_grid**2``) inside their convex hull: a small patch can
+    #: touch four cells where they meet (:func:`planar_patch_fraction`).
     min_inlier_cells: int = 4
     coverage_grid: int = 4
     #: Largest 1-sigma position uncertainty (from the covariance) accepted, metres.
