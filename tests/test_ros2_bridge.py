@@ -222,6 +222,22 @@ def test_missing_attachment_or_another_type_hash_is_never_used(world, synthetic_
     assert service.ros2.counters["images"] == images
 
 
+def test_bad_messages_are_counted_and_the_node_keeps_working(world):
+    service, drone = world
+    bad = service.ros2.counters["bad_samples"]
+    drone.publish("/camera/image_raw/compressed", CIMG, HASH[CIMG],
+                  compressed_image(stamp(400.0), "camera", "png", b"not a png"))
+    drone.publish("/camera/camera_info", "sensor_msgs/msg/CameraInfo",
+                  rosbags_hash("sensor_msgs/msg/CameraInfo"), b"\x00\x01\x00\x00\xff")
+    nan_pose = np.eye(4)
+    nan_pose[:3, 3] = np.nan
+    drone.publish("/odom", "nav_msgs/msg/Odometry", rosbags_hash("nav_msgs/msg/Odometry"),
+                  odometry(stamp(400.0), nan_pose))
+    wait_until(lambda: service.ros2.counters["bad_samples"] == bad + 3)
+    [(payload, _att)] = drone.call_trigger("/reloc/room/relocalize", seq=25)
+    assert read_trigger_response(payload)[0]   # the last good image and camera still serve
+
+
 def test_a_request_without_attachment_gets_no_reply(world):
     service, drone = world
     before = service.ros2.counters["dropped_requests"]
@@ -301,6 +317,8 @@ def test_desk_scene_over_ros2(tmp_path_factory):
                 success, message, pose = relocalize(drone, service, png, stamp(500.0 + i),
                                                     i + 1, "desk")
                 assert success, (i, message)
+                if i == 0:
+                    print(f"\nfirst Trigger response: {message!r}")
                 assert pose.stamp == stamp(500.0 + i) and pose.frame_id == "map"
                 errors.append(pose_error(pose.map_from_body,
                                          world_from_cam @ np.linalg.inv(body_from_cam())))
