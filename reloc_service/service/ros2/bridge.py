@@ -161,7 +161,7 @@ class MapNode:
         self.camera: dict[str, Any] | None = None
         self.keyframe_poses: list[np.ndarray] = []
         self._pending: collections.deque[LatestImage] = collections.deque(maxlen=PENDING_IMAGES)
-        self._images = 0
+        self._images_lost = 0
         self._seq = itertools.count(1)
         self.names: dict[str, tuple[str, str]] = {}
         self._entities: list[Any] = []
@@ -254,6 +254,8 @@ class MapNode:
         self._retry_pending()
 
     def _on_lost(self, flag: Any) -> None:
+        if flag.data and not self.lost:
+            self._images_lost = 0      # every Nth image counted from the moment VIO was lost
         self.lost = bool(flag.data)
 
     def _on_odometry(self, msg: Any) -> None:
@@ -275,11 +277,12 @@ class MapNode:
             image = wire.WireImage.from_array(convert.grey_from_raw(msg))
         latest = LatestImage(msg.header.stamp, image)
         self.latest = latest
-        self._images += 1
         self.bridge.count("images")
         n = self.conf.relocalize_every_n
-        if self.lost and n and self._images % n == 0:
-            self._submit_relocalize(latest, None)
+        if self.lost and n:
+            self._images_lost += 1
+            if self._images_lost % n == 0:
+                self._submit_relocalize(latest, None)
         if self.conf.build_map:
             self._maybe_keyframe(latest)
 
