@@ -64,6 +64,7 @@ class Service:
         self._maps_lock = threading.Lock()
         self.session: Any = None
         self.layer: ZenohLayer | None = None
+        self.ros2: Any = None     # the ROS 2 bridge ([ros2] enabled)
         self.relocalize_pool: WorkerPool | None = None
         self.control_pool: WorkerPool | None = None
         self.writer: WorkerPool | None = None
@@ -100,6 +101,12 @@ class Service:
             bootstrap.run()
         for name in sorted(self.maps):
             self.layer.serve_map(name)
+        if self.conf.ros2.enabled:   # imported here: rosbags and xxhash are the extra 'ros2'
+            from .ros2.bridge import Ros2Bridge
+
+            self.ros2 = Ros2Bridge(self, self.conf.ros2)
+            for name in sorted(self.maps):
+                self.ros2.serve_map(name)
         log.info("reloc service %s serving %s under %r (zenoh %s, listen %s, connect %s)",
                  self.instance, sorted(self.maps) or "no map yet", self.prefix,
                  self.conf.zenoh.mode, list(self.conf.zenoh.listen),
@@ -112,6 +119,8 @@ class Service:
         if self._stopped.is_set():
             return
         self._stopped.set()
+        if self.ros2 is not None:
+            self.ros2.close()              # ROS 2 tools see the nodes go
         if self.layer is not None:
             self.layer.withdraw()          # clients see the maps go; no more puts arrive
         for pool in (self.relocalize_pool, self.control_pool, self.writer):
@@ -201,6 +210,8 @@ class Service:
                 self.maps[name] = self._open_map(name)
                 if self.layer is not None:
                     self.layer.serve_map(name)
+                if self.ros2 is not None:
+                    self.ros2.serve_map(name)
                 log.info("map %s created by its first put", name)
             return self.maps[name]
 

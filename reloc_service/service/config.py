@@ -9,6 +9,7 @@ Layout (every section and key optional; the embedded default equals ``config/def
     [maps.NAME] maps served from the start (a table, possibly empty, per map)
     [options.PLUGIN]  plugin options (``[options.sbi]``, ``[options.p3p]``, ``[options.verify]``)
     [mapping]   map-building options (the engine's MappingConf)
+    [ros2]      each map as a ROS 2 node on rmw_zenoh (off by default; ros2/conf.py)
 
 An unknown section or key is a :class:`ConfigError` naming it and the allowed ones.
 """
@@ -28,6 +29,7 @@ from typing import Any
 from ..errors import ConfigError
 from ..plugins import make_conf
 from ..relocalizers.factory import DEFAULT_METHOD
+from .ros2.conf import Ros2Conf
 
 ZENOH_MODES = ("peer", "client", "router")
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
@@ -156,6 +158,7 @@ class ServiceConf:
         default_factory=lambda: MappingProxyType({}))
     #: Map-building options (the engine's MappingConf).
     mapping: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    ros2: Ros2Conf = field(default_factory=Ros2Conf)
 
     @property
     def instance(self) -> str:
@@ -174,7 +177,7 @@ class ServiceConf:
 
 
 _SECTIONS: dict[str, type] = {"zenoh": ZenohConf, "service": ServiceSection,
-                              "limits": LimitsConf}
+                              "limits": LimitsConf, "ros2": Ros2Conf}
 _TOP_KEYS = sorted([*_SECTIONS, "maps", "options", "mapping"])
 
 
@@ -197,7 +200,8 @@ def parse_config(data: Mapping[str, Any], *, source: str = "config") -> ServiceC
     mapping = dict(_table(data.get("mapping", {}), f"{source}: [mapping]"))
     return ServiceConf(zenoh=sections["zenoh"], service=sections["service"],
                        limits=sections["limits"], maps=MappingProxyType(maps),
-                       options=MappingProxyType(options), mapping=MappingProxyType(mapping))
+                       options=MappingProxyType(options), mapping=MappingProxyType(mapping),
+                       ros2=sections["ros2"])
 
 
 def load_config(path: str | Path | None = None) -> ServiceConf:

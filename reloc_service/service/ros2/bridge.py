@@ -1,0 +1,425 @@
+"""Every served map as a ROS 2 node on rmw_zenoh, on the service's own Zenoh session.
+
+Per map, node ``<node_name>`` in namespace ``<namespace>/<map>``:
+
+- subscribes to the camera (``sensor_msgs/CompressedImage`` or ``Image``), its
+  ``sensor_msgs/CameraInfo``, the VIO odometry (``nav_msgs/Odometry`` or
+  ``geometry_msgs/PoseStamped``) and a ``std_msgs/Bool`` lost flag;
+- serves ``std_srvs/Trigger`` ``relocalize``: the latest image is relocalized through the
+  same handler as a Zenoh relocalize query, the pose is published and the reply says what
+  happened; while the lost flag is set, every Nth image is relocalized too;
+- publishes ``geometry_msgs/PoseWithCovarianceStamped`` (the body pose in the map frame,
+  the image's stamp, ROS's covariance convention);
+- builds the map: an image paired with the odometry of its stamp becomes a keyframe when
+  the keyframe rule says so; cameras and keyframes go through the service's writer (journaled
+  like any put);
+- declares the node, publisher, subscriber and service liveliness tokens and watches the
+  graph: another node advertising one of our names with another type hash is reported loudly
+  (rmw_zenoh would never deliver between them).
+
+Zenoh callbacks only check the attachment and hand the sample to one ordered worker.
+"""
+
+from __future__ import annotations
+
+import collections
+import itertools
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import zenoh
+from reloc_client import protocol as wire
+
+from ...geometry import pose_from_tq
+from .. import handlers
+from ..workers import WorkerPool
+from . import convert, graph
+from . import types as ros
+from .conf import Ros2Conf
+
+log = logging.getLogger(__name__)
+
+CAMERA_ID = "ros2"
+#: Images waiting for the camera or the odometry of their stamp (VIO lags the camera; over
+#: Zenoh, samples of different topics are not ordered among themselves).
+PENDING_IMAGES = 64
+
+
+class Host(Protocol):
+    """What the bridge needs of the service (:class:`~reloc_service.service.app.Service`)."""
+
+    session: Any
+    maps: dict[str, Any]
+    relocalize_pool: WorkerPool | None
+
+    def on_keyframe_sample(self, map_name: str, kf_id: int, payload: bytes | None) -> None: ...
+
+    def on_camera_sample(self, map_name: str, camera_id: str, payload: bytes | None) -> None: ...
+
+
+@dataclass(frozen=True)
+class LatestImage:
+    """An image received on the camera topic."""
+
+    stamp: Any                      # builtin_interfaces/Time, copied to the published pose
+    image: wire.WireImage
+
+
+class Ros2Bridge:
+    """The ROS 2 face of a service (see module docstring)."""
+
+    def __init__(self, host: Host, conf: Ros2Conf) -> None:
+        self.host = host
+        self.conf = conf
+        self.session = host.session
+        self.zid = str(self.session.zid())
+        self.counters: collections.Counter[str] = collections.Counter()
+        #: (name, type, hash) advertised by another node that does not match ours.
+        self.mismatches: set[tuple[str, str, str]] = set()
+        self._our_types: dict[str, tuple[str, str]] = {}   # ROS name -> (dds type, hash)
+        self._ids = itertools.count()
+        self._lock = threading.Lock()
+        self._nodes: dict[str, MapNode] = {}
+        self.worker = WorkerPool("ros2", workers=1, queue_size=256)
+        self._graph = self.session.liveliness().declare_subscriber(
+            f"{graph.ADMIN_SPACE}/{conf.domain_id}/**", self._on_token, history=True)
+
+    def hash_of(self, ros_type: str) -> str:
+        """The type hash written in keys and tokens (configured, Humble's, or computed)."""
+        return ros.key_hash(ros_type, self.conf.distro, self.conf.type_hashes)
+
+    def next_id(self) -> int:
+        return next(self._ids)
+
+    def count(self, name: str) -> None:
+        with self._lock:
+            self.counters[name] += 1
+
+    def serve_map(self, map_name: str) -> None:
+        """Declare map ``map_name``'s node (once)."""
+        with self._lock:
+            if map_name in self._nodes:
+                return
+        node = MapNode(self, map_name)
+        with self._lock:
+            self._nodes[map_name] = node
+            for name, typed in node.names.items():
+                self._our_types[name] = typed
+
+    def node(self, map_name: str) -> MapNode:
+        return self._nodes[map_name]
+
+    def close(self) -> None:
+        """Undeclare every node (ROS tools see them go), then stop the worker."""
+        with self._lock:
+            nodes, self._nodes = list(self._nodes.values()), {}
+        for node in nodes:
+            node.close()
+        _undeclare(self._graph)
+        self.worker.close(timeout=10.0)
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        endpoint = graph.parse_token(str(sample.key_expr))
+        if endpoint is None or endpoint.zid == self.zid:
+            return
+        ours = self._our_types.get(endpoint.name)
+        if ours is None or ours == (endpoint.dds_type, endpoint.type_hash):
+            return
+        key = (endpoint.name, endpoint.dds_type, endpoint.type_hash)
+        if key not in self.mismatches:
+            self.mismatches.add(key)
+            log.warning(
+                "ROS 2 TYPE MISMATCH on %s: node %s advertises %s %s, reloc uses %s %s; rmw_zenoh "
+                "never delivers between different types or hashes (set [ros2] distro or "
+                "type_hashes to match that node's ROS distribution)", endpoint.name,
+                endpoint.node, endpoint.dds_type, endpoint.type_hash, ours[0], ours[1])
+
+
+class MapNode:
+    """One map's node: its entities, the latest image, the odometry and the keyframes."""
+
+    def __init__(self, bridge: Ros2Bridge, map_name: str) -> None:
+        self.bridge = bridge
+        self.map_name = map_name
+        conf = self.conf = bridge.conf
+        self.node = graph.Node(conf.domain_id, bridge.zid, bridge.next_id(), conf.node_name,
+                               conf.node_namespace(map_name))
+        self.qos = graph.Qos(depth=conf.qos_depth)
+        self.body_from_cam = pose_from_tq(conf.body_from_cam[:3], conf.body_from_cam[3:])
+        self.selector = convert.KeyframeSelector(conf.keyframe_min_distance_m,
+                                                 conf.keyframe_min_angle_deg)
+        self.odometry = convert.StampedPoses()
+        self.latest: LatestImage | None = None
+        self.lost = False
+        self.camera: dict[str, Any] | None = None
+        self.keyframe_poses: list[np.ndarray] = []
+        self._pending: collections.deque[LatestImage] = collections.deque(maxlen=PENDING_IMAGES)
+        self._images_lost = 0
+        self._seq = itertools.count(1)
+        self.names: dict[str, tuple[str, str]] = {}
+        self._entities: list[Any] = []
+        self._tokens: list[Any] = []
+        self._pending_tokens: list[str] = []      # declared once every entity exists
+        self._next_kf_id = self._restore_keyframes()
+        self._declare()
+
+    # -- declarations --------------------------------------------------------------------------
+    def _declare(self) -> None:
+        conf, session = self.conf, self.bridge.session
+        self._tokens.append(session.liveliness().declare_token(self.node.token()))
+        pose_key, pose_token = self._endpoint(graph.EntityKind.PUBLISHER, conf.pose_topic,
+                                              ros.POSE_WITH_COVARIANCE_STAMPED)
+        self.pose_gid = graph.gid_of(pose_token)
+        self.publisher = session.declare_publisher(pose_key)
+        self._entities.append(self.publisher)
+        image_type = ros.COMPRESSED_IMAGE if conf.image_type == "compressed" else ros.IMAGE
+        odometry_type = ros.ODOMETRY if conf.odometry_type == "odometry" else ros.POSE_STAMPED
+        self._subscribe(conf.image_topic, image_type, self._on_image)
+        self._subscribe(conf.camera_info_topic, ros.CAMERA_INFO, self._on_camera_info)
+        if conf.build_map:
+            self._subscribe(conf.odometry_topic, odometry_type, self._on_odometry)
+        self._subscribe(conf.lost_topic, ros.BOOL, self._on_lost)
+        service_key, _ = self._endpoint(graph.EntityKind.SERVICE, conf.relocalize_service,
+                                        ros.TRIGGER)
+        self.service_key = service_key
+        self._entities.append(session.declare_queryable(service_key, self._on_request,
+                                                        complete=True))
+        for token in self._pending_tokens:
+            self._tokens.append(session.liveliness().declare_token(token))
+        log.info("ROS 2 node %s/%s (domain %d) serves map %s: pose on %s, service %s",
+                 self.node.namespace, self.node.name, conf.domain_id, self.map_name,
+                 conf.resolve(conf.pose_topic, self.map_name),
+                 conf.resolve(conf.relocalize_service, self.map_name))
+
+    def _endpoint(self, kind: graph.EntityKind, name: str, ros_type: str) -> tuple[str, str]:
+        """(data key, token) of an endpoint; the token is declared after every entity."""
+        absolute = self.conf.resolve(name, self.map_name)
+        dds, type_hash = ros.dds_name(ros_type), self.bridge.hash_of(ros_type)
+        token = self.node.endpoint_token(self.bridge.next_id(), kind, absolute, dds, type_hash,
+                                         self.qos)
+        self._pending_tokens.append(token)
+        self.names[absolute] = (dds, type_hash)
+        return graph.data_key(self.conf.domain_id, absolute, dds, type_hash), token
+
+    def _subscribe(self, name: str, ros_type: str, handle: Callable[[Any], None]) -> None:
+        key, _ = self._endpoint(graph.EntityKind.SUBSCRIBER, name, ros_type)
+        bridge = self.bridge
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
+            try:
+                graph.Attachment.decode(attachment)
+            except ValueError as exc:   # rmw_zenoh drops such samples; so do we
+                bridge.count("dropped_samples")
+                log.debug("dropping a sample on %s: %s", key, exc)
+                return
+            payload = sample.payload.to_bytes()
+            if not bridge.worker.submit(lambda _q: self._decode_and_handle(payload, ros_type,
+                                                                            handle)):
+                bridge.count("dropped_busy")
+
+        self._entities.append(bridge.session.declare_subscriber(key, on_sample))
+
+    def close(self) -> None:
+        for entity in [*self._tokens, *reversed(self._entities)]:
+            _undeclare(entity)
+        self._tokens, self._entities = [], []
+
+    # -- samples (the bridge's worker) ----------------------------------------------------------
+    def _decode_and_handle(self, payload: bytes, ros_type: str,
+                           handle: Callable[[Any], None]) -> None:
+        try:
+            handle(ros.decode(payload, ros_type))
+        except Exception as exc:   # bad input never stops the bridge
+            self.bridge.count("bad_samples")
+            log.warning("map %s: a %s sample was not used: %s", self.map_name, ros_type, exc)
+
+    def _on_camera_info(self, info: Any) -> None:
+        camera = convert.camera_dict(info)
+        if camera == self.camera:
+            return
+        put = wire.CameraPut(CAMERA_ID, wire.WireCamera.from_dict(camera))
+        self.bridge.host.on_camera_sample(self.map_name, CAMERA_ID, put.encode())
+        self.camera = camera
+        self.bridge.count("cameras")
+        self._retry_pending()
+
+    def _on_lost(self, flag: Any) -> None:
+        if flag.data and not self.lost:
+            self._images_lost = 0      # every Nth image counted from the moment VIO was lost
+        self.lost = bool(flag.data)
+
+    def _on_odometry(self, msg: Any) -> None:
+        pose = msg.pose.pose if self.conf.odometry_type == "odometry" else msg.pose
+        self.odometry.add(convert.stamp_seconds(msg.header.stamp), convert.pose_of(pose))
+        self.bridge.count("odometry")
+        self._retry_pending()
+
+    def _retry_pending(self) -> None:
+        """Images that waited for the camera or their odometry, in arrival order."""
+        pending, self._pending = list(self._pending), collections.deque(maxlen=PENDING_IMAGES)
+        for image in pending:
+            self._maybe_keyframe(image)
+
+    def _on_image(self, msg: Any) -> None:
+        if self.conf.image_type == "compressed":
+            image = wire.WireImage.from_bytes(bytes(np.asarray(msg.data, np.uint8)))
+        else:
+            image = wire.WireImage.from_array(convert.grey_from_raw(msg))
+        latest = LatestImage(msg.header.stamp, image)
+        self.latest = latest
+        self.bridge.count("images")
+        n = self.conf.relocalize_every_n
+        if self.lost and n:
+            self._images_lost += 1
+            if self._images_lost % n == 0:
+                self._submit_relocalize(latest, None)
+        if self.conf.build_map:
+            self._maybe_keyframe(latest)
+
+    def _maybe_keyframe(self, latest: LatestImage) -> None:
+        """Add ``latest`` as a keyframe if its odometry is known and the rule selects it
+        (kept waiting while the camera or the odometry of its stamp is unknown)."""
+        stamp = convert.stamp_seconds(latest.stamp)
+        world_from_body = self.odometry.nearest(stamp, self.conf.max_stamp_difference_s)
+        if self.camera is None or world_from_body is None:
+            if self.odometry.newest() > stamp + self.conf.max_stamp_difference_s:
+                self.bridge.count("unpaired_images")   # its odometry will never come
+            else:
+                self._pending.append(latest)
+            return
+        world_from_cam = world_from_body @ self.body_from_cam
+        if not self.selector.is_new(world_from_cam, self.keyframe_poses):
+            return
+        kf_id = self._next_kf_id
+        self._next_kf_id += 1
+        put = wire.KeyframePut(id=kf_id, image=latest.image,
+                               world_from_cam=wire.WirePose.from_matrix(world_from_cam),
+                               camera_id=CAMERA_ID,
+                               timestamp=convert.stamp_seconds(latest.stamp))
+        self.bridge.host.on_keyframe_sample(self.map_name, kf_id, put.encode())
+        self.keyframe_poses.append(world_from_cam)
+        self.bridge.count("keyframes")
+
+    def _restore_keyframes(self) -> int:
+        """Poses of the map's keyframes (the rule applies to them too); the next free id."""
+        rt = self.bridge.host.maps.get(self.map_name)
+        if rt is None:
+            return 0
+        state = rt.map_state()
+        self.keyframe_poses = [kf.world_from_cam for kf in state.keyframes.values()]
+        return max(state.keyframe_ids(), default=-1) + 1
+
+    # -- the relocalize service -----------------------------------------------------------------
+    def _on_request(self, query: zenoh.Query) -> None:
+        attachment = query.attachment.to_bytes() if query.attachment is not None else None
+        try:
+            request = graph.Attachment.decode(attachment)
+            ros.decode(query.payload.to_bytes() if query.payload is not None else b"",
+                       "std_srvs/srv/Trigger_Request")
+        except ValueError as exc:
+            self.bridge.count("dropped_requests")
+            log.warning("map %s: dropping a relocalize request: %s", self.map_name, exc)
+            query.drop()
+            return
+        latest = self.latest
+        if latest is None:
+            topic = self.conf.resolve(self.conf.image_topic, self.map_name)
+            self._reply(query, request, False, f"no image received on {topic} yet")
+            return
+        self._submit_relocalize(latest, (query, request))
+
+    def _submit_relocalize(self, latest: LatestImage,
+                           call: tuple[zenoh.Query, graph.Attachment] | None) -> None:
+        pool = self.bridge.host.relocalize_pool
+        if pool is None or not pool.submit(lambda queued: self._relocalize(latest, call, queued)):
+            self.bridge.count("busy")
+            if call is not None:
+                self._reply(*call, False, "all relocalize workers busy; call again later")
+
+    def _relocalize(self, latest: LatestImage,
+                    call: tuple[zenoh.Query, graph.Attachment] | None, queued_s: float) -> None:
+        success, message = False, "not relocalized"
+        try:
+            success, message = self._relocalize_and_publish(latest, queued_s)
+        except Exception as exc:
+            code, text = handlers.error_of(exc)
+            message = f"{code.value}: {text}"
+        finally:
+            if call is not None:
+                self._reply(*call, success, message)
+
+    def _relocalize_and_publish(self, latest: LatestImage, queued_s: float) -> tuple[bool, str]:
+        rt = self.bridge.host.maps.get(self.map_name)
+        if rt is None:
+            return False, f"map {self.map_name!r} is not served"
+        if self.camera is None:
+            topic = self.conf.resolve(self.conf.camera_info_topic, self.map_name)
+            return False, f"no camera_info received on {topic} yet"
+        request = wire.RelocalizeRequest(image=latest.image, camera_id=CAMERA_ID,
+                                         timestamp=convert.stamp_seconds(latest.stamp))
+        reply = wire.RelocalizeReply.decode(
+            handlers.relocalize(rt, request.encode(), queued_s=queued_s), rt.limits)
+        if reply.status is not wire.ReplyStatus.OK or reply.world_from_cam is None:
+            self.bridge.count("not_relocalized")
+            return False, reply.reason or reply.status.value
+        world_from_cam = reply.world_from_cam.matrix()
+        covariance = None if reply.covariance is None else np.reshape(reply.covariance, (6, 6))
+        out = convert.body_pose(world_from_cam, covariance, self.body_from_cam)
+        self.publish_pose(latest.stamp, out)
+        self.bridge.count("poses")
+        x, y, z = out.position
+        return True, (f"relocalized: position {x:.3f} {y:.3f} {z:.3f} m in {self.conf.frame_id}, "
+                      f"{reply.inliers} inliers, confidence {reply.confidence:.2f}")
+
+    def publish_pose(self, stamp: Any, out: convert.PoseOut) -> None:
+        msg = pose_message(stamp, self.conf.frame_id, out)
+        attachment = graph.Attachment(next(self._seq), time.time_ns(), self.pose_gid)
+        self.publisher.put(ros.encode(msg, ros.POSE_WITH_COVARIANCE_STAMPED),
+                           attachment=attachment.encode())
+
+    def _reply(self, query: zenoh.Query, request: graph.Attachment, success: bool,
+               message: str) -> None:
+        """The Trigger response, attached with the request's sequence number and the
+        client's GID (how rmw_zenoh's client matches it to its call)."""
+        response = ros.message("std_srvs/srv/Trigger_Response", success=success,
+                               message=message)
+        attachment = graph.Attachment(request.sequence_number, time.time_ns(), request.gid)
+        try:
+            query.reply(self.service_key, ros.encode(response, "std_srvs/srv/Trigger_Response"),
+                        attachment=attachment.encode())
+        except Exception as exc:   # the client may have gone
+            log.debug("relocalize reply not sent: %s", exc)
+        finally:
+            query.drop()
+
+
+def pose_message(stamp: Any, frame_id: str, out: convert.PoseOut) -> Any:
+    """A geometry_msgs/PoseWithCovarianceStamped."""
+    m = ros.message
+    header = m("std_msgs/msg/Header", stamp=stamp, frame_id=frame_id)
+    pose = m("geometry_msgs/msg/Pose",
+             position=m("geometry_msgs/msg/Point", x=float(out.position[0]),
+                        y=float(out.position[1]), z=float(out.position[2])),
+             orientation=m("geometry_msgs/msg/Quaternion", x=float(out.quat_xyzw[0]),
+                           y=float(out.quat_xyzw[1]), z=float(out.quat_xyzw[2]),
+                           w=float(out.quat_xyzw[3])))
+    with_cov = m("geometry_msgs/msg/PoseWithCovariance", pose=pose,
+                 covariance=np.ascontiguousarray(out.covariance, np.float64).ravel())
+    return m(ros.POSE_WITH_COVARIANCE_STAMPED, header=header, pose=with_cov)
+
+
+def _undeclare(entity: Any) -> None:
+    try:
+        entity.undeclare()
+    except Exception as exc:
+        log.debug("undeclare failed: %s", exc)

@@ -1,0 +1,124 @@
+"""The ``[ros2]`` section of ``reloc serve``: every served map as a ROS 2 node on rmw_zenoh.
+
+Names follow ROS 2: an absolute name (``/camera/image_raw/compressed``) is used as is, a
+relative one (``pose``) is put under the map's node namespace ``<namespace>/<map>``.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+from ...errors import ConfigError
+
+#: Distros whose rmw_zenoh puts RIHS01 type hashes in keys; Humble writes
+#: ``TypeHashNotSupported``.
+DISTROS = ("jazzy", "kilted", "rolling", "humble")
+IMAGE_TYPES = ("compressed", "raw")
+ODOMETRY_TYPES = ("odometry", "pose_stamped")
+_NAME = re.compile(r"^/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$")
+
+
+@dataclass(frozen=True)
+class Ros2Conf:
+    """See module docstring; off unless ``enabled``."""
+
+    enabled: bool = False
+    domain_id: int = 0
+    #: Each map is node ``node_name`` in namespace ``<namespace>/<map>``.
+    namespace: str = "/reloc"
+    node_name: str = "reloc"
+    distro: str = "jazzy"
+    #: ROS type (``geometry_msgs/msg/PoseWithCovarianceStamped``) -> hash, replacing the
+    #: computed one (a distro whose message definitions differ).
+    type_hashes: Any = field(default_factory=lambda: MappingProxyType({}))
+    image_topic: str = "/camera/image_raw/compressed"
+    #: ``compressed`` (sensor_msgs/CompressedImage, JPEG/PNG) or ``raw`` (sensor_msgs/Image).
+    image_type: str = "compressed"
+    camera_info_topic: str = "/camera/camera_info"
+    odometry_topic: str = "/odom"
+    #: ``odometry`` (nav_msgs/Odometry) or ``pose_stamped`` (geometry_msgs/PoseStamped).
+    odometry_type: str = "odometry"
+    pose_topic: str = "pose"
+    relocalize_service: str = "relocalize"
+    #: std_msgs/Bool: while the last value is true, every ``relocalize_every_n``-th image is
+    #: relocalized and the pose published (0: only on a service call).
+    lost_topic: str = "lost"
+    relocalize_every_n: int = 0
+    #: The frame id of the published poses (the map's frame: the VIO frame it was built in).
+    frame_id: str = "map"
+    qos_depth: int = 10
+    #: The camera's pose in the body frame of the odometry, ``tx ty tz qx qy qz qw``
+    #: (camera x right, y down, z forward); the published pose is the body's.
+    body_from_cam: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    #: Build the map from odometry + images: an image becomes a keyframe when its camera is
+    #: farther than this from every keyframe, or turned by more than the angle (SVO's rule).
+    build_map: bool = True
+    keyframe_min_distance_m: float = 0.15
+    keyframe_min_angle_deg: float = 15.0
+    #: An image and an odometry message pair when their stamps differ by at most this.
+    max_stamp_difference_s: float = 0.02
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.domain_id <= 232:
+            raise ConfigError(f"ros2.domain_id: expected 0..232, got {self.domain_id}")
+        _check_choice("distro", self.distro, DISTROS)
+        _check_choice("image_type", self.image_type, IMAGE_TYPES)
+        _check_choice("odometry_type", self.odometry_type, ODOMETRY_TYPES)
+        if not self.namespace.startswith("/") or not (self.namespace == "/"
+                                                       or _NAME.match(self.namespace)):
+            raise ConfigError(f"ros2.namespace: expected an absolute ROS name like '/reloc', "
+                              f"got {self.namespace!r}")
+        for key in ("node_name", "frame_id"):
+            if not re.match(r"^[A-Za-z_][A-Za-z0-9_]*$", getattr(self, key)):
+                raise ConfigError(f"ros2.{key}: expected letters, digits and '_', got "
+                                  f"{getattr(self, key)!r}")
+        for key in ("image_topic", "camera_info_topic", "odometry_topic", "pose_topic",
+                    "relocalize_service", "lost_topic"):
+            if not _NAME.match(getattr(self, key)):
+                raise ConfigError(f"ros2.{key}: expected a ROS name ('/a/b' or 'b'), got "
+                                  f"{getattr(self, key)!r}")
+        self._check_numbers()
+        object.__setattr__(self, "body_from_cam", tuple(float(v) for v in self.body_from_cam))
+        if not isinstance(self.type_hashes, dict | MappingProxyType) or not all(
+                isinstance(k, str) and isinstance(v, str) for k, v in self.type_hashes.items()):
+            raise ConfigError(f"ros2.type_hashes: expected a table of type -> hash strings, "
+                              f"got {self.type_hashes!r}")
+        object.__setattr__(self, "type_hashes", MappingProxyType(dict(self.type_hashes)))
+
+    def _check_numbers(self) -> None:
+        if self.qos_depth < 1 or self.relocalize_every_n < 0:
+            raise ConfigError(f"ros2: expected qos_depth >= 1 and relocalize_every_n >= 0, "
+                              f"got {self.qos_depth} and {self.relocalize_every_n}")
+        for key in ("keyframe_min_distance_m", "keyframe_min_angle_deg",
+                    "max_stamp_difference_s"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"ros2.{key}: expected a number >= 0, got {value}")
+        pose = self.body_from_cam
+        if len(pose) != 7 or not all(isinstance(v, int | float) and math.isfinite(v)
+                                     for v in pose):
+            raise ConfigError(f"ros2.body_from_cam: expected 7 numbers tx ty tz qx qy qz qw, "
+                              f"got {list(pose)!r}")
+        if abs(math.sqrt(sum(v * v for v in pose[3:])) - 1.0) > 1e-3:
+            raise ConfigError(f"ros2.body_from_cam: the quaternion {list(pose[3:])} is not "
+                              "unit length")
+
+    def node_namespace(self, map_name: str) -> str:
+        """The namespace of map ``map_name``'s node (the map name made a ROS name chunk)."""
+        chunk = re.sub(r"[^A-Za-z0-9_]", "_", map_name)
+        if not re.match(r"^[A-Za-z_]", chunk):
+            chunk = "m" + chunk
+        return f"{self.namespace.rstrip('/')}/{chunk}"
+
+    def resolve(self, name: str, map_name: str) -> str:
+        """``name`` as an absolute ROS name for map ``map_name``'s node."""
+        return name if name.startswith("/") else f"{self.node_namespace(map_name)}/{name}"
+
+
+def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ConfigError(f"ros2.{key}: expected one of {list(choices)}, got {value!r}")
