@@ -313,3 +313,18 @@ def test_factory_builds_it_from_options(scene: Scene) -> None:
         create_relocalizer("ferns", scene.map([0]), options={"ferns": {"num_fern": 10}})
     with pytest.raises(ConfigError):
         FernsConf(partition="everywhere")
+
+
+def test_keypoints_proposing_several_landmarks_agree_by_chance_more_often():
+    """A keypoint proposes its top_k landmarks and RANSAC may use any: its chance of agreeing
+    with a wrong pose is 1 - (1 - p)^k. Counted per keypoint, a consensus of 15 among 1000
+    two-candidate keypoints (a wrong pose on room-hard) is then no longer out of chance's reach."""
+    from reloc_service.pose.base import log10_false_alarms
+    from reloc_service.relocalizers.ferns import _per_keypoint_chance
+
+    p = 2.56e-4  # pi 5^2 / (640 x 480)
+    assert _per_keypoint_chance(p, 1000, 1000) == pytest.approx(p)
+    two = _per_keypoint_chance(p, 2000, 1000)
+    assert two == pytest.approx(1 - (1 - p) ** 2)
+    assert log10_false_alarms(1000, 15, 3, p) < -2 < log10_false_alarms(1000, 15, 3, two)
+    assert _per_keypoint_chance(None, 10, 5) is None

@@ -559,6 +559,8 @@ class FernsRelocalizer(Relocalizer):
         est, inliers = solved
         est.num_matches = len(np.unique(kp))
         est.inliers = len(np.unique(kp[inliers]))
+        est.chance_probability = _per_keypoint_chance(est.chance_probability, len(kp),
+                                                      est.num_matches)
         est.keyframe_ids = _keyframes_seeing(state, lm[inliers])
         return est, inliers
 
@@ -700,6 +702,17 @@ def _assign_landmarks(landmarks: IntArray, region_of_obs: IntArray, num_regions:
                 room[r] -= 1
                 break
     return out
+
+
+def _per_keypoint_chance(p: float | None, correspondences: int, keypoints: int
+                         ) -> float | None:
+    """Chance that a query keypoint agrees with a wrong pose when it proposes
+    ``correspondences / keypoints`` landmarks on average (its ``top_k`` classes) and RANSAC
+    may use any of them: ``1 - (1 - p)^c`` for a single correspondence's chance ``p``. The
+    false-alarm test counts keypoints, so it must use this, not ``p``."""
+    if p is None or keypoints == 0:
+        return p
+    return float(1.0 - (1.0 - p) ** (correspondences / keypoints))
 
 
 def _keyframes_seeing(state: MapState, landmark_ids: IntArray) -> list[int]:
