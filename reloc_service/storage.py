@@ -202,7 +202,8 @@ def save_map(state: MapState, directory: str | Path, *,
     previous = _current_or_none(directory)
     snapshot = _new_snapshot_dir(directory)
     writer = _SnapshotWriter(snapshot)
-    keyframes = [_write_keyframe(writer, state.keyframes[k]) for k in state.keyframe_ids()]
+    # insertion order, kept by load_map: a replica copies the map in the order it was built
+    keyframes = [_write_keyframe(writer, kf) for kf in state.keyframes.values()]
     landmarks = writer.write("landmarks.npz", _npz_bytes(_landmark_arrays(state)))
     model_dirs: dict[str, str] = {}
     for method, write_model in (models or {}).items():

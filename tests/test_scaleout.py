@@ -225,3 +225,64 @@ def _try_client(port: int) -> RelocClient | None:
         return RelocClient(endpoint(port), map="drone1", timeout=20)
     except ConnectionError:
         return None
+
+
+def _answer(rt, scene, q: int, camera_id: str):
+    """The pose ``rt`` gives for query ``q`` (through the wire handler), a 4x4 or None."""
+    from reloc_client.client import to_wire_image
+    from reloc_client.protocol import RelocalizeReply, RelocalizeRequest
+
+    from reloc_service.service import handlers
+
+    request = RelocalizeRequest(image=to_wire_image(scene.query_images[q]), camera_id=camera_id)
+    reply = RelocalizeReply.decode(handlers.relocalize(rt, request.encode()), rt.limits)
+    return None if reply.world_from_cam is None else reply.world_from_cam.matrix()
+
+
+def test_bootstrapped_replica_keeps_the_intrinsics_keyframes_were_built_with(synthetic_scene,
+                                                                              tmp_path):
+    """Issue 15 case 2: camera cam0 re-put with other intrinsics after keyframes 0-4 were
+    built with the first ones. A replica that copies the map must replay the same history
+    (each keyframe with the intrinsics it was built with, the camera change after them), end at
+    the same map version and answer like the original (here within 1 mm)."""
+    scene = synthetic_scene
+    true_cam = scene.camera.to_dict()
+    port = free_port()
+    with open_router(port), \
+            Service(ground_conf("service-a", port, tmp_path / "a")) as first, \
+            RelocClient(endpoint(port), map="drone1", timeout=20) as client:
+        events = Events(client)
+        client.set_camera("cam0", true_cam)
+        client.set_camera("truth", true_cam)     # queries name the true camera on both
+        events.wait("camera_added", id="truth")
+        _stream(client, scene, range(5), 0.0)
+        events.wait("keyframe_added", id=4, timeout=60)
+        client.set_camera("cam0", {**true_cam, "fx": true_cam["fx"] * 0.65})   # re-put
+        # said, not silent: the keyframes built with cam0 keep their intrinsics
+        events.wait("camera_added", id="cam0", changed=True, keyframes_kept=5)
+        assert first.wait_idle(60)
+        second = Service(ground_conf("service-replica", port, tmp_path / "a2")).start()
+        try:
+            rt1, rt2 = first.maps["drone1"], second.maps["drone1"]
+            assert rt2.map_state().keyframe_ids() == list(range(5))
+            for kf_id in range(5):     # the keyframes kept the intrinsics they were built with
+                assert rt2.map_state().keyframes[kf_id].camera.to_dict() == true_cam
+            assert rt2.camera("cam0").to_dict() == rt1.camera("cam0").to_dict()
+            assert rt1.status().map_version == rt2.status().map_version
+            for q in range(len(scene.query_images)):
+                p1, p2 = _answer(rt1, scene, q, "truth"), _answer(rt2, scene, q, "truth")
+                assert (p1 is None) == (p2 is None), q
+                if p1 is not None:
+                    assert abs(p1[:3, 3] - p2[:3, 3]).max() < 1e-3, (q, p1, p2)
+            # same for a restart: the replica restores its own storage, copies nothing twice
+            version = rt2.status().map_version
+            second.stop()
+            second = Service(ground_conf("service-replica", port, tmp_path / "a2")).start()
+            rt2 = second.maps["drone1"]
+            assert rt2.status().map_version == version == rt1.status().map_version
+            assert rt2.status().counters.get("bootstrap_already_held") == 5
+            assert all(rt2.map_state().keyframes[k].camera.to_dict() == true_cam
+                       for k in range(5))
+        finally:
+            second.stop()
+        events.close()

@@ -433,28 +433,8 @@ class _Bootstrap:
             if not self._ready.wait(self.TIMEOUT * 4):   # start-up failed before the gets
                 return
             counts: dict[str, int] = {}
-            for rt, op, _key, payload in self.fetched:
-                try:
-                    if op == "cam":
-                        put = wire.CameraPut.decode(payload, rt.limits)
-                        if rt.camera(put.id) is None:
-                            rt.put_camera(put.id, payload)
-                        continue
-                    info = wire.KeyframeInfo.decode(payload, rt.limits)
-                    if info.image is None or (rt.name, info.id) in svc._bootstrapped:
-                        continue   # a second replica's copy of the same keyframe
-                    use_id = info.camera_id is not None and rt.camera(info.camera_id) is not None
-                    message = wire.KeyframePut(
-                        id=info.id, image=info.image, world_from_cam=info.world_from_cam,
-                        camera_id=info.camera_id if use_id else None,
-                        camera=None if use_id else info.camera, timestamp=info.timestamp)
-                    rt.put_keyframe(info.id, message.encode())
-                    svc._bootstrapped[(rt.name, info.id)] = (info.world_from_cam.matrix(),
-                                                             info.timestamp)
-                    counts[rt.name] = counts.get(rt.name, 0) + 1
-                except Exception as exc:
-                    log.warning("bootstrap: map %s: a copied %s was not applied: %s", rt.name,
-                                op, exc)
+            for rt in {id(rt): rt for rt, *_ in self.fetched}.values():
+                counts[rt.name] = self._replay_history(rt)
             for name, rt in svc.maps.items():
                 rt.stats.count("bootstrap_keyframes", counts.get(name, 0))
             log.info("bootstrap: copied %s keyframes from running replicas",
@@ -462,6 +442,68 @@ class _Bootstrap:
         finally:
             svc._bootstrap_window = False
             self._done.set()
+
+    def _replay_history(self, rt: MapRuntime) -> int:
+        """Apply the copies of ``rt``'s map as the peer built it: keyframes in the peer's
+        insertion order, each with the intrinsics it was built with (a camera put again since
+        then is put back to those intrinsics before it, as the peer's journal had it), then
+        the cameras as the peer holds them now. The same history gives the same map and the
+        same map version. Returns the keyframes copied."""
+        copied = 0
+        peer_ids: set[int] = set()
+        for _rt, _op, _key, payload in (f for f in self.fetched if f[0] is rt and f[1] == "kf"):
+            try:
+                info = wire.KeyframeInfo.decode(payload, rt.limits)
+                peer_ids.add(info.id)
+                copied += self._copy_keyframe(rt, info)
+            except Exception as exc:
+                log.warning("bootstrap: map %s: a copied keyframe was not applied: %s",
+                            rt.name, exc)
+        if peer_ids:   # restored from our own storage, removed by the peer meanwhile
+            for kf_id in sorted(set(rt.map_state().keyframes) - peer_ids):
+                rt.delete_keyframe(kf_id)
+        for _rt, _op, _key, payload in (f for f in self.fetched if f[0] is rt and f[1] == "cam"):
+            try:
+                put = wire.CameraPut.decode(payload, rt.limits)
+                self._ensure_camera(rt, put.id, put.camera)
+            except Exception as exc:
+                log.warning("bootstrap: map %s: a copied camera was not applied: %s",
+                            rt.name, exc)
+        return copied
+
+    def _copy_keyframe(self, rt: MapRuntime, info: wire.KeyframeInfo) -> int:
+        svc = self.service
+        if info.image is None or (rt.name, info.id) in svc._bootstrapped:
+            return 0     # a second replica's copy of the same keyframe
+        if _holds(rt, info):   # restored from this replica's own storage: not applied twice
+            rt.stats.count("bootstrap_already_held")
+            svc._bootstrapped[(rt.name, info.id)] = (info.world_from_cam.matrix(),
+                                                     info.timestamp)
+            return 0
+        if info.camera_id is not None:
+            self._ensure_camera(rt, info.camera_id, info.camera)
+        message = wire.KeyframePut(
+            id=info.id, image=info.image, world_from_cam=info.world_from_cam,
+            camera_id=info.camera_id, camera=None if info.camera_id else info.camera,
+            timestamp=info.timestamp)
+        rt.put_keyframe(info.id, message.encode())
+        svc._bootstrapped[(rt.name, info.id)] = (info.world_from_cam.matrix(), info.timestamp)
+        return 1
+
+    @staticmethod
+    def _ensure_camera(rt: MapRuntime, camera_id: str, camera: wire.WireCamera) -> None:
+        """Register ``camera`` under ``camera_id`` unless it already is (journaled, as a put)."""
+        current = rt.camera(camera_id)
+        if current is None or current.to_dict() != handlers.to_camera(camera).to_dict():
+            rt.put_camera(camera_id, wire.CameraPut(camera_id, camera).encode())
+
+
+def _holds(rt: MapRuntime, info: wire.KeyframeInfo) -> bool:
+    """Whether ``rt`` already holds keyframe ``info`` as the peer does (pose, time, camera)."""
+    kf = rt.map_state().keyframes.get(info.id)
+    return (kf is not None and kf.timestamp == info.timestamp
+            and np.allclose(kf.world_from_cam, info.world_from_cam.matrix(), atol=1e-9)
+            and kf.camera.to_dict() == handlers.to_camera(info.camera).to_dict())
 
 
 def serve(conf: ServiceConf) -> int:

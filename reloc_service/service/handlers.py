@@ -230,11 +230,12 @@ def status(rt: MapRuntime, payload: bytes) -> bytes:
 # -- map copying ------------------------------------------------------------------------------
 
 def keyframe_infos(rt: MapRuntime, *, images: bool) -> list[tuple[int, bytes]]:
-    """(keyframe id, KeyframeInfo bytes) of every keyframe; with ``images``, each carries its
-    image as PNG."""
+    """(keyframe id, KeyframeInfo bytes) of every keyframe, in the order they were added to
+    the map (a replica replays them in that order: see app._Bootstrap); with ``images``, each
+    carries its image as PNG."""
     state = rt.map_state()
     out = []
-    for kf_id in state.keyframe_ids():
+    for kf_id in state.keyframes:
         kf = state.keyframes[kf_id]
         image = _png(kf.image) if images else None
         info = wire.KeyframeInfo(

@@ -207,9 +207,19 @@ class MapRuntime:
             camera = handlers.decode_camera_put(camera_id, payload, self.limits)
             with self._apply_lock:
                 self._journal_record({"op": "cam", "id": camera_id, "payload": payload})
+                previous = self._cameras.get(camera_id)
                 self._cameras[camera_id] = camera
             self.stats.count("cameras_put")
-            self.publish(EventKind.CAMERA_ADDED, id=camera_id)
+            if previous is None or previous.to_dict() == camera.to_dict():
+                self.publish(EventKind.CAMERA_ADDED, id=camera_id)
+                return
+            # Never rewritten: the keyframes already built keep the intrinsics they were built
+            # with (a replica copies them so, see app._Bootstrap); only new puts use these.
+            kept = sum(1 for c in self._kf_camera_ids.values() if c == camera_id)
+            log.warning("map %s: camera %s changed; %d keyframes built with it keep their "
+                        "intrinsics", self.name, camera_id, kept)
+            self.publish(EventKind.CAMERA_ADDED, id=camera_id, changed=True,
+                         keyframes_kept=kept)
         except Exception as exc:
             self.reject(EventKind.CAMERA_REJECTED, exc, id=camera_id)
 
