@@ -389,3 +389,45 @@ def test_a_small_map_is_served_while_a_big_one_replays(synthetic_scene, tmp_path
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+# -- reloc map check ------------------------------------------------------------------------------
+
+def test_map_check_reports_a_clean_map_and_exits_0(storage, capsys):
+    from reloc_service.cli.main import main
+
+    assert main(["map", "check", str(storage / GOOD)]) == 0
+    out = capsys.readouterr().out
+    assert ": ok" in out and "[CURRENT] [service.json]: ok" in out
+    assert "3 good records, 0 skipped, torn tail 0 bytes" in out
+
+
+def test_map_check_reports_skipped_records_torn_tails_and_quarantine(storage, capsys):
+    from reloc_service.cli.main import main
+
+    segment = journal_segment(storage / BAD)
+    offset, size = record_offsets(segment)[0]
+    flip(segment, offset + size - 1)
+    with segment.open("ab") as fh:              # and a torn tail after the last record
+        fh.write(J.frame(b"cut short")[:-4])
+    before = files_of(storage / BAD)
+    assert main(["map", "check", str(storage)]) == 1        # the whole storage
+    out = capsys.readouterr().out
+    assert f"{storage / GOOD}: ok" in out and f"{storage / BAD}: DAMAGED" in out
+    assert "2 good records, 1 skipped, torn tail 21 bytes" in out
+    assert files_of(storage / BAD) == before                 # read only
+    # After a restore the skipped bytes are in quarantine, and the report lists them.
+    port = free_port()
+    Service(conf(port, storage)).start().stop(final_snapshot=False)
+    assert main(["map", "check", "--json", str(storage / BAD)]) == 1
+    [report] = json.loads(capsys.readouterr().out)
+    assert report["damaged"] and len(report["quarantine"]) == 2    # the skipped and the torn
+
+
+def test_map_check_reports_a_missing_current(storage, capsys):
+    from reloc_service.cli.main import main
+
+    (storage / BAD / "map" / "CURRENT").unlink()
+    assert main(["map", "check", str(storage / BAD)]) == 1
+    assert "CURRENT: missing although snapshot(s)" in capsys.readouterr().out
+    assert main(["map", "check", str(storage / BAD / "journal" / "nothing")]) == 2
