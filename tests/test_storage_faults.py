@@ -368,15 +368,27 @@ def test_a_small_map_is_served_while_a_big_one_replays(synthetic_scene, tmp_path
     storage = tmp_path / "storage"
     journal_of_keyframes(storage / "big", synthetic_scene, 60)
     journal_of_keyframes(storage / "small", synthetic_scene, 2)
-    port = free_port()
+    before = files_of(storage / "big")
+    config = write_config(tmp_path, port := free_port(), storage, ())
+    # SIGTERM in the middle of the big replay: a prompt clean exit, nothing written.
+    proc = serve(config, tmp_path / "serve1.log")
+    try:
+        with connect(proc, port, "small") as small:
+            wait_until(lambda: answers(small), timeout=120, interval=0.1)
+        start = time.monotonic()
+        proc.terminate()
+        assert proc.wait(60) == 0
+        assert time.monotonic() - start < 30
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert files_of(storage / "big") == before
     start = time.monotonic()
-    proc = serve(write_config(tmp_path, port, storage, ()), tmp_path / "serve.log")
+    proc = serve(config, tmp_path / "serve2.log")
     try:
         with connect(proc, port, "small") as small, \
                 RelocClient(endpoint(port), map="big", timeout=30) as big:
-            wait_until(lambda: proc.poll() is not None or answers(small), timeout=120,
-                       interval=0.1)
-            assert proc.poll() is None
+            wait_until(lambda: answers(small), timeout=120, interval=0.1)
             small_at = time.monotonic() - start
             assert small.status().keyframes == 2
             assert not answers(big), "the big map should still be replaying"

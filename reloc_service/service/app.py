@@ -25,7 +25,7 @@ from ..engine import EngineConf, MappingConf
 from ..errors import ConfigError, StorageError
 from . import handlers
 from .config import ServiceConf
-from .runtime import MapRuntime, check_storage, open_engine, recover_current
+from .runtime import MapRuntime, RestoreInterrupted, check_storage, open_engine, recover_current
 from .workers import WorkerPool, stop_on_signals
 from .zenoh_io import PendingQuery, QueryKind, ZenohLayer, open_session
 
@@ -157,6 +157,9 @@ class Service:
     def _bring_up(self, name: str, *, declare: bool) -> None:
         try:
             rt = self._open_map(name)
+        except RestoreInterrupted as exc:
+            log.info("%s", exc)
+            return
         except Exception as exc:   # one map's damage never takes down the others
             self._fail_map(name, exc)
             return
@@ -280,7 +283,7 @@ class Service:
                         fsync=self.conf.service.fsync)
         if directory is not None:
             check_storage(directory)
-            replayed = rt.restore()
+            replayed = rt.restore(self._stopped)
             if recovered is not None:
                 rt.restore_report.recovered_snapshot = recovered
                 rt.stats.count("restore_snapshot_recovered")
@@ -582,5 +585,7 @@ def serve(conf: ServiceConf) -> int:
         service.stop(final_snapshot=False)
         raise
     service.run_forever(stop)
+    if not service.wait_ready(timeout=30.0):   # a restore stops at its next journal record
+        log.warning("a map restore was still running at exit")
     return 0
 

@@ -85,6 +85,10 @@ class Stats:
                           "max": float(lat.max()), "mean": float(lat.mean())}
 
 
+class RestoreInterrupted(Exception):
+    """The service stopped while a map was being restored (nothing was written)."""
+
+
 @dataclass
 class RestoreReport:
     """What restoring a map found: journal records applied, records read that did not apply,
@@ -292,17 +296,21 @@ class MapRuntime:
                 and self._since_snapshot >= self.snapshot_every)
 
     # -- restore ---------------------------------------------------------------------------------
-    def restore(self) -> int:
+    def restore(self, stop: threading.Event | None = None) -> int:
         """Replay the journal after the snapshot the engine was loaded from (see
         :func:`open_engine`), then open it for appending. Returns the records replayed; what
         was skipped is in :attr:`restore_report` and the status counters. StorageError if
-        ``service.json`` or a journal segment header does not read (nothing is changed)."""
+        ``service.json`` or a journal segment header does not read (nothing is changed);
+        RestoreInterrupted if ``stop`` is set meanwhile (the journal is left as it was)."""
         if self.journal is None or self.directory is None:
             return 0
         meta = read_service_file(self.directory)
         self._restore_cameras(meta)
         report = self.restore_report
         for raw in self.journal.replay(from_segment=int(meta.get("next_segment", 0))):
+            if stop is not None and stop.is_set():
+                raise RestoreInterrupted(f"map {self.name}: restore interrupted after "
+                                         f"{report.replayed} journal records (shutting down)")
             if self._replay_record(raw):
                 report.replayed += 1
             else:
