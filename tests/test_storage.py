@@ -296,7 +296,8 @@ def test_a_save_without_current_deletes_no_snapshot(tmp_path, synthetic_map):
     old = _saved(tmp_path, synthetic_map)
     (tmp_path / "CURRENT").unlink()
     new = save_map(_tiny_state(synthetic_map, 0), tmp_path)
-    assert old.is_dir() and storage.verify_snapshot(old) > 0
+    assert old.is_dir()
+    assert storage.verify_snapshot(old) > 0
     assert [p.name for p in storage.snapshot_dirs(tmp_path)] == [old.name, new.name]
     newest = save_map(_tiny_state(synthetic_map, 1), tmp_path)   # CURRENT back: ancestors go
     assert [p.name for p in storage.snapshot_dirs(tmp_path)] == [new.name, newest.name]
