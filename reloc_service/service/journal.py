@@ -147,15 +147,15 @@ def scan_segment(path: Path) -> SegmentScan:
     data = path.read_bytes()
     number = _segment_number(path)
     if len(data) < _HEADER.size:
-        damage = (Damage(number, 0, len(data), "torn"),) if data else ()
-        return SegmentScan(number, [], 0, damage)
+        cut = (Damage(number, 0, len(data), "torn"),) if data else ()
+        return SegmentScan(number, [], 0, cut)
     magic, stored = _HEADER.unpack_from(data)
     if magic not in (MAGIC, MAGIC_V1) or stored != number:
         raise StorageError(f"{path}: not a reloc journal segment {number} (bad header: "
                            f"expected {MAGIC!r} and segment number {number})")
     if magic == MAGIC_V1:
         return _scan_v1(data, number)
-    pos, records, damage = _HEADER.size, [], []
+    pos, records, damage = _HEADER.size, [], list[Damage]()
     while pos < len(data):
         status, end = _frame_at(data, pos)
         if status == "ok":
