@@ -392,9 +392,16 @@ def test_a_small_map_is_served_while_a_big_one_replays(synthetic_scene, tmp_path
             small_at = time.monotonic() - start
             assert small.status().keyframes == 2
             assert not answers(big), "the big map should still be replaying"
+            events = Events(big)                # a put meanwhile is refused, not lost silently
+            big.add_keyframe(100, synthetic_scene.keyframe_images[0],
+                             synthetic_scene.keyframe_poses[0], camera_id="cam0")
+            rejected = events.wait("keyframe_rejected", id=100)
+            assert rejected.fields["code"] == "BUSY" and "being restored" in \
+                rejected.fields["message"]
             wait_until(lambda: answers(big), timeout=300, interval=0.5)
             big_at = time.monotonic() - start
             assert big.status().keyframes == 60
+            events.close()
         print(f"small map served after {small_at:.1f} s, big map after {big_at:.1f} s")
         proc.terminate()
         assert proc.wait(120) == 0
