@@ -12,8 +12,10 @@ Layout of a map directory ``MAP``::
         models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
-``CURRENT`` with :func:`os.replace` and prunes older snapshots, so a crash at any moment
-leaves the previous snapshot loadable. One process writes a map directory at a time.
+``CURRENT`` with :func:`os.replace` and prunes the snapshots it was built from (keeping the
+one it replaced), so a crash at any moment leaves the previous snapshot loadable. A save made
+while ``CURRENT`` is missing removes nothing: the snapshots present are not its ancestors.
+One process writes a map directory at a time.
 """
 
 from __future__ import annotations
@@ -186,11 +188,28 @@ def _switch_current(directory: Path, snapshot: Path) -> None:
 
 
 def _prune(directory: Path, keep: Path, previous: Path | None) -> None:
-    """Remove snapshots other than ``keep`` and ``previous`` (including crashed saves)."""
-    kept = {keep.name, previous.name if previous is not None else ""}
-    for path in (directory / SNAPSHOTS_DIR).iterdir():
-        if path.name not in kept and path.is_dir():
+    """Remove the snapshots the new one ``keep`` was built from, except ``previous`` (kept as
+    a fallback): those numbered below ``previous``, and debris of crashed saves between the
+    two (no manifest). Without a ``previous`` (``CURRENT`` was missing) nothing is removed:
+    the new state was not built from the snapshots present, so they may hold what it lacks."""
+    if previous is None:
+        return
+    floor = int(previous.name)
+    for path in snapshot_dirs(directory):
+        number = int(path.name)
+        if path in (keep, previous) or number > int(keep.name):
+            continue
+        if number < floor or not (path / MANIFEST_FILE).is_file():
             shutil.rmtree(path, ignore_errors=True)
+
+
+def snapshot_dirs(directory: str | Path) -> list[Path]:
+    """The numbered snapshot directories of map directory ``directory``, oldest first."""
+    snaps = Path(directory) / SNAPSHOTS_DIR
+    if not snaps.is_dir():
+        return []
+    return sorted((p for p in snaps.iterdir() if p.name.isdigit() and p.is_dir()),
+                  key=lambda p: int(p.name))
 
 
 def save_map(state: MapState, directory: str | Path, *,
@@ -416,6 +435,32 @@ def load_map(directory: str | Path) -> tuple[MapState, Path | None]:
         return state, None
     reader.verify_tree(MODELS_DIR)
     return state, models
+
+
+def verify_snapshot(snapshot: str | Path) -> int:
+    """Check ``snapshot``'s manifest and the size and SHA-256 of every file it lists; the
+    number of files checked. StorageError naming the first damaged or missing file."""
+    snapshot = Path(snapshot)
+    manifest = _read_manifest(snapshot)
+    reader = _SnapshotReader(snapshot, manifest["files"])
+    for rel in manifest["files"]:
+        reader.read(rel)
+    return len(manifest["files"])
+
+
+def restore_current(directory: str | Path, snapshot: str | Path) -> Path:
+    """Point a missing ``CURRENT`` of ``directory`` at ``snapshot`` (a name under
+    ``snapshots/``) after verifying every file of it; returns the snapshot path.
+    StorageError if ``CURRENT`` exists or the snapshot does not verify."""
+    directory = Path(directory)
+    path = directory / SNAPSHOTS_DIR / Path(snapshot).name
+    if (directory / CURRENT_FILE).exists():
+        raise StorageError(f"{directory / CURRENT_FILE}: exists; not replaced")
+    if not path.is_dir():
+        raise StorageError(f"{path}: does not exist")
+    verify_snapshot(path)
+    _switch_current(directory, path)
+    return path
 
 
 def saved_models(directory: str | Path) -> dict[str, Path]:

@@ -120,3 +120,98 @@ def test_unwritable_directory_is_a_storage_error(tmp_path):
     blocker.write_bytes(b"")
     with pytest.raises(StorageError, match="cannot create journal directory"):
         Journal(blocker / "journal").open()
+
+
+# -- damage: skip one record, resynchronise, quarantine its bytes (issue 15, case 3) ----------
+
+def _offsets(path) -> list[int]:
+    """Byte offset of every record of a clean segment (from its own framing)."""
+    scan, out, pos = scan_segment(path), [], J._HEADER.size
+    for r in scan.records:
+        out.append(pos)
+        pos += J._FRAME.size + len(r)
+    return out
+
+
+def _written(tmp_path, data: list[bytes]):
+    j = Journal(tmp_path)
+    j.open()
+    for r in data:
+        j.append(r)
+    j.close()
+    return tmp_path / segment_name(1)
+
+
+def _flip(path, offset: int, mask: int = 0x01) -> bytes:
+    data = bytearray(path.read_bytes())
+    data[offset] ^= mask
+    path.write_bytes(bytes(data))
+    return bytes(data)
+
+
+@pytest.mark.parametrize("k", range(11))
+@pytest.mark.parametrize("where", ["payload", "length", "sync"])
+def test_one_damaged_record_loses_only_that_record(tmp_path, k, where):
+    data = records(11, seed=k)
+    data = [r or b"x" for r in data]
+    path = _written(tmp_path, data)
+    start = _offsets(path)[k]
+    end = start + J._FRAME.size + len(data[k])
+    at = {"payload": end - 1, "length": start + 5, "sync": start}[where]
+    damaged = _flip(path, at)
+    j = Journal(tmp_path)
+    assert list(j.replay()) == data[:k] + data[k + 1:]
+    [skip] = j.report.skipped
+    assert (skip.offset, skip.size) == (start, end - start)
+    [kept] = j.report.quarantined
+    assert kept.read_bytes() == damaged[start:end]           # the bytes, as found
+    assert path.read_bytes() == damaged                      # the segment is not rewritten
+    j.open()                                                 # appending goes on elsewhere
+    j.append(b"after")
+    j.close()
+    assert path.read_bytes()[:len(damaged)] == damaged   # appended to, never rewritten
+    assert list(Journal(tmp_path).replay()) == data[:k] + data[k + 1:] + [b"after"]
+
+
+def test_a_damaged_length_claiming_more_than_the_file_is_not_a_torn_tail(tmp_path):
+    data = [b"a" * 100, b"b" * 100, b"c" * 100]
+    path = _written(tmp_path, data)
+    start = _offsets(path)[1]
+    raw = bytearray(path.read_bytes())
+    raw[start + 4:start + 8] = (10**6).to_bytes(4, "little")   # far past the end of the file
+    path.write_bytes(bytes(raw))
+    j = Journal(tmp_path)
+    assert list(j.replay()) == [data[0], data[2]]
+    assert j.report.torn_bytes == 0 and len(j.report.skipped) == 1
+
+
+def test_replay_twice_quarantines_once(tmp_path):
+    path = _written(tmp_path, [b"one", b"two", b"three"])
+    _flip(path, _offsets(path)[1] + J._FRAME.size)
+    assert list(Journal(tmp_path).replay()) == [b"one", b"three"]
+    assert list(Journal(tmp_path).replay()) == [b"one", b"three"]
+    assert len(list((tmp_path / J.QUARANTINE_DIR).iterdir())) == 1
+
+
+def test_a_segment_ending_in_damage_is_left_as_it_is(tmp_path):
+    path = _written(tmp_path, [b"one", b"two"])
+    damaged = _flip(path, len(path.read_bytes()) - 1)
+    j = Journal(tmp_path)
+    assert list(j.replay()) == [b"one"]
+    assert j.open() == 2
+    j.append(b"three")
+    j.close()
+    assert path.read_bytes() == damaged
+    assert list(Journal(tmp_path).replay()) == [b"one", b"three"]
+
+
+def test_first_format_segments_are_still_read(tmp_path):
+    old = [b"old-1", b"old-2"]
+    body = b"".join(J._FRAME_V1.pack(len(r), J.zlib.crc32(r)) + r for r in old)
+    (tmp_path / segment_name(1)).write_bytes(J._HEADER.pack(J.MAGIC_V1, 1) + body)
+    j = Journal(tmp_path)
+    assert list(j.replay()) == old
+    assert j.open() == 2                      # never appends to a first-format segment
+    j.append(b"new")
+    j.close()
+    assert list(Journal(tmp_path).replay()) == [*old, b"new"]

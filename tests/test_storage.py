@@ -288,3 +288,33 @@ def test_round_trip_keeps_depth_sigmas_and_reads_snapshots_without_them(tmp_path
     save_map(rich_state, tmp_path / "old")
     old, _ = load_map(tmp_path / "old")
     assert all(lm.depth_sigma_m == 0.0 for lm in old.landmarks.values())
+
+
+def test_a_save_without_current_deletes_no_snapshot(tmp_path, synthetic_map):
+    """Issue 15, case 4: ``CURRENT`` deleted, then a save of an (empty) map must not remove the
+    snapshot holding the keyframes."""
+    old = _saved(tmp_path, synthetic_map)
+    (tmp_path / "CURRENT").unlink()
+    new = save_map(_tiny_state(synthetic_map, 0), tmp_path)
+    assert old.is_dir()
+    assert storage.verify_snapshot(old) > 0
+    assert [p.name for p in storage.snapshot_dirs(tmp_path)] == [old.name, new.name]
+    newest = save_map(_tiny_state(synthetic_map, 1), tmp_path)   # CURRENT back: ancestors go
+    assert [p.name for p in storage.snapshot_dirs(tmp_path)] == [new.name, newest.name]
+
+
+def test_restore_current_verifies_the_snapshot_first(tmp_path, synthetic_map):
+    snap = _saved(tmp_path, synthetic_map)
+    (tmp_path / "CURRENT").unlink()
+    assert storage.restore_current(tmp_path, snap.name) == snap
+    assert len(load_map(tmp_path)[0].keyframes) == 2
+    with pytest.raises(StorageError, match="exists"):
+        storage.restore_current(tmp_path, snap.name)
+    (tmp_path / "CURRENT").unlink()
+    image = next((snap / "images").iterdir())
+    data = bytearray(image.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    image.write_bytes(bytes(data))
+    with pytest.raises(StorageError, match="checksum mismatch"):
+        storage.restore_current(tmp_path, snap.name)
+    assert not (tmp_path / "CURRENT").exists()

@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("bench", "run the benchmark suite"),
     "demo": ("demo", "render desk, serve it over Zenoh and relocalize every query"),
     "router": ("router", "run a Zenoh router (ground-station set-up)"),
+    "map": ("map", "inspect map storage: `reloc map check DIR` (exit 1 if damaged)"),
 }
 
 

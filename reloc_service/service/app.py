@@ -22,10 +22,10 @@ from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode, EventKind
 
 from ..engine import EngineConf, MappingConf
-from ..errors import ConfigError
+from ..errors import ConfigError, StorageError
 from . import handlers
 from .config import ServiceConf
-from .runtime import MapRuntime, check_storage, open_engine
+from .runtime import MapRuntime, RestoreInterrupted, check_storage, open_engine, recover_current
 from .workers import WorkerPool, stop_on_signals
 from .zenoh_io import PendingQuery, QueryKind, ZenohLayer, open_session
 
@@ -75,10 +75,19 @@ class Service:
         self._bootstrap_window = False
         self._elsewhere: dict[str, tuple[float, bool]] = {}   # map -> (when, served elsewhere)
         self._bootstrapped: dict[tuple[str, int], tuple[Any, Any]] = {}
+        #: Maps whose storage did not restore: map -> why (queries get STORAGE_ERROR with it).
+        self.failed: dict[str, str] = {}
+        self._loading: set[str] = set()      # being restored: not declared yet
+        self._ready = threading.Event()      # every stored and configured map is up (or failed)
+        self._loader: threading.Thread | None = None
 
     # -- life cycle ------------------------------------------------------------------------------
-    def start(self) -> Service:
-        """Restore stored maps, create configured ones, open Zenoh and declare everything."""
+    def start(self, *, wait_ready: bool = True) -> Service:
+        """Open Zenoh, then restore stored maps and create configured ones one by one, the
+        cheapest first, declaring each as soon as it is ready (a map being restored is not
+        declared: no reply rather than a stale one). With ``wait_ready`` (the default), return
+        once every map is up; ``reloc serve`` does not wait, so small maps are served while a
+        big journal replays. A map whose storage does not restore is failed, not fatal."""
         self._check_methods()
         if self.conf.service.opencv_threads:
             import cv2
@@ -86,32 +95,112 @@ class Service:
             cv2.setNumThreads(self.conf.service.opencv_threads)
         if self.storage is not None:
             check_storage(self.storage)
-        for name in self._stored_map_names() + sorted(self.conf.maps):
-            if name not in self.maps:
-                self.maps[name] = self._open_map(name)
+        names = self._restore_order(self._stored_map_names() + sorted(self.conf.maps))
         s = self.conf.service
         self.relocalize_pool = WorkerPool("relocalize", workers=s.workers,
                                           queue_size=s.queue_size)
         self.control_pool = WorkerPool("control", workers=1, queue_size=CONTROL_QUEUE)
         self.writer = WorkerPool("writer", workers=1, queue_size=s.writer_queue_size)
+        self._loading = set(names)
         self.session = open_session(self.conf.zenoh)
-        bootstrap = _Bootstrap(self) if s.bootstrap_from_peers else None
         self.layer = ZenohLayer(self.session, self.prefix, self.instance, self)
-        if bootstrap is not None:   # subscribed (puts buffer in the writer queue): now copy
-            bootstrap.run()
-        for name in sorted(self.maps):
-            self.layer.serve_map(name)
         if self.conf.ros2.enabled:   # imported here: rosbags and xxhash are the extra 'ros2'
             from .ros2.bridge import Ros2Bridge
 
             self.ros2 = Ros2Bridge(self, self.conf.ros2)
+        if s.bootstrap_from_peers:   # a replica copies peers' maps once its own are restored
+            self._load_maps(names, declare=False)
+            bootstrap = _Bootstrap(self)   # subscribed (puts buffer in the writer queue)
+            bootstrap.run()
             for name in sorted(self.maps):
-                self.ros2.serve_map(name)
-        log.info("reloc service %s serving %s under %r (zenoh %s, listen %s, connect %s)",
-                 self.instance, sorted(self.maps) or "no map yet", self.prefix,
-                 self.conf.zenoh.mode, list(self.conf.zenoh.listen),
-                 list(self.conf.zenoh.connect))
+                self._declare(name)
+        else:
+            self._loader = threading.Thread(target=self._load_maps, args=(names,),
+                                            name="restore-maps", daemon=True)
+            self._loader.start()
+            if wait_ready:
+                self.wait_ready()
+        log.info("reloc service %s under %r (zenoh %s, listen %s, connect %s): %s",
+                 self.instance, self.prefix, self.conf.zenoh.mode,
+                 list(self.conf.zenoh.listen), list(self.conf.zenoh.connect),
+                 f"serving {sorted(self.maps) or 'no map yet'}" if self._ready.is_set()
+                 else f"restoring {len(names)} maps, each served once ready")
         return self
+
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        """Wait until every map found at start is served (or failed); False on timeout."""
+        return self._ready.wait(timeout)
+
+    def _restore_order(self, names: list[str]) -> list[str]:
+        """Unique ``names``, cheapest restore first (fewest journal bytes to replay)."""
+        def journal_bytes(name: str) -> int:
+            if self.storage is None:
+                return 0
+            journal = self.storage / map_dirname(name) / "journal"
+            return sum(p.stat().st_size for p in journal.glob("*.journal")) \
+                if journal.is_dir() else 0
+
+        unique = list(dict.fromkeys(names))
+        return sorted(unique, key=lambda n: (journal_bytes(n), n))
+
+    def _load_maps(self, names: list[str], *, declare: bool = True) -> None:
+        """Restore ``names`` in order; declare each one ready (or failed) at once."""
+        try:
+            for name in names:
+                if self._stopped.is_set():
+                    break
+                self._bring_up(name, declare=declare)
+        finally:
+            self._loading.clear()
+            self._ready.set()
+
+    def _bring_up(self, name: str, *, declare: bool) -> None:
+        try:
+            rt = self._open_map(name)
+        except RestoreInterrupted as exc:
+            log.info("%s", exc)
+            return
+        except Exception as exc:   # one map's damage never takes down the others
+            self._fail_map(name, exc)
+            return
+        with self._maps_lock:
+            self._loading.discard(name)
+            if self._stopped.is_set():
+                rt.close(final_snapshot=False)
+                return
+            self.maps[name] = rt
+        if declare:
+            self._declare(name)
+
+    def _declare(self, name: str) -> None:
+        """Declare map ``name`` (queryables, events, liveliness; ROS 2 nodes if enabled), then
+        publish what its restore skipped, if anything."""
+        if self.layer is None or self._stopped.is_set():
+            return
+        self.layer.serve_map(name)
+        rt = self.maps.get(name)
+        if rt is None:
+            return
+        if self.ros2 is not None:
+            self.ros2.serve_map(name)
+        if rt.restore_report.damaged:
+            rt.publish(EventKind.STORAGE_DAMAGED, **rt.restore_report.event_fields())
+
+    def _fail_map(self, name: str, exc: BaseException) -> None:
+        """Mark ``name`` failed: its queries and puts get STORAGE_ERROR with the reason; its
+        files stay as they are."""
+        where = ("" if self.storage is None
+                 else f" (see `reloc map check {self.storage / map_dirname(name)}`)")
+        message = (f"map {name!r} is not served: its storage did not restore: {exc}; its "
+                   f"files are left untouched{where}")
+        log.error("%s", message, exc_info=not isinstance(exc, StorageError))
+        with self._maps_lock:
+            self._loading.discard(name)
+            self.failed[name] = message
+        self._publish_event(name, EventKind.STORAGE_DAMAGED, {"failed": True,
+                                                              "message": message})
+        if self.layer is not None and not self._stopped.is_set():
+            self.layer.serve_map(name)
 
     def stop(self, *, final_snapshot: bool = True) -> None:
         """Undeclare (clients see the liveliness tokens go), finish queued work, flush the
@@ -181,8 +270,11 @@ class Service:
         return names
 
     def _open_map(self, name: str) -> MapRuntime:
+        """The runtime of map ``name``, restored from its storage (StorageError naming the
+        file if that is damaged beyond what restoring skips)."""
         directory = None if self.storage is None else self.storage / map_dirname(name)
         start = time.perf_counter()
+        recovered = None if directory is None else recover_current(directory)
         engine = open_engine(directory, self.engine_conf)
         rt = MapRuntime(name, engine, instance=self.instance, limits=self.limits,
                         methods=self.methods, default_method=self.methods[0],
@@ -191,7 +283,10 @@ class Service:
                         fsync=self.conf.service.fsync)
         if directory is not None:
             check_storage(directory)
-            replayed = rt.restore()
+            replayed = rt.restore(self._stopped)
+            if recovered is not None:
+                rt.restore_report.recovered_snapshot = recovered
+                rt.stats.count("restore_snapshot_recovered")
             state = rt.map_state()
             log.info("map %s: %d keyframes restored (%d journal records replayed) in %.1f s",
                      name, len(state.keyframes), replayed, time.perf_counter() - start)
@@ -201,11 +296,16 @@ class Service:
         return rt
 
     def _map_for_put(self, name: str) -> MapRuntime | None:
-        """The runtime of ``name``; created (and served) if new maps are allowed."""
+        """The runtime of ``name``; created (and served) if new maps are allowed. A map being
+        restored refuses puts (BUSY), a failed one too (STORAGE_ERROR)."""
         rt = self.maps.get(name)
-        if rt is not None or not self.conf.service.allow_new_maps or self._stopped.is_set():
+        if rt is not None:
             return rt
+        self._check_restored(name)
+        if not self.conf.service.allow_new_maps or self._stopped.is_set():
+            return None
         with self._maps_lock:
+            self._check_restored(name)
             if name not in self.maps:
                 self.maps[name] = self._open_map(name)
                 if self.layer is not None:
@@ -214,6 +314,14 @@ class Service:
                     self.ros2.serve_map(name)
                 log.info("map %s created by its first put", name)
             return self.maps[name]
+
+    def _check_restored(self, name: str) -> None:
+        if name in self.failed:
+            raise StorageError(self.failed[name])
+        if name in self._loading:
+            raise wire.ProtocolError(ErrorCode.BUSY,
+                                     f"map {name!r} is being restored from storage; put again "
+                                     f"once it is served (its liveliness token appears)")
 
     def _publish_event(self, map_name: str, kind: EventKind, fields: dict[str, Any]) -> None:
         payload = wire.Event(kind, map_name, time.time(), fields).encode()
@@ -261,9 +369,11 @@ class Service:
 
     def on_query(self, map_name: str, kind: QueryKind, query: PendingQuery) -> None:
         rt = self.maps.get(map_name)
-        if rt is None:  # undeclared meanwhile
-            query.reply_err(wire.encode_error(ErrorCode.UNKNOWN_MAP,
-                                              f"map {map_name!r} is not served"))
+        if rt is None:  # undeclared meanwhile, or its storage did not restore
+            failure = self.failed.get(map_name)
+            query.reply_err(wire.encode_error(ErrorCode.STORAGE_ERROR, failure) if failure
+                            else wire.encode_error(ErrorCode.UNKNOWN_MAP,
+                                                   f"map {map_name!r} is not served"))
             return
         if kind is QueryKind.RELOCALIZE:
             assert self.relocalize_pool is not None
@@ -512,10 +622,12 @@ def serve(conf: ServiceConf) -> int:
     stop = stop_on_signals()
     service = Service(conf)
     try:
-        service.start()
+        service.start(wait_ready=False)   # small maps are served while big ones replay
     except BaseException:
         service.stop(final_snapshot=False)
         raise
     service.run_forever(stop)
+    if not service.wait_ready(timeout=30.0):   # a restore stops at its next journal record
+        log.warning("a map restore was still running at exit")
     return 0
 

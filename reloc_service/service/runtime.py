@@ -9,7 +9,12 @@ Durability (per map directory ``<storage>/<map>/``)::
 A snapshot rotates the journal, saves the engine in a background thread (puts arriving
 meanwhile are journaled at once and applied after the save, so queries are never held up by
 it), writes ``service.json`` atomically and only then deletes the older journal segments.
-Restoring loads the last snapshot and replays the journal from there.
+Restoring loads the last snapshot and replays the journal from there, keeping what it can
+prove: a damaged journal record is skipped (its bytes quarantined, see :mod:`.journal`), a
+missing ``map/CURRENT`` is restored only to the snapshot ``service.json`` names (verified), and
+anything else that does not read is a StorageError for this map alone. What was skipped is
+logged, counted in the map's status counters (``restore_*``) and published as a
+``storage_damaged`` event.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,13 +38,13 @@ from reloc_client.protocol import ErrorCode, EventKind, ProtocolError
 
 from ..cameras import Camera, camera_from_dict
 from ..engine import Engine, EngineConf
-from ..errors import MapError, StorageError
+from ..errors import CameraError, MapError, StorageError
 from ..frame import Frame
 from ..map import MapState
 from ..relocalizers.base import Prior, RelocResult
-from ..storage import CURRENT_FILE
+from ..storage import CURRENT_FILE, restore_current, snapshot_dirs
 from . import handlers
-from .journal import Journal
+from .journal import Journal, JournalReport
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +83,43 @@ class Stats:
         p50, p90, p99 = np.percentile(lat, [50, 90, 99])
         return counters, {"p50": float(p50), "p90": float(p90), "p99": float(p99),
                           "max": float(lat.max()), "mean": float(lat.mean())}
+
+
+class RestoreInterrupted(Exception):
+    """The service stopped while a map was being restored (nothing was written)."""
+
+
+@dataclass
+class RestoreReport:
+    """What restoring a map found: journal records applied, records read that did not apply,
+    damaged journal bytes skipped (quarantined), and a snapshot ``CURRENT`` was restored to."""
+
+    replayed: int = 0
+    not_applied: int = 0
+    journal: JournalReport = field(default_factory=JournalReport)
+    recovered_snapshot: str | None = None
+
+    @property
+    def damaged(self) -> bool:
+        return bool(self.journal.damage or self.not_applied or self.recovered_snapshot)
+
+    def counters(self) -> dict[str, int]:
+        """Status counters (a StatusReply carries them without a protocol change)."""
+        return {"restore_records_replayed": self.replayed,
+                "restore_records_not_applied": self.not_applied,
+                "restore_journal_skipped": len(self.journal.skipped),
+                "restore_journal_torn_bytes": self.journal.torn_bytes,
+                "restore_quarantine_files": len(self.journal.quarantined),
+                "restore_snapshot_recovered": int(self.recovered_snapshot is not None)}
+
+    def event_fields(self) -> dict[str, Any]:
+        """Fields of the ``storage_damaged`` event published when :attr:`damaged`."""
+        return {"failed": False, "records_replayed": self.replayed,
+                "records_not_applied": self.not_applied,
+                "journal_skipped": [[d.segment, d.offset, d.size] for d in self.journal.skipped],
+                "journal_torn_bytes": self.journal.torn_bytes,
+                "quarantined": [str(p) for p in self.journal.quarantined],
+                "recovered_snapshot": self.recovered_snapshot}
 
 
 @dataclass
@@ -121,6 +163,7 @@ class MapRuntime:
         self._snapshotting = False
         self._snapshot_thread: threading.Thread | None = None
         self._since_snapshot = 0
+        self.restore_report = RestoreReport()
 
     # -- reading -------------------------------------------------------------------------------
     def camera(self, camera_id: str) -> Camera | None:
@@ -263,24 +306,48 @@ class MapRuntime:
                 and self._since_snapshot >= self.snapshot_every)
 
     # -- restore ---------------------------------------------------------------------------------
-    def restore(self) -> int:
+    def restore(self, stop: threading.Event | None = None) -> int:
         """Replay the journal after the snapshot the engine was loaded from (see
-        :func:`open_map`), then open it for appending. Returns the records replayed."""
+        :func:`open_engine`), then open it for appending. Returns the records replayed; what
+        was skipped is in :attr:`restore_report` and the status counters. StorageError if
+        ``service.json`` or a journal segment header does not read (nothing is changed);
+        RestoreInterrupted if ``stop`` is set meanwhile (the journal is left as it was)."""
         if self.journal is None or self.directory is None:
             return 0
         meta = read_service_file(self.directory)
-        for cid, d in meta.get("cameras", {}).items():
-            self._cameras[cid] = camera_from_dict(d)
-        self._kf_camera_ids.update({int(k): v for k, v in meta.get("keyframe_camera_ids",
-                                                                    {}).items()})
-        replayed = 0
+        self._restore_cameras(meta)
+        report = self.restore_report
         for raw in self.journal.replay(from_segment=int(meta.get("next_segment", 0))):
-            replayed += self._replay_record(raw)
+            if stop is not None and stop.is_set():
+                raise RestoreInterrupted(f"map {self.name}: restore interrupted after "
+                                         f"{report.replayed} journal records (shutting down)")
+            if self._replay_record(raw):
+                report.replayed += 1
+            else:
+                report.not_applied += 1
+        report.journal = self.journal.report
         self.journal.open()
-        self._since_snapshot = replayed
-        return replayed
+        self._since_snapshot = report.replayed
+        for name, n in report.counters().items():
+            if n:
+                self.stats.count(name, n)
+        return report.replayed
+
+    def _restore_cameras(self, meta: dict[str, Any]) -> None:
+        assert self.directory is not None
+        try:
+            for cid, d in meta.get("cameras", {}).items():
+                self._cameras[cid] = camera_from_dict(d)
+            self._kf_camera_ids.update({int(k): str(v) for k, v in
+                                        meta.get("keyframe_camera_ids", {}).items()})
+            int(meta.get("next_segment", 0))
+        except (AttributeError, KeyError, TypeError, ValueError, CameraError) as exc:
+            raise StorageError(f"{self.directory / SERVICE_FILE}: {exc}; expected cameras, "
+                               f"keyframe_camera_ids and next_segment as written by the "
+                               f"service") from exc
 
     def _replay_record(self, raw: bytes) -> int:
+        """1 if the record was applied again, 0 if it was skipped (logged)."""
         try:
             record = msgpack.unpackb(raw, raw=False)
             op = record["op"]
@@ -477,10 +544,39 @@ def write_service_file(directory: Path, data: dict[str, Any]) -> None:
 
 
 def open_engine(directory: Path | None, conf: EngineConf) -> Engine:
-    """The engine of a map: loaded from its last snapshot if there is one, else empty."""
+    """The engine of a map: loaded from its last snapshot if there is one, else empty.
+    Call :func:`recover_current` first so a missing ``CURRENT`` is not taken for a new map."""
     if directory is not None and (directory / "map" / CURRENT_FILE).is_file():
         return Engine.load(directory / "map", conf)
     return Engine(conf)
+
+
+def recover_current(directory: Path) -> str | None:
+    """Restore a missing ``map/CURRENT`` of map directory ``directory``; the snapshot name
+    if it was restored, None if nothing was missing (or the map is new).
+
+    Only the snapshot ``service.json`` names is a valid target: the journal continues from
+    it (``next_segment``), so any other snapshot would silently lose or repeat records. It is
+    used only if every file of it verifies against its manifest; otherwise StorageError (the
+    map is failed, nothing is deleted or rewritten)."""
+    map_dir = directory / "map"
+    if (map_dir / CURRENT_FILE).is_file():
+        return None
+    present = [p.name for p in snapshot_dirs(map_dir)]
+    named = read_service_file(directory).get("snapshot")
+    if not present and named is None:
+        return None
+    if not isinstance(named, str) or named not in present:
+        raise StorageError(
+            f"{map_dir / CURRENT_FILE}: missing; snapshot(s) {present or 'none'} present, "
+            f"{directory / SERVICE_FILE} names {named!r}: cannot tell which snapshot the "
+            f"journal continues from, so the map is not restored (nothing was deleted); "
+            f"inspect it with `reloc map check {directory}`, then write CURRENT "
+            f"('snapshots/<n>') by hand")
+    restore_current(map_dir, named)
+    log.warning("map directory %s: %s was missing; restored it to snapshots/%s, the snapshot "
+                "service.json names (every file verified)", directory, CURRENT_FILE, named)
+    return named
 
 
 def check_storage(directory: Path) -> None:

@@ -54,6 +54,7 @@ class EventKind(enum.StrEnum):
     CAMERA_ADDED = "camera_added"
     CAMERA_REJECTED = "camera_rejected"
     MAP_SAVED = "map_saved"
+    STORAGE_DAMAGED = "storage_damaged"    # restoring the map skipped or recovered something
 
 
 def unpack_message(data: bytes, limits: Limits = DEFAULT_LIMITS) -> dict[str, Any]:

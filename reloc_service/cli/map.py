@@ -1,0 +1,31 @@
+"""``reloc map check DIR``: report what a map directory (or a whole storage) holds, read only;
+exit status 1 when something is damaged, 2 when DIR is not a map directory or storage."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+HELP = "inspect map storage (reloc map check DIR)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="map_command", metavar="ACTION", required=True)
+    check = sub.add_parser("check", help="verify snapshots, the journal and the quarantine of "
+                           "a map directory or of every map of a storage; exit 1 if damaged")
+    check.add_argument("directory", metavar="DIR", help="a map directory (holding journal/, "
+                       "map/, service.json) or a storage directory holding map directories")
+    check.add_argument("--json", action="store_true", help="print the report as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..errors import StorageError
+    from ..service.storage_check import check_path, format_check, to_json
+
+    try:
+        checks = check_path(args.directory)
+    except StorageError as exc:
+        print(f"reloc map check: {exc}", file=sys.stderr)
+        return 2
+    print(to_json(checks) if args.json else "\n".join(format_check(c) for c in checks))
+    return 1 if any(c.damaged for c in checks) else 0

@@ -1,0 +1,452 @@
+"""Storage faults (issue 15, cases 3, 4, 6, 7): a damaged journal record costs that record only,
+a deleted ``map/CURRENT`` is reported and deletes nothing, one damaged file fails its map and
+leaves the others served, and maps come up one by one after the Zenoh session opens.
+
+Real services on loopback (multicast scouting off), real keyframes of the synthetic room, real
+files damaged on disk, and ``reloc serve`` in a subprocess where the process must survive."""
+# ruff: noqa: E402
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+# reloc_client lives in clients/ (importable once the distribution is installed).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
+
+import json
+import os
+import shutil
+import subprocess
+import time
+
+import msgpack
+import pytest
+from reloc_client import protocol as wire
+from reloc_client.client import (
+    NoReplyError,
+    RelocClient,
+    ServiceError,
+    to_wire_camera,
+    to_wire_image,
+    to_wire_pose,
+)
+from service_support import ROOT, Events, endpoint, free_port, service_conf, wait_until
+
+from reloc_service.service import journal as J
+from reloc_service.service.app import Service
+from reloc_service.service.journal import Journal, scan_segment
+
+GOOD, BAD = "good", "bad"
+SNAPSHOT_IDS, JOURNAL_IDS = (0, 1, 2), (3, 4, 5)
+
+
+def conf(port: int, storage: Path, **service):
+    return service_conf(port, storage, maps=(GOOD, BAD), train_on_load=False,
+                        snapshot_every=0, **service)
+
+
+def upload(client: RelocClient, scene, events: Events, ids) -> None:
+    for kf_id in ids:
+        client.add_keyframe(kf_id, scene.keyframe_images[kf_id], scene.keyframe_poses[kf_id],
+                            camera_id="cam0")
+    for kf_id in ids:
+        events.wait("keyframe_added", id=kf_id)
+
+
+@pytest.fixture(scope="module")
+def template(synthetic_scene, tmp_path_factory) -> Path:
+    """A storage with maps ``good`` and ``bad``: camera cam0, keyframes 0-2 in a snapshot,
+    keyframes 3-5 in the journal after it (three records)."""
+    storage = tmp_path_factory.mktemp("template") / "storage"
+    port = free_port()
+    service = Service(conf(port, storage)).start()
+    try:
+        for name in (GOOD, BAD):
+            with RelocClient(endpoint(port), map=name, timeout=30) as client:
+                events = Events(client)
+                client.set_camera("cam0", synthetic_scene.camera)
+                events.wait("camera_added", id="cam0")
+                upload(client, synthetic_scene, events, SNAPSHOT_IDS)
+                service.maps[name].start_snapshot(wait=True)
+                upload(client, synthetic_scene, events, JOURNAL_IDS)
+                events.close()
+    finally:
+        service.stop(final_snapshot=False)
+    return storage
+
+
+@pytest.fixture
+def storage(template, tmp_path) -> Path:
+    target = tmp_path / "storage"
+    shutil.copytree(template, target)
+    return target
+
+
+def files_of(directory: Path) -> dict[str, bytes]:
+    return {p.relative_to(directory).as_posix(): p.read_bytes()
+            for p in sorted(directory.rglob("*")) if p.is_file()}
+
+
+def journal_segment(map_dir: Path) -> Path:
+    """The segment holding the records after the snapshot."""
+    first = json.loads((map_dir / "service.json").read_text())["next_segment"]
+    return map_dir / "journal" / J.segment_name(first)
+
+
+def record_offsets(path: Path) -> list[tuple[int, int]]:
+    """(offset, framed size) of every record of a clean segment."""
+    out, pos = [], J._HEADER.size
+    for r in scan_segment(path).records:
+        out.append((pos, J._FRAME.size + len(r)))
+        pos += J._FRAME.size + len(r)
+    return out
+
+
+def flip(path: Path, offset: int) -> None:
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0x10
+    path.write_bytes(bytes(data))
+
+
+def kf_ids(client: RelocClient) -> set[int]:
+    return {info.id for info in client.keyframes()}
+
+
+class Peer:
+    """A client that listens (the service connects to it), so its event subscription exists
+    before the service restores anything."""
+
+    def __init__(self, port: int, map_name: str) -> None:
+        import zenoh
+
+        config = zenoh.Config()
+        config.insert_json5("mode", '"peer"')
+        config.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
+        config.insert_json5("scouting/multicast/enabled", "false")
+        self.client = RelocClient(map=map_name, config=config, timeout=30)
+        self.events = Events(self.client)
+
+    def close(self) -> None:
+        self.events.close()
+        self.client.close()
+
+
+# -- case 3: a damaged journal record costs that record only ------------------------------------
+
+@pytest.mark.parametrize("where", ["payload", "length"])
+def test_a_damaged_journal_record_loses_only_that_keyframe(storage, where):
+    map_dir = storage / BAD
+    segment = journal_segment(map_dir)
+    offset, size = record_offsets(segment)[1]            # keyframe 4
+    flip(segment, offset + (size - 1 if where == "payload" else 5))
+    damaged = segment.read_bytes()
+    port, peer_port = free_port(), free_port()
+    peer = Peer(peer_port, BAD)
+    service = Service(conf(port, storage, zenoh={"connect": [endpoint(peer_port)]})).start()
+    try:
+        assert kf_ids(peer.client) == {0, 1, 2, 3, 5}
+        status = peer.client.status()
+        assert status.counters["restore_journal_skipped"] == 1
+        assert status.counters["restore_quarantine_files"] == 1
+        [kept] = (map_dir / "journal" / J.QUARANTINE_DIR).iterdir()
+        assert kept.read_bytes() == damaged[offset:offset + size]
+        assert segment.read_bytes()[:len(damaged)] == damaged      # never rewritten
+        event = peer.events.wait("storage_damaged")
+        assert event.fields["failed"] is False and event.fields["journal_skipped"] == [
+            [int(segment.stem), offset, size]]
+    finally:
+        service.stop(final_snapshot=False)
+        peer.close()
+
+
+# -- case 4: CURRENT deleted ---------------------------------------------------------------------
+
+def test_deleted_current_is_restored_to_the_verified_snapshot_and_reported(storage, caplog):
+    map_dir = storage / BAD
+    snapshot = json.loads((map_dir / "service.json").read_text())["snapshot"]
+    (map_dir / "map" / "CURRENT").unlink()
+    port = free_port()
+    with caplog.at_level("WARNING"):
+        service = Service(conf(port, storage)).start()
+    try:
+        with RelocClient(endpoint(port), map=BAD, timeout=30) as client:
+            assert kf_ids(client) == {*SNAPSHOT_IDS, *JOURNAL_IDS}
+            assert client.status().counters["restore_snapshot_recovered"] == 1
+        assert "CURRENT was missing" in caplog.text
+        service.maps[BAD].start_snapshot(wait=True)
+        assert (map_dir / "map" / "snapshots" / snapshot).is_dir()   # the one it was built from
+    finally:
+        service.stop(final_snapshot=False)
+
+
+def test_deleted_current_without_service_file_fails_the_map_and_deletes_nothing(storage):
+    map_dir = storage / BAD
+    (map_dir / "map" / "CURRENT").unlink()
+    (map_dir / "service.json").unlink()
+    before = files_of(map_dir)
+    port = free_port()
+    service = Service(conf(port, storage)).start()
+    try:
+        with RelocClient(endpoint(port), map=BAD, timeout=30) as client:
+            with pytest.raises(ServiceError) as err:
+                client.status()
+            assert err.value.code is wire.ErrorCode.STORAGE_ERROR
+            assert "CURRENT" in err.value.message
+        with RelocClient(endpoint(port), map=GOOD, timeout=30) as client:
+            assert client.status().keyframes == 6
+    finally:
+        service.stop()
+    assert files_of(map_dir) == before
+
+
+# -- case 6: one damaged file fails its map only -------------------------------------------------
+
+def _segment_header_byte(map_dir: Path) -> Path:
+    path = journal_segment(map_dir)
+    flip(path, 3)
+    return path
+
+
+def _stray_segment(map_dir: Path) -> Path:
+    path = map_dir / "journal" / J.segment_name(999)
+    path.write_bytes(b"this is not a journal segment, but named like one")
+    return path
+
+
+def _half_service_file(map_dir: Path) -> Path:
+    path = map_dir / "service.json"
+    data = path.read_bytes()
+    path.write_bytes(data[:len(data) // 2])
+    return path
+
+
+def _snapshot_image_bit(map_dir: Path) -> Path:
+    current = (map_dir / "map" / "CURRENT").read_text().strip()
+    path = map_dir / "map" / current / "images" / "1.png"
+    flip(path, len(path.read_bytes()) // 2)
+    return path
+
+
+def _truncated_manifest(map_dir: Path) -> Path:
+    current = (map_dir / "map" / "CURRENT").read_text().strip()
+    path = map_dir / "map" / current / "manifest.json"
+    path.write_bytes(path.read_bytes()[:100])
+    return path
+
+
+DAMAGE = {"segment_header_byte": _segment_header_byte, "stray_segment": _stray_segment,
+          "half_service_json": _half_service_file, "snapshot_image_bit": _snapshot_image_bit,
+          "truncated_manifest": _truncated_manifest}
+
+
+@pytest.mark.parametrize("damage", sorted(DAMAGE))
+def test_one_damaged_file_fails_its_map_and_the_others_are_served(storage, synthetic_scene,
+                                                                  damage):
+    map_dir = storage / BAD
+    damaged = DAMAGE[damage](map_dir)
+    before = files_of(map_dir)
+    port = free_port()
+    service = Service(conf(port, storage)).start()     # does not raise
+    try:
+        with RelocClient(endpoint(port), map=GOOD, timeout=30) as good:
+            assert kf_ids(good) == {*SNAPSHOT_IDS, *JOURNAL_IDS}
+            assert good.relocalize(synthetic_scene.query_images[0], camera_id="cam0").ok
+        with RelocClient(endpoint(port), map=BAD, timeout=30) as bad:
+            for ask in (bad.status, bad.keyframes,
+                        lambda: bad.relocalize(synthetic_scene.query_images[0],
+                                               camera_id="cam0")):
+                with pytest.raises(ServiceError) as err:
+                    ask()
+                assert err.value.code is wire.ErrorCode.STORAGE_ERROR
+                assert damaged.name in err.value.message and "reloc map check" in \
+                    err.value.message
+            events = Events(bad)
+            bad.add_keyframe(9, synthetic_scene.keyframe_images[0],
+                             synthetic_scene.keyframe_poses[0], camera_id="cam0")
+            rejected = events.wait("keyframe_rejected", id=9)
+            assert rejected.fields["code"] == "STORAGE_ERROR"
+            events.close()
+    finally:
+        service.stop()
+    assert files_of(map_dir) == before                 # nothing rewritten, deleted or added
+
+
+def test_a_stray_file_in_the_journal_directory_is_ignored(storage):
+    (storage / BAD / "journal" / "notes.txt").write_text("left here by someone")
+    port = free_port()
+    service = Service(conf(port, storage)).start()
+    try:
+        with RelocClient(endpoint(port), map=BAD, timeout=30) as client:
+            assert client.status().keyframes == 6
+    finally:
+        service.stop(final_snapshot=False)
+
+
+def write_config(tmp: Path, port: int, storage: Path, maps: tuple[str, ...]) -> Path:
+    lines = ["[zenoh]", 'mode = "peer"', f'listen = ["{endpoint(port)}"]',
+             "multicast_scouting = false", "[service]", 'instance = "faults"',
+             f'storage = "{storage}"', "train_on_load = false", "snapshot_every = 0"]
+    lines += [f"[maps.{m}]" for m in maps]
+    path = tmp / "service.toml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def serve(config: Path, log: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen([sys.executable, "-m", "reloc_service.cli.main", "serve",
+                             "--config", str(config)], cwd=ROOT, env=env,
+                            stdout=log.open("ab"), stderr=subprocess.STDOUT)
+
+
+def connect(proc: subprocess.Popen, port: int, map_name: str) -> RelocClient:
+    """A client of the service in ``proc`` once it listens (it must not exit meanwhile)."""
+    clients: list[RelocClient] = []
+
+    def attempt() -> bool:
+        assert proc.poll() is None, f"reloc serve exited with {proc.returncode}"
+        try:
+            clients.append(RelocClient(endpoint(port), map=map_name, timeout=30))
+            return True
+        except ConnectionError:
+            return False
+
+    wait_until(attempt, timeout=120, interval=0.1)
+    return clients[0]
+
+
+def answers(client: RelocClient) -> bool:
+    try:
+        client.status(timeout=1)
+        return True
+    except NoReplyError:
+        return False
+
+
+def test_reloc_serve_keeps_running_with_a_damaged_map(storage, tmp_path):
+    _snapshot_image_bit(storage / BAD)
+    port = free_port()
+    proc = serve(write_config(tmp_path, port, storage, (GOOD, BAD)), tmp_path / "serve.log")
+    try:
+        with connect(proc, port, GOOD) as good:
+            wait_until(lambda: proc.poll() is not None or answers(good), timeout=120)
+            assert proc.poll() is None, (tmp_path / "serve.log").read_text()[-2000:]
+            assert good.status().keyframes == 6
+        with RelocClient(endpoint(port), map=BAD, timeout=30) as bad:
+            with pytest.raises(ServiceError, match="STORAGE_ERROR.*1.png"):
+                bad.status()
+        proc.terminate()
+        assert proc.wait(60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+# -- case 7: maps come up one by one -------------------------------------------------------------
+
+def journal_of_keyframes(map_dir: Path, scene, n: int) -> None:
+    """A map directory whose journal holds camera cam0 and ``n`` keyframe puts (no snapshot):
+    a restart replays all of them."""
+    journal = Journal(map_dir / "journal")
+    journal.open()
+    camera = wire.CameraPut("cam0", to_wire_camera(scene.camera)).encode()
+    journal.append(msgpack.packb({"op": "cam", "id": "cam0", "payload": camera},
+                                 use_bin_type=True))
+    for kf_id in range(n):
+        i = kf_id % len(scene.keyframe_images)
+        put = wire.KeyframePut(id=kf_id, image=to_wire_image(scene.keyframe_images[i]),
+                               world_from_cam=to_wire_pose(scene.keyframe_poses[i]),
+                               camera_id="cam0").encode()
+        journal.append(msgpack.packb({"op": "kf", "id": kf_id, "payload": put},
+                                     use_bin_type=True))
+    journal.close()
+
+
+@pytest.mark.slow
+def test_a_small_map_is_served_while_a_big_one_replays(synthetic_scene, tmp_path):
+    storage = tmp_path / "storage"
+    journal_of_keyframes(storage / "big", synthetic_scene, 60)
+    journal_of_keyframes(storage / "small", synthetic_scene, 2)
+    before = files_of(storage / "big")
+    config = write_config(tmp_path, port := free_port(), storage, ())
+    # SIGTERM in the middle of the big replay: a prompt clean exit, nothing written.
+    proc = serve(config, tmp_path / "serve1.log")
+    try:
+        with connect(proc, port, "small") as small:
+            wait_until(lambda: answers(small), timeout=120, interval=0.1)
+        start = time.monotonic()
+        proc.terminate()
+        assert proc.wait(60) == 0
+        assert time.monotonic() - start < 30
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert files_of(storage / "big") == before
+    start = time.monotonic()
+    proc = serve(config, tmp_path / "serve2.log")
+    try:
+        with connect(proc, port, "small") as small, \
+                RelocClient(endpoint(port), map="big", timeout=30) as big:
+            wait_until(lambda: answers(small), timeout=120, interval=0.1)
+            small_at = time.monotonic() - start
+            assert small.status().keyframes == 2
+            assert not answers(big), "the big map should still be replaying"
+            events = Events(big)                # a put meanwhile is refused, not lost silently
+            big.add_keyframe(100, synthetic_scene.keyframe_images[0],
+                             synthetic_scene.keyframe_poses[0], camera_id="cam0")
+            rejected = events.wait("keyframe_rejected", id=100)
+            assert rejected.fields["code"] == "BUSY" and "being restored" in \
+                rejected.fields["message"]
+            wait_until(lambda: answers(big), timeout=300, interval=0.5)
+            big_at = time.monotonic() - start
+            assert big.status().keyframes == 60
+            events.close()
+        print(f"small map served after {small_at:.1f} s, big map after {big_at:.1f} s")
+        proc.terminate()
+        assert proc.wait(120) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+# -- reloc map check ------------------------------------------------------------------------------
+
+def test_map_check_reports_a_clean_map_and_exits_0(storage, capsys):
+    from reloc_service.cli.main import main
+
+    assert main(["map", "check", str(storage / GOOD)]) == 0
+    out = capsys.readouterr().out
+    assert ": ok" in out and "[CURRENT] [service.json]: ok" in out
+    assert "3 good records, 0 skipped, torn tail 0 bytes" in out
+
+
+def test_map_check_reports_skipped_records_torn_tails_and_quarantine(storage, capsys):
+    from reloc_service.cli.main import main
+
+    segment = journal_segment(storage / BAD)
+    offset, size = record_offsets(segment)[0]
+    flip(segment, offset + size - 1)
+    with segment.open("ab") as fh:              # and a torn tail after the last record
+        fh.write(J.frame(b"cut short")[:-4])
+    before = files_of(storage / BAD)
+    assert main(["map", "check", str(storage)]) == 1        # the whole storage
+    out = capsys.readouterr().out
+    assert f"{storage / GOOD}: ok" in out and f"{storage / BAD}: DAMAGED" in out
+    assert "2 good records, 1 skipped, torn tail 21 bytes" in out
+    assert files_of(storage / BAD) == before                 # read only
+    # After a restore the skipped bytes are in quarantine, and the report lists them.
+    port = free_port()
+    Service(conf(port, storage)).start().stop(final_snapshot=False)
+    assert main(["map", "check", "--json", str(storage / BAD)]) == 1
+    [report] = json.loads(capsys.readouterr().out)
+    assert report["damaged"] and len(report["quarantine"]) == 2    # the skipped and the torn
+
+
+def test_map_check_reports_a_missing_current(storage, capsys):
+    from reloc_service.cli.main import main
+
+    (storage / BAD / "map" / "CURRENT").unlink()
+    assert main(["map", "check", str(storage / BAD)]) == 1
+    assert "CURRENT: missing although snapshot(s)" in capsys.readouterr().out
+    assert main(["map", "check", str(storage / BAD / "journal" / "nothing")]) == 2
