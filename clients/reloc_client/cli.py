@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from collections.abc import Iterable, Iterator, Sequence
@@ -19,6 +20,17 @@ T = TypeVar("T")
 EXIT_OK, EXIT_NOT_RELOCALIZED, EXIT_ERROR, EXIT_NO_REPLY = 0, 1, 2, 3
 
 
+def _positive_seconds(text: str) -> float:
+    """An argparse type: a finite number of seconds > 0 (0 would mean "no wait at all")."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="reloc-client",
                                 description="Client of the reloc relocalization service.")
@@ -30,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="key expression prefix (default: %(default)s)")
     p.add_argument("--mode", choices=["client", "peer"], default="client",
                    help="Zenoh mode (default: %(default)s)")
-    p.add_argument("--timeout", type=float, default=10.0,
+    p.add_argument("--timeout", type=_positive_seconds, default=10.0,
                    help="seconds to wait for a reply (default: %(default)s)")
     sub = p.add_subparsers(dest="command", required=True)
     sub.add_parser("maps", help="list live (instance, map) pairs")
@@ -44,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser("train", help="(re)train the map's relocalizers")
     tr.add_argument("--method", help="method to train (default: every trainable method)")
     tr.add_argument("--wait", action="store_true", help="wait until training is done")
-    tr.add_argument("--train-timeout", type=float, default=3600.0,
+    tr.add_argument("--train-timeout", type=_positive_seconds, default=3600.0,
                     help="with --wait: seconds to wait (default: %(default)s)")
     rl = sub.add_parser("relocalize", help="relocalize one image and print the result as JSON")
     rl.add_argument("image", type=Path, help="a PNG or JPEG file")

@@ -258,9 +258,7 @@ class RelocClient:
                  limits: wire.Limits = wire.DEFAULT_LIMITS) -> None:
         self.map = wire.check_name(map)
         self.prefix = wire.check_prefix(prefix)
-        if not timeout > 0:
-            raise ValueError(f"timeout: expected a positive number of seconds, got {timeout}")
-        self.timeout = float(timeout)
+        self.timeout = _check_timeout(timeout, 10.0)
         self.limits = limits
         try:
             self.session = zenoh.open(make_config(connect, mode=mode, config=config))
@@ -327,7 +325,8 @@ class RelocClient:
         """Where was ``image`` taken? ``prior`` is (world_from_cam, radius_m) or a Prior.
 
         Returns a RelocResult (OK or NOT_RELOCALIZED); raises ServiceBusy, ServiceError,
-        NoReplyError."""
+        NoReplyError; ValueError for ``timeout`` <= 0 (None: the client's default)."""
+        timeout = _check_timeout(timeout, self.timeout)
         if prior is not None and not isinstance(prior, wire.Prior):
             prior_pose, radius_m = prior
             prior = wire.Prior(to_wire_pose(prior_pose, "prior.world_from_cam"), float(radius_m))
@@ -395,8 +394,20 @@ class RelocClient:
                   ) -> list[wire.KeyframeInfo]:
         """Every stored keyframe (id, camera, pose, ...) sorted by id; with ``images``, each
         carries its image (large)."""
+        timeout = _check_timeout(timeout, self.timeout)
         key = wire.keys.keyframes(self.prefix, self.map) + ("?image=true" if images else "")
-        infos = [wire.KeyframeInfo.decode(p, self.limits) for p in self._query_all(key, timeout)]
+        try:
+            payloads = self._query_all(key, timeout)
+        except NoReplyError as no_reply:
+            # An empty map sends no reply at all: [] if its status answers with 0 keyframes
+            # (the map is served), else nobody serves it and the NoReplyError stands.
+            try:
+                if self.status(timeout=timeout).keyframes == 0:
+                    return []
+            except NoReplyError:
+                pass
+            raise no_reply from None
+        infos = [wire.KeyframeInfo.decode(p, self.limits) for p in payloads]
         return sorted(infos, key=lambda k: k.id)
 
     def cameras(self, *, timeout: float | None = None) -> dict[str, wire.WireCamera]:
@@ -409,7 +420,7 @@ class RelocClient:
         """(instance, map) of every live service instance under this prefix (any map)."""
         found = set()
         replies = self.session.liveliness().get(wire.keys.liveliness_all(self.prefix),
-                                                timeout=timeout or self.timeout)
+                                                timeout=_check_timeout(timeout, self.timeout))
         for reply in replies:
             if reply.ok is None:
                 continue
@@ -443,7 +454,7 @@ class RelocClient:
     # -- transport -------------------------------------------------------------------------
     def _query_one(self, key: str, payload: bytes | None, timeout: float | None) -> bytes:
         """The first successful reply's payload; errors are raised after every replier."""
-        timeout = timeout or self.timeout
+        timeout = _check_timeout(timeout, self.timeout)
         error: Exception | None = None
         for reply in self.session.get(key, payload=payload, timeout=timeout):
             ok, data = _reply_bytes(reply)
@@ -454,7 +465,7 @@ class RelocClient:
 
     def _query_all(self, key: str, timeout: float | None) -> list[bytes]:
         """Payloads of every reply (a wildcard query); the first error reply is raised."""
-        timeout = timeout or self.timeout
+        timeout = _check_timeout(timeout, self.timeout)
         payloads, answered = [], False
         for reply in self.session.get(key, timeout=timeout,
                                       consolidation=zenoh.ConsolidationMode.NONE):
@@ -483,6 +494,16 @@ class RelocClient:
             return ServiceError(ErrorCode.INTERNAL, f"non-protocol error reply on {key!r}: {text}")
         cls = ServiceBusy if err.code is ErrorCode.BUSY else ServiceError
         return cls(err.code, err.message)
+
+
+def _check_timeout(timeout: float | None, default: float) -> float:
+    """``timeout`` seconds, or ``default`` for None; ValueError for <= 0 (not "the default")."""
+    if timeout is None:
+        return default
+    if isinstance(timeout, bool) or not isinstance(timeout, int | float) or not timeout > 0:
+        raise ValueError(f"timeout: expected a positive number of seconds or None (the "
+                         f"client's default, {default} s), got {timeout!r}")
+    return float(timeout)
 
 
 def _reply_bytes(reply: zenoh.Reply) -> tuple[bool, bytes]:

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import zenoh
 from reloc_client import protocol as wire
-from reloc_client.protocol import ErrorCode, EventKind
+from reloc_client.protocol import ErrorCode, EventKind, ProtocolError
 
 from ..engine import EngineConf, MappingConf
 from ..errors import ConfigError, StorageError
@@ -80,6 +80,7 @@ class Service:
         self._loading: set[str] = set()      # being restored: not declared yet
         self._ready = threading.Event()      # every stored and configured map is up (or failed)
         self._loader: threading.Thread | None = None
+        self._warned_keys: dict[str, None] = {}   # malformed keys already logged (bounded)
 
     # -- life cycle ------------------------------------------------------------------------------
     def start(self, *, wait_ready: bool = True) -> Service:
@@ -100,7 +101,8 @@ class Service:
         self.relocalize_pool = WorkerPool("relocalize", workers=s.workers,
                                           queue_size=s.queue_size)
         self.control_pool = WorkerPool("control", workers=1, queue_size=CONTROL_QUEUE)
-        self.writer = WorkerPool("writer", workers=1, queue_size=s.writer_queue_size)
+        self.writer = WorkerPool("writer", workers=1, queue_size=s.writer_queue_size,
+                                 max_bytes=s.writer_queue_bytes)
         self._loading = set(names)
         self.session = open_session(self.conf.zenoh)
         self.layer = ZenohLayer(self.session, self.prefix, self.instance, self)
@@ -295,15 +297,22 @@ class Service:
                 rt.start_training(None)
         return rt
 
-    def _map_for_put(self, name: str) -> MapRuntime | None:
-        """The runtime of ``name``; created (and served) if new maps are allowed. A map being
-        restored refuses puts (BUSY), a failed one too (STORAGE_ERROR)."""
+    def _map_for_put(self, name: str, kind: EventKind, ident: Any,
+                     payload: bytes | None) -> MapRuntime | None:
+        """The runtime of ``name``; created (and served) if new maps are allowed and the put
+        decodes and validates (ProtocolError otherwise: garbage on a new name leaves nothing
+        on disk). A delete never creates a map. A map being restored refuses puts (BUSY), a
+        failed one too (STORAGE_ERROR)."""
         rt = self.maps.get(name)
         if rt is not None:
             return rt
         self._check_restored(name)
         if not self.conf.service.allow_new_maps or self._stopped.is_set():
             return None
+        if payload is None:
+            raise ProtocolError(ErrorCode.UNKNOWN_MAP,
+                                f"map {name!r} does not exist; a delete does not create it")
+        self._validate_first_put(name, kind, ident, payload)
         with self._maps_lock:
             self._check_restored(name)
             if name not in self.maps:
@@ -323,6 +332,16 @@ class Service:
                                      f"map {name!r} is being restored from storage; put again "
                                      f"once it is served (its liveliness token appears)")
 
+    def _validate_first_put(self, name: str, kind: EventKind, ident: Any,
+                            payload: bytes) -> None:
+        """Decode a put on a map that does not exist yet, as the new map would (no camera
+        registered: a keyframe needs an inline camera); ProtocolError if it would fail."""
+        wire.check_name(name)
+        if kind is EventKind.CAMERA_REJECTED:
+            handlers.decode_camera_put(ident, payload, self.limits)
+        else:
+            handlers.decode_keyframe_put(_NoCameras(name, self.limits), ident, payload)
+
     def _publish_event(self, map_name: str, kind: EventKind, fields: dict[str, Any]) -> None:
         payload = wire.Event(kind, map_name, time.time(), fields).encode()
         if self.layer is not None and map_name in self.maps:
@@ -337,10 +356,10 @@ class Service:
                         lambda rt: rt.delete_keyframe(kf_id))
         elif self._bootstrap_window:
             self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
-                        lambda rt: self._put_unless_copied(rt, kf_id, payload))
+                        lambda rt: self._put_unless_copied(rt, kf_id, payload), payload)
         else:
             self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
-                        lambda rt: rt.put_keyframe(kf_id, payload))
+                        lambda rt: rt.put_keyframe(kf_id, payload), payload)
 
     def _put_unless_copied(self, rt: MapRuntime, kf_id: int, payload: bytes) -> None:
         """A put buffered during the bootstrap: skipped if the copy already holds it."""
@@ -362,10 +381,38 @@ class Service:
                          "cameras cannot be deleted; put the camera again to change it")
             return
         self._write(map_name, EventKind.CAMERA_REJECTED, camera_id,
-                    lambda rt: rt.put_camera(camera_id, payload))
+                    lambda rt: rt.put_camera(camera_id, payload), payload)
 
-    def on_bad_key(self, key: str, problem: str) -> None:
-        log.info("ignoring a sample on %s: %s", key, problem)
+    def on_bad_key(self, key: str, problem: str, code: ErrorCode = ErrorCode.BAD_NAME) -> None:
+        """A refused sample: a rejected event on its map's events key if this instance serves
+        that map (the sender listens there), else one WARNING per key naming the rule."""
+        target = self._rejection_target(key)
+        if target is not None:
+            self._reject(*target, code, problem)
+            return
+        if key in self._warned_keys:
+            return
+        if len(self._warned_keys) >= 1024:   # bounded: a flood of distinct keys
+            self._warned_keys.pop(next(iter(self._warned_keys)))
+        self._warned_keys[key] = None
+        log.warning("ignoring a sample on %s (%s): %s (logged once per key)", key, code.value,
+                    problem)
+
+    def _rejection_target(self, key: str) -> tuple[str, EventKind, Any] | None:
+        """(map, event kind, id) for a sample on ``<prefix>/<served map>/keyframes|cameras/
+        <id>``; None when the map is not one this instance serves."""
+        head = f"{self.prefix}/"
+        parts = key[len(head):].split("/") if key.startswith(head) else []
+        if len(parts) != 3 or parts[0] not in self.maps:
+            return None
+        leaf = parts[2]
+        if parts[1] == "keyframes":
+            canonical = (leaf.isdigit() and (leaf == "0" or not leaf.startswith("0"))
+                         and int(leaf) < 2**63)
+            return parts[0], EventKind.KEYFRAME_REJECTED, int(leaf) if canonical else leaf
+        if parts[1] == "cameras":
+            return parts[0], EventKind.CAMERA_REJECTED, leaf
+        return None
 
     def on_query(self, map_name: str, kind: QueryKind, query: PendingQuery) -> None:
         rt = self.maps.get(map_name)
@@ -400,10 +447,10 @@ class Service:
 
     # -- jobs (worker threads) -------------------------------------------------------------------
     def _write(self, map_name: str, kind: EventKind, ident: Any,
-               apply: Callable[[MapRuntime], None]) -> None:
+               apply: Callable[[MapRuntime], None], payload: bytes | None = None) -> None:
         def job(_queued: float) -> None:
             try:
-                rt = self._map_for_put(map_name)
+                rt = self._map_for_put(map_name, kind, ident, payload)
             except Exception as exc:
                 code, message = handlers.error_of(exc)
                 self._reject(map_name, kind, ident, code, message)
@@ -421,10 +468,11 @@ class Service:
                 rt.start_snapshot()
 
         assert self.writer is not None
-        if not self.writer.submit(job):
+        if not self.writer.submit(job, size=len(payload or b"")):
+            s = self.conf.service
             self._reject(map_name, kind, ident, ErrorCode.BUSY,
-                         f"writer queue full ({self.conf.service.writer_queue_size} puts "
-                         "waiting); put again later")
+                         f"writer queue full ({s.writer_queue_size} puts or "
+                         f"{s.writer_queue_bytes} bytes waiting); put again later")
 
     def _served_elsewhere(self, map_name: str) -> bool:
         """Whether another live instance serves ``map_name`` (its liveliness token; cached
@@ -440,10 +488,27 @@ class Service:
                 if reply.ok is not None and not str(reply.ok.key_expr).startswith(
                         f"{self.prefix}/@live/{self.instance}/"):
                     found = True
+            # A router whose access rules deny by default answers no liveliness query
+            # (deploy/README.md, known limit): ask the map's status queryable instead.
+            found = found or self._status_elsewhere(map_name)
         except Exception as exc:  # a closing session, a bad name: not served elsewhere
             log.debug("liveliness get for map %s failed: %s", map_name, exc)
         self._elsewhere[map_name] = (now, found)
         return found
+
+    def _status_elsewhere(self, map_name: str) -> bool:
+        """Whether another instance answers a status query on ``map_name``."""
+        for reply in self.session.get(wire.keys.status(self.prefix, map_name), timeout=1.0,
+                                      payload=None):
+            if reply.ok is None:
+                continue
+            try:
+                status = wire.StatusReply.decode(reply.ok.payload.to_bytes(), self.limits)
+            except wire.ProtocolError:
+                continue
+            if status.instance != self.instance:
+                return True
+        return False
 
     def _reject(self, map_name: str, kind: EventKind, ident: Any, code: ErrorCode,
                 message: str) -> None:
@@ -488,6 +553,20 @@ class Service:
             query.reply_err(handlers.error_reply(exc))
         finally:
             query.finish()
+
+
+class _NoCameras:
+    """The camera registry of a map that does not exist yet (validating its first put)."""
+
+    def __init__(self, name: str, limits: wire.Limits) -> None:
+        self.name = name
+        self.limits = limits
+
+    def camera(self, camera_id: str) -> None:
+        return None
+
+    def camera_ids(self) -> list[str]:
+        return []
 
 
 class _Bootstrap:

@@ -65,7 +65,11 @@ class LimitsConf:
     """Sizes above which a request is refused before it is parsed (docs/protocol.md)."""
 
     max_payload_bytes: int = 32 * 1024 * 1024
-    max_image_pixels: int = 4096 * 4096
+    #: 1280 x 960. A query costs about 215 bytes of peak memory per pixel (measured: sbi and
+    #: bow on the default methods, 1.2 Mpx -> +260 MB, 3.1 Mpx -> +690 MB), so this keeps one
+    #: request under +300 MB on a 4-8 GB companion computer while covering VGA, 720p and
+    #: 1280x960 cameras. Larger cameras: raise it knowing the cost.
+    max_image_pixels: int = 1280 * 960
     max_features: int = 50_000
     max_hypotheses: int = 32
 
@@ -104,6 +108,10 @@ class ServiceSection:
     queue_size: int = 8
     #: Keyframe puts/deletes waiting for the writer; one more is rejected (BUSY event).
     writer_queue_size: int = 512
+    #: Payload bytes the writer may hold (queued and running puts); a put beyond is rejected
+    #: (BUSY event). 128 MiB: four puts at the 32 MiB payload limit, or about 400 VGA
+    #: keyframes, while 40 puts of 30 MiB no longer hold 1.2 GB on a 4-8 GB companion.
+    writer_queue_bytes: int = 128 * 1024 * 1024
     #: A put on a map that is not served creates it (else the put is ignored).
     allow_new_maps: bool = True
     #: On start, copy each served map's cameras and keyframes from a running replica (a get
@@ -123,7 +131,7 @@ class ServiceSection:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "methods", _str_tuple(self.methods, "service.methods"))
-        for name in ("workers", "queue_size", "writer_queue_size"):
+        for name in ("workers", "queue_size", "writer_queue_size", "writer_queue_bytes"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"service.{name}: expected an integer >= 1, got "
                                   f"{getattr(self, name)}")

@@ -95,6 +95,7 @@ def decode_image(image: wire.WireImage, camera: Camera, path: str) -> npt.NDArra
                             f"camera's {camera.width}x{camera.height}")
     if image.format is wire.ImageFormat.MONO8:
         return image.to_array()
+    _check_header_size(image, camera, path)
     grey = cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_GRAYSCALE)
     if grey is None:
         raise ProtocolError(ErrorCode.BAD_IMAGE,
@@ -104,6 +105,24 @@ def decode_image(image: wire.WireImage, camera: Camera, path: str) -> npt.NDArra
                             f"{path}: decodes to {grey.shape[1]}x{grey.shape[0]}, stated "
                             f"{image.width}x{image.height}")
     return np.asarray(grey, dtype=np.uint8)
+
+
+def _check_header_size(image: wire.WireImage, camera: Camera, path: str) -> None:
+    """The PNG IHDR / JPEG SOF size must be the camera's before ``cv2.imdecode`` allocates
+    what the header declares (a 16 KB PNG can declare 4096x4096)."""
+    if image.format is wire.ImageFormat.PNG:
+        header = wire.png_header(image.data)
+        size = None if header is None else header[:2]
+    else:
+        size = wire.jpeg_size(image.data)
+    if size is None:
+        raise ProtocolError(ErrorCode.BAD_IMAGE,
+                            f"{path}.data: expected a {image.format.value.upper()} header")
+    if size != camera.size:
+        raise ProtocolError(ErrorCode.BAD_IMAGE,
+                            f"{path}.data: the {image.format.value} header declares "
+                            f"{size[0]}x{size[1]}; expected the camera's "
+                            f"{camera.width}x{camera.height}")
 
 
 def decode_depth(depth: wire.WireDepth, path: str) -> npt.NDArray[np.float32]:
@@ -136,11 +155,35 @@ def resolve_camera(rt: CameraRegistry, camera_id: str | None, camera: wire.WireC
 
 # -- relocalize -------------------------------------------------------------------------------
 
+def check_query_camera(rt: MapRuntime, camera: Camera, path: str) -> None:
+    """An inline query camera may be no larger (in pixels) than the map's largest known
+    camera: a query costs about 215 bytes of peak memory per pixel (measured, sbi/bow), so a
+    4096x4096 query against a VGA map would cost 3.6 GB. A map with no camera yet is bounded
+    by ``limits.max_image_pixels`` alone (checked when the request was decoded)."""
+    largest = _largest_known_camera(rt)
+    if largest is None or camera.width * camera.height <= largest[0] * largest[1]:
+        return
+    raise ProtocolError(ErrorCode.IMAGE_TOO_LARGE,
+                        f"{path}: {camera.width}x{camera.height} = "
+                        f"{camera.width * camera.height} px; expected at most the map's largest "
+                        f"known camera, {largest[0]}x{largest[1]} = {largest[0] * largest[1]} "
+                        f"px (or name a camera of the map with camera_id)")
+
+
+def _largest_known_camera(rt: MapRuntime) -> tuple[int, int] | None:
+    """(width, height) of the registered or keyframe camera with the most pixels."""
+    sizes = [cam.size for cam in rt.cameras().values()]
+    sizes += [kf.camera.size for kf in rt.map_state().keyframes.values()]
+    return max(sizes, key=lambda wh: wh[0] * wh[1], default=None)
+
+
 def relocalize(rt: MapRuntime, payload: bytes, *, queued_s: float = 0.0) -> bytes:
     """RelocalizeRequest bytes -> RelocalizeReply bytes (ProtocolError for a bad request)."""
     start = time.perf_counter()
     request = wire.RelocalizeRequest.decode(payload, rt.limits)
     camera = resolve_camera(rt, request.camera_id, request.camera, "relocalize")
+    if request.camera is not None:
+        check_query_camera(rt, camera, "relocalize.camera")
     image = decode_image(request.image, camera, "relocalize.image")
     method = rt.check_method(request.method)
     prior = None
@@ -211,9 +254,15 @@ def _finite_or_none(x: float | None) -> float | None:
 # -- train, status ----------------------------------------------------------------------------
 
 def train(rt: MapRuntime, payload: bytes) -> bytes:
-    """TrainRequest bytes (or empty) -> TrainReply bytes; the job runs in the background."""
-    request = (wire.TrainRequest() if not payload
-               else wire.TrainRequest.decode(payload, rt.limits))
+    """TrainRequest bytes -> TrainReply bytes; the job runs in the background.
+
+    An empty payload is refused: a bare ``get <prefix>/**`` (a discovery or a typo) must not
+    start training and a snapshot on every map (docs/protocol.md, TrainRequest)."""
+    if not payload:
+        raise ProtocolError(ErrorCode.MISSING_FIELD,
+                            "train: expected a TrainRequest payload (at least {\"v\": 1}); an "
+                            "empty payload is not a train request")
+    request = wire.TrainRequest.decode(payload, rt.limits)
     method = None if request.method is None else rt.check_method(request.method)
     job_id, started = rt.start_training(method)
     reason = "" if started else "a training job is already running; follow its events"

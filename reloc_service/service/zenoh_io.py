@@ -21,6 +21,7 @@ from typing import Protocol
 
 import zenoh
 from reloc_client import protocol as wire
+from reloc_client.protocol import ErrorCode
 
 from ..errors import ConfigError
 from .config import ZenohConf
@@ -109,7 +110,10 @@ class PendingQuery:
 
 
 class Dispatcher(Protocol):
-    """What the Zenoh callbacks call; every method must return quickly."""
+    """What the Zenoh callbacks call; every method must return quickly. ``limits`` bounds a
+    payload before it is copied out of Zenoh."""
+
+    limits: wire.Limits
 
     def on_keyframe_sample(self, map_name: str, kf_id: int, payload: bytes | None) -> None:
         """A put (payload) or delete (None) on ``<prefix>/<map>/keyframes/<id>``."""
@@ -117,8 +121,9 @@ class Dispatcher(Protocol):
     def on_camera_sample(self, map_name: str, camera_id: str, payload: bytes | None) -> None:
         """A put or delete on ``<prefix>/<map>/cameras/<id>``."""
 
-    def on_bad_key(self, key: str, problem: str) -> None:
-        """A sample on a key that does not parse (bad map name or id)."""
+    def on_bad_key(self, key: str, problem: str, code: ErrorCode = ErrorCode.BAD_NAME) -> None:
+        """A sample refused before it is parsed: its key does not parse (bad map name or id,
+        BAD_NAME) or its payload is above the limit (PAYLOAD_TOO_LARGE)."""
 
     def on_query(self, map_name: str, kind: QueryKind, query: PendingQuery) -> None:
         """A query on one of the map's queryables."""
@@ -203,11 +208,30 @@ class ZenohLayer:
 
         def on_query(query: zenoh.Query) -> None:
             try:
+                if not self._payload_fits(query.payload, key, query):
+                    return
                 dispatcher.on_query(map_name, kind, PendingQuery(query, key))
             except Exception:  # never let an exception reach Zenoh's thread
                 log.exception("query on %s failed in the dispatcher", key)
 
         return self.session.declare_queryable(key, on_query)
+
+    def _payload_fits(self, payload: zenoh.ZBytes | None, key: str,
+                      query: zenoh.Query | None = None) -> bool:
+        """Whether ``payload`` is within the payload limit, checked on the ZBytes length
+        before ``to_bytes()`` copies it (an oversized query gets a PAYLOAD_TOO_LARGE error
+        reply, an oversized put a rejection)."""
+        size = 0 if payload is None else len(payload)
+        limit = self.dispatcher.limits.max_payload_bytes
+        if size <= limit:
+            return True
+        problem = f"{key}: payload: {size} bytes; expected at most {limit}"
+        if query is not None:
+            query.reply_err(wire.encode_error(ErrorCode.PAYLOAD_TOO_LARGE, problem))
+            query.drop()
+        else:
+            self.dispatcher.on_bad_key(key, problem, ErrorCode.PAYLOAD_TOO_LARGE)
+        return False
 
     def _on_put(self, sample: zenoh.Sample) -> None:
         kind = str(sample.key_expr)[len(self.prefix) + 1:].split("/")[1:2]
@@ -223,6 +247,8 @@ class ZenohLayer:
         except wire.ProtocolError as exc:
             self.dispatcher.on_bad_key(key, exc.message)
             return
+        if sample.kind == zenoh.SampleKind.PUT and not self._payload_fits(sample.payload, key):
+            return
         self.dispatcher.on_keyframe_sample(map_name, kf_id, _sample_payload(sample))
 
     def _on_camera(self, sample: zenoh.Sample) -> None:
@@ -231,6 +257,8 @@ class ZenohLayer:
             map_name, camera_id = wire.keys.parse_camera(self.prefix, key)
         except wire.ProtocolError as exc:
             self.dispatcher.on_bad_key(key, exc.message)
+            return
+        if sample.kind == zenoh.SampleKind.PUT and not self._payload_fits(sample.payload, key):
             return
         self.dispatcher.on_camera_sample(map_name, camera_id, _sample_payload(sample))
 

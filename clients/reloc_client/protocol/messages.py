@@ -78,7 +78,8 @@ def unpack_message(data: bytes, limits: Limits = DEFAULT_LIMITS) -> dict[str, An
     if "v" not in obj:
         raise ProtocolError(ErrorCode.MISSING_FIELD,
                             f"payload.v: missing protocol version; expected v = {PROTOCOL_VERSION}")
-    if isinstance(obj["v"], bool) or obj["v"] != PROTOCOL_VERSION:
+    # An integer exactly: 1.0 and True compare equal to 1 in Python but are other msgpack types.
+    if type(obj["v"]) is not int or obj["v"] != PROTOCOL_VERSION:
         raise _fail(ErrorCode.UNSUPPORTED_VERSION, "payload.v",
                     f"protocol version {PROTOCOL_VERSION}", obj["v"])
     return obj
