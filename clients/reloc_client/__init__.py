@@ -18,15 +18,16 @@ if TYPE_CHECKING:
         RelocStatus,
         ServiceBusy,
         ServiceError,
+        ServiceGone,
     )
 
 __version__ = "0.1.0"
 
 _CLIENT_NAMES = {"RelocClient", "RelocResult", "RelocStatus", "ServiceError", "ServiceBusy",
-                 "NoReplyError"}
+                 "NoReplyError", "ServiceGone"}
 
 __all__ = ["PROTOCOL_VERSION", "ErrorCode", "ProtocolError", "NoReplyError", "RelocClient",
-           "RelocResult", "RelocStatus", "ServiceBusy", "ServiceError"]
+           "RelocResult", "RelocStatus", "ServiceBusy", "ServiceError", "ServiceGone"]
 
 
 def __getattr__(name: str) -> Any:

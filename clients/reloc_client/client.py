@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import queue
+import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -50,6 +51,11 @@ class ServiceBusy(ServiceError):
 
 class NoReplyError(TimeoutError):
     """No service answered (none serves the map, or the reply did not come in time)."""
+
+
+class ServiceGone(NoReplyError):
+    """The service instances serving the map went away (their liveliness tokens) while a
+    client waited for one of their jobs: the job is lost."""
 
 
 class RelocStatus(enum.Enum):
@@ -267,10 +273,13 @@ class RelocClient:
         except zenoh.ZError as exc:
             raise ConnectionError(f"cannot open a Zenoh session (connect={connect!r}): "
                                   f"{str(exc).split(' at ')[0]}") from exc
+        self._acks: _Acks | None = None
+        self._acks_lock = threading.Lock()
 
     # -- life cycle ------------------------------------------------------------------------
     def close(self) -> None:
         """Close the Zenoh session (undeclares every subscriber opened through it)."""
+        self._acks = None
         if not self.session.is_closed():
             self.session.close()
 
@@ -283,22 +292,32 @@ class RelocClient:
     def __repr__(self) -> str:
         return f"RelocClient(map={self.map!r}, prefix={self.prefix!r})"
 
-    # -- map building (puts: no reply) -----------------------------------------------------
-    def set_camera(self, camera_id: str, camera: CameraLike) -> None:
-        """Put camera ``camera_id`` (a camera dict or object with ``to_dict()``)."""
+    # -- map building (puts: acknowledged by events) ---------------------------------------
+    def set_camera(self, camera_id: str, camera: CameraLike, *, wait: bool = False,
+                   timeout: float | None = None) -> None:
+        """Put camera ``camera_id`` (a camera dict or object with ``to_dict()``). With
+        ``wait``, return once the service registered it (see :meth:`add_keyframe`)."""
         message = wire.CameraPut(wire.check_name(camera_id, "camera id"), to_wire_camera(camera))
-        self._put(wire.keys.camera(self.prefix, self.map, camera_id), message.encode())
+        key = wire.keys.camera(self.prefix, self.map, camera_id)
+        self._send(("cam", camera_id), lambda: self._put(key, message.encode()), wait=wait,
+                   timeout=timeout, what=f"camera {camera_id!r}")
 
     def add_keyframe(self, kf_id: int, image: ImageLike, world_from_cam: PoseLike, *,
                      camera_id: str | None = None, camera: CameraLike | None = None,
                      timestamp: float | None = None,
                      features: wire.WireFeatures | Mapping[str, Any] | None = None,
-                     depth: Any = None, image_format: str | None = None) -> None:
+                     depth: Any = None, image_format: str | None = None,
+                     wait: bool = False, timeout: float | None = None) -> None:
         """Put keyframe ``kf_id`` (added, or replaced if it exists) with its image,
         ``world_from_cam`` ((4, 4) or (t, q)), and exactly one of ``camera_id`` / ``camera``.
 
-        A put has no reply: a refused keyframe is reported as a ``keyframe_rejected`` event
-        (see :meth:`subscribe_events`)."""
+        A put has no reply. Without ``wait`` it returns at once, even if no service is
+        there; a refused keyframe is then only reported as a ``keyframe_rejected`` event (see
+        :meth:`subscribe_events`). With ``wait``, it returns once the service has journaled
+        the keyframe (its ``keyframe_accepted`` event: it survives a crash from then on; it
+        is applied to the map shortly after, ``keyframe_added``), and raises ServiceError
+        (ServiceBusy) if the service refused it, NoReplyError if no acknowledgement came
+        within ``timeout`` seconds (default: the client's): put it again later."""
         message = wire.KeyframePut(
             id=kf_id, image=to_wire_image(image, image_format=image_format),
             world_from_cam=to_wire_pose(world_from_cam), camera_id=camera_id,
@@ -306,16 +325,55 @@ class RelocClient:
             timestamp=None if timestamp is None else float(timestamp),
             features=None if features is None else to_wire_features(features),
             depth=None if depth is None else to_wire_depth(depth))
-        self._put(wire.keys.keyframe(self.prefix, self.map, kf_id), message.encode())
+        key = wire.keys.keyframe(self.prefix, self.map, kf_id)
+        self._send(("kf", kf_id), lambda: self._put(key, message.encode()), wait=wait,
+                   timeout=timeout, what=f"keyframe {kf_id}")
 
-    def remove_keyframe(self, kf_id: int) -> None:
-        """Delete keyframe ``kf_id`` (no reply; an unknown id is ignored by the service)."""
-        self.session.delete(wire.keys.keyframe(self.prefix, self.map, kf_id),
-                            congestion_control=zenoh.CongestionControl.BLOCK)
+    def remove_keyframe(self, kf_id: int, *, wait: bool = False,
+                        timeout: float | None = None) -> None:
+        """Delete keyframe ``kf_id``. Without ``wait`` there is no reply (an unknown id is
+        reported as a ``keyframe_rejected`` event); with ``wait``, return once the removal
+        is journaled, raise as :meth:`add_keyframe` does."""
+        key = wire.keys.keyframe(self.prefix, self.map, kf_id)
+        self._send(("kf", kf_id), lambda: self.session.delete(
+            key, congestion_control=zenoh.CongestionControl.BLOCK), wait=wait, timeout=timeout,
+            what=f"removal of keyframe {kf_id}")
 
     def _put(self, key: str, payload: bytes) -> None:
         # BLOCK, not the default DROP: a map upload must not lose keyframes under load.
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def _send(self, ack: tuple[str, Any], send: Callable[[], None], *, wait: bool,
+              timeout: float | None, what: str) -> None:
+        """``send()``; with ``wait``, block until the service acknowledges ``ack``."""
+        if not wait:
+            send()
+            return
+        timeout = _check_timeout(timeout, self.timeout)
+        acks = self._ack_events()
+        acks.expect(ack)
+        try:
+            send()
+            event = acks.wait(ack, timeout)
+        finally:
+            acks.forget(ack)
+        if event is None:
+            raise NoReplyError(f"{what} on map {self.map!r} was not acknowledged within "
+                               f"{timeout} s: is a reloc service serving it under prefix "
+                               f"{self.prefix!r} reachable? It may not be stored: put it again")
+        if event.kind in (wire.EventKind.KEYFRAME_REJECTED, wire.EventKind.CAMERA_REJECTED):
+            code = _error_code(event.fields.get("code"))
+            cls = ServiceBusy if code is ErrorCode.BUSY else ServiceError
+            raise cls(code, f"{what}: {event.fields.get('message', 'refused')}")
+
+    def _ack_events(self) -> _Acks:
+        """The map's acknowledgement events, subscribed once per client."""
+        with self._acks_lock:
+            if self._acks is None:
+                acks = _Acks()
+                acks.subscriber = self.subscribe_events(acks.on_event, kinds=_Acks.KINDS)
+                self._acks = acks
+            return self._acks
 
     # -- queries ---------------------------------------------------------------------------
     def relocalize(self, image: ImageLike, *, camera_id: str | None = None,
@@ -346,24 +404,29 @@ class RelocClient:
               on_event: Callable[[wire.Event], None] | None = None) -> wire.TrainReply:
         """Start training (the service answers at once). With ``wait``, block until the job's
         ``train_done`` event (``on_event`` sees every event of the job meanwhile); raise
-        ServiceError on ``train_failed`` and TimeoutError after ``timeout`` seconds."""
-        events: queue.Queue[wire.Event] = queue.Queue()
+        ServiceError on ``train_failed``, TimeoutError after ``timeout`` seconds, and
+        ServiceGone (a TimeoutError) as soon as no instance serves the map any more (its
+        liveliness tokens went away: the service died or stopped, the job is lost)."""
+        events: queue.Queue[wire.Event | None] = queue.Queue()
         # Subscribe before asking, so a fast job's train_done cannot be missed.
         sub = self.subscribe_events(events.put) if wait else None
+        watch = _ServiceWatch(self, lambda: events.put(None)) if wait else None
         try:
             payload = self._query_one(wire.keys.train(self.prefix, self.map),
                                       wire.TrainRequest(method=method).encode(), None)
             reply = wire.TrainReply.decode(payload, self.limits)
             if wait and reply.accepted:
-                self._wait_for_job(events, reply.job_id, timeout, on_event)
+                self._wait_for_job(events, reply.job_id, timeout, on_event, watch)
             return reply
         finally:
-            if sub is not None:
-                sub.undeclare()
+            for entity in (sub, watch):
+                if entity is not None:
+                    entity.undeclare()
 
-    def _wait_for_job(self, events: queue.Queue[wire.Event], job_id: str | None,
+    def _wait_for_job(self, events: queue.Queue[wire.Event | None], job_id: str | None,
                       timeout: float | None,
-                      on_event: Callable[[wire.Event], None] | None) -> wire.Event:
+                      on_event: Callable[[wire.Event], None] | None,
+                      watch: _ServiceWatch | None = None) -> wire.Event:
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             remaining = None if deadline is None else deadline - time.monotonic()
@@ -374,6 +437,12 @@ class RelocClient:
                 event = events.get(timeout=remaining)
             except queue.Empty:
                 continue
+            if event is None:   # a liveliness change
+                if watch is not None and watch.gone is not None:
+                    raise ServiceGone(f"training job {job_id} of map {self.map!r} is lost: "
+                                      f"the service serving it went away ({watch.gone} "
+                                      "withdrew or died); train again once a service is back")
+                continue
             if event.fields.get("job_id") != job_id:
                 continue
             if on_event is not None:
@@ -381,9 +450,7 @@ class RelocClient:
             if event.kind is wire.EventKind.TRAIN_DONE:
                 return event
             if event.kind is wire.EventKind.TRAIN_FAILED:
-                code = event.fields.get("code", "INTERNAL")
-                known = code in ErrorCode.__members__.values()
-                raise ServiceError(ErrorCode(code) if known else ErrorCode.INTERNAL,
+                raise ServiceError(_error_code(event.fields.get("code")),
                                    str(event.fields.get("message", "training failed")))
 
     def status(self, *, timeout: float | None = None) -> wire.StatusReply:
@@ -485,6 +552,84 @@ class RelocClient:
         return cls(err.code, err.message)
 
 
+class _ServiceWatch:
+    """The liveliness tokens of the instances serving ``client``'s map: ``gone`` names the
+    last token withdrawn once none is left, and ``changed()`` is called then."""
+
+    def __init__(self, client: RelocClient, changed: Callable[[], None]) -> None:
+        self.prefix = client.prefix
+        self.live: set[str] = set()
+        self.gone: str | None = None
+        self._lock = threading.Lock()
+        self._changed = changed
+        key = f"{self.prefix}/@live/*/{client.map}"
+        self._sub = client.session.liveliness().declare_subscriber(key, self._on_sample,
+                                                                   history=True)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.live.add(key)
+                self.gone = None
+                return
+            self.live.discard(key)
+            if self.live:
+                return
+            self.gone = key
+        self._changed()
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+
+
+class _Acks:
+    """Acknowledgement events of this client's puts, by (``"kf"`` or ``"cam"``, id): only
+    those being waited for are kept."""
+
+    KINDS = {wire.EventKind.KEYFRAME_ACCEPTED: "kf", wire.EventKind.KEYFRAME_ADDED: "kf",
+             wire.EventKind.KEYFRAME_REMOVED: "kf", wire.EventKind.KEYFRAME_REJECTED: "kf",
+             wire.EventKind.CAMERA_ADDED: "cam", wire.EventKind.CAMERA_REJECTED: "cam"}
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._waiting: dict[tuple[str, Any], wire.Event | None] = {}
+        self.subscriber: zenoh.Subscriber | None = None
+
+    def expect(self, ack: tuple[str, Any]) -> None:
+        with self._cond:
+            self._waiting[ack] = None
+
+    def forget(self, ack: tuple[str, Any]) -> None:
+        with self._cond:
+            self._waiting.pop(ack, None)
+
+    def on_event(self, event: wire.Event) -> None:
+        ack = (self.KINDS[event.kind], event.fields.get("id"))
+        with self._cond:
+            if ack in self._waiting and self._waiting[ack] is None:
+                self._waiting[ack] = event
+                self._cond.notify_all()
+
+    def wait(self, ack: tuple[str, Any], timeout: float) -> wire.Event | None:
+        with self._cond:
+            self._cond.wait_for(lambda: self._waiting.get(ack) is not None, timeout)
+            return self._waiting.get(ack)
+
+
+def _error_code(code: Any) -> ErrorCode:
+    """An event's ``code`` field as an ErrorCode (INTERNAL if unknown)."""
+    return ErrorCode(code) if code in ErrorCode.__members__.values() else ErrorCode.INTERNAL
+
+
+def _check_timeout(timeout: float | None, default: float) -> float:
+    if timeout is None:
+        return default
+    if not timeout > 0:
+        raise ValueError(f"timeout: expected a positive number of seconds, got {timeout}")
+    return float(timeout)
+
+
 def _reply_bytes(reply: zenoh.Reply) -> tuple[bool, bytes]:
     """(is a success, payload) of a Zenoh reply."""
     if reply.ok is not None:
@@ -493,5 +638,5 @@ def _reply_bytes(reply: zenoh.Reply) -> tuple[bool, bytes]:
 
 
 __all__ = ["RelocClient", "RelocResult", "RelocStatus", "ServiceError", "ServiceBusy",
-           "NoReplyError", "make_config", "to_wire_image", "to_wire_pose", "to_wire_camera",
+           "NoReplyError", "ServiceGone", "make_config", "to_wire_image", "to_wire_pose", "to_wire_camera",
            "to_wire_features", "to_wire_depth"]
