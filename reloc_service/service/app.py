@@ -1,4 +1,4 @@
-"""The service: maps, worker pools, the single writer and the Zenoh layer, started and stopped
+"""The service: maps, worker pools, the per-map writers and the Zenoh layer, started and stopped
 together.
 
 Zenoh callbacks only enqueue (:class:`Service` is the :class:`~.zenoh_io.Dispatcher`):

@@ -93,7 +93,7 @@ class TrainingJob:
 class MapRuntime:
     """Everything the service holds for map ``name`` (see module docstring).
 
-    Map changes (:meth:`apply_keyframe_put` etc.) come from the service's single writer
+    Map changes (:meth:`apply_keyframe_put` etc.) come from the map's writer
     thread; queries (:meth:`relocalize`) from any worker thread."""
 
     def __init__(self, name: str, engine: Engine, *, instance: str, limits: wire.Limits,
