@@ -1,8 +1,8 @@
 """Life cycle of the service and its clients (issue 15, cases 1, 5, 8, 9): SIGTERM with a
 backlog of puts stops within its budget and loses none, one map's snapshot or training never
 holds up another map's puts, ``add_keyframe(wait=True)`` is acknowledged once journaled (and
-raises when refused or when no service answers), ``train(wait=True)`` notices the service
-dying."""
+raises when refused or when no service answers; an Outbox resends until acknowledged),
+``train(wait=True)`` notices the service dying."""
 # ruff: noqa: E402
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import time
 import pytest
 import zenoh
 from reloc_client import protocol as wire
-from reloc_client.client import NoReplyError, RelocClient, ServiceError, ServiceGone
+from reloc_client.client import NoReplyError, Outbox, RelocClient, ServiceError, ServiceGone
 from reloc_client.protocol import ErrorCode
 from service_support import ROOT, Events, endpoint, free_port, raw_session, service_conf, wait_until
 from test_service_durability import durable_keyframe_ids
@@ -204,6 +204,31 @@ def test_add_keyframe_wait_returns_once_journaled_and_raises_on_refusal_or_no_se
     with pytest.raises(NoReplyError, match="not acknowledged within 2.0 s"):
         client.add_keyframe(2, image, pose, camera_id="cam0", wait=True, timeout=2.0)
     assert time.monotonic() - start < 4.0
+    client.close()
+
+
+def test_outbox_keeps_changes_while_no_service_answers_and_delivers_them_in_order(
+        synthetic_scene, tmp_path):
+    port, scene = free_port(), synthetic_scene
+    client = RelocClient(endpoint(port), map=MAP, mode="peer")   # connects once it listens
+    outbox = Outbox(client, ack_timeout=1.0, retry_s=0.2)
+    outbox.set_camera("cam0", scene.camera)
+    for kf_id in range(3):
+        i = kf_id % len(scene.keyframe_images)
+        outbox.add_keyframe(kf_id, scene.keyframe_images[i], scene.keyframe_poses[i],
+                            camera_id="cam0")
+    outbox.remove_keyframe(1)
+    outbox.add_keyframe(9, scene.keyframe_images[0], scene.keyframe_poses[0], camera_id="nope")
+    assert not outbox.flush(timeout=2.5)   # nobody acknowledges: everything waits
+    assert outbox.pending == 6 and outbox.retries >= 1
+    conf = service_conf(port, tmp_path / "storage", maps=(MAP,))
+    with Service(conf) as service:
+        assert outbox.flush(timeout=120)
+        assert service.wait_idle(60)
+        assert [kf.id for kf in client.keyframes()] == [0, 2]
+        assert [(what, err.code) for what, err in outbox.rejected] == [
+            ("keyframe 9", ErrorCode.UNKNOWN_CAMERA)]
+        assert outbox.close() == 0
     client.close()
 
 
