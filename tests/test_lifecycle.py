@@ -137,6 +137,36 @@ def test_sigterm_with_300_queued_puts_exits_within_30_s_and_loses_none(synthetic
     assert len(acked) > n // 2, len(acked)
 
 
+def test_stop_journals_queued_puts_and_a_snapshot_waiting_on_training_keeps_them(
+        synthetic_scene, tmp_path):
+    """In process, a 3 s budget: the queued puts are journaled, not applied; the snapshot that
+    was waiting for a training (its lock held here) must not drop them from the journal when
+    the training ends after the stop."""
+    port, scene, n = free_port(), synthetic_scene, 8
+    conf = service_conf(port, tmp_path / "storage", maps=(MAP,), stop_timeout_s=3.0)
+    service = Service(conf).start()
+    rt = service.maps[MAP]
+    service.on_camera_sample(MAP, "cam0", _camera_put(scene))
+    rt._maintenance.acquire()     # what a long training holds
+    try:
+        rt.start_snapshot()           # waits for the training
+        for kf_id in range(n):
+            service.on_keyframe_sample(MAP, kf_id, _keyframe_put(scene, kf_id))
+        start = time.monotonic()
+        service.stop()
+        assert time.monotonic() - start < 3.0 + 1.0
+    finally:
+        rt._maintenance.release()     # the training ends after the stop
+    assert rt._snapshot_thread is not None
+    rt._snapshot_thread.join(60)
+    assert durable_keyframe_ids(tmp_path / "storage" / MAP) == set(range(n))
+    restarted = Service(conf).start()
+    try:
+        assert sorted(restarted.maps[MAP].map_state().keyframes) == list(range(n))
+    finally:
+        restarted.stop()
+
+
 # -- case 8: one writer per map -----------------------------------------------------------------
 
 def test_a_snapshot_waiting_on_training_does_not_delay_another_maps_puts(synthetic_scene,

@@ -124,6 +124,7 @@ class MapRuntime:
         #: Keyframes journaled at shutdown without being applied, and whether any record was.
         self._unapplied: set[int] = set()
         self._journal_ahead = False
+        self._closed = False
 
     # -- reading -------------------------------------------------------------------------------
     def camera(self, camera_id: str) -> Camera | None:
@@ -304,6 +305,8 @@ class MapRuntime:
         if self.journal is None:
             return False
         with self._job_lock:
+            if self._journal_ahead or self._closed:
+                return False   # it would drop the records journaled (not applied) at shutdown
             running = self._snapshot_thread is not None and self._snapshot_thread.is_alive()
             if not running:
                 self._snapshot_thread = threading.Thread(
@@ -318,6 +321,8 @@ class MapRuntime:
         assert self.journal is not None and self.directory is not None
         with self._maintenance:
             with self._apply_lock:
+                if self._journal_ahead:   # waited past a shutdown that journaled unapplied puts
+                    return
                 try:
                     segment = self.journal.rotate()
                 except StorageError as exc:
@@ -444,10 +449,13 @@ class MapRuntime:
             if self._maintenance.acquire(timeout=max(0.0, timeout)):
                 self._maintenance.release()
                 thread = self._start_final_snapshot()
-                thread.join(max(0.0, deadline - time.monotonic()))
+                if thread is not None:
+                    thread.join(max(0.0, deadline - time.monotonic()))
         snapshot_thread = self._snapshot_thread
         if snapshot_thread is not None:
             snapshot_thread.join(max(0.0, deadline - time.monotonic()))
+        with self._job_lock:
+            self._closed = True   # a training job ending later takes no snapshot
         if snapshot_thread is not None and snapshot_thread.is_alive():
             log.warning("map %s: the final snapshot did not finish within the stop budget; "
                         "the journal still holds every change", self.name)
@@ -455,9 +463,8 @@ class MapRuntime:
         if self.journal is not None:
             self.journal.close()
 
-    def _start_final_snapshot(self) -> threading.Thread:
+    def _start_final_snapshot(self) -> threading.Thread | None:
         self.start_snapshot()
-        assert self._snapshot_thread is not None
         return self._snapshot_thread
 
 
