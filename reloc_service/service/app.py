@@ -609,13 +609,16 @@ def serve(conf: ServiceConf) -> int:
 
 
 def _exit_if_threads_linger(code: int) -> None:
-    """``os._exit(code)`` (after flushing logs and stdio) if a Python thread still runs."""
+    """``os._exit(code)`` (after flushing logs and stdio) if a Python thread still runs (ours,
+    or zenoh-python's callback threads, which block inside Rust)."""
     lingering = [t.name for t in threading.enumerate()
                  if t is not threading.current_thread() and t.is_alive()
                  and not isinstance(t, threading._DummyThread)]  # type: ignore[attr-defined]
     if not lingering:
         return
-    log.warning("exiting without waiting for %s", ", ".join(sorted(lingering)))
+    ours = [name for name in lingering if "pyo3" not in name]
+    log.log(logging.WARNING if ours else logging.DEBUG, "exiting without waiting for %s",
+            ", ".join(sorted(lingering)))
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
         try:
