@@ -2,8 +2,11 @@
 
 Failures are exceptions: :class:`ServiceError` (the service refused, with an
 :class:`ErrorCode`), :class:`ServiceBusy` (its queue is full: retry later; a subclass of
-ServiceError), :class:`NoReplyError` (nothing answered in time; a ``TimeoutError``), and
+ServiceError), :class:`NoReplyError` (nothing answered in time; a ``TimeoutError``),
+:class:`ServiceGone` (the service went away while a job was awaited; a NoReplyError), and
 :class:`ProtocolError` for arguments that cannot be encoded or replies that do not decode.
+Puts are acknowledged by events: ``wait=True`` waits for the acknowledgement, and an
+:class:`Outbox` resends until it comes.
 "Not relocalized" is not a failure: it is a :class:`RelocResult` with status NOT_RELOCALIZED.
 """
 
