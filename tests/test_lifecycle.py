@@ -12,12 +12,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
 
+import dataclasses
 import json
 import os
 import signal
 import subprocess
 import threading
 import time
+from types import MappingProxyType
 
 import pytest
 import zenoh
@@ -25,6 +27,7 @@ from reloc_client import protocol as wire
 from reloc_client.client import NoReplyError, Outbox, RelocClient, ServiceError, ServiceGone
 from reloc_client.protocol import ErrorCode
 from service_support import ROOT, Events, endpoint, free_port, raw_session, service_conf, wait_until
+from test_scaleout import open_router
 from test_service_durability import durable_keyframe_ids
 
 from reloc_service.service.app import Service
@@ -316,3 +319,46 @@ def test_train_wait_raises_soon_after_the_service_goes(synthetic_scene, tmp_path
         log = (tmp_path / "log.txt").read_text()
         assert code == 0 and "FATAL" not in log, log[-2000:]
         assert exit_s < 3.0 + 3.0, f"exit took {exit_s:.1f} s"
+
+
+def test_train_wait_follows_the_replica_running_the_job(synthetic_scene, tmp_path):
+    """Two replicas of the map behind a router: the one that runs the job (named in its
+    train_started event) stops; the client raises ServiceGone although the other one still
+    serves the map."""
+    router_port, scene = free_port(), synthetic_scene
+    router = open_router(router_port)
+    replicas = {}
+    for name in ("a", "b"):
+        conf = service_conf(free_port(), tmp_path / name, maps=(MAP,), instance=name,
+                            methods=["sbi+p3p", "bow+p3p"], default_method="sbi+p3p",
+                            train_on_load=False, stop_timeout_s=1.0,
+                            zenoh={"connect": [endpoint(router_port)]})
+        conf = dataclasses.replace(conf, options=MappingProxyType(
+            {"bow": MappingProxyType({"kmeans_iterations": 60})}))
+        replicas[name] = Service(conf).start()
+    client = RelocClient(endpoint(router_port), map=MAP)
+    try:
+        wait_until(lambda: len(client.maps()) == 2)
+        for service in replicas.values():   # the same map on both, without the network
+            service.on_camera_sample(MAP, "cam0", _camera_put(scene))
+            for kf_id in range(12):
+                service.on_keyframe_sample(MAP, kf_id, _keyframe_put(scene, kf_id))
+        assert all(service.wait_idle(120) for service in replicas.values())
+        runner: list[str] = []
+
+        def on_event(event: wire.Event) -> None:
+            if event.kind is wire.EventKind.TRAIN_STARTED and not runner:
+                runner.append(event.fields["instance"])
+                threading.Thread(target=replicas[runner[0]].stop, daemon=True).start()
+
+        start = time.monotonic()
+        with pytest.raises(ServiceGone, match="went away"):
+            client.train(method="bow+p3p", wait=True, timeout=90, on_event=on_event)
+        assert time.monotonic() - start < 10
+        (other,) = set(replicas) - set(runner)
+        assert client.maps() == [(other, MAP)]   # still served: only the job's runner went
+    finally:
+        client.close()
+        for service in replicas.values():
+            service.stop()
+        router.close()

@@ -461,6 +461,8 @@ class RelocClient:
                 continue
             if event.fields.get("job_id") != job_id:
                 continue
+            if watch is not None and event.kind is wire.EventKind.TRAIN_STARTED:
+                watch.follow(event.fields.get("instance"))
             if on_event is not None:
                 on_event(event)
             if event.kind is wire.EventKind.TRAIN_DONE:
@@ -689,28 +691,38 @@ class Outbox:
 
 
 class _ServiceWatch:
-    """The liveliness tokens of the instances serving ``client``'s map: ``gone`` names the
-    last token withdrawn once none is left, and ``changed()`` is called then."""
+    """The liveliness tokens of the instances serving ``client``'s map. ``gone`` names the
+    token withdrawn when the followed instance's goes (see :meth:`follow`), or the last one
+    when none is left; ``changed()`` is called then."""
 
     def __init__(self, client: RelocClient, changed: Callable[[], None]) -> None:
-        self.prefix = client.prefix
+        self.prefix, self.map = client.prefix, client.map
         self.live: set[str] = set()
         self.gone: str | None = None
+        self._followed: str | None = None
         self._lock = threading.Lock()
         self._changed = changed
         key = f"{self.prefix}/@live/*/{client.map}"
         self._sub = client.session.liveliness().declare_subscriber(key, self._on_sample,
                                                                    history=True)
 
+    def follow(self, instance: Any) -> None:
+        """Watch only ``instance``'s token (the one running the job), if it is a valid name."""
+        try:
+            key = wire.keys.liveliness(self.prefix, instance, self.map)
+        except (ProtocolError, TypeError):
+            return   # an older service does not name itself: any instance will do
+        with self._lock:
+            self._followed = key
+
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         with self._lock:
             if sample.kind == zenoh.SampleKind.PUT:
                 self.live.add(key)
-                self.gone = None
                 return
             self.live.discard(key)
-            if self.live:
+            if key != self._followed and (self.live or self._followed is not None):
                 return
             self.gone = key
         self._changed()

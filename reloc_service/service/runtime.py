@@ -378,7 +378,7 @@ class MapRuntime:
         start = time.perf_counter()
         try:
             with self._maintenance:
-                self.publish(EventKind.TRAIN_STARTED, job_id=job.job_id,
+                self.publish(EventKind.TRAIN_STARTED, job_id=job.job_id, instance=self.instance,
                              method=",".join(job.methods) if len(job.methods) == 1
                              else " ".join(job.methods))
                 for i, method in enumerate(job.methods):
