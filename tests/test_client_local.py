@@ -120,6 +120,10 @@ class FakeService:
     def on_put(self, sample: "zenoh.Sample") -> None:
         payload = sample.payload.to_bytes() if sample.kind == zenoh.SampleKind.PUT else None
         self.puts.append((str(sample.key_expr), payload))
+        what, ident = str(sample.key_expr).split("/")[-2:]   # acknowledged like the service
+        kind = P.EventKind.CAMERA_ADDED if what == "cameras" else P.EventKind.KEYFRAME_ACCEPTED
+        event = P.Event(kind, MAP, 1.0, {"id": ident if what == "cameras" else int(ident)})
+        self.session.put(P.keys.events(self.prefix, MAP), event.encode())
 
 
 @pytest.fixture(scope="module")

@@ -13,20 +13,22 @@ from .protocol import PROTOCOL_VERSION, ErrorCode, ProtocolError
 if TYPE_CHECKING:
     from .client import (
         NoReplyError,
+        Outbox,
         RelocClient,
         RelocResult,
         RelocStatus,
         ServiceBusy,
         ServiceError,
+        ServiceGone,
     )
 
 __version__ = "0.1.0"
 
 _CLIENT_NAMES = {"RelocClient", "RelocResult", "RelocStatus", "ServiceError", "ServiceBusy",
-                 "NoReplyError"}
+                 "NoReplyError", "ServiceGone", "Outbox"}
 
 __all__ = ["PROTOCOL_VERSION", "ErrorCode", "ProtocolError", "NoReplyError", "RelocClient",
-           "RelocResult", "RelocStatus", "ServiceBusy", "ServiceError"]
+           "RelocResult", "RelocStatus", "ServiceBusy", "ServiceError", "ServiceGone", "Outbox"]
 
 
 def __getattr__(name: str) -> Any:

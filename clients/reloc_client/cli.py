@@ -127,19 +127,29 @@ def cmd_relocalize(client: Any, args: argparse.Namespace) -> int:
 
 
 def cmd_upload(client: Any, args: argparse.Namespace) -> int:
+    """Each camera and keyframe waits for the service's acknowledgement (journaled): a
+    service that is down or stops answering ends the upload with exit status 3 and says
+    which keyframe was the first not stored; a refused keyframe is reported and skipped."""
+    from .client import ServiceError
+
     data = read_dataset(args.dataset)
     rejected: list[wire.Event] = []
     sub = client.subscribe_events(rejected.append, kinds=["keyframe_rejected", "camera_rejected"])
     try:
         for camera_id, camera in data.cameras.items():
-            client.set_camera(camera_id, camera)
+            client.set_camera(camera_id, camera, wait=True)
         by_id = _cameras_confirmed(client, data.cameras)
         for i, entry in enumerate(progress(data.entries, desc="upload")):
             depth = data.depth.get(entry.image_path)
-            client.add_keyframe(args.first_id + i, _image(data, entry), entry.world_from_cam,
-                                camera_id=entry.camera_id if by_id else None,
-                                camera=None if by_id else data.cameras[entry.camera_id],
-                                depth=None if depth is None else _depth(data.root, *depth))
+            try:
+                client.add_keyframe(args.first_id + i, _image(data, entry),
+                                    entry.world_from_cam,
+                                    camera_id=entry.camera_id if by_id else None,
+                                    camera=None if by_id else data.cameras[entry.camera_id],
+                                    depth=None if depth is None else _depth(data.root, *depth),
+                                    wait=True)
+            except ServiceError:
+                pass   # its keyframe_rejected event is reported below
         status = _settle(client, expected=len(data.entries))
     finally:
         sub.undeclare()

@@ -2,18 +2,23 @@
 
 Failures are exceptions: :class:`ServiceError` (the service refused, with an
 :class:`ErrorCode`), :class:`ServiceBusy` (its queue is full: retry later; a subclass of
-ServiceError), :class:`NoReplyError` (nothing answered in time; a ``TimeoutError``), and
+ServiceError), :class:`NoReplyError` (nothing answered in time; a ``TimeoutError``),
+:class:`ServiceGone` (the service went away while a job was awaited; a NoReplyError), and
 :class:`ProtocolError` for arguments that cannot be encoded or replies that do not decode.
+Puts are acknowledged by events: ``wait=True`` waits for the acknowledgement, and an
+:class:`Outbox` resends until it comes.
 "Not relocalized" is not a failure: it is a :class:`RelocResult` with status NOT_RELOCALIZED.
 """
 
 from __future__ import annotations
 
+import collections
 import enum
 import json
 import logging
 import os
 import queue
+import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -50,6 +55,11 @@ class ServiceBusy(ServiceError):
 
 class NoReplyError(TimeoutError):
     """No service answered (none serves the map, or the reply did not come in time)."""
+
+
+class ServiceGone(NoReplyError):
+    """The service instances serving the map went away (their liveliness tokens) while a
+    client waited for one of their jobs: the job is lost."""
 
 
 class RelocStatus(enum.Enum):
@@ -221,6 +231,21 @@ def to_wire_depth(depth: wire.WireDepth | npt.ArrayLike | tuple[Any, float]) -> 
     return wire.WireDepth.from_metres(depth)
 
 
+def keyframe_put_bytes(kf_id: int, image: ImageLike, world_from_cam: PoseLike, *,
+                       camera_id: str | None = None, camera: CameraLike | None = None,
+                       timestamp: float | None = None,
+                       features: wire.WireFeatures | Mapping[str, Any] | None = None,
+                       depth: Any = None, image_format: str | None = None) -> bytes:
+    """An encoded KeyframePut (see :meth:`RelocClient.add_keyframe` for the arguments)."""
+    return wire.KeyframePut(
+        id=kf_id, image=to_wire_image(image, image_format=image_format),
+        world_from_cam=to_wire_pose(world_from_cam), camera_id=camera_id,
+        camera=None if camera is None else to_wire_camera(camera),
+        timestamp=None if timestamp is None else float(timestamp),
+        features=None if features is None else to_wire_features(features),
+        depth=None if depth is None else to_wire_depth(depth)).encode()
+
+
 # -- the client -------------------------------------------------------------------------------
 
 def make_config(connect: str | Sequence[str] | None = None, *, mode: str | None = None,
@@ -265,10 +290,13 @@ class RelocClient:
         except zenoh.ZError as exc:
             raise ConnectionError(f"cannot open a Zenoh session (connect={connect!r}): "
                                   f"{str(exc).split(' at ')[0]}") from exc
+        self._acks: _Acks | None = None
+        self._acks_lock = threading.Lock()
 
     # -- life cycle ------------------------------------------------------------------------
     def close(self) -> None:
         """Close the Zenoh session (undeclares every subscriber opened through it)."""
+        self._acks = None
         if not self.session.is_closed():
             self.session.close()
 
@@ -281,39 +309,85 @@ class RelocClient:
     def __repr__(self) -> str:
         return f"RelocClient(map={self.map!r}, prefix={self.prefix!r})"
 
-    # -- map building (puts: no reply) -----------------------------------------------------
-    def set_camera(self, camera_id: str, camera: CameraLike) -> None:
-        """Put camera ``camera_id`` (a camera dict or object with ``to_dict()``)."""
+    # -- map building (puts: acknowledged by events) ---------------------------------------
+    def set_camera(self, camera_id: str, camera: CameraLike, *, wait: bool = False,
+                   timeout: float | None = None) -> None:
+        """Put camera ``camera_id`` (a camera dict or object with ``to_dict()``). With
+        ``wait``, return once the service registered it (see :meth:`add_keyframe`)."""
         message = wire.CameraPut(wire.check_name(camera_id, "camera id"), to_wire_camera(camera))
-        self._put(wire.keys.camera(self.prefix, self.map, camera_id), message.encode())
+        key = wire.keys.camera(self.prefix, self.map, camera_id)
+        self._send(("cam", camera_id), lambda: self._put(key, message.encode()), wait=wait,
+                   timeout=timeout, what=f"camera {camera_id!r}")
 
     def add_keyframe(self, kf_id: int, image: ImageLike, world_from_cam: PoseLike, *,
                      camera_id: str | None = None, camera: CameraLike | None = None,
                      timestamp: float | None = None,
                      features: wire.WireFeatures | Mapping[str, Any] | None = None,
-                     depth: Any = None, image_format: str | None = None) -> None:
+                     depth: Any = None, image_format: str | None = None,
+                     wait: bool = False, timeout: float | None = None) -> None:
         """Put keyframe ``kf_id`` (added, or replaced if it exists) with its image,
         ``world_from_cam`` ((4, 4) or (t, q)), and exactly one of ``camera_id`` / ``camera``.
 
-        A put has no reply: a refused keyframe is reported as a ``keyframe_rejected`` event
-        (see :meth:`subscribe_events`)."""
-        message = wire.KeyframePut(
-            id=kf_id, image=to_wire_image(image, image_format=image_format),
-            world_from_cam=to_wire_pose(world_from_cam), camera_id=camera_id,
-            camera=None if camera is None else to_wire_camera(camera),
-            timestamp=None if timestamp is None else float(timestamp),
-            features=None if features is None else to_wire_features(features),
-            depth=None if depth is None else to_wire_depth(depth))
-        self._put(wire.keys.keyframe(self.prefix, self.map, kf_id), message.encode())
+        A put has no reply. Without ``wait`` it returns at once, even if no service is
+        there; a refused keyframe is then only reported as a ``keyframe_rejected`` event (see
+        :meth:`subscribe_events`). With ``wait``, it returns once the service has journaled
+        the keyframe (its ``keyframe_accepted`` event: it survives a crash from then on; it
+        is applied to the map shortly after, ``keyframe_added``), and raises ServiceError
+        (ServiceBusy) if the service refused it, NoReplyError if no acknowledgement came
+        within ``timeout`` seconds (default: the client's): put it again later (or use an
+        :class:`Outbox`)."""
+        payload = keyframe_put_bytes(kf_id, image, world_from_cam, camera_id=camera_id,
+                                     camera=camera, timestamp=timestamp, features=features,
+                                     depth=depth, image_format=image_format)
+        key = wire.keys.keyframe(self.prefix, self.map, kf_id)
+        self._send(("kf", kf_id), lambda: self._put(key, payload), wait=wait,
+                   timeout=timeout, what=f"keyframe {kf_id}")
 
-    def remove_keyframe(self, kf_id: int) -> None:
-        """Delete keyframe ``kf_id`` (no reply; an unknown id is ignored by the service)."""
-        self.session.delete(wire.keys.keyframe(self.prefix, self.map, kf_id),
-                            congestion_control=zenoh.CongestionControl.BLOCK)
+    def remove_keyframe(self, kf_id: int, *, wait: bool = False,
+                        timeout: float | None = None) -> None:
+        """Delete keyframe ``kf_id``. Without ``wait`` there is no reply (an unknown id is
+        reported as a ``keyframe_rejected`` event); with ``wait``, return once the removal
+        is journaled, raise as :meth:`add_keyframe` does."""
+        key = wire.keys.keyframe(self.prefix, self.map, kf_id)
+        self._send(("kf", kf_id), lambda: self.session.delete(
+            key, congestion_control=zenoh.CongestionControl.BLOCK), wait=wait, timeout=timeout,
+            what=f"removal of keyframe {kf_id}")
 
     def _put(self, key: str, payload: bytes) -> None:
         # BLOCK, not the default DROP: a map upload must not lose keyframes under load.
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def _send(self, ack: tuple[str, Any], send: Callable[[], None], *, wait: bool,
+              timeout: float | None, what: str) -> None:
+        """``send()``; with ``wait``, block until the service acknowledges ``ack``."""
+        if not wait:
+            send()
+            return
+        timeout = _check_timeout(timeout, self.timeout)
+        acks = self._ack_events()
+        acks.expect(ack)
+        try:
+            send()
+            event = acks.wait(ack, timeout)
+        finally:
+            acks.forget(ack)
+        if event is None:
+            raise NoReplyError(f"{what} on map {self.map!r} was not acknowledged within "
+                               f"{timeout} s: is a reloc service serving it under prefix "
+                               f"{self.prefix!r} reachable? It may not be stored: put it again")
+        if event.kind in (wire.EventKind.KEYFRAME_REJECTED, wire.EventKind.CAMERA_REJECTED):
+            code = _error_code(event.fields.get("code"))
+            cls = ServiceBusy if code is ErrorCode.BUSY else ServiceError
+            raise cls(code, f"{what}: {event.fields.get('message', 'refused')}")
+
+    def _ack_events(self) -> _Acks:
+        """The map's acknowledgement events, subscribed once per client."""
+        with self._acks_lock:
+            if self._acks is None:
+                acks = _Acks()
+                acks.subscriber = self.subscribe_events(acks.on_event, kinds=_Acks.KINDS)
+                self._acks = acks
+            return self._acks
 
     # -- queries ---------------------------------------------------------------------------
     def relocalize(self, image: ImageLike, *, camera_id: str | None = None,
@@ -345,24 +419,29 @@ class RelocClient:
               on_event: Callable[[wire.Event], None] | None = None) -> wire.TrainReply:
         """Start training (the service answers at once). With ``wait``, block until the job's
         ``train_done`` event (``on_event`` sees every event of the job meanwhile); raise
-        ServiceError on ``train_failed`` and TimeoutError after ``timeout`` seconds."""
-        events: queue.Queue[wire.Event] = queue.Queue()
+        ServiceError on ``train_failed``, TimeoutError after ``timeout`` seconds, and
+        ServiceGone (a TimeoutError) as soon as no instance serves the map any more (its
+        liveliness tokens went away: the service died or stopped, the job is lost)."""
+        events: queue.Queue[wire.Event | None] = queue.Queue()
         # Subscribe before asking, so a fast job's train_done cannot be missed.
         sub = self.subscribe_events(events.put) if wait else None
+        watch = _ServiceWatch(self, lambda: events.put(None)) if wait else None
         try:
             payload = self._query_one(wire.keys.train(self.prefix, self.map),
                                       wire.TrainRequest(method=method).encode(), None)
             reply = wire.TrainReply.decode(payload, self.limits)
             if wait and reply.accepted:
-                self._wait_for_job(events, reply.job_id, timeout, on_event)
+                self._wait_for_job(events, reply.job_id, timeout, on_event, watch)
             return reply
         finally:
-            if sub is not None:
-                sub.undeclare()
+            for entity in (sub, watch):
+                if entity is not None:
+                    entity.undeclare()
 
-    def _wait_for_job(self, events: queue.Queue[wire.Event], job_id: str | None,
+    def _wait_for_job(self, events: queue.Queue[wire.Event | None], job_id: str | None,
                       timeout: float | None,
-                      on_event: Callable[[wire.Event], None] | None) -> wire.Event:
+                      on_event: Callable[[wire.Event], None] | None,
+                      watch: _ServiceWatch | None = None) -> wire.Event:
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             remaining = None if deadline is None else deadline - time.monotonic()
@@ -373,16 +452,22 @@ class RelocClient:
                 event = events.get(timeout=remaining)
             except queue.Empty:
                 continue
+            if event is None:   # a liveliness change
+                if watch is not None and watch.gone is not None:
+                    raise ServiceGone(f"training job {job_id} of map {self.map!r} is lost: "
+                                      f"the service serving it went away ({watch.gone} "
+                                      "withdrew or died); train again once a service is back")
+                continue
             if event.fields.get("job_id") != job_id:
                 continue
+            if watch is not None and event.kind is wire.EventKind.TRAIN_STARTED:
+                watch.follow(event.fields.get("instance"))
             if on_event is not None:
                 on_event(event)
             if event.kind is wire.EventKind.TRAIN_DONE:
                 return event
             if event.kind is wire.EventKind.TRAIN_FAILED:
-                code = event.fields.get("code", "INTERNAL")
-                known = code in ErrorCode.__members__.values()
-                raise ServiceError(ErrorCode(code) if known else ErrorCode.INTERNAL,
+                raise ServiceError(_error_code(event.fields.get("code")),
                                    str(event.fields.get("message", "training failed")))
 
     def status(self, *, timeout: float | None = None) -> wire.StatusReply:
@@ -496,6 +581,206 @@ class RelocClient:
         return cls(err.code, err.message)
 
 
+class Outbox:
+    """Map changes that must reach the service, kept in memory and sent in order by a
+    background thread: each waits for its acknowledgement (journaled) before the next is
+    sent, and is sent again while none comes (service down, restarting, unreachable).
+
+    A resend cannot duplicate anything: a keyframe put replaces the keyframe of the same id.
+    A change the service refuses is dropped and listed in :attr:`rejected`; "busy" is retried.
+    Nothing survives this process: :meth:`flush` before exiting.
+
+    >>> with Outbox(client) as outbox:
+    ...     outbox.add_keyframe(0, image, world_from_cam, camera_id="cam0")  # returns at once
+    ...     outbox.flush(timeout=600)                                    # True once all stored
+    """
+
+    def __init__(self, client: RelocClient, *, ack_timeout: float = 10.0,
+                 retry_s: float = 1.0, max_pending: int = 10_000) -> None:
+        self.client = client
+        self.ack_timeout = _check_timeout(ack_timeout, ack_timeout)
+        self.retry_s = float(retry_s)
+        self.max_pending = int(max_pending)
+        self.rejected: list[tuple[str, ServiceError]] = []
+        #: Sends that got no acknowledgement (each was sent again).
+        self.retries = 0
+        self._items: collections.deque[tuple[str, Callable[[], None]]] = collections.deque()
+        self._cond = threading.Condition()
+        self._sending = False
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="reloc-outbox", daemon=True)
+        self._thread.start()
+
+    def add_keyframe(self, kf_id: int, image: ImageLike, world_from_cam: PoseLike,
+                     **kwargs: Any) -> None:
+        """Queue a keyframe put (arguments as :meth:`RelocClient.add_keyframe`; encoded now,
+        so a bad argument raises here)."""
+        payload = keyframe_put_bytes(kf_id, image, world_from_cam, **kwargs)
+        c = self.client
+        key = wire.keys.keyframe(c.prefix, c.map, kf_id)
+        self._enqueue(f"keyframe {kf_id}", lambda: c._send(
+            ("kf", kf_id), lambda: c._put(key, payload), wait=True, timeout=self.ack_timeout,
+            what=f"keyframe {kf_id}"))
+
+    def remove_keyframe(self, kf_id: int) -> None:
+        """Queue the removal of keyframe ``kf_id``."""
+        self._enqueue(f"removal of keyframe {kf_id}", lambda: self.client.remove_keyframe(
+            kf_id, wait=True, timeout=self.ack_timeout))
+
+    def set_camera(self, camera_id: str, camera: CameraLike) -> None:
+        """Queue a camera put."""
+        to_wire_camera(camera)   # a bad camera raises here
+        self._enqueue(f"camera {camera_id!r}", lambda: self.client.set_camera(
+            camera_id, camera, wait=True, timeout=self.ack_timeout))
+
+    @property
+    def pending(self) -> int:
+        """Changes not acknowledged yet (including the one being sent)."""
+        with self._cond:
+            return len(self._items)
+
+    def flush(self, timeout: float | None = None) -> bool:
+        """Wait until every queued change is acknowledged or refused; False on timeout."""
+        with self._cond:
+            return self._cond.wait_for(lambda: not self._items, timeout)
+
+    def close(self) -> int:
+        """Stop sending; the number of changes dropped unacknowledged."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        self._thread.join(self.ack_timeout + 1.0)
+        return self.pending
+
+    def __enter__(self) -> Outbox:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _enqueue(self, what: str, send: Callable[[], None]) -> None:
+        with self._cond:
+            if self._closed:
+                raise RuntimeError("outbox closed; expected changes before close()")
+            if len(self._items) >= self.max_pending:
+                raise RuntimeError(f"outbox full: {len(self._items)} changes wait for the "
+                                   f"service (max_pending = {self.max_pending}); flush() first")
+            self._items.append((what, send))
+            self._cond.notify_all()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._items or self._closed)
+                if self._closed:
+                    return
+                what, send = self._items[0]
+            if self._send_one(what, send):
+                with self._cond:
+                    self._items.popleft()
+                    self._cond.notify_all()
+            else:
+                with self._cond:
+                    self._cond.wait_for(lambda: self._closed, self.retry_s)
+
+    def _send_one(self, what: str, send: Callable[[], None]) -> bool:
+        """Send one change; True once it is done with (acknowledged or refused)."""
+        try:
+            send()
+        except ServiceBusy:
+            return False
+        except ServiceError as exc:
+            log.warning("outbox: %s refused: %s", what, exc)
+            self.rejected.append((what, exc))
+        except NoReplyError:
+            self.retries += 1
+            return False
+        except Exception:   # a closed session, ...: keep the change, try again
+            log.exception("outbox: sending %s failed", what)
+            return False
+        return True
+
+
+class _ServiceWatch:
+    """The liveliness tokens of the instances serving ``client``'s map. ``gone`` names the
+    token withdrawn when the followed instance's goes (see :meth:`follow`), or the last one
+    when none is left; ``changed()`` is called then."""
+
+    def __init__(self, client: RelocClient, changed: Callable[[], None]) -> None:
+        self.prefix, self.map = client.prefix, client.map
+        self.live: set[str] = set()
+        self.gone: str | None = None
+        self._followed: str | None = None
+        self._lock = threading.Lock()
+        self._changed = changed
+        key = f"{self.prefix}/@live/*/{client.map}"
+        self._sub = client.session.liveliness().declare_subscriber(key, self._on_sample,
+                                                                   history=True)
+
+    def follow(self, instance: Any) -> None:
+        """Watch only ``instance``'s token (the one running the job), if it is a valid name."""
+        try:
+            key = wire.keys.liveliness(self.prefix, instance, self.map)
+        except (ProtocolError, TypeError):
+            return   # an older service does not name itself: any instance will do
+        with self._lock:
+            self._followed = key
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.live.add(key)
+                return
+            self.live.discard(key)
+            if key != self._followed and (self.live or self._followed is not None):
+                return
+            self.gone = key
+        self._changed()
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+
+
+class _Acks:
+    """Acknowledgement events of this client's puts, by (``"kf"`` or ``"cam"``, id): only
+    those being waited for are kept."""
+
+    KINDS = {wire.EventKind.KEYFRAME_ACCEPTED: "kf", wire.EventKind.KEYFRAME_ADDED: "kf",
+             wire.EventKind.KEYFRAME_REMOVED: "kf", wire.EventKind.KEYFRAME_REJECTED: "kf",
+             wire.EventKind.CAMERA_ADDED: "cam", wire.EventKind.CAMERA_REJECTED: "cam"}
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._waiting: dict[tuple[str, Any], wire.Event | None] = {}
+        self.subscriber: zenoh.Subscriber | None = None
+
+    def expect(self, ack: tuple[str, Any]) -> None:
+        with self._cond:
+            self._waiting[ack] = None
+
+    def forget(self, ack: tuple[str, Any]) -> None:
+        with self._cond:
+            self._waiting.pop(ack, None)
+
+    def on_event(self, event: wire.Event) -> None:
+        ack = (self.KINDS[event.kind], event.fields.get("id"))
+        with self._cond:
+            if ack in self._waiting and self._waiting[ack] is None:
+                self._waiting[ack] = event
+                self._cond.notify_all()
+
+    def wait(self, ack: tuple[str, Any], timeout: float) -> wire.Event | None:
+        with self._cond:
+            self._cond.wait_for(lambda: self._waiting.get(ack) is not None, timeout)
+            return self._waiting.get(ack)
+
+
+def _error_code(code: Any) -> ErrorCode:
+    """An event's ``code`` field as an ErrorCode (INTERNAL if unknown)."""
+    return ErrorCode(code) if code in ErrorCode.__members__.values() else ErrorCode.INTERNAL
+
+
 def _check_timeout(timeout: float | None, default: float) -> float:
     """``timeout`` seconds, or ``default`` for None; ValueError for <= 0 (not "the default")."""
     if timeout is None:
@@ -514,5 +799,6 @@ def _reply_bytes(reply: zenoh.Reply) -> tuple[bool, bytes]:
 
 
 __all__ = ["RelocClient", "RelocResult", "RelocStatus", "ServiceError", "ServiceBusy",
-           "NoReplyError", "make_config", "to_wire_image", "to_wire_pose", "to_wire_camera",
-           "to_wire_features", "to_wire_depth"]
+           "NoReplyError", "ServiceGone", "Outbox", "keyframe_put_bytes", "make_config",
+           "to_wire_image", "to_wire_pose", "to_wire_camera", "to_wire_features",
+           "to_wire_depth"]

@@ -1,19 +1,28 @@
-"""The service: maps, worker pools, the single writer and the Zenoh layer, started and stopped
+"""The service: maps, worker pools, the per-map writers and the Zenoh layer, started and stopped
 together.
 
 Zenoh callbacks only enqueue (:class:`Service` is the :class:`~.zenoh_io.Dispatcher`):
 relocalize queries go to a bounded pool of worker threads (full: "busy" at once), status /
-train / map-copy queries to a small control pool, and keyframe and camera puts to one writer
-thread that journals then applies them in arrival order.
+train / map-copy queries to a small control pool, and keyframe and camera puts to their map's
+writer thread, which journals then applies them in arrival order (one writer per map, so one
+map's snapshot or training never holds up another map's puts).
+
+Stopping is bounded by ``service.stop_timeout_s``: puts still queued are validated and
+journaled without being applied (the replay at the next start applies them), a final snapshot
+is taken only within what is left of the budget, and the process exits without waiting for
+threads that may still be inside native code (see :func:`serve`).
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import sys
 import threading
 import time
 import urllib.parse
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -67,7 +76,11 @@ class Service:
         self.ros2: Any = None     # the ROS 2 bridge ([ros2] enabled)
         self.relocalize_pool: WorkerPool | None = None
         self.control_pool: WorkerPool | None = None
+        #: Writes of maps this instance does not serve (rejected or ignored, in order) and the
+        #: bootstrap's copy; each served map has its own writer in ``writers``.
         self.writer: WorkerPool | None = None
+        self.writers: dict[str, WorkerPool] = {}
+        self._writers_lock = threading.Lock()
         self._stopped = threading.Event()
         self.started_at = time.monotonic()
         #: While a bootstrap runs: (map, keyframe id) -> (pose, timestamp) copied from a peer;
@@ -205,28 +218,49 @@ class Service:
             self.layer.serve_map(name)
 
     def stop(self, *, final_snapshot: bool = True) -> None:
-        """Undeclare (clients see the liveliness tokens go), finish queued work, flush the
-        journals, take final snapshots, close the session."""
+        """Within ``service.stop_timeout_s``: undeclare (clients see the liveliness tokens go,
+        no more puts arrive), journal the queued puts without applying them, let queued
+        queries finish, take final snapshots with the time left, close the session."""
         if self._stopped.is_set():
             return
         self._stopped.set()
+        start = time.monotonic()
+        deadline = start + self.conf.service.stop_timeout_s
         if self.ros2 is not None:
             self.ros2.close()              # ROS 2 tools see the nodes go
         if self.layer is not None:
             self.layer.withdraw()          # clients see the maps go; no more puts arrive
-        for pool in (self.relocalize_pool, self.control_pool, self.writer):
-            if pool is not None:           # queued work finishes; new queries get "busy"
-                pool.close(timeout=30.0)
-        if self.layer is not None:
-            self.layer.close()
+        journaled = self._flush_writers(deadline)
+        for pool in (self.relocalize_pool, self.control_pool):
+            if pool is not None:           # queued queries finish; new ones get "busy"
+                pool.close(timeout=_left(deadline, share=0.5))
         for rt in list(self.maps.values()):
             try:
-                rt.close(final_snapshot=final_snapshot)
+                rt.close(final_snapshot=final_snapshot, timeout=_left(deadline))
             except Exception as exc:
                 log.error("map %s: closing failed: %s", rt.name, exc)
+        if self.layer is not None:
+            self.layer.close()
         if self.session is not None and not self.session.is_closed():
             self.session.close()
-        log.info("reloc service %s stopped", self.instance)
+        log.info("reloc service %s stopped in %.1f s (%d queued puts journaled, applied at the "
+                 "next start)", self.instance, time.monotonic() - start, journaled)
+
+    def _flush_writers(self, deadline: float) -> int:
+        """Take the queued writes out of every writer, let each finish the write it is
+        running (so the journal keeps arrival order), then journal the queued ones without
+        applying them; the number journaled. Queued map copies get no reply (their gets end
+        empty); the writer threads stop."""
+        with self._writers_lock:
+            pools = [*self.writers.values(), *([self.writer] if self.writer else [])]
+        queued = [job for pool in pools for job in pool.take_queued()]
+        for pool in pools:   # a running put ends within a second; a map copy may not
+            if not pool.join(min(_left(deadline, share=0.25), 5.0)):
+                log.warning("%s: still busy at shutdown", pool.name)
+        journaled = sum(job.journal_only() for job in queued if isinstance(job, _WriteJob))
+        for pool in pools:
+            pool.close(timeout=_left(deadline, share=0.25))
+        return journaled
 
     def __enter__(self) -> Service:
         return self.start()
@@ -246,7 +280,44 @@ class Service:
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
         """Wait until queued keyframe puts are applied (tests, demo)."""
-        return self.writer is None or self.writer.join(timeout)
+        deadline = time.monotonic() + timeout
+        with self._writers_lock:
+            pools = [*([self.writer] if self.writer else []), *self.writers.values()]
+        return all(pool.join(max(0.0, deadline - time.monotonic())) for pool in pools)
+
+    def _writer_for(self, map_name: str) -> WorkerPool:
+        """The writer of ``map_name``: its own if the map is served or may be created by this
+        put, else the shared one (which rejects or ignores, in order)."""
+        with self._writers_lock:
+            return self._writer_locked(map_name)
+
+    def _writer_locked(self, map_name: str) -> WorkerPool:
+        pool = self.writers.get(map_name)
+        if pool is not None:
+            return pool
+        if map_name not in self.maps and not self.conf.service.allow_new_maps:
+            assert self.writer is not None
+            return self.writer
+        pool = WorkerPool(f"writer-{map_name}", workers=1,
+                          queue_size=self.conf.service.writer_queue_size,
+                          max_bytes=self.conf.service.writer_queue_bytes)
+        self.writers[map_name] = pool
+        return pool
+
+    def _submit_write(self, map_name: str, job: Callable[[float], None], *,
+                      size: int = 0) -> bool:
+        with self._writers_lock:   # not interleaved with _retire_writer
+            return self._writer_locked(map_name).submit(job, size=size)
+
+    def _retire_writer(self, map_name: str) -> None:
+        """Stop the writer of a map that its put did not create (no idle thread per junk
+        name); called from that writer's own thread, so closed from another."""
+        with self._writers_lock:
+            pool = self.writers.get(map_name)
+            if pool is None or map_name in self.maps or pool.pending or self._stopped.is_set():
+                return
+            del self.writers[map_name]
+        threading.Thread(target=pool.close, name=f"retire-{map_name}", daemon=True).start()
 
     # -- maps ------------------------------------------------------------------------------------
     def _check_methods(self) -> None:
@@ -353,13 +424,14 @@ class Service:
     def on_keyframe_sample(self, map_name: str, kf_id: int, payload: bytes | None) -> None:
         if payload is None:
             self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
-                        lambda rt: rt.delete_keyframe(kf_id))
+                        lambda rt: rt.delete_keyframe(kf_id), op="del")
         elif self._bootstrap_window:
             self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
-                        lambda rt: self._put_unless_copied(rt, kf_id, payload), payload)
+                        lambda rt: self._put_unless_copied(rt, kf_id, payload), op="kf",
+                        payload=payload)
         else:
             self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
-                        lambda rt: rt.put_keyframe(kf_id, payload), payload)
+                        lambda rt: rt.put_keyframe(kf_id, payload), op="kf", payload=payload)
 
     def _put_unless_copied(self, rt: MapRuntime, kf_id: int, payload: bytes) -> None:
         """A put buffered during the bootstrap: skipped if the copy already holds it."""
@@ -381,7 +453,7 @@ class Service:
                          "cameras cannot be deleted; put the camera again to change it")
             return
         self._write(map_name, EventKind.CAMERA_REJECTED, camera_id,
-                    lambda rt: rt.put_camera(camera_id, payload), payload)
+                    lambda rt: rt.put_camera(camera_id, payload), payload=payload)
 
     def on_bad_key(self, key: str, problem: str, code: ErrorCode = ErrorCode.BAD_NAME) -> None:
         """A refused sample: a rejected event on its map's events key if this instance serves
@@ -435,8 +507,8 @@ class Service:
         if kind is QueryKind.KEYFRAMES:
             # Answered by the writer after the puts already received, so a replica that
             # subscribed before asking (bootstrap_from_peers) misses none of them.
-            assert self.writer is not None
-            if not self.writer.submit(lambda _queued: self._copy_after_writes(rt, query)):
+            if not self._writer_for(map_name).submit(
+                    lambda _queued: self._copy_after_writes(rt, query)):
                 rt.stats.count("busy")
                 query.reply_err(wire.encode_error(ErrorCode.BUSY, "writer queue full; retry"))
             return
@@ -447,32 +519,54 @@ class Service:
 
     # -- jobs (worker threads) -------------------------------------------------------------------
     def _write(self, map_name: str, kind: EventKind, ident: Any,
-               apply: Callable[[MapRuntime], None], payload: bytes | None = None) -> None:
-        def job(_queued: float) -> None:
-            try:
-                rt = self._map_for_put(map_name, kind, ident, payload)
-            except Exception as exc:
-                code, message = handlers.error_of(exc)
-                self._reject(map_name, kind, ident, code, message)
-                return
-            if rt is None and self._served_elsewhere(map_name):
-                log.debug("put on map %s ignored: another instance serves it", map_name)
-                return
-            if rt is None:
-                self._reject(map_name, kind, ident, ErrorCode.UNKNOWN_MAP,
-                             f"map {map_name!r} is not served and this service does not create "
-                             "maps (service.allow_new_maps = false)")
-                return
-            apply(rt)
-            if rt.wants_snapshot():
-                rt.start_snapshot()
-
-        assert self.writer is not None
-        if not self.writer.submit(job, size=len(payload or b"")):
+               apply: Callable[[MapRuntime], None], *, op: str = "cam",
+               payload: bytes | None = None) -> None:
+        job = _WriteJob(self, map_name, kind, ident, apply, op, payload)
+        if self._stopped.is_set():
+            self._reject(map_name, kind, ident, ErrorCode.BUSY,
+                         "the service is stopping; put again once it is back (or to a replica)")
+        elif not self._submit_write(map_name, job, size=len(payload or b"")):
             s = self.conf.service
             self._reject(map_name, kind, ident, ErrorCode.BUSY,
                          f"writer queue full ({s.writer_queue_size} puts or "
                          f"{s.writer_queue_bytes} bytes waiting); put again later")
+
+    def _run_write(self, job: _WriteJob) -> None:
+        """A queued write, in its map's writer thread."""
+        map_name, kind, ident = job.map_name, job.kind, job.ident
+        try:
+            rt = self._map_for_put(map_name, kind, ident, job.payload)
+        except Exception as exc:
+            code, message = handlers.error_of(exc)
+            self._reject(map_name, kind, ident, code, message)
+            self._retire_writer(map_name)
+            return
+        if rt is None and self._served_elsewhere(map_name):
+            log.debug("put on map %s ignored: another instance serves it", map_name)
+        elif rt is None:
+            self._reject(map_name, kind, ident, ErrorCode.UNKNOWN_MAP,
+                         f"map {map_name!r} is not served and this service does not create "
+                         "maps (service.allow_new_maps = false)")
+        else:
+            job.apply(rt)
+            if rt.wants_snapshot():
+                rt.start_snapshot()
+            return
+        self._retire_writer(map_name)
+
+    def _journal_write(self, job: _WriteJob) -> bool:
+        """At shutdown: journal a queued write without applying it (cameras are cheap and
+        keyframes need them: applied). True if journaled."""
+        rt = self.maps.get(job.map_name)
+        if rt is None:   # a put that would have created its map: refused, not lost silently
+            self._reject(job.map_name, job.kind, job.ident, ErrorCode.BUSY,
+                         f"the service stopped before creating map {job.map_name!r}; put "
+                         "again once it is back")
+            return False
+        if job.op == "cam":
+            job.apply(rt)
+            return False
+        return rt.journal_only(job.op, job.ident, job.payload)
 
     def _served_elsewhere(self, map_name: str) -> bool:
         """Whether another live instance serves ``map_name`` (its liveliness token; cached
@@ -588,6 +682,11 @@ class _Bootstrap:
         assert service.writer is not None
         if not service.writer.submit(self._apply):
             raise RuntimeError("the writer queue refused the bootstrap job")
+        for name in sorted(service.maps):   # each map's writer waits for the copy too
+            service._writer_for(name).submit(self._hold)
+
+    def _hold(self, _queued: float) -> None:
+        self._done.wait(self.TIMEOUT * 6)
 
     def run(self) -> None:
         """Fetch cameras and keyframes of every served map, let the writer apply them, wait."""
@@ -695,9 +794,39 @@ def _holds(rt: MapRuntime, info: wire.KeyframeInfo) -> bool:
             and kf.camera.to_dict() == handlers.to_camera(info.camera).to_dict())
 
 
+@dataclass(frozen=True)
+class _WriteJob:
+    """A queued keyframe or camera write: applied by its map's writer, or (at shutdown)
+    journaled without being applied."""
+
+    service: Service
+    map_name: str
+    kind: EventKind
+    ident: Any
+    apply: Callable[[MapRuntime], None]
+    op: str                  # "kf", "del" or "cam"
+    payload: bytes | None
+
+    def __call__(self, _queued: float) -> None:
+        self.service._run_write(self)
+
+    def journal_only(self) -> bool:
+        return self.service._journal_write(self)
+
+
+def _left(deadline: float, share: float = 1.0) -> float:
+    """``share`` of the seconds left until ``deadline`` (0 when past)."""
+    return max(0.0, deadline - time.monotonic()) * share
+
+
 def serve(conf: ServiceConf) -> int:
     """Run a service for ``conf`` until SIGINT/SIGTERM; the exit status. The signal handlers
-    are installed first, so a signal during start-up (restoring maps) still stops cleanly."""
+    are installed first, so a signal during start-up (restoring maps) still stops cleanly.
+
+    Once stopped (everything journaled and closed), a thread still running (a training job
+    inside OpenCV, a snapshot past the budget) would be killed by the interpreter's exit in
+    native code, which aborts the process ("exception not rethrown"): the process then
+    leaves with ``os._exit`` instead."""
     stop = stop_on_signals()
     service = Service(conf)
     try:
@@ -706,7 +835,29 @@ def serve(conf: ServiceConf) -> int:
         service.stop(final_snapshot=False)
         raise
     service.run_forever(stop)
-    if not service.wait_ready(timeout=30.0):   # a restore stops at its next journal record
+    # a restore stops at its next journal record; a snapshot load cannot: left to os._exit
+    if not service.wait_ready(timeout=conf.service.stop_timeout_s):
         log.warning("a map restore was still running at exit")
+    _exit_if_threads_linger(0)
     return 0
+
+
+def _exit_if_threads_linger(code: int) -> None:
+    """``os._exit(code)`` (after flushing logs and stdio) if a Python thread still runs (ours,
+    or zenoh-python's callback threads, which block inside Rust)."""
+    lingering = [t.name for t in threading.enumerate()
+                 if t is not threading.current_thread() and t.is_alive()
+                 and not isinstance(t, threading._DummyThread)]  # type: ignore[attr-defined]
+    if not lingering:
+        return
+    ours = [name for name in lingering if "pyo3" not in name]
+    log.log(logging.WARNING if ours else logging.DEBUG, "exiting without waiting for %s",
+            ", ".join(sorted(lingering)))
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
 

@@ -128,6 +128,10 @@ class ServiceSection:
     default_method: str = DEFAULT_METHOD
     #: Train a map's methods after loading it if no trained models were restored.
     train_on_load: bool = True
+    #: Seconds a stop (SIGTERM) may take: queued puts are journaled (applied at the next
+    #: start), the final snapshot is taken only within what is left. Keep it well under
+    #: systemd's TimeoutStopSec (60 s in deploy/), which kills -9 after.
+    stop_timeout_s: float = 20.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "methods", _str_tuple(self.methods, "service.methods"))
@@ -138,6 +142,9 @@ class ServiceSection:
         if self.opencv_threads < 0:
             raise ConfigError(f"service.opencv_threads: expected >= 0 (0: OpenCV's default), "
                               f"got {self.opencv_threads}")
+        if not self.stop_timeout_s > 0:
+            raise ConfigError(f"service.stop_timeout_s: expected seconds > 0, got "
+                              f"{self.stop_timeout_s}")
         if self.snapshot_every < 0:
             raise ConfigError(f"service.snapshot_every: expected >= 0, got {self.snapshot_every}")
         if not self.methods:

@@ -135,7 +135,7 @@ class TrainingJob:
 class MapRuntime:
     """Everything the service holds for map ``name`` (see module docstring).
 
-    Map changes (:meth:`apply_keyframe_put` etc.) come from the service's single writer
+    Map changes (:meth:`apply_keyframe_put` etc.) come from the map's writer
     thread; queries (:meth:`relocalize`) from any worker thread."""
 
     def __init__(self, name: str, engine: Engine, *, instance: str, limits: wire.Limits,
@@ -164,6 +164,10 @@ class MapRuntime:
         self._snapshot_thread: threading.Thread | None = None
         self._since_snapshot = 0
         self.restore_report = RestoreReport()
+        #: Keyframes journaled at shutdown without being applied, and whether any record was.
+        self._unapplied: set[int] = set()
+        self._journal_ahead = False
+        self._closed = False
 
     # -- reading -------------------------------------------------------------------------------
     def camera(self, camera_id: str) -> Camera | None:
@@ -229,6 +233,7 @@ class MapRuntime:
             kf = handlers.decode_keyframe_put(self, kf_id, payload)
             with self._apply_lock:
                 self._journal_record({"op": "kf", "id": kf_id, "payload": payload})
+                self.publish(EventKind.KEYFRAME_ACCEPTED, id=kf_id)
                 self._apply_or_defer("kf", kf)
         except Exception as exc:
             self.reject(EventKind.KEYFRAME_REJECTED, exc, id=kf_id)
@@ -240,6 +245,7 @@ class MapRuntime:
                 if kf_id not in self.engine.map and not self._deferred_has(kf_id):
                     raise MapError(f"cannot remove keyframe {kf_id}: not in map {self.name!r}")
                 self._journal_record({"op": "del", "id": kf_id})
+                self.publish(EventKind.KEYFRAME_ACCEPTED, id=kf_id, removed=True)
                 self._apply_or_defer("del", kf_id)
         except Exception as exc:
             self.reject(EventKind.KEYFRAME_REJECTED, exc, id=kf_id)
@@ -376,6 +382,8 @@ class MapRuntime:
         if self.journal is None:
             return False
         with self._job_lock:
+            if self._journal_ahead or self._closed:
+                return False   # it would drop the records journaled (not applied) at shutdown
             running = self._snapshot_thread is not None and self._snapshot_thread.is_alive()
             if not running:
                 self._snapshot_thread = threading.Thread(
@@ -390,6 +398,8 @@ class MapRuntime:
         assert self.journal is not None and self.directory is not None
         with self._maintenance:
             with self._apply_lock:
+                if self._journal_ahead:   # waited past a shutdown that journaled unapplied puts
+                    return
                 try:
                     segment = self.journal.rotate()
                 except StorageError as exc:
@@ -445,7 +455,7 @@ class MapRuntime:
         start = time.perf_counter()
         try:
             with self._maintenance:
-                self.publish(EventKind.TRAIN_STARTED, job_id=job.job_id,
+                self.publish(EventKind.TRAIN_STARTED, job_id=job.job_id, instance=self.instance,
                              method=",".join(job.methods) if len(job.methods) == 1
                              else " ".join(job.methods))
                 for i, method in enumerate(job.methods):
@@ -478,21 +488,61 @@ class MapRuntime:
             return None if self._job is None else self._job.thread
 
     # -- shutdown --------------------------------------------------------------------------------
+    def journal_only(self, op: str, ident: Any, payload: bytes | None) -> bool:
+        """At shutdown: validate and journal a queued keyframe put or delete without applying
+        it (applying runs SIFT and triangulation, ~0.3 s a keyframe); the journal replay at
+        the next start applies it. False without storage (nothing would survive anyway)."""
+        if self.journal is None:
+            return False
+        try:
+            with self._apply_lock:
+                if op == "kf":
+                    assert payload is not None
+                    handlers.decode_keyframe_put(self, ident, payload)   # refused as usual
+                    self._journal_record({"op": "kf", "id": ident, "payload": payload})
+                    self._unapplied.add(ident)
+                else:
+                    if (ident not in self.engine.map and ident not in self._unapplied
+                            and not self._deferred_has(ident)):
+                        raise MapError(f"cannot remove keyframe {ident}: not in map "
+                                       f"{self.name!r}")
+                    self._journal_record({"op": "del", "id": ident})
+                    self._unapplied.discard(ident)
+                self._journal_ahead = True
+            self.publish(EventKind.KEYFRAME_ACCEPTED, id=ident, **({"removed": True}
+                                                                   if op == "del" else {}))
+        except Exception as exc:
+            self.reject(EventKind.KEYFRAME_REJECTED, exc, id=ident)
+        return True
+
     def close(self, *, final_snapshot: bool = True, timeout: float = 60.0) -> None:
-        """Final snapshot (when something changed since the last one), then close the
-        journal. A training job still running after ``timeout`` s is not waited for."""
-        thread = self.training_thread()
-        if thread is not None:
-            thread.join(timeout)
-        if final_snapshot and self.journal is not None and self._since_snapshot > 0:
-            if self._maintenance.acquire(timeout=timeout):
+        """Final snapshot within ``timeout`` s (when something changed since the last one and
+        no record was journaled without being applied: the snapshot would drop it from the
+        journal), then close the journal. A running training job is not waited for beyond
+        the same ``timeout``: its models are lost, the map is not."""
+        deadline = time.monotonic() + timeout
+        if (final_snapshot and self.journal is not None and self._since_snapshot > 0
+                and not self._journal_ahead):
+            if self._maintenance.acquire(timeout=max(0.0, timeout)):
                 self._maintenance.release()
-                self.start_snapshot(wait=True)
+                thread = self._start_final_snapshot()
+                if thread is not None:
+                    thread.join(max(0.0, deadline - time.monotonic()))
         snapshot_thread = self._snapshot_thread
         if snapshot_thread is not None:
-            snapshot_thread.join(timeout)
+            snapshot_thread.join(max(0.0, deadline - time.monotonic()))
+        with self._job_lock:
+            self._closed = True   # a training job ending later takes no snapshot
+        if snapshot_thread is not None and snapshot_thread.is_alive():
+            log.warning("map %s: the final snapshot did not finish within the stop budget; "
+                        "the journal still holds every change", self.name)
+            return   # it may still rotate the journal: leave that open (the process exits)
         if self.journal is not None:
             self.journal.close()
+
+    def _start_final_snapshot(self) -> threading.Thread | None:
+        self.start_snapshot()
+        return self._snapshot_thread
 
 
 class _ReplayView:

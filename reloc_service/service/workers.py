@@ -94,6 +94,19 @@ class WorkerPool:
                 self._idle.wait(0.05 if remaining is None else min(0.05, remaining))
         return True
 
+    def take_queued(self) -> list[Job]:
+        """Hand back the queued jobs, in order, without running them (shutdown: the service
+        journals queued puts instead of applying them). A job submitted afterwards still runs
+        before :meth:`close` returns."""
+        jobs: list[Job] = []
+        while True:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                return jobs
+            if item is not _STOP:
+                jobs.append(item[0])  # type: ignore[index]
+
     def close(self, timeout: float = 10.0) -> None:
         """Finish the queued jobs, then stop the threads (waiting up to ``timeout`` s)."""
         if self._closed:

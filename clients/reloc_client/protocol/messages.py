@@ -48,6 +48,7 @@ class EventKind(enum.StrEnum):
     TRAIN_PROGRESS = "train_progress"
     TRAIN_DONE = "train_done"
     TRAIN_FAILED = "train_failed"
+    KEYFRAME_ACCEPTED = "keyframe_accepted"   # journaled (durable); applied later
     KEYFRAME_ADDED = "keyframe_added"
     KEYFRAME_REMOVED = "keyframe_removed"
     KEYFRAME_REJECTED = "keyframe_rejected"
