@@ -181,11 +181,12 @@ def test_worker_pool_is_bounded_in_bytes():
 
 
 def test_puts_beyond_the_writers_byte_budget_are_rejected_busy(served):
-    """The writer blocked (a job holding it), 10 puts of 20 MiB: the default 128 MiB budget
-    takes 6, the others get BUSY at once instead of 200 MiB waiting in memory."""
+    """The map's writer blocked (a job holding it), 10 puts of 20 MiB: the default 128 MiB
+    budget takes 6, the others get BUSY at once instead of 200 MiB waiting in memory."""
     service, port, _, events, _ = served
     gate = threading.Event()
-    assert service.writer.submit(lambda _q: gate.wait(60))
+    writer = service._writer_for(MAP)
+    assert writer.submit(lambda _q: gate.wait(60))
     payload = b"\x00" * (20 * MiB)
     try:
         with raw_session(port) as session:
@@ -195,7 +196,7 @@ def test_puts_beyond_the_writers_byte_budget_are_rejected_busy(served):
             busy = [events.wait("keyframe_rejected", id=kf_id, code="BUSY", timeout=30)
                     for kf_id in range(1006, 1010)]
         assert len(busy) == 4
-        assert service.writer.held_bytes <= service.conf.service.writer_queue_bytes
+        assert writer.held_bytes <= service.conf.service.writer_queue_bytes
     finally:
         gate.set()
     assert service.wait_idle(60)
