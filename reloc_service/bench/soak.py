@@ -254,14 +254,36 @@ class Outcomes:
 
 @dataclass
 class Phase:
-    """Whether the service is up (answered its first query since its last start)."""
+    """Whether the service is up (answered a fresh client's query since its last start), and
+    how long each long-lived client took after that to be answered again (its Zenoh session
+    reconnects on its own, with a back-off)."""
 
     up: threading.Event = field(default_factory=threading.Event)
     stop: threading.Event = field(default_factory=threading.Event)
     t0: float = field(default_factory=time.monotonic)
+    #: Starts so far (0: the first) and when the current one began answering.
+    generation: int = 0
+    up_since: float = 0.0
+    #: Seconds from "up" to each client's first answer, per restart (generation >= 1).
+    resumed_s: dict[int, list[float]] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
 
     def now(self) -> float:
         return time.monotonic() - self.t0
+
+    def went_up(self) -> None:
+        with self.lock:
+            self.generation += 1
+            self.up_since = self.now()
+            self.up.set()
+
+    def answered(self, seen: int) -> int:
+        """A client that last saw generation ``seen`` was answered; returns the current."""
+        with self.lock:
+            if seen < self.generation and self.up.is_set():
+                self.resumed_s.setdefault(self.generation, []).append(
+                    self.now() - self.up_since)
+            return self.generation
 
 
 # -- the load ----------------------------------------------------------------------------------
@@ -282,9 +304,11 @@ def classify(exc: BaseException) -> str:
 
 def query_loop(client: Any, jpegs: Sequence[bytes], phase: Phase, out: Outcomes, index: int,
                timeout_s: float) -> None:
-    """Query back to back until ``phase.stop``; a query without a reply is counted as
-    ``no_reply_restarting`` if the service was not up when it was sent or answered."""
-    i = index
+    """Query back to back until ``phase.stop``. A query without a reply is counted as
+    ``no_reply_restarting`` if the service was not up when it was sent or answered,
+    ``no_reply_reconnecting`` if it was up but this client has not been answered since the
+    restart (its session is still reconnecting), else ``no_reply_while_up``."""
+    i, seen = index, phase.generation
     while not phase.stop.is_set():
         was_up = phase.up.is_set()
         try:
@@ -293,13 +317,19 @@ def query_loop(client: Any, jpegs: Sequence[bytes], phase: Phase, out: Outcomes,
         except Exception as exc:  # every failure is an outcome to count, none is hidden
             kind = classify(exc)
             if kind == "no_reply":
-                up = was_up and phase.up.is_set()
-                kind = "no_reply_while_up" if up else "no_reply_restarting"
+                kind = no_reply_kind(was_up and phase.up.is_set(), seen < phase.generation)
             out.record(kind)
             phase.stop.wait(0.05 if kind == "busy" else 0.2)  # no busy loop while down
         else:
+            seen = phase.answered(seen)
             out.record("ok" if result.ok else "not_relocalized", result.round_trip_s)
         i += 1
+
+
+def no_reply_kind(up: bool, behind: bool) -> str:
+    if not up:
+        return "no_reply_restarting"
+    return "no_reply_reconnecting" if behind else "no_reply_while_up"
 
 
 def stream_loop(client: Any, scene: SoakScene, images: Sequence[Any], ledger: Ledger,
@@ -375,7 +405,7 @@ def restart(runner: ServiceRunner, kind: str, scene: SoakScene, phase: Phase,
     runner.start()
     row.update(at_s=at, restart_s=wait_answering(runner, scene.query_jpegs[0],
                                                  conf.ready_timeout_s))
-    phase.up.set()
+    phase.went_up()
     return row
 
 
@@ -443,9 +473,23 @@ def restart_summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                          "stop_s_max": max(r["stop_s"] for r in mine),
                          "restart_s_median": float(np.median([r["restart_s"] for r in mine])),
                          "restart_s_max": max(r["restart_s"] for r in mine),
+                         "clients_resumed_s_median": _median_or_none(
+                             [r.get("clients_resumed_max_s") for r in mine]),
+                         "clients_resumed_s_max": _max_or_none(
+                             [r.get("clients_resumed_max_s") for r in mine]),
                          "exit_codes": sorted({r["exit_code"] for r in mine}),
                          "killed_after_timeout": sum(r["killed_after_timeout"] for r in mine)}
     return out
+
+
+def _median_or_none(values: Sequence[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return float(np.median(known)) if known else None
+
+
+def _max_or_none(values: Sequence[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return max(known) if known else None
 
 
 def rss_summary(samples: Sequence[Sequence[Any]]) -> dict[str, Any]:
@@ -500,7 +544,7 @@ def _run(conf: SoakConf, scene: SoakScene, runner: ServiceRunner,
         seed_map(client(30), scene, images, ledger, conf.method)
         first_ready_s = wait_answering(runner, scene.query_jpegs[0], conf.ready_timeout_s)
         phase.t0 = time.monotonic()
-        phase.up.set()
+        phase.up.set()  # generation 0: every client starts answered
         samples: list[list[Any]] = []
         threads = [threading.Thread(target=query_loop, name=f"soak-query-{k}", daemon=True,
                                     args=(client(), scene.query_jpegs, phase, out, k,
@@ -517,6 +561,10 @@ def _run(conf: SoakConf, scene: SoakScene, runner: ServiceRunner,
             t.start()
         restarts = _supervise(conf, scene, runner, phase, say)
         phase.stop.set()
+        for n, row in enumerate(restarts, start=1):
+            resumed = phase.resumed_s.get(n, [])
+            row.update(clients_resumed=len(resumed),
+                       clients_resumed_max_s=max(resumed) if resumed else None)
         for t in threads:
             t.join(conf.query_timeout_s + conf.ack_timeout_s + 30)
         load_s = phase.now()
@@ -595,14 +643,21 @@ def table_lines(soak: Mapping[str, Any]) -> list[str]:
             rows.append((f"{label}: stop time median / max",
                          f"{s['stop_s_median']:.1f} / {s['stop_s_max']:.1f} s "
                          f"(exit codes {s['exit_codes']})"))
-            rows.append((f"{label}: restart to first answer, median / max",
+            rows.append((f"{label}: process start to first answer, median / max",
                          f"{s['restart_s_median']:.1f} / {s['restart_s_max']:.1f} s"))
+            rows.append((f"{label}: then until every running client is answered, median / max",
+                         f"{_s(s['clients_resumed_s_median'])} / "
+                         f"{_s(s['clients_resumed_s_max'])}"))
     rss = soak["rss"]
     if "max_mb" in rss:
         rows.append(("service RSS: first / median / max / last",
                      f"{rss['first_mb']:.0f} / {rss['median_mb']:.0f} / {rss['max_mb']:.0f} / "
                      f"{rss['last_mb']:.0f} MB"))
     return ["| measure | value |", "|---|---|", *[f"| {a} | {b} |" for a, b in rows], ""]
+
+
+def _s(value: Any) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{value:.1f} s"
 
 
 def _ms(value: Any) -> str:
