@@ -42,6 +42,7 @@ import numpy.typing as npt
 from ..cameras import Camera
 from ..service import ensure_client_importable
 from .loopback import free_port, service_doc, toml_text
+from .machine import load_average
 from .samples import JPEG_QUALITY, QuerySet, json_safe, pct_ms
 
 MAP_NAME = "soak"
@@ -236,13 +237,18 @@ class Ledger:
 
 
 class Outcomes:
-    """Query outcomes by kind and the latency of answered ones (thread-safe)."""
+    """Query outcomes by kind, the latency of answered ones, and answered / failed queries
+    per ``bucket_s`` of the run (thread-safe)."""
 
-    def __init__(self) -> None:
+    ANSWERED = ("ok", "not_relocalized")
+
+    def __init__(self, clock: Callable[[], float], bucket_s: float = 5.0) -> None:
         self.lock = threading.Lock()
         self.counts: Counter[str] = Counter()
         self.latencies_s: list[float] = []
         self.sent = 0
+        self.clock, self.bucket_s = clock, bucket_s
+        self.buckets: dict[int, list[int]] = {}
 
     def record(self, kind: str, latency_s: float | None = None) -> None:
         with self.lock:
@@ -250,6 +256,13 @@ class Outcomes:
             self.counts[kind] += 1
             if latency_s is not None:
                 self.latencies_s.append(latency_s)
+            row = self.buckets.setdefault(int(self.clock() // self.bucket_s), [0, 0])
+            row[0 if kind in self.ANSWERED else 1] += 1
+
+    def timeline(self) -> list[list[float]]:
+        """``[start_s, answered, failed]`` per bucket, in time order."""
+        with self.lock:
+            return [[k * self.bucket_s, *v] for k, v in sorted(self.buckets.items())]
 
 
 @dataclass
@@ -460,7 +473,8 @@ def query_summary(out: Outcomes) -> dict[str, Any]:
     errors = {k: v for k, v in sorted(out.counts.items()) if k not in ("ok", "not_relocalized")}
     return {"sent": out.sent, "answered": answered, "ok": out.counts["ok"],
             "not_relocalized": out.counts["not_relocalized"], "errors_by_code": errors,
-            "p50_ms": pct_ms(out.latencies_s, 50), "p99_ms": pct_ms(out.latencies_s, 99)}
+            "p50_ms": pct_ms(out.latencies_s, 50), "p99_ms": pct_ms(out.latencies_s, 99),
+            "bucket_s": out.bucket_s, "timeline": out.timeline()}
 
 
 def restart_summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -528,7 +542,9 @@ def _run(conf: SoakConf, scene: SoakScene, runner: ServiceRunner,
     from reloc_client.client import RelocClient, to_wire_image
 
     images = [to_wire_image(im) for im in scene.keyframe_images]  # encoded once
-    ledger, out, phase = Ledger(), Outcomes(), Phase()
+    ledger, phase = Ledger(), Phase()
+    out = Outcomes(phase.now)
+    load_at_start = load_average()
     runner.start()
     first_start_s = _wait_up(runner, conf)
     with contextlib.ExitStack() as stack:
@@ -579,6 +595,7 @@ def _run(conf: SoakConf, scene: SoakScene, runner: ServiceRunner,
             "restart_summary": restart_summary(restarts), "final_restart": final,
             "keyframes": keyframe_count(ledger, len(images), held),
             "events": dict(ledger.events), "rss": rss_summary(samples),
+            "load_average_at_start": load_at_start, "load_average_at_end": load_average(),
             "note": "clients are threads of the benchmark process (their own Zenoh sessions, "
                     "client mode); the service is `reloc serve` in its own process; "
                     "`restart_s` is from the process start to the first answered query"}
@@ -665,24 +682,46 @@ def _ms(value: Any) -> str:
 
 
 def plot_rss(soak: Mapping[str, Any], path: Path) -> Path:
-    """Resident memory of the service over the run, with the stops marked."""
+    """Resident memory of the service over the run and, below it, queries answered and
+    failed per bucket (if recorded), with the stops marked."""
     from .plots import _pyplot, _save
 
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(8, 3.2))
+    timeline = soak.get("queries", {}).get("timeline")
+    fig, axes = plt.subplots(2 if timeline else 1, 1, figsize=(8, 5.2 if timeline else 3.2),
+                             sharex=True, squeeze=False)
+    ax = axes[0][0]
     samples = soak["rss"]["samples"]
     ax.plot([t for t, _ in samples], [np.nan if v is None else v for _, v in samples],
             "-", lw=1.2, label="service RSS (MB)")
-    for kind, style in (("kill9", "r--"), ("sigterm", "g:")):
-        ats = [r["at_s"] for r in soak["restarts"] if r["kind"] == kind]
-        for n, at in enumerate(ats):
-            ax.axvline(at, color=style[0], ls=style[1:], lw=1,
-                       label=("kill -9" if kind == "kill9" else "SIGTERM") if n == 0 else None)
-    ax.set(xlabel="seconds into the run", ylabel="MB", ylim=(0, None),
-           title="reloc serve resident memory during the soak (gaps: stopped)")
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=7, loc="lower right")
+    ax.set(ylabel="MB", ylim=(0, None), title="reloc serve resident memory during the soak")
+    if timeline:
+        _plot_timeline(axes[1][0], timeline, soak["queries"]["bucket_s"],
+                       soak.get("conf", {}).get("query_clients", "the"))
+    for row in axes:
+        _mark_stops(row[0], soak["restarts"])
+        row[0].grid(True, alpha=0.3)
+        row[0].legend(fontsize=7, loc="lower right")
+    axes[-1][0].set(xlabel="seconds into the run")
     return _save(fig, path)
+
+
+def _plot_timeline(ax: Any, timeline: Sequence[Sequence[float]], bucket_s: float,
+                   clients: Any) -> None:
+    t = [row[0] for row in timeline]
+    ax.bar(t, [row[1] for row in timeline], width=bucket_s, align="edge", color="tab:blue",
+           label="answered")
+    ax.bar(t, [row[2] for row in timeline], width=bucket_s, align="edge", color="tab:orange",
+           bottom=[row[1] for row in timeline], label="no answer (busy, no reply, error)")
+    ax.set(ylabel=f"queries per {bucket_s:.0f} s", title=f"queries of the {clients} clients")
+
+
+def _mark_stops(ax: Any, restarts: Sequence[Mapping[str, Any]]) -> None:
+    for kind, color, ls, label in (("kill9", "r", "--", "kill -9"),
+                                   ("sigterm", "g", ":", "SIGTERM")):
+        ats = [r["at_s"] for r in restarts if r["kind"] == kind]
+        for n, at in enumerate(ats):
+            ax.axvline(at, color=color, ls=ls, lw=1, label=label if n == 0 else None)
 
 
 def run_into(result: dict[str, Any], conf: SoakConf, workdir: Path | None,
