@@ -410,8 +410,10 @@ def wait_answering(runner: ServiceRunner, jpeg: bytes, timeout_s: float) -> floa
 
 
 def restart(runner: ServiceRunner, kind: str, scene: SoakScene, phase: Phase,
-            conf: SoakConf) -> dict[str, Any]:
-    """Stop the service by ``kind``, start it again, wait until it answers."""
+            conf: SoakConf, audit: Callable[[], dict[str, Any]] | None = None
+            ) -> dict[str, Any]:
+    """Stop the service by ``kind``, start it again, wait until it answers; then
+    ``audit()`` what it holds, if given."""
     phase.up.clear()
     at = phase.now()
     row = runner.stop(kind, conf.stop_timeout_s)
@@ -419,7 +421,26 @@ def restart(runner: ServiceRunner, kind: str, scene: SoakScene, phase: Phase,
     row.update(at_s=at, restart_s=wait_answering(runner, scene.query_jpegs[0],
                                                  conf.ready_timeout_s))
     phase.went_up()
+    if audit is not None:
+        try:
+            row["audit"] = audit()
+        except Exception as exc:  # recorded: an audit that cannot list is a finding too
+            row["audit"] = {"error": f"{type(exc).__name__}: {exc}"}
     return row
+
+
+def audit_held(runner: ServiceRunner, ledger: Ledger, base: int) -> dict[str, Any]:
+    """What a restarted service holds, under load: every keyframe acknowledged before the
+    listing and not asked to be deleted by its end must be listed. (Without this, a keyframe
+    lost at a restart would go unseen once the deleter asks to delete it.)"""
+    with ledger.lock:
+        acknowledged = set(ledger.added) | set(range(base))
+    held = held_keyframes(runner)
+    with ledger.lock:
+        asked_deleted = set(ledger.delete_sent)
+    lost = sorted(acknowledged - asked_deleted - set(held))
+    return {"held": len(held), "lost_ids": lost,
+            "duplicated": sum(n - 1 for n in Counter(held).values() if n > 1)}
 
 
 # -- setup and the final count ---------------------------------------------------------------
@@ -447,12 +468,17 @@ def held_keyframes(runner: ServiceRunner, timeout_s: float = 60.0) -> list[int]:
         return [info.id for info in client.keyframes(timeout=timeout_s)]
 
 
-def keyframe_count(ledger: Ledger, base: int, held: Sequence[int]) -> dict[str, Any]:
-    """Compare what the service holds with what was acknowledged."""
+def keyframe_count(ledger: Ledger, base: int, held: Sequence[int],
+                   audits: Sequence[Mapping[str, Any]] = ()) -> dict[str, Any]:
+    """Compare what the service holds at the end (and held at each restart's ``audits``)
+    with what was acknowledged."""
     present = set(held)
     asked_deleted = set(ledger.delete_sent)
     expected = set(range(base)) | (ledger.added - asked_deleted)
-    lost = sorted(expected - present)
+    lost_at_end = expected - present
+    lost_in_audits = {k for a in audits for k in a.get("lost_ids", [])}
+    lost = sorted(lost_at_end | lost_in_audits)
+    dup_in_audits = sum(a.get("duplicated", 0) for a in audits)
     sent = set(ledger.sent) | set(range(base))
     return {
         "base": base, "streamed_sent": len(ledger.sent),
@@ -460,7 +486,9 @@ def keyframe_count(ledger: Ledger, base: int, held: Sequence[int]) -> dict[str, 
         "streamed_unacknowledged": len(set(ledger.sent) - ledger.added),
         "delete_sent": len(asked_deleted), "delete_acknowledged": len(ledger.removed),
         "held_final": len(held), "lost": len(lost), "lost_ids": lost[:50],
-        "duplicated": sum(n - 1 for n in Counter(held).values() if n > 1),
+        "lost_at_end": len(lost_at_end), "lost_in_audits": len(lost_in_audits),
+        "audits": len(audits), "audits_failed": sum("error" in a for a in audits),
+        "duplicated": sum(n - 1 for n in Counter(held).values() if n > 1) + dup_in_audits,
         "resurrected": len(ledger.removed & present),
         "unexpected": len(present - sent),
         "held_unacknowledged": len(present - ledger.added - set(range(base))),
@@ -575,7 +603,8 @@ def _run(conf: SoakConf, scene: SoakScene, runner: ServiceRunner,
                              args=(runner, phase, samples, conf.rss_period_s))]
         for t in threads:
             t.start()
-        restarts = _supervise(conf, scene, runner, phase, say)
+        restarts = _supervise(conf, scene, runner, phase, say,
+                              lambda: audit_held(runner, ledger, len(images)))
         phase.stop.set()
         for n, row in enumerate(restarts, start=1):
             resumed = phase.resumed_s.get(n, [])
@@ -593,7 +622,8 @@ def _run(conf: SoakConf, scene: SoakScene, runner: ServiceRunner,
             "first_start_s": first_start_s, "first_ready_s": first_ready_s,
             "queries": query_summary(out), "restarts": restarts,
             "restart_summary": restart_summary(restarts), "final_restart": final,
-            "keyframes": keyframe_count(ledger, len(images), held),
+            "keyframes": keyframe_count(ledger, len(images), held,
+                                        [r["audit"] for r in restarts if "audit" in r]),
             "events": dict(ledger.events), "rss": rss_summary(samples),
             "load_average_at_start": load_at_start, "load_average_at_end": load_average(),
             "note": "clients are threads of the benchmark process (their own Zenoh sessions, "
@@ -613,7 +643,8 @@ def _wait_up(runner: ServiceRunner, conf: SoakConf) -> float:
 
 
 def _supervise(conf: SoakConf, scene: SoakScene, runner: ServiceRunner, phase: Phase,
-               say: Callable[[str], None]) -> list[dict[str, Any]]:
+               say: Callable[[str], None], audit: Callable[[], dict[str, Any]]
+               ) -> list[dict[str, Any]]:
     """Stop and restart the service every ``restart_every_s`` until ``seconds`` are over."""
     rows: list[dict[str, Any]] = []
     next_at = conf.restart_every_s
@@ -627,10 +658,11 @@ def _supervise(conf: SoakConf, scene: SoakScene, runner: ServiceRunner, phase: P
             raise RuntimeError(f"the soak service died on its own ({runner.exited()}): "
                                f"{runner.log_tail()}")
         kind = STOP_KINDS[len(rows) % len(STOP_KINDS)]
-        row = restart(runner, kind, scene, phase, conf)
+        row = restart(runner, kind, scene, phase, conf, audit)
         rows.append(row)
         say(f"{kind} at {row['at_s']:.0f} s: stopped in {row['stop_s']:.1f} s (exit "
-            f"{row['exit_code']}), answering again after {row['restart_s']:.1f} s")
+            f"{row['exit_code']}), answering again after {row['restart_s']:.1f} s; holds "
+            f"{row['audit'].get('held')} keyframes, lost {row['audit'].get('lost_ids')}")
         next_at = max(next_at + conf.restart_every_s, phase.now() + 1.0)
 
 
@@ -651,7 +683,8 @@ def table_lines(soak: Mapping[str, Any]) -> list[str]:
              f"{k['streamed_sent']} / {k['streamed_acknowledged']}"),
             ("deletes sent / acknowledged", f"{k['delete_sent']} / {k['delete_acknowledged']}"),
             ("keyframes held after the final restart", str(k["held_final"])),
-            ("**keyframes lost**", f"**{k['lost']}**"),
+            ("**keyframes lost** (checked after every restart and at the end)",
+             f"**{k['lost']}**"),
             ("**keyframes duplicated**", f"**{k['duplicated']}**"),
             ("deleted keyframes back after a restart", str(k["resurrected"]))]
     for kind, label in (("kill9", "kill -9"), ("sigterm", "SIGTERM")):
@@ -688,7 +721,7 @@ def plot_rss(soak: Mapping[str, Any], path: Path) -> Path:
 
     plt = _pyplot()
     timeline = soak.get("queries", {}).get("timeline")
-    fig, axes = plt.subplots(2 if timeline else 1, 1, figsize=(8, 5.2 if timeline else 3.2),
+    fig, axes = plt.subplots(2 if timeline else 1, 1, figsize=(9.5, 5.2 if timeline else 3.2),
                              sharex=True, squeeze=False)
     ax = axes[0][0]
     samples = soak["rss"]["samples"]
@@ -701,7 +734,7 @@ def plot_rss(soak: Mapping[str, Any], path: Path) -> Path:
     for row in axes:
         _mark_stops(row[0], soak["restarts"])
         row[0].grid(True, alpha=0.3)
-        row[0].legend(fontsize=7, loc="lower right")
+        row[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     axes[-1][0].set(xlabel="seconds into the run")
     return _save(fig, path)
 
