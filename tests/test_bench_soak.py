@@ -81,3 +81,31 @@ def test_plot_rss_writes_a_png(tmp_path):
               "restarts": [{"kind": "kill9", "at_s": 1.5}, {"kind": "sigterm", "at_s": 2.5}]}
     path = soak.plot_rss(result, tmp_path / "rss.png")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_keyframe_count_finds_losses_duplicates_and_resurrections():
+    ledger = soak.Ledger()
+    ledger.sent = [1000, 1001, 1002, 1003, 1004]
+    ledger.added = {0, 1, 1000, 1001, 1002, 1003}          # 1004 never acknowledged
+    ledger.delete_sent = [1000, 1001]
+    ledger.removed = {1000}                                 # 1001's delete not acknowledged
+    held = [0, 1, 1000, 1002, 1002]                         # 1003 lost, 1002 twice, 1000 back
+    k = soak.keyframe_count(ledger, 2, held)
+    assert (k["lost"], k["lost_ids"], k["duplicated"], k["resurrected"]) == (1, [1003], 1, 1)
+    assert (k["streamed_acknowledged"], k["streamed_unacknowledged"]) == (4, 1)
+    assert k["unexpected"] == 0 and k["held_unacknowledged"] == 0
+    # 1001 was lost at a restart, then asked to be deleted: only the audit shows it
+    k = soak.keyframe_count(ledger, 2, [0, 1, 1002, 1003],
+                            audits=[{"held": 4, "lost_ids": [1001], "duplicated": 0}])
+    assert (k["lost"], k["lost_ids"], k["lost_at_end"], k["lost_in_audits"]) == (1, [1001], 0, 1)
+
+
+def test_audit_lists_keyframes_acknowledged_before_it():
+    ledger = soak.Ledger()
+    ledger.added = {1000, 1001}
+
+    def listing() -> list[int]:  # the deleter asks to delete 1001 while the listing runs
+        ledger.delete_sent.append(1001)
+        return [0, 1000]
+
+    assert soak.audit_held(listing, ledger, 2) == {"held": 2, "lost_ids": [1], "duplicated": 0}

@@ -429,13 +429,14 @@ def restart(runner: ServiceRunner, kind: str, scene: SoakScene, phase: Phase,
     return row
 
 
-def audit_held(runner: ServiceRunner, ledger: Ledger, base: int) -> dict[str, Any]:
+def audit_held(list_held: Callable[[], list[int]], ledger: Ledger, base: int
+               ) -> dict[str, Any]:
     """What a restarted service holds, under load: every keyframe acknowledged before the
     listing and not asked to be deleted by its end must be listed. (Without this, a keyframe
     lost at a restart would go unseen once the deleter asks to delete it.)"""
     with ledger.lock:
         acknowledged = set(ledger.added) | set(range(base))
-    held = held_keyframes(runner)
+    held = list_held()
     with ledger.lock:
         asked_deleted = set(ledger.delete_sent)
     lost = sorted(acknowledged - asked_deleted - set(held))
@@ -604,7 +605,8 @@ def _run(conf: SoakConf, scene: SoakScene, runner: ServiceRunner,
         for t in threads:
             t.start()
         restarts = _supervise(conf, scene, runner, phase, say,
-                              lambda: audit_held(runner, ledger, len(images)))
+                              lambda: audit_held(lambda: held_keyframes(runner), ledger,
+                                                 len(images)))
         phase.stop.set()
         for n, row in enumerate(restarts, start=1):
             resumed = phase.resumed_s.get(n, [])
