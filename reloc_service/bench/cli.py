@@ -29,8 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write PNG plots into DIR (needs matplotlib)")
     parser.add_argument("--only", metavar="SECTION", action="append",
                         help="run only this section (repeatable); one of: latency, peers, "
-                             "throughput, scaling, ferns, planar, accuracy (accuracy runs "
-                             "only when named here or when --dataset/--preset is given)")
+                             "throughput, scaling, ferns, planar, accuracy, soak (accuracy "
+                             "runs only when named here or when --dataset/--preset is given; "
+                             "soak only when named here)")
     parser.add_argument("--dataset", metavar="DIR", type=Path, action="append",
                         help="accuracy section: a reloc dataset to score (repeatable); with "
                              "--dataset or --preset only the sets named are scored, else the "
@@ -39,6 +40,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", metavar="NAME", action="append",
                         help="accuracy section: a synthetic preset to render and score "
                              "(repeatable; see `reloc synth --list`)")
+    parser.add_argument("--soak-seconds", metavar="S", type=float, default=None,
+                        help="soak section: seconds of load (default 600, 60 with --quick)")
+    parser.add_argument("--soak-restart-every", metavar="S", type=float, default=None,
+                        help="soak section: seconds between stops of the service, kill -9 "
+                             "and SIGTERM in turn (default 60, 20 with --quick)")
     parser.add_argument("--workdir", metavar="DIR", type=Path,
                         help="keep the rendered scene and maps in DIR (default: a temporary "
                              "folder, removed afterwards)")
@@ -52,10 +58,10 @@ def main(args: argparse.Namespace) -> int:
     datasets, presets = getattr(args, "dataset", None), getattr(args, "preset", None)
     run_accuracy = "accuracy" in (args.only or []) or bool(datasets or presets)
     if args.only:
-        unknown = sorted(set(args.only) - set(suite.SECTIONS) - {"accuracy"})
+        unknown = sorted(set(args.only) - set(suite.SECTIONS) - {"accuracy", "soak"})
         if unknown:
             print(f"reloc bench: unknown section(s) {unknown}; expected some of "
-                  f"{[*suite.SECTIONS, 'accuracy']}", file=sys.stderr)
+                  f"{[*suite.SECTIONS, 'accuracy', 'soak']}", file=sys.stderr)
             return 2
         conf = dataclasses.replace(conf, sections=tuple(s for s in suite.SECTIONS
                                                         if s in args.only))
@@ -74,10 +80,20 @@ def main(args: argparse.Namespace) -> int:
     result = suite.run_suite(conf, command=command_line(), workdir=args.workdir)
     if acc_conf is not None:
         accuracy.run_into(result, acc_conf, args.workdir)
+    if "soak" in (args.only or []):
+        from . import soak
+
+        soak.run_into(result, soak_conf(args), args.workdir, suite.say)
     if args.plots is not None:
         from .plots import plot_all
 
         result["plots"] = [str(p) for p in plot_all(result, args.plots)]
+        if result.get("soak", {}).get("rss", {}).get("samples"):
+            from .soak import plot_rss
+
+            args.plots.mkdir(parents=True, exist_ok=True)
+            result["plots"].append(str(plot_rss(result["soak"],
+                                                args.plots / "reliability_rss.png")))
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=1, allow_nan=False) + "\n",
@@ -96,13 +112,30 @@ def main(args: argparse.Namespace) -> int:
 
         print("\n".join(["", "Accuracy (recall@5cm/5deg / recall@25cm/10deg / wrong / p50):",
                          *table_lines(acc), *note_lines(acc)]))
+    sk = result.get("soak")
+    if sk and "error" not in sk:
+        from .soak import table_lines as soak_table
+
+        print("\n".join(["", f"Soak ({_f(sk['load_s'], 0)} s):", *soak_table(sk)]))
     failed = suite.failed_sections(result)
+    if sk and "error" not in sk and (sk["keyframes"]["lost"] or sk["keyframes"]["duplicated"]):
+        failed.append(f"soak ({sk['keyframes']['lost']} keyframes lost, "
+                      f"{sk['keyframes']['duplicated']} duplicated)")
     if acc and (acc.get("failed_datasets") or acc.get("failed_columns")):
         failed.append(f"accuracy ({', '.join([*acc['failed_datasets'], *acc['failed_columns']])})")
     if failed:
         print(f"reloc bench: section(s) failed: {', '.join(failed)}", file=sys.stderr)
         return 1
     return 0
+
+
+def soak_conf(args: argparse.Namespace) -> Any:
+    """The soak run's :class:`~.soak.SoakConf` from ``--quick`` and the ``--soak-*`` flags."""
+    from .soak import SoakConf
+
+    seconds, every = (60.0, 20.0) if args.quick else (600.0, 60.0)
+    return SoakConf(seconds=getattr(args, "soak_seconds", None) or seconds,
+                    restart_every_s=getattr(args, "soak_restart_every", None) or every)
 
 
 def command_line() -> str:
@@ -211,7 +244,7 @@ def render_markdown(result: Mapping[str, Any], *, plots_dir: Path | None = None)
                 for p in result["plots"]] + [""]
     for name, fn in (("scene", _scene), ("latency", _latency), ("peers", _peers),
                      ("throughput", _throughput), ("scaling", _scaling), ("ferns", _ferns),
-                     ("planar", _planar), ("accuracy", _accuracy)):
+                     ("planar", _planar), ("accuracy", _accuracy), ("soak", _soak)):
         section = result.get(name)
         if not section:
             continue
@@ -343,6 +376,13 @@ def _peers(p: Mapping[str, Any]) -> list[str]:
                 f"{_f(1e3 * (pnp['opencv_t_err_m_median'] or math.nan), 1)} mm (OpenCV); "
                 f"failures {pnp['poselib_failures']} vs {pnp['opencv_failures']}.", ""]
     return out
+
+
+def _soak(soak: Mapping[str, Any]) -> list[str]:
+    from .soak import table_lines
+
+    return ["## Soak (reliability)", "", "See docs/reliability.md for what the run does.", "",
+            *table_lines(soak)]
 
 
 def _accuracy(a: Mapping[str, Any]) -> list[str]:

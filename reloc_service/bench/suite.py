@@ -16,6 +16,9 @@ its trained engines, the run's sizes; measurement helpers in :mod:`.samples`):
 - ``planar``: micro-benchmarks of the multi relocalizer on a textured plane
   (:mod:`.multi_bench`, full run only).
 
+Two sections run only when named with ``--only``: ``accuracy`` (:mod:`.accuracy`) and
+``soak``, the reliability soak run with kill -9 / SIGTERM restarts (:mod:`.soak`).
+
 OpenCV runs on one thread throughout (as each service worker uses one core), so the figures
 do not depend on how many cores happen to be free; the load average is recorded.
 """
