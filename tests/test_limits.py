@@ -275,7 +275,9 @@ def test_garbage_on_new_map_names_creates_nothing(served, synthetic_scene):
         assert (f"junk{i}", "keyframe_rejected", "BAD_MSGPACK") in kinds
     assert ("junkcam", "camera_rejected", "BAD_MSGPACK") in kinds
     assert ("junkdel", "keyframe_rejected", "UNKNOWN_MAP") in kinds
-    assert "fresh" in service.maps and (storage / "fresh").is_dir()
+    # its own writer (one per map) may still be applying it: wait for the map, not the others
+    wait_until(lambda: "fresh" in service.maps, timeout=30)
+    assert (storage / "fresh").is_dir()
 
 
 # -- case 13: an empty payload is not a train request; the companion example on loopback ---------
