@@ -13,10 +13,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
 
 import dataclasses
-import json
-import os
 import signal
-import subprocess
 import threading
 import time
 from types import MappingProxyType
@@ -24,65 +21,16 @@ from types import MappingProxyType
 import pytest
 import zenoh
 from reloc_client import protocol as wire
-from reloc_client.client import NoReplyError, Outbox, RelocClient, ServiceError, ServiceGone
+from reloc_client.client import NoReplyError, RelocClient, ServiceError, ServiceGone
+from reloc_client.outbox import Outbox
 from reloc_client.protocol import ErrorCode
-from service_support import ROOT, Events, endpoint, free_port, raw_session, service_conf, wait_until
+from service_support import Events, endpoint, free_port, raw_session, service_conf, wait_until
 from test_scaleout import open_router
-from test_service_durability import durable_keyframe_ids
+from test_service_durability import ServiceProcess, durable_keyframe_ids, write_config
 
 from reloc_service.service.app import Service
 
 MAP = "lab"
-
-
-def _config(tmp: Path, port: int, *, options: dict[str, dict[str, object]] | None = None,
-            **service: object) -> Path:
-    lines = ["[zenoh]", 'mode = "peer"', f'listen = ["{endpoint(port)}"]',
-             "multicast_scouting = false", "[service]", 'instance = "lifecycle"',
-             f'storage = "{tmp / "storage"}"']
-    lines += [f"{k} = {json.dumps(v)}" for k, v in service.items()]
-    for name, values in (options or {}).items():
-        lines += [f"[options.{name}]", *[f"{k} = {json.dumps(v)}" for k, v in values.items()]]
-    lines += [f"[maps.{MAP}]"]
-    path = tmp / "service.toml"
-    path.write_text("\n".join(lines) + "\n")
-    return path
-
-
-class _Process:
-    """``reloc serve --config FILE`` in a subprocess, ready once its map answers (a restart
-    replaying hundreds of journal records needs minutes under load)."""
-
-    def __init__(self, config: Path, port: int, log: Path, ready_s: float = 60.0) -> None:
-        self.log_path = log
-        self.log = open(log, "ab")
-        env = {**os.environ, "PYTHONPATH": str(ROOT)}
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "reloc_service.cli.main", "serve", "--config", str(config)],
-            cwd=ROOT, stdout=self.log, stderr=self.log, env=env)
-        self.port = port
-        self.client: RelocClient | None = None
-        wait_until(self._ready, timeout=ready_s, interval=0.2)
-
-    def _ready(self) -> bool:
-        if self.proc.poll() is not None:
-            raise AssertionError(f"service exited with {self.proc.returncode}: "
-                                 f"{self.log_path.read_text()[-2000:]}")
-        try:
-            if self.client is None:
-                self.client = RelocClient(endpoint(self.port), map=MAP, timeout=30)
-            self.client.status(timeout=1)
-            return True
-        except (ConnectionError, NoReplyError):
-            return False
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(10)
-        if self.client is not None:
-            self.client.close()
-        self.log.close()
 
 
 def _keyframe_put(scene, kf_id: int, camera_id: str = "cam0") -> bytes:
@@ -104,8 +52,8 @@ def test_sigterm_with_300_queued_puts_exits_within_30_s_and_loses_none(synthetic
     """Applying a keyframe takes ~0.3 s (SIFT, triangulation): 300 queued puts took 87-112 s
     to stop, or aborted natively losing 122. Now they are journaled and replayed at restart."""
     port, scene, n = free_port(), synthetic_scene, 300
-    config = _config(tmp_path, port)
-    service = _Process(config, port, tmp_path / "log1.txt")
+    config = write_config(tmp_path, port, instance="lifecycle")
+    service = ServiceProcess(config, port, tmp_path / "log1.txt")
     try:
         events = Events(service.client)
         service.client.set_camera("cam0", scene.camera)
@@ -128,7 +76,7 @@ def test_sigterm_with_300_queued_puts_exits_within_30_s_and_loses_none(synthetic
     assert stop_s < 30, f"stopping took {stop_s:.1f} s"
     acked = {e.fields["id"] for e in events.drain() if e.kind.value == "keyframe_accepted"}
     assert durable_keyframe_ids(tmp_path / "storage" / MAP) == set(range(n))
-    restarted = _Process(config, port, tmp_path / "log2.txt", ready_s=600)
+    restarted = ServiceProcess(config, port, tmp_path / "log2.txt", ready_s=600)
     try:
         restored = {info.id for info in restarted.client.keyframes(timeout=60)}
         assert restored == set(range(n)), sorted(set(range(n)) - restored)
@@ -275,10 +223,10 @@ def test_train_wait_raises_soon_after_the_service_goes(synthetic_scene, tmp_path
     raises ServiceGone within seconds; SIGTERM exits 0 within its 3 s budget without waiting
     for the training thread (no native abort at interpreter exit)."""
     port, scene = free_port(), synthetic_scene
-    config = _config(tmp_path, port, methods=["sbi+p3p", "bow+p3p"], default_method="sbi+p3p",
-                     train_on_load=False, stop_timeout_s=3.0,
-                     options={"bow": {"kmeans_iterations": 60}})
-    service = _Process(config, port, tmp_path / "log.txt")
+    config = write_config(tmp_path, port, instance="lifecycle", methods=["sbi+p3p", "bow+p3p"],
+                          default_method="sbi+p3p", train_on_load=False, stop_timeout_s=3.0,
+                          options={"bow": {"kmeans_iterations": 60}})
+    service = ServiceProcess(config, port, tmp_path / "log.txt")
     try:
         client = service.client
         events = Events(client)

@@ -30,11 +30,17 @@ from reloc_service.service.journal import Journal
 MAP = "lab"
 
 
-def write_config(tmp: Path, port: int, **service: object) -> Path:
+def write_config(tmp: Path, port: int, *, instance: str = "durable",
+                 options: dict[str, dict[str, object]] | None = None,
+                 **service: object) -> Path:
+    """A ``reloc serve`` config: a peer on ``port``, storage under ``tmp``, map ``lab``,
+    ``[service]`` keys from ``service`` and ``[options.<name>]`` tables from ``options``."""
     lines = ["[zenoh]", 'mode = "peer"', f'listen = ["{endpoint(port)}"]',
-             "multicast_scouting = false", "[service]", 'instance = "durable"',
+             "multicast_scouting = false", "[service]", f'instance = "{instance}"',
              f'storage = "{tmp / "storage"}"']
     lines += [f"{k} = {json.dumps(v)}" for k, v in service.items()]
+    for name, values in (options or {}).items():
+        lines += [f"[options.{name}]", *[f"{k} = {json.dumps(v)}" for k, v in values.items()]]
     lines += [f"[maps.{MAP}]"]
     path = tmp / "service.toml"
     path.write_text("\n".join(lines) + "\n")
@@ -61,9 +67,11 @@ def durable_keyframe_ids(map_dir: Path) -> set[int]:
 
 
 class ServiceProcess:
-    """``reloc serve --config FILE`` in a subprocess, ready once its map answers."""
+    """``reloc serve --config FILE`` in a subprocess, ready once its map answers (within
+    ``ready_s``: a restart replaying hundreds of journal records needs minutes under load)."""
 
-    def __init__(self, config: Path, port: int, log: Path) -> None:
+    def __init__(self, config: Path, port: int, log: Path, ready_s: float = 60.0) -> None:
+        self.log_path = log
         self.log = open(log, "ab")
         env = {**os.environ, "PYTHONPATH": str(ROOT)}
         self.proc = subprocess.Popen(
@@ -71,11 +79,12 @@ class ServiceProcess:
             cwd=ROOT, stdout=self.log, stderr=self.log, env=env)
         self.port = port
         self.client: RelocClient | None = None
-        wait_until(self._ready, timeout=60, interval=0.2)
+        wait_until(self._ready, timeout=ready_s, interval=0.2)
 
     def _ready(self) -> bool:
         if self.proc.poll() is not None:
-            raise AssertionError(f"service exited with {self.proc.returncode}")
+            raise AssertionError(f"service exited with {self.proc.returncode}: "
+                                 f"{self.log_path.read_text()[-2000:]}")
         try:
             if self.client is None:  # a client-mode session needs the service listening
                 self.client = RelocClient(endpoint(self.port), map=MAP, timeout=30)
@@ -96,6 +105,10 @@ class ServiceProcess:
         return code
 
     def close(self) -> None:
+        """Kill the process if it still runs; close the client and the log."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
         if self.client is not None:
             self.client.close()
         self.log.close()
