@@ -13,7 +13,6 @@ from .protocol import PROTOCOL_VERSION, ErrorCode, ProtocolError
 if TYPE_CHECKING:
     from .client import (
         NoReplyError,
-        Outbox,
         RelocClient,
         RelocResult,
         RelocStatus,
@@ -21,6 +20,7 @@ if TYPE_CHECKING:
         ServiceError,
         ServiceGone,
     )
+    from .outbox import Outbox
 
 __version__ = "0.1.0"
 
@@ -32,6 +32,10 @@ __all__ = ["PROTOCOL_VERSION", "ErrorCode", "ProtocolError", "NoReplyError", "Re
 
 
 def __getattr__(name: str) -> Any:
+    if name == "Outbox":
+        from .outbox import Outbox
+
+        return Outbox
     if name in _CLIENT_NAMES:
         from . import client
 

@@ -280,7 +280,7 @@ def status(rt: MapRuntime, payload: bytes) -> bytes:
 
 def keyframe_infos(rt: MapRuntime, *, images: bool) -> list[tuple[int, bytes]]:
     """(keyframe id, KeyframeInfo bytes) of every keyframe, in the order they were added to
-    the map (a replica replays them in that order: see app._Bootstrap); with ``images``, each
+    the map (a replica replays them in that order: see bootstrap.Bootstrap); with ``images``, each
     carries its image as PNG."""
     state = rt.map_state()
     out = []

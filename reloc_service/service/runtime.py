@@ -263,7 +263,7 @@ class MapRuntime:
                 self.publish(EventKind.CAMERA_ADDED, id=camera_id)
                 return
             # Never rewritten: the keyframes already built keep the intrinsics they were built
-            # with (a replica copies them so, see app._Bootstrap); only new puts use these.
+            # with (a replica copies them so, see bootstrap.Bootstrap); only new puts use these.
             kept = sum(1 for c in self._kf_camera_ids.values() if c == camera_id)
             log.warning("map %s: camera %s changed; %d keyframes built with it keep their "
                         "intrinsics", self.name, camera_id, kept)
