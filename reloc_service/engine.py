@@ -153,9 +153,8 @@ class _Live:
 class Engine:
     """Map, builder and relocalizers behind one API (see module docstring)."""
 
-    def __init__(self, conf: EngineConf | None = None, *, evaluation: bool = False) -> None:
+    def __init__(self, conf: EngineConf | None = None) -> None:
         self.conf = conf or EngineConf()
-        self.evaluation = evaluation
         #: The map the builder writes (may be ahead of what relocalizers see: :meth:`status`).
         self.map = KeyframeMap()
         self._rw = ReadWriteLock()
@@ -280,8 +279,7 @@ class Engine:
 
     def _create(self, method: str, state: MapState) -> _Live:
         view = MapView(state)
-        relocalizer = create_relocalizer(method, view, options=self.conf.options,
-                                         evaluation=self.evaluation)
+        relocalizer = create_relocalizer(method, view, options=self.conf.options)
         return _Live(relocalizer, view)
 
     def _build_and_swap(self, method: str, *, progress: bool, only_if_missing: bool) -> None:
@@ -356,11 +354,11 @@ class Engine:
 
     @classmethod
     def load(cls, directory: str | Path, conf: EngineConf | None = None, *,
-             evaluation: bool = False, progress: bool = False) -> Engine:
+             progress: bool = False) -> Engine:
         """An engine over the map saved in ``directory``: each configured method gets every
         keyframe, then its saved models (or is trained when it has none)."""
         state, models_dir = load_map(directory)
-        engine = cls(conf, evaluation=evaluation)
+        engine = cls(conf)
         engine.map.replace_state(state)
         engine.builder.add_feature_kinds(engine.builder.conf.feature_kinds)
         with engine._rw.write():

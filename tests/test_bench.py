@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reloc_service.bench import scaling
-from reloc_service.bench.cli import add_arguments, headline_lines
-from reloc_service.bench.multi_bench import keyframe_grid, planar_scene, query_pose
-from reloc_service.bench.peers import PlainMap, PlainOpenCVPipeline
-from reloc_service.bench.samples import QuerySet
-from reloc_service.bench.suite import QUICK, SECTIONS, SuiteConf, failed_sections
 from reloc_service.geometry import pose_error
+from reloc_service.tools.bench import scaling
+from reloc_service.tools.bench.cli import add_arguments, headline_lines
+from reloc_service.tools.bench.multi_bench import keyframe_grid, planar_scene, query_pose
+from reloc_service.tools.bench.peers import PlainMap, PlainOpenCVPipeline
+from reloc_service.tools.bench.samples import QuerySet
+from reloc_service.tools.bench.suite import QUICK, SECTIONS, SuiteConf, failed_sections
 
 
 @pytest.fixture(scope="module")
@@ -124,7 +124,7 @@ TINY = dataclasses.replace(
 
 @pytest.mark.slow
 def test_tiny_suite_smoke(tmp_path, monkeypatch):
-    from reloc_service.bench import cli, suite
+    from reloc_service.tools.bench import cli, suite
 
     monkeypatch.setattr(suite, "QUICK", TINY)
     args = argparse.Namespace(quick=True, json=tmp_path / "bench.json",

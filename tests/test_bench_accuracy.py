@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reloc_service.bench import accuracy
-from reloc_service.bench.cli import add_arguments
-from reloc_service.bench.peers import PlainResult
 from reloc_service.cameras import FovCamera
 from reloc_service.map import KeyframeMap
+from reloc_service.tools.bench import accuracy
+from reloc_service.tools.bench.cli import add_arguments
+from reloc_service.tools.bench.peers import PlainResult
 
 TINY_SCALE = 0.25
 CELL = re.compile(r"^\d+% / \d+% / \d+% / [\d.]+ ms$")
@@ -30,7 +30,7 @@ def expected_columns() -> list[str]:
 
 @pytest.fixture(scope="module")
 def tiny_desk(tmp_path_factory) -> Path:
-    from reloc_service.synth import render_dataset
+    from reloc_service.tools.synth import render_dataset
 
     return render_dataset("desk", tmp_path_factory.mktemp("acc") / "tiny_desk", seed=0,
                           scale=TINY_SCALE, workers=1, progress=False)
@@ -55,7 +55,7 @@ def check_result(r: dict) -> None:
 def test_cli_accuracy_section(tmp_path, monkeypatch, capsys):
     """``--only accuracy --preset desk``: the preset rendered into the workdir (at the tiny
     scale for the test) and scored; JSON, Markdown and the printed table agree."""
-    from reloc_service.bench import cli
+    from reloc_service.tools.bench import cli
 
     conf_from_args = accuracy.conf_from_args
     monkeypatch.setattr(accuracy, "conf_from_args", lambda **kw: dataclasses.replace(
@@ -113,7 +113,7 @@ def test_cli_accuracy_section(tmp_path, monkeypatch, capsys):
 
 def test_scores_equal_reloc_eval(tiny_desk):
     """The map and each method's figures are those ``reloc eval`` reports."""
-    from reloc_service.eval.evaluate import evaluate
+    from reloc_service.tools.eval.evaluate import evaluate
 
     record = accuracy.score_dataset(tiny_desk, ["sbi+p3p"], show_progress=False)
     ev = evaluate(tiny_desk, ["sbi+p3p"], progress=False)
@@ -171,7 +171,7 @@ def test_absent_real_folder_is_a_note_not_a_failure(tmp_path):
 def test_failures_are_recorded_and_the_rest_runs(tmp_path, monkeypatch, tiny_desk):
     """A dataset that does not load, and a method that raises on a query: both recorded (and
     listed as failures), every other figure still measured."""
-    from reloc_service.eval import evaluate as ev
+    from reloc_service.tools.eval import evaluate as ev
 
     relocalize = ev.InProcessBackend.relocalize
 
@@ -210,7 +210,7 @@ def test_peer_is_not_applicable_to_cameras_opencv_cannot_take():
 
 
 def test_plain_result_scored_as_reloc_eval_scores_it():
-    from reloc_service.eval.evaluate import record_from_result
+    from reloc_service.tools.eval.evaluate import record_from_result
 
     gt = np.eye(4)
     est = np.eye(4)
@@ -230,7 +230,7 @@ def test_cell_format():
 
 
 def test_cli_accepts_accuracy_and_rejects_unknown_sections(capsys):
-    from reloc_service.bench import cli
+    from reloc_service.tools.bench import cli
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
@@ -247,8 +247,8 @@ def test_cli_accepts_accuracy_and_rejects_unknown_sections(capsys):
 def test_peer_matches_right_when_a_keyframe_has_one_descriptor():
     """OpenCV's knnMatch over a collection with a one-row train set returns garbage indices
     (seen on tum_fr1_rpy): such keyframes share the next set, and every match stays exact."""
-    from reloc_service.bench.peers import PlainMap, PlainOpenCVPipeline
     from reloc_service.cameras import PinholeCamera
+    from reloc_service.tools.bench.peers import PlainMap, PlainOpenCVPipeline
 
     rng = np.random.default_rng(0)
     sizes = [1, 40, 1, 1, 30, 2, 1]

@@ -8,9 +8,9 @@ import tomllib
 import numpy as np
 import pytest
 
-from reloc_service.bench.loopback import camera_client, loopback_service, toml_text
 from reloc_service.cameras import camera_from_dict
 from reloc_service.service.config import load_config
+from reloc_service.tools.bench.loopback import camera_client, loopback_service, toml_text
 
 
 def test_toml_text_round_trips_a_service_config_through_the_service_loader(tmp_path):

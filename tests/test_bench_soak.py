@@ -1,4 +1,4 @@
-"""The soak harness of ``reloc bench --only soak`` (:mod:`reloc_service.bench.soak`), run for
+"""The soak harness of ``reloc bench --only soak`` (:mod:`reloc_service.tools.bench.soak`), run for
 16 s with one kill -9 and the final SIGTERM restart on a real ``reloc serve`` process:
 the JSON has its shape and its counters agree with each other (the 10-minute run is
 ``reloc bench --only soak``, documented in docs/reliability.md)."""
@@ -10,8 +10,8 @@ import json
 
 import pytest
 
-from reloc_service.bench import soak
-from reloc_service.bench.cli import add_arguments, soak_conf
+from reloc_service.tools.bench import soak
+from reloc_service.tools.bench.cli import add_arguments, soak_conf
 
 
 @pytest.mark.slow  # 16 s of load, plus three service starts: about 40 s in all

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from reloc_service import features as feature_lib
-from reloc_service.bench.multi_bench import PlanarScene, keyframe_grid, planar_scene, query_pose
 from reloc_service.cameras import PinholeCamera
 from reloc_service.errors import ConfigError, NotTrainedError
 from reloc_service.frame import Frame, Keyframe
@@ -16,6 +15,7 @@ from reloc_service.relocalizers.base import Prior, Relocalizer, RelocResult
 from reloc_service.relocalizers.chain import ChainRelocalizer
 from reloc_service.relocalizers.factory import create_relocalizer
 from reloc_service.relocalizers.multi import MultiRelocalizer
+from reloc_service.tools.bench.multi_bench import PlanarScene, keyframe_grid, planar_scene, query_pose
 
 CAMERA = PinholeCamera(width=320, height=240, fx=250.0, fy=250.0, cx=159.5, cy=119.5)
 
@@ -34,8 +34,8 @@ def test_factory_builds_a_chain_of_steps(scene):
     assert chain.required_features == {"orb"}
     with pytest.raises(ConfigError, match="empty step"):
         create_relocalizer("sbi+p3p,,sbi+none", scene.map)
-    with pytest.raises(ConfigError, match="evaluation"):
-        create_relocalizer("sbi+p3p,gt+none", scene.map)
+    with pytest.raises(ConfigError, match="unknown place finder 'nope'"):
+        create_relocalizer("sbi+p3p,nope+none", scene.map)
 
 
 def test_first_step_answers(scene):

@@ -105,8 +105,8 @@ def test_eval_list_methods(capsys):
 
 
 @pytest.mark.parametrize("command,module", [("serve", "reloc_service.service.cli"),
-                                            ("bench", "reloc_service.bench.cli"),
-                                            ("demo", "reloc_service.service.demo"),
+                                            ("bench", "reloc_service.tools.bench.cli"),
+                                            ("demo", "reloc_service.tools.demo"),
                                             ("router", "reloc_service.service.router")])
 def test_delegated_commands_parse_or_say_they_are_missing(command, module, capsys, monkeypatch):
     from reloc_service.cli._delegate import import_optional

@@ -12,16 +12,16 @@ import numpy as np
 import pytest
 
 from reloc_service.cameras import EquidistantCamera, PinholeCamera, RadTanCamera
-from reloc_service.data.cli import add_dataset_arguments
-from reloc_service.data.conversion import (
+from reloc_service.errors import DatasetError
+from reloc_service.geometry import matrix_to_quat_xyzw, so3_exp
+from reloc_service.tools.data.cli import add_dataset_arguments
+from reloc_service.tools.data.conversion import (
     associate_nearest,
     interpolate_poses,
     select_frames,
 )
-from reloc_service.data.euroc import convert_euroc, parse_simple_yaml, read_euroc_sensor
-from reloc_service.data.tum import TUM_CAMERAS, convert_tum, tum_default_camera
-from reloc_service.errors import DatasetError
-from reloc_service.geometry import matrix_to_quat_xyzw, so3_exp
+from reloc_service.tools.data.euroc import convert_euroc, parse_simple_yaml, read_euroc_sensor
+from reloc_service.tools.data.tum import TUM_CAMERAS, convert_tum, tum_default_camera
 
 SMALL = PinholeCamera(32, 24, 28.0, 28.0, 15.5, 11.5)
 P0 = np.array([1.0, 2.0, 0.5])

@@ -19,16 +19,16 @@ from reloc_service.cameras import (
     RadTanCamera,
     camera_from_dict,
 )
-from reloc_service.data.cli import add_dataset_arguments, main_dataset
-from reloc_service.data.dataset import (
+from reloc_service.errors import DatasetError
+from reloc_service.geometry import se3_exp
+from reloc_service.tools.data.cli import add_dataset_arguments, main_dataset
+from reloc_service.tools.data.dataset import (
     Dataset,
     DatasetEntry,
     read_camera_json,
     read_dataset,
     write_dataset,
 )
-from reloc_service.errors import DatasetError
-from reloc_service.geometry import se3_exp
 
 CAMERAS = {
     "pinhole": PinholeCamera(32, 24, 30.0, 31.0, 15.5, 11.5),

@@ -44,8 +44,8 @@ class Probe(Relocalizer):
         self.loaded: list[int] | None = None
 
     @classmethod
-    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]],
-                     *, evaluation: bool = False) -> Probe:
+    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]]
+                     ) -> Probe:
         return cls(kmap, spec, options.get(spec, {}))
 
     @property

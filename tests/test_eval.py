@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 from reloc_service.cameras import PinholeCamera
-from reloc_service.data.dataset import DatasetEntry, write_dataset
 from reloc_service.errors import ConfigError, DatasetError
-from reloc_service.eval import evaluate as ev
-from reloc_service.eval import metrics, plots, report
 from reloc_service.geometry import look_at, pose_to_tum, se3_exp
 from reloc_service.relocalizers.base import RelocResult, RelocStatus
+from reloc_service.tools.data.dataset import DatasetEntry, write_dataset
+from reloc_service.tools.eval import evaluate as ev
+from reloc_service.tools.eval import metrics, plots, report
 
 CAMERA = PinholeCamera(width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5)
 
@@ -236,9 +236,9 @@ class FakeBackend:
 @pytest.fixture
 def fake_remote(monkeypatch):
     backend = FakeBackend()
-    module = types.ModuleType("reloc_service.eval.remote")
+    module = types.ModuleType("reloc_service.tools.eval.remote")
     module.make_remote_backend = lambda spec, **kw: backend  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "reloc_service.eval.remote", module)
+    monkeypatch.setitem(sys.modules, "reloc_service.tools.eval.remote", module)
     return backend
 
 
@@ -272,7 +272,7 @@ def test_evaluate_errors(tmp_path, fake_remote):
 
 
 def test_remote_without_remote_module_is_a_clear_error(tmp_path, monkeypatch):
-    monkeypatch.setitem(sys.modules, "reloc_service.eval.remote", None)  # as if not installed
+    monkeypatch.setitem(sys.modules, "reloc_service.tools.eval.remote", None)  # as if not installed
     root = _tiny_dataset(tmp_path / "toy")
     with pytest.raises(ConfigError, match="remote evaluation is not available"):
         ev.evaluate(root, "a", progress=False, remote=ev.RemoteSpec("tcp/x:1", "m"))
@@ -283,7 +283,7 @@ def test_remote_without_remote_module_is_a_clear_error(tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def small_desk(tmp_path_factory) -> Path:
     """``reloc synth --preset desk --scale 0.25`` (160x120, 10 map + 10 queries, with depth)."""
-    synth = pytest.importorskip("reloc_service.synth")
+    synth = pytest.importorskip("reloc_service.tools.synth")
     pytest.importorskip("reloc_service.engine")
     root = tmp_path_factory.mktemp("eval") / "desk"
     synth.render_dataset("desk", root, seed=0, workers=1, progress=False, scale=0.25)

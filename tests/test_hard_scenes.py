@@ -4,14 +4,14 @@ the recall and wrong-pose targets of the real-imagery issue. Slow: renders ~150 
 
 import pytest
 
-from reloc_service.eval.evaluate import evaluate
 from reloc_service.relocalizers.factory import DEFAULT_METHOD
+from reloc_service.tools.eval.evaluate import evaluate
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("preset", ["room-hard", "desk-hard"])
 def test_degraded_queries_mostly_relocalized_and_none_wrong(preset, tmp_path_factory):
-    from reloc_service.synth import render_dataset
+    from reloc_service.tools.synth import render_dataset
 
     root = render_dataset(preset, tmp_path_factory.mktemp(preset), seed=0, workers=2,
                           progress=False)

@@ -253,8 +253,8 @@ def test_landmark_errors_measure_a_known_offset(synthetic_scene, synthetic_map):
 @pytest.mark.slow
 def test_room_landmarks_within_a_centimetre(tmp_path_factory):
     """The issue's accuracy target on the photoreal ``room`` preset (renders ~150 frames)."""
-    from reloc_service.data.dataset import read_dataset
-    from reloc_service.synth import render_dataset
+    from reloc_service.tools.data.dataset import read_dataset
+    from reloc_service.tools.synth import render_dataset
 
     root = render_dataset("room", tmp_path_factory.mktemp("room"), seed=0, workers=1,
                           progress=False)

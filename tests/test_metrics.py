@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from reloc_service.eval import metrics
+from reloc_service.tools.eval import metrics
 
 NAN = math.nan
 # Six queries: four returned, two not (their errors are NaN).

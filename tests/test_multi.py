@@ -3,19 +3,15 @@ finder, end to end on a rendered textured plane."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from reloc_service.bench.multi_bench import (
-    PlanarScene,
-    downward_pose,
-    keyframe_grid,
-    planar_scene,
-    query_pose,
-)
 from reloc_service.cameras import PinholeCamera
 from reloc_service.errors import ConfigError, NotTrainedError
 from reloc_service.frame import Frame, Keyframe
@@ -28,6 +24,15 @@ from reloc_service.pose.none import zncc
 from reloc_service.relocalizers.base import Prior, RelocStatus
 from reloc_service.relocalizers.factory import create_relocalizer
 from reloc_service.relocalizers.multi import MultiRelocalizer
+from reloc_service.tools.bench.multi_bench import (
+    PlanarScene,
+    downward_pose,
+    keyframe_grid,
+    planar_scene,
+    query_pose,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
 
 CAMERA = PinholeCamera(width=320, height=240, fx=250.0, fy=250.0, cx=159.5, cy=119.5)
 
@@ -266,10 +271,31 @@ def test_zncc():
     assert abs(zncc(a, rng.normal(size=(30, 40)))) < 0.1
 
 
-def test_gt_place_finder_ranks_by_true_distance_and_is_evaluation_only(scene):
-    with pytest.raises(ConfigError, match="evaluation"):
-        create_relocalizer("gt+p3p", scene.map)
-    reloc = create_relocalizer("gt+none", scene.map, evaluation=True)
+def test_gt_place_finder_exists_only_where_the_evaluation_tools_are_loaded():
+    code = ("from reloc_service.map import KeyframeMap\n"
+            "from reloc_service.relocalizers import create_relocalizer\n"
+            "try:\n    create_relocalizer('gt+p3p', KeyframeMap())\n"
+            "except Exception as exc:\n    print(type(exc).__name__, exc)\n"
+            "import reloc_service.tools.eval.evaluate\n"
+            "print(create_relocalizer('gt+p3p', KeyframeMap()).method)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=ROOT).stdout.splitlines()
+    assert out[0].startswith("ConfigError unknown place finder 'gt'"), out
+    assert out[1] == "gt+p3p"
+
+
+def test_the_service_never_serves_the_gt_place_finder():
+    import reloc_service.tools.eval.gt  # noqa: F401 (registers gt in this process)
+    from reloc_service.service.config import parse_config
+
+    with pytest.raises(ConfigError, match="evaluation only"):
+        parse_config({"service": {"methods": ["sbi+p3p", "gt+p3p"], "default_method": "sbi+p3p"}})
+
+
+def test_gt_place_finder_ranks_by_true_distance(scene):
+    import reloc_service.tools.eval.gt  # noqa: F401 (registers gt in this process)
+
+    reloc = create_relocalizer("gt+none", scene.map)
     state = scene.map.snapshot()
     gt = query_pose(1)
     query = Frame(scene.render(gt), CAMERA, gt_world_from_cam=gt)
@@ -280,13 +306,15 @@ def test_gt_place_finder_ranks_by_true_distance_and_is_evaluation_only(scene):
     assert {c.keyframe_id for c in reloc.place.find_places(query, 12, allowed={0, 3})} == {0, 3}
     with pytest.raises(ConfigError, match="ground-truth"):
         reloc.relocalize(Frame(scene.render(gt), CAMERA))
-    result = create_relocalizer("gt+p3p", scene.map, evaluation=True).relocalize(query)
+    result = create_relocalizer("gt+p3p", scene.map).relocalize(query)
     assert result.ok and pose_error(result.world_from_cam, gt)[0] < 0.01
 
 
 def test_gt_place_finder_follows_add_and_remove(scene):
     kmap = fresh_map(scene)
-    finder = create_place_finder({"name": "gt"}, kmap, evaluation=True)
+    import reloc_service.tools.eval.gt  # noqa: F401 (registers gt in this process)
+
+    finder = create_place_finder({"name": "gt"}, kmap)
     kf = kmap.snapshot().keyframe(4)
     query = Frame(kf.image.copy(), CAMERA, gt_world_from_cam=kf.world_from_cam)
     assert finder.find_places(query, 1)[0].keyframe_id == 4

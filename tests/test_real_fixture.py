@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reloc_service.eval.evaluate import evaluate
 from reloc_service.relocalizers.factory import DEFAULT_METHOD
+from reloc_service.tools.eval.evaluate import evaluate
 
 FIXTURE = Path(__file__).parent / "data" / "tum_fr1_rpy_mini"
 

@@ -294,7 +294,7 @@ def test_desk_scene_over_ros2(tmp_path_factory):
     each query image is relocalized through the Trigger service and comes back as
     PoseWithCovarianceStamped within 5 cm / 5 deg of the ground truth (about 15 s, 8 of them
     rendering the 640x480 scene)."""
-    from reloc_service.synth import render_dataset
+    from reloc_service.tools.synth import render_dataset
 
     root = render_dataset("desk", tmp_path_factory.mktemp("ros2") / "desk", seed=0, workers=1,
                           progress=False)

@@ -17,9 +17,9 @@ import pytest
 from service_support import endpoint, free_port, service_conf
 
 from reloc_service.cli.main import main as reloc_main
-from reloc_service.data.dataset import DatasetEntry, write_dataset
-from reloc_service.eval.evaluate import RemoteSpec, evaluate
 from reloc_service.service.app import Service
+from reloc_service.tools.data.dataset import DatasetEntry, write_dataset
+from reloc_service.tools.eval.evaluate import RemoteSpec, evaluate
 
 METHOD = "sbi+p3p"
 

@@ -14,19 +14,19 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 from reloc_service.cameras import Camera, PinholeCamera
-from reloc_service.data.dataset import DatasetEntry, read_dataset
 from reloc_service.errors import ConfigError, DatasetError
 from reloc_service.geometry import check_pose, invert, transform_points
-from reloc_service.synth import PRESETS, add_synth_arguments, main_synth, render_dataset
-from reloc_service.synth.presets import get_preset
-from reloc_service.synth.renderer import (
+from reloc_service.tools.data.dataset import DatasetEntry, read_dataset
+from reloc_service.tools.synth import PRESETS, add_synth_arguments, main_synth, render_dataset
+from reloc_service.tools.synth.presets import get_preset
+from reloc_service.tools.synth.renderer import (
     cast_rays,
     draw_nuisance,
     make_ray_grid,
     motion_blur,
     render_frame,
 )
-from reloc_service.synth.scene import (
+from reloc_service.tools.synth.scene import (
     DESK_FURNITURE,
     ROOM_FURNITURE,
     ROOM_SIZE,
@@ -36,7 +36,7 @@ from reloc_service.synth.scene import (
     build_scene,
     facing_quad,
 )
-from reloc_service.synth.trajectories import make_trajectories
+from reloc_service.tools.synth.trajectories import make_trajectories
 
 SCALE = 0.25  # 160 x 120 images: fast, still enough texture for photometric checks
 SMALL_DESK = dataclasses.replace(PRESETS["desk"], n_map=3, n_query=2)

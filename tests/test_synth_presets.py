@@ -12,14 +12,14 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 from reloc_service.cameras import Camera
-from reloc_service.data.dataset import DatasetEntry, read_dataset
 from reloc_service.geometry import invert, rotation_angle, transform_points
-from reloc_service.synth import PRESETS, render_dataset
-from reloc_service.synth.depth_sensor import sensor_depth
-from reloc_service.synth.presets import STEREO_BASELINE_M, DepthSensor
-from reloc_service.synth.renderer import render_frame
-from reloc_service.synth.scene import build_scene
-from reloc_service.synth.trajectories import make_trajectories
+from reloc_service.tools.data.dataset import DatasetEntry, read_dataset
+from reloc_service.tools.synth import PRESETS, render_dataset
+from reloc_service.tools.synth.depth_sensor import sensor_depth
+from reloc_service.tools.synth.presets import STEREO_BASELINE_M, DepthSensor
+from reloc_service.tools.synth.renderer import render_frame
+from reloc_service.tools.synth.scene import build_scene
+from reloc_service.tools.synth.trajectories import make_trajectories
 
 SMALL_STEREO = dataclasses.replace(PRESETS["stereo"], n_map=2, n_query=1)
 SMALL_RGBD = dataclasses.replace(PRESETS["rgbd"], n_map=2, n_query=1)
@@ -213,7 +213,7 @@ def test_rotation_views_see_walls_15_to_4_m_away() -> None:
 def test_rig_and_sensor_presets_are_listed(capsys: pytest.CaptureFixture[str]) -> None:
     import argparse
 
-    from reloc_service.synth import add_synth_arguments, main_synth
+    from reloc_service.tools.synth import add_synth_arguments, main_synth
 
     parser = argparse.ArgumentParser()
     add_synth_arguments(parser)

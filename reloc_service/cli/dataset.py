@@ -1,6 +1,6 @@
 """``reloc dataset``: convert (TUM RGB-D, EuRoC) and check datasets.
 
-The glue is :mod:`reloc_service.data.cli`, imported only when the subcommand is chosen.
+The glue is :mod:`reloc_service.tools.data.cli`, imported only when the subcommand is chosen.
 """
 
 from __future__ import annotations
@@ -11,12 +11,12 @@ HELP = "convert (TUM RGB-D, EuRoC) and check reloc datasets"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..data.cli import add_dataset_arguments
+    from ..tools.data.cli import add_dataset_arguments
 
     add_dataset_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..data.cli import main_dataset
+    from ..tools.data.cli import main_dataset
 
     return main_dataset(args)

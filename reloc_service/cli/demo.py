@@ -1,6 +1,6 @@
 """``reloc demo``: render desk, serve it over Zenoh and relocalize every query.
 
-Implemented in ``reloc_service.service.demo``, imported only when the subcommand is chosen.
+Implemented in ``reloc_service.tools.demo``, imported only when the subcommand is chosen.
 """
 
 from __future__ import annotations
@@ -9,6 +9,6 @@ from ._delegate import Delegate
 
 HELP = "render desk, serve it over Zenoh and relocalize every query"
 
-_delegate = Delegate("demo", "reloc_service.service.demo")
+_delegate = Delegate("demo", "reloc_service.tools.demo")
 add_arguments = _delegate.add_arguments
 run = _delegate.run

@@ -1,4 +1,4 @@
-"""``reloc eval``: parse, call :func:`reloc_service.eval.evaluate.evaluate`, print the table,
+"""``reloc eval``: parse, call :func:`reloc_service.tools.eval.evaluate.evaluate`, print the table,
 write the JSON and the plots. Nothing heavy is imported until the command runs."""
 
 from __future__ import annotations
@@ -114,8 +114,8 @@ def load_options(path: str | Path) -> dict[str, Any]:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from ..eval import report
-    from ..eval.evaluate import RemoteSpec, evaluate
+    from ..tools.eval import report
+    from ..tools.eval.evaluate import RemoteSpec, evaluate
 
     options = load_options(args.options) if args.options else None
     remote = RemoteSpec(args.remote, args.map_name) if args.remote else None
@@ -128,7 +128,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if args.json:
         print(f"json: {result.write_json(args.json)}")
     if args.plots:
-        from ..eval.plots import plot_result
+        from ..tools.eval.plots import plot_result
 
         for path in plot_result(result, args.plots):
             print(f"plot: {path}")
@@ -136,7 +136,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _print_failures(result: Any) -> None:
-    from ..eval.report import format_failures
+    from ..tools.eval.report import format_failures
 
     for m in result.methods:
         text = format_failures(m, limit=3)

@@ -1,6 +1,6 @@
 """``reloc synth``: render a photoreal synthetic reloc dataset.
 
-The glue (``add_synth_arguments``, ``main_synth``) is in ``reloc_service.synth.cli``, imported
+The glue (``add_synth_arguments``, ``main_synth``) is in ``reloc_service.tools.synth.cli``, imported
 only when the subcommand is chosen.
 """
 
@@ -12,7 +12,7 @@ import sys
 from ._delegate import UNAVAILABLE, accept_any_arguments, import_optional
 
 HELP = "render a photoreal synthetic dataset with exact ground truth"
-GLUE = "reloc_service.synth.cli"
+GLUE = "reloc_service.tools.synth.cli"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

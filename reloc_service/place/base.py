@@ -26,7 +26,8 @@ class PlaceFinder(abc.ABC):
     """Ranks map keyframes by appearance similarity to a query frame (thesis 4, figure 4.2)."""
 
     name: ClassVar[str]
-    #: Only for evaluation (needs ground truth); refused by ``create_place_finder`` otherwise.
+    #: Needs ground truth: registered only by the evaluation tools (``tools.eval.gt``), and
+    #: refused by the service's configuration even where those tools are loaded.
     evaluation_only: ClassVar[bool] = False
     #: Feature kinds keyframes must carry (an instance may set its own from its conf).
     required_features: frozenset[str] = frozenset()
@@ -68,14 +69,9 @@ class PlaceFinder(abc.ABC):
         """Restore what :meth:`state` returned."""
 
 
-def create_place_finder(options: dict[str, Any], kmap: KeyframeMap, *, evaluation: bool = False
-                        ) -> PlaceFinder:
+def create_place_finder(options: dict[str, Any], kmap: KeyframeMap) -> PlaceFinder:
     """``create_place_finder({"name": "sbi", **options}, kmap)``."""
-    from ..errors import ConfigError
-
     opts = dict(options)
     name = opts.pop("name", None)
     cls = PLACE_FINDERS.lookup(str(name))
-    if cls.evaluation_only and not evaluation:
-        raise ConfigError(f"place finder {name!r} uses ground truth and is for evaluation only")
     return cls(kmap, make_conf(cls.Conf, opts, owner=f"place finder {name}"))

@@ -3,18 +3,14 @@
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 from ..errors import ConfigError, NotTrainedError
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap
-from .base import Prior, Relocalizer, RelocResult, register
-from .factory import create_relocalizer
+from .base import Prior, Relocalizer, RelocResult
 
 
-@register("chain")
 class ChainRelocalizer(Relocalizer):
     """Asks each step in turn; the first verified answer wins (its ``method`` names the step),
     with the timings of every step tried summed. Features a step extracts are cached on the
@@ -25,16 +21,6 @@ class ChainRelocalizer(Relocalizer):
         if not steps:
             raise ConfigError("chain: expected at least one relocalizer")
         self.steps = steps
-
-    @classmethod
-    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]],
-                     *, evaluation: bool = False) -> ChainRelocalizer:
-        """Build each comma-separated step of ``spec`` with the factory."""
-        parts = [p.strip() for p in spec.split(",")]
-        if not all(parts):
-            raise ConfigError(f"chain: empty step in {spec!r}; expected e.g. 'bow+p3p,sbi+esm'")
-        return cls(kmap, [create_relocalizer(p, kmap, options=options, evaluation=evaluation)
-                          for p in parts])
 
     @property
     def method(self) -> str:

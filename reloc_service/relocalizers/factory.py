@@ -3,22 +3,19 @@ relocalizer, e.g. ``"sbi+p3p"``) or a comma-separated fallback chain (``"bow+p3p
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Mapping
 from typing import Any
 
 from ..errors import ConfigError
 from ..map import KeyframeMap
-from .base import RELOCALIZERS, Relocalizer
 
-#: Modules whose import registers plugins (explicit list: no scanning, no entry points).
-PLUGIN_MODULES = (
-    "reloc_service.place.sbi", "reloc_service.place.gt", "reloc_service.place.bow",
-    "reloc_service.pose.none", "reloc_service.pose.esm", "reloc_service.pose.p3p",
-    "reloc_service.pose.fivept",
-    "reloc_service.relocalizers.multi", "reloc_service.relocalizers.chain",
-    "reloc_service.relocalizers.ferns",
-)
+# Importing a plugin module runs its ``@register``: the explicit list of what the core offers
+# (no scanning, no entry points). Tools add their own (``tools.eval.gt``) by importing them.
+from ..place import bow, sbi  # noqa: F401
+from ..pose import esm, fivept, none, p3p  # noqa: F401
+from . import ferns, multi  # noqa: F401
+from .base import RELOCALIZERS, Relocalizer
+from .chain import ChainRelocalizer
 
 Options = Mapping[str, Mapping[str, Any]]
 
@@ -29,31 +26,25 @@ Options = Mapping[str, Mapping[str, Any]]
 DEFAULT_METHOD = "bow+p3p,sbi+p3p"
 
 
-def load_plugins() -> None:
-    """Import every plugin module so its ``@register`` runs; missing ones are skipped."""
-    for name in PLUGIN_MODULES:
-        try:
-            importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name != name:
-                raise
-
-
-def create_relocalizer(spec: str, kmap: KeyframeMap, *, options: Options | None = None,
-                       evaluation: bool = False) -> Relocalizer:
+def create_relocalizer(spec: str, kmap: KeyframeMap, *, options: Options | None = None
+                       ) -> Relocalizer:
     """A relocalizer for ``spec`` over ``kmap``; ``options`` maps plugin names (``"sbi"``,
-    ``"p3p"``, ``"ferns"``, ``"multi"``, ``"verify"``, ...) to their option dicts."""
-    load_plugins()
+    ``"p3p"``, ``"ferns"``, ``"multi"``, ``"verify"``, ...) to their option dicts. A comma
+    makes a fallback chain of the steps it separates."""
     spec = spec.strip()
     if not spec:
         raise ConfigError("empty method; expected e.g. 'sbi+p3p', 'ferns' or 'bow+p3p,sbi+esm'")
-    kind = "chain" if "," in spec else "multi" if "+" in spec else spec
-    return RELOCALIZERS.lookup(kind).from_options(spec, kmap, options or {}, evaluation=evaluation)
+    if "," in spec:
+        steps = [step.strip() for step in spec.split(",")]
+        if not all(steps):
+            raise ConfigError(f"chain: empty step in {spec!r}; expected e.g. 'bow+p3p,sbi+esm'")
+        return ChainRelocalizer(kmap, [create_relocalizer(s, kmap, options=options) for s in steps])
+    kind = "multi" if "+" in spec else spec
+    return RELOCALIZERS.lookup(kind).from_options(spec, kmap, options or {})
 
 
 def list_methods() -> list[dict[str, Any]]:
     """Every selectable method with a one-line description and whether it is evaluation-only."""
-    load_plugins()
     from ..place.base import PLACE_FINDERS
     from ..pose.base import POSE_FINDERS
 

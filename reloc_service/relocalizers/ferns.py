@@ -185,8 +185,8 @@ class FernsRelocalizer(Relocalizer):
         self._ever_trained = False
 
     @classmethod
-    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]],
-                     *, evaluation: bool = False) -> FernsRelocalizer:
+    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]]
+                     ) -> FernsRelocalizer:
         """``options["ferns"]`` -> :class:`FernsConf`, ``options["verify"]`` ->
         :class:`VerifyConf`; the RANSAC settings of ``options["p3p"]`` (those of
         :class:`PnPConf`) are shared with the P3P pose finder."""

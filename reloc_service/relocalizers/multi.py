@@ -56,8 +56,8 @@ class MultiRelocalizer(Relocalizer):
         self.verify_conf = verify_conf or VerifyConf()
 
     @classmethod
-    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]],
-                     *, evaluation: bool = False) -> MultiRelocalizer:
+    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]]
+                     ) -> MultiRelocalizer:
         """Build ``"<place>+<pose>"``; ``options[name]`` configures each part, ``"multi"``
         this class and ``"verify"`` the verification."""
         parts = [p.strip() for p in spec.split("+")]
@@ -65,8 +65,7 @@ class MultiRelocalizer(Relocalizer):
             raise ConfigError(f"multi relocalizer: expected '<place>+<pose>' (e.g. 'sbi+p3p'), "
                               f"got {spec!r}")
         place_name, pose_name = parts
-        place = create_place_finder({**options.get(place_name, {}), "name": place_name}, kmap,
-                                    evaluation=evaluation)
+        place = create_place_finder({**options.get(place_name, {}), "name": place_name}, kmap)
         pose = create_pose_finder({**options.get(pose_name, {}), "name": pose_name})
         conf = make_conf(cls.Conf, options.get("multi"), owner="relocalizer multi")
         verify_conf = make_conf(VerifyConf, options.get("verify"), owner="verify")

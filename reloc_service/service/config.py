@@ -152,7 +152,21 @@ class ServiceSection:
         if self.default_method not in self.methods:
             raise ConfigError(f"service.default_method: {self.default_method!r} is not one of "
                               f"service.methods {list(self.methods)}")
+        for method in self.methods:
+            _check_servable(method)
         _check_names(self.prefix, self.instance)
+
+
+def _check_servable(method: str) -> None:
+    """A method whose place finder needs ground truth (``gt``, registered by the evaluation
+    tools when they are loaded in the same process) is never served."""
+    from ..place.base import PLACE_FINDERS
+
+    for step in method.split(","):
+        place = step.split("+")[0].strip() if "+" in step else ""
+        if place in PLACE_FINDERS and PLACE_FINDERS[place].evaluation_only:
+            raise ConfigError(f"service.methods: {method!r} uses the place finder {place!r}, "
+                              f"which needs ground truth and is for evaluation only")
 
 
 @dataclass(frozen=True)

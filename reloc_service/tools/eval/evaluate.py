@@ -1,0 +1,536 @@
+"""Evaluate relocalization methods on a reloc dataset: build the map from ``map.txt``, train,
+relocalize every query and score it against its ground truth (thesis chapter 5).
+
+:func:`evaluate` returns an :class:`EvalResult`; printing, JSON and plots are the callers'
+(``reloc eval`` formats it with :mod:`.report` and :mod:`.plots`). Where the work runs is a
+:class:`Backend`: :class:`InProcessBackend` (an :class:`~reloc_service.engine.Engine` in this
+process) or a remote one reached through the service (``reloc_service.tools.eval.remote``).
+"""
+
+from __future__ import annotations
+
+import enum
+import importlib
+import json
+import math
+import os
+import platform
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from ... import __version__
+from ...cameras import Camera
+from ...errors import ConfigError, DatasetError
+from ...frame import Frame
+from ...geometry import pose_error, pose_to_tum
+from ...progress import progress as progress_bar
+from ...relocalizers.base import RelocResult
+from ..data.dataset import Dataset, DatasetEntry, read_dataset
+from . import gt as _gt  # noqa: F401 (importing it registers the ground-truth place finder)
+from . import metrics
+
+Array = npt.NDArray[np.float64]
+
+#: Version of the dictionary written by :meth:`EvalResult.to_dict` (docs/eval_schema.md).
+SCHEMA_VERSION = 1
+
+#: Distributions whose versions are recorded with every run.
+_LIBRARIES = ("numpy", "scipy", "opencv-python-headless", "poselib", "eclipse-zenoh", "msgpack",
+              "scikit-image")
+
+
+class LandmarkSource(enum.Enum):
+    """Where the map's landmarks come from: ``auto`` lifts keypoints with the dataset's depth
+    where a keyframe has a depth map and triangulates the rest (what the service does with
+    keyframes that carry depth); ``triangulate`` ignores depth maps; ``depth`` requires one
+    for every keyframe."""
+
+    AUTO = "auto"
+    TRIANGULATE = "triangulate"
+    DEPTH = "depth"
+
+    def uses_depth(self) -> bool:
+        return self is not LandmarkSource.TRIANGULATE
+
+
+@dataclass(frozen=True)
+class RemoteSpec:
+    """Evaluate through a running service: Zenoh ``endpoint`` (e.g. ``tcp/127.0.0.1:7447``)
+    and the name of the map to upload into."""
+
+    endpoint: str
+    map_name: str
+    timeout_s: float = 30.0
+
+
+class Backend(Protocol):
+    """Where the map is built and the queries are answered (in-process or a remote service).
+
+    Keyframe ids are the rows of ``map.txt`` (0-based); results must name matched keyframes
+    by those ids."""
+
+    #: Human-readable description (``"in-process"``, ``"remote tcp/...:7447 map desk"``).
+    description: str
+
+    def add_keyframe(self, kf_id: int, image: npt.NDArray[np.uint8], camera: Camera,
+                     world_from_cam: Array, *, depth: npt.NDArray[np.float32] | None) -> None:
+        """Add one posed keyframe (and its landmarks) to the map."""
+
+    def train(self, *, progress: bool) -> None:
+        """Train every method's models on the whole map; return when done."""
+
+    def relocalize(self, image: npt.NDArray[np.uint8], camera: Camera, *, method: str,
+                   gt_world_from_cam: Array) -> RelocResult:
+        """Answer one query with ``method``; ``gt_world_from_cam`` is only for the
+        evaluation-only ``gt`` place finder."""
+
+    def map_counts(self) -> tuple[int, int]:
+        """(keyframes, landmarks) in the map."""
+
+    def landmark_errors_m(self, dataset: Dataset) -> Array | None:
+        """(L,) landmark position errors (metres) against ground truth, or None if unknown."""
+
+    def close(self) -> None:
+        """Release what the backend holds (sessions, threads)."""
+
+
+# -- results ---------------------------------------------------------------------------------
+
+@dataclass
+class QueryRecord:
+    """One query's outcome. Errors are None when no pose was returned; ``rank`` is the rank k
+    (1 = closest) of the first matched keyframe among the keyframes ordered by distance to the
+    query's ground-truth centre (thesis figure 3.2), None when the result names no keyframe.
+    Poses are ``world_from_cam`` as ``[tx, ty, tz, qx, qy, qz, qw]``."""
+
+    image_path: str
+    returned: bool
+    status: str
+    reason: str
+    method_used: str
+    t_err_m: float | None
+    r_err_deg: float | None
+    latency_ms: float
+    confidence: float
+    inliers: int
+    num_matches: int
+    reprojection_rms_px: float | None
+    matched_keyframe_ids: list[int]
+    rank: int | None
+    gt_world_from_cam: list[float]
+    est_world_from_cam: list[float] | None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class MethodSummary:
+    """Aggregates of one method over all queries (rates are fractions of all queries)."""
+
+    queries: int
+    relocalized: int
+    recall: dict[str, float]
+    median_t_err_m: float
+    median_r_err_deg: float
+    mean_t_err_m: float
+    wrong_rate: float
+    not_relocalized_rate: float
+    latency_p50_ms: float
+    latency_p99_ms: float
+    latency_mean_ms: float
+    rank_histogram: dict[int, int]
+
+
+@dataclass
+class MethodResult:
+    """A method's per-query records and their summary."""
+
+    method: str
+    summary: MethodSummary
+    queries: list[QueryRecord]
+
+
+@dataclass
+class MapInfo:
+    """The map every method was evaluated on, and what it cost to build and train."""
+
+    keyframes: int
+    landmarks: int
+    landmark_source: str
+    build_time_s: float
+    train_time_s: float
+    median_landmark_error_m: float | None
+    keyframe_ids: list[int]
+    keyframe_positions_world: list[list[float]]
+    #: Landmarks observed by each keyframe (keyframe_ids order); None when the backend cannot
+    #: tell (remote maps).
+    landmarks_per_keyframe: list[int] | None = None
+
+
+@dataclass
+class EvalResult:
+    """Everything one ``reloc eval`` run measured; :meth:`to_dict` is the JSON schema."""
+
+    dataset: dict[str, Any]
+    map: MapInfo
+    methods: list[MethodResult]
+    machine: dict[str, Any]
+    backend: str
+    options: dict[str, Any]
+    created_utc: str
+    schema_version: int = SCHEMA_VERSION
+
+    def method(self, name: str) -> MethodResult:
+        """The result of method ``name``; KeyError naming the evaluated ones otherwise."""
+        for m in self.methods:
+            if m.method == name:
+                return m
+        raise KeyError(f"method {name!r} was not evaluated; evaluated: "
+                       f"{[m.method for m in self.methods]}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready dict (NaN and infinities become None), schema ``schema_version``."""
+        d = asdict(self)
+        d = {"schema_version": d.pop("schema_version"), **d}
+        for m in d["methods"]:
+            m["summary"]["rank_histogram"] = {str(k): v for k, v in
+                                              m["summary"]["rank_histogram"].items()}
+        return _json_safe(d)
+
+    def write_json(self, path: str | Path) -> Path:
+        """Write :meth:`to_dict` to ``path`` (parents created); returns the path."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_dict(), indent=1, allow_nan=False) + "\n",
+                        encoding="utf-8")
+        return path
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> EvalResult:
+        """Rebuild a result from :meth:`to_dict` output (None numbers read back as NaN)."""
+        version = d.get("schema_version")
+        if version != SCHEMA_VERSION:
+            raise ConfigError(f"eval result schema_version {version!r}; this reloc reads "
+                              f"version {SCHEMA_VERSION}")
+        methods = [MethodResult(m["method"], _summary_from_dict(m["summary"]),
+                                [QueryRecord(**q) for q in m["queries"]]) for m in d["methods"]]
+        return cls(dataset=dict(d["dataset"]), map=MapInfo(**d["map"]), methods=methods,
+                   machine=dict(d["machine"]), backend=d["backend"], options=dict(d["options"]),
+                   created_utc=d["created_utc"], schema_version=version)
+
+
+def _summary_from_dict(s: Mapping[str, Any]) -> MethodSummary:
+    s = {k: (math.nan if v is None else v) for k, v in s.items()}
+    s["recall"] = {k: (math.nan if v is None else v) for k, v in s["recall"].items()}
+    s["rank_histogram"] = {int(k): int(v) for k, v in s["rank_histogram"].items()}
+    return MethodSummary(**s)
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, float | np.floating):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+# -- the evaluation --------------------------------------------------------------------------
+
+def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
+             options: Mapping[str, Any] | None = None,
+             landmarks: LandmarkSource | str = LandmarkSource.AUTO,
+             progress: bool = True, remote: RemoteSpec | None = None) -> EvalResult:
+    """Build the map of ``dataset_root``, train, and score every query with each method.
+
+    Args:
+        dataset_root: a reloc dataset v1 folder with ``queries.txt``.
+        method: a method string (``"gt+none"``, ``"sbi+p3p"``, a fallback chain
+            ``"bow+p3p,sbi+esm"``) or several, evaluated on one shared map.
+        options: plugin name -> option dict (as in the service config); ``"mapping"`` holds
+            the map-building options.
+        landmarks: ``auto`` (default: depth where the dataset gives it, triangulation
+            elsewhere), ``triangulate`` or ``depth`` (see :class:`LandmarkSource`).
+        progress: draw progress bars on stderr.
+        remote: run through a service instead of in-process.
+    """
+    methods = _method_list(method)
+    source = LandmarkSource(landmarks)
+    dataset = read_dataset(dataset_root)
+    _check_dataset(dataset, source)
+    backend = _make_backend(methods, dict(options or {}), source, remote)
+    try:
+        build_s = _build_map(backend, dataset, source, progress)
+        train_s = _timed(lambda: backend.train(progress=progress))
+        results = [_evaluate_method(backend, dataset, m, progress) for m in methods]
+        map_info = _map_info(backend, dataset, source, build_s, train_s)
+    finally:
+        backend.close()
+    return EvalResult(dataset=_dataset_info(dataset), map=map_info, methods=results,
+                      machine=machine_info(), backend=backend.description,
+                      options=_json_safe(dict(options or {})),
+                      created_utc=datetime.now(UTC).isoformat(timespec="seconds"))
+
+
+def _method_list(method: str | Sequence[str]) -> list[str]:
+    methods = [method] if isinstance(method, str) else list(method)
+    methods = [m.strip() for m in methods]
+    if not methods or not all(methods):
+        raise ConfigError(f"expected at least one non-empty method (e.g. 'gt+none'), got "
+                          f"{method!r}")
+    duplicates = sorted({m for m in methods if methods.count(m) > 1})
+    if duplicates:
+        raise ConfigError(f"method(s) {duplicates} given more than once")
+    return methods
+
+
+def _check_dataset(dataset: Dataset, source: LandmarkSource) -> None:
+    if not dataset.query_entries:
+        raise DatasetError(f"{dataset.root}: no queries to evaluate; expected a queries.txt "
+                           "with ground-truth poses")
+    if not dataset.map_entries:
+        raise DatasetError(f"{dataset.root}: map.txt lists no keyframe")
+    if source is LandmarkSource.DEPTH:
+        missing = [e.image_path for e in dataset.map_entries if e.image_path not in dataset.depth]
+        if missing:
+            raise DatasetError(f"{dataset.root}: --landmarks depth needs a depth map for every "
+                               f"map image; {len(missing)} have none (first: {missing[0]!r}) "
+                               "in depth.txt")
+
+
+def _make_backend(methods: list[str], options: dict[str, Any], source: LandmarkSource,
+                  remote: RemoteSpec | None) -> Backend:
+    if remote is None:
+        return InProcessBackend(methods, options, source)
+    try:
+        module = importlib.import_module("reloc_service.tools.eval.remote")
+    except ModuleNotFoundError as exc:
+        if exc.name != "reloc_service.tools.eval.remote":
+            raise
+        raise ConfigError("remote evaluation is not available in this installation "
+                          "(reloc_service.tools.eval.remote is missing)") from None
+    return module.make_remote_backend(remote, methods=methods, options=options,
+                                      landmark_source=source)
+
+
+def _timed(fn: Any) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
+def _build_map(backend: Backend, dataset: Dataset, source: LandmarkSource,
+               progress: bool) -> float:
+    """Add every map.txt keyframe (id = its row); returns the time spent in the backend."""
+    spent = 0.0
+    entries: Iterable[tuple[int, DatasetEntry]] = enumerate(dataset.map_entries)
+    if progress:
+        entries = progress_bar(entries, total=len(dataset.map_entries), desc="map")
+    for kf_id, entry in entries:
+        image = dataset.load_image(entry)
+        depth = dataset.load_depth(entry) if source.uses_depth() else None
+        start = time.perf_counter()
+        backend.add_keyframe(kf_id, image, dataset.camera(entry), entry.world_from_cam,
+                             depth=depth)
+        spent += time.perf_counter() - start
+    return spent
+
+
+def _evaluate_method(backend: Backend, dataset: Dataset, method: str,
+                     progress: bool) -> MethodResult:
+    entries: Iterable[DatasetEntry] = dataset.query_entries
+    if progress:
+        entries = progress_bar(entries, total=len(dataset.query_entries), desc=method)
+    raw = [_query(backend, dataset, entry, method) for entry in entries]
+    records = _with_ranks(raw, dataset)
+    return MethodResult(method, summarize(records), records)
+
+
+def _query(backend: Backend, dataset: Dataset, entry: DatasetEntry, method: str
+           ) -> QueryRecord:
+    image = dataset.load_image(entry)
+    gt = np.array(entry.world_from_cam)
+    start = time.perf_counter()
+    result = backend.relocalize(image, dataset.camera(entry), method=method,
+                                gt_world_from_cam=gt)
+    latency_ms = (time.perf_counter() - start) * 1e3
+    return record_from_result(entry.image_path, result, gt, latency_ms)
+
+
+def record_from_result(image_path: str, result: RelocResult, gt_world_from_cam: Array,
+                       latency_ms: float) -> QueryRecord:
+    """Score one :class:`RelocResult` against the ground truth (rank left None)."""
+    est_pose = result.world_from_cam if result.ok else None
+    returned = est_pose is not None
+    t_err = r_err = None
+    est = None
+    if est_pose is not None:
+        dt, dr = pose_error(est_pose, gt_world_from_cam)
+        t_err, r_err = dt, math.degrees(dr)
+        est = pose_to_tum(est_pose).tolist()
+    return QueryRecord(
+        image_path=image_path, returned=returned, status=result.status.value,
+        reason=result.reason, method_used=result.method, t_err_m=t_err, r_err_deg=r_err,
+        latency_ms=latency_ms, confidence=float(result.confidence), inliers=int(result.inliers),
+        num_matches=int(result.num_matches),
+        reprojection_rms_px=(None if result.reprojection_rms_px is None
+                             else float(result.reprojection_rms_px)),
+        matched_keyframe_ids=[int(k) for k in result.matched_keyframe_ids], rank=None,
+        gt_world_from_cam=pose_to_tum(gt_world_from_cam).tolist(), est_world_from_cam=est,
+        timings_ms={k: float(v) * 1e3 for k, v in result.timings.items()})
+
+
+def _with_ranks(records: list[QueryRecord], dataset: Dataset) -> list[QueryRecord]:
+    """Fill ``rank`` for records that name a keyframe (keyframe id = map.txt row)."""
+    n_kf = len(dataset.map_entries)
+    kf_positions = np.array([e.world_from_cam[:3, 3] for e in dataset.map_entries])
+    first = [r.matched_keyframe_ids[0] if r.matched_keyframe_ids else -1 for r in records]
+    chosen = np.array([k if 0 <= k < n_kf else -1 for k in first], dtype=np.int64)
+    query_positions = np.array([r.gt_world_from_cam[:3] for r in records])
+    ranks = metrics.closest_ranks(query_positions, kf_positions, chosen)
+    for record, rank, c in zip(records, ranks, chosen, strict=True):
+        record.rank = int(rank) if c >= 0 else None
+    return records
+
+
+def summarize(records: Sequence[QueryRecord]) -> MethodSummary:
+    """Aggregate per-query records (see :mod:`.metrics` for the definitions)."""
+    t = np.array([math.nan if r.t_err_m is None else r.t_err_m for r in records])
+    rot = np.array([math.nan if r.r_err_deg is None else r.r_err_deg for r in records])
+    ok = np.array([r.returned for r in records], dtype=bool)
+    latency = np.array([r.latency_ms for r in records])
+    med_t, med_r = metrics.median_errors(t, rot, ok)
+    ranks = [r.rank for r in records if r.rank is not None]
+    return MethodSummary(
+        queries=len(records), relocalized=int(ok.sum()), recall=metrics.recalls(t, rot, ok),
+        median_t_err_m=med_t, median_r_err_deg=med_r,
+        mean_t_err_m=float(t[ok].mean()) if ok.any() else math.nan,
+        wrong_rate=metrics.wrong_rate(t, rot, ok),
+        not_relocalized_rate=metrics.not_relocalized_rate(ok),
+        latency_p50_ms=metrics.percentile(latency, 50),
+        latency_p99_ms=metrics.percentile(latency, 99),
+        latency_mean_ms=float(latency.mean()) if len(latency) else math.nan,
+        rank_histogram=metrics.rank_histogram(ranks))
+
+
+def _map_info(backend: Backend, dataset: Dataset, source: LandmarkSource, build_s: float,
+              train_s: float) -> MapInfo:
+    n_kf, n_lm = backend.map_counts()
+    per_keyframe = getattr(backend, "landmarks_per_keyframe", None)
+    errors = (backend.landmark_errors_m(dataset) if dataset.depth or dataset.truth_depth
+              else None)
+    median = metrics.percentile(errors, 50) if errors is not None else math.nan
+    return MapInfo(keyframes=n_kf, landmarks=n_lm, landmark_source=source.value,
+                   build_time_s=build_s, train_time_s=train_s,
+                   median_landmark_error_m=None if math.isnan(median) else median,
+                   keyframe_ids=list(range(len(dataset.map_entries))),
+                   keyframe_positions_world=[e.world_from_cam[:3, 3].tolist()
+                                             for e in dataset.map_entries],
+                   landmarks_per_keyframe=None if per_keyframe is None else per_keyframe())
+
+
+def _dataset_info(dataset: Dataset) -> dict[str, Any]:
+    root = Path(dataset.root).resolve()
+    return {"root": str(root), "name": root.name, "map_frames": len(dataset.map_entries),
+            "query_frames": len(dataset.query_entries),
+            "depth_frames": len(dataset.depth),
+            "cameras": {cid: cam.to_dict() for cid, cam in dataset.cameras.items()}}
+
+
+def machine_info() -> dict[str, Any]:
+    """CPU model, core count, OS, Python and library versions, so runs can be compared."""
+    from importlib import metadata
+
+    versions: dict[str, str | None] = {"reloc": __version__}
+    for name in _LIBRARIES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+    return {"cpu": _cpu_model(), "cores": os.cpu_count(), "usable_cores": usable,
+            "platform": platform.platform(), "python": platform.python_version(),
+            "libraries": versions}
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+# -- in-process backend ----------------------------------------------------------------------
+
+class InProcessBackend:
+    """An :class:`~reloc_service.engine.Engine` in this process, created in evaluation mode
+    (so the ground-truth ``gt`` place finder is allowed)."""
+
+    description = "in-process"
+
+    def __init__(self, methods: Sequence[str], options: Mapping[str, Any],
+                 landmark_source: LandmarkSource) -> None:
+        from ...engine import Engine
+
+        self.engine = Engine(engine_conf(methods, options, landmark_source))
+
+    def add_keyframe(self, kf_id: int, image: npt.NDArray[np.uint8], camera: Camera,
+                     world_from_cam: Array, *, depth: npt.NDArray[np.float32] | None) -> None:
+        self.engine.add_keyframe(kf_id, image, camera, world_from_cam, depth=depth)
+
+    def train(self, *, progress: bool) -> None:
+        self.engine.train(progress=progress)
+
+    def relocalize(self, image: npt.NDArray[np.uint8], camera: Camera, *, method: str,
+                   gt_world_from_cam: Array) -> RelocResult:
+        return self.engine.relocalize(Frame(image, camera, gt_world_from_cam=gt_world_from_cam),
+                                      method=method)
+
+    def map_counts(self) -> tuple[int, int]:
+        state = self.engine.map.snapshot()
+        return len(state.keyframes), len(state.landmarks)
+
+    def landmarks_per_keyframe(self) -> list[int]:
+        """Distinct landmarks each keyframe observes (any feature kind), in id order."""
+        state = self.engine.map.snapshot()
+        return [len(np.unique(np.concatenate([f.landmark_ids[f.landmark_ids >= 0]
+                                              for f in state.keyframes[k].features.values()]
+                                             or [np.zeros(0, np.int64)])))
+                for k in state.keyframe_ids()]
+
+    def landmark_errors_m(self, dataset: Dataset) -> Array | None:
+        try:
+            from ...mapping import landmark_errors
+        except ImportError:
+            return None
+        errors = landmark_errors(self.engine.map.snapshot(), dataset)  # type: ignore[arg-type]
+        return np.asarray(errors, dtype=np.float64)
+
+    def close(self) -> None:
+        close = getattr(self.engine, "close", None)
+        if close is not None:
+            close()
+
+
+def engine_conf(methods: Sequence[str], options: Mapping[str, Any],
+                landmark_source: LandmarkSource) -> Any:
+    """The :class:`~reloc_service.engine.EngineConf` for ``methods``; ``options["mapping"]``
+    (if any) configures the map building, the other keys are plugin options."""
+    from ...engine import EngineConf, MappingConf
+
+    plugin_options = {k: v for k, v in options.items() if k != "mapping"}
+    mapping = MappingConf.from_options(options.get("mapping"))
+    return EngineConf(methods=tuple(methods), options=plugin_options, mapping=mapping)
