@@ -17,7 +17,8 @@ from reloc_service.cameras import Camera, PinholeCamera
 from reloc_service.errors import ConfigError, DatasetError
 from reloc_service.geometry import check_pose, invert, transform_points
 from reloc_service.tools.data.dataset import DatasetEntry, read_dataset
-from reloc_service.tools.synth import PRESETS, add_synth_arguments, main_synth, render_dataset
+from reloc_service.tools.synth import PRESETS, render_dataset
+from reloc_service.tools.synth.cli import add_synth_arguments, main_synth
 from reloc_service.tools.synth.presets import get_preset
 from reloc_service.tools.synth.renderer import (
     cast_rays,

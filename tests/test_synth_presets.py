@@ -213,7 +213,7 @@ def test_rotation_views_see_walls_15_to_4_m_away() -> None:
 def test_rig_and_sensor_presets_are_listed(capsys: pytest.CaptureFixture[str]) -> None:
     import argparse
 
-    from reloc_service.tools.synth import add_synth_arguments, main_synth
+    from reloc_service.tools.synth.cli import add_synth_arguments, main_synth
 
     parser = argparse.ArgumentParser()
     add_synth_arguments(parser)

@@ -27,15 +27,15 @@ import numpy as np
 import numpy.typing as npt
 
 from ...errors import ConfigError, DatasetError
-from .cli import add_synth_arguments, main_synth
 from .presets import CAMERA_ID, PRESETS, Degradation, Preset, get_preset
 
 if TYPE_CHECKING:
     from .renderer import Nuisance
     from .scene import Scene
 
-__all__ = ["PRESETS", "Degradation", "Preset", "add_synth_arguments", "get_preset",
-           "main_synth", "render_dataset"]
+# The ``reloc synth`` glue is reloc_service.tools.synth.cli: it imports render_dataset from here,
+# so this package does not import it back (that was an import cycle).
+__all__ = ["PRESETS", "Degradation", "Preset", "get_preset", "render_dataset"]
 
 SYNTH_FILE = "synth.json"
 DEPTH_METRES_PER_UNIT = 0.001  # exact depth in mm: 65.5 m range, 0.5 mm rounding
