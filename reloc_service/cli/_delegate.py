@@ -1,15 +1,28 @@
 """Subcommands implemented elsewhere (``serve``, ``bench``, ``demo``, ``router``): their module
-is imported only when the subcommand is chosen; a missing module is a clear exit status 2."""
+is imported only when the subcommand is chosen; a missing module, or a missing ``tools`` extra
+for a tool subcommand, is a clear exit status 2."""
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import sys
 from types import ModuleType
 
 #: Exit status when the module behind a subcommand is not installed.
 UNAVAILABLE = 2
+
+#: Import names of the third-party packages of pyproject's ``tools`` extra (scikit-image,
+#: matplotlib): the tool subcommands need them, the service does not.
+TOOLS_EXTRA_MODULES = ("skimage", "matplotlib")
+TOOLS_EXTRA_HINT = "needs the tools extra: pip install 'reloc[tools]'"
+
+
+def missing_tools_extra() -> list[str]:
+    """The modules of :data:`TOOLS_EXTRA_MODULES` that are not installed. ``find_spec`` locates
+    a top-level module without importing it, so asking costs no import time."""
+    return [name for name in TOOLS_EXTRA_MODULES if importlib.util.find_spec(name) is None]
 
 
 def import_optional(module_name: str) -> ModuleType | None:

@@ -9,6 +9,8 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from ._delegate import TOOLS_EXTRA_HINT, UNAVAILABLE, missing_tools_extra
+
 #: Subcommand -> (module in this package, one-line help). Order is the order in ``--help``.
 COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("synth", "render a photoreal synthetic dataset with exact ground truth"),
@@ -20,6 +22,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "router": ("router", "run a Zenoh router (ground-station set-up)"),
     "map": ("map", "inspect map storage: `reloc map check DIR` (exit 1 if damaged)"),
 }
+
+#: Subcommands of the tools (reloc_service.tools), which need the ``tools`` extra installed.
+TOOL_COMMANDS = frozenset({"synth", "dataset", "eval", "bench", "demo"})
 
 
 def _version() -> str:
@@ -56,7 +61,10 @@ def _chosen_command(argv: Sequence[str]) -> str | None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``reloc`` with ``argv`` (default: ``sys.argv[1:]``); returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser(_chosen_command(argv))
+    command = _chosen_command(argv)
+    if command in TOOL_COMMANDS and _refuse_without_tools_extra(command):
+        return UNAVAILABLE
+    parser = build_parser(command)
     args, extra = parser.parse_known_args(argv)
     if getattr(args, "_any_arguments", False):
         args.args = extra
@@ -70,6 +78,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+
+
+def _refuse_without_tools_extra(command: str) -> bool:
+    """Say so and return True if the ``tools`` extra is missing: checked before the tool's
+    module is imported, so its absence is one line rather than a traceback from deep inside
+    a render or a plot."""
+    missing = missing_tools_extra()
+    if missing:
+        print(f"reloc {command} {TOOLS_EXTRA_HINT} (not installed: {', '.join(missing)})",
+              file=sys.stderr)
+    return bool(missing)
 
 
 if __name__ == "__main__":
