@@ -58,7 +58,7 @@ def find_modules(root: Path, sources: dict[str, Path] = SOURCES) -> dict[str, Mo
 def read_imports(module: Module) -> None:
     """Fill ``module.imports`` (and ``unresolved``) from its source, every scope included."""
     tree = ast.parse(module.path.read_text(encoding="utf-8"), str(module.path))
-    constants = _module_dicts(tree)
+    constants = _module_constants(tree)
     for node in ast.walk(tree):
         for name in _imported_names(node, module, constants):
             if name is None:
@@ -99,8 +99,8 @@ def _is_import_module(func: ast.expr) -> bool:
 def _import_module_targets(call: ast.Call, module: Module,
                            constants: dict[str, list[str]]) -> list[str]:
     """Every name ``importlib.import_module(name[, package])`` can import, when its arguments
-    are literals, ``__name__``/``__package__`` or a module-level dict of strings indexed;
-    [] when they are anything else."""
+    are literals, ``__name__``/``__package__``, a module-level table of strings indexed or
+    looped over; [] when they are anything else."""
     if not call.args:
         return []
     names = _string_values(call.args[0], module, constants)
@@ -118,6 +118,8 @@ def _string_values(node: ast.expr, module: Module, constants: dict[str, list[str
         return [node.value]
     if isinstance(node, ast.Name) and node.id in ("__name__", "__package__"):
         return [module.name if node.id == "__name__" else module.package]
+    if isinstance(node, ast.Name):
+        return constants.get(node.id, [])
     if isinstance(node, ast.Subscript) and isinstance(node.value, ast.Name):
         return constants.get(node.value.id, [])
     if isinstance(node, ast.FormattedValue):
@@ -128,18 +130,25 @@ def _string_values(node: ast.expr, module: Module, constants: dict[str, list[str
     return []
 
 
-def _module_dicts(tree: ast.Module) -> dict[str, list[str]]:
-    """Module-level ``NAME = {key: "string", ...}`` dicts (lazy-export tables): name -> values."""
+def _module_constants(tree: ast.Module) -> dict[str, list[str]]:
+    """The strings a name can hold: module-level dicts of strings (lazy-export tables, by
+    their values) and tuples or lists of strings (module lists), and the variables of ``for``
+    loops over those."""
     found = {}
     for node in tree.body:
         target = node.targets[0] if isinstance(node, ast.Assign) and len(node.targets) == 1 else (
             node.target if isinstance(node, ast.AnnAssign) else None)
         value = getattr(node, "value", None)
-        if isinstance(target, ast.Name) and isinstance(value, ast.Dict):
-            strings = [v.value for v in value.values
+        items = value.values if isinstance(value, ast.Dict) else getattr(value, "elts", None)
+        if isinstance(target, ast.Name) and isinstance(value, (ast.Dict, ast.Tuple, ast.List)):
+            strings = [v.value for v in items
                        if isinstance(v, ast.Constant) and isinstance(v.value, str)]
-            if strings and len(strings) == len(value.values):
+            if strings and len(strings) == len(items):
                 found[target.id] = strings
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.For) and isinstance(node.target, ast.Name)
+                and isinstance(node.iter, ast.Name) and node.iter.id in found):
+            found[node.target.id] = found[node.iter.id]
     return found
 
 
