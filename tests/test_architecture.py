@@ -95,7 +95,9 @@ PLANTED = {
                                 "def g():\n    importlib.import_module('reloc_service.tools.a')\n",
     "reloc_service/tools/lazy.py": "import importlib\n\n_LAZY = {'x': 'a'}\n\n"
                                    "def h(n):\n    importlib.import_module(f'.{_LAZY[n]}', "
-                                   "__package__)\n    importlib.import_module(n)\n",
+                                   "__package__)\n    importlib.import_module(n)\n\n"
+                                   "MODS = ('reloc_service.tools.b',)\n\ndef k():\n"
+                                   "    for m in MODS:\n        importlib.import_module(m)\n",
     "reloc_service/unknown.py": "import skimage.data\n",
     "clients/reloc_client/__init__.py": "from reloc_service.place import sbi\n",
 }
@@ -113,7 +115,7 @@ def test_a_planted_cycle_inside_functions_and_importlib_is_reported(planted):
     _, graph = planted
     assert cycles(graph) == [["reloc_service.cli.main", "reloc_service.service"],
                              ["reloc_service.tools.a", "reloc_service.tools.b"]]
-    assert graph["reloc_service.tools.lazy"] == {"reloc_service.tools.a"}
+    assert graph["reloc_service.tools.lazy"] == {"reloc_service.tools.a", "reloc_service.tools.b"}
 
 
 def test_planted_layer_breaches_are_reported(planted):
