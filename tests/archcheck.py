@@ -60,11 +60,12 @@ def read_imports(module: Module) -> None:
     tree = ast.parse(module.path.read_text(encoding="utf-8"), str(module.path))
     constants = _module_constants(tree)
     for node in ast.walk(tree):
+        line = getattr(node, "lineno", 0)
         for name in _imported_names(node, module, constants):
             if name is None:
-                module.unresolved.append(node.lineno)
+                module.unresolved.append(line)
             else:
-                module.imports.setdefault(name, node.lineno)
+                module.imports.setdefault(name, line)
 
 
 def _imported_names(node: ast.AST, module: Module,
@@ -135,21 +136,36 @@ def _module_constants(tree: ast.Module) -> dict[str, list[str]]:
     their values) and tuples or lists of strings (module lists), and the variables of ``for``
     loops over those."""
     found = {}
-    for node in tree.body:
-        target = node.targets[0] if isinstance(node, ast.Assign) and len(node.targets) == 1 else (
-            node.target if isinstance(node, ast.AnnAssign) else None)
-        value = getattr(node, "value", None)
-        items = value.values if isinstance(value, ast.Dict) else getattr(value, "elts", None)
-        if isinstance(target, ast.Name) and isinstance(value, (ast.Dict, ast.Tuple, ast.List)):
-            strings = [v.value for v in items
-                       if isinstance(v, ast.Constant) and isinstance(v.value, str)]
-            if strings and len(strings) == len(items):
-                found[target.id] = strings
+    for statement in tree.body:
+        target, items = _assigned_sequence(statement)
+        strings = [v.value for v in items
+                   if isinstance(v, ast.Constant) and isinstance(v.value, str)]
+        if target and strings and len(strings) == len(items):
+            found[target] = strings
     for node in ast.walk(tree):
         if (isinstance(node, ast.For) and isinstance(node.target, ast.Name)
                 and isinstance(node.iter, ast.Name) and node.iter.id in found):
             found[node.target.id] = found[node.iter.id]
     return found
+
+
+def _assigned_sequence(statement: ast.stmt) -> tuple[str | None, list[ast.expr | None]]:
+    """(name, items) of ``name = {..}``, ``name: T = (..)`` or ``name = [..]``; a dict's items
+    are its values."""
+    value: ast.expr | None
+    if isinstance(statement, ast.Assign) and len(statement.targets) == 1:
+        target, value = statement.targets[0], statement.value
+    elif isinstance(statement, ast.AnnAssign):
+        target, value = statement.target, statement.value
+    else:
+        return None, []
+    if not isinstance(target, ast.Name):
+        return None, []
+    if isinstance(value, ast.Dict):
+        return target.id, list(value.values)
+    if isinstance(value, (ast.Tuple, ast.List)):
+        return target.id, list(value.elts)
+    return None, []
 
 
 def build_graph(modules: dict[str, Module]) -> dict[str, set[str]]:
