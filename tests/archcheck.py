@@ -17,7 +17,8 @@ SOURCES = {"reloc_service": Path("."), "reloc_client": Path("clients")}
 
 #: The library core (below the service, the tools and the CLI): reloc_service.<name>.
 CORE = {"geometry", "cameras", "frame", "map", "features", "triangulation", "storage", "mapping",
-        "plugins", "progress", "errors", "engine", "place", "pose", "ferns", "relocalizers"}
+        "plugins", "progress", "errors", "fileio", "numeric", "engine", "place", "pose", "ferns",
+        "relocalizers"}
 
 #: What the service may import from the client package: the wire format and the result type.
 SERVICE_FROM_CLIENT = ("reloc_client.protocol", "reloc_client.result")

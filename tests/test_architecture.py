@@ -14,7 +14,7 @@ CLIENT = ROOT / "clients" / "reloc_client"
 
 #: The core's lower half: data types and I/O, below the algorithms and the engine.
 BASE = {"errors", "geometry", "cameras", "frame", "map", "triangulation", "features", "storage",
-        "plugins", "progress", "mapping"}
+        "plugins", "progress", "mapping", "fileio", "numeric"}
 
 
 @pytest.fixture(scope="module")
