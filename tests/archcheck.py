@@ -20,10 +20,10 @@ CORE = {"geometry", "cameras", "frame", "map", "features", "triangulation", "sto
         "plugins", "progress", "errors", "fileio", "numeric", "engine", "place", "pose", "ferns",
         "relocalizers"}
 
-#: What the service may import from the client package: the wire format and the result type.
-SERVICE_FROM_CLIENT = ("reloc_client.protocol", "reloc_client.result")
-#: What the core may import from the client package: the (numpy-only) result type.
-CORE_FROM_CLIENT = ("reloc_client.result",)
+#: What the core and the service may import from the client package: its numpy-only parts,
+#: the wire format (with the quaternion and camera table both ends share) and the result type;
+#: never the Zenoh client.
+FROM_CLIENT = ("reloc_client.protocol", "reloc_client.result")
 #: Third-party packages only some layers may import.
 ZENOH_LAYERS = {"service", "tools", "cli", "client"}
 TOOLS_EXTRA = {"skimage", "matplotlib"}  # pyproject's [tools] extra: only the tools use it
@@ -273,9 +273,9 @@ def may_import(importer: str, imported: str) -> bool:
     """The layer rule for one first-party edge (docs/architecture.md, "Import rules")."""
     layer, target = layer_of(importer), layer_of(imported)
     if layer == "core":
-        return target == "core" or _under(imported, CORE_FROM_CLIENT)
+        return target == "core" or _under(imported, FROM_CLIENT)
     if layer == "service":
-        return target in ("core", "service") or _under(imported, SERVICE_FROM_CLIENT)
+        return target in ("core", "service") or _under(imported, FROM_CLIENT)
     if layer == "client":
         return target == "client"
     if layer == "tools":

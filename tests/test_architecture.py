@@ -85,7 +85,7 @@ PLANTED = {
     "reloc_service/__init__.py": "",
     "reloc_service/geometry.py": "def f():\n    from .tools import a\n    import zenoh\n",
     "reloc_service/place/__init__.py": "",
-    "reloc_service/place/sbi.py": "from ..geometry import f\n",
+    "reloc_service/place/sbi.py": "from ..geometry import f\nfrom reloc_client.client import C\n",
     "reloc_service/service/__init__.py": "from ..cli import main\n",
     "reloc_service/cli/__init__.py": "",
     "reloc_service/cli/main.py": "import reloc_service.service\n",
@@ -100,6 +100,7 @@ PLANTED = {
                                    "    for m in MODS:\n        importlib.import_module(m)\n",
     "reloc_service/unknown.py": "import skimage.data\n",
     "clients/reloc_client/__init__.py": "from reloc_service.place import sbi\n",
+    "clients/reloc_client/client.py": "import zenoh\n",
 }
 
 
@@ -124,6 +125,7 @@ def test_planted_layer_breaches_are_reported(planted):
     expected = ["reloc_service.geometry imports reloc_service.tools.a (geometry.py:2)",
                 "reloc_service.geometry imports zenoh (geometry.py:3)",
                 "reloc_service.service imports reloc_service.cli.main (__init__.py:1)",
+                "reloc_service.place.sbi imports reloc_client.client (sbi.py:2)",
                 "reloc_client imports reloc_service.place.sbi (__init__.py:1)",
                 "reloc_service.unknown belongs to no layer (add it to CORE or a layer)",
                 "reloc_service.unknown imports skimage (the tools extra) (unknown.py:1)"]
@@ -140,5 +142,7 @@ def test_a_planted_clean_tree_passes(planted, tmp_path):
     (tmp_path / "reloc_service/tools/b.py").write_text("from . import a\n")
     (tmp_path / "reloc_service/tools/a.py").write_text("import zenoh\nimport matplotlib\n")
     (tmp_path / "clients/reloc_client/__init__.py").write_text("import zenoh\n")
+    (tmp_path / "reloc_service/place/sbi.py").write_text("from reloc_client.protocol import P\n")
+    (tmp_path / "clients/reloc_client/protocol.py").write_text("import numpy\n")
     modules, graph = load(tmp_path)
     assert cycles(graph) == [] and breaches(modules, graph) == []
