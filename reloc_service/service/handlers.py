@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
 import cv2
@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode, ProtocolError
+from reloc_client.result import reply_from_result
 
 from ..cameras import Camera, camera_from_dict
 from ..errors import (
@@ -29,7 +30,7 @@ from ..errors import (
     StorageError,
 )
 from ..frame import Frame
-from ..relocalizers.base import Prior, RelocResult
+from ..relocalizers.base import Prior
 
 if TYPE_CHECKING:
     from .runtime import MapRuntime
@@ -194,61 +195,15 @@ def relocalize(rt: MapRuntime, payload: bytes, *, queued_s: float = 0.0) -> byte
     result = rt.relocalize(frame, method=method, prior=prior, hypotheses=request.hypotheses)
     timings = {**result.timings, "decode": decoded - start, "queue": queued_s}
     timings["total"] = time.perf_counter() - start + queued_s
-    reply = reply_from_result(result, timings, request)
+    answer = replace(result, timings=timings, request_id=request.request_id,
+                     timestamp=request.timestamp)
     rt.stats.record_relocalize(result.ok, timings["total"])
-    return reply.encode()
-
-
-def reply_from_result(result: RelocResult, timings: dict[str, float],
-                      request: wire.RelocalizeRequest | None = None) -> wire.RelocalizeReply:
-    """The wire reply for an engine result (non-finite optional numbers are left out)."""
-    ok = result.ok and result.world_from_cam is not None
-    return wire.RelocalizeReply(
-        status=wire.ReplyStatus.OK if ok else wire.ReplyStatus.NOT_RELOCALIZED,
-        method=result.method,
-        world_from_cam=wire.WirePose.from_matrix(result.world_from_cam) if ok else None,
-        covariance=_covariance(result.covariance) if ok else None,
-        confidence=float(np.clip(result.confidence, 0.0, 1.0)) if ok else 0.0,
-        inliers=max(int(result.inliers), 0), num_matches=max(int(result.num_matches), 0),
-        reprojection_rms_px=_finite_or_none(result.reprojection_rms_px),
-        matched_keyframe_ids=tuple(int(k) for k in result.matched_keyframe_ids if k >= 0),
-        map_version=max(int(result.map_version), 0),
-        timings={k: float(v) for k, v in timings.items() if np.isfinite(v) and v >= 0},
-        reason="" if ok else (result.reason or "not relocalized"),
-        hypotheses=tuple(_hypothesis(h) for h in result.hypotheses if h.ok),
-        request_id=None if request is None else request.request_id,
-        timestamp=None if request is None else request.timestamp)
+    return reply_from_result(answer).encode()
 
 
 def busy_reply(reason: str) -> bytes:
     """A RelocalizeReply with status ``busy`` (the queue is full)."""
     return wire.RelocalizeReply(wire.ReplyStatus.BUSY, reason=reason).encode()
-
-
-def _hypothesis(h: RelocResult) -> wire.Hypothesis:
-    assert h.world_from_cam is not None
-    return wire.Hypothesis(
-        world_from_cam=wire.WirePose.from_matrix(h.world_from_cam), method=h.method,
-        confidence=float(np.clip(h.confidence, 0.0, 1.0)), inliers=max(int(h.inliers), 0),
-        num_matches=max(int(h.num_matches), 0),
-        reprojection_rms_px=_finite_or_none(h.reprojection_rms_px),
-        covariance=_covariance(h.covariance),
-        matched_keyframe_ids=tuple(int(k) for k in h.matched_keyframe_ids if k >= 0))
-
-
-def _covariance(covariance: Array | None) -> tuple[float, ...] | None:
-    if covariance is None:
-        return None
-    c = np.asarray(covariance, dtype=np.float64)
-    if c.shape != (6, 6) or not np.all(np.isfinite(c)):
-        return None
-    return tuple(float(v) for v in c.ravel())
-
-
-def _finite_or_none(x: float | None) -> float | None:
-    if x is None or not np.isfinite(x) or x < 0:
-        return None
-    return float(x)
 
 
 # -- train, status ----------------------------------------------------------------------------
