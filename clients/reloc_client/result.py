@@ -101,11 +101,12 @@ def reply_from_result(result: RelocResult) -> wire.RelocalizeReply:
     (RMS, covariance, timings, keyframe ids) are left out, since the strict decoder on the
     other side refuses them. Only verified (OK) hypotheses travel.
     """
-    ok = result.ok and result.world_from_cam is not None
+    pose = result.world_from_cam if result.ok else None
+    ok = pose is not None
     return wire.RelocalizeReply(
         status=wire.ReplyStatus.OK if ok else wire.ReplyStatus.NOT_RELOCALIZED,
         method=result.method,
-        world_from_cam=wire.WirePose.from_matrix(result.world_from_cam) if ok else None,
+        world_from_cam=None if pose is None else wire.WirePose.from_matrix(pose),
         covariance=_covariance_to_wire(result.covariance) if ok else None,
         confidence=float(np.clip(result.confidence, 0.0, 1.0)) if ok else 0.0,
         inliers=max(int(result.inliers), 0), num_matches=max(int(result.num_matches), 0),

@@ -49,9 +49,15 @@ _LIBRARIES = ("numpy", "scipy", "opencv-python-headless", "poselib", "eclipse-ze
 
 @dataclass
 class QueryRecord:
-    """One query's outcome. Errors are None when no pose was returned; ``rank`` is the rank k
-    (1 = closest) of the first matched keyframe among the keyframes ordered by distance to the
-    query's ground-truth centre (thesis figure 3.2), None when the result names no keyframe.
+    """One query's outcome: a :class:`RelocResult` as the versioned JSON record of
+    docs/eval_schema.md, plus what the evaluation adds (errors, latency, ground truth, rank).
+    Built from a result only by :func:`record_from_result` (and from JSON by
+    :meth:`EvalResult.from_dict`); it keeps the pose as the 7 numbers the JSON holds rather
+    than the result's matrix, so a record read back from its JSON equals the one written.
+
+    Errors are None when no pose was returned; ``rank`` is the rank k (1 = closest) of the
+    first matched keyframe among the keyframes ordered by distance to the query's
+    ground-truth centre (thesis figure 3.2), None when the result names no keyframe.
     Poses are ``world_from_cam`` as ``[tx, ty, tz, qx, qy, qz, qw]``."""
 
     image_path: str
