@@ -15,17 +15,13 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from reloc_client import protocol as wire
+from reloc_client.client import NoReplyError, RelocClient, ServiceBusy, ServiceError
 
 from ...cameras import Camera
 from ...errors import ConfigError, RelocError
 from ...relocalizers.base import RelocResult, RelocStatus
-from ...service import ensure_client_importable
 from .evaluate import LandmarkSource, RemoteSpec
-
-ensure_client_importable()
-
-from reloc_client import protocol as wire  # noqa: E402
-from reloc_client.client import NoReplyError, RelocClient, ServiceBusy, ServiceError  # noqa: E402
 
 Array = npt.NDArray[np.float64]
 
