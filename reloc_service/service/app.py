@@ -20,7 +20,6 @@ import os
 import sys
 import threading
 import time
-import urllib.parse
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -33,7 +32,15 @@ from ..errors import ConfigError, StorageError
 from . import handlers
 from .codec import decode_camera_put, decode_keyframe_put, error_of, error_reply
 from .config import ServiceConf
-from .durability import RestoreInterrupted, check_storage, open_engine, recover_current
+from .durability import (
+    RestoreInterrupted,
+    check_storage,
+    journal_bytes,
+    map_dirname,
+    open_engine,
+    recover_current,
+    stored_map_names,
+)
 from .replication import Bootstrap, Peers
 from .runtime import MapRuntime
 from .workers import WorkerPool, stop_on_signals
@@ -43,16 +50,6 @@ log = logging.getLogger(__name__)
 
 #: Queue of the control pool (status, train, keyframes/cameras gets).
 CONTROL_QUEUE = 64
-
-
-def map_dirname(map_name: str) -> str:
-    """A directory name for ``map_name`` (percent-encoded; never ``.`` or ``..``)."""
-    quoted = urllib.parse.quote(map_name, safe="")
-    return "%2E" + quoted[1:] if quoted.startswith(".") else quoted
-
-
-def map_name_of(dirname: str) -> str:
-    return urllib.parse.unquote(dirname)
 
 
 class Service:
@@ -150,15 +147,11 @@ class Service:
 
     def _restore_order(self, names: list[str]) -> list[str]:
         """Unique ``names``, cheapest restore first (fewest journal bytes to replay)."""
-        def journal_bytes(name: str) -> int:
-            if self.storage is None:
-                return 0
-            journal = self.storage / map_dirname(name) / "journal"
-            return sum(p.stat().st_size for p in journal.glob("*.journal")) \
-                if journal.is_dir() else 0
+        def cost(name: str) -> int:
+            return 0 if self.storage is None else journal_bytes(self.storage / map_dirname(name))
 
         unique = list(dict.fromkeys(names))
-        return sorted(unique, key=lambda n: (journal_bytes(n), n))
+        return sorted(unique, key=lambda n: (cost(n), n))
 
     def _load_maps(self, names: list[str], *, declare: bool = True) -> None:
         """Restore ``names`` in order; declare each one ready (or failed) at once."""
@@ -332,17 +325,7 @@ class Service:
             raise ConfigError(f"service.methods / [options]: {exc}") from exc
 
     def _stored_map_names(self) -> list[str]:
-        if self.storage is None or not self.storage.is_dir():
-            return []
-        names = []
-        for path in sorted(self.storage.iterdir()):
-            if path.is_dir() and ((path / "journal").is_dir() or (path / "map").is_dir()):
-                name = map_name_of(path.name)
-                try:
-                    names.append(wire.check_name(name))
-                except wire.ProtocolError:
-                    log.warning("ignoring storage directory %s: not a map name", path)
-        return names
+        return [] if self.storage is None else stored_map_names(self.storage)
 
     def _open_map(self, name: str) -> MapRuntime:
         """The runtime of map ``name``, restored from its storage (StorageError naming the

@@ -23,6 +23,7 @@ import logging
 import os
 import threading
 import time
+import urllib.parse
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -213,6 +214,40 @@ def write_service_file(directory: Path, data: dict[str, Any]) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+# -- the storage directory ----------------------------------------------------------------------
+
+def map_dirname(map_name: str) -> str:
+    """A directory name for ``map_name`` (percent-encoded; never ``.`` or ``..``)."""
+    quoted = urllib.parse.quote(map_name, safe="")
+    return "%2E" + quoted[1:] if quoted.startswith(".") else quoted
+
+
+def map_name_of(dirname: str) -> str:
+    return urllib.parse.unquote(dirname)
+
+
+def stored_map_names(storage: Path) -> list[str]:
+    """The maps with a directory (a journal or snapshots) under ``storage``, by name; a
+    directory whose name is not a valid map name is logged and left alone."""
+    if not storage.is_dir():
+        return []
+    names = []
+    for path in sorted(storage.iterdir()):
+        if path.is_dir() and ((path / "journal").is_dir() or (path / "map").is_dir()):
+            name = map_name_of(path.name)
+            try:
+                names.append(wire.check_name(name))
+            except wire.ProtocolError:
+                log.warning("ignoring storage directory %s: not a map name", path)
+    return names
+
+
+def journal_bytes(directory: Path) -> int:
+    """Bytes of journal a restore of map directory ``directory`` would read (its cost)."""
+    journal = directory / "journal"
+    return sum(p.stat().st_size for p in journal.glob("*.journal")) if journal.is_dir() else 0
 
 
 # -- opening a map directory -------------------------------------------------------------------

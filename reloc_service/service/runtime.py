@@ -80,8 +80,15 @@ class TrainingJob:
 class MapRuntime:
     """Everything the service holds for map ``name`` (see module docstring).
 
-    Map changes (:meth:`apply_keyframe_put` etc.) come from the map's writer
-    thread; queries (:meth:`relocalize`) from any worker thread."""
+    Map changes (:meth:`put_keyframe` etc.) come from the map's writer thread; queries
+    (:meth:`relocalize`, :meth:`map_state`, :meth:`status`) from any worker thread.
+
+    Locks: the engine's state is the engine's to guard (one mapping thread, many querying
+    threads, see :mod:`reloc_service.engine`), so queries take no lock here. The locks below
+    order what only this runtime knows: ``_apply_lock`` keeps the journal order, the
+    deferred puts and the cameras consistent with what is applied; ``_maintenance`` keeps
+    training and snapshots apart (one of them at a time per map); ``_job_lock`` guards the
+    training job and the snapshot thread."""
 
     def __init__(self, name: str, engine: Engine, *, instance: str, limits: wire.Limits,
                  methods: tuple[str, ...], default_method: str, directory: Path | None,
@@ -319,7 +326,9 @@ class MapRuntime:
                 except StorageError as exc:
                     log.error("map %s: snapshot not taken: %s", self.name, exc)
                     return
-                meta = ServiceMeta(dict(self._cameras), dict(self._kf_camera_ids), segment)
+                meta = ServiceMeta(cameras=dict(self._cameras),
+                                   keyframe_camera_ids=dict(self._kf_camera_ids),
+                                   next_segment=segment)
                 self._snapshotting = True
             try:
                 path = self.store.save(self.engine, meta)
