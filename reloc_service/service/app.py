@@ -513,7 +513,7 @@ class Service:
             self._reject(map_name, kind, ident, code, message)
             self._retire_writer(map_name)
             return
-        if rt is None and self.peers is not None and self.peers.serve_elsewhere(map_name):
+        if rt is None and self.peers is not None and self.peers.serves(map_name):
             log.debug("put on map %s ignored: another instance serves it", map_name)
         elif rt is None:
             self._reject(map_name, kind, ident, ErrorCode.UNKNOWN_MAP,

@@ -41,7 +41,7 @@ class Peers:
         self.limits = limits
         self._cache: dict[str, tuple[float, bool]] = {}   # map -> (when, served elsewhere)
 
-    def serve_elsewhere(self, map_name: str) -> bool:
+    def serves(self, map_name: str) -> bool:
         """Whether another live instance serves ``map_name``."""
         now = time.monotonic()
         cached = self._cache.get(map_name)
