@@ -3,7 +3,6 @@ cross-correlation."""
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +27,9 @@ class SmallBlurryImageFinder(PlaceFinder):
     norms, so scoring every keyframe is one matrix-vector product:
     ``SSD = |a|^2 + |b|^2 - 2 a.b``. Adding appends a row; removing swaps the last row into
     the freed one, so the matrix never has holes.
+
+    Not thread-safe (no lock): used behind the engine, whose write lock keeps adds and removes
+    apart from queries; queries only read the matrix, so they may run concurrently.
     """
 
     @dataclass(frozen=True)
@@ -36,7 +38,6 @@ class SmallBlurryImageFinder(PlaceFinder):
 
     def __init__(self, kmap: KeyframeMap, conf: SmallBlurryImageFinder.Conf) -> None:
         super().__init__(kmap, conf)
-        self._lock = threading.Lock()
         self._dim = conf.width * conf.height
         self._thumbs: Thumbs = np.zeros((16, self._dim), np.float32)
         self._sq_norms = np.zeros(16, np.float32)
@@ -59,34 +60,31 @@ class SmallBlurryImageFinder(PlaceFinder):
     def add_keyframe(self, keyframe: Keyframe) -> None:
         """Index ``keyframe``; a keyframe with an id already indexed is replaced."""
         thumb = self.thumbnail(keyframe)
-        with self._lock:
-            row = self._row_of.get(keyframe.id)
-            if row is None:
-                row = len(self._row_of)
-                self._grow(row + 1)
-                self._row_of[keyframe.id] = row
-                self._ids[row] = keyframe.id
-            self._thumbs[row] = thumb
-            self._sq_norms[row] = float(thumb @ thumb)
+        row = self._row_of.get(keyframe.id)
+        if row is None:
+            row = len(self._row_of)
+            self._grow(row + 1)
+            self._row_of[keyframe.id] = row
+            self._ids[row] = keyframe.id
+        self._thumbs[row] = thumb
+        self._sq_norms[row] = float(thumb @ thumb)
 
     def remove_keyframe(self, keyframe: Keyframe) -> None:
         """Forget ``keyframe`` (swap-remove); unknown ids are ignored."""
-        with self._lock:
-            row = self._row_of.pop(keyframe.id, None)
-            if row is None:
-                return
-            last = len(self._row_of)  # index of the last used row, now that one id is gone
-            if row != last:
-                moved = int(self._ids[last])
-                self._thumbs[row] = self._thumbs[last]
-                self._sq_norms[row] = self._sq_norms[last]
-                self._ids[row] = moved
-                self._row_of[moved] = row
+        row = self._row_of.pop(keyframe.id, None)
+        if row is None:
+            return
+        last = len(self._row_of)  # index of the last used row, now that one id is gone
+        if row != last:
+            moved = int(self._ids[last])
+            self._thumbs[row] = self._thumbs[last]
+            self._sq_norms[row] = self._sq_norms[last]
+            self._ids[row] = moved
+            self._row_of[moved] = row
 
     def train(self) -> None:
         """Re-index every keyframe of the map (also run at construction)."""
-        with self._lock:
-            self._row_of.clear()
+        self._row_of.clear()
         for keyframe in self.map.snapshot().keyframes.values():
             self.add_keyframe(keyframe)
 
@@ -94,10 +92,9 @@ class SmallBlurryImageFinder(PlaceFinder):
                     ) -> list[PlaceCandidate]:
         """Up to ``k`` keyframes by decreasing ``-SSD`` (restricted to ``allowed`` ids)."""
         thumb = self.thumbnail(query)
-        with self._lock:
-            n = len(self._row_of)
-            scores = self._scores(thumb, n)
-            ids = self._ids[:n].copy()
+        n = len(self._row_of)
+        scores = self._scores(thumb, n)
+        ids = self._ids[:n].copy()
         if allowed is not None:
             scores[~np.isin(ids, np.fromiter(allowed, np.int64, len(allowed)))] = -np.inf
         return _top_k(ids, scores, k)
