@@ -24,7 +24,7 @@ from reloc_service.pose.none import zncc
 from reloc_service.relocalizers.base import Prior, RelocStatus
 from reloc_service.relocalizers.factory import create_relocalizer
 from reloc_service.relocalizers.multi import MultiRelocalizer
-from reloc_service.tools.bench.multi_bench import (
+from reloc_service.tools.synth.planar import (
     PlanarScene,
     downward_pose,
     keyframe_grid,

@@ -21,7 +21,7 @@ from reloc_service.pose.p3p import (
     solve_pnp_indexed,
 )
 from reloc_service.relocalizers.base import VerifyConf, position_sigma_m, result_from_estimate
-from reloc_service.tools.bench.multi_bench import PlanarScene, planar_scene, query_pose
+from reloc_service.tools.synth.planar import PlanarScene, planar_scene, query_pose
 
 DISTORTIONS = {"pinhole": [], "radtan": [-0.28, 0.07, 1e-4, -2e-4],
                "equidistant": [0.05, -0.01, 0.003, -0.001], "fov": [0.9]}
@@ -169,7 +169,7 @@ def test_landmark_pool_keeps_one_row_per_landmark_from_the_best_keyframe():
 def scene() -> PlanarScene:
     camera = camera_from_dict({"model": "pinhole", "width": 320, "height": 240, "fx": 250.0,
                                "fy": 250.0, "cx": 159.5, "cy": 119.5})
-    from reloc_service.tools.bench.multi_bench import keyframe_grid
+    from reloc_service.tools.synth.planar import keyframe_grid
 
     return planar_scene(keyframe_grid(3, 2), kinds=("sift", "orb"), camera=camera,
                         max_features=1000)
