@@ -17,7 +17,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import threading
 import time
 import zlib
@@ -36,6 +35,7 @@ from ..errors import ConfigError, NotTrainedError, StorageError
 from ..features import FEATURE_KINDS
 from ..ferns.classifier import FernClassifier, FernConf, FernScorer, FernTests
 from ..ferns.training import WarpConf, draw_warps, prepare_image, sample_leaves
+from ..fileio import atomic_write
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap, MapState
 from ..plugins import make_conf
@@ -588,8 +588,8 @@ class FernsRelocalizer(Relocalizer):
                     "keyframe_crc32": {str(k): _image_crc(self._trained[k].keyframe)
                                        for k in kf_ids}}
         # Uncompressed: zlib takes seconds on ~10^7 counts and gains little on the indices.
-        _atomic_write(directory / _MODEL_FILE, lambda f: np.savez(f, **arrays))
-        _atomic_write(directory / _META_FILE, lambda f: f.write(json.dumps(meta).encode()))
+        atomic_write(directory / _MODEL_FILE, lambda f: np.savez(f, **arrays))
+        atomic_write(directory / _META_FILE, json.dumps(meta))
 
     def load(self, directory: Path) -> bool:
         """Restore what :meth:`save` wrote; False (nothing changed) if there is none, if it was
@@ -762,10 +762,3 @@ def _bounded_map(pool: ThreadPoolExecutor, fn: Any, items: list[Any], window: in
 def _concat(parts: list[npt.NDArray[Any]]) -> IntArray:
     return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
 
-
-def _atomic_write(path: Path, write: Any) -> None:
-    """Write through a temporary file and rename, so a crash never leaves half a file."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        write(f)
-    os.replace(tmp, path)
