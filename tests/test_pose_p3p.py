@@ -84,6 +84,30 @@ def test_jacobian_matches_finite_differences(model):
     assert np.allclose(jac, numeric, rtol=1e-4, atol=1e-3)
 
 
+@pytest.mark.parametrize("model", ["pinhole", "radtan", "radtan-k3", "equidistant"])
+def test_poselib_camera_projects_exactly_as_ours(model):
+    """The refinement's Jacobian comes from PoseLib's camera model: it must be our model,
+    parameter for parameter, over the whole image."""
+    from reloc_service.pose.p3p import poselib_camera
+
+    camera = make_camera(model.split("-")[0])
+    if model == "radtan-k3":
+        camera = camera_from_dict({**camera.to_dict(), "distortion": [-0.28, 0.07, 1e-4, -2e-4,
+                                                                      0.02]})
+    rng = np.random.default_rng(7)
+    bearings = camera.unproject(rng.uniform([0, 0], [camera.width - 1, camera.height - 1],
+                                            (500, 2)))
+    xy = bearings[:, :2] / bearings[:, 2:]
+    np.testing.assert_allclose(poselib_camera(camera).project(xy), camera.project(bearings),
+                               atol=1e-9)
+
+
+def test_fov_has_no_poselib_camera():
+    from reloc_service.pose.p3p import poselib_camera
+
+    assert poselib_camera(make_camera("fov")) is None
+
+
 def test_covariance_matches_monte_carlo_and_shrinks_with_more_inliers():
     rng = np.random.default_rng(1)
     camera = make_camera("radtan")
