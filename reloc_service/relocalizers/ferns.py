@@ -38,6 +38,7 @@ from ..ferns.training import WarpConf, draw_warps, prepare_image, sample_leaves
 from ..fileio import atomic_write
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap, MapState
+from ..numeric import top_k
 from ..plugins import make_conf
 from ..pose.base import PoseEstimate
 from ..pose.p3p import PnPConf, solve_pnp_indexed
@@ -506,7 +507,7 @@ class FernsRelocalizer(Relocalizer):
             return empty
         lab, post = np.hstack(labels), np.hstack(posts)
         k = min(self.conf.top_k, lab.shape[1])
-        order = np.argsort(-post, axis=1, kind="stable")[:, :k]
+        order = top_k(post, k)
         lab, post = np.take_along_axis(lab, order, 1), np.take_along_axis(post, order, 1)
         kp = np.repeat(np.arange(len(px)), k)
         keep = post.ravel() >= max(self.conf.min_posterior, 1e-12)
