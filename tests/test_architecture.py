@@ -8,7 +8,7 @@ SERVICE = ROOT / "reloc_service"
 CLIENT = ROOT / "clients" / "reloc_client"
 
 CORE = {"errors", "geometry", "cameras", "frame", "map", "triangulation", "features", "storage",
-        "plugins", "progress", "mapping"}
+        "plugins", "progress", "mapping", "fileio", "numeric"}
 ALGORITHMS = {"place", "pose", "ferns", "relocalizers"}
 
 

@@ -42,6 +42,7 @@ from ..errors import ConfigError, GeometryError, NotTrainedError, StorageError
 from ..features import FEATURE_KINDS, FeatureConf, extract
 from ..frame import Features, Frame, Keyframe
 from ..map import KeyframeMap
+from ..numeric import top_k
 from .base import PlaceCandidate, PlaceFinder, register
 
 _STATE_FORMAT = 1
@@ -480,7 +481,7 @@ class BagOfWords(PlaceFinder):
         scores = self.score(self._tree.quantise(feats.descriptors), index)
         if allowed is not None:
             scores[~np.isin(index.keyframe_ids, np.fromiter(allowed, np.int64, len(allowed)))] = 0.0
-        return _top_k(index.keyframe_ids, scores, k)
+        return _best_candidates(index.keyframe_ids, scores, k)
 
     @staticmethod
     def score(words: npt.NDArray[np.int32], index: InvertedFile) -> npt.NDArray[np.float64]:
@@ -542,9 +543,8 @@ def _rows_from_state(state: dict[str, Any], n_words: int
             for kf, a, b in zip(ids, indptr[:-1], indptr[1:], strict=True)}
 
 
-def _top_k(ids: npt.NDArray[np.int64], scores: npt.NDArray[np.float64], k: int
-           ) -> list[PlaceCandidate]:
+def _best_candidates(ids: npt.NDArray[np.int64], scores: npt.NDArray[np.float64], k: int
+                     ) -> list[PlaceCandidate]:
     """The ``k`` best-scoring ids with a positive score, best first (ties: lower id first)."""
-    positive = np.flatnonzero(scores > 0)
-    order = positive[np.lexsort((ids[positive], -scores[positive]))][:k]
+    order = top_k(scores, k, keep=scores > 0, tiebreak=ids)
     return [PlaceCandidate(int(ids[i]), float(scores[i])) for i in order]

@@ -10,6 +10,7 @@ import numpy.typing as npt
 
 from ..frame import Frame, Keyframe, ThumbnailConf
 from ..map import KeyframeMap
+from ..numeric import top_k
 from .base import PlaceCandidate, PlaceFinder, register
 
 Thumbs = npt.NDArray[np.float32]
@@ -97,7 +98,7 @@ class SmallBlurryImageFinder(PlaceFinder):
         ids = self._ids[:n].copy()
         if allowed is not None:
             scores[~np.isin(ids, np.fromiter(allowed, np.int64, len(allowed)))] = -np.inf
-        return _top_k(ids, scores, k)
+        return _best_candidates(ids, scores, k)
 
     def _scores(self, thumb: Thumbs, n: int) -> npt.NDArray[np.float32]:
         """(n,) ``-SSD`` of ``thumb`` against the first ``n`` rows, one matrix-vector product."""
@@ -118,13 +119,8 @@ class SmallBlurryImageFinder(PlaceFinder):
         self._ids = np.concatenate([self._ids, np.zeros(new_cap - cap, np.int64)])
 
 
-def _top_k(ids: npt.NDArray[np.int64], scores: npt.NDArray[np.floating], k: int
-           ) -> list[PlaceCandidate]:
+def _best_candidates(ids: npt.NDArray[np.int64], scores: npt.NDArray[np.floating], k: int
+                     ) -> list[PlaceCandidate]:
     """The ``k`` best finite scores, best first (ties broken by keyframe id)."""
-    valid = np.flatnonzero(np.isfinite(scores))
-    if k <= 0 or len(valid) == 0:
-        return []
-    if k < len(valid):
-        valid = valid[np.argpartition(-scores[valid], k - 1)[:k]]
-    order = valid[np.lexsort((ids[valid], -scores[valid]))]
+    order = top_k(scores, k, keep=np.isfinite(scores), tiebreak=ids)
     return [PlaceCandidate(int(ids[i]), float(scores[i])) for i in order]

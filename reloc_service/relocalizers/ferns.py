@@ -25,7 +25,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import time
 import zlib
 from collections import Counter, deque
@@ -43,8 +42,10 @@ from ..errors import ConfigError, NotTrainedError, StorageError
 from ..features import FEATURE_KINDS
 from ..ferns.classifier import FernClassifier, FernConf, FernScorer, FernTests
 from ..ferns.training import WarpConf, draw_warps, prepare_image, sample_leaves
+from ..fileio import atomic_write
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap, MapState
+from ..numeric import top_k
 from ..plugins import make_conf
 from ..pose.base import PoseEstimate
 from ..pose.p3p import PnPConf, solve_pnp_indexed
@@ -509,7 +510,7 @@ class FernsRelocalizer(Relocalizer):
             return empty
         lab, post = np.hstack(labels), np.hstack(posts)
         k = min(self.conf.top_k, lab.shape[1])
-        order = np.argsort(-post, axis=1, kind="stable")[:, :k]
+        order = top_k(post, k)
         lab, post = np.take_along_axis(lab, order, 1), np.take_along_axis(post, order, 1)
         kp = np.repeat(np.arange(len(px)), k)
         keep = post.ravel() >= max(self.conf.min_posterior, 1e-12)
@@ -592,8 +593,8 @@ class FernsRelocalizer(Relocalizer):
                 "keyframe_crc32": {str(k): _image_crc(self._trained[k].keyframe)
                                    for k in kf_ids}}
         # Uncompressed: zlib takes seconds on ~10^7 counts and gains little on the indices.
-        _atomic_write(directory / _MODEL_FILE, lambda f: np.savez(f, **arrays))
-        _atomic_write(directory / _META_FILE, lambda f: f.write(json.dumps(meta).encode()))
+        atomic_write(directory / _MODEL_FILE, lambda f: np.savez(f, **arrays))
+        atomic_write(directory / _META_FILE, json.dumps(meta))
 
     def load(self, directory: Path) -> bool:
         """Restore what :meth:`save` wrote; False (nothing changed) if there is none, if it was
@@ -765,10 +766,3 @@ def _bounded_map(pool: ThreadPoolExecutor, fn: Any, items: list[Any], window: in
 def _concat(parts: list[npt.NDArray[Any]]) -> IntArray:
     return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
 
-
-def _atomic_write(path: Path, write: Any) -> None:
-    """Write through a temporary file and rename, so a crash never leaves half a file."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        write(f)
-    os.replace(tmp, path)

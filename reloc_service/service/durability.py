@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import threading
 import time
 import urllib.parse
@@ -35,6 +34,7 @@ from reloc_client import protocol as wire
 from ..cameras import Camera, camera_from_dict
 from ..engine import Engine, EngineConf
 from ..errors import CameraError, StorageError
+from ..fileio import atomic_write
 from ..storage import CURRENT_FILE, restore_current, snapshot_dirs
 from .journal import Journal, JournalReport
 
@@ -202,18 +202,7 @@ def read_service_file(directory: Path) -> dict[str, Any]:
 
 def write_service_file(directory: Path, data: dict[str, Any]) -> None:
     """Write ``service.json`` atomically (temporary file, fsync, rename, fsync directory)."""
-    path = directory / SERVICE_FILE
-    tmp = directory / (SERVICE_FILE + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=1)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    atomic_write(directory / SERVICE_FILE, json.dumps(data, indent=1))
 
 
 # -- the storage directory ----------------------------------------------------------------------

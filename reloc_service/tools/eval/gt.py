@@ -11,6 +11,7 @@ import numpy.typing as npt
 from ...errors import ConfigError
 from ...frame import Frame, Keyframe
 from ...map import KeyframeMap
+from ...numeric import top_k
 from ...place.base import PlaceCandidate, PlaceFinder, register
 
 
@@ -60,7 +61,7 @@ class GroundTruthPlaceFinder(PlaceFinder):
         ids = np.array([i for i, _ in items], np.int64)
         world_from_kf = np.stack([p for _, p in items])
         cost = self._cost(world_from_kf, query.gt_world_from_cam)
-        order = np.lexsort((ids, cost))[:k]
+        order = top_k(-cost, k, tiebreak=ids)  # least cost first, ties to the lower id
         return [PlaceCandidate(int(ids[i]), -float(cost[i])) for i in order]
 
     def _cost(self, world_from_kf: npt.NDArray[np.float64],
