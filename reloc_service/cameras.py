@@ -15,6 +15,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
+from reloc_client.protocol.geometry import CAMERA_MODELS as DISTORTION_COUNTS
 
 from .errors import CameraError
 
@@ -26,12 +27,18 @@ _NEWTON_ITERS = 30
 
 
 def register_camera(name: str):
-    """Class decorator: register a camera model under ``name`` (its dict's ``model``)."""
+    """Class decorator: register a camera model under ``name`` (its dict's ``model``); its
+    accepted numbers of distortion values come from the wire protocol's table, the one
+    definition the client validates against too."""
 
     def deco(cls: type[Camera]) -> type[Camera]:
         if name in CAMERA_MODELS:
             raise ValueError(f"duplicate camera model {name!r}")
+        if name not in DISTORTION_COUNTS:
+            raise ValueError(f"camera model {name!r} is not in the protocol's table "
+                             f"{sorted(DISTORTION_COUNTS)}: add it there first")
         cls.model = name
+        cls.n_distortion = DISTORTION_COUNTS[name]
         CAMERA_MODELS[name] = cls
         return cls
 
@@ -181,8 +188,6 @@ class PinholeCamera(Camera):
 class RadTanCamera(Camera):
     """OpenCV radial-tangential (Brown-Conrady) model, ``distortion = [k1, k2, p1, p2(, k3)]``."""
 
-    n_distortion: ClassVar[tuple[int, ...]] = (4, 5)
-
     def _coeffs(self) -> tuple[float, float, float, float, float]:
         k1, k2, p1, p2, *rest = self.distortion
         return k1, k2, p1, p2, (rest[0] if rest else 0.0)
@@ -254,8 +259,6 @@ class EquidistantCamera(_RadialCamera):
     """OpenCV fisheye (Kannala-Brandt) model, ``distortion = [k1, k2, k3, k4]``:
     ``theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)``, theta = atan(r)."""
 
-    n_distortion: ClassVar[tuple[int, ...]] = (4,)
-
     def _theta_d(self, theta: Array) -> tuple[Array, Array]:
         k1, k2, k3, k4 = self.distortion
         t2 = theta * theta
@@ -282,8 +285,6 @@ class EquidistantCamera(_RadialCamera):
 class FovCamera(_RadialCamera):
     """FOV / ATAN model of PTAM and SVO, ``distortion = [omega]`` (radians):
     ``r_d = atan(2 r tan(omega / 2)) / omega``."""
-
-    n_distortion: ClassVar[tuple[int, ...]] = (1,)
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -1,12 +1,36 @@
 """The engine shared by ``reloc eval`` and the service: the keyframe map, its builder and the
 live relocalizers, safe for many querying threads and one mapping thread.
 
-Concurrency: the builder works on :attr:`Engine.map` under a writer mutex while queries go
-on; relocalizers see the map through read-only views pinned to the last *published* state.
-Publishing (pinning the views to the new state and telling the relocalizers) takes the write
-side of a readers-writer lock, so a query (read side) sees one consistent map version from
-start to end. Training builds a fresh relocalizer off-lock over a pinned snapshot, then,
-under the write lock, replays the keyframes changed since and swaps it in.
+Concurrency
+-----------
+The engine holds the one lock discipline of the library. The map's writers, the place finders
+(sbi, bow, gt), the ferns models, the pose finders and the relocalizers take no lock: they are
+NOT thread-safe by themselves and must only be used through an engine (or by one thread).
+
+- ``_writer`` (mutex) guards :attr:`Engine.map` and its builder: one map change at a time.
+  Features and triangulation run under it alone, so queries go on meanwhile; readers of
+  ``Engine.map`` need no lock (each :meth:`KeyframeMap.snapshot` is immutable).
+- ``_rw`` (readers-writer, writers first) guards the live relocalizers, the map views they read
+  through and the method table. Queries, :meth:`Engine.status` and :meth:`Engine.save` take the
+  read side; publishing a map change (re-pinning the views, then each relocalizer's
+  ``add_keyframe``/``remove_keyframe``) and swapping a new build in take the write side. A
+  query thus sees one published map version, every relocalizer in step with it, throughout.
+- A method's build lock lets one build of that method run at a time (:meth:`Engine.train`, a
+  lazily created method); ``_meta`` guards the build bookkeeping (builds in flight, the
+  journal of keyframes changed since they started); ``_save_lock`` serialises saves.
+- Order, never reversed: build lock, ``_writer``, ``_rw``, ``_meta``; ``_save_lock``, ``_rw``.
+
+Training never blocks queries: a fresh relocalizer is built off-lock over a pinned snapshot
+(no other thread can see it), then, under the write side, the keyframes changed since are
+replayed into it from the journal and it is swapped in.
+
+What this asks of a relocalizer: ``add_keyframe``, ``remove_keyframe``, ``train`` and ``load``
+run under the write side or before it is published; ``relocalize`` runs concurrently with
+other queries on the same instance (the read side is shared), and ``save`` beside them, so
+both only read its state or memoise a value every racing query would compute identically
+(bow's inverted file, ferns' landmark table, the caches of the shared keyframes). A query
+:class:`Frame` belongs to one query. :meth:`Engine.relocalizer` hands out a live relocalizer
+without any lock: for single-threaded tools only.
 """
 
 from __future__ import annotations
@@ -155,13 +179,14 @@ class Engine:
 
     def __init__(self, conf: EngineConf | None = None) -> None:
         self.conf = conf or EngineConf()
-        #: The map the builder writes (may be ahead of what relocalizers see: :meth:`status`).
+        #: The map the builder writes (may be ahead of what relocalizers see: :meth:`status`);
+        #: written only under ``_writer``, read by anyone through ``snapshot()``.
         self.map = KeyframeMap()
-        self._rw = ReadWriteLock()
+        self._rw = ReadWriteLock()                # relocalizers, their views, _live
         self._writer = threading.Lock()           # serialises map changes
-        self._save_lock = threading.Lock()
-        self._method_locks: dict[str, threading.Lock] = {}
-        self._meta = threading.Lock()             # guards _method_locks and _building
+        self._save_lock = threading.Lock()        # one save at a time
+        self._method_locks: dict[str, threading.Lock] = {}  # one build per method at a time
+        self._meta = threading.Lock()             # _method_locks, _building and _journal
         self._building: dict[str, int] = {}       # method -> base version of builds in flight
         self._journal: list[tuple[int, int]] = []  # (published version, keyframe id changed)
         self._published = self.map.snapshot()
@@ -262,7 +287,8 @@ class Engine:
         return list(self._live)
 
     def relocalizer(self, method: str) -> Relocalizer | None:
-        """The live relocalizer answering ``method`` (None if not built yet)."""
+        """The live relocalizer answering ``method`` (None if not built yet). Calling it
+        bypasses the engine's locks: only where no other thread uses the engine."""
         live = self._live.get(method)
         return None if live is None else live.relocalizer
 

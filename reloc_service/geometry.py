@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import numpy.typing as npt
+from reloc_client.protocol.geometry import quat_xyzw_to_rotation, rotation_to_quat_xyzw_array
 from scipy.spatial.transform import Rotation
 
 from .errors import GeometryError
@@ -65,13 +66,12 @@ def quat_xyzw_to_matrix(q_xyzw: npt.ArrayLike) -> Array:
         raise GeometryError("quaternion: zero norm")
     if abs(n - 1.0) > 1e-3:
         raise GeometryError(f"quaternion: expected unit norm, got {n:.6f}")
-    return Rotation.from_quat(q / n).as_matrix()
+    return quat_xyzw_to_rotation(q / n)
 
 
 def matrix_to_quat_xyzw(rotation: npt.ArrayLike) -> Array:
     """(3, 3) rotation matrix to a unit quaternion (x, y, z, w) with w >= 0."""
-    q = Rotation.from_matrix(check_rotation(rotation, tol=1e-5)).as_quat()
-    return q if q[3] >= 0 else -q
+    return rotation_to_quat_xyzw_array(check_rotation(rotation, tol=1e-5))
 
 
 def pose_from_tq(t_xyz: npt.ArrayLike, q_xyzw: npt.ArrayLike) -> Array:

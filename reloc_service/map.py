@@ -1,13 +1,13 @@
 """The keyframe map: keyframes, landmarks with their observations, and a version counter.
 
-Writers serialise on a lock and publish a new immutable :class:`MapState` (copy on write);
-readers call :meth:`KeyframeMap.snapshot` once and see one consistent map for as long as they
-hold it, however many keyframes arrive meanwhile.
+A writer publishes a new immutable :class:`MapState` (copy on write); readers call
+:meth:`KeyframeMap.snapshot` once and see one consistent map for as long as they hold it,
+however many keyframes arrive meanwhile. One writer at a time: the map takes no lock (the
+engine's writer mutex serialises its builder, see :mod:`reloc_service.engine`).
 """
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
@@ -94,10 +94,14 @@ class MapState:
 
 
 class KeyframeMap:
-    """A thread-safe, versioned keyframe map (copy on write; see module docstring)."""
+    """A versioned keyframe map (copy on write; see module docstring).
+
+    Readers need no lock: :meth:`snapshot` returns the last published state, which never
+    changes, and publishing is one attribute store. Writers are NOT thread-safe: each one reads
+    the current state, copies and publishes it, so two concurrent writers would lose one's
+    change. Only one thread may write at a time (the engine's writer mutex guarantees it)."""
 
     def __init__(self) -> None:
-        self._lock = threading.RLock()
         self._state = MapState()
 
     # -- readers -------------------------------------------------------------------------------
@@ -121,28 +125,26 @@ class KeyframeMap:
         the landmarks left without any are removed first). Keypoints that already carry a
         landmark id and a 3D point (as SVO sends them) register that landmark: an id unknown to
         the map creates it, a known one gains an observation."""
-        with self._lock:
-            keyframes = dict(self._state.keyframes)
-            landmarks = dict(self._state.landmarks)
-            if keyframe.id in keyframes:
-                _drop_observations(keyframes.pop(keyframe.id), landmarks)
-            keyframes[keyframe.id] = keyframe
-            next_id = self._state.next_landmark_id
-            for kind, feats in keyframe.features.items():
-                given_next = _register_given_landmarks(keyframe.id, kind, feats, landmarks)
-                next_id = max(next_id, given_next)
-            return self._publish(keyframes, landmarks, next_id)
+        keyframes = dict(self._state.keyframes)
+        landmarks = dict(self._state.landmarks)
+        if keyframe.id in keyframes:
+            _drop_observations(keyframes.pop(keyframe.id), landmarks)
+        keyframes[keyframe.id] = keyframe
+        next_id = self._state.next_landmark_id
+        for kind, feats in keyframe.features.items():
+            given_next = _register_given_landmarks(keyframe.id, kind, feats, landmarks)
+            next_id = max(next_id, given_next)
+        return self._publish(keyframes, landmarks, next_id)
 
     def remove_keyframe(self, kf_id: int) -> MapState:
         """Remove keyframe ``kf_id`` and its observations; landmarks left with no observation
         are removed. MapError if the id is unknown."""
-        with self._lock:
-            keyframes = dict(self._state.keyframes)
-            if kf_id not in keyframes:
-                raise MapError(f"cannot remove keyframe {kf_id}: not in the map")
-            landmarks = dict(self._state.landmarks)
-            _drop_observations(keyframes.pop(kf_id), landmarks)
-            return self._publish(keyframes, landmarks, self._state.next_landmark_id)
+        keyframes = dict(self._state.keyframes)
+        if kf_id not in keyframes:
+            raise MapError(f"cannot remove keyframe {kf_id}: not in the map")
+        landmarks = dict(self._state.landmarks)
+        _drop_observations(keyframes.pop(kf_id), landmarks)
+        return self._publish(keyframes, landmarks, self._state.next_landmark_id)
 
     def add_landmarks(self, kind: str, points_world: npt.ArrayLike,
                       observations: Iterable[Iterable[tuple[int, int]]], *,
@@ -161,52 +163,50 @@ class KeyframeMap:
                   else np.asarray(depth_sigmas_m, dtype=np.float64).reshape(-1))
         if len(sigmas) != len(pts) or not np.all(np.isfinite(sigmas) & (sigmas >= 0)):
             raise MapError(f"add_landmarks: expected {len(pts)} finite depth sigmas >= 0")
-        with self._lock:
-            keyframes = dict(self._state.keyframes)
-            landmarks = dict(self._state.landmarks)
-            next_id = self._state.next_landmark_id
-            updates: dict[int, list[tuple[int, int, Array]]] = {}
-            new_ids: list[int] = []
-            taken: set[tuple[int, int]] = set()
-            for point, obs, sigma in zip(pts, obs_lists, sigmas.tolist(), strict=True):
-                fresh = [(k, i) for k, i in obs if k in keyframes and (k, i) not in taken
-                         and keyframes[k].features[kind].landmark_ids[i] < 0]
-                taken.update(fresh)
-                if not fresh:
-                    continue
-                lm_id = next_id
-                next_id += 1
-                landmarks[lm_id] = Landmark(lm_id, point.copy(),
-                                            frozenset((k, kind, int(i)) for k, i in fresh),
-                                            sigma)
-                for k, i in fresh:
-                    updates.setdefault(k, []).append((int(i), lm_id, point))
-                new_ids.append(lm_id)
-            _apply_updates(keyframes, kind, updates)
-            self._publish(keyframes, landmarks, next_id)
-            return new_ids
+        keyframes = dict(self._state.keyframes)
+        landmarks = dict(self._state.landmarks)
+        next_id = self._state.next_landmark_id
+        updates: dict[int, list[tuple[int, int, Array]]] = {}
+        new_ids: list[int] = []
+        taken: set[tuple[int, int]] = set()
+        for point, obs, sigma in zip(pts, obs_lists, sigmas.tolist(), strict=True):
+            fresh = [(k, i) for k, i in obs if k in keyframes and (k, i) not in taken
+                     and keyframes[k].features[kind].landmark_ids[i] < 0]
+            taken.update(fresh)
+            if not fresh:
+                continue
+            lm_id = next_id
+            next_id += 1
+            landmarks[lm_id] = Landmark(lm_id, point.copy(),
+                                        frozenset((k, kind, int(i)) for k, i in fresh),
+                                        sigma)
+            for k, i in fresh:
+                updates.setdefault(k, []).append((int(i), lm_id, point))
+            new_ids.append(lm_id)
+        _apply_updates(keyframes, kind, updates)
+        self._publish(keyframes, landmarks, next_id)
+        return new_ids
 
     def add_observations(self, kind: str, triples: Iterable[tuple[int, int, int]]) -> int:
         """Attach keypoints to existing landmarks: ``(landmark id, keyframe id, keypoint index)``.
         Keypoints that already have a landmark, unknown landmarks or keyframes are skipped.
         Returns the number of observations added."""
-        with self._lock:
-            keyframes = dict(self._state.keyframes)
-            landmarks = dict(self._state.landmarks)
-            updates: dict[int, list[tuple[int, int, Array]]] = {}
-            taken: set[tuple[int, int]] = set()
-            for lm_id, k, i in triples:
-                if lm_id not in landmarks or k not in keyframes or (k, i) in taken:
-                    continue
-                if keyframes[k].features[kind].landmark_ids[i] >= 0:
-                    continue
-                taken.add((k, i))
-                lm = landmarks[lm_id]
-                landmarks[lm_id] = replace(lm, observations=lm.observations | {(k, kind, int(i))})
-                updates.setdefault(k, []).append((int(i), lm_id, lm.point_world))
-            _apply_updates(keyframes, kind, updates)
-            self._publish(keyframes, landmarks, self._state.next_landmark_id)
-            return len(taken)
+        keyframes = dict(self._state.keyframes)
+        landmarks = dict(self._state.landmarks)
+        updates: dict[int, list[tuple[int, int, Array]]] = {}
+        taken: set[tuple[int, int]] = set()
+        for lm_id, k, i in triples:
+            if lm_id not in landmarks or k not in keyframes or (k, i) in taken:
+                continue
+            if keyframes[k].features[kind].landmark_ids[i] >= 0:
+                continue
+            taken.add((k, i))
+            lm = landmarks[lm_id]
+            landmarks[lm_id] = replace(lm, observations=lm.observations | {(k, kind, int(i))})
+            updates.setdefault(k, []).append((int(i), lm_id, lm.point_world))
+        _apply_updates(keyframes, kind, updates)
+        self._publish(keyframes, landmarks, self._state.next_landmark_id)
+        return len(taken)
 
     def move_landmarks(self, landmark_ids: npt.ArrayLike, points_world: npt.ArrayLike) -> MapState:
         """Move landmarks to new world points (L, 3), in the landmarks and in the features of
@@ -215,26 +215,24 @@ class KeyframeMap:
         pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
         if len(ids) != len(pts):
             raise MapError(f"move_landmarks: {len(ids)} ids but {len(pts)} points")
-        with self._lock:
-            if len(ids) == 0:
-                return self._state
-            order = np.argsort(ids)
-            ids, pts = ids[order], pts[order]
-            keyframes = dict(self._state.keyframes)
-            landmarks = dict(self._state.landmarks)
-            observers: set[int] = set()
-            for lm_id, point in zip(ids.tolist(), pts, strict=True):
-                lm = landmarks[lm_id]
-                landmarks[lm_id] = replace(lm, point_world=point.copy())
-                observers.update(o[0] for o in lm.observations)
-            for k in observers:
-                keyframes[k] = _with_moved_points(keyframes[k], ids, pts)
-            return self._publish(keyframes, landmarks, self._state.next_landmark_id)
+        if len(ids) == 0:
+            return self._state
+        order = np.argsort(ids)
+        ids, pts = ids[order], pts[order]
+        keyframes = dict(self._state.keyframes)
+        landmarks = dict(self._state.landmarks)
+        observers: set[int] = set()
+        for lm_id, point in zip(ids.tolist(), pts, strict=True):
+            lm = landmarks[lm_id]
+            landmarks[lm_id] = replace(lm, point_world=point.copy())
+            observers.update(o[0] for o in lm.observations)
+        for k in observers:
+            keyframes[k] = _with_moved_points(keyframes[k], ids, pts)
+        return self._publish(keyframes, landmarks, self._state.next_landmark_id)
 
     def replace_state(self, state: MapState) -> None:
         """Install a whole state (used when loading a saved map)."""
-        with self._lock:
-            self._state = state
+        self._state = state
 
     def _publish(self, keyframes: dict[int, Keyframe], landmarks: dict[int, Landmark],
                  next_landmark_id: int) -> MapState:

@@ -149,7 +149,7 @@ class GivenFeatures:
 
 class MapBuilder:
     """Adds posed keyframes to a :class:`KeyframeMap` and triangulates their landmarks
-    incrementally. Not thread-safe: one writer at a time (the engine holds its write lock)."""
+    incrementally. Not thread-safe: one writer at a time (the engine holds its writer mutex)."""
 
     def __init__(self, kmap: KeyframeMap, conf: MappingConf | None = None) -> None:
         self.map = kmap

@@ -37,6 +37,7 @@ import numpy.typing as npt
 
 from .cameras import camera_from_dict
 from .errors import CameraError, GeometryError, MapError, StorageError
+from .fileio import atomic_write, fsync_path
 from .frame import Features, Keyframe
 from .map import Landmark, MapState
 
@@ -88,23 +89,15 @@ class _SnapshotWriter:
         for path in sorted((self.root / relroot).rglob("*")):
             if path.is_file():
                 data = path.read_bytes()
-                _fsync_path(path)
+                fsync_path(path)
                 rel = path.relative_to(self.root).as_posix()
                 self.files[rel] = {"sha256": hashlib.sha256(data).hexdigest(), "size": len(data)}
-
-
-def _fsync_path(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _fsync_tree(root: Path) -> None:
     """fsync every directory under ``root`` (and ``root``), so new entries are durable."""
     for path in [root, *sorted(p for p in root.rglob("*") if p.is_dir())]:
-        _fsync_path(path)
+        fsync_path(path)
 
 
 def _npz_bytes(arrays: Mapping[str, Any]) -> bytes:
@@ -178,13 +171,7 @@ def _new_snapshot_dir(directory: Path) -> Path:
 
 def _switch_current(directory: Path, snapshot: Path) -> None:
     """Atomically point ``CURRENT`` at ``snapshot`` (write, fsync, rename, fsync directory)."""
-    tmp = directory / (CURRENT_FILE + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(snapshot.relative_to(directory).as_posix() + "\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, directory / CURRENT_FILE)
-    _fsync_path(directory)
+    atomic_write(directory / CURRENT_FILE, snapshot.relative_to(directory).as_posix() + "\n")
 
 
 def _prune(directory: Path, keep: Path, previous: Path | None) -> None:
@@ -237,7 +224,7 @@ def save_map(state: MapState, directory: str | Path, *,
                 "files": writer.files}
     writer.write(MANIFEST_FILE, json.dumps(manifest, indent=1).encode("utf-8"))
     _fsync_tree(snapshot)
-    _fsync_path(snapshot.parent)
+    fsync_path(snapshot.parent)
     _switch_current(directory, snapshot)
     _prune(directory, snapshot, previous)
     return snapshot

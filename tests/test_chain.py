@@ -15,7 +15,7 @@ from reloc_service.relocalizers.base import Prior, Relocalizer, RelocResult
 from reloc_service.relocalizers.chain import ChainRelocalizer
 from reloc_service.relocalizers.factory import create_relocalizer
 from reloc_service.relocalizers.multi import MultiRelocalizer
-from reloc_service.tools.bench.multi_bench import PlanarScene, keyframe_grid, planar_scene, query_pose
+from reloc_service.tools.synth.planar import PlanarScene, keyframe_grid, planar_scene, query_pose
 
 CAMERA = PinholeCamera(width=320, height=240, fx=250.0, fy=250.0, cx=159.5, cy=119.5)
 

@@ -278,6 +278,18 @@ def test_remote_without_remote_module_is_a_clear_error(tmp_path, monkeypatch):
         ev.evaluate(root, "a", progress=False, remote=ev.RemoteSpec("tcp/x:1", "m"))
 
 
+def test_remote_backend_does_not_import_the_evaluation():
+    # evaluate drives the remote backend; the backend must not need evaluate back (a cycle).
+    import subprocess
+
+    code = ("import sys, reloc_service.tools.eval.remote as r; "
+            "assert r.RemoteSpec is __import__('reloc_service.tools.eval.backends', "
+            "fromlist=['x']).RemoteSpec; "
+            "assert 'reloc_service.tools.eval.evaluate' not in sys.modules, 'evaluate imported'")
+    subprocess.run([sys.executable, "-c", code], check=True,
+                   cwd=Path(__file__).resolve().parents[1])
+
+
 # -- end to end: the synthetic desk at a quarter scale, the engine, gt+none, the CLI ------------
 
 @pytest.fixture(scope="module")

@@ -79,3 +79,26 @@ def test_look_at_axes():
     assert np.allclose(world_from_cam[:3, 2], [1, 0, 0])
     assert np.allclose(world_from_cam[:3, 1], [0, 0, -1])
     g.check_pose(world_from_cam)
+
+
+def test_quaternion_round_trip_through_the_one_implementation():
+    from reloc_client.protocol import quat_xyzw_to_rotation, rotation_to_quat_xyzw_array
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(500, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    # 180-degree turns (w = 0) and the identity exercise every branch of Shepperd's method.
+    q = np.vstack([q, np.eye(4)[[0, 1, 2, 3]], [[0.5, 0.5, 0.5, 0.5]]])
+    q[q[:, 3] < 0] *= -1
+    rotations = quat_xyzw_to_rotation(q)
+    assert rotations.shape == (len(q), 3, 3)
+    np.testing.assert_allclose(rotations, Rotation.from_quat(q).as_matrix(), atol=1e-12)
+    back = rotation_to_quat_xyzw_array(rotations)
+    same_sign = np.where((back * q).sum(axis=1, keepdims=True) < 0, -back, back)
+    np.testing.assert_allclose(same_sign, q, atol=1e-12)
+    assert np.all(back[:, 3] >= 0)
+    for qi, ri in zip(q[:20], rotations[:20], strict=True):
+        np.testing.assert_allclose(g.quat_xyzw_to_matrix(qi), ri, atol=1e-15)
+        np.testing.assert_allclose(g.matrix_to_quat_xyzw(ri), back[len(back) - len(q)
+                                   + list(map(tuple, q)).index(tuple(qi))], atol=1e-15)

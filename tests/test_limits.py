@@ -34,7 +34,7 @@ from service_support import (
 )
 
 from reloc_service.cameras import PinholeCamera
-from reloc_service.service import handlers
+from reloc_service.service import codec
 from reloc_service.service.app import Service
 from reloc_service.service.config import ServiceConf, load_config
 from reloc_service.service.workers import WorkerPool
@@ -109,7 +109,7 @@ def test_decoder_checks_the_header_against_the_camera_before_allocating():
         image = wire.WireImage(wire.ImageFormat(fmt), 320, 240,
                                flat_image(4096, 4096, "jpg" if fmt == "jpeg" else fmt))
         with pytest.raises(wire.ProtocolError) as err:
-            handlers.decode_image(image, camera, "relocalize.image")
+            codec.decode_image(image, camera, "relocalize.image")
         assert err.value.code is wire.ErrorCode.BAD_IMAGE
         assert "header declares 4096x4096" in err.value.message
 

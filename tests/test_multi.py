@@ -20,11 +20,10 @@ from reloc_service.map import KeyframeMap, MapState
 from reloc_service.place.base import PlaceCandidate, create_place_finder
 from reloc_service.place.sbi import SmallBlurryImageFinder
 from reloc_service.pose.base import PoseEstimate, PoseFinder, create_pose_finder
-from reloc_service.pose.none import zncc
 from reloc_service.relocalizers.base import Prior, RelocStatus
 from reloc_service.relocalizers.factory import create_relocalizer
 from reloc_service.relocalizers.multi import MultiRelocalizer
-from reloc_service.tools.bench.multi_bench import (
+from reloc_service.tools.synth.planar import (
     PlanarScene,
     downward_pose,
     keyframe_grid,
@@ -260,15 +259,6 @@ def test_photometric_pose_needs_two_agreeing_keyframes(scene):
     assert reloc.relocalize(Frame(kf.image.copy(), CAMERA)).ok
     # Geometric pose finders are not held to it by default.
     assert create_relocalizer("sbi+p3p", kmap).require_agreement is False
-
-
-def test_zncc():
-    rng = np.random.default_rng(0)
-    a = rng.normal(size=(30, 40))
-    assert zncc(a, 3 * a + 7) == pytest.approx(1.0)
-    assert zncc(a, -a) == pytest.approx(-1.0)
-    assert zncc(a, np.ones_like(a)) == 0.0
-    assert abs(zncc(a, rng.normal(size=(30, 40)))) < 0.1
 
 
 def test_gt_place_finder_exists_only_where_the_evaluation_tools_are_loaded():

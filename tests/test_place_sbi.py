@@ -11,7 +11,7 @@ from reloc_service.frame import Frame, Keyframe
 from reloc_service.map import KeyframeMap
 from reloc_service.place.base import create_place_finder
 from reloc_service.place.sbi import SmallBlurryImageFinder
-from reloc_service.tools.bench.multi_bench import PlanarScene, downward_pose, texture_mosaic
+from reloc_service.tools.synth.planar import PlanarScene, downward_pose, texture_mosaic
 
 CAMERA = PinholeCamera(width=160, height=120, fx=125.0, fy=125.0, cx=79.5, cy=59.5)
 

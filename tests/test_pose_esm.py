@@ -12,6 +12,7 @@ from reloc_service.errors import ConfigError
 from reloc_service.frame import Frame, Keyframe
 from reloc_service.geometry import look_at, pose_error, so3_exp, so3_log
 from reloc_service.map import KeyframeMap
+from reloc_service.numeric import zncc
 from reloc_service.place.base import PlaceCandidate
 from reloc_service.pose import esm
 from reloc_service.pose.base import create_pose_finder
@@ -93,8 +94,8 @@ def test_single_level_esm_step_reduces_the_error():
     tpl, img = kf.small_blurry_image(40, 30, 2.5), query.small_blurry_image(40, 30, 2.5)
     warp, iterations, converged = esm.esm_level(tpl, img, np.eye(3), max_iterations=1,
                                                 convergence_px=1e-6)
-    before = esm.zncc(tpl, *esm.warp_image(img, np.eye(3)))
-    after = esm.zncc(tpl, *esm.warp_image(img, warp))
+    before = zncc(tpl, *esm.warp_image(img, np.eye(3)))
+    after = zncc(tpl, *esm.warp_image(img, warp))
     assert iterations == 1 and not converged and after > before
 
 

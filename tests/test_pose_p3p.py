@@ -21,7 +21,7 @@ from reloc_service.pose.p3p import (
     solve_pnp_indexed,
 )
 from reloc_service.relocalizers.base import VerifyConf, position_sigma_m, result_from_estimate
-from reloc_service.tools.bench.multi_bench import PlanarScene, planar_scene, query_pose
+from reloc_service.tools.synth.planar import PlanarScene, planar_scene, query_pose
 
 DISTORTIONS = {"pinhole": [], "radtan": [-0.28, 0.07, 1e-4, -2e-4],
                "equidistant": [0.05, -0.01, 0.003, -0.001], "fov": [0.9]}
@@ -82,6 +82,30 @@ def test_jacobian_matches_finite_differences(model):
         minus = _residuals_and_jacobian(TRUE_POSE @ se3_exp(-step), px, points, camera)[0]
         numeric[:, k] = -(plus - minus).ravel() / (2 * h)  # residual = px - projection
     assert np.allclose(jac, numeric, rtol=1e-4, atol=1e-3)
+
+
+@pytest.mark.parametrize("model", ["pinhole", "radtan", "radtan-k3", "equidistant"])
+def test_poselib_camera_projects_exactly_as_ours(model):
+    """The refinement's Jacobian comes from PoseLib's camera model: it must be our model,
+    parameter for parameter, over the whole image."""
+    from reloc_service.pose.p3p import poselib_camera
+
+    camera = make_camera(model.split("-")[0])
+    if model == "radtan-k3":
+        camera = camera_from_dict({**camera.to_dict(), "distortion": [-0.28, 0.07, 1e-4, -2e-4,
+                                                                      0.02]})
+    rng = np.random.default_rng(7)
+    bearings = camera.unproject(rng.uniform([0, 0], [camera.width - 1, camera.height - 1],
+                                            (500, 2)))
+    xy = bearings[:, :2] / bearings[:, 2:]
+    np.testing.assert_allclose(poselib_camera(camera).project(xy), camera.project(bearings),
+                               atol=1e-9)
+
+
+def test_fov_has_no_poselib_camera():
+    from reloc_service.pose.p3p import poselib_camera
+
+    assert poselib_camera(make_camera("fov")) is None
 
 
 def test_covariance_matches_monte_carlo_and_shrinks_with_more_inliers():
@@ -169,7 +193,7 @@ def test_landmark_pool_keeps_one_row_per_landmark_from_the_best_keyframe():
 def scene() -> PlanarScene:
     camera = camera_from_dict({"model": "pinhole", "width": 320, "height": 240, "fx": 250.0,
                                "fy": 250.0, "cx": 159.5, "cy": 119.5})
-    from reloc_service.tools.bench.multi_bench import keyframe_grid
+    from reloc_service.tools.synth.planar import keyframe_grid
 
     return planar_scene(keyframe_grid(3, 2), kinds=("sift", "orb"), camera=camera,
                         max_features=1000)

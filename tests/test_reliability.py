@@ -43,7 +43,7 @@ from service_support import (
 )
 
 from reloc_service.errors import StorageError
-from reloc_service.service import handlers, journal
+from reloc_service.service import codec, handlers, journal
 from reloc_service.service.app import Service
 
 MAP = "lab"
@@ -148,7 +148,7 @@ def _expect_clean_error(call) -> str:
         call()
         return "reply"
     except Exception as exc:  # noqa: BLE001 - every exception is classified
-        code, message = handlers.error_of(exc)
+        code, message = codec.error_of(exc)
         assert code is not ErrorCode.INTERNAL, f"unexpected {type(exc).__name__}: {exc}"
         assert message
         return code.value
@@ -183,8 +183,8 @@ def test_fuzz_keyframe_and_camera_puts_and_train(served):
     @given(kf=bad_requests("keyframe"), cam=bad_requests("camera"), raw=st.binary(max_size=256))
     def run(kf: bytes, cam: bytes, raw: bytes) -> None:
         COUNTS["puts"] = COUNTS.get("puts", 0) + 3
-        _expect_clean_error(lambda: handlers.decode_keyframe_put(rt, 0, kf))
-        _expect_clean_error(lambda: handlers.decode_camera_put("cam9", cam, rt.limits))
+        _expect_clean_error(lambda: codec.decode_keyframe_put(rt, 0, kf))
+        _expect_clean_error(lambda: codec.decode_camera_put("cam9", cam, rt.limits))
         _expect_clean_error(lambda: wire.TrainRequest.decode(raw, rt.limits))
 
     run()

@@ -1,7 +1,9 @@
-"""Client of the reloc relocalization service: the wire protocol and a Zenoh client.
+"""Client of the reloc relocalization service: the wire protocol, the result type and a
+Zenoh client.
 
-``reloc_client.protocol`` needs only msgpack and numpy; the client classes (which need
-zenoh) are imported on first use, so ``import reloc_client.protocol`` never loads zenoh.
+``reloc_client.protocol`` and ``reloc_client.result`` need only msgpack and numpy; the client
+classes (which need zenoh) are imported on first use, so importing the protocol or the result
+(as the service does) never loads zenoh.
 """
 
 from __future__ import annotations
@@ -11,24 +13,18 @@ from typing import TYPE_CHECKING, Any
 from .protocol import PROTOCOL_VERSION, ErrorCode, ProtocolError
 
 if TYPE_CHECKING:
-    from .client import (
-        NoReplyError,
-        RelocClient,
-        RelocResult,
-        RelocStatus,
-        ServiceBusy,
-        ServiceError,
-        ServiceGone,
-    )
+    from .client import NoReplyError, RelocClient, ServiceBusy, ServiceError, ServiceGone
     from .outbox import Outbox
+    from .result import RelocResult, RelocStatus, reply_from_result, result_from_reply
 
 __version__ = "0.1.0"
 
-_CLIENT_NAMES = {"RelocClient", "RelocResult", "RelocStatus", "ServiceError", "ServiceBusy",
-                 "NoReplyError", "ServiceGone", "Outbox"}
+_CLIENT_NAMES = {"RelocClient", "ServiceError", "ServiceBusy", "NoReplyError", "ServiceGone"}
+_RESULT_NAMES = {"RelocResult", "RelocStatus", "reply_from_result", "result_from_reply"}
 
 __all__ = ["PROTOCOL_VERSION", "ErrorCode", "ProtocolError", "NoReplyError", "RelocClient",
-           "RelocResult", "RelocStatus", "ServiceBusy", "ServiceError", "ServiceGone", "Outbox"]
+           "RelocResult", "RelocStatus", "ServiceBusy", "ServiceError", "ServiceGone", "Outbox",
+           "reply_from_result", "result_from_reply"]
 
 
 def __getattr__(name: str) -> Any:
@@ -36,6 +32,10 @@ def __getattr__(name: str) -> Any:
         from .outbox import Outbox
 
         return Outbox
+    if name in _RESULT_NAMES:
+        from . import result
+
+        return getattr(result, name)
     if name in _CLIENT_NAMES:
         from . import client
 

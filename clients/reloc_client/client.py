@@ -12,7 +12,6 @@ Puts are acknowledged by events: ``wait=True`` waits for the acknowledgement, an
 
 from __future__ import annotations
 
-import enum
 import json
 import logging
 import os
@@ -20,7 +19,6 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +28,7 @@ import zenoh
 
 from . import protocol as wire
 from .protocol import ErrorCode, ProtocolError
+from .result import RelocResult, RelocStatus, result_from_reply
 
 Array = npt.NDArray[np.float64]
 ImageLike = wire.WireImage | bytes | bytearray | str | os.PathLike[str] | npt.NDArray[Any]
@@ -59,89 +58,6 @@ class NoReplyError(TimeoutError):
 class ServiceGone(NoReplyError):
     """The service instances serving the map went away (their liveliness tokens) while a
     client waited for one of their jobs: the job is lost."""
-
-
-class RelocStatus(enum.Enum):
-    """Outcome of a relocalization query that the service answered."""
-
-    OK = "ok"
-    NOT_RELOCALIZED = "not_relocalized"
-
-
-@dataclass(frozen=True, eq=False)
-class RelocResult:
-    """A relocalize reply as numpy: ``world_from_cam`` (4, 4) float64 (None unless OK),
-    ``covariance`` (6, 6) (twist (rho, omega), right perturbation, metres and radians) or None,
-    ``timings`` in seconds per stage, ``round_trip_s`` measured by the client."""
-
-    status: RelocStatus
-    method: str
-    world_from_cam: Array | None = None
-    reason: str = ""
-    confidence: float = 0.0
-    inliers: int = 0
-    num_matches: int = 0
-    reprojection_rms_px: float | None = None
-    covariance: Array | None = None
-    matched_keyframe_ids: list[int] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
-    map_version: int = 0
-    hypotheses: list[RelocResult] = field(default_factory=list)
-    request_id: str | None = None
-    timestamp: float | None = None
-    round_trip_s: float | None = None
-
-    @property
-    def ok(self) -> bool:
-        return self.status is RelocStatus.OK
-
-    @classmethod
-    def from_reply(cls, reply: wire.RelocalizeReply, round_trip_s: float | None = None
-                   ) -> RelocResult:
-        """Convert a decoded reply; raise ServiceBusy if its status is ``busy``."""
-        if reply.status is wire.ReplyStatus.BUSY:
-            raise ServiceBusy(ErrorCode.BUSY, reply.reason or "service busy; retry later")
-        return cls(
-            status=RelocStatus(reply.status.value), method=reply.method,
-            world_from_cam=None if reply.world_from_cam is None else reply.world_from_cam.matrix(),
-            reason=reply.reason, confidence=reply.confidence, inliers=reply.inliers,
-            num_matches=reply.num_matches, reprojection_rms_px=reply.reprojection_rms_px,
-            covariance=_covariance(reply.covariance),
-            matched_keyframe_ids=list(reply.matched_keyframe_ids), timings=dict(reply.timings),
-            map_version=reply.map_version,
-            hypotheses=[cls._from_hypothesis(h, reply.map_version) for h in reply.hypotheses],
-            request_id=reply.request_id, timestamp=reply.timestamp, round_trip_s=round_trip_s)
-
-    @classmethod
-    def _from_hypothesis(cls, h: wire.Hypothesis, map_version: int) -> RelocResult:
-        return cls(status=RelocStatus.OK, method=h.method, world_from_cam=h.world_from_cam.matrix(),
-                   confidence=h.confidence, inliers=h.inliers, num_matches=h.num_matches,
-                   reprojection_rms_px=h.reprojection_rms_px, covariance=_covariance(h.covariance),
-                   matched_keyframe_ids=list(h.matched_keyframe_ids), map_version=map_version)
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict; the pose as ``world_from_cam_tum`` (tx ty tz qx qy qz qw) and as a
-        4x4 row-major ``world_from_cam``."""
-        d: dict[str, Any] = {"status": self.status.value, "method": self.method,
-                             "reason": self.reason}
-        if self.world_from_cam is not None:
-            p = wire.WirePose.from_matrix(self.world_from_cam)
-            d["world_from_cam_tum"] = [*p.t, *p.q]
-            d["world_from_cam"] = self.world_from_cam.tolist()
-        d.update(confidence=self.confidence, inliers=self.inliers, num_matches=self.num_matches,
-                 reprojection_rms_px=self.reprojection_rms_px,
-                 covariance=None if self.covariance is None else self.covariance.tolist(),
-                 matched_keyframe_ids=self.matched_keyframe_ids, map_version=self.map_version,
-                 timings=self.timings, round_trip_s=self.round_trip_s)
-        if self.request_id is not None:
-            d["request_id"] = self.request_id
-        if self.hypotheses:
-            d["hypotheses"] = [h.to_dict() for h in self.hypotheses]
-        return d
-
-
-def _covariance(values: Sequence[float] | None) -> Array | None:
-    return None if values is None else np.array(values, dtype=np.float64).reshape(6, 6)
 
 
 # -- argument conversion (numpy / bytes / files -> wire types) -------------------------------
@@ -411,7 +327,9 @@ class RelocClient:
         payload = self._query_one(wire.keys.relocalize(self.prefix, self.map), request.encode(),
                                   timeout)
         reply = wire.RelocalizeReply.decode(payload, self.limits)
-        return RelocResult.from_reply(reply, round_trip_s=time.perf_counter() - start)
+        if reply.status is wire.ReplyStatus.BUSY:
+            raise ServiceBusy(ErrorCode.BUSY, reply.reason or "service busy; retry later")
+        return result_from_reply(reply, round_trip_s=time.perf_counter() - start)
 
     def train(self, *, method: str | None = None, wait: bool = False,
               timeout: float | None = 600.0,

@@ -34,6 +34,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 
 from ..errors import ConfigError
+from ..numeric import top_k
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -233,7 +234,7 @@ class FernScorer:
         s = self.scores(leaves)
         if allowed is not None:
             s[:, ~np.asarray(allowed, bool)] = -np.inf
-        top = _top_k(s, k)
+        top = top_k(s, k)
         top_s = np.take_along_axis(s, top, axis=1)
         # Softmax over all classes, shifted by the best score of each row (in place).
         shift = np.where(np.isfinite(top_s[:, :1]), top_s[:, :1], np.float32(0.0))
@@ -248,24 +249,6 @@ class FernScorer:
         labels, _ = self.classify(leaves, top_k=1)
         return labels[:, 0] if labels.shape[1] else np.full(len(labels), -1, np.int64)
 
-
-def _top_k(scores: npt.NDArray[np.float32], k: int) -> IntArray:
-    """(N, k) column indices of the k largest scores of each row, largest first."""
-    n, c = scores.shape
-    if k <= 4:  # a few argmax passes beat a partition of every row
-        out = np.empty((n, k), np.int64)
-        rows = np.arange(n)
-        saved = []
-        for j in range(k):
-            out[:, j] = scores.argmax(axis=1)
-            saved.append(scores[rows, out[:, j]].copy())
-            scores[rows, out[:, j]] = -np.inf
-        for j in reversed(range(k)):
-            scores[rows, out[:, j]] = saved[j]
-        return out
-    top = np.argpartition(-scores, k - 1, axis=1)[:, :k] if k < c else np.tile(np.arange(c), (n, 1))
-    order = np.argsort(-np.take_along_axis(scores, top, axis=1), axis=1, kind="stable")
-    return np.take_along_axis(top, order, axis=1)
 
 
 class _LogCodec:

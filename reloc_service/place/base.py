@@ -23,7 +23,11 @@ class PlaceCandidate:
 
 
 class PlaceFinder(abc.ABC):
-    """Ranks map keyframes by appearance similarity to a query frame (thesis 4, figure 4.2)."""
+    """Ranks map keyframes by appearance similarity to a query frame (thesis 4, figure 4.2).
+
+    Not thread-safe: used behind the engine, which keeps ``add_keyframe``, ``remove_keyframe``
+    and ``train`` apart from queries; ``find_places`` may run in several queries at once, so
+    it must not change the finder's state (see :mod:`reloc_service.engine`)."""
 
     name: ClassVar[str]
     #: Needs ground truth: registered only by the evaluation tools (``tools.eval.gt``), and

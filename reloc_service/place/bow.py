@@ -20,11 +20,17 @@ Keyframes without features of ``kind`` are described on the fly (cached in the k
 ``cache``). Keyframes added after
 training are quantised with the existing tree (the vocabulary is not rebuilt; call ``train()``
 again after the map has grown a lot), and idf weights follow every addition and removal.
+
+Threads. No lock: the finder is used behind the engine, whose write lock keeps map updates
+apart from queries. Queries may run concurrently; the one thing they write is the weighted
+inverted file, rebuilt lazily on the first query after a change (rebuilding it on every
+keyframe would cost O(K) per keyframe, O(K^2) to load a map). Two queries racing there build
+the same index from the same rows and each keeps its own reference, so the race only costs a
+duplicate build.
 """
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,6 +42,7 @@ from ..errors import ConfigError, GeometryError, NotTrainedError, StorageError
 from ..features import FEATURE_KINDS, FeatureConf, extract
 from ..frame import Features, Frame, Keyframe
 from ..map import KeyframeMap
+from ..numeric import top_k
 from .base import PlaceCandidate, PlaceFinder, register
 
 _STATE_FORMAT = 1
@@ -348,8 +355,6 @@ class BagOfWords(PlaceFinder):
         self.conf: BagOfWords.Conf = conf
         # The kind is an option, so the requirement is per instance.
         self.required_features = frozenset({conf.kind})
-        self._lock = threading.RLock()  # guards the tree, the rows and the index
-        self._train_lock = threading.Lock()  # one vocabulary build at a time
         self._tree: VocabularyTree | None = None
         self._rows: dict[int, tuple[npt.NDArray[np.int32], npt.NDArray[np.float32]]] = {}
         self._index: InvertedFile | None = None  # None: rebuild from _rows on the next query
@@ -366,30 +371,27 @@ class BagOfWords(PlaceFinder):
 
     def indexed_keyframe_ids(self) -> list[int]:
         """Ids of the keyframes in the inverted file, ascending."""
-        with self._lock:
-            return sorted(self._rows)
+        return sorted(self._rows)
 
     def train(self) -> None:
         """Build the vocabulary from the map's keyframes and index all of them; a map without
         descriptors of ``kind`` leaves the finder untrained."""
-        with self._train_lock:
-            descriptors = self._training_descriptors()
-            if descriptors is None:
-                return
-            tree = VocabularyTree.build(descriptors, branching=self.conf.branching,
-                                        depth=self.conf.depth,
-                                        iterations=self.conf.kmeans_iterations,
-                                        rng=np.random.default_rng(self.conf.seed))
-            self._install(tree)
+        descriptors = self._training_descriptors()
+        if descriptors is None:
+            return
+        tree = VocabularyTree.build(descriptors, branching=self.conf.branching,
+                                    depth=self.conf.depth,
+                                    iterations=self.conf.kmeans_iterations,
+                                    rng=np.random.default_rng(self.conf.seed))
+        self._install(tree)
 
     def _install(self, tree: VocabularyTree) -> None:
         """Use ``tree`` and index every keyframe of the map as it is now."""
-        with self._lock:  # keyframes may have arrived while the tree was being built
-            self._tree = tree
-            self._rows = {}
-            for kf in self.map.snapshot().keyframes.values():
-                self._index_keyframe(kf)
-            self._index = None
+        self._tree = tree
+        self._rows = {}
+        for kf in self.map.snapshot().keyframes.values():
+            self._index_keyframe(kf)
+        self._index = None
 
     def _training_descriptors(self) -> npt.NDArray[Any] | None:
         """Up to ``max_train_descriptors`` descriptors of the map's keyframes (seeded draw)."""
@@ -432,31 +434,30 @@ class BagOfWords(PlaceFinder):
         """Quantise ``keyframe`` with the existing tree and add it to the inverted file
         (replacing an entry with the same id). Before training: nothing to do, training reads
         the map."""
-        with self._lock:
-            if self._tree is not None:
-                self._index_keyframe(keyframe)
+        if self._tree is not None:
+            self._index_keyframe(keyframe)
 
     def remove_keyframe(self, keyframe: Keyframe) -> None:
         """Drop ``keyframe`` from the inverted file (idf counts follow)."""
-        with self._lock:
-            if self._rows.pop(keyframe.id, None) is not None:
-                self._index = None
+        if self._rows.pop(keyframe.id, None) is not None:
+            self._index = None
 
     def _current_index(self) -> InvertedFile | None:
         """The weighted inverted file, rebuilt if keyframes changed; None if nothing is
-        indexed; NotTrainedError before training on a map with keyframes."""
-        with self._lock:
-            if self._tree is None:
-                if len(self.map):
-                    raise NotTrainedError(f"bow place finder: not trained; call train() to build "
-                                          f"the vocabulary from the {self.conf.kind} descriptors "
-                                          f"of the map's {len(self.map)} keyframes")
-                return None
-            if not self._rows:
-                return None
-            if self._index is None:
-                self._index = _build_index(self._rows, self._tree.n_words)
-            return self._index
+        indexed; NotTrainedError before training on a map with keyframes. Concurrent queries
+        may both rebuild it (module docstring): each returns the index it read or built."""
+        if self._tree is None:
+            if len(self.map):
+                raise NotTrainedError(f"bow place finder: not trained; call train() to build "
+                                      f"the vocabulary from the {self.conf.kind} descriptors "
+                                      f"of the map's {len(self.map)} keyframes")
+            return None
+        if not self._rows:
+            return None
+        index = self._index
+        if index is None:
+            index = self._index = _build_index(self._rows, self._tree.n_words)
+        return index
 
     # -- queries -----------------------------------------------------------------------------
     def query_features(self, query: Frame) -> Features:
@@ -480,7 +481,7 @@ class BagOfWords(PlaceFinder):
         scores = self.score(self._tree.quantise(feats.descriptors), index)
         if allowed is not None:
             scores[~np.isin(index.keyframe_ids, np.fromiter(allowed, np.int64, len(allowed)))] = 0.0
-        return _top_k(index.keyframe_ids, scores, k)
+        return _best_candidates(index.keyframe_ids, scores, k)
 
     @staticmethod
     def score(words: npt.NDArray[np.int32], index: InvertedFile) -> npt.NDArray[np.float64]:
@@ -495,17 +496,16 @@ class BagOfWords(PlaceFinder):
     # -- persistence -------------------------------------------------------------------------
     def state(self) -> dict[str, Any] | None:
         """Vocabulary tree and per-keyframe word counts (msgpack-able), None before training."""
-        with self._lock:
-            if self._tree is None:
-                return None
-            ids = sorted(self._rows)
-            words = [self._rows[i][0] for i in ids]
-            return {"format": _STATE_FORMAT, "kind": self.conf.kind, "tree": self._tree.to_state(),
-                    "keyframe_ids": [int(i) for i in ids],
-                    "indptr": np.cumsum([0] + [len(w) for w in words]).astype(np.int64).tobytes(),
-                    "words": np.concatenate(words or [np.zeros(0, np.int32)]).tobytes(),
-                    "counts": np.concatenate([self._rows[i][1] for i in ids]
-                                             or [np.zeros(0, np.float32)]).tobytes()}
+        if self._tree is None:
+            return None
+        ids = sorted(self._rows)
+        words = [self._rows[i][0] for i in ids]
+        return {"format": _STATE_FORMAT, "kind": self.conf.kind, "tree": self._tree.to_state(),
+                "keyframe_ids": [int(i) for i in ids],
+                "indptr": np.cumsum([0] + [len(w) for w in words]).astype(np.int64).tobytes(),
+                "words": np.concatenate(words or [np.zeros(0, np.int32)]).tobytes(),
+                "counts": np.concatenate([self._rows[i][1] for i in ids]
+                                         or [np.zeros(0, np.float32)]).tobytes()}
 
     def load_state(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state`; when the map already holds keyframes, keyframes it no longer
@@ -518,14 +518,13 @@ class BagOfWords(PlaceFinder):
                                f"place finder uses {self.conf.kind!r}")
         tree = VocabularyTree.from_state(state["tree"])
         rows = _rows_from_state(state, tree.n_words)
-        with self._lock:
-            self._tree, self._rows, self._index = tree, rows, None
-            keyframes = self.map.snapshot().keyframes
-            if keyframes:
-                for kf_id in set(self._rows) - set(keyframes):
-                    del self._rows[kf_id]
-                for kf_id in set(keyframes) - set(self._rows):
-                    self._index_keyframe(keyframes[kf_id])
+        self._tree, self._rows, self._index = tree, rows, None
+        keyframes = self.map.snapshot().keyframes
+        if keyframes:
+            for kf_id in set(self._rows) - set(keyframes):
+                del self._rows[kf_id]
+            for kf_id in set(keyframes) - set(self._rows):
+                self._index_keyframe(keyframes[kf_id])
 
 
 def _rows_from_state(state: dict[str, Any], n_words: int
@@ -544,9 +543,8 @@ def _rows_from_state(state: dict[str, Any], n_words: int
             for kf, a, b in zip(ids, indptr[:-1], indptr[1:], strict=True)}
 
 
-def _top_k(ids: npt.NDArray[np.int64], scores: npt.NDArray[np.float64], k: int
-           ) -> list[PlaceCandidate]:
+def _best_candidates(ids: npt.NDArray[np.int64], scores: npt.NDArray[np.float64], k: int
+                     ) -> list[PlaceCandidate]:
     """The ``k`` best-scoring ids with a positive score, best first (ties: lower id first)."""
-    positive = np.flatnonzero(scores > 0)
-    order = positive[np.lexsort((ids[positive], -scores[positive]))][:k]
+    order = top_k(scores, k, keep=scores > 0, tiebreak=ids)
     return [PlaceCandidate(int(ids[i]), float(scores[i])) for i in order]

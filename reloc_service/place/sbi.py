@@ -3,7 +3,6 @@ cross-correlation."""
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,6 +10,7 @@ import numpy.typing as npt
 
 from ..frame import Frame, Keyframe, ThumbnailConf
 from ..map import KeyframeMap
+from ..numeric import top_k
 from .base import PlaceCandidate, PlaceFinder, register
 
 Thumbs = npt.NDArray[np.float32]
@@ -28,6 +28,9 @@ class SmallBlurryImageFinder(PlaceFinder):
     norms, so scoring every keyframe is one matrix-vector product:
     ``SSD = |a|^2 + |b|^2 - 2 a.b``. Adding appends a row; removing swaps the last row into
     the freed one, so the matrix never has holes.
+
+    Not thread-safe (no lock): used behind the engine, whose write lock keeps adds and removes
+    apart from queries; queries only read the matrix, so they may run concurrently.
     """
 
     @dataclass(frozen=True)
@@ -36,7 +39,6 @@ class SmallBlurryImageFinder(PlaceFinder):
 
     def __init__(self, kmap: KeyframeMap, conf: SmallBlurryImageFinder.Conf) -> None:
         super().__init__(kmap, conf)
-        self._lock = threading.Lock()
         self._dim = conf.width * conf.height
         self._thumbs: Thumbs = np.zeros((16, self._dim), np.float32)
         self._sq_norms = np.zeros(16, np.float32)
@@ -59,34 +61,31 @@ class SmallBlurryImageFinder(PlaceFinder):
     def add_keyframe(self, keyframe: Keyframe) -> None:
         """Index ``keyframe``; a keyframe with an id already indexed is replaced."""
         thumb = self.thumbnail(keyframe)
-        with self._lock:
-            row = self._row_of.get(keyframe.id)
-            if row is None:
-                row = len(self._row_of)
-                self._grow(row + 1)
-                self._row_of[keyframe.id] = row
-                self._ids[row] = keyframe.id
-            self._thumbs[row] = thumb
-            self._sq_norms[row] = float(thumb @ thumb)
+        row = self._row_of.get(keyframe.id)
+        if row is None:
+            row = len(self._row_of)
+            self._grow(row + 1)
+            self._row_of[keyframe.id] = row
+            self._ids[row] = keyframe.id
+        self._thumbs[row] = thumb
+        self._sq_norms[row] = float(thumb @ thumb)
 
     def remove_keyframe(self, keyframe: Keyframe) -> None:
         """Forget ``keyframe`` (swap-remove); unknown ids are ignored."""
-        with self._lock:
-            row = self._row_of.pop(keyframe.id, None)
-            if row is None:
-                return
-            last = len(self._row_of)  # index of the last used row, now that one id is gone
-            if row != last:
-                moved = int(self._ids[last])
-                self._thumbs[row] = self._thumbs[last]
-                self._sq_norms[row] = self._sq_norms[last]
-                self._ids[row] = moved
-                self._row_of[moved] = row
+        row = self._row_of.pop(keyframe.id, None)
+        if row is None:
+            return
+        last = len(self._row_of)  # index of the last used row, now that one id is gone
+        if row != last:
+            moved = int(self._ids[last])
+            self._thumbs[row] = self._thumbs[last]
+            self._sq_norms[row] = self._sq_norms[last]
+            self._ids[row] = moved
+            self._row_of[moved] = row
 
     def train(self) -> None:
         """Re-index every keyframe of the map (also run at construction)."""
-        with self._lock:
-            self._row_of.clear()
+        self._row_of.clear()
         for keyframe in self.map.snapshot().keyframes.values():
             self.add_keyframe(keyframe)
 
@@ -94,13 +93,12 @@ class SmallBlurryImageFinder(PlaceFinder):
                     ) -> list[PlaceCandidate]:
         """Up to ``k`` keyframes by decreasing ``-SSD`` (restricted to ``allowed`` ids)."""
         thumb = self.thumbnail(query)
-        with self._lock:
-            n = len(self._row_of)
-            scores = self._scores(thumb, n)
-            ids = self._ids[:n].copy()
+        n = len(self._row_of)
+        scores = self._scores(thumb, n)
+        ids = self._ids[:n].copy()
         if allowed is not None:
             scores[~np.isin(ids, np.fromiter(allowed, np.int64, len(allowed)))] = -np.inf
-        return _top_k(ids, scores, k)
+        return _best_candidates(ids, scores, k)
 
     def _scores(self, thumb: Thumbs, n: int) -> npt.NDArray[np.float32]:
         """(n,) ``-SSD`` of ``thumb`` against the first ``n`` rows, one matrix-vector product."""
@@ -121,13 +119,8 @@ class SmallBlurryImageFinder(PlaceFinder):
         self._ids = np.concatenate([self._ids, np.zeros(new_cap - cap, np.int64)])
 
 
-def _top_k(ids: npt.NDArray[np.int64], scores: npt.NDArray[np.floating], k: int
-           ) -> list[PlaceCandidate]:
+def _best_candidates(ids: npt.NDArray[np.int64], scores: npt.NDArray[np.floating], k: int
+                     ) -> list[PlaceCandidate]:
     """The ``k`` best finite scores, best first (ties broken by keyframe id)."""
-    valid = np.flatnonzero(np.isfinite(scores))
-    if k <= 0 or len(valid) == 0:
-        return []
-    if k < len(valid):
-        valid = valid[np.argpartition(-scores[valid], k - 1)[:k]]
-    order = valid[np.lexsort((ids[valid], -scores[valid]))]
+    order = top_k(scores, k, keep=np.isfinite(scores), tiebreak=ids)
     return [PlaceCandidate(int(ids[i]), float(scores[i])) for i in order]

@@ -34,6 +34,7 @@ from ..errors import ConfigError, MapError
 from ..frame import Frame, Keyframe
 from ..geometry import so3_exp
 from ..map import MapState
+from ..numeric import zncc
 from ..place.base import PlaceCandidate
 from .base import PoseEstimate, PoseFinder, register
 
@@ -85,16 +86,6 @@ def warp_image(image: Image, warp_centred: Array) -> tuple[Image, npt.NDArray[np
     mask[[0, -1], :] = False
     mask[:, [0, -1]] = False
     return warped, mask
-
-
-def zncc(a: Image, b: Image, mask: npt.NDArray[np.bool_]) -> float:
-    """Zero-mean normalised cross-correlation of ``a`` and ``b`` over ``mask``; -1 if flat."""
-    va = a[mask].astype(np.float64)
-    vb = b[mask].astype(np.float64)
-    va -= va.mean() if len(va) else 0.0
-    vb -= vb.mean() if len(vb) else 0.0
-    denom = np.sqrt((va @ va) * (vb @ vb))
-    return float(va @ vb / denom) if denom > 1e-12 else -1.0
 
 
 # -- ESM alignment -----------------------------------------------------------------------------
@@ -171,8 +162,12 @@ def align_se2(templates: list[Image], images: list[Image], *, max_iterations: in
     finest_t, finest_i = templates[-1], images[-1]
     identity_warped, identity_mask = warp_image(finest_i, np.eye(3))
     warped, mask = warp_image(finest_i, warp)
-    return Se2Alignment(warp, (finest_t.shape[1], finest_t.shape[0]), zncc(finest_t, warped, mask),
-                        zncc(finest_t, identity_warped, identity_mask), float(mask.mean()), total,
+    # Candidates are ranked by this NCC (find_pose keeps the best): a flat thumbnail scores -1,
+    # below any real alignment.
+    return Se2Alignment(warp, (finest_t.shape[1], finest_t.shape[0]),
+                        zncc(finest_t, warped, mask, flat=-1.0),
+                        zncc(finest_t, identity_warped, identity_mask, flat=-1.0),
+                        float(mask.mean()), total,
                         converged)
 
 

@@ -6,24 +6,11 @@ import time
 from dataclasses import dataclass
 from typing import ClassVar
 
-import numpy as np
-import numpy.typing as npt
-
 from ..frame import Frame, ThumbnailConf
 from ..map import MapState
+from ..numeric import zncc
 from ..place.base import PlaceCandidate
 from .base import PoseEstimate, PoseFinder, register
-
-
-def zncc(a: npt.ArrayLike, b: npt.ArrayLike) -> float:
-    """Zero-mean normalised cross-correlation of two same-shape images, in [-1, 1]
-    (0 when either is constant)."""
-    x = np.asarray(a, dtype=np.float64).ravel()
-    y = np.asarray(b, dtype=np.float64).ravel()
-    x = x - x.mean()
-    y = y - y.mean()
-    denom = float(np.sqrt((x @ x) * (y @ y)))
-    return float(x @ y) / denom if denom > 1e-12 else 0.0
 
 
 @register("none")
@@ -46,6 +33,7 @@ class KeyframePoseFinder(PoseFinder):
         if keyframe is None:
             return None
         c = self.conf
+        # One candidate, no ranking: a flat thumbnail is reported as uncorrelated (0).
         ncc = zncc(query.small_blurry_image(c.width, c.height, c.blur_sigma),
                    keyframe.small_blurry_image(c.width, c.height, c.blur_sigma))
         return PoseEstimate(world_from_cam=keyframe.world_from_cam.copy(),

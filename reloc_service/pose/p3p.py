@@ -4,6 +4,7 @@ model, with the reprojection RMS and a 6x6 covariance as evidence for verificati
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -24,7 +25,13 @@ from .guided import GuidedConf, search_by_projection
 
 Array = npt.NDArray[np.float64]
 
-#: Step of the central differences of the distortion Jacobian (normalised coordinates).
+#: PoseLib's camera model with the same projection as each of ours (parameters fx fy cx cy,
+#: then our distortion values in the same order; tests/test_pose_p3p.py projects through both).
+#: A 5-value radtan (k3) is PoseLib's FULL_OPENCV with k4 = k5 = k6 = 0.
+_POSELIB_MODELS = {"pinhole": "PINHOLE", "radtan": "OPENCV", "equidistant": "OPENCV_FISHEYE"}
+
+#: Step of the central differences of the fov distortion's Jacobian (normalised coordinates):
+#: PoseLib 2.0.5 has no FOV model (``poselib.Camera("FOV", ...)`` is its NULL model).
 _DISTORT_STEP = 1e-6
 
 
@@ -176,7 +183,11 @@ def _refine(world_from_cam: Array, px: Array, points_world: Array, camera: Camer
             ) -> tuple[Array, npt.NDArray[np.int64]]:
     """Gauss-Newton on the inliers' reprojection error (weighted, see :func:`_weights`)
     through the real camera model; returns the refined pose and the final inlier indices
-    (residual below the threshold)."""
+    (residual below the threshold).
+
+    Not ``poselib.refine_absolute_pose``: with a TRIVIAL loss it reaches the same pose
+    unweighted, but PoseLib 2.0.5 takes no per-residual weights, and the landmarks' depth
+    uncertainty needs them. The Jacobian is PoseLib's camera model's (:func:`_pixel_jacobian`)."""
     inliers = _inliers(world_from_cam, px, points_world, camera, conf)
     for _ in range(conf.refine_iterations):
         if len(inliers) < 4:
@@ -220,16 +231,33 @@ def _projection_jacobian(camera: Camera, points_cam: Array) -> Array:
     """(N, 2, 3) derivative of pixels w.r.t. camera-frame points: K * distortion * pinhole."""
     inv_z = 1.0 / points_cam[:, 2]
     xy = points_cam[:, :2] * inv_z[:, None]
-    # Central differences keep this model-agnostic: every Camera only has to distort.
+    d_xy = _pixel_jacobian(camera, xy)  # (N, 2, 2) d px / d xy
+    # d xy / d p = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
+    d_dz = -np.einsum("nij,nj->ni", d_xy, xy)
+    return np.concatenate([d_xy, d_dz[:, :, None]], axis=2) * inv_z[:, None, None]
+
+
+def _pixel_jacobian(camera: Camera, xy: Array) -> Array:
+    """(N, 2, 2) derivative of pixels w.r.t. normalised coordinates ``xy`` (N, 2): PoseLib's
+    analytic Jacobian of the same camera model, or central differences for fov."""
+    model = poselib_camera(camera)
+    if model is not None:
+        return np.asarray(model.project_with_jac(np.ascontiguousarray(xy))[1]).reshape(-1, 2, 2)
     h = _DISTORT_STEP
     d_dx = (camera.distort(xy + [h, 0.0]) - camera.distort(xy - [h, 0.0])) / (2 * h)  # (N, 2)
     d_dy = (camera.distort(xy + [0.0, h]) - camera.distort(xy - [0.0, h])) / (2 * h)
-    # d xy / d p = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
-    d_dz = -(d_dx * xy[:, :1] + d_dy * xy[:, 1:])
-    out = np.stack([d_dx, d_dy, d_dz], axis=2) * inv_z[:, None, None]
-    out[:, 0] *= camera.fx
-    out[:, 1] *= camera.fy
-    return out
+    return np.stack([d_dx, d_dy], axis=2) * np.array([camera.fx, camera.fy])[None, :, None]
+
+
+@functools.lru_cache(maxsize=64)
+def poselib_camera(camera: Camera) -> poselib.Camera | None:
+    """PoseLib's camera with the same projection as ``camera``; None for fov (not in
+    PoseLib 2.0.5)."""
+    params = [camera.fx, camera.fy, camera.cx, camera.cy, *camera.distortion]
+    name = _POSELIB_MODELS.get(camera.model)
+    if camera.model == "radtan" and len(camera.distortion) == 5:
+        name, params = "FULL_OPENCV", [*params, 0.0, 0.0, 0.0]
+    return None if name is None else poselib.Camera(name, params, camera.width, camera.height)
 
 
 def chance_agreement(projected_px: Array, px: Array, threshold_px: float,

@@ -1,4 +1,7 @@
-"""The relocalizer interface (thesis chapter 4), its result, and the shared verification.
+"""The relocalizer interface (thesis chapter 4) and the shared verification.
+
+Relocalizers answer :class:`~reloc_client.result.RelocResult`, the one result type the
+service sends and the client receives (re-exported here as ``RelocResult``, ``RelocStatus``).
 
 A wrong pose is worse than no pose for a drone: every relocalizer passes its estimate through
 :func:`verify`, which answers "not relocalized" with a reason when the evidence is weak.
@@ -7,13 +10,13 @@ A wrong pose is worse than no pose for a drone: every relocalizer passes its est
 from __future__ import annotations
 
 import abc
-import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
+from reloc_client.result import RelocResult, RelocStatus
 from scipy import stats
 from scipy.spatial import ConvexHull, QhullError
 
@@ -29,13 +32,6 @@ RELOCALIZERS = Registry("relocalizer")
 register = RELOCALIZERS.register
 
 
-class RelocStatus(enum.Enum):
-    """Outcome of a relocalization query."""
-
-    OK = "ok"
-    NOT_RELOCALIZED = "not_relocalized"
-
-
 @dataclass(frozen=True)
 class Prior:
     """A rough pose the caller believes in: candidates are restricted to keyframes whose
@@ -43,38 +39,6 @@ class Prior:
 
     world_from_cam: Array
     radius_m: float
-
-
-@dataclass
-class RelocResult:
-    """What a relocalizer answers. ``world_from_cam`` is None unless ``status`` is OK.
-
-    ``covariance`` is 6x6 (twist (rho, omega), right perturbation, metres and radians);
-    ``timings`` are seconds per stage (decode, features, place, match, solve, verify).
-    """
-
-    status: RelocStatus
-    method: str
-    world_from_cam: Array | None = None
-    reason: str = ""
-    confidence: float = 0.0
-    inliers: int = 0
-    num_matches: int = 0
-    reprojection_rms_px: float | None = None
-    covariance: Array | None = None
-    matched_keyframe_ids: list[int] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
-    map_version: int = 0
-    #: Further verified hypotheses (best first), when more than one was asked for.
-    hypotheses: list[RelocResult] = field(default_factory=list)
-
-    @property
-    def ok(self) -> bool:
-        return self.status is RelocStatus.OK
-
-    @classmethod
-    def failure(cls, method: str, reason: str, **kw: Any) -> RelocResult:
-        return cls(status=RelocStatus.NOT_RELOCALIZED, method=method, reason=reason, **kw)
 
 
 @dataclass(frozen=True)

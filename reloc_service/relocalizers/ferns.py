@@ -10,6 +10,14 @@ Scale (thesis 5.2.2: 1730 classes already strain one model): at most ``max_class
 per model, either the most observed landmarks in one model (``partition = "select"``) or one
 model per region of the map (``"regions"``: k-means of keyframe positions); a query classifies
 against every model (or those near the prior) and pools the correspondences into one RANSAC.
+
+Threads. No lock: training, updates and load run behind the engine (under its write lock, or
+on a fresh relocalizer built off-line and swapped in), never during a query; save runs beside
+queries and, like them, only reads. Queries may run concurrently; they read the published
+models (:class:`_Published`, replaced whole after each update) and write only the landmark
+lookup table of :meth:`FernsRelocalizer._landmark_points`: one tuple, read and replaced whole,
+and every concurrent query pins the same map version, so racing queries at most build the
+same table twice.
 """
 
 from __future__ import annotations
@@ -17,8 +25,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
-import threading
 import time
 import zlib
 from collections import Counter, deque
@@ -36,8 +42,10 @@ from ..errors import ConfigError, NotTrainedError, StorageError
 from ..features import FEATURE_KINDS
 from ..ferns.classifier import FernClassifier, FernConf, FernScorer, FernTests
 from ..ferns.training import WarpConf, draw_warps, prepare_image, sample_leaves
+from ..fileio import atomic_write
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap, MapState
+from ..numeric import top_k
 from ..plugins import make_conf
 from ..pose.base import PoseEstimate
 from ..pose.p3p import PnPConf, solve_pnp_indexed
@@ -178,7 +186,6 @@ class FernsRelocalizer(Relocalizer):
         self.pnp_conf = pnp_conf or PnPConf()
         self._tests = FernTests(self.conf.fern_conf())
         self._warp_conf = self.conf.warp_conf()
-        self._lock = threading.RLock()
         self._points_cache: tuple[int, IntArray, Array] = (-1, np.zeros(0, np.int64),
                                                            np.zeros((0, 3)))
         self._reset()
@@ -224,17 +231,15 @@ class FernsRelocalizer(Relocalizer):
 
     def train(self, *, progress: bool = False) -> None:
         """Rebuild every model from the current map: partition, then train all observations."""
-        with self._lock:
-            state = self.map.snapshot()
-            self._reset()
-            self._partition(state)
-            self._sync(state, show_progress=progress)
-            self._ever_trained = True
+        state = self.map.snapshot()
+        self._reset()
+        self._partition(state)
+        self._sync(state, show_progress=progress)
+        self._ever_trained = True
 
     def update(self, *, show_progress: bool = False) -> None:
         """Bring the models in line with the current map (adds and removes exactly)."""
-        with self._lock:
-            self._sync(self.map.snapshot(), show_progress=show_progress)
+        self._sync(self.map.snapshot(), show_progress=show_progress)
 
     @property
     def tests(self) -> FernTests:
@@ -263,8 +268,7 @@ class FernsRelocalizer(Relocalizer):
 
     def model_nbytes(self) -> int:
         """Bytes held by the classifiers (sparse counts, classes, tests)."""
-        with self._lock:
-            return sum(r.classifier.nbytes() for r in self._regions)
+        return sum(r.classifier.nbytes() for r in self._regions)
 
     def trained_observations(self) -> set[tuple[int, int, int]]:
         """Every trained ``(landmark id, keyframe id, keypoint index)``."""
@@ -506,7 +510,7 @@ class FernsRelocalizer(Relocalizer):
             return empty
         lab, post = np.hstack(labels), np.hstack(posts)
         k = min(self.conf.top_k, lab.shape[1])
-        order = np.argsort(-post, axis=1, kind="stable")[:, :k]
+        order = top_k(post, k)
         lab, post = np.take_along_axis(lab, order, 1), np.take_along_axis(post, order, 1)
         kp = np.repeat(np.arange(len(px)), k)
         keep = post.ravel() >= max(self.conf.min_posterior, 1e-12)
@@ -516,6 +520,8 @@ class FernsRelocalizer(Relocalizer):
                          ) -> tuple[Array, npt.NDArray[np.bool_]]:
         """(N, 3) world points of ``landmark_ids`` in ``state`` and the (N,) mask of those
         still in the map (a lookup table rebuilt once per map version)."""
+        # One read and one store of a whole tuple: a racing query sees an old or a new table,
+        # never half of one (module docstring).
         version, ids, points = self._points_cache
         if version != state.version:
             ids = np.fromiter(state.landmarks.keys(), np.int64, len(state.landmarks))
@@ -568,28 +574,27 @@ class FernsRelocalizer(Relocalizer):
     def save(self, directory: Path) -> None:
         """Write ``ferns.npz`` (counts, records) and ``ferns.json`` (format, conf, regions)."""
         directory = Path(directory)
-        with self._lock:
-            arrays: dict[str, Any] = {}
-            for i, region in enumerate(self._regions):
-                arrays.update({f"r{i}_{k}": v for k, v in region.classifier.to_arrays().items()})
-            kf_ids = sorted(self._trained)
-            arrays["obs_keyframe"] = _concat([np.full(len(self._trained[k].kp_idx), k)
-                                              for k in kf_ids])
-            arrays["obs_keypoint"] = _concat([self._trained[k].kp_idx for k in kf_ids])
-            arrays["obs_landmark"] = _concat([self._trained[k].landmark_ids for k in kf_ids])
-            n = len(self._assign)
-            arrays["assign_landmark"] = np.fromiter(self._assign.keys(), np.int64, n)
-            arrays["assign_region"] = np.fromiter(self._assign.values(), np.int64, n)
-            meta = {"format_version": FORMAT_VERSION, "conf": dataclasses.asdict(self.conf),
-                    "ever_trained": self._ever_trained,
-                    "regions": [{"keyframe_ids": sorted(r.keyframe_ids),
-                                 "centre_world": r.centre_world.tolist()} for r in self._regions],
-                    "keyframe_region": {str(k): v for k, v in self._kf_region.items()},
-                    "keyframe_crc32": {str(k): _image_crc(self._trained[k].keyframe)
-                                       for k in kf_ids}}
+        arrays: dict[str, Any] = {}
+        for i, region in enumerate(self._regions):
+            arrays.update({f"r{i}_{k}": v for k, v in region.classifier.to_arrays().items()})
+        kf_ids = sorted(self._trained)
+        arrays["obs_keyframe"] = _concat([np.full(len(self._trained[k].kp_idx), k)
+                                          for k in kf_ids])
+        arrays["obs_keypoint"] = _concat([self._trained[k].kp_idx for k in kf_ids])
+        arrays["obs_landmark"] = _concat([self._trained[k].landmark_ids for k in kf_ids])
+        n = len(self._assign)
+        arrays["assign_landmark"] = np.fromiter(self._assign.keys(), np.int64, n)
+        arrays["assign_region"] = np.fromiter(self._assign.values(), np.int64, n)
+        meta = {"format_version": FORMAT_VERSION, "conf": dataclasses.asdict(self.conf),
+                "ever_trained": self._ever_trained,
+                "regions": [{"keyframe_ids": sorted(r.keyframe_ids),
+                             "centre_world": r.centre_world.tolist()} for r in self._regions],
+                "keyframe_region": {str(k): v for k, v in self._kf_region.items()},
+                "keyframe_crc32": {str(k): _image_crc(self._trained[k].keyframe)
+                                   for k in kf_ids}}
         # Uncompressed: zlib takes seconds on ~10^7 counts and gains little on the indices.
-        _atomic_write(directory / _MODEL_FILE, lambda f: np.savez(f, **arrays))
-        _atomic_write(directory / _META_FILE, lambda f: f.write(json.dumps(meta).encode()))
+        atomic_write(directory / _MODEL_FILE, lambda f: np.savez(f, **arrays))
+        atomic_write(directory / _META_FILE, json.dumps(meta))
 
     def load(self, directory: Path) -> bool:
         """Restore what :meth:`save` wrote; False (nothing changed) if there is none, if it was
@@ -610,27 +615,26 @@ class FernsRelocalizer(Relocalizer):
         state = self.map.snapshot()
         with np.load(directory / _MODEL_FILE) as npz:
             arrays = {k: npz[k] for k in npz.files}
-        with self._lock:
-            trained = _restore_records(state, self.conf.kind, arrays, meta["keyframe_crc32"])
-            if trained is None:
-                return False
-            try:
-                regions = [_Region(FernClassifier.from_arrays(
-                    self.conf.fern_conf(), {k[len(f"r{i}_"):]: v for k, v in arrays.items()
-                                            if k.startswith(f"r{i}_")}),
-                    set(r["keyframe_ids"]), np.asarray(r["centre_world"], np.float64))
-                    for i, r in enumerate(meta["regions"])]
-            except (KeyError, ValueError) as exc:
-                raise StorageError(f"{directory / _MODEL_FILE}: damaged ferns model "
-                                   f"({exc})") from exc
-            self._reset()
-            self._regions, self._trained = regions, trained
-            self._assign = dict(zip(arrays["assign_landmark"].tolist(),
-                                    arrays["assign_region"].tolist(), strict=True))
-            self._lm_trained = Counter(arrays["obs_landmark"].tolist())
-            self._kf_region = {int(k): int(v) for k, v in meta["keyframe_region"].items()}
-            self._ever_trained = bool(meta.get("ever_trained", True))
-            self._publish()
+        trained = _restore_records(state, self.conf.kind, arrays, meta["keyframe_crc32"])
+        if trained is None:
+            return False
+        try:
+            regions = [_Region(FernClassifier.from_arrays(
+                self.conf.fern_conf(), {k[len(f"r{i}_"):]: v for k, v in arrays.items()
+                                        if k.startswith(f"r{i}_")}),
+                set(r["keyframe_ids"]), np.asarray(r["centre_world"], np.float64))
+                for i, r in enumerate(meta["regions"])]
+        except (KeyError, ValueError) as exc:
+            raise StorageError(f"{directory / _MODEL_FILE}: damaged ferns model "
+                               f"({exc})") from exc
+        self._reset()
+        self._regions, self._trained = regions, trained
+        self._assign = dict(zip(arrays["assign_landmark"].tolist(),
+                                arrays["assign_region"].tolist(), strict=True))
+        self._lm_trained = Counter(arrays["obs_landmark"].tolist())
+        self._kf_region = {int(k): int(v) for k, v in meta["keyframe_region"].items()}
+        self._ever_trained = bool(meta.get("ever_trained", True))
+        self._publish()
         return True
 
 
@@ -762,10 +766,3 @@ def _bounded_map(pool: ThreadPoolExecutor, fn: Any, items: list[Any], window: in
 def _concat(parts: list[npt.NDArray[Any]]) -> IntArray:
     return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
 
-
-def _atomic_write(path: Path, write: Any) -> None:
-    """Write through a temporary file and rename, so a crash never leaves half a file."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        write(f)
-    os.replace(tmp, path)

@@ -20,21 +20,29 @@ import os
 import sys
 import threading
 import time
-import urllib.parse
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode, EventKind, ProtocolError
 
 from ..engine import EngineConf, MappingConf
 from ..errors import ConfigError, StorageError
 from . import handlers
-from .bootstrap import Bootstrap
+from .codec import decode_camera_put, decode_keyframe_put, error_of, error_reply
 from .config import ServiceConf
-from .runtime import MapRuntime, RestoreInterrupted, check_storage, open_engine, recover_current
+from .durability import (
+    RestoreInterrupted,
+    check_storage,
+    journal_bytes,
+    map_dirname,
+    open_engine,
+    recover_current,
+    stored_map_names,
+)
+from .replication import Bootstrap, Peers
+from .runtime import MapRuntime
 from .workers import WorkerPool, stop_on_signals
 from .zenoh_io import PendingQuery, QueryKind, ZenohLayer, open_session
 
@@ -42,16 +50,6 @@ log = logging.getLogger(__name__)
 
 #: Queue of the control pool (status, train, keyframes/cameras gets).
 CONTROL_QUEUE = 64
-
-
-def map_dirname(map_name: str) -> str:
-    """A directory name for ``map_name`` (percent-encoded; never ``.`` or ``..``)."""
-    quoted = urllib.parse.quote(map_name, safe="")
-    return "%2E" + quoted[1:] if quoted.startswith(".") else quoted
-
-
-def map_name_of(dirname: str) -> str:
-    return urllib.parse.unquote(dirname)
 
 
 class Service:
@@ -83,11 +81,9 @@ class Service:
         self._writers_lock = threading.Lock()
         self._stopped = threading.Event()
         self.started_at = time.monotonic()
-        #: While a bootstrap runs: (map, keyframe id) -> (pose, timestamp) copied from a peer;
-        #: a buffered live put identical to its copy is not applied twice.
-        self._bootstrap_window = False
-        self._elsewhere: dict[str, tuple[float, bool]] = {}   # map -> (when, served elsewhere)
-        self._bootstrapped: dict[tuple[str, int], tuple[Any, Any]] = {}
+        #: The copy of peers' maps at start (bootstrap_from_peers), and the other instances.
+        self._bootstrap: Bootstrap | None = None
+        self.peers: Peers | None = None
         #: Maps whose storage did not restore: map -> why (queries get STORAGE_ERROR with it).
         self.failed: dict[str, str] = {}
         self._loading: set[str] = set()      # being restored: not declared yet
@@ -118,6 +114,7 @@ class Service:
                                  max_bytes=s.writer_queue_bytes)
         self._loading = set(names)
         self.session = open_session(self.conf.zenoh)
+        self.peers = Peers(self.session, self.prefix, self.instance, self.limits)
         self.layer = ZenohLayer(self.session, self.prefix, self.instance, self)
         if self.conf.ros2.enabled:   # imported here: rosbags and xxhash are the extra 'ros2'
             from .ros2.bridge import Ros2Bridge
@@ -125,8 +122,10 @@ class Service:
             self.ros2 = Ros2Bridge(self, self.conf.ros2)
         if s.bootstrap_from_peers:   # a replica copies peers' maps once its own are restored
             self._load_maps(names, declare=False)
-            bootstrap = Bootstrap(self)   # subscribed (puts buffer in the writer queue)
-            bootstrap.run()
+            # subscribed already: live puts buffer in the writer queues meanwhile
+            self._bootstrap = Bootstrap(self.session, self.prefix, self.maps, gate=self.writer,
+                                        writer_for=self._writer_for)
+            self._bootstrap.run()
             for name in sorted(self.maps):
                 self._declare(name)
         else:
@@ -148,15 +147,11 @@ class Service:
 
     def _restore_order(self, names: list[str]) -> list[str]:
         """Unique ``names``, cheapest restore first (fewest journal bytes to replay)."""
-        def journal_bytes(name: str) -> int:
-            if self.storage is None:
-                return 0
-            journal = self.storage / map_dirname(name) / "journal"
-            return sum(p.stat().st_size for p in journal.glob("*.journal")) \
-                if journal.is_dir() else 0
+        def cost(name: str) -> int:
+            return 0 if self.storage is None else journal_bytes(self.storage / map_dirname(name))
 
         unique = list(dict.fromkeys(names))
-        return sorted(unique, key=lambda n: (journal_bytes(n), n))
+        return sorted(unique, key=lambda n: (cost(n), n))
 
     def _load_maps(self, names: list[str], *, declare: bool = True) -> None:
         """Restore ``names`` in order; declare each one ready (or failed) at once."""
@@ -330,17 +325,7 @@ class Service:
             raise ConfigError(f"service.methods / [options]: {exc}") from exc
 
     def _stored_map_names(self) -> list[str]:
-        if self.storage is None or not self.storage.is_dir():
-            return []
-        names = []
-        for path in sorted(self.storage.iterdir()):
-            if path.is_dir() and ((path / "journal").is_dir() or (path / "map").is_dir()):
-                name = map_name_of(path.name)
-                try:
-                    names.append(wire.check_name(name))
-                except wire.ProtocolError:
-                    log.warning("ignoring storage directory %s: not a map name", path)
-        return names
+        return [] if self.storage is None else stored_map_names(self.storage)
 
     def _open_map(self, name: str) -> MapRuntime:
         """The runtime of map ``name``, restored from its storage (StorageError naming the
@@ -409,9 +394,9 @@ class Service:
         registered: a keyframe needs an inline camera); ProtocolError if it would fail."""
         wire.check_name(name)
         if kind is EventKind.CAMERA_REJECTED:
-            handlers.decode_camera_put(ident, payload, self.limits)
+            decode_camera_put(ident, payload, self.limits)
         else:
-            handlers.decode_keyframe_put(_NoCameras(name, self.limits), ident, payload)
+            decode_keyframe_put(_NoCameras(name, self.limits), ident, payload)
 
     def _publish_event(self, map_name: str, kind: EventKind, fields: dict[str, Any]) -> None:
         payload = wire.Event(kind, map_name, time.time(), fields).encode()
@@ -425,27 +410,14 @@ class Service:
         if payload is None:
             self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
                         lambda rt: rt.delete_keyframe(kf_id), op="del")
-        elif self._bootstrap_window:
+        elif self._bootstrap is not None and self._bootstrap.active:
+            copy = self._bootstrap
             self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
-                        lambda rt: self._put_unless_copied(rt, kf_id, payload), op="kf",
+                        lambda rt: copy.put_unless_copied(rt, kf_id, payload), op="kf",
                         payload=payload)
         else:
             self._write(map_name, EventKind.KEYFRAME_REJECTED, kf_id,
                         lambda rt: rt.put_keyframe(kf_id, payload), op="kf", payload=payload)
-
-    def _put_unless_copied(self, rt: MapRuntime, kf_id: int, payload: bytes) -> None:
-        """A put buffered during the bootstrap: skipped if the copy already holds it."""
-        copied = self._bootstrapped.get((rt.name, kf_id))
-        if copied is not None:
-            try:
-                put = wire.KeyframePut.decode(payload, rt.limits)
-            except wire.ProtocolError:
-                put = None
-            if (put is not None and put.timestamp == copied[1]
-                    and np.allclose(put.world_from_cam.matrix(), copied[0], atol=1e-9)):
-                rt.stats.count("bootstrap_duplicates")
-                return
-        rt.put_keyframe(kf_id, payload)
 
     def on_camera_sample(self, map_name: str, camera_id: str, payload: bytes | None) -> None:
         if payload is None:
@@ -537,11 +509,11 @@ class Service:
         try:
             rt = self._map_for_put(map_name, kind, ident, job.payload)
         except Exception as exc:
-            code, message = handlers.error_of(exc)
+            code, message = error_of(exc)
             self._reject(map_name, kind, ident, code, message)
             self._retire_writer(map_name)
             return
-        if rt is None and self._served_elsewhere(map_name):
+        if rt is None and self.peers is not None and self.peers.serves(map_name):
             log.debug("put on map %s ignored: another instance serves it", map_name)
         elif rt is None:
             self._reject(map_name, kind, ident, ErrorCode.UNKNOWN_MAP,
@@ -568,42 +540,6 @@ class Service:
             return False
         return rt.journal_only(job.op, job.ident, job.payload)
 
-    def _served_elsewhere(self, map_name: str) -> bool:
-        """Whether another live instance serves ``map_name`` (its liveliness token; cached
-        for a few seconds): then a put on it is that shard's, not an error here."""
-        now = time.monotonic()
-        cached = self._elsewhere.get(map_name)
-        if cached is not None and now - cached[0] < 2.0:
-            return cached[1]
-        found = False
-        try:
-            key = f"{self.prefix}/@live/*/{wire.check_name(map_name)}"
-            for reply in self.session.liveliness().get(key, timeout=1.0):
-                if reply.ok is not None and not str(reply.ok.key_expr).startswith(
-                        f"{self.prefix}/@live/{self.instance}/"):
-                    found = True
-            # A router whose access rules deny by default answers no liveliness query
-            # (deploy/README.md, known limit): ask the map's status queryable instead.
-            found = found or self._status_elsewhere(map_name)
-        except Exception as exc:  # a closing session, a bad name: not served elsewhere
-            log.debug("liveliness get for map %s failed: %s", map_name, exc)
-        self._elsewhere[map_name] = (now, found)
-        return found
-
-    def _status_elsewhere(self, map_name: str) -> bool:
-        """Whether another instance answers a status query on ``map_name``."""
-        for reply in self.session.get(wire.keys.status(self.prefix, map_name), timeout=1.0,
-                                      payload=None):
-            if reply.ok is None:
-                continue
-            try:
-                status = wire.StatusReply.decode(reply.ok.payload.to_bytes(), self.limits)
-            except wire.ProtocolError:
-                continue
-            if status.instance != self.instance:
-                return True
-        return False
-
     def _reject(self, map_name: str, kind: EventKind, ident: Any, code: ErrorCode,
                 message: str) -> None:
         rt = self.maps.get(map_name)
@@ -617,7 +553,7 @@ class Service:
             query.reply(handlers.relocalize(rt, query.payload, queued_s=queued_s))
         except Exception as exc:
             rt.stats.count("errors")
-            query.reply_err(handlers.error_reply(exc))
+            query.reply_err(error_reply(exc))
         finally:
             query.finish()
 
@@ -644,7 +580,7 @@ class Service:
                         query.reply(payload, key)
         except Exception as exc:
             rt.stats.count("errors")
-            query.reply_err(handlers.error_reply(exc))
+            query.reply_err(error_reply(exc))
         finally:
             query.finish()
 

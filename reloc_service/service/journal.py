@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import StorageError
+from ..fileio import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -263,13 +264,7 @@ class Journal:
             data = fh.read(damage.size)
         try:
             self.quarantine.mkdir(parents=True, exist_ok=True)
-            tmp = target.with_name(target.name + ".tmp")
-            with open(tmp, "wb") as out:
-                out.write(data)
-                out.flush()
-                self._sync(out.fileno())
-            os.replace(tmp, target)
-            _fsync_dir(self.quarantine)
+            atomic_write(target, data, fsync=self.fsync)
         except OSError as exc:
             raise StorageError(f"cannot keep the damaged bytes of {path} in {target}: "
                                f"{exc.strerror or exc}") from exc

@@ -11,8 +11,8 @@ from typing import Any
 
 from ..errors import StorageError
 from ..storage import CURRENT_FILE, current_snapshot, snapshot_dirs, verify_snapshot
+from .durability import SERVICE_FILE, read_service_file
 from .journal import QUARANTINE_DIR, Journal, scan_segment, segment_name
-from .runtime import SERVICE_FILE, read_service_file
 
 
 @dataclass

@@ -22,6 +22,7 @@ from .geometry import (
     WirePose,
     quat_xyzw_to_rotation,
     rotation_to_quat_xyzw,
+    rotation_to_quat_xyzw_array,
 )
 from .images import DepthFormat, ImageFormat, WireDepth, WireFeatures, WireImage, jpeg_size, png_header
 from .keys import DEFAULT_PREFIX, MAX_NAME_LEN, check_name, check_prefix, keys
@@ -63,7 +64,8 @@ __all__ = [
     "WireFeatures", "Prior", "Hypothesis", "Message", "KeyframePut", "KeyframeInfo", "CameraPut",
     "RelocalizeRequest", "RelocalizeReply", "TrainRequest", "TrainReply", "Event", "StatusReply",
     "ErrorReply", "encode_error", "unpack_message", "png_header", "jpeg_size",
-    "quat_xyzw_to_rotation", "rotation_to_quat_xyzw", "MESSAGE_TYPES", "QUAT_NORM_TOL",
+    "quat_xyzw_to_rotation", "rotation_to_quat_xyzw",
+    "rotation_to_quat_xyzw_array", "MESSAGE_TYPES", "QUAT_NORM_TOL",
     "ROTATION_TOL", "MAX_NAME_LEN", "decode_camera_put", "decode_error_reply", "decode_event",
     "decode_keyframe_info", "decode_keyframe_put", "decode_relocalize_reply",
     "decode_relocalize_request", "decode_status_reply", "decode_train_reply",

@@ -20,32 +20,51 @@ QUAT_NORM_TOL = 1e-3
 ROTATION_TOL = 1e-5
 
 
-def quat_xyzw_to_rotation(q: Sequence[float]) -> Array:
-    """Unit quaternion (x, y, z, w), Hamilton, to a (3, 3) rotation matrix."""
-    x, y, z, w = (float(v) for v in q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+def quat_xyzw_to_rotation(q: npt.ArrayLike) -> Array:
+    """Unit quaternions (..., 4) (x, y, z, w), Hamilton, to (..., 3, 3) rotation matrices.
+
+    The one quaternion implementation of reloc (``reloc_service.geometry`` validates and calls
+    it); NumPy only, so the client can use it too. ``q`` must already have unit norm."""
+    x, y, z, w = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
+    rows = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
 
-def rotation_to_quat_xyzw(r: Array) -> tuple[float, float, float, float]:
-    """(3, 3) rotation matrix to a unit quaternion (x, y, z, w) with w >= 0 (Shepperd)."""
-    diag = np.array([r[0, 0], r[1, 1], r[2, 2]])
-    trace = diag.sum()
-    # Pick the largest of (w, x, y, z) to divide by: numerically safe for every rotation.
-    if trace >= diag.max():
-        s = 2.0 * math.sqrt(max(1.0 + trace, 0.0))
-        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
-    else:
-        i = int(np.argmax(diag))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(max(1.0 + r[i, i] - r[j, j] - r[k, k], 0.0))
-        q = [0.0, 0.0, 0.0, (r[k, j] - r[j, k]) / s]
-        q[i], q[j], q[k] = s / 4, (r[j, i] + r[i, j]) / s, (r[k, i] + r[i, k]) / s
-    qa = np.array(q) / np.linalg.norm(q)
-    qa = qa if qa[3] >= 0 else -qa
-    return (float(qa[0]), float(qa[1]), float(qa[2]), float(qa[3]))
+def rotation_to_quat_xyzw_array(r: npt.ArrayLike) -> Array:
+    """Rotation matrices (..., 3, 3) to unit quaternions (..., 4) (x, y, z, w) with w >= 0.
+
+    Shepperd's method: divide by the largest of |w|, |x|, |y|, |z| (read off the trace and the
+    diagonal), which is numerically safe for every rotation."""
+    m = np.asarray(r, dtype=np.float64)
+    d0, d1, d2 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    # 4 |q_i|^2 for i = w, x, y, z; every one of the four formulas below is exact, the largest
+    # is the best conditioned.
+    four_sq = np.stack([1 + d0 + d1 + d2, 1 + d0 - d1 - d2, 1 - d0 + d1 - d2, 1 - d0 - d1 + d2])
+    s = 2.0 * np.sqrt(np.maximum(four_sq, 0.0))  # 4 |q_i|
+    a = m[..., 2, 1] - m[..., 1, 2]
+    b = m[..., 0, 2] - m[..., 2, 0]
+    c = m[..., 1, 0] - m[..., 0, 1]
+    xy, xz, yz = m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        candidates = np.stack([  # (4 branches, 4 components x y z w, ...)
+            np.stack([a / s[0], b / s[0], c / s[0], s[0] / 4]),
+            np.stack([s[1] / 4, xy / s[1], xz / s[1], a / s[1]]),
+            np.stack([xy / s[2], s[2] / 4, yz / s[2], b / s[2]]),
+            np.stack([xz / s[3], yz / s[3], s[3] / 4, c / s[3]])])
+    # The w branch wins ties, as trace >= max(diagonal) in the scalar form of the method.
+    best = np.argmax(four_sq, axis=0)
+    q = np.take_along_axis(candidates, best[None, None], axis=0)[0]
+    q = np.moveaxis(q, 0, -1)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., 3:] < 0, -q, q)
+
+
+def rotation_to_quat_xyzw(r: npt.ArrayLike) -> tuple[float, float, float, float]:
+    """(3, 3) rotation matrix to a unit quaternion (x, y, z, w) with w >= 0."""
+    x, y, z, w = rotation_to_quat_xyzw_array(r).tolist()
+    return (x, y, z, w)
 
 
 @dataclass(frozen=True)

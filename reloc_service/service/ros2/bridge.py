@@ -36,7 +36,7 @@ import zenoh
 from reloc_client import protocol as wire
 
 from ...geometry import pose_from_tq
-from .. import handlers
+from .. import codec, handlers
 from ..workers import WorkerPool
 from . import convert, graph
 from . import types as ros
@@ -352,7 +352,7 @@ class MapNode:
         try:
             success, message = self._relocalize_and_publish(latest, queued_s)
         except Exception as exc:
-            code, text = handlers.error_of(exc)
+            code, text = codec.error_of(exc)
             message = f"{code.value}: {text}"
         finally:
             if call is not None:

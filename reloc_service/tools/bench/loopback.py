@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any
 
 from ...cameras import Camera
-from ...service import ensure_client_importable
 
 
 def free_port() -> int:
@@ -108,7 +107,6 @@ def wait_ready(child: subprocess.Popen[bytes], endpoint: str, *, map_name: str,
                log: Path | None = None, timeout: float = 120.0) -> None:
     """Wait until the service ``child`` answers a status query on ``map_name``; RuntimeError
     with the end of ``log`` if it exits first, TimeoutError after ``timeout`` seconds."""
-    ensure_client_importable()
     from reloc_client.client import RelocClient
 
     deadline = time.monotonic() + timeout
@@ -129,7 +127,6 @@ def camera_client(endpoint: str, map_name: str, camera_id: str, camera: Camera, 
                   timeout: float = 120.0) -> Any:
     """A :class:`RelocClient` on ``map_name`` whose camera ``camera_id`` the service has
     applied (TimeoutError after 30 s)."""
-    ensure_client_importable()
     from reloc_client.client import NoReplyError, RelocClient
 
     client = RelocClient(endpoint, map=map_name, timeout=timeout)

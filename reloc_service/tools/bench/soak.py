@@ -40,7 +40,6 @@ import numpy as np
 import numpy.typing as npt
 
 from ...cameras import Camera
-from ...service import ensure_client_importable
 from .loopback import free_port, service_doc, toml_text
 from .machine import load_average
 from .samples import JPEG_QUALITY, QuerySet, json_safe, pct_ms
@@ -549,7 +548,6 @@ def run_soak(conf: SoakConf, *, scene: SoakScene | None = None, workdir: Path | 
              on_progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The soak run of ``conf`` (the scene of ``conf.preset`` unless ``scene`` is given);
     returns its JSON section. The service's logs and storage stay in ``workdir`` if given."""
-    ensure_client_importable()
     say = on_progress or (lambda _m: None)
     with contextlib.ExitStack() as stack:
         tmp = workdir or Path(stack.enter_context(tempfile.TemporaryDirectory(

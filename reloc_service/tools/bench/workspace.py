@@ -177,7 +177,7 @@ def prepare(conf: SuiteConf, tmp: Path) -> Workspace:
 
 def _save_for_service(engine: Engine, storage: Path) -> Path:
     """Save ``engine`` where a service with ``storage`` finds map :data:`MAP_NAME`."""
-    from ...service.app import map_dirname
+    from ...service.durability import map_dirname
 
     engine.save(storage / map_dirname(MAP_NAME) / "map")
     return storage

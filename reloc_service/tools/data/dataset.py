@@ -23,9 +23,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import posixpath
-import tempfile
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,10 +31,11 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
+from reloc_client.protocol.geometry import quat_xyzw_to_rotation, rotation_to_quat_xyzw_array
 
 from ...cameras import Camera, camera_from_dict
 from ...errors import CameraError, DatasetError, GeometryError
+from ...fileio import atomic_write
 from ...geometry import check_pose
 
 Array = npt.NDArray[np.float64]
@@ -215,7 +214,7 @@ def poses_from_rows(values: Array, wheres: list[str], layout: str = "tx ty tz qx
                            f"(norm 1 within {QUAT_NORM_TOL:g}) in {layout}")
     poses = np.tile(np.eye(4), (len(values), 1, 1))
     if len(values):
-        poses[:, :3, :3] = Rotation.from_quat(values[:, 3:7] / norms[:, None]).as_matrix()
+        poses[:, :3, :3] = quat_xyzw_to_rotation(values[:, 3:7] / norms[:, None])
         poses[:, :3, 3] = values[:, :3]
     return poses
 
@@ -347,8 +346,7 @@ def format_pose_lines(entries: list[DatasetEntry]) -> list[str]:
     if not entries:
         return []
     poses = np.stack([e.world_from_cam for e in entries])
-    quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat()
-    quats[quats[:, 3] < 0] *= -1.0  # w >= 0, as geometry.matrix_to_quat_xyzw
+    quats = rotation_to_quat_xyzw_array(poses[:, :3, :3])  # w >= 0
     table = np.column_stack([poses[:, :3, 3], quats]).tolist()
     return [f"{e.image_path} {e.camera_id} " + " ".join(map(repr, row))
             for e, row in zip(entries, table, strict=True)]
@@ -358,14 +356,14 @@ def write_pose_file(path: str | Path, entries: Iterable[DatasetEntry], *, title:
     """Write ``map.txt`` / ``queries.txt`` atomically."""
     header = f"# {FORMAT}: {title + ', ' if title else ''}world_from_cam\n# {POSE_LINE}\n"
     lines = format_pose_lines(list(entries))
-    _write_atomic(Path(path), header + "".join(f"{line}\n" for line in lines))
+    atomic_write(Path(path), header + "".join(f"{line}\n" for line in lines))
 
 
 def write_depth_file(path: str | Path, depth: Mapping[str, tuple[str, float]], *,
                      title: str = "depth maps") -> None:
     """Write ``depth.txt`` (or ``truth_depth.txt``) atomically."""
     lines = [f"{image} {png} {float(mpu)!r}\n" for image, (png, mpu) in depth.items()]
-    _write_atomic(Path(path), f"# {FORMAT}: {title}\n# {DEPTH_LINE}\n" + "".join(lines))
+    atomic_write(Path(path), f"# {FORMAT}: {title}\n# {DEPTH_LINE}\n" + "".join(lines))
 
 
 def write_dataset(root: str | Path, cameras: Mapping[str, Camera],
@@ -384,7 +382,7 @@ def write_dataset(root: str | Path, cameras: Mapping[str, Camera],
     root.mkdir(parents=True, exist_ok=True)
     camera_lines = [f"  {json.dumps(cid)}: {json.dumps(camera.to_dict())}"
                     for cid, camera in cameras.items()]
-    _write_atomic(root / CAMERAS_FILE, "{\n" + ",\n".join(camera_lines) + "\n}\n")
+    atomic_write(root / CAMERAS_FILE, "{\n" + ",\n".join(camera_lines) + "\n}\n")
     write_pose_file(root / MAP_FILE, map_entries, title="map keyframes")
     write_pose_file(root / QUERIES_FILE, query_entries, title="queries, ground-truth poses")
     for name, maps, title in ((DEPTH_FILE, depth, "sensor depth maps"),
@@ -448,20 +446,6 @@ def _read_text(path: Path) -> str:
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read ({exc.strerror})") from exc
 
-
-def _write_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to a temporary file next to ``path``, then rename it over ``path``."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _decode_image(path: Path, flags: int) -> npt.NDArray[Any]:

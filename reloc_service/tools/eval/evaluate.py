@@ -3,14 +3,12 @@ relocalize every query and score it against its ground truth (thesis chapter 5).
 
 :func:`evaluate` returns an :class:`EvalResult`; printing, JSON and plots are the callers'
 (``reloc eval`` formats it with :mod:`.report` and :mod:`.plots`). Where the work runs is a
-:class:`Backend`: :class:`InProcessBackend` (an :class:`~reloc_service.engine.Engine` in this
-process) or a remote one reached through the service (``reloc_service.tools.eval.remote``).
+:class:`~.backends.Backend`: :class:`InProcessBackend` (an :class:`~reloc_service.engine.Engine`
+in this process) or a remote one reached through the service (:mod:`.remote`).
 """
 
 from __future__ import annotations
 
-import enum
-import importlib
 import json
 import math
 import os
@@ -20,7 +18,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -35,6 +33,7 @@ from ...relocalizers.base import RelocResult
 from ..data.dataset import Dataset, DatasetEntry, read_dataset
 from . import gt as _gt  # noqa: F401 (importing it registers the ground-truth place finder)
 from . import metrics
+from .backends import Backend, LandmarkSource, RemoteSpec
 
 Array = npt.NDArray[np.float64]
 
@@ -46,68 +45,19 @@ _LIBRARIES = ("numpy", "scipy", "opencv-python-headless", "poselib", "eclipse-ze
               "scikit-image")
 
 
-class LandmarkSource(enum.Enum):
-    """Where the map's landmarks come from: ``auto`` lifts keypoints with the dataset's depth
-    where a keyframe has a depth map and triangulates the rest (what the service does with
-    keyframes that carry depth); ``triangulate`` ignores depth maps; ``depth`` requires one
-    for every keyframe."""
-
-    AUTO = "auto"
-    TRIANGULATE = "triangulate"
-    DEPTH = "depth"
-
-    def uses_depth(self) -> bool:
-        return self is not LandmarkSource.TRIANGULATE
-
-
-@dataclass(frozen=True)
-class RemoteSpec:
-    """Evaluate through a running service: Zenoh ``endpoint`` (e.g. ``tcp/127.0.0.1:7447``)
-    and the name of the map to upload into."""
-
-    endpoint: str
-    map_name: str
-    timeout_s: float = 30.0
-
-
-class Backend(Protocol):
-    """Where the map is built and the queries are answered (in-process or a remote service).
-
-    Keyframe ids are the rows of ``map.txt`` (0-based); results must name matched keyframes
-    by those ids."""
-
-    #: Human-readable description (``"in-process"``, ``"remote tcp/...:7447 map desk"``).
-    description: str
-
-    def add_keyframe(self, kf_id: int, image: npt.NDArray[np.uint8], camera: Camera,
-                     world_from_cam: Array, *, depth: npt.NDArray[np.float32] | None) -> None:
-        """Add one posed keyframe (and its landmarks) to the map."""
-
-    def train(self, *, progress: bool) -> None:
-        """Train every method's models on the whole map; return when done."""
-
-    def relocalize(self, image: npt.NDArray[np.uint8], camera: Camera, *, method: str,
-                   gt_world_from_cam: Array) -> RelocResult:
-        """Answer one query with ``method``; ``gt_world_from_cam`` is only for the
-        evaluation-only ``gt`` place finder."""
-
-    def map_counts(self) -> tuple[int, int]:
-        """(keyframes, landmarks) in the map."""
-
-    def landmark_errors_m(self, dataset: Dataset) -> Array | None:
-        """(L,) landmark position errors (metres) against ground truth, or None if unknown."""
-
-    def close(self) -> None:
-        """Release what the backend holds (sessions, threads)."""
-
-
 # -- results ---------------------------------------------------------------------------------
 
 @dataclass
 class QueryRecord:
-    """One query's outcome. Errors are None when no pose was returned; ``rank`` is the rank k
-    (1 = closest) of the first matched keyframe among the keyframes ordered by distance to the
-    query's ground-truth centre (thesis figure 3.2), None when the result names no keyframe.
+    """One query's outcome: a :class:`RelocResult` as the versioned JSON record of
+    docs/eval_schema.md, plus what the evaluation adds (errors, latency, ground truth, rank).
+    Built from a result only by :func:`record_from_result` (and from JSON by
+    :meth:`EvalResult.from_dict`); it keeps the pose as the 7 numbers the JSON holds rather
+    than the result's matrix, so a record read back from its JSON equals the one written.
+
+    Errors are None when no pose was returned; ``rank`` is the rank k (1 = closest) of the
+    first matched keyframe among the keyframes ordered by distance to the query's
+    ground-truth centre (thesis figure 3.2), None when the result names no keyframe.
     Poses are ``world_from_cam`` as ``[tx, ty, tz, qx, qy, qz, qw]``."""
 
     image_path: str
@@ -311,15 +261,16 @@ def _make_backend(methods: list[str], options: dict[str, Any], source: LandmarkS
                   remote: RemoteSpec | None) -> Backend:
     if remote is None:
         return InProcessBackend(methods, options, source)
+    # Imported here, not at the top: remote loads zenoh, which in-process runs do not need.
+    # No cycle: remote imports .backends, never this module.
     try:
-        module = importlib.import_module("reloc_service.tools.eval.remote")
+        from .remote import make_remote_backend
     except ModuleNotFoundError as exc:
         if exc.name != "reloc_service.tools.eval.remote":
             raise
         raise ConfigError("remote evaluation is not available in this installation "
                           "(reloc_service.tools.eval.remote is missing)") from None
-    return module.make_remote_backend(remote, methods=methods, options=options,
-                                      landmark_source=source)
+    return make_remote_backend(remote, methods=methods, options=options, landmark_source=source)
 
 
 def _timed(fn: Any) -> float:

@@ -3,7 +3,6 @@ pose, to evaluate pose finders with an ideal first step. Evaluation only."""
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -12,13 +11,15 @@ import numpy.typing as npt
 from ...errors import ConfigError
 from ...frame import Frame, Keyframe
 from ...map import KeyframeMap
+from ...numeric import top_k
 from ...place.base import PlaceCandidate, PlaceFinder, register
 
 
 @register("gt")
 class GroundTruthPlaceFinder(PlaceFinder):
     """Ranks keyframes by ``distance + angle_weight_m_per_rad * angle`` between camera centres
-    and viewing directions of the keyframe and the query's ground-truth pose."""
+    and viewing directions of the keyframe and the query's ground-truth pose. Not thread-safe
+    (no lock): used behind the engine's read-write lock like every place finder."""
 
     evaluation_only = True
 
@@ -34,23 +35,19 @@ class GroundTruthPlaceFinder(PlaceFinder):
 
     def __init__(self, kmap: KeyframeMap, conf: GroundTruthPlaceFinder.Conf) -> None:
         super().__init__(kmap, conf)
-        self._lock = threading.Lock()
         self._poses: dict[int, npt.NDArray[np.float64]] = {}
         self.train()
 
     def add_keyframe(self, keyframe: Keyframe) -> None:
-        with self._lock:
-            self._poses[keyframe.id] = keyframe.world_from_cam.copy()
+        self._poses[keyframe.id] = keyframe.world_from_cam.copy()
 
     def remove_keyframe(self, keyframe: Keyframe) -> None:
-        with self._lock:
-            self._poses.pop(keyframe.id, None)
+        self._poses.pop(keyframe.id, None)
 
     def train(self) -> None:
         """Re-index every keyframe of the map (also run at construction)."""
-        poses = {i: kf.world_from_cam.copy() for i, kf in self.map.snapshot().keyframes.items()}
-        with self._lock:
-            self._poses = poses
+        self._poses = {i: kf.world_from_cam.copy()
+                       for i, kf in self.map.snapshot().keyframes.items()}
 
     def find_places(self, query: Frame, k: int, *, allowed: set[int] | None = None
                     ) -> list[PlaceCandidate]:
@@ -58,14 +55,13 @@ class GroundTruthPlaceFinder(PlaceFinder):
         if query.gt_world_from_cam is None:
             raise ConfigError("place finder 'gt' needs the query's ground-truth pose "
                               "(Frame.gt_world_from_cam); it is for evaluation only")
-        with self._lock:
-            items = [(i, p) for i, p in self._poses.items() if allowed is None or i in allowed]
+        items = [(i, p) for i, p in self._poses.items() if allowed is None or i in allowed]
         if not items or k <= 0:
             return []
         ids = np.array([i for i, _ in items], np.int64)
         world_from_kf = np.stack([p for _, p in items])
         cost = self._cost(world_from_kf, query.gt_world_from_cam)
-        order = np.lexsort((ids, cost))[:k]
+        order = top_k(-cost, k, tiebreak=ids)  # least cost first, ties to the lower id
         return [PlaceCandidate(int(ids[i]), -float(cost[i])) for i in order]
 
     def _cost(self, world_from_kf: npt.NDArray[np.float64],

@@ -1,7 +1,8 @@
 """The ``--remote`` backend of ``reloc eval``: the map is uploaded to a running service through
 :class:`reloc_client.RelocClient`, trained there, and every query is answered over Zenoh.
 
-The scores are computed exactly as in-process (:func:`~.evaluate.evaluate` does the scoring);
+The scores are computed exactly as in-process (:func:`~.evaluate.evaluate` does the scoring,
+and the client answers the same :class:`~reloc_client.result.RelocResult` as the engine);
 only where the work runs differs. Plugin options are the service's own configuration (its
 TOML ``[options]``), so none can be passed here; the methods must be ones the service serves.
 """
@@ -15,17 +16,13 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from reloc_client import protocol as wire
+from reloc_client.client import NoReplyError, RelocClient, ServiceBusy, ServiceError
 
 from ...cameras import Camera
 from ...errors import ConfigError, RelocError
-from ...relocalizers.base import RelocResult, RelocStatus
-from ...service import ensure_client_importable
-from .evaluate import LandmarkSource, RemoteSpec
-
-ensure_client_importable()
-
-from reloc_client import protocol as wire  # noqa: E402
-from reloc_client.client import NoReplyError, RelocClient, ServiceBusy, ServiceError  # noqa: E402
+from ...relocalizers.base import RelocResult
+from .backends import LandmarkSource, RemoteSpec
 
 Array = npt.NDArray[np.float64]
 
@@ -158,24 +155,17 @@ class RemoteBackend:
 
     def relocalize(self, image: npt.NDArray[np.uint8], camera: Camera, *, method: str,
                    gt_world_from_cam: Array) -> RelocResult:
-        """One query over Zenoh (retried while the service is busy)."""
+        """One query over Zenoh (retried while the service is busy); the client's result is
+        the relocalizer's own type, so it is scored as it comes."""
         camera_id = self._camera_id(camera)
         for attempt in range(BUSY_RETRIES):
             try:
-                r = self.client.relocalize(image, camera_id=camera_id, method=method)
-                break
+                return self.client.relocalize(image, camera_id=camera_id, method=method)
             except ServiceBusy:
                 time.sleep(min(0.05 * (attempt + 1), 1.0))
             except ServiceError as exc:
                 raise RemoteError(f"the service refused a query: {exc}") from exc
-        else:
-            raise RemoteError(f"the service stayed busy for {BUSY_RETRIES} attempts")
-        return RelocResult(
-            status=RelocStatus(r.status.value), method=r.method, world_from_cam=r.world_from_cam,
-            reason=r.reason, confidence=r.confidence, inliers=r.inliers,
-            num_matches=r.num_matches, reprojection_rms_px=r.reprojection_rms_px,
-            covariance=r.covariance, matched_keyframe_ids=list(r.matched_keyframe_ids),
-            timings=dict(r.timings), map_version=r.map_version)
+        raise RemoteError(f"the service stayed busy for {BUSY_RETRIES} attempts")
 
     def map_counts(self) -> tuple[int, int]:
         status = self.client.status()

@@ -1,0 +1,83 @@
+"""Small numeric helpers shared by the algorithms: zero-mean NCC and top-k selection."""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+IntArray = npt.NDArray[np.int64]
+
+#: Up to this k, top-k takes k argmax passes over each row (cheaper than a partition or a sort
+#: of every row, and ties naturally go to the lower index).
+_ARGMAX_PASSES_UP_TO = 4
+
+
+def zncc(a: npt.ArrayLike, b: npt.ArrayLike, mask: npt.ArrayLike | None = None, *,
+         flat: float = 0.0) -> float:
+    """Zero-mean normalised cross-correlation of two same-shape images (over ``mask`` if
+    given), in [-1, 1].
+
+    A constant image (or an empty mask) has no correlation to measure; the answer is then
+    ``flat``: 0.0 by default (uncorrelated), -1.0 where a caller ranks candidates by NCC and
+    a flat image must never beat a real alignment (ESM)."""
+    x = np.asarray(a, dtype=np.float64)
+    y = np.asarray(b, dtype=np.float64)
+    if mask is None:
+        x, y = x.ravel(), y.ravel()
+    else:
+        keep = np.asarray(mask, dtype=bool)
+        x, y = x[keep], y[keep]
+    if len(x) == 0:
+        return flat
+    x = x - x.mean()
+    y = y - y.mean()
+    denom = float(np.sqrt((x @ x) * (y @ y)))
+    return float(x @ y) / denom if denom > 1e-12 else flat
+
+
+def top_k(scores: npt.ArrayLike, k: int, *, keep: npt.ArrayLike | None = None,
+          tiebreak: npt.ArrayLike | None = None) -> IntArray:
+    """Indices of the ``k`` largest scores, best first; equal scores go to the lower index.
+
+    ``scores`` (C,) gives (min(k, kept),) indices into it: only entries where ``keep`` (C,)
+    is true count, and ties go to the lower ``tiebreak`` (C,) value (e.g. keyframe ids)
+    instead of the lower index. ``scores`` (N, C) gives (N, min(k, C)) column indices of
+    each row (``keep`` and ``tiebreak`` are for 1-D scores only); a (N, C) float array is
+    used as scratch space and restored, so pass a copy if another thread reads it."""
+    s = np.asarray(scores)
+    if s.ndim == 2:
+        if keep is not None or tiebreak is not None:
+            raise ValueError("top_k: keep and tiebreak apply to 1-D scores, got (N, C) scores")
+        return _top_k_rows(s, min(k, s.shape[1]))
+    if s.ndim != 1:
+        raise ValueError(f"top_k: expected (C,) or (N, C) scores, got shape {s.shape}")
+    cols = np.arange(len(s)) if keep is None else np.flatnonzero(keep)
+    if tiebreak is not None:
+        cols = cols[np.argsort(np.asarray(tiebreak)[cols], kind="stable")]
+    if k <= 0 or len(cols) == 0:
+        return np.zeros(0, np.int64)
+    return cols[_top_k_rows(s[cols][None, :], min(k, len(cols)))[0]]
+
+
+def _top_k_rows(scores: npt.NDArray[np.floating], k: int) -> IntArray:
+    """(N, k) column indices of the k largest scores of each row, largest first, ties to the
+    lower column. Modifies ``scores`` while it runs and restores it."""
+    n = len(scores)
+    if k <= 0:
+        return np.zeros((n, 0), np.int64)
+    if k > _ARGMAX_PASSES_UP_TO:
+        return np.argsort(-scores, axis=1, kind="stable")[:, :k].astype(np.int64)
+    out = np.empty((n, k), np.int64)
+    rows = np.arange(n)
+    saved = []
+    for j in range(k):
+        out[:, j] = scores.argmax(axis=1)
+        saved.append(scores[rows, out[:, j]].copy())
+        scores[rows, out[:, j]] = -np.inf
+    for j in reversed(range(k)):
+        scores[rows, out[:, j]] = saved[j]
+    # A row whose remaining scores are all -inf would repeat a column: sort those rows instead.
+    exhausted = np.flatnonzero(np.isneginf(saved[-1]))
+    if len(exhausted):
+        out[exhausted] = np.argsort(-scores[exhausted], axis=1, kind="stable")[:, :k]
+    return out

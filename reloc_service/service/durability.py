@@ -1,0 +1,286 @@
+"""What survives a restart of one served map: its journal, engine snapshots and ``service.json``.
+
+Per map directory ``<storage>/<map>/``::
+
+    journal/NNNNNNNNNNNN.journal   every accepted put/delete, fsynced before it is applied
+    map/                           engine snapshots (``reloc_service.storage``: map + models)
+    service.json                   cameras, keyframe camera ids, first journal segment to replay
+
+A snapshot rotates the journal, saves the engine, writes ``service.json`` atomically and only
+then deletes the older journal segments (:class:`MapStore`; when it runs and what happens to
+puts meanwhile is the map runtime's business). Restoring loads the last snapshot
+(:func:`open_engine`) and replays the journal from there (:meth:`MapStore.replay`), keeping
+what it can prove: a damaged journal record is skipped (its bytes quarantined, see
+:mod:`.journal`), a missing ``map/CURRENT`` is restored only to the snapshot ``service.json``
+names (verified, :func:`recover_current`), and anything else that does not read is a
+StorageError for this map alone. What was skipped is reported in a :class:`RestoreReport`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+import urllib.parse
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgpack
+from reloc_client import protocol as wire
+
+from ..cameras import Camera, camera_from_dict
+from ..engine import Engine, EngineConf
+from ..errors import CameraError, StorageError
+from ..fileio import atomic_write
+from ..storage import CURRENT_FILE, restore_current, snapshot_dirs
+from .journal import Journal, JournalReport
+
+log = logging.getLogger(__name__)
+
+SERVICE_FILE = "service.json"
+#: Limits when replaying the journal: what was accepted once is accepted again.
+REPLAY_LIMITS = wire.Limits(max_payload_bytes=2**40, max_image_pixels=2**40,
+                            max_features=2**40, max_hypotheses=2**20, max_list_len=2**40)
+
+
+class RestoreInterrupted(Exception):
+    """The service stopped while a map was being restored (nothing was written)."""
+
+
+@dataclass
+class RestoreReport:
+    """What restoring a map found: journal records applied, records read that did not apply,
+    damaged journal bytes skipped (quarantined), and a snapshot ``CURRENT`` was restored to."""
+
+    replayed: int = 0
+    not_applied: int = 0
+    journal: JournalReport = field(default_factory=JournalReport)
+    recovered_snapshot: str | None = None
+
+    @property
+    def damaged(self) -> bool:
+        return bool(self.journal.damage or self.not_applied or self.recovered_snapshot)
+
+    def counters(self) -> dict[str, int]:
+        """Status counters (a StatusReply carries them without a protocol change)."""
+        return {"restore_records_replayed": self.replayed,
+                "restore_records_not_applied": self.not_applied,
+                "restore_journal_skipped": len(self.journal.skipped),
+                "restore_journal_torn_bytes": self.journal.torn_bytes,
+                "restore_quarantine_files": len(self.journal.quarantined),
+                "restore_snapshot_recovered": int(self.recovered_snapshot is not None)}
+
+    def event_fields(self) -> dict[str, Any]:
+        """Fields of the ``storage_damaged`` event published when :attr:`damaged`."""
+        return {"failed": False, "records_replayed": self.replayed,
+                "records_not_applied": self.not_applied,
+                "journal_skipped": [[d.segment, d.offset, d.size] for d in self.journal.skipped],
+                "journal_torn_bytes": self.journal.torn_bytes,
+                "quarantined": [str(p) for p in self.journal.quarantined],
+                "recovered_snapshot": self.recovered_snapshot}
+
+
+@dataclass(frozen=True)
+class ServiceMeta:
+    """What ``service.json`` holds besides the snapshot name: the registered cameras, the
+    camera id each keyframe was put with, and the first journal segment after the snapshot."""
+
+    cameras: dict[str, Camera] = field(default_factory=dict)
+    keyframe_camera_ids: dict[int, str] = field(default_factory=dict)
+    next_segment: int = 0
+
+
+class MapStore:
+    """The files of one map directory (see module docstring); used from the map's writer
+    thread and its snapshot thread, which the map runtime keeps from overlapping."""
+
+    def __init__(self, name: str, directory: Path, *, fsync: bool = True,
+                 snapshot_every: int = 200) -> None:
+        self.name = name
+        self.directory = directory
+        self.journal = Journal(directory / "journal", fsync=fsync)
+        self.snapshot_every = snapshot_every
+        #: Records journaled since the last snapshot (replayed ones included).
+        self.since_snapshot = 0
+
+    def append(self, record: dict[str, Any]) -> None:
+        """Journal ``record`` (``op`` kf / del / cam); durable when this returns."""
+        self.journal.append(msgpack.packb(record, use_bin_type=True))
+        self.since_snapshot += 1
+
+    def wants_snapshot(self) -> bool:
+        return self.snapshot_every > 0 and self.since_snapshot >= self.snapshot_every
+
+    # -- restore ---------------------------------------------------------------------------------
+    def read_meta(self) -> ServiceMeta:
+        """The cameras and journal position of ``service.json`` (empty for a new map);
+        StorageError naming the file if it does not read."""
+        meta = read_service_file(self.directory)
+        try:
+            return ServiceMeta(
+                cameras={cid: camera_from_dict(d) for cid, d in meta.get("cameras", {}).items()},
+                keyframe_camera_ids={int(k): str(v) for k, v in
+                                     meta.get("keyframe_camera_ids", {}).items()},
+                next_segment=int(meta.get("next_segment", 0)))
+        except (AttributeError, KeyError, TypeError, ValueError, CameraError) as exc:
+            raise StorageError(f"{self.directory / SERVICE_FILE}: {exc}; expected cameras, "
+                               f"keyframe_camera_ids and next_segment as written by the "
+                               f"service") from exc
+
+    def replay(self, from_segment: int, apply: Callable[[dict[str, Any]], None],
+               report: RestoreReport, stop: threading.Event | None = None) -> None:
+        """Hand every journal record from segment ``from_segment`` on to ``apply``, counting
+        in ``report`` those it applied and those it raised on (skipped, logged); then open
+        the journal for appending. RestoreInterrupted if ``stop`` is set meanwhile (the
+        journal is left as it was)."""
+        for raw in self.journal.replay(from_segment=from_segment):
+            if stop is not None and stop.is_set():
+                raise RestoreInterrupted(f"map {self.name}: restore interrupted after "
+                                         f"{report.replayed} journal records (shutting down)")
+            if self._replay_record(raw, apply):
+                report.replayed += 1
+            else:
+                report.not_applied += 1
+        report.journal = self.journal.report
+        self.journal.open()
+        self.since_snapshot = report.replayed
+
+    def _replay_record(self, raw: bytes, apply: Callable[[dict[str, Any]], None]) -> bool:
+        """True if the record was applied again, False if it was skipped (logged)."""
+        try:
+            apply(msgpack.unpackb(raw, raw=False))
+            return True
+        except Exception as exc:  # a record that cannot be applied again is skipped, loudly
+            log.error("map %s: skipping a journal record that does not replay: %s", self.name,
+                      exc)
+            return False
+
+    # -- snapshots -------------------------------------------------------------------------------
+    def rotate(self) -> int:
+        """Start a new journal segment (its number): the snapshot about to be taken holds
+        everything journaled before it. Call with the map's changes held."""
+        segment = self.journal.rotate()
+        self.since_snapshot = 0
+        return segment
+
+    def save(self, engine: Engine, meta: ServiceMeta) -> Path:
+        """Save ``engine``, then ``service.json`` naming the snapshot and ``meta`` (the
+        cameras as of :meth:`rotate`, ``meta.next_segment`` its segment), then delete the
+        segments before it; the snapshot directory."""
+        path = engine.save(self.directory / "map")
+        write_service_file(self.directory, {
+            "snapshot": path.name, "next_segment": meta.next_segment,
+            "cameras": {cid: cam.to_dict() for cid, cam in meta.cameras.items()},
+            "keyframe_camera_ids": {str(k): v for k, v in meta.keyframe_camera_ids.items()},
+            "map_version": engine.map.snapshot().version, "time": time.time()})
+        self.journal.delete_before(meta.next_segment)
+        return path
+
+    def close(self) -> None:
+        self.journal.close()
+
+
+# -- the service.json file ---------------------------------------------------------------------
+
+def read_service_file(directory: Path) -> dict[str, Any]:
+    """``service.json`` of a map directory ({} if absent); StorageError if damaged."""
+    path = directory / SERVICE_FILE
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise StorageError(f"{path}: cannot read ({exc}); expected the service's map "
+                           f"metadata") from exc
+    if not isinstance(data, dict):
+        raise StorageError(f"{path}: expected a JSON object")
+    return data
+
+
+def write_service_file(directory: Path, data: dict[str, Any]) -> None:
+    """Write ``service.json`` atomically (temporary file, fsync, rename, fsync directory)."""
+    atomic_write(directory / SERVICE_FILE, json.dumps(data, indent=1))
+
+
+# -- the storage directory ----------------------------------------------------------------------
+
+def map_dirname(map_name: str) -> str:
+    """A directory name for ``map_name`` (percent-encoded; never ``.`` or ``..``)."""
+    quoted = urllib.parse.quote(map_name, safe="")
+    return "%2E" + quoted[1:] if quoted.startswith(".") else quoted
+
+
+def map_name_of(dirname: str) -> str:
+    return urllib.parse.unquote(dirname)
+
+
+def stored_map_names(storage: Path) -> list[str]:
+    """The maps with a directory (a journal or snapshots) under ``storage``, by name; a
+    directory whose name is not a valid map name is logged and left alone."""
+    if not storage.is_dir():
+        return []
+    names = []
+    for path in sorted(storage.iterdir()):
+        if path.is_dir() and ((path / "journal").is_dir() or (path / "map").is_dir()):
+            name = map_name_of(path.name)
+            try:
+                names.append(wire.check_name(name))
+            except wire.ProtocolError:
+                log.warning("ignoring storage directory %s: not a map name", path)
+    return names
+
+
+def journal_bytes(directory: Path) -> int:
+    """Bytes of journal a restore of map directory ``directory`` would read (its cost)."""
+    journal = directory / "journal"
+    return sum(p.stat().st_size for p in journal.glob("*.journal")) if journal.is_dir() else 0
+
+
+# -- opening a map directory -------------------------------------------------------------------
+
+def open_engine(directory: Path | None, conf: EngineConf) -> Engine:
+    """The engine of a map: loaded from its last snapshot if there is one, else empty.
+    Call :func:`recover_current` first so a missing ``CURRENT`` is not taken for a new map."""
+    if directory is not None and (directory / "map" / CURRENT_FILE).is_file():
+        return Engine.load(directory / "map", conf)
+    return Engine(conf)
+
+
+def recover_current(directory: Path) -> str | None:
+    """Restore a missing ``map/CURRENT`` of map directory ``directory``; the snapshot name
+    if it was restored, None if nothing was missing (or the map is new).
+
+    Only the snapshot ``service.json`` names is a valid target: the journal continues from
+    it (``next_segment``), so any other snapshot would silently lose or repeat records. It is
+    used only if every file of it verifies against its manifest; otherwise StorageError (the
+    map is failed, nothing is deleted or rewritten)."""
+    map_dir = directory / "map"
+    if (map_dir / CURRENT_FILE).is_file():
+        return None
+    present = [p.name for p in snapshot_dirs(map_dir)]
+    named = read_service_file(directory).get("snapshot")
+    if not present and named is None:
+        return None
+    if not isinstance(named, str) or named not in present:
+        raise StorageError(
+            f"{map_dir / CURRENT_FILE}: missing; snapshot(s) {present or 'none'} present, "
+            f"{directory / SERVICE_FILE} names {named!r}: cannot tell which snapshot the "
+            f"journal continues from, so the map is not restored (nothing was deleted); "
+            f"inspect it with `reloc map check {directory}`, then write CURRENT "
+            f"('snapshots/<n>') by hand")
+    restore_current(map_dir, named)
+    log.warning("map directory %s: %s was missing; restored it to snapshots/%s, the snapshot "
+                "service.json names (every file verified)", directory, CURRENT_FILE, named)
+    return named
+
+
+def check_storage(directory: Path) -> None:
+    """Create ``directory`` (StorageError with the reason if impossible)."""
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StorageError(f"cannot create the storage directory {directory}: "
+                           f"{exc.strerror or exc}") from exc

@@ -1,0 +1,108 @@
+"""The map store of the service (journal, snapshots, service.json) without Zenoh or a runtime."""
+
+import json
+
+import pytest
+
+from reloc_service.cameras import PinholeCamera
+from reloc_service.engine import Engine, EngineConf
+from reloc_service.errors import StorageError
+from reloc_service.service.durability import (
+    SERVICE_FILE,
+    MapStore,
+    RestoreReport,
+    ServiceMeta,
+    map_dirname,
+    map_name_of,
+    open_engine,
+    stored_map_names,
+)
+
+CAMERA = PinholeCamera(width=320, height=240, fx=250.0, fy=250.0, cx=159.5, cy=119.5)
+
+
+def opened(directory, **kw) -> tuple[MapStore, list[dict]]:
+    """A store on ``directory`` restored as the runtime does it; the records it replayed."""
+    store = MapStore("m", directory, **kw)
+    applied: list[dict] = []
+    store.replay(store.read_meta().next_segment, applied.append, RestoreReport())
+    return store, applied
+
+
+def test_records_replay_in_order_and_count_towards_the_next_snapshot(tmp_path):
+    store, applied = opened(tmp_path, snapshot_every=3)
+    assert applied == []
+    for i in range(3):
+        assert not store.wants_snapshot()
+        store.append({"op": "del", "id": i})
+    assert store.wants_snapshot()
+    store.close()
+    store, applied = opened(tmp_path, snapshot_every=3)
+    assert applied == [{"op": "del", "id": i} for i in range(3)]
+    assert store.since_snapshot == 3 and store.wants_snapshot()
+    store.close()
+
+
+def test_a_record_that_does_not_apply_is_skipped_and_counted(tmp_path):
+    store, _ = opened(tmp_path)
+    for i in range(3):
+        store.append({"op": "del", "id": i})
+    store.close()
+
+    def apply(record: dict) -> None:
+        if record["id"] == 1:
+            raise ValueError("keyframe 1 does not decode")
+
+    report = RestoreReport()
+    MapStore("m", tmp_path).replay(0, apply, report)
+    assert (report.replayed, report.not_applied) == (2, 1)
+    assert report.damaged and report.counters()["restore_records_not_applied"] == 1
+
+
+def test_a_snapshot_names_itself_and_drops_the_journal_before_it(tmp_path):
+    store, _ = opened(tmp_path)
+    store.append({"op": "cam", "id": "cam0", "payload": b"old"})
+    engine = Engine(EngineConf())
+    segment = store.rotate()
+    assert store.since_snapshot == 0
+    store.append({"op": "del", "id": 7})    # arrives during the save: kept in the journal
+    path = store.save(engine, ServiceMeta(cameras={"cam0": CAMERA},
+                                          keyframe_camera_ids={3: "cam0"},
+                                          next_segment=segment))
+    store.close()
+    written = json.loads((tmp_path / SERVICE_FILE).read_text())
+    assert written["snapshot"] == path.name and written["next_segment"] == segment
+    assert store.journal.segments() == [segment]
+    store, applied = opened(tmp_path)
+    meta = store.read_meta()
+    assert meta.cameras["cam0"].to_dict() == CAMERA.to_dict()
+    assert meta.keyframe_camera_ids == {3: "cam0"}
+    assert applied == [{"op": "del", "id": 7}]
+    store.close()
+    assert open_engine(tmp_path, EngineConf()).map.snapshot().version == \
+        engine.map.snapshot().version
+
+
+@pytest.mark.parametrize("content, expected", [
+    ("{not json", "cannot read"),
+    ('["a list"]', "expected a JSON object"),
+    ('{"cameras": {"cam0": {"model": "nope"}}}', "expected cameras, keyframe_camera_ids"),
+    ('{"next_segment": "first"}', "expected cameras, keyframe_camera_ids"),
+])
+def test_a_damaged_service_file_is_a_storage_error_naming_it(tmp_path, content, expected):
+    (tmp_path / SERVICE_FILE).write_text(content)
+    with pytest.raises(StorageError) as err:
+        MapStore("m", tmp_path).read_meta()
+    assert SERVICE_FILE in str(err.value) and expected in str(err.value)
+
+
+def test_map_directories_round_trip_their_names(tmp_path):
+    names = ["room", ".hidden", "a b/c", "..", "drone_1"]
+    for name in names:
+        dirname = map_dirname(name)
+        assert dirname not in (".", "..") and "/" not in dirname
+        assert map_name_of(dirname) == name
+    for name in ("room", ".hidden", "drone_1"):
+        (tmp_path / map_dirname(name) / "journal").mkdir(parents=True)
+    (tmp_path / "no-journal-or-map").mkdir()      # not a map directory: not listed
+    assert sorted(stored_map_names(tmp_path)) == sorted([".hidden", "drone_1", "room"])

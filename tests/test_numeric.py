@@ -1,0 +1,74 @@
+"""The shared numeric helpers: zero-mean NCC and top-k selection."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from reloc_service.numeric import top_k, zncc
+
+
+def test_zncc_of_related_and_unrelated_images():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(30, 40))
+    assert zncc(a, 3 * a + 7) == pytest.approx(1.0)
+    assert zncc(a, -a) == pytest.approx(-1.0)
+    assert abs(zncc(a, rng.normal(size=(30, 40)))) < 0.1
+
+
+def test_zncc_of_a_flat_image_is_the_callers_choice():
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(30, 40))
+    flat = np.full_like(a, 7.0)
+    assert zncc(a, flat) == 0.0            # uncorrelated (the none pose finder)
+    assert zncc(flat, a, flat=-1.0) == -1.0  # ranked last (ESM picks the best NCC)
+    assert zncc(a, a, np.zeros(a.shape, bool), flat=-1.0) == -1.0  # empty mask
+
+
+def test_zncc_over_a_mask_ignores_the_pixels_outside():
+    rng = np.random.default_rng(2)
+    a = rng.normal(size=(30, 40))
+    b = a.copy()
+    mask = np.zeros(a.shape, bool)
+    mask[5:25, 5:35] = True
+    b[~mask] = rng.normal(size=int((~mask).sum()))
+    assert zncc(a, b, mask) == pytest.approx(1.0)
+    assert zncc(a, b) < 0.9
+
+
+def test_top_k_is_best_first_with_ties_to_the_lower_index():
+    scores = np.array([0.5, 2.0, 1.0, 2.0, 1.0, -3.0])
+    assert top_k(scores, 3).tolist() == [1, 3, 2]
+    assert top_k(scores, 10).tolist() == [1, 3, 2, 4, 0, 5]
+    assert top_k(scores, 0).tolist() == []
+    assert top_k(np.zeros(0), 3).tolist() == []
+
+
+def test_top_k_keeps_only_the_kept_and_breaks_ties_by_tiebreak():
+    scores = np.array([1.0, np.nan, 1.0, 5.0, 1.0, np.inf])
+    ids = np.array([30, 10, 20, 40, 5, 60])
+    order = top_k(scores, 3, keep=np.isfinite(scores), tiebreak=ids)
+    assert order.tolist() == [3, 4, 2]  # 5.0, then the 1.0s by id 5, 20 (30 is the fourth)
+    assert top_k(scores, 3, keep=scores > 10).tolist() == [5]
+    # A tie across the k-th place goes to the lower id however many tie (never arbitrary).
+    tied = np.ones(50)
+    ids = np.random.default_rng(3).permutation(50)
+    assert sorted(ids[top_k(tied, 5, tiebreak=ids)]) == [0, 1, 2, 3, 4]
+
+
+@pytest.mark.parametrize("k", [1, 2, 4, 5, 9])
+def test_top_k_of_rows_matches_a_stable_sort_and_restores_the_scores(k):
+    rng = np.random.default_rng(k)
+    scores = rng.integers(-3, 3, (40, 12)).astype(np.float32)  # many ties
+    scores[0] = -np.inf
+    before = scores.copy()
+    got = top_k(scores, k)
+    assert np.array_equal(scores, before)
+    assert np.array_equal(got, np.argsort(-before, axis=1, kind="stable")[:, :k])
+
+
+def test_top_k_refuses_what_it_cannot_rank():
+    with pytest.raises(ValueError, match=r"expected \(C,\) or \(N, C\)"):
+        top_k(np.zeros((2, 2, 2)), 1)
+    with pytest.raises(ValueError, match="1-D scores"):
+        top_k(np.zeros((2, 3)), 1, keep=np.ones((2, 3), bool))
