@@ -5,20 +5,19 @@ from __future__ import annotations
 
 import json
 import queue
+import signal
 import socket
-import sys
+import subprocess
 import time
 from pathlib import Path
 from typing import Any
 
+import zenoh
+from reloc_client import protocol as wire
+
+from reloc_service.service.config import ServiceConf, parse_config
+
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT / "clients") not in sys.path:
-    sys.path.insert(0, str(ROOT / "clients"))
-
-import zenoh  # noqa: E402
-from reloc_client import protocol as wire  # noqa: E402
-
-from reloc_service.service.config import ServiceConf, parse_config  # noqa: E402
 
 
 def free_port() -> int:
@@ -88,6 +87,18 @@ class Events:
 
     def close(self) -> None:
         self.sub.undeclare()
+
+
+def stop_process(proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 30.0
+                 ) -> None:
+    """Send ``sig`` to ``proc`` if it still runs and wait ``timeout`` s; kill it after that."""
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
 
 
 def wait_until(predicate: Any, timeout: float = 20.0, interval: float = 0.05) -> Any:

@@ -14,11 +14,10 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "clients"))
+from reloc_client import protocol as P  # noqa: E402 (after the importorskip)
+from reloc_client.client import NoReplyError, RelocClient, RelocStatus, ServiceBusy, ServiceError  # noqa: E402 (after the importorskip)
 
-from reloc_client import protocol as P  # noqa: E402
-from reloc_client.client import NoReplyError, RelocClient, RelocStatus, ServiceBusy, ServiceError  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 MAP = "lab"
 CAMERA = {"model": "pinhole", "width": 8, "height": 6, "fx": 5.0, "fy": 5.0, "cx": 3.5, "cy": 2.5,

@@ -6,14 +6,10 @@ serves with its authentication on."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import configparser
 import json
 import re
+from pathlib import Path
 
 import pytest
 import zenoh

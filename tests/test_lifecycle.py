@@ -7,11 +7,6 @@ raises when refused or when no service answers; an Outbox resends until acknowle
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import dataclasses
 import signal
 import threading

@@ -7,13 +7,9 @@ ground-station router."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import logging
 import threading
+from pathlib import Path
 
 import cv2
 import msgpack

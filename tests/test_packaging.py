@@ -8,14 +8,13 @@ import json
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import tomllib
 from pathlib import Path
 
 import pytest
-from service_support import endpoint, free_port, wait_until
+from service_support import endpoint, free_port, stop_process, wait_until
 
 from reloc_service.cli._delegate import TOOLS_EXTRA_HINT, TOOLS_EXTRA_MODULES
 from reloc_service.cli.main import TOOL_COMMANDS
@@ -108,12 +107,7 @@ def _check_serve_answers(venv: Path, tmp: Path) -> None:
         assert maps.returncode == 0, maps.stderr
         assert {"instance": "core-only", "map": "lab"} in json.loads(maps.stdout)
     finally:
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(30)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait(10)
+        stop_process(server)
         log.close()
 
 

@@ -13,12 +13,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from reloc_client import protocol as P
+from reloc_client.protocol import ErrorCode as E
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "clients"))
-
-from reloc_client import protocol as P  # noqa: E402
-from reloc_client.protocol import ErrorCode as E  # noqa: E402
 
 RNG_SEED = 0
 

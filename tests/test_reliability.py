@@ -10,18 +10,15 @@ test_service_durability.py; they are not repeated here."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import copy
 import errno
 import os
 import signal
 import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import cv2
 import msgpack
@@ -39,6 +36,7 @@ from service_support import (
     free_port,
     raw_session,
     service_conf,
+    stop_process,
     wait_until,
 )
 
@@ -392,13 +390,7 @@ def _spawn(args: list[str], log: Path) -> subprocess.Popen:
 
 
 def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    stop_process(proc, signal.SIGINT)
 
 
 def _client(port: int) -> RelocClient | None:

@@ -6,22 +6,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "clients"))
-
-import reloc_client  # noqa: E402
-from reloc_client import protocol as P  # noqa: E402
-from reloc_client.result import (  # noqa: E402
+import reloc_client
+from reloc_client import protocol as P
+from reloc_client.result import (
     RelocResult,
     RelocStatus,
     reply_from_result,
     result_from_reply,
 )
 
-from reloc_service import relocalizers  # noqa: E402
-from reloc_service.geometry import look_at, se3_exp  # noqa: E402
-from reloc_service.relocalizers import base  # noqa: E402
+from reloc_service import relocalizers
+from reloc_service.geometry import look_at, se3_exp
+from reloc_service.relocalizers import base
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_client_and_service_share_one_result_class():

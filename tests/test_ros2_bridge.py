@@ -7,11 +7,6 @@ attachment and samples on another type hash are never used; requests without it 
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import json
 import logging
 

@@ -7,11 +7,6 @@ the stand-in of test_ros2_bridge.py (images and odometry)."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import numpy as np
 import pytest
 from ros2_standin import HASH, StandIn, compressed_image

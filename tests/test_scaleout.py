@@ -7,24 +7,21 @@ queries go on when a replica process is killed."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import dataclasses
 import json
 import os
 import re
 import signal
 import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 import zenoh
 from reloc_client.client import NoReplyError, RelocClient, ServiceError
-from service_support import ROOT, Events, endpoint, free_port, wait_until
+from service_support import ROOT, Events, endpoint, free_port, stop_process, wait_until
 
 from reloc_service.service.app import Service
 from reloc_service.service.config import ServiceConf, load_config, with_overrides
@@ -211,13 +208,7 @@ def test_processes_router_replicas_and_clients_survive_a_killed_replica(syntheti
         client.close()
     finally:
         for p in reversed(procs):
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                try:
-                    p.wait(30)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+            stop_process(p, signal.SIGINT)
 
 
 def _try_client(port: int) -> RelocClient | None:

@@ -7,17 +7,13 @@ refusal cannot be an accident of a broken set-up."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import dataclasses
 import importlib.util
 import json
 import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
+from pathlib import Path
 
 import pytest
 import zenoh

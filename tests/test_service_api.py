@@ -6,12 +6,7 @@ full disk. The relocalizer is the real ``sbi+p3p`` on the synthetic room of conf
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 # reloc_client lives in clients/ (importable once the distribution is installed).
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import math
 import threading
 import time

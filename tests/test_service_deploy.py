@@ -4,12 +4,7 @@ process (from flags and from config/router.json5), and ``reloc serve`` exiting o
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 # reloc_client lives in clients/ (importable once the distribution is installed).
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import json
 import os
 import signal

@@ -5,12 +5,7 @@ crash, and SIGTERM shuts down cleanly with a final snapshot and a compacted jour
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 # reloc_client lives in clients/ (importable once the distribution is installed).
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import json
 import math
 import os

@@ -4,12 +4,7 @@ scores like the in-process evaluation; and ``reloc demo`` end to end (slow)."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 # reloc_client lives in clients/ (importable once the distribution is installed).
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import math
 
 import cv2

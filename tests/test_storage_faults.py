@@ -8,17 +8,14 @@ files damaged on disk, and ``reloc serve`` in a subprocess where the process mus
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 # reloc_client lives in clients/ (importable once the distribution is installed).
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients"))
-
 import json
 import os
 import shutil
 import subprocess
+import sys
 import time
+from pathlib import Path
 
 import msgpack
 import pytest

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import RelocError
+from ..relocalizers.factory import DEFAULT_METHOD
 
 DATASET = "desk"
 MAP_NAME = "desk"
@@ -26,9 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = ("Render the desk dataset, serve it over Zenoh on loopback, upload, "
                           "train and relocalize every query; print the results table.")
     parser.add_argument("--method", "-m", metavar="NAME",
-                        help="method or fallback chain (default: the best installed multi "
-                        "method: 'bow+p3p,sbi+p3p', else 'sbi+p3p'; see `reloc eval "
-                        "--list-methods`)")
+                        help="method or fallback chain (default: the service's default, "
+                        f"{DEFAULT_METHOD!r}; see `reloc eval --list-methods`)")
     parser.add_argument("--out", metavar="DIR",
                         help="keep the dataset, storage and plots in DIR (default: a "
                         "temporary folder, plots excepted)")
@@ -37,13 +37,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", type=float, default=1.0,
                         help="image scale of the rendered dataset (0.5: faster, 320x240)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
-
-
-def default_method() -> str:
-    """The method the service uses by default (the ``bow+p3p,sbi+p3p`` chain)."""
-    from ..relocalizers.factory import DEFAULT_METHOD
-
-    return DEFAULT_METHOD
 
 
 def free_port() -> int:
@@ -75,7 +68,7 @@ def _demo(args: argparse.Namespace, work: Path) -> int:
     from .eval.evaluate import RemoteSpec, evaluate
     from .synth import render_dataset
 
-    method = args.method or default_method()
+    method = args.method or DEFAULT_METHOD
     port = args.port or free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     start = time.perf_counter()
