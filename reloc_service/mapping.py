@@ -19,15 +19,10 @@ from .cameras import Camera
 from .errors import ConfigError, GeometryError
 from .features import FEATURE_KINDS, FeatureConf, compute_at, extract
 from .frame import Features, Keyframe, check_grey_image
+from .landmarks import lift_pixels, sample_depth, triangulate_keyframe
 from .map import KeyframeMap, MapState
 from .plugins import make_conf
-from .triangulation import (
-    TriangulationConf,
-    TriangulationStats,
-    lift_pixels,
-    sample_depth,
-    triangulate_keyframe,
-)
+from .triangulation import TriangulationConf, TriangulationStats
 
 Array = npt.NDArray[np.float64]
 

@@ -15,7 +15,13 @@ import pytest
 zenoh = pytest.importorskip("zenoh")
 
 from reloc_client import protocol as P  # noqa: E402 (after the importorskip)
-from reloc_client.client import NoReplyError, RelocClient, RelocStatus, ServiceBusy, ServiceError  # noqa: E402 (after the importorskip)
+from reloc_client.client import (  # noqa: E402 (after the importorskip)
+    NoReplyError,
+    RelocClient,
+    RelocStatus,
+    ServiceBusy,
+    ServiceError,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -11,6 +11,12 @@ from reloc_service.errors import ConfigError
 from reloc_service.features import FeatureConf, extract
 from reloc_service.frame import Keyframe
 from reloc_service.geometry import invert, look_at, transform_points
+from reloc_service.landmarks import (
+    landmarks_from_depth,
+    lift_pixels,
+    sample_depth,
+    triangulate_keyframe,
+)
 from reloc_service.map import KeyframeMap
 from reloc_service.triangulation import (
     TrackStatus,
@@ -19,12 +25,8 @@ from reloc_service.triangulation import (
     depth_uncertainty,
     epipolar_angles,
     keypoint_sigmas,
-    landmarks_from_depth,
-    lift_pixels,
     refine_points,
     reprojection_errors,
-    sample_depth,
-    triangulate_keyframe,
     triangulate_midpoint,
     triangulate_tracks,
 )
