@@ -340,7 +340,7 @@ def _refine_tracks(kmap: KeyframeMap, kind: str, landmark_ids: IntArray, conf: T
     Returns the number of landmarks moved."""
     state = kmap.snapshot()
     ids = np.unique(landmark_ids)
-    ids = ids[np.isin(ids, np.fromiter(state.landmarks.keys(), np.int64, len(state.landmarks)))]
+    ids = ids[state.landmarks.contains(ids)]
     if len(ids) == 0:
         return 0
     observers = sorted({o[0] for i in ids.tolist() for o in state.landmarks[i].observations

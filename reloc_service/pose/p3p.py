@@ -460,9 +460,7 @@ class LandmarkPool:
                     rows: npt.NDArray[np.int64]) -> PointUncertainty:
         """The depth uncertainty of the landmarks of pool ``rows`` (``keyframes`` as given to
         :meth:`gather`), along the rays from the keyframe each row came from."""
-        lms = state.landmarks
-        sigmas = np.array([lms[i].depth_sigma_m if i in lms else 0.0
-                           for i in self.landmark_ids[rows].tolist()], np.float64)
+        sigmas = state.landmark_sigmas(self.landmark_ids[rows], 0.0)
         centres = np.array([kf.position_world for kf in keyframes]).reshape(-1, 3)
         return PointUncertainty(sigmas, centres[self.keyframe_rows[rows]])
 
