@@ -16,6 +16,17 @@ from .geometry import check_pose
 
 Array = npt.NDArray[np.float64]
 
+#: Width of a SIFT descriptor. SIFT descriptors are kept as uint8 (OpenCV's values are
+#: integers 0-255 stored as float32: lossless, 4x smaller), so uint8 alone no longer means
+#: packed binary bits; :func:`is_binary_descriptor` tells the two apart by width.
+SIFT_DIM = 128
+
+
+def is_binary_descriptor(descriptors: npt.NDArray[Any]) -> bool:
+    """True for packed binary descriptors (ORB: uint8, 32 bytes), compared by Hamming
+    distance; False for SIFT (uint8 or float, 128 values), compared by L2."""
+    return descriptors.dtype == np.uint8 and descriptors.shape[-1] != SIFT_DIM
+
 
 @dataclass(frozen=True, eq=False)
 class Features:
@@ -26,7 +37,8 @@ class Features:
         keypoints_px: (N, 2) float64 pixel positions in the full-resolution image.
         levels: (N,) int16 pyramid level (octave) where the keypoint was found.
         sizes: (N,) float32 keypoint diameter in pixels; angles: (N,) float32 degrees (OpenCV).
-        descriptors: (N, D) float32 (SIFT) or uint8 (ORB, packed bits).
+        descriptors: (N, D) uint8: SIFT's 128 integer values 0-255 (see :data:`SIFT_DIM`),
+            or ORB's packed bits; float32 SIFT (client-given, older maps) is accepted too.
         landmark_ids: (N,) int64 map landmark of each keypoint, -1 where none.
         points_world: (N, 3) float64 landmark positions in the world frame, NaN where none.
     """

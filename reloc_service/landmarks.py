@@ -15,7 +15,7 @@ import numpy.typing as npt
 
 from .cameras import Camera
 from .features import match_ratio
-from .frame import Keyframe
+from .frame import Keyframe, is_binary_descriptor
 from .geometry import invert
 from .map import KeyframeMap, MapState
 from .triangulation import (
@@ -131,8 +131,10 @@ def match_keyframes(kf_a: Keyframe, kf_b: Keyframe, kind: str, conf: Triangulati
 def _nearest_in(train: npt.NDArray[Any], query: npt.NDArray[Any]) -> IntArray:
     """(M,) index of the nearest ``train`` descriptor of each ``query`` descriptor (Hamming
     for binary uint8 descriptors, L2 otherwise)."""
-    binary = train.dtype == np.uint8
-    _, nearest = cv2.batchDistance(np.ascontiguousarray(query), np.ascontiguousarray(train),
+    binary = is_binary_descriptor(train)
+    dtype = np.uint8 if binary else np.float32       # batchDistance's L2 needs float32
+    _, nearest = cv2.batchDistance(np.ascontiguousarray(query, dtype),
+                                   np.ascontiguousarray(train, dtype),
                                    cv2.CV_32S if binary else cv2.CV_32F,
                                    normType=cv2.NORM_HAMMING if binary else cv2.NORM_L2, K=1)
     return nearest[:, 0].astype(np.int64)

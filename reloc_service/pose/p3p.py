@@ -441,8 +441,8 @@ class LandmarkPool:
         local = [np.zeros(0, np.int64) if f is None else np.flatnonzero(f.landmark_ids >= 0)
                  for f in feats]
         if not sum(len(i) for i in local):
-            width, dtype = (128, np.float32) if kind == "sift" else (32, np.uint8)
-            return cls(np.zeros((0, width), dtype), np.zeros(0, np.int64), np.zeros((0, 3)),
+            width = 128 if kind == "sift" else 32     # both kinds are uint8 descriptors
+            return cls(np.zeros((0, width), np.uint8), np.zeros(0, np.int64), np.zeros((0, 3)),
                        np.zeros(0, np.int64))
         ids = np.concatenate([f.landmark_ids[i] for f, i in zip(feats, local, strict=True)
                               if f is not None])
