@@ -5,7 +5,7 @@ Layout of a map directory ``MAP`` (format version 2)::
     MAP/CURRENT                     names the current snapshot: ``snapshots/000012``
     MAP/snapshots/000012/
         manifest.json               format, versions, keyframes, and a SHA-256 of every file
-        images/<id>.npy             grey keyframe images, raw uint8
+        images/<id>.png             grey keyframe images (decoded when first used)
         depth/<id>.npy              float32 Z-depth maps (keyframes that have one)
         features/<kind>.<field>.npy every keyframe's features of one kind, concatenated in
                                     manifest order (each keyframe names its row range)
@@ -13,7 +13,8 @@ Layout of a map directory ``MAP`` (format version 2)::
         landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR)
         models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote
 
-Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only: loading rebuilds
+Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the PNG images
+too, decoded by the keyframe on first use): loading rebuilds
 nothing, the arrays stay on disk until a query touches them (each keyframe's features are
 views of the shared columns), and a change after loading copies what it changes (copy on
 write; the snapshot files are never written again). Each file's SHA-256 is checked at load
@@ -47,7 +48,7 @@ import numpy.typing as npt
 from .cameras import camera_from_dict
 from .errors import CameraError, GeometryError, MapError, StorageError
 from .fileio import atomic_write, fsync_path
-from .frame import Features, Keyframe
+from .frame import SIFT_DIM, EncodedImage, Features, Keyframe
 from .map import Landmark, LandmarkColumns, LandmarkTable, MapState
 
 FORMAT = "reloc map"
@@ -128,6 +129,12 @@ def _npy_bytes(array: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+def _image_png(kf: Keyframe) -> bytes:
+    """``kf``'s image as PNG: the loaded bytes when it was never decoded (no re-encoding)."""
+    source = kf.image_source
+    return source.tobytes() if isinstance(source, EncodedImage) else _png_bytes(source)
+
+
 def _png_bytes(image: npt.NDArray[np.uint8]) -> bytes:
     ok, buf = cv2.imencode(".png", image)
     if not ok:
@@ -141,7 +148,7 @@ def _write_keyframe(writer: _SnapshotWriter, kf: Keyframe,
     entry: dict[str, Any] = {
         "id": kf.id, "camera": kf.camera.to_dict(), "world_from_cam": kf.world_from_cam.tolist(),
         "timestamp": None if kf.timestamp is None else float(kf.timestamp),
-        "image": writer.write(f"images/{kf.id}.npy", _npy_bytes(np.asarray(kf.image))),
+        "image": writer.write(f"images/{kf.id}.png", _image_png(kf)),
         "depth": None, "features": {k: list(r) for k, r in sorted(rows.items())}}
     if kf.depth is not None:
         entry["depth"] = writer.write(f"depth/{kf.id}.npy", _npy_bytes(kf.depth.astype(np.float32)))
@@ -424,6 +431,7 @@ def _read_keyframe(reader: _SnapshotReader, entry: Mapping[str, Any]) -> Keyfram
         features = {}
         for kind, rel in dict(entry["features"]).items():
             arrays = reader.npz(rel, FEATURE_FIELDS)
+            arrays["descriptors"] = _compact_descriptors(arrays["descriptors"])
             features[kind] = Features(kind=kind, **arrays)
         depth = None
         if entry.get("depth") is not None:
@@ -438,6 +446,16 @@ def _read_keyframe(reader: _SnapshotReader, entry: Mapping[str, Any]) -> Keyfram
         raise
     except (KeyError, TypeError, ValueError, GeometryError, CameraError, MapError) as exc:
         raise StorageError(f"{where}: {exc}") from exc
+
+
+def _compact_descriptors(descriptors: np.ndarray) -> np.ndarray:
+    """Format-1 SIFT descriptors (float32 holding integers 0-255) as the uint8 kept now;
+    anything else (not integral, out of range) unchanged."""
+    d = descriptors
+    if (d.dtype == np.float32 and d.ndim == 2 and d.shape[1] == SIFT_DIM
+            and np.all((d >= 0) & (d <= 255) & (d == np.rint(d)))):
+        return d.astype(np.uint8)
+    return d
 
 
 def _read_landmarks(reader: _SnapshotReader, relpath: str,
@@ -520,10 +538,7 @@ class _FeatureColumns:
         try:
             features = {kind: self._features(kind, rows)
                         for kind, rows in dict(entry["features"]).items()}
-            image = reader.npy(entry["image"])
-            if image.ndim != 2 or image.dtype != np.uint8:
-                raise StorageError(f"{reader.root / entry['image']}: expected a grey uint8 "
-                                   f"(H, W) image, got {image.shape} {image.dtype}")
+            image = EncodedImage(np.memmap(reader.check(entry["image"]), np.uint8, mode="r"))
             depth = None if entry.get("depth") is None else reader.npy(entry["depth"])
             timestamp = entry.get("timestamp")
             return Keyframe(image=image, camera=camera_from_dict(entry["camera"]),

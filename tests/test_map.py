@@ -172,3 +172,25 @@ def test_landmark_table_copy_on_write_matches_a_dict(monkeypatch):
                 if i in m:
                     assert t[i].observations == m[i].observations
             assert t.sigmas([99], default=-1.0).tolist() == [-1.0]
+
+
+def test_encoded_image_decodes_on_first_use_and_checks_its_size():
+    """A keyframe holding a PNG decodes it when its pixels are first read (the same pixels),
+    stays encoded through with_features, and a PNG of the wrong size or not a PNG is refused."""
+    import cv2
+
+    from reloc_service.frame import EncodedImage
+
+    img = np.random.default_rng(3).integers(0, 256, (48, 64)).astype(np.uint8)
+    png = cv2.imencode(".png", img)[1].tobytes()
+    kf = Keyframe(image=EncodedImage(png), camera=CAM, id=4)
+    feats = Features.create("sift", np.zeros((0, 2)), np.zeros((0, 128), np.uint8))
+    copy = kf.with_features("sift", feats)
+    assert isinstance(kf.image_source, EncodedImage) and isinstance(copy.image_source, EncodedImage)
+    assert np.array_equal(kf.image, img) and isinstance(kf.image_source, np.ndarray)
+    assert np.array_equal(copy.small_blurry_image(), Frame(img, CAM).small_blurry_image())
+    small = cv2.imencode(".png", img[:24, :32])[1].tobytes()
+    with pytest.raises(GeometryError, match="32x24 does not match the camera's 64x48"):
+        Keyframe(image=EncodedImage(small), camera=CAM, id=5)
+    with pytest.raises(GeometryError, match="expected a PNG"):
+        EncodedImage(b"not a png at all, just some bytes")

@@ -12,7 +12,7 @@ import pytest
 
 from reloc_service import storage
 from reloc_service.errors import StorageError
-from reloc_service.frame import Keyframe
+from reloc_service.frame import EncodedImage, Keyframe
 from reloc_service.map import KeyframeMap, MapState
 from reloc_service.storage import (
     FEATURE_FIELDS,
@@ -196,8 +196,8 @@ def test_damaged_model_file_is_named(tmp_path, synthetic_map):
 
 def test_missing_file_is_named(tmp_path, synthetic_map):
     snap = _saved(tmp_path, synthetic_map)
-    (snap / "images" / "0.npy").unlink()
-    with pytest.raises(StorageError, match=r"0\.npy.*cannot read"):
+    (snap / "images" / "0.png").unlink()
+    with pytest.raises(StorageError, match=r"0\.png.*cannot read"):
         load_map(tmp_path)
 
 
@@ -295,6 +295,10 @@ def test_format_1_snapshots_are_read(tmp_path):
     assert state.landmarks[0].observations == frozenset({(0, "sift", 0), (1, "sift", 1)})
     assert state.landmark_sigmas([0, 1, 2]).tolist() == [0.1, 0.0, 0.2]
     assert state.keyframes[1].features["sift"].landmark_ids[4] == 2
+    v1_desc = np.load(V1_MAP / "snapshots" / "000001" / "features" / "1.sift.npz")["descriptors"]
+    assert v1_desc.dtype == np.float32                # compacted on read, exactly
+    assert np.array_equal(state.keyframes[1].features["sift"].descriptors, v1_desc)
+    assert state.keyframes[1].features["sift"].descriptors.dtype == np.uint8
     save_map(state, tmp_path)
     again, _ = load_map(tmp_path)
     _assert_states_equal(state, again)
@@ -315,7 +319,11 @@ def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
     save_map(rich_state, tmp_path)
     state, _ = load_map(tmp_path)
     kf = state.keyframes[1]
-    arrays = [kf.image, *(getattr(kf.features[k], f) for k in kf.features for f in FEATURE_FIELDS),
+    image = kf.image_source                           # PNG, decoded on first use
+    assert isinstance(image, EncodedImage) and isinstance(image.data, np.memmap)
+    assert np.array_equal(kf.image, rich_state.keyframes[1].image)
+    assert isinstance(kf.image_source, np.ndarray)    # decoded once, kept
+    arrays = [image.data, *(getattr(kf.features[k], f) for k in kf.features for f in FEATURE_FIELDS),
               state.landmarks.columns().points_world, state.landmarks.columns().obs_keyframe,
               kf.cache["sbi:40x30:2.5"]]
     for a in arrays:
