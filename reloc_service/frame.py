@@ -140,8 +140,7 @@ class EncodedImage:
         self.shape = (int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big"))
 
     def decode(self) -> npt.NDArray[np.uint8]:
-        buf = np.frombuffer(self.data, np.uint8) if isinstance(self.data, bytes) else self.data
-        image = cv2.imdecode(np.asarray(buf), cv2.IMREAD_UNCHANGED)
+        image = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_UNCHANGED)
         if image is None or image.shape != self.shape or image.dtype != np.uint8:
             raise GeometryError(f"encoded image: expected a grey 8-bit PNG of {self.shape}")
         return image

@@ -4,6 +4,7 @@ or newer maps."""
 from __future__ import annotations
 
 import json
+import mmap
 import os
 from pathlib import Path
 
@@ -320,7 +321,8 @@ def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
     state, _ = load_map(tmp_path)
     kf = state.keyframes[1]
     image = kf.image_source                           # PNG, decoded on first use
-    assert isinstance(image, EncodedImage) and isinstance(image.data, np.memmap)
+    assert isinstance(image, EncodedImage) and not image.data.flags.writeable
+    assert isinstance(image.data.base.obj, mmap.mmap)
     assert np.array_equal(kf.image, rich_state.keyframes[1].image)
     assert isinstance(kf.image_source, np.ndarray)    # decoded once, kept
     arrays = [image.data, *(getattr(kf.features[k], f) for k in kf.features for f in FEATURE_FIELDS),
