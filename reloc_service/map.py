@@ -1,5 +1,10 @@
 """The keyframe map: keyframes, landmarks with their observations, and a version counter.
 
+Landmarks live in a :class:`LandmarkTable`: columns of ids, points, depth sigmas and CSR
+observations (memory-mapped when loaded from a snapshot) plus a small copy-on-write overlay of
+the landmarks changed since, so a map of 500k landmarks holds no 500k Python objects and a
+change copies only what it touches.
+
 A writer publishes a new immutable :class:`MapState` (copy on write); readers call
 :meth:`KeyframeMap.snapshot` once and see one consistent map for as long as they hold it,
 however many keyframes arrive meanwhile. One writer at a time: the map takes no lock (the
@@ -153,12 +158,15 @@ class LandmarkTable(Mapping[int, Landmark]):
     __slots__ = ("_base", "_overlay", "_len")
 
     def __init__(self, base: LandmarkColumns | None = None,
-                 overlay: Mapping[int, Landmark | None] | None = None) -> None:
+                 overlay: Mapping[int, Landmark | None] | None = None, *,
+                 length: int | None = None) -> None:
         self._base = base if base is not None else LandmarkColumns.empty()
         self._overlay: dict[int, Landmark | None] = dict(overlay or {})
-        shadowed = self._in_base(np.fromiter(self._overlay, np.int64, len(self._overlay)))
-        added = sum(v is not None for v in self._overlay.values())
-        self._len = len(self._base) - int(shadowed.sum()) + added
+        if length is None:
+            shadowed = self._in_base(np.fromiter(self._overlay, np.int64, len(self._overlay)))
+            added = sum(v is not None for v in self._overlay.values())
+            length = len(self._base) - int(shadowed.sum()) + added
+        self._len = length
 
     @classmethod
     def from_mapping(cls, landmarks: Mapping[int, Landmark]) -> LandmarkTable:
@@ -252,7 +260,11 @@ class LandmarkTable(Mapping[int, Landmark]):
         """A new table with ``changes`` applied (None removes); this one is unchanged."""
         if not changes:
             return self
-        table = LandmarkTable(self._base, {**self._overlay, **changes})
+        ids = np.fromiter(changes, np.int64, len(changes))
+        now = np.fromiter((v is not None for v in changes.values()), bool, len(changes))
+        # The length follows from what the changes touch: no pass over the whole overlay.
+        length = self._len + int(now.sum()) - int(self.contains(ids).sum())
+        table = LandmarkTable(self._base, {**self._overlay, **changes}, length=length)
         if len(table._overlay) > max(COMPACT_MIN_OVERLAY, len(self._base) // COMPACT_SHARE):
             return LandmarkTable(table.columns())
         return table
