@@ -16,7 +16,6 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -155,7 +154,7 @@ class LandmarkTable(Mapping[int, Landmark]):
     ``Landmark`` objects are made on access; the hot paths use the vectorised
     :meth:`points`, :meth:`sigmas`, :meth:`contains` and :meth:`id_array` instead."""
 
-    __slots__ = ("_base", "_overlay", "_len")
+    __slots__ = ("_base", "_overlay", "_len", "_overlay_cols")
 
     def __init__(self, base: LandmarkColumns | None = None,
                  overlay: Mapping[int, Landmark | None] | None = None, *,
@@ -167,6 +166,8 @@ class LandmarkTable(Mapping[int, Landmark]):
             added = sum(v is not None for v in self._overlay.values())
             length = len(self._base) - int(shadowed.sum()) + added
         self._len = length
+        self._overlay_cols: tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_], Array,
+                                  Array] | None = None
 
     @classmethod
     def from_mapping(cls, landmarks: Mapping[int, Landmark]) -> LandmarkTable:
@@ -207,36 +208,48 @@ class LandmarkTable(Mapping[int, Landmark]):
         """(L,) every landmark id, ascending."""
         if not self._overlay:
             return np.asarray(self._base.ids)
-        ov = np.fromiter(self._overlay, np.int64, len(self._overlay))
-        live = np.fromiter((v is not None for v in self._overlay.values()), bool, len(ov))
+        ov, alive = self._overlay_arrays()[:2]
         base = self._base.ids[~np.isin(self._base.ids, ov)]
-        return np.union1d(base, ov[live])
+        # disjoint sets: a sort, not np.union1d (whose hashing unique took seconds here)
+        return np.sort(np.concatenate([base, ov[alive]]))
 
     def contains(self, landmark_ids: npt.ArrayLike) -> npt.NDArray[np.bool_]:
         """(N,) whether each id is a landmark."""
         ids = np.asarray(landmark_ids, np.int64).ravel()
         found = self._base.rows(ids) >= 0
-        for i in self._overlay_hits(ids):
-            found[i] = self._overlay[int(ids[i])] is not None
+        hit, pos = self._overlay_rows(ids)
+        found[hit] = self._overlay_arrays()[1][pos]
         return found
 
     def points(self, landmark_ids: npt.ArrayLike) -> Array:
         """(N, 3) world points of ``landmark_ids`` (KeyError if one is not a landmark)."""
-        return self._column(landmark_ids, "points_world", lambda lm: lm.point_world)
+        return self._column(landmark_ids, "points_world", 2)
 
     def sigmas(self, landmark_ids: npt.ArrayLike, default: float | None = None) -> Array:
         """(N,) depth sigmas of ``landmark_ids``; ``default`` for ids that are not landmarks
         (KeyError if None)."""
-        return self._column(landmark_ids, "depth_sigmas_m", lambda lm: lm.depth_sigma_m,
-                            default)
+        return self._column(landmark_ids, "depth_sigmas_m", 3, default)
 
-    def _overlay_hits(self, ids: npt.NDArray[np.int64]) -> npt.NDArray[np.intp]:
+    def _overlay_arrays(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_], Array,
+                                       Array]:
+        """The overlay as sorted columns (ids, alive, points, sigmas), made once per table
+        (it never changes; two racing readers build the same arrays)."""
+        cols = self._overlay_cols
+        if cols is None:
+            cols = self._overlay_cols = _overlay_columns(self._overlay)
+        return cols
+
+    def _overlay_rows(self, ids: npt.NDArray[np.int64]
+                      ) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+        """Positions in ``ids`` that the overlay holds, and their rows in its columns."""
         if not self._overlay:
-            return np.zeros(0, np.intp)
-        return np.flatnonzero(np.isin(ids, np.fromiter(self._overlay, np.int64,
-                                                       len(self._overlay))))
+            return np.zeros(0, np.intp), np.zeros(0, np.intp)
+        ov = self._overlay_arrays()[0]
+        pos = np.clip(np.searchsorted(ov, ids), 0, len(ov) - 1)
+        hit = np.flatnonzero(ov[pos] == ids)
+        return hit, pos[hit]
 
-    def _column(self, landmark_ids: npt.ArrayLike, name: str, get: Any,
+    def _column(self, landmark_ids: npt.ArrayLike, name: str, index: int,
                 default: float | None = None) -> Array:
         ids = np.asarray(landmark_ids, np.int64).ravel()
         column = getattr(self._base, name)
@@ -244,11 +257,11 @@ class LandmarkTable(Mapping[int, Landmark]):
         missing = rows < 0
         out = np.array(column[np.maximum(rows, 0)] if len(column) else
                        np.zeros((len(ids), *column.shape[1:])), np.float64)
-        for i in self._overlay_hits(ids):
-            lm = self._overlay[int(ids[i])]
-            missing[i] = lm is None
-            if lm is not None:
-                out[i] = get(lm)
+        hit, pos = self._overlay_rows(ids)
+        overlay = self._overlay_arrays() if len(hit) else None
+        if overlay is not None:
+            missing[hit] = ~overlay[1][pos]
+            out[hit] = overlay[index][pos]
         if missing.any():
             if default is None:
                 raise KeyError(int(ids[np.flatnonzero(missing)[0]]))
@@ -263,10 +276,23 @@ class LandmarkTable(Mapping[int, Landmark]):
         ids = np.fromiter(changes, np.int64, len(changes))
         now = np.fromiter((v is not None for v in changes.values()), bool, len(changes))
         # The length follows from what the changes touch: no pass over the whole overlay.
-        length = self._len + int(now.sum()) - int(self.contains(ids).sum())
+        overlay = self._overlay
+        was = self._base.rows(ids) >= 0
+        for i, lm_id in enumerate(ids.tolist()):     # the changes only, not the overlay
+            if lm_id in overlay:
+                was[i] = overlay[lm_id] is not None
+        length = self._len + int(now.sum()) - int(was.sum())
         table = LandmarkTable(self._base, {**self._overlay, **changes}, length=length)
         if len(table._overlay) > max(COMPACT_MIN_OVERLAY, len(self._base) // COMPACT_SHARE):
             return LandmarkTable(table.columns())
+        # The overlay's columns follow from the previous ones and the changes (vectorised),
+        # so the first query after a publish does not rebuild them from the whole overlay.
+        old, new = self._overlay_arrays(), _overlay_columns(changes)
+        keep = ~np.isin(old[0], new[0])
+        merged = [np.concatenate([o[keep], n]) for o, n in zip(old, new, strict=True)]
+        order = np.argsort(merged[0], kind="stable")
+        table._overlay_cols = (merged[0][order], merged[1][order], merged[2][order],
+                               merged[3][order])
         return table
 
     def columns(self) -> LandmarkColumns:
@@ -280,6 +306,20 @@ class LandmarkTable(Mapping[int, Landmark]):
 
     def editor(self) -> LandmarkEditor:
         return LandmarkEditor(self)
+
+
+def _overlay_columns(overlay: Mapping[int, Landmark | None]
+                     ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_], Array, Array]:
+    """(ids ascending, alive, points (NaN if removed), sigmas) of an overlay."""
+    ids = np.fromiter(overlay, np.int64, len(overlay))
+    order = np.argsort(ids)
+    lms = [overlay[int(i)] for i in ids[order]]
+    alive = np.array([lm is not None for lm in lms], bool)
+    points = np.array([lm.point_world if lm is not None else (np.nan,) * 3 for lm in lms],
+                      np.float64).reshape(-1, 3)
+    sigmas = np.array([lm.depth_sigma_m if lm is not None else np.nan for lm in lms],
+                      np.float64)
+    return ids[order], alive, points, sigmas
 
 
 class LandmarkEditor:
@@ -379,7 +419,7 @@ class MapState:
             return 0
         hit = cols.obs_kind == cols.kinds.index(kind)
         owner = np.repeat(np.arange(len(cols)), np.diff(cols.obs_offsets))
-        return len(np.unique(owner[hit]))
+        return int(np.count_nonzero(np.bincount(owner[hit], minlength=len(cols))))
 
 
 class KeyframeMap:
