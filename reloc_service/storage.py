@@ -118,12 +118,6 @@ def _fsync_tree(root: Path) -> None:
         fsync_path(path)
 
 
-def _npz_bytes(arrays: Mapping[str, Any]) -> bytes:
-    buf = io.BytesIO()
-    np.savez(buf, **dict(arrays))
-    return buf.getvalue()
-
-
 def _npy_bytes(array: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, array, allow_pickle=False)
