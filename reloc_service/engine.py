@@ -381,20 +381,25 @@ class Engine:
     @classmethod
     def load(cls, directory: str | Path, conf: EngineConf | None = None, *,
              progress: bool = False) -> Engine:
-        """An engine over the map saved in ``directory``: each configured method gets every
-        keyframe, then its saved models (or is trained when it has none)."""
+        """An engine over the map saved in ``directory``. A method with saved models is
+        created over the loaded map and restores them (nothing is re-added or retrained);
+        one without is fed every keyframe and trained."""
         state, models_dir = load_map(directory)
         engine = cls(conf)
         engine.map.replace_state(state)
         engine.builder.add_feature_kinds(engine.builder.conf.feature_kinds)
         with engine._rw.write():
             engine._publish([])
-        for method, live in engine._live.items():
+        for method, live in list(engine._live.items()):
+            path = models_dir / model_dir_name(method) if models_dir is not None else None
+            if path is not None and path.is_dir():
+                restored = engine._create(method, engine._published)
+                if restored.relocalizer.load(path):
+                    engine._live[method] = restored
+                    continue
             engine._feed(live.relocalizer, engine._published, progress=progress,
                          desc=f"{method}: keyframes")
-            path = models_dir / model_dir_name(method) if models_dir is not None else None
-            if path is None or not path.is_dir() or not live.relocalizer.load(path):
-                live.relocalizer.train(progress=progress)
+            live.relocalizer.train(progress=progress)
         return engine
 
     def close(self) -> None:

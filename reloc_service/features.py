@@ -9,7 +9,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .errors import ConfigError
-from .frame import Features
+from .frame import Features, is_binary_descriptor
 
 FEATURE_KINDS: tuple[str, ...] = ("sift", "orb")
 
@@ -40,8 +40,10 @@ def _features_from_cv(kind: str, keypoints: list[cv2.KeyPoint],
                       descriptors: npt.NDArray | None) -> Features:
     n = len(keypoints)
     width = 128 if kind == "sift" else 32
-    dtype = np.float32 if kind == "sift" else np.uint8
-    desc = np.zeros((0, width), dtype) if descriptors is None or n == 0 else descriptors.astype(dtype)
+    # OpenCV's SIFT saturates each value to 0-255 and rounds it (saturate_cast<uchar>) before
+    # storing it as float32: the uint8 copy is exact (tests/test_features.py checks it).
+    desc = (np.zeros((0, width), np.uint8) if descriptors is None or n == 0
+            else descriptors.astype(np.uint8))
     if n == 0:
         return Features.create(kind, np.zeros((0, 2)), desc)
     # cv2.KeyPoint_convert is the vectorised path from keypoint objects to coordinates.
@@ -80,11 +82,11 @@ def match_ratio(desc_query: npt.NDArray, desc_train: npt.NDArray, *, ratio: floa
     descriptor if the nearest is closer than ``ratio`` times the second nearest.
 
     Returns (query indices, train indices, distances), each (M,). Binary (uint8) descriptors use
-    the Hamming distance, float descriptors L2."""
+    the Hamming distance, SIFT descriptors (uint8 or float) L2."""
     if len(desc_query) == 0 or len(desc_train) < 2:
         empty = np.zeros(0, np.int64)
         return empty, empty, np.zeros(0, np.float32)
-    binary = desc_query.dtype == np.uint8
+    binary = is_binary_descriptor(desc_query)
     if binary:  # on 0/1 vectors the squared L2 distance is exactly the Hamming distance
         a = np.unpackbits(desc_query, axis=1).astype(np.float32)
         b = np.unpackbits(desc_train, axis=1).astype(np.float32)

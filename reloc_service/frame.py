@@ -16,6 +16,17 @@ from .geometry import check_pose
 
 Array = npt.NDArray[np.float64]
 
+#: Width of a SIFT descriptor. SIFT descriptors are kept as uint8 (OpenCV's values are
+#: integers 0-255 stored as float32: lossless, 4x smaller), so uint8 alone no longer means
+#: packed binary bits; :func:`is_binary_descriptor` tells the two apart by width.
+SIFT_DIM = 128
+
+
+def is_binary_descriptor(descriptors: npt.NDArray[Any]) -> bool:
+    """True for packed binary descriptors (ORB: uint8, 32 bytes), compared by Hamming
+    distance; False for SIFT (uint8 or float, 128 values), compared by L2."""
+    return descriptors.dtype == np.uint8 and descriptors.shape[-1] != SIFT_DIM
+
 
 @dataclass(frozen=True, eq=False)
 class Features:
@@ -26,7 +37,8 @@ class Features:
         keypoints_px: (N, 2) float64 pixel positions in the full-resolution image.
         levels: (N,) int16 pyramid level (octave) where the keypoint was found.
         sizes: (N,) float32 keypoint diameter in pixels; angles: (N,) float32 degrees (OpenCV).
-        descriptors: (N, D) float32 (SIFT) or uint8 (ORB, packed bits).
+        descriptors: (N, D) uint8: SIFT's 128 integer values 0-255 (see :data:`SIFT_DIM`),
+            or ORB's packed bits; float32 SIFT (client-given, older maps) is accepted too.
         landmark_ids: (N,) int64 map landmark of each keypoint, -1 where none.
         points_world: (N, 3) float64 landmark positions in the world frame, NaN where none.
     """
@@ -111,6 +123,32 @@ def check_grey_image(image: npt.ArrayLike, camera: Camera | None = None) -> npt.
     return np.ascontiguousarray(img)
 
 
+class EncodedImage:
+    """A grey image kept PNG-encoded (bytes or a read-only memory map of a PNG file) until a
+    :class:`Frame` first needs its pixels: a loaded map holds 1000s of keyframe images that
+    most queries never look at (the place finders read thumbnails, the pose finders
+    features)."""
+
+    __slots__ = ("data", "shape")
+
+    def __init__(self, data: bytes | npt.NDArray[np.uint8]) -> None:
+        head = bytes(data[:24])
+        if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+            raise GeometryError("encoded image: expected a PNG file")
+        self.data = data
+        # IHDR: big-endian width and height, so the size is known without decoding.
+        self.shape = (int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big"))
+
+    def decode(self) -> npt.NDArray[np.uint8]:
+        image = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if image is None or image.shape != self.shape or image.dtype != np.uint8:
+            raise GeometryError(f"encoded image: expected a grey 8-bit PNG of {self.shape}")
+        return image
+
+    def tobytes(self) -> bytes:
+        return bytes(self.data)
+
+
 @dataclass(frozen=True)
 class ThumbnailConf:
     """PTAM's small blurry image (thesis 3.1.1): size in pixels and Gaussian blur sigma."""
@@ -143,9 +181,20 @@ class Frame:
     gt_world_from_cam: Array | None = None
 
     def __post_init__(self) -> None:
-        self.image = check_grey_image(self.image, self.camera)
+        source = self.image_source
+        if isinstance(source, EncodedImage):
+            if (source.shape[1], source.shape[0]) != self.camera.size:
+                raise GeometryError(f"image: size {source.shape[1]}x{source.shape[0]} does not "
+                                    f"match the camera's {self.camera.width}x{self.camera.height}")
+        else:
+            self.image = check_grey_image(source, self.camera)
         if self.gt_world_from_cam is not None:
             self.gt_world_from_cam = check_pose(self.gt_world_from_cam, name="gt_world_from_cam")
+
+    @property
+    def image_source(self) -> npt.NDArray[np.uint8] | EncodedImage:
+        """The image as held: pixels, or an :class:`EncodedImage` not decoded yet."""
+        return self.__dict__["_image"]  # type: ignore[no-any-return]
 
     def pyramid(self, levels: int) -> list[npt.NDArray[np.uint8]]:
         """``levels`` images, each half the size of the previous (level 0 = the image)."""
@@ -196,7 +245,28 @@ class Keyframe(Frame):
         return self.world_from_cam[:3, 3]
 
     def with_features(self, kind: str, features: Features) -> Keyframe:
-        """A shallow copy whose ``features[kind]`` is replaced (image and cache are shared)."""
-        new = dataclasses.replace(self, features={**self.features, kind: features})
+        """A shallow copy whose ``features[kind]`` is replaced (image and cache are shared;
+        an encoded image stays encoded)."""
+        new = dataclasses.replace(self, image=self.image_source,
+                                  features={**self.features, kind: features})
         new.cache = self.cache
         return new
+
+
+def _get_image(frame: Frame) -> npt.NDArray[np.uint8]:
+    """``Frame.image``: the pixels, decoded on first use when held encoded. Two threads
+    decoding at once each store the same pixels (a duplicate decode, no torn state)."""
+    image = frame.__dict__["_image"]
+    if isinstance(image, EncodedImage):
+        image = check_grey_image(image.decode(), frame.camera)
+        frame.__dict__["_image"] = image
+    return image  # type: ignore[no-any-return]
+
+
+def _set_image(frame: Frame, image: npt.NDArray[np.uint8] | EncodedImage) -> None:
+    frame.__dict__["_image"] = image
+
+
+# The dataclass field ``image`` (set by the generated __init__) goes through this property,
+# so an EncodedImage given to a keyframe stays encoded until its pixels are read.
+Frame.image = property(_get_image, _set_image)  # type: ignore[assignment,method-assign]

@@ -15,7 +15,7 @@ import numpy.typing as npt
 
 from .cameras import Camera
 from .features import match_ratio
-from .frame import Keyframe
+from .frame import Keyframe, is_binary_descriptor
 from .geometry import invert
 from .map import KeyframeMap, MapState
 from .triangulation import (
@@ -131,8 +131,10 @@ def match_keyframes(kf_a: Keyframe, kf_b: Keyframe, kind: str, conf: Triangulati
 def _nearest_in(train: npt.NDArray[Any], query: npt.NDArray[Any]) -> IntArray:
     """(M,) index of the nearest ``train`` descriptor of each ``query`` descriptor (Hamming
     for binary uint8 descriptors, L2 otherwise)."""
-    binary = train.dtype == np.uint8
-    _, nearest = cv2.batchDistance(np.ascontiguousarray(query), np.ascontiguousarray(train),
+    binary = is_binary_descriptor(train)
+    dtype = np.uint8 if binary else np.float32       # batchDistance's L2 needs float32
+    _, nearest = cv2.batchDistance(np.ascontiguousarray(query, dtype),
+                                   np.ascontiguousarray(train, dtype),
                                    cv2.CV_32S if binary else cv2.CV_32F,
                                    normType=cv2.NORM_HAMMING if binary else cv2.NORM_L2, K=1)
     return nearest[:, 0].astype(np.int64)
@@ -340,7 +342,7 @@ def _refine_tracks(kmap: KeyframeMap, kind: str, landmark_ids: IntArray, conf: T
     Returns the number of landmarks moved."""
     state = kmap.snapshot()
     ids = np.unique(landmark_ids)
-    ids = ids[np.isin(ids, np.fromiter(state.landmarks.keys(), np.int64, len(state.landmarks)))]
+    ids = ids[state.landmarks.contains(ids)]
     if len(ids) == 0:
         return 0
     observers = sorted({o[0] for i in ids.tolist() for o in state.landmarks[i].observations

@@ -1,15 +1,25 @@
 """Map persistence: a whole map saved as an immutable snapshot directory, switched atomically.
 
-Layout of a map directory ``MAP``::
+Layout of a map directory ``MAP`` (format version 2)::
 
     MAP/CURRENT                     names the current snapshot: ``snapshots/000012``
     MAP/snapshots/000012/
         manifest.json               format, versions, keyframes, and a SHA-256 of every file
-        images/<id>.png             grey keyframe images
+        images/<id>.png             grey keyframe images (decoded when first used)
         depth/<id>.npy              float32 Z-depth maps (keyframes that have one)
-        features/<id>.<kind>.npz    keypoints, levels, sizes, angles, descriptors, landmarks
-        landmarks.npz               landmark ids, points, depth sigmas and observations (CSR)
+        features/<kind>.<field>.npy every keyframe's features of one kind, concatenated in
+                                    manifest order (each keyframe names its row range)
+        thumbnails/<key>.npy        small blurry images already computed (one row a keyframe)
+        landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR)
         models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote
+
+Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the PNG images
+too, decoded by the keyframe on first use): loading rebuilds
+nothing, the arrays stay on disk until a query touches them (each keyframe's features are
+views of the shared columns), and a change after loading copies what it changes (copy on
+write; the snapshot files are never written again). Each file's SHA-256 is checked at load
+(streamed, so a check does not hold the file in memory). Snapshots of format version 1
+(PNG images, one ``.npz`` per keyframe and kind) are still read.
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
 ``CURRENT`` with :func:`os.replace` and prunes the snapshots it was built from (keeping the
@@ -23,6 +33,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import mmap
 import os
 import re
 import shutil
@@ -38,11 +49,11 @@ import numpy.typing as npt
 from .cameras import camera_from_dict
 from .errors import CameraError, GeometryError, MapError, StorageError
 from .fileio import atomic_write, fsync_path
-from .frame import Features, Keyframe
-from .map import Landmark, MapState
+from .frame import SIFT_DIM, EncodedImage, Features, Keyframe
+from .map import Landmark, LandmarkColumns, LandmarkTable, MapState
 
 FORMAT = "reloc map"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 CURRENT_FILE = "CURRENT"
 SNAPSHOTS_DIR = "snapshots"
 MANIFEST_FILE = "manifest.json"
@@ -56,6 +67,13 @@ LANDMARK_FIELDS = ("ids", "points_world", "obs_offsets", "obs_keyframe", "obs_ki
                    "obs_keypoint", "kinds")
 #: Arrays added since the first snapshot format; older snapshots read without them.
 OPTIONAL_LANDMARK_FIELDS = ("depth_sigmas_m",)
+#: Landmark columns of format 2 (``kinds`` lives in the manifest).
+LANDMARK_COLUMNS = ("ids", "points_world", "depth_sigmas_m", "obs_offsets", "obs_keyframe",
+                    "obs_kind", "obs_keypoint")
+#: Keyframe cache entries saved with the map: PTAM's small blurry images (``Frame.cache``
+#: key prefix), so a place finder indexing a loaded map need not read every image.
+THUMBNAIL_PREFIX = "sbi:"
+_HASH_CHUNK = 1 << 20
 
 ModelWriter = Callable[[Path], None]
 
@@ -100,16 +118,16 @@ def _fsync_tree(root: Path) -> None:
         fsync_path(path)
 
 
-def _npz_bytes(arrays: Mapping[str, Any]) -> bytes:
-    buf = io.BytesIO()
-    np.savez(buf, **dict(arrays))
-    return buf.getvalue()
-
-
 def _npy_bytes(array: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, array, allow_pickle=False)
     return buf.getvalue()
+
+
+def _image_png(kf: Keyframe) -> bytes:
+    """``kf``'s image as PNG: the loaded bytes when it was never decoded (no re-encoding)."""
+    source = kf.image_source
+    return source.tobytes() if isinstance(source, EncodedImage) else _png_bytes(source)
 
 
 def _png_bytes(image: npt.NDArray[np.uint8]) -> bytes:
@@ -119,39 +137,65 @@ def _png_bytes(image: npt.NDArray[np.uint8]) -> bytes:
     return buf.tobytes()
 
 
-def _write_keyframe(writer: _SnapshotWriter, kf: Keyframe) -> dict[str, Any]:
+def _write_keyframe(writer: _SnapshotWriter, kf: Keyframe,
+                    rows: Mapping[str, tuple[int, int]]) -> dict[str, Any]:
+    """The manifest entry of ``kf`` (its image and depth written; features by row range)."""
     entry: dict[str, Any] = {
         "id": kf.id, "camera": kf.camera.to_dict(), "world_from_cam": kf.world_from_cam.tolist(),
         "timestamp": None if kf.timestamp is None else float(kf.timestamp),
-        "image": writer.write(f"images/{kf.id}.png", _png_bytes(kf.image)),
-        "depth": None, "features": {}}
+        "image": writer.write(f"images/{kf.id}.png", _image_png(kf)),
+        "depth": None, "features": {k: list(r) for k, r in sorted(rows.items())}}
     if kf.depth is not None:
         entry["depth"] = writer.write(f"depth/{kf.id}.npy", _npy_bytes(kf.depth.astype(np.float32)))
-    for kind, feats in sorted(kf.features.items()):
-        arrays = {name: getattr(feats, name) for name in FEATURE_FIELDS}
-        entry["features"][kind] = writer.write(f"features/{kf.id}.{kind}.npz", _npz_bytes(arrays))
     return entry
 
 
-def _landmark_arrays(state: MapState) -> dict[str, np.ndarray]:
-    """Landmarks as flat arrays; observations in CSR form (``obs_offsets`` (L+1,))."""
-    ids = np.array(sorted(state.landmarks), dtype=np.int64)
-    kinds = sorted({o[1] for lm in state.landmarks.values() for o in lm.observations})
-    kind_index = {k: i for i, k in enumerate(kinds)}
-    obs = [sorted(state.landmarks[i].observations) for i in ids.tolist()]
-    flat = [o for group in obs for o in group]
-    return {
-        "ids": ids,
-        "points_world": (np.stack([state.landmarks[i].point_world for i in ids.tolist()])
-                         if len(ids) else np.zeros((0, 3))),
-        "obs_offsets": np.concatenate([[0], np.cumsum([len(g) for g in obs])]).astype(np.int64),
-        "obs_keyframe": np.array([o[0] for o in flat], dtype=np.int64),
-        "obs_kind": np.array([kind_index[o[1]] for o in flat], dtype=np.int16),
-        "obs_keypoint": np.array([o[2] for o in flat], dtype=np.int64),
-        "kinds": np.array(kinds, dtype=np.str_) if kinds else np.zeros(0, dtype="<U1"),
-        "depth_sigmas_m": np.array([state.landmarks[i].depth_sigma_m for i in ids.tolist()],
-                                   dtype=np.float64),
-    }
+def _feature_rows(keyframes: list[Keyframe]) -> dict[int, dict[str, tuple[int, int]]]:
+    """Per keyframe id, per kind, its row range in the concatenated feature columns."""
+    ends: dict[str, int] = {}
+    out: dict[int, dict[str, tuple[int, int]]] = {}
+    for kf in keyframes:
+        out[kf.id] = {}
+        for kind, feats in sorted(kf.features.items()):
+            start = ends.get(kind, 0)
+            ends[kind] = start + len(feats)
+            out[kf.id][kind] = (start, ends[kind])
+    return out
+
+
+def _write_features(writer: _SnapshotWriter, keyframes: list[Keyframe]) -> None:
+    """One ``.npy`` per kind and field: every keyframe's rows, in manifest order."""
+    kinds = sorted({k for kf in keyframes for k in kf.features})
+    for kind in kinds:
+        feats = [kf.features[kind] for kf in keyframes if kind in kf.features]
+        for name in FEATURE_FIELDS:
+            parts = [np.asarray(getattr(f, name)) for f in feats]
+            wide = [p for p in parts if len(p)] or parts
+            column = np.concatenate([p.reshape(len(p), *wide[0].shape[1:]).astype(wide[0].dtype)
+                                     for p in parts])
+            writer.write(f"features/{kind}.{name}.npy", _npy_bytes(column))
+
+
+def _write_thumbnails(writer: _SnapshotWriter, keyframes: list[Keyframe]) -> list[str]:
+    """Small blurry images every keyframe already has (same cache key), one file per key."""
+    if not keyframes:
+        return []
+    keys = set.intersection(*({k for k in kf.cache if k.startswith(THUMBNAIL_PREFIX)}
+                              for kf in keyframes))
+    for key in sorted(keys):
+        stack = np.stack([np.asarray(kf.cache[key], np.float32) for kf in keyframes])
+        writer.write(_thumbnail_path(key), _npy_bytes(stack))
+    return sorted(keys)
+
+
+def _thumbnail_path(key: str) -> str:
+    return f"thumbnails/{re.sub(r'[^A-Za-z0-9._-]', '_', key)}.npy"
+
+
+def _write_landmarks(writer: _SnapshotWriter, columns: LandmarkColumns) -> dict[str, Any]:
+    for name in LANDMARK_COLUMNS:
+        writer.write(f"landmarks/{name}.npy", _npy_bytes(np.asarray(getattr(columns, name))))
+    return {"dir": "landmarks", "kinds": list(columns.kinds)}
 
 
 def _new_snapshot_dir(directory: Path) -> Path:
@@ -209,8 +253,12 @@ def save_map(state: MapState, directory: str | Path, *,
     snapshot = _new_snapshot_dir(directory)
     writer = _SnapshotWriter(snapshot)
     # insertion order, kept by load_map: a replica copies the map in the order it was built
-    keyframes = [_write_keyframe(writer, kf) for kf in state.keyframes.values()]
-    landmarks = writer.write("landmarks.npz", _npz_bytes(_landmark_arrays(state)))
+    kfs = list(state.keyframes.values())
+    rows = _feature_rows(kfs)
+    keyframes = [_write_keyframe(writer, kf, rows[kf.id]) for kf in kfs]
+    _write_features(writer, kfs)
+    thumbnails = _write_thumbnails(writer, kfs)
+    landmarks = _write_landmarks(writer, state.landmarks.columns())
     model_dirs: dict[str, str] = {}
     for method, write_model in (models or {}).items():
         rel = f"{MODELS_DIR}/{model_dir_name(method)}"
@@ -220,7 +268,8 @@ def save_map(state: MapState, directory: str | Path, *,
         model_dirs[method] = rel
     manifest = {"format": FORMAT, "format_version": FORMAT_VERSION,
                 "map_version": int(state.version), "next_landmark_id": int(state.next_landmark_id),
-                "keyframes": keyframes, "landmarks": landmarks, "models": model_dirs,
+                "keyframes": keyframes, "landmarks": landmarks, "thumbnails": thumbnails,
+                "models": model_dirs,
                 "files": writer.files}
     writer.write(MANIFEST_FILE, json.dumps(manifest, indent=1).encode("utf-8"))
     _fsync_tree(snapshot)
@@ -280,6 +329,41 @@ class _SnapshotReader:
                                f"{str(expected['sha256'])[:12]}...); the file is damaged")
         return data
 
+    def check(self, relpath: str) -> Path:
+        """``relpath``'s path after checking its size and SHA-256 (streamed, nothing kept)."""
+        path = self.root / relpath
+        expected = self.files.get(relpath)
+        if not isinstance(expected, dict) or "sha256" not in expected:
+            raise StorageError(f"{path}: not listed with a checksum in {MANIFEST_FILE}")
+        digest = hashlib.sha256()
+        try:
+            with open(path, "rb") as fh:
+                while chunk := fh.read(_HASH_CHUNK):
+                    digest.update(chunk)
+                size = fh.tell()
+        except OSError as exc:
+            raise StorageError(f"{path}: cannot read ({exc.strerror}); the map is damaged") from exc
+        if size != expected.get("size", size):
+            raise StorageError(f"{path}: {size} bytes, expected {expected['size']} "
+                               f"(truncated or damaged)")
+        if digest.hexdigest() != expected["sha256"]:
+            raise StorageError(f"{path}: checksum mismatch (sha256 {digest.hexdigest()[:12]}..., "
+                               f"expected {str(expected['sha256'])[:12]}...); the file is damaged")
+        return path
+
+    def npy(self, relpath: str) -> np.ndarray:
+        """The checked array of ``relpath``, memory-mapped read-only (a plain array when it
+        has no element: an empty map cannot be mapped)."""
+        path = self.check(relpath)
+        try:
+            array = np.load(path, mmap_mode="r", allow_pickle=False)
+        except ValueError as exc:
+            try:
+                array = np.load(path, allow_pickle=False)
+            except (ValueError, OSError, EOFError):
+                raise StorageError(f"{path}: not a readable .npy ({exc})") from exc
+        return array
+
     def npz(self, relpath: str, fields: tuple[str, ...], *, optional: tuple[str, ...] = ()
             ) -> dict[str, np.ndarray]:
         """The arrays ``fields`` (all required) and those of ``optional`` that are present."""
@@ -316,8 +400,13 @@ def _read_manifest(snapshot: Path) -> dict[str, Any]:
     if version > FORMAT_VERSION:
         raise StorageError(f"{path}: written by a newer reloc (format version {version}; this "
                            f"version reads up to {FORMAT_VERSION}); upgrade reloc to load it")
+    if version < FORMAT_VERSION and version != 1:
+        raise StorageError(f"{path}: format version {version} is not readable by this reloc "
+                           f"(it reads 1 and {FORMAT_VERSION})")
+    landmarks_type = str if version == 1 else dict
     for key, kind in (("keyframes", list), ("files", dict), ("models", dict),
-                      ("map_version", int), ("next_landmark_id", int), ("landmarks", str)):
+                      ("map_version", int), ("next_landmark_id", int),
+                      ("landmarks", landmarks_type)):
         if not isinstance(manifest.get(key), kind):
             raise StorageError(f"{path}: field {key!r} missing or not a {kind.__name__}")
     return manifest
@@ -337,6 +426,7 @@ def _read_keyframe(reader: _SnapshotReader, entry: Mapping[str, Any]) -> Keyfram
         features = {}
         for kind, rel in dict(entry["features"]).items():
             arrays = reader.npz(rel, FEATURE_FIELDS)
+            arrays["descriptors"] = _compact_descriptors(arrays["descriptors"])
             features[kind] = Features(kind=kind, **arrays)
         depth = None
         if entry.get("depth") is not None:
@@ -351,6 +441,16 @@ def _read_keyframe(reader: _SnapshotReader, entry: Mapping[str, Any]) -> Keyfram
         raise
     except (KeyError, TypeError, ValueError, GeometryError, CameraError, MapError) as exc:
         raise StorageError(f"{where}: {exc}") from exc
+
+
+def _compact_descriptors(descriptors: np.ndarray) -> np.ndarray:
+    """Format-1 SIFT descriptors (float32 holding integers 0-255) as the uint8 kept now;
+    anything else (not integral, out of range) unchanged."""
+    d = descriptors
+    if (d.dtype == np.float32 and d.ndim == 2 and d.shape[1] == SIFT_DIM
+            and np.all((d >= 0) & (d <= 255) & (d == np.rint(d)))):
+        return d.astype(np.uint8)
+    return d
 
 
 def _read_landmarks(reader: _SnapshotReader, relpath: str,
@@ -402,20 +502,116 @@ def _check_observations(where: Path, a: Mapping[str, np.ndarray], kinds: list[st
                            f"outside [0, {int(size[i])})")
 
 
+def _read_keyframes(reader: _SnapshotReader, manifest: Mapping[str, Any],
+                    read: Callable[[_SnapshotReader, Mapping[str, Any]], Keyframe]
+                    ) -> dict[int, Keyframe]:
+    keyframes: dict[int, Keyframe] = {}
+    for entry in manifest["keyframes"]:
+        kf = read(reader, entry)
+        if kf.id in keyframes:
+            raise StorageError(f"{reader.root / MANIFEST_FILE}: keyframe {kf.id} listed twice")
+        keyframes[kf.id] = kf
+    return keyframes
+
+
+class _FeatureColumns:
+    """The memory-mapped feature columns of a format-2 snapshot, cut into keyframes."""
+
+    def __init__(self, reader: _SnapshotReader, manifest: Mapping[str, Any]) -> None:
+        kinds = sorted({k for e in manifest["keyframes"] for k in dict(e.get("features", {}))})
+        self.columns: dict[str, dict[str, np.ndarray]] = {}
+        for kind in kinds:
+            cols = {f: reader.npy(f"features/{kind}.{f}.npy") for f in FEATURE_FIELDS}
+            lengths = {f: len(c) for f, c in cols.items()}
+            if len(set(lengths.values())) != 1:
+                raise StorageError(f"{reader.root}/features/{kind}.*.npy: columns of different "
+                                   f"lengths {lengths}; expected one row per keypoint")
+            self.columns[kind] = cols
+
+    def keyframe(self, reader: _SnapshotReader, entry: Mapping[str, Any]) -> Keyframe:
+        where = f"{reader.root / MANIFEST_FILE}: keyframe {entry.get('id')!r}"
+        try:
+            features = {kind: self._features(kind, rows)
+                        for kind, rows in dict(entry["features"]).items()}
+            image = EncodedImage(_map_file(reader.check(entry["image"])))
+            depth = None if entry.get("depth") is None else reader.npy(entry["depth"])
+            timestamp = entry.get("timestamp")
+            return Keyframe(image=image, camera=camera_from_dict(entry["camera"]),
+                            features=features, id=entry["id"],
+                            world_from_cam=np.array(entry["world_from_cam"], np.float64),
+                            timestamp=None if timestamp is None else float(timestamp),
+                            depth=depth)
+        except StorageError:
+            raise
+        except (KeyError, TypeError, ValueError, GeometryError, CameraError, MapError) as exc:
+            raise StorageError(f"{where}: {exc}") from exc
+
+    def _features(self, kind: str, rows: Any) -> Features:
+        start, stop = (int(r) for r in rows)
+        cols = self.columns[kind]
+        if not 0 <= start <= stop <= len(cols["keypoints_px"]):
+            raise ValueError(f"{kind} rows [{start}, {stop}) outside the "
+                             f"{len(cols['keypoints_px'])} saved")
+        return Features(kind=kind, **{f: c[start:stop] for f, c in cols.items()})
+
+
+def _map_file(path: Path) -> npt.NDArray[np.uint8]:
+    """The bytes of ``path`` memory-mapped read-only (a plain mmap: np.memmap's per-file
+    bookkeeping costs 1 ms, a second per 1000 keyframes)."""
+    with open(path, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size == 0:
+            return np.zeros(0, np.uint8)
+        return np.frombuffer(mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ), np.uint8)
+
+
+def _attach_thumbnails(reader: _SnapshotReader, manifest: Mapping[str, Any],
+                       keyframes: list[Keyframe]) -> None:
+    """Put the saved small blurry images back into the keyframes' caches."""
+    for key in manifest.get("thumbnails", []):
+        stack = reader.npy(_thumbnail_path(str(key)))
+        if len(stack) != len(keyframes) or stack.ndim != 3:
+            raise StorageError(f"{reader.root / _thumbnail_path(str(key))}: expected "
+                               f"({len(keyframes)}, h, w) thumbnails, got {stack.shape}")
+        for kf, thumb in zip(keyframes, stack, strict=True):
+            kf.cache[str(key)] = thumb
+
+
+def _read_landmark_columns(reader: _SnapshotReader, manifest: Mapping[str, Any],
+                           keyframes: Mapping[int, Keyframe]) -> LandmarkColumns:
+    meta = manifest["landmarks"]
+    where = reader.root / "landmarks"
+    a = {name: reader.npy(f"landmarks/{name}.npy") for name in LANDMARK_COLUMNS}
+    n, n_obs = len(a["ids"]), len(a["obs_keyframe"])
+    offsets = a["obs_offsets"]
+    if (a["points_world"].shape != (n, 3) or a["depth_sigmas_m"].shape != (n,)
+            or offsets.shape != (n + 1,) or offsets[0] != 0 or offsets[-1] != n_obs
+            or len(a["obs_kind"]) != n_obs or len(a["obs_keypoint"]) != n_obs
+            or np.any(np.diff(offsets) < 0) or np.any(np.diff(a["ids"]) <= 0)):
+        raise StorageError(f"{where}: inconsistent landmark columns (ids {n}, ascending; points "
+                           f"{a['points_world'].shape}, {n_obs} observations)")
+    kinds = [str(k) for k in meta.get("kinds", [])]
+    _check_observations(where, a, kinds, keyframes)
+    return LandmarkColumns(a["ids"], a["points_world"], a["depth_sigmas_m"], offsets,
+                           a["obs_keyframe"], a["obs_kind"], a["obs_keypoint"], tuple(kinds))
+
+
 def load_map(directory: str | Path) -> tuple[MapState, Path | None]:
     """The map saved in ``directory`` and its models directory (None if no model was saved);
     StorageError naming the file if the map is missing, damaged or from a newer version."""
     snapshot = current_snapshot(directory)
     manifest = _read_manifest(snapshot)
     reader = _SnapshotReader(snapshot, manifest["files"])
-    keyframes: dict[int, Keyframe] = {}
-    for entry in manifest["keyframes"]:
-        kf = _read_keyframe(reader, entry)
-        if kf.id in keyframes:
-            raise StorageError(f"{snapshot / MANIFEST_FILE}: keyframe {kf.id} listed twice")
-        keyframes[kf.id] = kf
-    landmarks = _read_landmarks(reader, manifest["landmarks"], keyframes)
-    state = MapState(MappingProxyType(keyframes), MappingProxyType(landmarks),
+    if manifest["format_version"] == 1:
+        keyframes = _read_keyframes(reader, manifest, _read_keyframe)
+        landmarks = LandmarkTable.from_mapping(
+            _read_landmarks(reader, manifest["landmarks"], keyframes))
+    else:
+        columns = _FeatureColumns(reader, manifest)
+        keyframes = _read_keyframes(reader, manifest, columns.keyframe)
+        _attach_thumbnails(reader, manifest, list(keyframes.values()))
+        landmarks = LandmarkTable(_read_landmark_columns(reader, manifest, keyframes))
+    state = MapState(MappingProxyType(keyframes), landmarks,
                      manifest["map_version"], manifest["next_landmark_id"])
     models = snapshot / MODELS_DIR
     if not manifest["models"]:

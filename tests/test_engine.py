@@ -106,6 +106,8 @@ class Probe(Relocalizer):
         if not path.is_file():
             return False
         self.loaded = json.loads(path.read_text())
+        for keyframe in self.map.snapshot().keyframes.values():  # not fed by Engine.load
+            self.add_keyframe(keyframe)
         self._trained = True
         return True
 

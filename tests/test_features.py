@@ -16,7 +16,8 @@ def image():
 def test_extract_and_self_match(image, kind):
     feats = extract(image, FeatureConf(kind, 500))
     assert 50 < len(feats) <= 500
-    assert feats.descriptors.dtype == (np.float32 if kind == "sift" else np.uint8)
+    assert feats.descriptors.dtype == np.uint8 and feats.descriptors.shape[1] == (
+        128 if kind == "sift" else 32)
     # Matching against a permuted copy of itself recovers the permutation.
     perm = np.random.default_rng(0).permutation(len(feats))
     q, t, d = match_ratio(feats.descriptors, feats.descriptors[perm])
@@ -56,3 +57,20 @@ def test_conf_errors():
         FeatureConf("akaze")
     with pytest.raises(ConfigError, match="positive"):
         FeatureConf("sift", 0)
+
+
+def test_sift_uint8_is_lossless_and_matches_identically(image):
+    """OpenCV's SIFT values are integers 0-255 held in float32: the uint8 copy we keep is
+    exact, and matching it gives the same matches and distances as the float32 original."""
+    keypoints, raw = cv2.SIFT.create(nfeatures=500).detectAndCompute(image, None)
+    other_kp, other = cv2.SIFT.create(nfeatures=500).detectAndCompute(
+        cv2.GaussianBlur(image, (0, 0), 1.0), None)
+    assert raw.dtype == np.float32 and np.array_equal(raw, np.rint(raw))
+    assert raw.min() >= 0 and raw.max() <= 255
+    feats = extract(image, FeatureConf("sift", 500))
+    assert np.array_equal(feats.descriptors.astype(np.float32), raw)
+    ours = match_ratio(feats.descriptors, other.astype(np.uint8))
+    theirs = match_ratio(raw, other)
+    assert len(ours[0]) > 20
+    for a, b in zip(ours, theirs, strict=True):
+        assert np.array_equal(a, b)

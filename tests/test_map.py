@@ -131,3 +131,66 @@ def test_depth_sigmas_follow_landmarks_through_updates():
     assert [state.landmarks[i].depth_sigma_m for i in ids] == [0.05, 0.4]
     with pytest.raises(MapError):
         kmap.add_landmarks("sift", [[0, 0, 1.0]], [[(1, 2)]], depth_sigmas_m=[float("nan")])
+
+
+def test_landmark_table_copy_on_write_matches_a_dict(monkeypatch):
+    """The columnar table behaves like the dict of Landmark objects it replaces, through
+    overlay changes and compactions (forced often here), and old tables never change."""
+    from reloc_service import map as map_mod
+    from reloc_service.map import Landmark, LandmarkTable
+
+    monkeypatch.setattr(map_mod, "COMPACT_MIN_OVERLAY", 5)
+    rng = np.random.default_rng(0)
+    model: dict[int, Landmark] = {}
+    table = LandmarkTable()
+    history = []
+    for step in range(60):
+        changes: dict[int, Landmark | None] = {}
+        for _ in range(int(rng.integers(1, 6))):
+            lm_id = int(rng.integers(0, 40))
+            if lm_id in model and rng.random() < 0.3:
+                changes[lm_id] = None
+            else:
+                obs = frozenset((int(rng.integers(0, 9)), str(rng.choice(["sift", "orb"])),
+                                 int(rng.integers(0, 99))) for _ in range(int(rng.integers(1, 4))))
+                changes[lm_id] = Landmark(lm_id, rng.normal(size=3), obs, float(rng.random()))
+        history.append((table, dict(model)))
+        table = table.evolve(changes)
+        for k, v in changes.items():
+            if v is None:
+                model.pop(k, None)
+            else:
+                model[k] = v
+        for t, m in [(table, model), history[step // 2]]:
+            assert len(t) == len(m) and sorted(t) == sorted(m)
+            ids = np.array(sorted(m), np.int64)
+            if len(ids):
+                assert np.array_equal(t.points(ids), np.stack([m[i].point_world for i in ids]))
+                assert np.array_equal(t.sigmas(ids), [m[i].depth_sigma_m for i in ids])
+            for i in range(40):
+                assert (i in t) == (i in m) and t.contains([i])[0] == (i in m)
+                if i in m:
+                    assert t[i].observations == m[i].observations
+            assert t.sigmas([99], default=-1.0).tolist() == [-1.0]
+
+
+def test_encoded_image_decodes_on_first_use_and_checks_its_size():
+    """A keyframe holding a PNG decodes it when its pixels are first read (the same pixels),
+    stays encoded through with_features, and a PNG of the wrong size or not a PNG is refused."""
+    import cv2
+
+    from reloc_service.frame import EncodedImage
+
+    img = np.random.default_rng(3).integers(0, 256, (48, 64)).astype(np.uint8)
+    png = cv2.imencode(".png", img)[1].tobytes()
+    kf = Keyframe(image=EncodedImage(png), camera=CAM, id=4)
+    feats = Features.create("sift", np.zeros((0, 2)), np.zeros((0, 128), np.uint8))
+    copy = kf.with_features("sift", feats)
+    assert isinstance(kf.image_source, EncodedImage) and isinstance(copy.image_source, EncodedImage)
+    assert np.array_equal(kf.image, img) and isinstance(kf.image_source, np.ndarray)
+    assert np.array_equal(copy.small_blurry_image(), Frame(img, CAM).small_blurry_image())
+    small = cv2.imencode(".png", img[:24, :32])[1].tobytes()
+    with pytest.raises(GeometryError, match="32x24 does not match the camera's 64x48"):
+        Keyframe(image=EncodedImage(small), camera=CAM, id=5)
+    with pytest.raises(GeometryError, match="expected a PNG"):
+        EncodedImage(b"not a png at all, just some bytes")

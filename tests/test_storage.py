@@ -4,6 +4,7 @@ or newer maps."""
 from __future__ import annotations
 
 import json
+import mmap
 import os
 from pathlib import Path
 
@@ -12,7 +13,7 @@ import pytest
 
 from reloc_service import storage
 from reloc_service.errors import StorageError
-from reloc_service.frame import Keyframe
+from reloc_service.frame import EncodedImage, Keyframe
 from reloc_service.map import KeyframeMap, MapState
 from reloc_service.storage import (
     FEATURE_FIELDS,
@@ -171,19 +172,19 @@ def _saved(tmp_path: Path, synthetic_map: MapState) -> Path:
 
 def test_truncated_file_is_named(tmp_path, synthetic_map):
     snap = _saved(tmp_path, synthetic_map)
-    path = snap / "features" / "1.sift.npz"
+    path = snap / "features" / "sift.keypoints_px.npy"
     path.write_bytes(path.read_bytes()[:100])
-    with pytest.raises(StorageError, match=r"1\.sift\.npz.*truncated"):
+    with pytest.raises(StorageError, match=r"sift\.keypoints_px\.npy.*truncated"):
         load_map(tmp_path)
 
 
 def test_checksum_mismatch_is_named(tmp_path, synthetic_map):
     snap = _saved(tmp_path, synthetic_map)
-    path = snap / "landmarks.npz"
+    path = snap / "landmarks" / "points_world.npy"
     data = bytearray(path.read_bytes())
     data[-10] ^= 0xFF
     path.write_bytes(bytes(data))
-    with pytest.raises(StorageError, match=r"landmarks\.npz.*checksum mismatch"):
+    with pytest.raises(StorageError, match=r"points_world\.npy.*checksum mismatch"):
         load_map(tmp_path)
 
 
@@ -217,7 +218,7 @@ def _edit_manifest(snap: Path, **changes) -> None:
 def test_newer_format_version_is_refused(tmp_path, synthetic_map):
     snap = _saved(tmp_path, synthetic_map)
     _edit_manifest(snap, format_version=storage.FORMAT_VERSION + 1)
-    with pytest.raises(StorageError, match=r"newer reloc .*format version 2.*reads up to 1"):
+    with pytest.raises(StorageError, match=r"newer reloc .*format version 3.*reads up to 2"):
         load_map(tmp_path)
 
 
@@ -275,19 +276,88 @@ def test_keyframe_type_survives(tmp_path, synthetic_map):
     assert all(isinstance(kf, Keyframe) for kf in state.keyframes.values())
 
 
-def test_round_trip_keeps_depth_sigmas_and_reads_snapshots_without_them(tmp_path, rich_state,
-                                                                        monkeypatch):
+def test_round_trip_keeps_depth_sigmas(tmp_path, rich_state):
     sigmas = [lm.depth_sigma_m for lm in rich_state.landmarks.values()]
     assert any(s > 0 for s in sigmas)          # triangulated landmarks carry their uncertainty
     save_map(rich_state, tmp_path / "new")
     state, _ = load_map(tmp_path / "new")
     _assert_states_equal(rich_state, state)
-    real = storage._landmark_arrays
-    monkeypatch.setattr(storage, "_landmark_arrays",       # a snapshot from before the field
-                        lambda st: {k: v for k, v in real(st).items() if k != "depth_sigmas_m"})
-    save_map(rich_state, tmp_path / "old")
-    old, _ = load_map(tmp_path / "old")
-    assert all(lm.depth_sigma_m == 0.0 for lm in old.landmarks.values())
+
+
+V1_MAP = Path(__file__).parent / "data" / "map_v1"
+
+
+def test_format_1_snapshots_are_read(tmp_path):
+    """A snapshot written by format 1 (PNG images, .npz per keyframe; made by the code of
+    that version, kept in tests/data) loads into the same map, and saves as format 2."""
+    state, models = load_map(V1_MAP)
+    assert models is None and state.keyframe_ids() == [0, 1]
+    assert sorted(state.landmarks) == [0, 1, 2]
+    assert state.landmarks[0].observations == frozenset({(0, "sift", 0), (1, "sift", 1)})
+    assert state.landmark_sigmas([0, 1, 2]).tolist() == [0.1, 0.0, 0.2]
+    assert state.keyframes[1].features["sift"].landmark_ids[4] == 2
+    v1_desc = np.load(V1_MAP / "snapshots" / "000001" / "features" / "1.sift.npz")["descriptors"]
+    assert v1_desc.dtype == np.float32                # compacted on read, exactly
+    assert np.array_equal(state.keyframes[1].features["sift"].descriptors, v1_desc)
+    assert state.keyframes[1].features["sift"].descriptors.dtype == np.uint8
+    save_map(state, tmp_path)
+    again, _ = load_map(tmp_path)
+    _assert_states_equal(state, again)
+
+
+def test_format_0_or_unknown_versions_are_refused(tmp_path, synthetic_map):
+    snap = _saved(tmp_path, synthetic_map)
+    _edit_manifest(snap, format_version=0)
+    with pytest.raises(StorageError, match="format_version 0, expected a positive integer"):
+        load_map(tmp_path)
+
+
+def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
+    """Nothing is rebuilt at load: images, features, landmarks and thumbnails are views of
+    the snapshot's files, read-only."""
+    for kf in rich_state.keyframes.values():
+        kf.small_blurry_image()                       # what the sbi place finder caches
+    save_map(rich_state, tmp_path)
+    state, _ = load_map(tmp_path)
+    kf = state.keyframes[1]
+    image = kf.image_source                           # PNG, decoded on first use
+    assert isinstance(image, EncodedImage) and not image.data.flags.writeable
+    assert isinstance(image.data.base.obj, mmap.mmap)
+    assert np.array_equal(kf.image, rich_state.keyframes[1].image)
+    assert isinstance(kf.image_source, np.ndarray)    # decoded once, kept
+    arrays = [*(getattr(kf.features[k], f) for k in kf.features for f in FEATURE_FIELDS),
+              state.landmarks.columns().points_world, state.landmarks.columns().obs_keyframe,
+              kf.cache["sbi:40x30:2.5"]]
+    for a in arrays:
+        assert isinstance(a.base if not isinstance(a, np.memmap) else a, np.memmap) or \
+            isinstance(a, np.memmap), type(a)
+        assert not a.flags.writeable
+    assert np.array_equal(kf.cache["sbi:40x30:2.5"], rich_state.keyframes[1].cache["sbi:40x30:2.5"])
+    with pytest.raises(ValueError, match="read-only"):
+        kf.features["sift"].descriptors[0, 0] = 1
+
+
+def test_changing_a_loaded_map_copies_and_leaves_the_snapshot(tmp_path, rich_state,
+                                                               synthetic_scene):
+    """Copy on write over memory-mapped arrays: adding and removing keyframes works, and the
+    snapshot's files are byte-for-byte what was saved."""
+    from reloc_service.mapping import MapBuilder
+
+    snap = save_map(rich_state, tmp_path)
+    before = {p: p.read_bytes() for p in snap.rglob("*") if p.is_file()}
+    state, _ = load_map(tmp_path)
+    kmap = KeyframeMap()
+    kmap.replace_state(state)
+    builder = MapBuilder(kmap)
+    builder.add_keyframe(20, synthetic_scene.query_images[1], synthetic_scene.camera,
+                         synthetic_scene.query_poses[1])
+    kmap.remove_keyframe(0)
+    after = kmap.snapshot()
+    assert len(after.landmarks) > 0 and 20 in after.keyframes and 0 not in after.keyframes
+    assert storage.verify_snapshot(snap) == len(before) - 1     # manifest not listed
+    assert {p: p.read_bytes() for p in snap.rglob("*") if p.is_file()} == before
+    again, _ = load_map(tmp_path)
+    _assert_states_equal(state, again)
 
 
 def test_a_save_without_current_deletes_no_snapshot(tmp_path, synthetic_map):

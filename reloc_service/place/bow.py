@@ -40,7 +40,7 @@ import scipy.sparse as sp
 
 from ..errors import ConfigError, GeometryError, NotTrainedError, StorageError
 from ..features import FEATURE_KINDS, FeatureConf, extract
-from ..frame import Features, Frame, Keyframe
+from ..frame import Features, Frame, Keyframe, is_binary_descriptor
 from ..map import KeyframeMap
 from ..numeric import top_k
 from .base import PlaceCandidate, PlaceFinder, register
@@ -266,7 +266,9 @@ def _as_descriptors(descriptors: npt.NDArray[Any]) -> npt.NDArray[Any]:
     d = np.asarray(descriptors)
     if d.ndim != 2:
         raise GeometryError(f"descriptors: expected (N, D), got shape {d.shape}")
-    return np.ascontiguousarray(d if d.dtype == np.uint8 else d.astype(np.float32, copy=False))
+    # SIFT (uint8 or float) is clustered in float32 (L2 means); ORB stays packed bits.
+    return np.ascontiguousarray(d if is_binary_descriptor(d) else
+                                d.astype(np.float32, copy=False))
 
 
 # -- the inverted file -------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from ..cameras import Camera
-from ..frame import Features
+from ..frame import Features, is_binary_descriptor
 from ..geometry import invert, transform_points
 
 Array = npt.NDArray[np.float64]
@@ -118,11 +118,11 @@ def _one_to_one(query_idx: IntArray, rows: IntArray, dist: Array) -> tuple[IntAr
 
 def _as_float(desc: npt.NDArray[Any]) -> npt.NDArray[np.float32]:
     """Descriptors as float vectors; binary ones as bits (squared L2 = Hamming distance)."""
-    if desc.dtype == np.uint8:
+    if is_binary_descriptor(desc):
         return np.unpackbits(desc, axis=-1).astype(np.float32)
     return desc.astype(np.float32)
 
 
 def _distance(d2: Array, desc: npt.NDArray[Any]) -> Array:
     """Squared L2 on bits is the Hamming distance; on float descriptors take the root."""
-    return np.asarray(d2, np.float64) if desc.dtype == np.uint8 else np.sqrt(d2)
+    return np.asarray(d2, np.float64) if is_binary_descriptor(desc) else np.sqrt(d2)

@@ -441,8 +441,8 @@ class LandmarkPool:
         local = [np.zeros(0, np.int64) if f is None else np.flatnonzero(f.landmark_ids >= 0)
                  for f in feats]
         if not sum(len(i) for i in local):
-            width, dtype = (128, np.float32) if kind == "sift" else (32, np.uint8)
-            return cls(np.zeros((0, width), dtype), np.zeros(0, np.int64), np.zeros((0, 3)),
+            width = 128 if kind == "sift" else 32     # both kinds are uint8 descriptors
+            return cls(np.zeros((0, width), np.uint8), np.zeros(0, np.int64), np.zeros((0, 3)),
                        np.zeros(0, np.int64))
         ids = np.concatenate([f.landmark_ids[i] for f, i in zip(feats, local, strict=True)
                               if f is not None])
@@ -460,9 +460,7 @@ class LandmarkPool:
                     rows: npt.NDArray[np.int64]) -> PointUncertainty:
         """The depth uncertainty of the landmarks of pool ``rows`` (``keyframes`` as given to
         :meth:`gather`), along the rays from the keyframe each row came from."""
-        lms = state.landmarks
-        sigmas = np.array([lms[i].depth_sigma_m if i in lms else 0.0
-                           for i in self.landmark_ids[rows].tolist()], np.float64)
+        sigmas = state.landmark_sigmas(self.landmark_ids[rows], 0.0)
         centres = np.array([kf.position_world for kf in keyframes]).reshape(-1, 3)
         return PointUncertainty(sigmas, centres[self.keyframe_rows[rows]])
 

@@ -301,5 +301,8 @@ class Relocalizer(abc.ABC):
         """Write trained models into ``directory`` (created by the caller); default: none."""
 
     def load(self, directory: Path) -> bool:
-        """Restore models saved by :meth:`save`; False if there is nothing to restore."""
+        """Restore models saved by :meth:`save`; False if there is nothing to restore.
+        :meth:`Engine.load` creates the relocalizer over the loaded map and calls this without
+        feeding it keyframes: whatever ``add_keyframe`` would have indexed and the model does
+        not hold must be taken from the map here."""
         return False

@@ -524,11 +524,8 @@ class FernsRelocalizer(Relocalizer):
         # never half of one (module docstring).
         version, ids, points = self._points_cache
         if version != state.version:
-            ids = np.fromiter(state.landmarks.keys(), np.int64, len(state.landmarks))
-            order = np.argsort(ids)
-            ids = ids[order]
-            points = (np.stack([lm.point_world for lm in state.landmarks.values()])[order]
-                      if len(ids) else np.zeros((0, 3)))
+            ids = state.landmarks.id_array()
+            points = state.landmark_points(ids)
             self._points_cache = (state.version, ids, points)
         if len(ids) == 0:
             return np.zeros((len(landmark_ids), 3)), np.zeros(len(landmark_ids), bool)
