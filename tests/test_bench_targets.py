@@ -127,6 +127,10 @@ def test_missing_sections_are_not_measured_not_met():
     del r["accuracy"]["datasets"]["room-hard"]
     gap = next(x for x in targets(r) if x["item"].startswith("default recall"))
     assert gap["met"] is None and "not scored: room-hard" in gap["detail"]
+    # a quick run's half-size scene: its p50 is shown, not judged against the desk target
+    r = run(**{"scene/image": "320x240", "latency/methods/default/p50_ms": 10.0})
+    p50 = next(x for x in targets(r) if x["item"].startswith("default method p50 on desk"))
+    assert p50["measured"] == 10.0 and p50["met"] is None and "not judged" in p50["detail"]
     # the largest map is not the target's 1000 keyframes: memory rows are not judged
     r = run(**{"scaling/sizes/1/keyframes": 40})
     mem = [x for x in targets(r) if x["item"].startswith("1000 keyframes")]

@@ -274,8 +274,9 @@ def render_markdown(result: Mapping[str, Any], *, plots_dir: Path | None = None)
         out += [f"![{Path(p).stem}]({(plots_dir / Path(p).name).as_posix()})"
                 for p in result["plots"]] + [""]
     for name, fn in (("scene", _scene), ("latency", _latency), ("peers", _peers),
-                     ("throughput", _throughput), ("scaling", _scaling), ("ferns", _ferns),
-                     ("planar", _planar), ("accuracy", _accuracy), ("soak", _soak)):
+                     ("accuracy", _accuracy), ("throughput", _throughput),
+                     ("scaling", _scaling), ("ferns", _ferns), ("planar", _planar),
+                     ("soak", _soak)):
         section = result.get(name)
         if not section:
             continue
