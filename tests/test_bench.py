@@ -115,6 +115,22 @@ def test_cli_arguments():
     assert args.quick and args.json == Path("a.json") and args.only == ["ferns"]
 
 
+def test_checkpoint_after_every_section_keeps_what_was_measured(tmp_path):
+    """An interrupted run keeps the figures of the sections done: ``run_suite`` hands the
+    result so far to ``checkpoint`` after each section, and the CLI writes it next to
+    ``--json`` (removed once the whole result is written)."""
+    from reloc_service.tools.bench import cli, suite
+
+    seen = []
+    conf = dataclasses.replace(TINY, sections=("ferns",))
+    result = suite.run_suite(conf, checkpoint=lambda r: seen.append(dict(r)))
+    assert len(seen) == 1 and seen[0]["ferns"] == result["ferns"]
+    assert "headline" not in seen[0]  # written before the run was complete
+    out = tmp_path / "b.json"
+    cli.write_json(out.with_name("b.partial.json"), {**seen[0], "partial": True})
+    assert json.loads(out.with_name("b.partial.json").read_text())["partial"] is True
+
+
 #: Every section on the smallest sizes that still exercise it (figures are not checked).
 TINY = dataclasses.replace(
     QUICK, name="tiny", scale=0.25, repeats=1, throughput_clients=(1, 2),
@@ -136,6 +152,7 @@ def test_tiny_suite_smoke(tmp_path, monkeypatch):
     result = json.loads(args.json.read_text())
     assert failed_sections(result) == [], {k: result[k] for k in failed_sections(result)}
     assert status == 0
+    assert not (tmp_path / "bench.partial.json").exists()  # the whole result replaced it
     for section in TINY.sections:
         assert section in result
     assert set(result["latency"]["methods"]) == {"default", "sbi+esm", "sbi+p3p",

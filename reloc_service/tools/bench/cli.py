@@ -23,7 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true",
                         help="smaller scene and sizes, desk only and no real sets (a few "
                              "minutes; the CI smoke run)")
-    parser.add_argument("--json", metavar="OUT", type=Path, help="write the result as JSON")
+    parser.add_argument("--json", metavar="OUT", type=Path,
+                        help="write the result as JSON (and, while running, the figures of "
+                             "the sections done so far to OUT's stem + .partial.json)")
     parser.add_argument("--markdown", metavar="OUT", type=Path,
                         help="write the Markdown report (e.g. docs/performance.md)")
     parser.add_argument("--plots", metavar="DIR", type=Path,
@@ -96,7 +98,12 @@ def main(args: argparse.Namespace) -> int:
             return 2
     if args.workdir is not None:
         args.workdir.mkdir(parents=True, exist_ok=True)
-    result = suite.run_suite(conf, command=command_line(), workdir=args.workdir, cache=cache)
+    partial = None if args.json is None else args.json.with_name(args.json.stem + ".partial.json")
+    result = suite.run_suite(conf, command=command_line(), workdir=args.workdir, cache=cache,
+                             checkpoint=None if partial is None
+                             else lambda r: write_json(partial, {**r, "partial": True}))
+    if partial is not None and acc_conf is not None:
+        write_json(partial, {**result, "partial": True})
     if acc_conf is not None:
         accuracy.run_into(result, acc_conf, args.workdir)
     if "soak" in (args.only or []):
@@ -117,9 +124,9 @@ def main(args: argparse.Namespace) -> int:
             result["plots"].append(str(plot_rss(result["soak"],
                                                 args.plots / "reliability_rss.png")))
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=1, allow_nan=False) + "\n",
-                             encoding="utf-8")
+        write_json(args.json, result)
+        if partial is not None:
+            partial.unlink(missing_ok=True)
     if args.markdown is not None:
         args.markdown.parent.mkdir(parents=True, exist_ok=True)
         plots_rel = None
@@ -149,6 +156,14 @@ def main(args: argparse.Namespace) -> int:
         print(f"reloc bench: section(s) failed: {', '.join(failed)}", file=sys.stderr)
         return 1
     return 0
+
+
+def write_json(path: Path, result: Mapping[str, Any]) -> None:
+    """``result`` as JSON at ``path`` (written whole, then renamed into place)."""
+    from ...fileio import atomic_write
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, json.dumps(result, indent=1, allow_nan=False) + "\n", fsync=False)
 
 
 def soak_conf(args: argparse.Namespace) -> Any:

@@ -505,9 +505,13 @@ def headline(result: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def run_suite(conf: SuiteConf, *, command: str = "", workdir: Path | None = None,
-              cache: Path | None = None) -> dict[str, Any]:
+              cache: Path | None = None,
+              checkpoint: Callable[[Mapping[str, Any]], None] | None = None
+              ) -> dict[str, Any]:
     """Run the sections of ``conf``; a failing section is recorded (``{"error": ...}``) and
-    the others still run. Returns the JSON-ready result."""
+    the others still run. ``checkpoint`` is called with the result so far after every
+    section (so that an interrupted run keeps what it measured). Returns the JSON-ready
+    result."""
     started = time.perf_counter()
     result: dict[str, Any] = {
         "schema": "reloc-bench/1", "command": command, "suite": conf.name,
@@ -537,6 +541,8 @@ def run_suite(conf: SuiteConf, *, command: str = "", workdir: Path | None = None
             section = _run_section(result, name, steps[name])
             if section is not None:
                 result[name] = json_safe(section)
+            if checkpoint is not None:
+                checkpoint(json_safe(result))
     result["headline"] = json_safe(headline(result))
     result["machine"]["load_average_at_end"] = load_average()
     result["duration_s"] = time.perf_counter() - started
