@@ -39,7 +39,12 @@ def tiny_desk(tmp_path_factory) -> Path:
 def check_result(r: dict) -> None:
     """One column's figures: the stable keys, rates in [0, 1], ordered recalls."""
     keys = set(accuracy.SUMMARY_KEYS) | ({"map_descriptors"} if "map_descriptors" in r else set())
+    if "first_step" in r:  # a fallback chain: how many of its answers its first step gave
+        keys.add("first_step")
+        first = r["first_step"]
+        assert 0 <= first["answered"] <= first["returned"] == r["returned"]
     assert set(r) == keys, r
+    assert r["not_relocalized_rate"] == pytest.approx(1.0 - r["returned_rate"])
     assert r["queries"] == 10 and 0 <= r["returned"] <= r["queries"]
     rec = r["recall"]
     assert set(rec) == {"5cm_5deg", "25cm_10deg", "50cm_15deg"}
@@ -73,7 +78,7 @@ def test_cli_accuracy_section(tmp_path, monkeypatch, capsys):
     acc = result["accuracy"]
     assert set(acc) == {"schema", "methods", "default_method", "peers", "columns",
                         "table_recalls", "how", "notes", "datasets", "failed_datasets",
-                        "failed_columns"}
+                        "failed_columns", "synth_only"}
     assert acc["schema"] == "reloc-bench-accuracy/1"
     assert acc["columns"] == expected_columns()
     assert acc["default_method"] == accuracy.service_default_method() in acc["methods"]
@@ -108,7 +113,9 @@ def test_cli_accuracy_section(tmp_path, monkeypatch, capsys):
     printed = capsys.readouterr().out
     assert all(line in printed for line in table)
     markdown = (tmp_path / "perf.md").read_text()
-    assert "## Accuracy on datasets" in markdown and all(line in markdown for line in table)
+    detail = accuracy.detail_lines(acc)
+    assert len(detail) == 2 + len(acc["columns"])  # one row per column of the one dataset
+    assert "## Accuracy on datasets" in markdown and all(line in markdown for line in detail)
 
 
 def test_scores_equal_reloc_eval(tiny_desk):

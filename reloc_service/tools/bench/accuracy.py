@@ -57,13 +57,14 @@ SCHEMA = "reloc-bench-accuracy/1"
 NOT_APPLICABLE = "not applicable"
 #: Keys of every column's summary (the JSON schema of one cell).
 SUMMARY_KEYS: tuple[str, ...] = (
-    "queries", "returned", "recall", "wrong_rate", "returned_rate", "median_t_err_m",
+    "queries", "returned", "recall", "wrong_rate", "returned_rate", "not_relocalized_rate",
+    "median_t_err_m",
     "median_r_err_deg", "p50_ms", "p99_ms")
 
 
 def repo_root() -> Path:
-    """The repository holding this package (``reloc_service/bench/accuracy.py``)."""
-    return Path(__file__).resolve().parents[2]
+    """The repository holding this package (``reloc_service/tools/bench/accuracy.py``)."""
+    return Path(__file__).resolve().parents[3]
 
 
 def default_real_root() -> Path:
@@ -92,6 +93,18 @@ class AccuracyConf:
     methods: tuple[str, ...] = RELOC_METHODS
     default_method: str | None = None  # None: the service config's
     render_workers: int = 2
+    #: Methods scored on the synthetic presets only (ferns: training it on every set takes
+    #: longer than the whole benchmark's budget); their cells elsewhere say so.
+    synth_only: tuple[str, ...] = ()
+    #: Peer columns (keys of :data:`PEERS`).
+    peers: tuple[str, ...] = tuple(PEERS)
+    #: Rendered presets are kept here and reused (:func:`.workspace.render_cached`); None:
+    #: ``<workdir>/cache``.
+    cache: Path | None = None
+    #: Why the real sets are not scored (e.g. a quick run), or None.
+    real_skipped: str | None = None
+    #: Plugin options of the eval backend (as ``reloc eval --options``).
+    options: Mapping[str, Mapping[str, Any]] = dataclasses.field(default_factory=dict)
 
     def columns(self) -> tuple[list[str], str]:
         """reloc's methods in column order (the default method added once) and the default."""
@@ -101,14 +114,30 @@ class AccuracyConf:
 
 
 def conf_from_args(*, quick: bool, presets: Sequence[str] | None,
-                   datasets: Sequence[Path] | None, seed: int = 0) -> AccuracyConf:
+                   datasets: Sequence[Path] | None, seed: int = 0,
+                   real_root: Path | None = None) -> AccuracyConf:
     """``--preset``/``--dataset`` as given; with neither, the default presets (desk only
-    with ``--quick``) plus the real sets next to the repository."""
+    with ``--quick``) plus the real sets of ``real_root`` (default: next to the repository)."""
     if presets or datasets:
         return AccuracyConf(presets=tuple(presets or ()), datasets=tuple(datasets or ()),
                             real_root=None, seed=seed)
     return AccuracyConf(presets=QUICK_PRESETS if quick else FULL_PRESETS,
-                        real_root=default_real_root(), seed=seed)
+                        real_root=real_root or default_real_root(), seed=seed)
+
+
+def bench_conf(*, quick: bool, real_root: Path | None, seed: int = 0, scale: float = 1.0,
+               cache: Path | None = None,
+               options: Mapping[str, Mapping[str, Any]] | None = None) -> AccuracyConf:
+    """The accuracy section of a whole ``reloc bench`` run (no ``--only``): the default
+    method and ``sbi+p3p`` (SIFT) with the plain OpenCV peer on the presets and every real
+    set, ferns on the presets only; ``--quick`` scores desk alone and skips the real sets."""
+    conf = AccuracyConf(presets=QUICK_PRESETS if quick else FULL_PRESETS,
+                        real_root=None if quick else (real_root or default_real_root()),
+                        seed=seed, scale=scale, methods=("sbi+p3p", "ferns"),
+                        synth_only=("ferns",), peers=("plain_opencv",), cache=cache,
+                        options=dict(options or {}),
+                        real_skipped="the quick run skips the real sets" if quick else None)
+    return conf
 
 
 def check_conf(conf: AccuracyConf) -> str | None:
@@ -151,6 +180,11 @@ def bench_accuracy(conf: AccuracyConf, workdir: Path, *, show_progress: bool = T
     cv2.setNumThreads(1)  # as the rest of the bench (one core per service worker)
     methods, default = conf.columns()
     reals, notes = real_sets(conf.real_root)
+    if conf.real_skipped:
+        notes.append(f"real sets: skipped ({conf.real_skipped})")
+    notes += [f"`{m}`: scored on the synthetic presets only (training it on every set "
+              "takes longer than the benchmark's budget)" for m in conf.synth_only
+              if m in methods]
     jobs: list[tuple[str, str, Any]] = (
         [("synth", p, p) for p in conf.presets]
         + [("dir", Path(d).name, Path(d)) for d in conf.datasets]
@@ -163,19 +197,21 @@ def bench_accuracy(conf: AccuracyConf, workdir: Path, *, show_progress: bool = T
         try:
             if kind == "synth":
                 info.update(preset=what, seed=conf.seed, scale=conf.scale)
-                start = time.perf_counter()
-                root = _render(what, workdir / "accuracy" / what, conf, show_progress)
-                info["render_s"] = time.perf_counter() - start
+                root, info["render_s"], info["render_cached"] = _render(
+                    what, conf.cache or workdir / "cache", conf, show_progress)
+                use = methods
             else:
                 root = what
-            info.update(score_dataset(root, methods, show_progress=show_progress))
+                use = [m for m in methods if m not in conf.synth_only]
+            info.update(score_dataset(root, use, show_progress=show_progress,
+                                      peers=conf.peers, options=conf.options))
         except Exception as exc:  # the other datasets' figures still count
             traceback.print_exc()
             info["error"] = f"{type(exc).__name__}: {exc}"
         datasets[key] = info
     return {"schema": SCHEMA, "methods": methods, "default_method": default,
-            "peers": {k: label for k, (label, _) in PEERS.items()},
-            "columns": [*methods, *PEERS],
+            "peers": {k: label for k, (label, _) in PEERS.items() if k in conf.peers},
+            "columns": [*methods, *conf.peers], "synth_only": list(conf.synth_only),
             "table_recalls": list(TABLE_RECALLS),
             "how": "map built once per dataset in-process as `reloc eval` does with its "
                    "default options; the plain OpenCV peer matches against the landmark "
@@ -196,17 +232,19 @@ def _unique(name: str, taken: Mapping[str, Any]) -> str:
     return key
 
 
-def _render(preset: str, out: Path, conf: AccuracyConf, show: bool) -> Path:
-    from ..synth import render_dataset
+def _render(preset: str, cache: Path, conf: AccuracyConf, show: bool
+            ) -> tuple[Path, float, bool]:
+    from .workspace import render_cached
 
-    return render_dataset(preset, out, seed=conf.seed, scale=conf.scale,
-                          workers=conf.render_workers, progress=show)
+    return render_cached(preset, cache, seed=conf.seed, scale=conf.scale,
+                         workers=conf.render_workers, show=show)
 
 
-def score_dataset(root: Path, methods: Sequence[str], *, show_progress: bool = True
-                  ) -> dict[str, Any]:
+def score_dataset(root: Path, methods: Sequence[str], *, show_progress: bool = True,
+                  peers: Sequence[str] = tuple(PEERS),
+                  options: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, Any]:
     """Build ``root``'s map as ``reloc eval`` does, train, then answer every query with every
-    method of ``methods`` and both peers; returns the dataset's record (see module doc)."""
+    method of ``methods`` and the ``peers``; returns the dataset's record (see module doc)."""
     from ..data.dataset import read_dataset
     from ..eval import evaluate as ev
 
@@ -215,23 +253,24 @@ def score_dataset(root: Path, methods: Sequence[str], *, show_progress: bool = T
     # reloc eval's own steps (evaluate() without the method loop): the same checks, backend,
     # map building and training, so that the map is the one `reloc eval` scores on.
     ev._check_dataset(dataset, source)
-    backend = ev.InProcessBackend(list(methods), {}, source)
+    backend = ev.InProcessBackend(list(methods), {k: dict(v) for k, v in (options or {}).items()},
+                                  source)
     try:
         build_s = ev._build_map(backend, dataset, source, show_progress)
         start = time.perf_counter()
         backend.train(progress=show_progress)
         train_s = time.perf_counter() - start
         state = backend.engine.map.snapshot()
-        peers, peer_errors = _make_peers(state, {e.camera_id: dataset.camera(e)
-                                                 for e in dataset.query_entries})
-        records: dict[str, list[Any]] = {c: [] for c in [*methods, *PEERS]}
+        peer_cols, peer_errors = _make_peers(state, {e.camera_id: dataset.camera(e)
+                                                     for e in dataset.query_entries}, peers)
+        records: dict[str, list[Any]] = {c: [] for c in [*methods, *peer_cols]}
         errors: dict[str, str] = dict(peer_errors)
         start = time.perf_counter()
         queries: Iterable[Any] = dataset.query_entries
         if show_progress:
             queries = progress(list(queries), desc=f"{Path(root).name}: queries")
         for entry in queries:
-            _score_query(backend, dataset, entry, methods, peers, records, errors)
+            _score_query(backend, dataset, entry, methods, peer_cols, records, errors)
         eval_s = time.perf_counter() - start
     finally:
         backend.close()
@@ -242,7 +281,9 @@ def score_dataset(root: Path, methods: Sequence[str], *, show_progress: bool = T
         else:
             results[column] = summary_dict(ev.summarize(recs))
             if column in PEERS:
-                results[column]["map_descriptors"] = peers[column]["descriptors"]
+                results[column]["map_descriptors"] = peer_cols[column]["descriptors"]
+            elif "," in column:
+                results[column]["first_step"] = first_step_share(column, recs)
     cams = sorted({dataset.camera(e).model for e in dataset.query_entries})
     return {"root": str(Path(root).resolve()), "landmark_source": source.value,
             "keyframes": len(state.keyframes),
@@ -262,7 +303,17 @@ def eval_default_landmarks() -> Any:
     return ev.LandmarkSource(default)
 
 
-def _make_peers(state: Any, cameras: Mapping[str, Any]
+def first_step_share(chain: str, records: Sequence[Any]) -> dict[str, Any]:
+    """Of a fallback chain's answers, how many its first step gave (a chain's result names
+    the step that answered, :class:`~reloc_service.relocalizers.chain.ChainRelocalizer`)."""
+    step = chain.split(",")[0].strip()
+    returned = [r for r in records if r.returned]
+    by_first = sum(r.method_used == step for r in returned)
+    return {"step": step, "answered": by_first, "returned": len(returned),
+            "share_of_returned": by_first / len(returned) if returned else None}
+
+
+def _make_peers(state: Any, cameras: Mapping[str, Any], which: Sequence[str] = tuple(PEERS)
                 ) -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
     """Per peer: its map's descriptor count and one pipeline per query camera id, or an
     error when a camera is one the plain pipeline cannot take (fisheye, FOV)."""
@@ -270,8 +321,8 @@ def _make_peers(state: Any, cameras: Mapping[str, Any]
 
     peers: dict[str, dict[str, Any]] = {}
     errors: dict[str, str] = {}
-    for key, (_, dedupe) in PEERS.items():
-        plain = PlainMap.from_state(state, dedupe=dedupe)
+    for key in which:
+        plain = PlainMap.from_state(state, dedupe=PEERS[key][1])
         try:
             pipes = {ck: PlainOpenCVPipeline(plain, cam) for ck, cam in cameras.items()}
         except ValueError as exc:  # a camera model OpenCV's solvePnP does not take
@@ -335,6 +386,7 @@ def summary_dict(s: Any) -> dict[str, Any]:
     """The figures of one column from ``reloc eval``'s :class:`MethodSummary`."""
     return {"queries": s.queries, "returned": s.relocalized, "recall": dict(s.recall),
             "wrong_rate": s.wrong_rate, "returned_rate": 1.0 - s.not_relocalized_rate,
+            "not_relocalized_rate": s.not_relocalized_rate,
             "median_t_err_m": s.median_t_err_m, "median_r_err_deg": s.median_r_err_deg,
             "p50_ms": s.latency_p50_ms, "p99_ms": s.latency_p99_ms}
 
@@ -352,7 +404,8 @@ def run_into(result: dict[str, Any], conf: AccuracyConf, workdir: Path | None) -
 
     result.setdefault("conf", {})["accuracy"] = json_safe(dataclasses.asdict(conf) | {
         "datasets": [str(d) for d in conf.datasets],
-        "real_root": None if conf.real_root is None else str(conf.real_root)})
+        "real_root": None if conf.real_root is None else str(conf.real_root),
+        "cache": None if conf.cache is None else str(conf.cache)})
     say("accuracy ...")
     start = time.perf_counter()
     try:
@@ -413,8 +466,45 @@ def table_lines(section: Mapping[str, Any]) -> list[str]:
             row = [name, "-", *(["failed"] * len(columns))]
         else:
             row = [name, f"{d['keyframes']} / {d['queries']}",
-                   *[cell(d["results"][c]) for c in columns]]
+                   *[cell(d["results"][c]) if c in d["results"] else "not run"
+                     for c in columns]]
         lines.append("| " + " | ".join(row) + " |")
+    return lines
+
+
+def recall_gap_points(d: Mapping[str, Any], method: str, reference: str = "sbi+p3p",
+                      key: str = "5cm_5deg") -> float | None:
+    """``method``'s recall minus ``reference``'s on one dataset record, in percentage points
+    (None when either is missing or failed)."""
+    a, b = d.get("results", {}).get(method), d.get("results", {}).get(reference)
+    if not a or not b or "error" in a or "error" in b:
+        return None
+    return 100.0 * (a["recall"][key] - b["recall"][key])
+
+
+def detail_lines(section: Mapping[str, Any]) -> list[str]:
+    """One row per dataset and column: recalls, wrong and not-relocalized rates, p50 and
+    p99, the default's recall gap to ``sbi+p3p`` and the share its first step answered."""
+    header = ["dataset", "method", "recall 5cm/5deg", "recall 25cm/10deg", "wrong",
+              "not relocalized", "p50 ms", "p99 ms", "recall - `sbi+p3p`", "first step"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    for name, d in section["datasets"].items():
+        if "error" in d:
+            lines.append("| " + " | ".join([name, "failed", *["-"] * (len(header) - 2)]) + " |")
+            continue
+        for c in section["columns"]:
+            r = d["results"].get(c)
+            if r is None or "error" in r:
+                continue
+            gap = recall_gap_points(d, c) if c == section["default_method"] else None
+            first = r.get("first_step") or {}
+            share = first.get("share_of_returned")
+            lines.append("| " + " | ".join([
+                f"{name} ({d['keyframes']} / {d['queries']})", column_label(section, c),
+                _pct(r["recall"].get("5cm_5deg")), _pct(r["recall"].get("25cm_10deg")),
+                _pct(r["wrong_rate"]), _pct(r.get("not_relocalized_rate")), _ms(r["p50_ms"]),
+                _ms(r["p99_ms"]), "-" if gap is None else f"{gap:+.0f} points",
+                "-" if share is None else f"{_pct(share)} by `{first['step']}`"]) + " |")
     return lines
 
 
@@ -440,6 +530,7 @@ def markdown_lines(section: Mapping[str, Any]) -> list[str]:
              f"on one thread). How: {section['how']}. The default method is the service "
              "config's `service.default_method`. Plain OpenCV: SIFT, `BFMatcher` knn ratio "
              "0.8 against the landmarks of every keyframe, `cv2.solvePnPRansac`, accepted at "
-             ">= 20 inliers; dedup keeps one descriptor per landmark.", ""]
-            + table_lines(section) + [""] + (note_lines(section) + [""]
-                                             if note_lines(section) else []))
+             ">= 20 inliers; dedup keeps one descriptor per landmark. \"first step\": the "
+             "share of a fallback chain's answers its first step gave.", ""]
+            + detail_lines(section) + [""] + (note_lines(section) + [""]
+                                              if note_lines(section) else []))

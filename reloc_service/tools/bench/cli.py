@@ -21,17 +21,19 @@ from .plots import STAGE_GROUPS, stage_groups_ms
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``reloc bench``."""
     parser.add_argument("--quick", action="store_true",
-                        help="smaller scene and sizes (under 2 minutes; the CI smoke run)")
-    parser.add_argument("--json", metavar="OUT", type=Path, help="write the result as JSON")
+                        help="smaller scene and sizes, desk only and no real sets (a few "
+                             "minutes; the CI smoke run)")
+    parser.add_argument("--json", metavar="OUT", type=Path,
+                        help="write the result as JSON (and, while running, the figures of "
+                             "the sections done so far to OUT's stem + .partial.json)")
     parser.add_argument("--markdown", metavar="OUT", type=Path,
                         help="write the Markdown report (e.g. docs/performance.md)")
     parser.add_argument("--plots", metavar="DIR", type=Path,
                         help="write PNG plots into DIR (needs matplotlib)")
     parser.add_argument("--only", metavar="SECTION", action="append",
                         help="run only this section (repeatable); one of: latency, peers, "
-                             "throughput, scaling, ferns, planar, accuracy, soak (accuracy "
-                             "runs only when named here or when --dataset/--preset is given; "
-                             "soak only when named here)")
+                             "throughput, scaling, ferns, planar, accuracy, soak (without "
+                             "--only every section but soak runs; soak only when named here)")
     parser.add_argument("--dataset", metavar="DIR", type=Path, action="append",
                         help="accuracy section: a reloc dataset to score (repeatable); with "
                              "--dataset or --preset only the sets named are scored, else the "
@@ -40,6 +42,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", metavar="NAME", action="append",
                         help="accuracy section: a synthetic preset to render and score "
                              "(repeatable; see `reloc synth --list`)")
+    parser.add_argument("--real-data", metavar="DIR", type=Path, default=None,
+                        help="accuracy section: the folder of real development sets (one "
+                             "reloc dataset per sub-folder; default ../shared/data/real next "
+                             "to the repository; skipped with a note when absent or empty)")
+    parser.add_argument("--cache", metavar="DIR", type=Path, default=None,
+                        help="rendered scenes are kept here and reused while the renderer's "
+                             "code is unchanged (default: WORKDIR/cache with --workdir, else "
+                             "out/bench-cache)")
     parser.add_argument("--soak-seconds", metavar="S", type=float, default=None,
                         help="soak section: seconds of load (default 600, 60 with --quick)")
     parser.add_argument("--soak-restart-every", metavar="S", type=float, default=None,
@@ -56,7 +66,10 @@ def main(args: argparse.Namespace) -> int:
 
     conf = suite.QUICK if args.quick else suite.FULL
     datasets, presets = getattr(args, "dataset", None), getattr(args, "preset", None)
-    run_accuracy = "accuracy" in (args.only or []) or bool(datasets or presets)
+    cache = getattr(args, "cache", None) or (
+        args.workdir / "cache" if args.workdir is not None else Path("out/bench-cache"))
+    explicit_accuracy = "accuracy" in (args.only or []) or bool(datasets or presets)
+    run_accuracy = explicit_accuracy or not args.only
     if args.only:
         unknown = sorted(set(args.only) - set(suite.SECTIONS) - {"accuracy", "soak"})
         if unknown:
@@ -69,21 +82,37 @@ def main(args: argparse.Namespace) -> int:
     if run_accuracy:
         from . import accuracy
 
-        acc_conf = accuracy.conf_from_args(quick=args.quick, presets=presets,
-                                           datasets=datasets, seed=conf.seed)
+        real_root = getattr(args, "real_data", None)
+        if explicit_accuracy:
+            acc_conf = accuracy.conf_from_args(quick=args.quick, presets=presets,
+                                               datasets=datasets, seed=conf.seed,
+                                               real_root=real_root)
+        else:
+            acc_conf = accuracy.bench_conf(quick=args.quick, real_root=real_root,
+                                           seed=conf.seed, scale=conf.scale,
+                                           options={"ferns": dict(conf.ferns_options)})
+        acc_conf = dataclasses.replace(acc_conf, cache=cache)
         problem = accuracy.check_conf(acc_conf)
         if problem:
             print(f"reloc bench: {problem}", file=sys.stderr)
             return 2
     if args.workdir is not None:
         args.workdir.mkdir(parents=True, exist_ok=True)
-    result = suite.run_suite(conf, command=command_line(), workdir=args.workdir)
+    partial = None if args.json is None else args.json.with_name(args.json.stem + ".partial.json")
+    result = suite.run_suite(conf, command=command_line(), workdir=args.workdir, cache=cache,
+                             checkpoint=None if partial is None
+                             else lambda r: write_json(partial, {**r, "partial": True}))
+    if partial is not None and acc_conf is not None:
+        write_json(partial, {**result, "partial": True})
     if acc_conf is not None:
         accuracy.run_into(result, acc_conf, args.workdir)
     if "soak" in (args.only or []):
         from . import soak
 
         soak.run_into(result, soak_conf(args), args.workdir, suite.say)
+    from .targets import targets
+
+    result["targets"] = targets(result)
     if args.plots is not None:
         from .plots import plot_all
 
@@ -95,9 +124,9 @@ def main(args: argparse.Namespace) -> int:
             result["plots"].append(str(plot_rss(result["soak"],
                                                 args.plots / "reliability_rss.png")))
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=1, allow_nan=False) + "\n",
-                             encoding="utf-8")
+        write_json(args.json, result)
+        if partial is not None:
+            partial.unlink(missing_ok=True)
     if args.markdown is not None:
         args.markdown.parent.mkdir(parents=True, exist_ok=True)
         plots_rel = None
@@ -127,6 +156,14 @@ def main(args: argparse.Namespace) -> int:
         print(f"reloc bench: section(s) failed: {', '.join(failed)}", file=sys.stderr)
         return 1
     return 0
+
+
+def write_json(path: Path, result: Mapping[str, Any]) -> None:
+    """``result`` as JSON at ``path`` (written whole, then renamed into place)."""
+    from ...fileio import atomic_write
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, json.dumps(result, indent=1, allow_nan=False) + "\n", fsync=False)
 
 
 def soak_conf(args: argparse.Namespace) -> Any:
@@ -185,7 +222,8 @@ def headline_lines(result: Mapping[str, Any]) -> list[str]:
     if "plain_opencv" in peers:
         ours, plain = peers["ours"], peers["plain_opencv"]
         lines.append(
-            f"- **Ours (`sbi+p3p`) vs the plain OpenCV pipeline** (SIFT, BFMatcher against "
+            f"- **Ours (the default method, `{ours['method']}`) vs the plain OpenCV "
+            f"pipeline** (SIFT, BFMatcher against "
             f"every keyframe, solvePnPRansac): p50 {_f(ours['p50_ms'])} ms vs "
             f"{_f(plain['p50_ms'])} ms, the plain pipeline takes "
             f"**{_f(h.get('plain_opencv_latency_over_ours'), 2)}x** our time "
@@ -215,10 +253,12 @@ def headline_lines(result: Mapping[str, Any]) -> list[str]:
     thr = h.get("throughput")
     if thr:
         lines.append(
-            f"- **Throughput**: {thr['clients'][1]} concurrent clients get "
+            f"- **Throughput** (`{thr.get('method')}`, {thr.get('workers')} workers, "
+            f"{thr.get('mode')} mode): {thr['clients'][1]} concurrent clients get "
             f"{_f(thr['queries_per_s'][1])} queries/s vs {_f(thr['queries_per_s'][0])} with "
             f"{thr['clients'][0]} (**{_f(thr['ratio'], 2)}x**); p99 {_f(thr['p99_ms'][1], 0)} "
-            f"ms vs {_f(thr['p99_ms'][0], 0)} ms.")
+            f"ms vs {_f(thr['p99_ms'][0], 0)} ms; {thr.get('busy', 0)} busy replies, "
+            f"{thr.get('lost', '-')} queries lost.")
     big = h.get("largest_map")
     if big:
         lines.append(
@@ -237,14 +277,21 @@ def render_markdown(result: Mapping[str, Any], *, plots_dir: Path | None = None)
            f"({result['suite']} suite, {result['created_utc']}, "
            f"{_f(result.get('duration_s', 0) / 60, 1)} min). Do not edit by hand: rerun the "
            "command. Every figure below was measured in that one run, side by side.", ""]
+    if result.get("targets"):
+        from .targets import markdown_lines as target_lines
+
+        out += ["## Targets", "",
+                "Each \"Done when\" item of issue 14, computed from this run's figures "
+                "below.", ""] + target_lines(result["targets"])
     out += _machine(result["machine"])
     out += ["## Headline", ""] + headline_lines(result) + [""]
     if plots_dir is not None and result.get("plots"):
         out += [f"![{Path(p).stem}]({(plots_dir / Path(p).name).as_posix()})"
                 for p in result["plots"]] + [""]
     for name, fn in (("scene", _scene), ("latency", _latency), ("peers", _peers),
-                     ("throughput", _throughput), ("scaling", _scaling), ("ferns", _ferns),
-                     ("planar", _planar), ("accuracy", _accuracy), ("soak", _soak)):
+                     ("accuracy", _accuracy), ("throughput", _throughput),
+                     ("scaling", _scaling), ("ferns", _ferns), ("planar", _planar),
+                     ("soak", _soak)):
         section = result.get(name)
         if not section:
             continue
@@ -272,8 +319,15 @@ def _notes() -> list[str]:
             "latency section it runs in the benchmark's process, for throughput it is "
             "`reloc serve` in its own process, as deployed; clients are "
             "`reloc_client.RelocClient`s with their own sessions.",
+            "- The default method is the service's `DEFAULT_METHOD` (whatever it is named); "
+            "its `/ limit` is over decode + ORB extraction, the cost it is meant to answer "
+            "at, and the Targets table at the top is computed from this run's figures.",
+            "- Rendered scenes are cached (`--cache`, default `out/bench-cache`) and reused "
+            "while the renderer's code is unchanged; maps are built afresh every run, so "
+            "that a change to the map code is always measured.",
             "- Reproduce with the command at the top; `--quick` runs the same code on a "
-            "half-size scene and small maps (the CI smoke run, no thresholds).", ""]
+            "half-size scene and small maps and scores desk only, skipping the real sets "
+            "(the CI smoke run, no thresholds).", ""]
 
 
 def _machine(m: Mapping[str, Any]) -> list[str]:
@@ -310,7 +364,8 @@ def _latency(lat: Mapping[str, Any]) -> list[str]:
     for label, m in lat["methods"].items():
         g = stage_groups_ms(m["stages_ms"], m["p50_ms"])
         z = m["zenoh"]
-        rows.append([f"`{label}`", _f(m["p50_ms"]), _f(m["p99_ms"]),
+        name = f"default (`{m['method']}`)" if label == "default" else f"`{label}`"
+        rows.append([name, _f(m["p50_ms"]), _f(m["p99_ms"]),
                      *[_f(g[k]) for k in groups], _f(g["other"]),
                      _f(m["over_limit"], 2) + "x", _f(z["p50_ms"]), _f(z["p99_ms"]),
                      _f(z["added_over_in_process_p50_ms"]),
@@ -325,7 +380,9 @@ def _latency(lat: Mapping[str, Any]) -> list[str]:
              f"Zenoh = the client's round trip to a service on loopback "
              f"({lat['service']['workers']} workers), same JPEG bytes; \"Zenoh adds\" is "
              "the median of the paired differences. `/ limit` is the p50 over the p50 of "
-             "decode + extraction of the method's own features. `bow+p3p` extracts its "
+             "decode + extraction of the method's own features; the default method's limit "
+             "is decode + ORB extraction (it is meant to answer most queries at ORB cost). "
+             "`bow+p3p` extracts its "
              "SIFT features inside `place`; `ferns` classifies in `match`; `sbi+esm` aligns "
              "images in `solve`: it extracts no features, so it can beat the limit, but its "
              "position is the matched keyframe's (the thesis's rotation-only alignment), "
@@ -347,8 +404,12 @@ def _peers(p: Mapping[str, Any]) -> list[str]:
               "map descriptors", "recall 5cm/5deg", "recall 25cm/10deg", "returned", "wrong",
               "latency / ours"]
     rows = []
-    for name, label in (("ours", "ours, `sbi+p3p`"), ("plain_opencv", "plain OpenCV"),
-                        ("plain_opencv_dedup", "plain OpenCV, one descriptor per landmark")):
+    labels = (("ours", f"ours, default (`{p['ours'].get('method')}`)"),
+              ("ours_sift", "ours, `sbi+p3p` (SIFT)"), ("plain_opencv", "plain OpenCV"),
+              ("plain_opencv_dedup", "plain OpenCV, one descriptor per landmark"))
+    for name, label in labels:
+        if name not in p:
+            continue
         r = p[name]
         st = r["stages_ms"]
         rows.append([label, _f(r["p50_ms"]), _f(r["p99_ms"]), _f(st.get("decode")),
@@ -361,7 +422,8 @@ def _peers(p: Mapping[str, Any]) -> list[str]:
            "`cv2.BFMatcher(NORM_L2).knnMatch(k=2)` against the landmark descriptors of every "
            "keyframe, Lowe ratio 0.8, `cv2.solvePnPRansac` with OpenCV's defaults and the "
            "camera's distortion, accepted with at least 20 inliers. The same queries, in "
-           "turn with ours, in this run.", ""] + _table(header, rows)
+           "turn with ours, in this run; \"latency / ours\" is over the default method's "
+           "p50.", ""] + _table(header, rows)
     pnp = p.get("pnp", {})
     if pnp.get("queries"):
         out += ["### PoseLib vs OpenCV RANSAC", "",
@@ -392,15 +454,19 @@ def _accuracy(a: Mapping[str, Any]) -> list[str]:
 
 
 def _throughput(t: Mapping[str, Any]) -> list[str]:
-    header = ["clients", "queries/s", "x first", "p50 ms", "p99 ms", "ok", "not relocalized",
-              "busy replies"]
-    rows = [[str(r["clients"]), _f(r["queries_per_s"]), _f(r["speedup_over_first"], 2),
+    header = ["worker mode", "clients", "queries/s", "x first", "p50 ms", "p99 ms", "ok",
+              "not relocalized", "busy replies", "lost"]
+    modes = t.get("modes") or {t.get("mode", "thread"): t["runs"]}
+    rows = [[mode, str(r["clients"]), _f(r["queries_per_s"]), _f(r["speedup_over_first"], 2),
              _f(r["p50_ms"]), _f(r["p99_ms"]), str(r["ok"]), str(r["not_relocalized"]),
-             str(r["busy"])] for r in t["runs"]]
+             str(r["busy"]), str(r.get("lost", "-"))]
+            for mode, runs in modes.items() for r in runs]
     out = ["## Throughput", "",
-           f"`{t['method']}` over Zenoh, {t['workers']} service workers, queue "
-           f"{t['queue_size']}, {t['duration_s']:g} s per client count; {t['note']}. A "
-           "query refused as busy is retried after 5 ms and not counted as answered.", ""]
+           f"`{t['method']}` (the default method) over Zenoh, {t['workers']} service workers "
+           f"(`service.worker_mode`: {', '.join(modes)}), queue {t['queue_size']}, "
+           f"{t['duration_s']:g} s per client count; {t['note']}. A query refused as busy is "
+           "retried after 5 ms and not counted as answered; a query without any reply within "
+           f"{_f(t.get('reply_timeout_s'), 0)} s is lost (there must be none).", ""]
     out += _table(header, rows)
     threads = t.get("in_process_threads") or []
     if len(threads) > 1:

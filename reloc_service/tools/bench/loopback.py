@@ -28,11 +28,43 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def worker_modes_supported() -> tuple[str, ...]:
+    """The values ``service.worker_mode`` accepts in this build, or () when the service has
+    no such key (its workers are threads)."""
+    import dataclasses
+    import typing
+
+    from ...service.config import ServiceSection
+
+    fields = {f.name: f for f in dataclasses.fields(ServiceSection)}
+    if "worker_mode" not in fields:
+        return ()
+    hint = typing.get_type_hints(ServiceSection).get("worker_mode")
+    values = typing.get_args(hint) if typing.get_origin(hint) is typing.Literal else ()
+    return tuple(str(v) for v in values) or ("process", "thread")
+
+
 def service_doc(endpoint: str, storage: Path, methods: Sequence[str],
                 options: Mapping[str, Mapping[str, Any]], *, map_name: str, workers: int,
-                queue_size: int) -> dict[str, Any]:
+                queue_size: int, worker_mode: str | None = None) -> dict[str, Any]:
     """The service configuration (as parsed from TOML) of a benchmark service serving
-    ``map_name`` (loaded from ``storage`` if saved there, else empty)."""
+    ``map_name`` (loaded from ``storage`` if saved there, else empty). ``worker_mode``
+    (``service.worker_mode``) is set only when given: ValueError if the service has no such
+    mode."""
+    doc = _service_doc(endpoint, storage, methods, options, map_name=map_name,
+                       workers=workers, queue_size=queue_size)
+    if worker_mode is not None:
+        known = worker_modes_supported()
+        if worker_mode not in known:
+            raise ValueError(f"service.worker_mode {worker_mode!r}: this service knows "
+                             f"{list(known) or 'no worker_mode key (thread workers only)'}")
+        doc["service"]["worker_mode"] = worker_mode
+    return doc
+
+
+def _service_doc(endpoint: str, storage: Path, methods: Sequence[str],
+                 options: Mapping[str, Mapping[str, Any]], *, map_name: str, workers: int,
+                 queue_size: int) -> dict[str, Any]:
     return {"zenoh": {"mode": "peer", "listen": [endpoint], "multicast_scouting": False},
             "service": {"instance": f"bench-{endpoint.rsplit(':', 1)[1]}",
                         "storage": str(storage), "methods": list(methods),
@@ -46,14 +78,15 @@ def service_doc(endpoint: str, storage: Path, methods: Sequence[str],
 @contextlib.contextmanager
 def loopback_service(storage: Path, methods: Sequence[str],
                      options: Mapping[str, Mapping[str, Any]], *, map_name: str,
-                     workers: int = 2, queue_size: int = 8, process: bool = False
-                     ) -> Iterator[str]:
+                     workers: int = 2, queue_size: int = 8, process: bool = False,
+                     worker_mode: str | None = None) -> Iterator[str]:
     """A service serving the maps saved in ``storage``; yields its endpoint once it answers
     on ``map_name``. ``process``: ``reloc serve`` in a child process (its config and log are
-    kept next to ``storage``), else a :class:`~reloc_service.service.app.Service` here."""
+    kept next to ``storage``), else a :class:`~reloc_service.service.app.Service` here.
+    ``worker_mode``: ``service.worker_mode`` (see :func:`service_doc`)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     doc = service_doc(endpoint, storage, methods, options, map_name=map_name, workers=workers,
-                      queue_size=queue_size)
+                      queue_size=queue_size, worker_mode=worker_mode)
     if process:
         folder = storage.parent / f"service-{endpoint.rsplit(':', 1)[1]}"
         with service_process(doc, folder, map_name=map_name):

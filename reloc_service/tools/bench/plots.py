@@ -78,18 +78,22 @@ def plot_scaling(scaling: Mapping[str, Any], path: Path) -> Path:
 def plot_throughput(throughput: Mapping[str, Any], path: Path) -> Path:
     """Queries per second and p99 latency against concurrent clients."""
     plt = _pyplot()
-    runs = throughput["runs"]
-    clients = [r["clients"] for r in runs]
+    modes = throughput.get("modes") or {throughput.get("mode", "thread"): throughput["runs"]}
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
-    ax.plot(clients, [r["queries_per_s"] for r in runs], "o-", color="C0")
-    ax.set(xscale="log", xlabel="concurrent clients", ylabel="answered queries / s",
+    ax2 = ax.twinx()
+    for k, (mode, runs) in enumerate(modes.items()):
+        clients = [r["clients"] for r in runs]
+        ax.plot(clients, [r["queries_per_s"] for r in runs], "o-", color=f"C{k}",
+                label=f"{mode} workers: queries/s")
+        ax2.plot(clients, [r["p99_ms"] for r in runs], "s--", color=f"C{k}", alpha=0.6,
+                 label=f"{mode} workers: p99")
+        ax.set_xticks(clients, [str(c) for c in clients])
+    ax.set(xscale="log", xlabel="concurrent clients", ylabel="answered queries / s (solid)",
            title=f"throughput, {throughput['method']}, {throughput['workers']} workers")
-    ax.set_xticks(clients, [str(c) for c in clients])
     ax.set_ylim(bottom=0)
     ax.grid(True, alpha=0.3)
-    ax2 = ax.twinx()
-    ax2.plot(clients, [r["p99_ms"] for r in runs], "s--", color="C3")
-    ax2.set_ylabel("p99 round trip (ms)", color="C3")
+    ax.legend(fontsize=7, loc="upper left")
+    ax2.set_ylabel("p99 round trip, ms (dashed)")
     ax2.set_ylim(bottom=0)
     return _save(fig, path)
 
@@ -110,6 +114,9 @@ def plot_stages(latency: Mapping[str, Any], path: Path) -> Path:
     limit = latency["limit"]["sift_limit_p50_ms"]
     ax.axhline(limit, color="black", linestyle="--", linewidth=1,
                label=f"decode + SIFT alone ({limit:.0f} ms)")
+    orb = latency["limit"]["orb_limit_p50_ms"]
+    ax.axhline(orb, color="grey", linestyle=":", linewidth=1,
+               label=f"decode + ORB alone ({orb:.0f} ms)")
     ax.set(ylabel="median ms per query", title="where the time goes (in-process)")
     ax.tick_params(axis="x", labelsize=8)
     ax.legend(fontsize=7, ncol=2)

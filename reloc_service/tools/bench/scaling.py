@@ -250,8 +250,11 @@ def _place_finder_times(engine: Any, queries: Any, methods: Sequence[str], repea
     from .samples import decode_jpeg
 
     out: dict[str, float] = {}
-    for method in methods:
-        place = getattr(engine.relocalizer(method), "place", None)
+    relocs = [engine.relocalizer(m) for m in methods]
+    # a fallback chain's place finders are its steps'
+    steps = [step for r in relocs for step in getattr(r, "steps", [r])]
+    for step in steps:
+        place = getattr(step, "place", None)
         if place is None or place.name in out:
             continue
         times = []

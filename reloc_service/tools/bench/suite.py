@@ -6,18 +6,22 @@ against the limit of the work itself (JPEG decode + feature extraction).
 formats it. Sections, each a function of a shared :class:`~.workspace.Workspace` (the scene,
 its trained engines, the run's sizes; measurement helpers in :mod:`.samples`):
 
-- ``latency``: per method, in-process (:class:`Engine`) and over Zenoh on loopback, p50/p99
-  and the per-stage breakdown, and the decode + features limit of the same queries;
-- ``peers``: the plain OpenCV pipeline (:mod:`.peers`) and PoseLib against
-  ``cv2.solvePnPRansac`` on the correspondences our matcher finds;
-- ``throughput``: 1, 2, 4, 8 concurrent Zenoh clients;
+- ``latency``: per method (the service's default method first, labelled ``default``),
+  in-process (:class:`Engine`) and over Zenoh on loopback, p50/p99 and the per-stage
+  breakdown, and the decode + features limit of the same queries;
+- ``peers``: the plain OpenCV pipeline (:mod:`.peers`) against the default method and
+  ``sbi+p3p``, and PoseLib against ``cv2.solvePnPRansac`` on the correspondences our
+  matcher finds;
+- ``throughput``: 1, 2, 4, 8 concurrent Zenoh clients against ``reloc serve`` with the
+  default method, per worker mode (process, thread) the service knows;
 - ``scaling``: maps of 10, 100, 1000 keyframes (:mod:`.scaling`);
 - ``ferns``: the ferns classifier (:mod:`.ferns_bench`);
 - ``planar``: micro-benchmarks of the multi relocalizer on a textured plane
   (:mod:`.multi_bench`, full run only).
 
-Two sections run only when named with ``--only``: ``accuracy`` (:mod:`.accuracy`) and
-``soak``, the reliability soak run with kill -9 / SIGTERM restarts (:mod:`.soak`).
+The CLI adds ``accuracy`` (:mod:`.accuracy`: the presets and the real sets, run by every
+whole run) and, only when named with ``--only``, ``soak``, the reliability soak run with
+kill -9 / SIGTERM restarts (:mod:`.soak`); then the targets table (:mod:`.targets`).
 
 OpenCV runs on one thread throughout (as each service worker uses one core), so the figures
 do not depend on how many cores happen to be free; the load average is recorded.
@@ -45,6 +49,7 @@ from ...features import FeatureConf, extract
 from ...frame import Frame
 from ...progress import progress
 from ...relocalizers.base import RelocResult
+from ...relocalizers.factory import DEFAULT_METHOD
 from .machine import load_average, machine_record
 from .samples import (
     JPEG_QUALITY,
@@ -157,9 +162,10 @@ def _remote_summary(replies: Sequence[Any], local: Sequence[tuple[int, RelocResu
 # -- section: peers ----------------------------------------------------------------------------
 
 def bench_peers(ws: Workspace) -> dict[str, Any]:
-    """The plain OpenCV pipeline against ours (``sbi+p3p``, in-process), query by query in
-    turn; and PoseLib against ``cv2.solvePnPRansac`` on the correspondences our matcher
-    finds for each query."""
+    """The plain OpenCV pipeline against ours (the default method, and ``sbi+p3p``, the SIFT
+    path; in-process), query by query in turn; and PoseLib against ``cv2.solvePnPRansac`` on
+    the correspondences our matcher finds for each query. ``latency_over_ours`` is each
+    row's p50 over the default method's."""
     from .peers import PlainMap, PlainOpenCVPipeline
 
     q, engine = ws.queries, ws.engines["default"]
@@ -167,21 +173,26 @@ def bench_peers(ws: Workspace) -> dict[str, Any]:
     plains = {"plain_opencv": PlainOpenCVPipeline(PlainMap.from_state(state), q.camera),
               "plain_opencv_dedup": PlainOpenCVPipeline(PlainMap.from_state(state, dedupe=True),
                                                         q.camera)}
-    ours: list[tuple[int, RelocResult]] = []
+    mine = {"ours": DEFAULT_METHOD, "ours_sift": "sbi+p3p"}
+    ours: dict[str, list[tuple[int, RelocResult]]] = {k: [] for k in mine}
     theirs: dict[str, list[tuple[int, Any]]] = {k: [] for k in plains}
     for p in plains.values():
         p.relocalize_jpeg(q.jpegs[0])  # warm-up
     passes = [(r, i) for r in range(ws.conf.repeats) for i in range(len(q))]
     for _, i in progress(passes, desc="plain OpenCV vs ours"):
-        ours.append((i, relocalize_jpeg(engine, q.jpegs[i], q.camera, "sbi+p3p")))
+        for key, method in mine.items():
+            ours[key].append((i, relocalize_jpeg(engine, q.jpegs[i], q.camera, method)))
         for name, p in plains.items():
             theirs[name].append((i, p.relocalize_jpeg(q.jpegs[i])))
-    ours_row = summarize_samples(ours, q)
-    out: dict[str, Any] = {"ours": {"method": "sbi+p3p", **ours_row}}
+    out: dict[str, Any] = {}
+    for key, method in mine.items():
+        out[key] = {"method": method, **summarize_samples(ours[key], q)}
+    base = out["ours"]["p50_ms"]
+    out["ours_sift"]["latency_over_ours"] = out["ours_sift"]["p50_ms"] / base
     for name, p in plains.items():
         row = summarize_plain(theirs[name], q)
         row["map_descriptors"] = len(p.map)
-        row["latency_over_ours"] = row["p50_ms"] / ours_row["p50_ms"]
+        row["latency_over_ours"] = row["p50_ms"] / base
         out[name] = row
     out["pnp"] = _pnp_on_our_matches(ws)
     return out
@@ -234,25 +245,48 @@ def _pnp_on_our_matches(ws: Workspace) -> dict[str, Any]:
 
 # -- section: throughput -----------------------------------------------------------------------
 
-def bench_throughput(ws: Workspace, method: str = "sbi+p3p") -> dict[str, Any]:
+def bench_throughput(ws: Workspace, method: str = DEFAULT_METHOD) -> dict[str, Any]:
     """Queries per second and latency with 1, 2, 4, 8 concurrent clients (each its own Zenoh
-    session, querying back to back with the JPEG queries) against one service with
-    ``service_workers`` workers; "busy" replies are counted apart."""
+    session, querying back to back with the JPEG queries) against ``reloc serve`` in its own
+    process with ``service_workers`` workers, once per worker mode the service knows
+    (``service.worker_mode``, process then thread); "busy" replies are counted apart and a
+    query that gets no reply at all is counted as lost."""
+    from .loopback import worker_modes_supported
+
+    conf = ws.conf
+    known = worker_modes_supported()
+    modes: list[str | None] = [m for m in conf.worker_modes if m in known] or [None]
+    by_mode = {}
+    for mode in modes:
+        by_mode[mode or "thread"] = _throughput_mode(ws, method, mode)
+    first = next(iter(by_mode))
+    return {"method": method, "workers": conf.service_workers, "queue_size": conf.service_queue,
+            "duration_s": conf.throughput_seconds, "reply_timeout_s": conf.reply_timeout_s,
+            "mode": first, "runs": by_mode[first], "modes": by_mode,
+            "worker_mode_key": bool(known),
+            "in_process_threads": _in_process_threads(ws, method, conf.throughput_seconds),
+            "note": "clients are threads of the benchmark process, each with its own Zenoh "
+                    "session; the service is `reloc serve` in its own process, as deployed"
+                    + ("" if known else "; this service has no `service.worker_mode` key: "
+                       "its workers are threads")}
+
+
+def _throughput_mode(ws: Workspace, method: str, mode: str | None) -> list[dict[str, Any]]:
+    """The client-count sweep against one ``reloc serve`` in worker mode ``mode``."""
     conf, q = ws.conf, ws.queries
     runs = []
-    with group_service(ws, "default", process=True) as endpoint:
+    with group_service(ws, "default", process=True, worker_mode=mode) as endpoint:
         with group_client(endpoint, q.camera) as client:
-            client.relocalize(q.jpegs[0], camera_id=CAMERA_ID, method=method)  # warm-up
-        for n in progress(list(conf.throughput_clients), desc="throughput (client counts)"):
-            runs.append(_throughput_run(endpoint, q, method, n, conf.throughput_seconds))
+            for _ in range(conf.service_workers):  # warm-up: every worker's first query
+                client.relocalize(q.jpegs[0], camera_id=CAMERA_ID, method=method)
+        for n in progress(list(conf.throughput_clients),
+                          desc=f"throughput, {mode or 'thread'} workers (client counts)"):
+            runs.append(_throughput_run(endpoint, q, method, n, conf.throughput_seconds,
+                                        conf.reply_timeout_s))
     base = runs[0]["queries_per_s"]
     for row in runs:
         row["speedup_over_first"] = row["queries_per_s"] / base if base else math.nan
-    return {"method": method, "workers": conf.service_workers, "queue_size": conf.service_queue,
-            "duration_s": conf.throughput_seconds, "runs": runs,
-            "in_process_threads": _in_process_threads(ws, method, conf.throughput_seconds),
-            "note": "clients are threads of the benchmark process, each with its own Zenoh "
-                    "session; the service is `reloc serve` in its own process, as deployed"}
+    return runs
 
 
 def _in_process_threads(ws: Workspace, method: str, duration_s: float,
@@ -283,28 +317,38 @@ def _in_process_threads(ws: Workspace, method: str, duration_s: float,
     return rows
 
 
-def _throughput_run(endpoint: str, q: QuerySet, method: str, n: int, duration_s: float
-                    ) -> dict[str, Any]:
-    from reloc_client.client import RelocClient, ServiceBusy
+def _throughput_run(endpoint: str, q: QuerySet, method: str, n: int, duration_s: float,
+                    reply_timeout_s: float = 60.0) -> dict[str, Any]:
+    """``n`` clients querying back to back for ``duration_s``: answers (ok or not
+    relocalized), busy replies (retried after 5 ms) and lost queries (no reply within
+    ``reply_timeout_s``; the client goes on with the next query)."""
+    from reloc_client.client import NoReplyError, RelocClient, ServiceBusy
 
-    counts = {"ok": 0, "not_relocalized": 0, "busy": 0}
+    counts = {"ok": 0, "not_relocalized": 0, "busy": 0, "lost": 0, "sent": 0}
     latencies: list[float] = []
     lock = threading.Lock()
     barrier = threading.Barrier(n + 1)
     errors: list[str] = []
 
     def client_loop(index: int) -> None:
-        with RelocClient(endpoint, map=MAP_NAME, timeout=120) as c:
+        with RelocClient(endpoint, map=MAP_NAME, timeout=reply_timeout_s) as c:
             barrier.wait()
             deadline = time.perf_counter() + duration_s
             i = index
             while time.perf_counter() < deadline:
+                with lock:
+                    counts["sent"] += 1
                 try:
                     r = c.relocalize(q.jpegs[i % len(q)], camera_id=CAMERA_ID, method=method)
                 except ServiceBusy:
                     with lock:
                         counts["busy"] += 1
                     time.sleep(0.005)
+                    continue
+                except NoReplyError:  # no reply at all: lost, which must never happen
+                    with lock:
+                        counts["lost"] += 1
+                    i += 1
                     continue
                 except Exception as exc:  # reported, not hidden
                     errors.append(f"{type(exc).__name__}: {exc}")
@@ -439,7 +483,12 @@ def headline(result: Mapping[str, Any]) -> dict[str, Any]:
     thr = result.get("throughput", {})
     if thr.get("runs"):
         first, last = thr["runs"][0], thr["runs"][-1]
-        h["throughput"] = {"clients": [first["clients"], last["clients"]],
+        every = [x for runs in (thr.get("modes") or {"": thr["runs"]}).values() for x in runs]
+        h["throughput"] = {"method": thr.get("method"), "workers": thr.get("workers"),
+                           "mode": thr.get("mode", "thread"),
+                           "busy": sum(x.get("busy", 0) for x in every),
+                           "lost": sum(x.get("lost", 0) for x in every),
+                           "clients": [first["clients"], last["clients"]],
                            "queries_per_s": [first["queries_per_s"], last["queries_per_s"]],
                            "ratio": last["queries_per_s"] / first["queries_per_s"]
                            if first["queries_per_s"] else None,
@@ -455,10 +504,14 @@ def headline(result: Mapping[str, Any]) -> dict[str, Any]:
     return h
 
 
-def run_suite(conf: SuiteConf, *, command: str = "", workdir: Path | None = None
+def run_suite(conf: SuiteConf, *, command: str = "", workdir: Path | None = None,
+              cache: Path | None = None,
+              checkpoint: Callable[[Mapping[str, Any]], None] | None = None
               ) -> dict[str, Any]:
     """Run the sections of ``conf``; a failing section is recorded (``{"error": ...}``) and
-    the others still run. Returns the JSON-ready result."""
+    the others still run. ``checkpoint`` is called with the result so far after every
+    section (so that an interrupted run keeps what it measured). Returns the JSON-ready
+    result."""
     started = time.perf_counter()
     result: dict[str, Any] = {
         "schema": "reloc-bench/1", "command": command, "suite": conf.name,
@@ -471,7 +524,7 @@ def run_suite(conf: SuiteConf, *, command: str = "", workdir: Path | None = None
         needs_scene = {"latency", "peers", "throughput", "scaling"} & set(conf.sections)
         ws = None
         if needs_scene:
-            ws = _run_section(result, "scene", lambda: prepare(conf, tmp))
+            ws = _run_section(result, "scene", lambda: prepare(conf, tmp, cache))
             if ws is not None:
                 result["scene"] = json_safe(ws.info)
         steps: dict[str, Callable[[], dict[str, Any]]] = {
@@ -488,6 +541,8 @@ def run_suite(conf: SuiteConf, *, command: str = "", workdir: Path | None = None
             section = _run_section(result, name, steps[name])
             if section is not None:
                 result[name] = json_safe(section)
+            if checkpoint is not None:
+                checkpoint(json_safe(result))
     result["headline"] = json_safe(headline(result))
     result["machine"]["load_average_at_end"] = load_average()
     result["duration_s"] = time.perf_counter() - started
