@@ -2,7 +2,9 @@
 together.
 
 Zenoh callbacks only enqueue (:class:`Service` is the :class:`~.zenoh_io.Dispatcher`):
-relocalize queries go to a bounded pool of worker threads (full: "busy" at once), status /
+relocalize queries go to a bounded pool of worker threads (full: "busy" at once), each
+answering on the maps themselves (``service.worker_mode = "thread"``) or handing the request
+to a worker process holding replicas of them (``"process"``, the default: :mod:`.processes`), status /
 train / map-copy queries to a small control pool, and keyframe and camera puts to their map's
 writer thread, which journals then applies them in arrival order (one writer per map, so one
 map's snapshot or training never holds up another map's puts).
@@ -41,6 +43,7 @@ from .durability import (
     recover_current,
     stored_map_names,
 )
+from .processes import EngineSpec, ProcessWorkers
 from .replication import Bootstrap, Peers
 from .runtime import MapRuntime
 from .workers import WorkerPool, stop_on_signals
@@ -73,6 +76,8 @@ class Service:
         self.layer: ZenohLayer | None = None
         self.ros2: Any = None     # the ROS 2 bridge ([ros2] enabled)
         self.relocalize_pool: WorkerPool | None = None
+        #: The worker processes (worker_mode "process"); they start with the first query.
+        self.processes: ProcessWorkers | None = None
         self.control_pool: WorkerPool | None = None
         #: Writes of maps this instance does not serve (rejected or ignored, in order) and the
         #: bootstrap's copy; each served map has its own writer in ``writers``.
@@ -109,6 +114,9 @@ class Service:
         s = self.conf.service
         self.relocalize_pool = WorkerPool("relocalize", workers=s.workers,
                                           queue_size=s.queue_size)
+        if s.worker_mode == "process":
+            self.processes = ProcessWorkers(s.workers, EngineSpec.of(
+                self.methods, self.conf.options, self.conf.mapping, self.limits))
         self.control_pool = WorkerPool("control", workers=1, queue_size=CONTROL_QUEUE)
         self.writer = WorkerPool("writer", workers=1, queue_size=s.writer_queue_size,
                                  max_bytes=s.writer_queue_bytes)
@@ -229,6 +237,8 @@ class Service:
         for pool in (self.relocalize_pool, self.control_pool):
             if pool is not None:           # queued queries finish; new ones get "busy"
                 pool.close(timeout=_left(deadline, share=0.5))
+        if self.processes is not None:
+            self.processes.close()
         for rt in list(self.maps.values()):
             try:
                 rt.close(final_snapshot=final_snapshot, timeout=_left(deadline))
@@ -351,6 +361,8 @@ class Service:
             trained = all(m["trained"] for m in engine.status()["methods"].values())
             if len(state.keyframes) and not trained and self.conf.service.train_on_load:
                 rt.start_training(None)
+        if self.processes is not None:
+            self.processes.attach(rt)
         return rt
 
     def _map_for_put(self, name: str, kind: EventKind, ident: Any,
@@ -550,7 +562,16 @@ class Service:
 
     def _relocalize(self, rt: MapRuntime, query: PendingQuery, queued_s: float) -> None:
         try:
-            query.reply(handlers.relocalize(rt, query.payload, queued_s=queued_s))
+            if self.processes is None:
+                query.reply(handlers.relocalize(rt, query.payload, queued_s=queued_s))
+                return
+            answer = self.processes.relocalize(rt.name, query.payload, queued_s)
+            if answer.error:
+                rt.stats.count("errors")
+                query.reply_err(answer.payload)
+            else:
+                rt.stats.record_relocalize(answer.ok, answer.total_s)
+                query.reply(answer.payload)
         except Exception as exc:
             rt.stats.count("errors")
             query.reply_err(error_reply(exc))
