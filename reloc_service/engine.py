@@ -380,9 +380,10 @@ class Engine:
 
     @classmethod
     def load(cls, directory: str | Path, conf: EngineConf | None = None, *,
-             progress: bool = False) -> Engine:
+             progress: bool = False, train: bool = True) -> Engine:
         """An engine over the map saved in ``directory``: each configured method gets every
-        keyframe, then its saved models (or is trained when it has none)."""
+        keyframe, then its saved models (or is trained when it has none; with ``train``
+        False it stays untrained, as in the engine saved: a replica of it)."""
         state, models_dir = load_map(directory)
         engine = cls(conf)
         engine.map.replace_state(state)
@@ -393,7 +394,8 @@ class Engine:
             engine._feed(live.relocalizer, engine._published, progress=progress,
                          desc=f"{method}: keyframes")
             path = models_dir / model_dir_name(method) if models_dir is not None else None
-            if path is None or not path.is_dir() or not live.relocalizer.load(path):
+            loaded = path is not None and path.is_dir() and live.relocalizer.load(path)
+            if not loaded and train:
                 live.relocalizer.train(progress=progress)
         return engine
 

@@ -164,8 +164,8 @@ def worker_main(conn: Connection, index: int) -> None:
         elif kind == "load":
             _, name, base, spec, cameras = msg
             try:
-                replicas[name] = ReplicaMap(name, Engine.load(base, spec.engine_conf()), spec,
-                                            cameras)
+                engine = Engine.load(base, spec.engine_conf(), train=False)   # as saved
+                replicas[name] = ReplicaMap(name, engine, spec, cameras)
             except Exception:
                 log.exception("worker %d: the replica of map %s did not load from %s", index,
                               name, base)
