@@ -18,7 +18,15 @@ import pytest
 from reloc_client import protocol as wire
 from reloc_client.client import RelocClient
 from reloc_client.protocol import ErrorCode
-from service_support import ROOT, endpoint, free_port, raw_session, service_conf, stop_process
+from service_support import (
+    ROOT,
+    endpoint,
+    free_port,
+    raw_session,
+    service_conf,
+    stop_process,
+    wait_until,
+)
 
 from reloc_service.service import handlers
 from reloc_service.service.app import Service
@@ -169,38 +177,51 @@ def test_a_query_after_an_applied_put_sees_it(served):
 
 
 def test_killed_worker_is_replaced_and_its_query_answered(served):
-    """kill -9 of both workers: the queries they held (or were handed) get an INTERNAL
-    error reply, every query gets exactly one reply, and the next queries are answered by
-    new processes."""
+    """kill -9 of both workers while each holds a query (stopped first, so they hold it for
+    sure): each of those queries gets one INTERNAL error reply naming the signal, and the
+    next queries are answered by new processes."""
     service, port, scene = served
-    assert service.processes is not None
-    before = service.processes.pids()
+    procs = service.processes
+    assert procs is not None
+    before = procs.pids()
     assert len(before) == 2
     key = wire.keys.relocalize("reloc", MAP)
-    payloads = [_request(scene.query_images[i % 3], f"k{i}") for i in range(6)]
+    payloads = [_request(scene.query_images[i % 3], f"k{i}") for i in range(4)]
     with raw_session(port) as session:
-        pending = [session.get(key, payload=p, timeout=60) for p in payloads]
+        for pid in before:
+            os.kill(pid, signal.SIGSTOP)
+        pending = [session.get(key, payload=p, timeout=60) for p in payloads[:2]]
+        wait_until(lambda: procs.in_flight == 2)
         for pid in before:
             os.kill(pid, signal.SIGKILL)
-        outcomes = []
         for h in pending:
             replies = list(h)
-            assert len(replies) == 1, replies
-            reply = replies[0]
-            if reply.ok is not None:
-                outcomes.append(_pose(reply.ok.payload.to_bytes())[0])
-            else:
-                error = wire.decode_error_reply(reply.err.payload.to_bytes())
-                assert error.code is ErrorCode.INTERNAL and "SIGKILL" in error.message, error
-                outcomes.append("error")
-        after = _get_all(session, key, payloads[:4])
-    assert "error" in outcomes, outcomes
-    assert [[kind for kind, _ in r] for r in after] == [["ok"]] * 4
+            assert len(replies) == 1 and replies[0].err is not None, replies
+            error = wire.decode_error_reply(replies[0].err.payload.to_bytes())
+            assert error.code is ErrorCode.INTERNAL and "SIGKILL" in error.message, error
+        after = _get_all(session, key, payloads)
+    assert [[kind for kind, _ in r] for r in after] == [["ok"]] * 4, after
     assert all(_pose(r[0][1])[0] in ("ok", "not_relocalized") for r in after)
-    now = service.processes.pids()
+    now = procs.pids()
     assert len(now) == 2 and not set(now) & set(before)
     for pid in before:
         assert not _alive(pid)
+
+
+def test_worker_killed_while_idle_costs_no_query(served):
+    """A worker killed between queries held none: the next queries are all answered."""
+    service, port, scene = served
+    procs = service.processes
+    assert procs is not None
+    victim = procs.pids()[0]
+    os.kill(victim, signal.SIGKILL)
+    wait_until(lambda: not _alive(victim))
+    key = wire.keys.relocalize("reloc", MAP)
+    with raw_session(port) as session:
+        replies = _get_all(session, key, [_request(scene.query_images[i % 3], f"i{i}")
+                                          for i in range(4)])
+    assert [[kind for kind, _ in r] for r in replies] == [["ok"]] * 4, replies
+    assert victim not in procs.pids() and len(procs.pids()) == 2
 
 
 def test_full_queue_is_busy_and_every_query_answered(synthetic_scene):

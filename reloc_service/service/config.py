@@ -106,9 +106,10 @@ class ServiceSection:
     #: shared; memory: one replica per worker). "thread": threads of this process querying
     #: its maps directly (one copy of each map; the GIL held outside OpenCV limits scaling).
     worker_mode: str = "process"
-    #: OpenCV's own threads (``cv2.setNumThreads``, process-wide); 0 keeps OpenCV's default
-    #: (every core, best latency for one query at a time). With as many workers as cores,
-    #: 1 avoids workers fighting over cores inside OpenCV.
+    #: OpenCV's own threads (``cv2.setNumThreads``) in the service process (map building,
+    #: and queries with thread workers); 0 keeps OpenCV's default (every core, best latency
+    #: for one query at a time). With as many thread workers as cores, 1 avoids workers
+    #: fighting over cores inside OpenCV. Worker processes always use 1 thread each.
     opencv_threads: int = 0
     #: Relocalize queries waiting for a worker; one more is answered "busy" at once.
     queue_size: int = 8

@@ -68,9 +68,6 @@ log = logging.getLogger(__name__)
 
 #: Seconds a worker gets to exit after "stop" before it is terminated, then killed.
 STOP_GRACE_S = 3.0
-#: Pause before replacing a worker that died, so a worker dying at once (a replica that does
-#: not load) does not spin the CPU.
-RESPAWN_PAUSE_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -269,6 +266,7 @@ class ProcessWorkers:
         self._started = False
         self._closed = False
         self._token = 0
+        self._in_flight = 0
         self._scratch = Path(tempfile.mkdtemp(prefix="reloc-replicas-"))
 
     # -- maps ------------------------------------------------------------------------------------
@@ -312,24 +310,40 @@ class ProcessWorkers:
 
     # -- queries ---------------------------------------------------------------------------------
     def relocalize(self, name: str, payload: bytes, queued_s: float) -> RemoteAnswer:
-        """Answer a RelocalizeRequest on a worker (blocks the calling pool thread)."""
-        handle = self._borrow()
-        try:
-            with self._lock:
-                self._token += 1
-                token = self._token
-            if handle.send(("query", token, name, payload, queued_s)):
-                answer = self._receive(handle, token)
+        """Answer a RelocalizeRequest on a worker (blocks the calling pool thread). A worker
+        found dead before it got the query is replaced and the query sent to the new one; a
+        worker dying while it holds the query gives it an INTERNAL error reply."""
+        for _ in range(2):
+            handle = self._borrow()
+            try:
+                with self._lock:
+                    self._token += 1
+                    token = self._token
+                    self._in_flight += 1
+                try:
+                    if not handle.send(("query", token, name, payload, queued_s)):
+                        continue   # gone before the query reached it: not held, send it again
+                    answer = self._receive(handle, token)
+                finally:
+                    with self._lock:
+                        self._in_flight -= 1
                 if answer is not None:
                     return answer
-            why = handle.exit_description()
-            log.error("relocalize worker process %d %s while answering a query on map %s; "
-                      "replacing it", handle.process.pid, why, name)
-            return RemoteAnswer(wire.encode_error(
-                ErrorCode.INTERNAL, f"the worker process answering this query {why}; it is "
-                                    "being replaced: retry"), error=True)
-        finally:
-            self._give_back(handle)
+                why = handle.exit_description()
+                log.error("relocalize worker process %d %s while answering a query on map %s; "
+                          "it is replaced", handle.process.pid, why, name)
+                return _internal(f"the worker process answering this query {why}; it is being "
+                                 "replaced: retry")
+            finally:
+                self._give_back(handle)
+        return _internal("two worker processes in a row were gone before they got this query; "
+                         "retry")
+
+    @property
+    def in_flight(self) -> int:
+        """Queries sent to a worker and not answered yet."""
+        with self._lock:
+            return self._in_flight
 
     def _receive(self, handle: _Handle, token: int) -> RemoteAnswer | None:
         """The answer to query ``token`` (load acknowledgements read on the way); None if the
@@ -351,19 +365,22 @@ class ProcessWorkers:
                 return RemoteAnswer(msg[2], error=True)
 
     def _borrow(self) -> _Handle:
+        """An idle worker, live: one found dead is replaced first (an exception here, a
+        worker that does not start, becomes the query's error reply)."""
         self._ensure_started()
         with self._idle_ready:
             while not self._idle:
                 self._idle_ready.wait()
-            return self._idle.pop()
+            handle = self._idle.pop(0)   # round robin: every worker takes its turn
+        if not handle.dead and handle.process.is_alive():
+            return handle
+        try:
+            return self._replace(handle)
+        except BaseException:
+            self._give_back(handle)   # still dead: the next query tries again
+            raise
 
     def _give_back(self, handle: _Handle) -> None:
-        if handle.dead:
-            self._drop(handle)
-            if self._closed:
-                return
-            time.sleep(RESPAWN_PAUSE_S)
-            handle = self._spawn_one()
         with self._idle_ready:
             self._idle.append(handle)
             self._idle_ready.notify()
@@ -374,7 +391,12 @@ class ProcessWorkers:
             if self._started:
                 return
             self._started = True
-        handles = [self._new_process() for _ in range(self.count)]
+        try:
+            handles = [self._new_process() for _ in range(self.count)]
+        except BaseException:
+            with self._lock:
+                self._started = False   # the next query tries again
+            raise
         with self._lock:
             self._handles.extend(handles)
         for rt in self._attached():
@@ -382,6 +404,13 @@ class ProcessWorkers:
         with self._idle_ready:
             self._idle.extend(handles)
             self._idle_ready.notify_all()
+
+    def _replace(self, dead: _Handle) -> _Handle:
+        """A new worker (with fresh bases of every map) in place of ``dead``."""
+        self._drop(dead)
+        if self._closed:
+            raise RuntimeError("the service is stopping")
+        return self._spawn_one()
 
     def _spawn_one(self) -> _Handle:
         handle = self._new_process()
@@ -442,6 +471,10 @@ class ProcessWorkers:
             handle.process.join(max(0.0, deadline - time.monotonic()))
             _terminate(handle)
         shutil.rmtree(self._scratch, ignore_errors=True)
+
+
+def _internal(message: str) -> RemoteAnswer:
+    return RemoteAnswer(wire.encode_error(ErrorCode.INTERNAL, message), error=True)
 
 
 def _terminate(handle: _Handle) -> None:
