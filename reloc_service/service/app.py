@@ -560,18 +560,23 @@ class Service:
         self._publish_event(map_name, kind, {"id": ident, "code": code.value,
                                              "message": message})
 
+    def relocalize_payload(self, rt: MapRuntime, payload: bytes, queued_s: float) -> bytes:
+        """RelocalizeRequest bytes -> RelocalizeReply bytes, on a worker process (worker_mode
+        "process") or in this thread; a failure raises as :func:`handlers.relocalize` does
+        (ProtocolError with the worker's code). Called from a relocalize pool thread (Zenoh
+        queries, the ROS 2 bridge)."""
+        if self.processes is None:
+            return handlers.relocalize(rt, payload, queued_s=queued_s)
+        answer = self.processes.relocalize(rt.name, payload, queued_s)
+        if answer.error:
+            error = wire.decode_error_reply(answer.payload)
+            raise ProtocolError(error.code, error.message)
+        rt.stats.record_relocalize(answer.ok, answer.total_s)
+        return answer.payload
+
     def _relocalize(self, rt: MapRuntime, query: PendingQuery, queued_s: float) -> None:
         try:
-            if self.processes is None:
-                query.reply(handlers.relocalize(rt, query.payload, queued_s=queued_s))
-                return
-            answer = self.processes.relocalize(rt.name, query.payload, queued_s)
-            if answer.error:
-                rt.stats.count("errors")
-                query.reply_err(answer.payload)
-            else:
-                rt.stats.record_relocalize(answer.ok, answer.total_s)
-                query.reply(answer.payload)
+            query.reply(self.relocalize_payload(rt, query.payload, queued_s))
         except Exception as exc:
             rt.stats.count("errors")
             query.reply_err(error_reply(exc))

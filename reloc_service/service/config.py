@@ -269,12 +269,14 @@ def load_config(path: str | Path | None = None) -> ServiceConf:
 def with_overrides(conf: ServiceConf, *, mode: str | None = None,
                    listen: Sequence[str] | None = None, connect: Sequence[str] | None = None,
                    storage: str | None = None, workers: int | None = None,
-                   instance: str | None = None, prefix: str | None = None) -> ServiceConf:
+                   instance: str | None = None, prefix: str | None = None,
+                   worker_mode: str | None = None) -> ServiceConf:
     """``conf`` with the explicitly given command-line values replacing the file's."""
     z: dict[str, Any] = {k: v for k, v in (("mode", mode), ("listen", listen),
                                            ("connect", connect)) if v is not None}
     s: dict[str, Any] = {k: v for k, v in (("storage", storage), ("workers", workers),
-                                           ("instance", instance), ("prefix", prefix))
+                                           ("instance", instance), ("prefix", prefix),
+                                           ("worker_mode", worker_mode))
                          if v is not None}
     for key in ("listen", "connect"):
         if key in z:
