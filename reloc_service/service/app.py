@@ -665,12 +665,25 @@ def serve(conf: ServiceConf) -> int:
     except BaseException:
         service.stop(final_snapshot=False)
         raise
+    if service.processes is not None:   # the first query does not wait for them
+        threading.Thread(target=_start_workers, args=(service,), name="start-workers",
+                         daemon=True).start()
     service.run_forever(stop)
     # a restore stops at its next journal record; a snapshot load cannot: left to os._exit
     if not service.wait_ready(timeout=conf.service.stop_timeout_s):
         log.warning("a map restore was still running at exit")
     _exit_if_threads_linger(0)
     return 0
+
+
+def _start_workers(service: Service) -> None:
+    """Start the worker processes once every map is restored (each loads them all)."""
+    service.wait_ready()
+    assert service.processes is not None
+    try:
+        service.processes.start()
+    except Exception as exc:   # the first query tries again and reports it
+        log.error("starting the relocalize worker processes failed: %s", exc)
 
 
 def _exit_if_threads_linger(code: int) -> None:

@@ -30,8 +30,9 @@ gives the query it held an INTERNAL error reply and is replaced (new process, fr
 Processes are forked from a ``forkserver`` (a clean single-threaded server started by exec,
 with this module preloaded): never a fork of the service with Zenoh threads running, and a
 new worker costs a fork rather than a fresh interpreter importing OpenCV (~2 s CPU). Each
-worker uses one OpenCV thread (the processes are the parallelism). Workers start with the
-first relocalize query, so a service that only builds maps never pays for them.
+worker uses one OpenCV thread (the processes are the parallelism). Workers start when
+``reloc serve`` has restored its maps (:meth:`ProcessWorkers.start`), or with the first
+relocalize query (a :class:`~.app.Service` used as a library).
 """
 
 from __future__ import annotations
@@ -258,6 +259,7 @@ class ProcessWorkers:
         self._ctx = multiprocessing.get_context("forkserver")
         self._ctx.set_forkserver_preload([__name__])
         self._lock = threading.Lock()                 # handles, idle list, bases, maps
+        self._start_lock = threading.Lock()           # the first start of the workers
         self._handles: list[_Handle] = []
         self._idle: list[_Handle] = []
         self._idle_ready = threading.Condition(self._lock)
@@ -386,19 +388,26 @@ class ProcessWorkers:
             self._idle_ready.notify()
 
     # -- life cycle ------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the workers now (``reloc serve`` does once its maps are restored, so the
+        first query does not wait for them); else the first query starts them. Idempotent;
+        nothing happens once :meth:`close` was called."""
+        self._ensure_started()
+
     def _ensure_started(self) -> None:
-        with self._lock:
-            if self._started:
-                return
-            self._started = True
-        try:
-            handles = [self._new_process() for _ in range(self.count)]
-        except BaseException:
+        with self._start_lock:   # one start; close() waits for it (no worker left behind)
             with self._lock:
-                self._started = False   # the next query tries again
-            raise
-        with self._lock:
-            self._handles.extend(handles)
+                if self._started or self._closed:
+                    return
+                self._started = True
+            try:
+                handles = [self._new_process() for _ in range(self.count)]
+            except BaseException:
+                with self._lock:
+                    self._started = False   # the next query tries again
+                raise
+            with self._lock:
+                self._handles.extend(handles)
         for rt in self._attached():
             self.rebase(rt, handles)
         with self._idle_ready:
@@ -460,7 +469,7 @@ class ProcessWorkers:
 
     def close(self) -> None:
         """Stop every worker (asked, then terminated, then killed) and delete the bases."""
-        with self._lock:
+        with self._start_lock, self._lock:
             self._closed = True
             handles = list(self._handles)
             self._handles.clear()
