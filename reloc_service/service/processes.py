@@ -275,12 +275,13 @@ class ProcessWorkers:
     def attach(self, rt: MapRuntime) -> None:
         """Serve map ``rt`` from the workers too: its changes are forwarded from now on, and
         the running workers load its current state."""
-        with self._lock:
-            self._maps[rt.name] = rt
-            handles = [h for h in self._handles if not h.dead]
-        rt.replicas = self
-        if handles:
-            self.rebase(rt, handles)
+        with rt.apply_lock():   # no change between the first forward and the first base
+            rt.replicas = self
+            with self._lock:
+                self._maps[rt.name] = rt
+                handles = [h for h in self._handles if not h.dead]
+            if handles:
+                self.rebase(rt, handles)
 
     def forward(self, name: str, op: str, *args: Any) -> None:
         """Send a change the parent just applied to every worker (called under the map's
