@@ -70,6 +70,8 @@ def served(synthetic_scene):
     service = _serve(service_conf(port, "", maps=(MAP,), workers=2, queue_size=8),
                      synthetic_scene)
     assert service.conf.service.worker_mode == "process"   # the default
+    assert service.processes is not None
+    service.processes.start()   # as `reloc serve` does once its maps are restored
     try:
         yield service, port, synthetic_scene
     finally:
@@ -208,8 +210,11 @@ def test_killed_worker_is_replaced_and_its_query_answered(served):
         assert not _alive(pid)
 
 
-def test_worker_killed_while_idle_costs_no_query(served):
-    """A worker killed between queries held none: the next queries are all answered."""
+def test_worker_killed_while_idle_is_replaced(served):
+    """A worker killed between queries: each query still gets exactly one reply, at most
+    the one handed to the dead worker an INTERNAL error (usually none: a worker found dead
+    before it got the query is replaced and the query sent again), then every query is
+    answered by a new process."""
     service, port, scene = served
     procs = service.processes
     assert procs is not None
@@ -217,10 +222,15 @@ def test_worker_killed_while_idle_costs_no_query(served):
     os.kill(victim, signal.SIGKILL)
     wait_until(lambda: not _alive(victim))
     key = wire.keys.relocalize("reloc", MAP)
+    payloads = [_request(scene.query_images[i % 3], f"i{i}") for i in range(4)]
     with raw_session(port) as session:
-        replies = _get_all(session, key, [_request(scene.query_images[i % 3], f"i{i}")
-                                          for i in range(4)])
-    assert [[kind for kind, _ in r] for r in replies] == [["ok"]] * 4, replies
+        first = _get_all(session, key, payloads)
+        then = _get_all(session, key, payloads)
+    assert all(len(r) == 1 for r in first), first
+    errors = [wire.decode_error_reply(r[0][1]) for r in first if r[0][0] == "err"]
+    assert len(errors) <= 1 and all(e.code is ErrorCode.INTERNAL and "SIGKILL" in e.message
+                                    for e in errors), (victim, errors)
+    assert [[kind for kind, _ in r] for r in then] == [["ok"]] * 4, then
     assert victim not in procs.pids() and len(procs.pids()) == 2
 
 
