@@ -380,10 +380,11 @@ class Engine:
 
     @classmethod
     def load(cls, directory: str | Path, conf: EngineConf | None = None, *,
-             progress: bool = False) -> Engine:
+             progress: bool = False, train: bool = True) -> Engine:
         """An engine over the map saved in ``directory``. A method with saved models is
         created over the loaded map and restores them (nothing is re-added or retrained);
-        one without is fed every keyframe and trained."""
+        one without is fed every keyframe and trained (with ``train`` False it stays
+        untrained, as in the engine saved: a replica of it)."""
         state, models_dir = load_map(directory)
         engine = cls(conf)
         engine.map.replace_state(state)
@@ -399,7 +400,8 @@ class Engine:
                     continue
             engine._feed(live.relocalizer, engine._published, progress=progress,
                          desc=f"{method}: keyframes")
-            live.relocalizer.train(progress=progress)
+            if train:
+                live.relocalizer.train(progress=progress)
         return engine
 
     def close(self) -> None:

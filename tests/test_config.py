@@ -51,6 +51,7 @@ def test_unknown_keys_name_the_key_and_the_allowed_ones(doc, named):
     ({"service": {"workers": 0}}, "service.workers"),
     ({"service": {"workers": "2"}}, "expected int"),
     ({"service": {"opencv_threads": -1}}, "service.opencv_threads"),
+    ({"service": {"worker_mode": "fork"}}, "service.worker_mode: expected one of"),
     ({"service": {"default_method": "ferns"}}, "default_method"),
     ({"service": {"prefix": "a/*"}}, "prefix"),
     ({"maps": {"bad name": {}}}, "whitespace"),
@@ -75,6 +76,8 @@ def test_flags_override_the_file(tmp_path):
     assert over.zenoh.mode == "peer" and over.zenoh.listen == ("tcp/127.0.0.1:9000",)
     assert over.zenoh.connect == ("tcp/10.0.0.1:7447",)      # not given: kept
     assert over.service.workers == 1 and over.storage_path is None
+    assert conf.service.worker_mode == "process"                   # the default
+    assert with_overrides(conf, worker_mode="thread").service.worker_mode == "thread"
     assert with_overrides(conf) == conf
 
 

@@ -2,7 +2,9 @@
 together.
 
 Zenoh callbacks only enqueue (:class:`Service` is the :class:`~.zenoh_io.Dispatcher`):
-relocalize queries go to a bounded pool of worker threads (full: "busy" at once), status /
+relocalize queries go to a bounded pool of worker threads (full: "busy" at once), each
+answering on the maps themselves (``service.worker_mode = "thread"``) or handing the request
+to a worker process holding replicas of them (``"process"``, the default: :mod:`.processes`), status /
 train / map-copy queries to a small control pool, and keyframe and camera puts to their map's
 writer thread, which journals then applies them in arrival order (one writer per map, so one
 map's snapshot or training never holds up another map's puts).
@@ -41,6 +43,7 @@ from .durability import (
     recover_current,
     stored_map_names,
 )
+from .processes import EngineSpec, ProcessWorkers
 from .replication import Bootstrap, Peers
 from .runtime import MapRuntime
 from .workers import WorkerPool, stop_on_signals
@@ -73,6 +76,8 @@ class Service:
         self.layer: ZenohLayer | None = None
         self.ros2: Any = None     # the ROS 2 bridge ([ros2] enabled)
         self.relocalize_pool: WorkerPool | None = None
+        #: The worker processes (worker_mode "process"); they start with the first query.
+        self.processes: ProcessWorkers | None = None
         self.control_pool: WorkerPool | None = None
         #: Writes of maps this instance does not serve (rejected or ignored, in order) and the
         #: bootstrap's copy; each served map has its own writer in ``writers``.
@@ -109,6 +114,9 @@ class Service:
         s = self.conf.service
         self.relocalize_pool = WorkerPool("relocalize", workers=s.workers,
                                           queue_size=s.queue_size)
+        if s.worker_mode == "process":
+            self.processes = ProcessWorkers(s.workers, EngineSpec.of(
+                self.methods, self.conf.options, self.conf.mapping, self.limits))
         self.control_pool = WorkerPool("control", workers=1, queue_size=CONTROL_QUEUE)
         self.writer = WorkerPool("writer", workers=1, queue_size=s.writer_queue_size,
                                  max_bytes=s.writer_queue_bytes)
@@ -229,6 +237,8 @@ class Service:
         for pool in (self.relocalize_pool, self.control_pool):
             if pool is not None:           # queued queries finish; new ones get "busy"
                 pool.close(timeout=_left(deadline, share=0.5))
+        if self.processes is not None:
+            self.processes.close()
         for rt in list(self.maps.values()):
             try:
                 rt.close(final_snapshot=final_snapshot, timeout=_left(deadline))
@@ -351,6 +361,8 @@ class Service:
             trained = all(m["trained"] for m in engine.status()["methods"].values())
             if len(state.keyframes) and not trained and self.conf.service.train_on_load:
                 rt.start_training(None)
+        if self.processes is not None:
+            self.processes.attach(rt)
         return rt
 
     def _map_for_put(self, name: str, kind: EventKind, ident: Any,
@@ -548,9 +560,23 @@ class Service:
         self._publish_event(map_name, kind, {"id": ident, "code": code.value,
                                              "message": message})
 
+    def relocalize_payload(self, rt: MapRuntime, payload: bytes, queued_s: float) -> bytes:
+        """RelocalizeRequest bytes -> RelocalizeReply bytes, on a worker process (worker_mode
+        "process") or in this thread; a failure raises as :func:`handlers.relocalize` does
+        (ProtocolError with the worker's code). Called from a relocalize pool thread (Zenoh
+        queries, the ROS 2 bridge)."""
+        if self.processes is None:
+            return handlers.relocalize(rt, payload, queued_s=queued_s)
+        answer = self.processes.relocalize(rt.name, payload, queued_s)
+        if answer.error:
+            error = wire.decode_error_reply(answer.payload)
+            raise ProtocolError(error.code, error.message)
+        rt.stats.record_relocalize(answer.ok, answer.total_s)
+        return answer.payload
+
     def _relocalize(self, rt: MapRuntime, query: PendingQuery, queued_s: float) -> None:
         try:
-            query.reply(handlers.relocalize(rt, query.payload, queued_s=queued_s))
+            query.reply(self.relocalize_payload(rt, query.payload, queued_s))
         except Exception as exc:
             rt.stats.count("errors")
             query.reply_err(error_reply(exc))
@@ -639,12 +665,25 @@ def serve(conf: ServiceConf) -> int:
     except BaseException:
         service.stop(final_snapshot=False)
         raise
+    if service.processes is not None:   # the first query does not wait for them
+        threading.Thread(target=_start_workers, args=(service,), name="start-workers",
+                         daemon=True).start()
     service.run_forever(stop)
     # a restore stops at its next journal record; a snapshot load cannot: left to os._exit
     if not service.wait_ready(timeout=conf.service.stop_timeout_s):
         log.warning("a map restore was still running at exit")
     _exit_if_threads_linger(0)
     return 0
+
+
+def _start_workers(service: Service) -> None:
+    """Start the worker processes once every map is restored (each loads them all)."""
+    service.wait_ready()
+    assert service.processes is not None
+    try:
+        service.processes.start()
+    except Exception as exc:   # the first query tries again and reports it
+        log.error("starting the relocalize worker processes failed: %s", exc)
 
 
 def _exit_if_threads_linger(code: int) -> None:

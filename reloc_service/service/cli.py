@@ -1,7 +1,7 @@
 """``reloc serve`` and ``reloc router``: parse, load the configuration, run until a signal.
 
 Explicit flags override ``--config``: ``--mode``, ``--listen``, ``--connect``, ``--storage``,
-``--workers``. Without ``--config`` the embedded default applies (a Zenoh peer listening on
+``--workers``, ``--worker-mode``. Without ``--config`` the embedded default applies (a Zenoh peer listening on
 ``tcp/127.0.0.1:7447``, multicast scouting off: no router needed).
 """
 
@@ -45,7 +45,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(parser, modes=("peer", "client", "router"))
     parser.add_argument("--storage", metavar="DIR",
                         help="journal and snapshot directory ('' keeps maps in memory only)")
-    parser.add_argument("--workers", type=int, metavar="N", help="relocalize worker threads")
+    parser.add_argument("--workers", type=int, metavar="N", help="relocalize workers")
+    parser.add_argument("--worker-mode", choices=["process", "thread"],
+                        help="relocalize workers as processes (each with a replica of the "
+                        "maps: scales with cores) or threads of the service (one copy of the "
+                        "maps)")
     parser.add_argument("--instance", metavar="NAME", help="instance name in liveliness tokens")
     parser.add_argument("--log-level", default="INFO",
                         choices=["DEBUG", "INFO", "WARNING", "ERROR"])
@@ -59,7 +63,8 @@ def load_service_config(args: argparse.Namespace) -> Any:
 
     conf = load_config(args.config)
     return with_overrides(conf, mode=args.mode, listen=args.listen, connect=args.connect,
-                          storage=args.storage, workers=args.workers, instance=args.instance)
+                          storage=args.storage, workers=args.workers, instance=args.instance,
+                          worker_mode=args.worker_mode)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -148,6 +148,20 @@ def resolve_camera(rt: CameraRegistry, camera_id: str | None, camera: wire.WireC
     return found
 
 
+def served_method(map_name: str, methods: tuple[str, ...], default_method: str,
+                  method: str | None) -> str:
+    """``method`` (default: ``default_method``) if it is one of ``methods``; UNKNOWN_METHOD
+    naming the served ones otherwise."""
+    if method is None:
+        return default_method
+    method = ",".join(p.strip() for p in method.split(","))
+    if method not in methods:
+        raise ProtocolError(ErrorCode.UNKNOWN_METHOD,
+                            f"method {method!r} is not served on map {map_name!r}; "
+                            f"served: {list(methods)}")
+    return method
+
+
 # -- map building (decoded here, applied by the runtime's writer) -----------------------------
 
 @dataclass(frozen=True, eq=False)

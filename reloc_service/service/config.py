@@ -4,7 +4,7 @@ dataclasses; explicit command-line flags override it.
 Layout (every section and key optional; the embedded default equals ``config/default.toml``)::
 
     [zenoh]     mode, listen, connect, multicast_scouting, config_file (a Zenoh JSON5 file)
-    [service]   instance, prefix, storage, workers, queue_size, methods, default_method, ...
+    [service]   instance, prefix, storage, workers, worker_mode, queue_size, methods, ...
     [limits]    max_payload_bytes, max_image_pixels, max_features, max_hypotheses
     [maps.NAME] maps served from the start (a table, possibly empty, per map)
     [options.PLUGIN]  plugin options (``[options.sbi]``, ``[options.p3p]``, ``[options.verify]``)
@@ -32,6 +32,7 @@ from ..relocalizers.factory import DEFAULT_METHOD
 from .ros2.conf import Ros2Conf
 
 ZENOH_MODES = ("peer", "client", "router")
+WORKER_MODES = ("process", "thread")
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 DEFAULT_CONFIG_FILE = Path(__file__).resolve().parents[2] / "config" / "default.toml"
 
@@ -98,11 +99,17 @@ class ServiceSection:
     #: Directory of journals and snapshots (``~`` expanded; relative to the working
     #: directory); empty: keep maps in memory only (nothing survives a restart).
     storage: str = "~/.local/share/reloc/maps"
-    #: Threads answering relocalize queries (OpenCV, NumPy and PoseLib release the GIL).
+    #: Relocalize workers (processes or threads, see ``worker_mode``).
     workers: int = 2
-    #: OpenCV's own threads (``cv2.setNumThreads``, process-wide); 0 keeps OpenCV's default
-    #: (every core, best latency for one query at a time). With as many workers as cores,
-    #: 1 avoids workers fighting over cores inside OpenCV.
+    #: "process": each worker is a process holding a read-only replica of every served map,
+    #: kept current by the changes applied here, in order (queries scale with cores: no GIL
+    #: shared; memory: one replica per worker). "thread": threads of this process querying
+    #: its maps directly (one copy of each map; the GIL held outside OpenCV limits scaling).
+    worker_mode: str = "process"
+    #: OpenCV's own threads (``cv2.setNumThreads``) in the service process (map building,
+    #: and queries with thread workers); 0 keeps OpenCV's default (every core, best latency
+    #: for one query at a time). With as many thread workers as cores, 1 avoids workers
+    #: fighting over cores inside OpenCV. Worker processes always use 1 thread each.
     opencv_threads: int = 0
     #: Relocalize queries waiting for a worker; one more is answered "busy" at once.
     queue_size: int = 8
@@ -139,6 +146,9 @@ class ServiceSection:
             if getattr(self, name) < 1:
                 raise ConfigError(f"service.{name}: expected an integer >= 1, got "
                                   f"{getattr(self, name)}")
+        if self.worker_mode not in WORKER_MODES:
+            raise ConfigError(f"service.worker_mode: expected one of {list(WORKER_MODES)}, got "
+                              f"{self.worker_mode!r}")
         if self.opencv_threads < 0:
             raise ConfigError(f"service.opencv_threads: expected >= 0 (0: OpenCV's default), "
                               f"got {self.opencv_threads}")
@@ -259,12 +269,14 @@ def load_config(path: str | Path | None = None) -> ServiceConf:
 def with_overrides(conf: ServiceConf, *, mode: str | None = None,
                    listen: Sequence[str] | None = None, connect: Sequence[str] | None = None,
                    storage: str | None = None, workers: int | None = None,
-                   instance: str | None = None, prefix: str | None = None) -> ServiceConf:
+                   instance: str | None = None, prefix: str | None = None,
+                   worker_mode: str | None = None) -> ServiceConf:
     """``conf`` with the explicitly given command-line values replacing the file's."""
     z: dict[str, Any] = {k: v for k, v in (("mode", mode), ("listen", listen),
                                            ("connect", connect)) if v is not None}
     s: dict[str, Any] = {k: v for k, v in (("storage", storage), ("workers", workers),
-                                           ("instance", instance), ("prefix", prefix))
+                                           ("instance", instance), ("prefix", prefix),
+                                           ("worker_mode", worker_mode))
                          if v is not None}
     for key in ("listen", "connect"):
         if key in z:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import cv2
 import numpy as np
@@ -21,8 +21,9 @@ from reloc_client.result import reply_from_result
 
 from ..cameras import Camera
 from ..frame import Frame
-from ..relocalizers.base import Prior
-from .codec import decode_image, resolve_camera
+from ..map import MapState
+from ..relocalizers.base import Prior, RelocResult
+from .codec import CameraRegistry, decode_image, resolve_camera
 
 if TYPE_CHECKING:
     from .runtime import MapRuntime
@@ -30,7 +31,21 @@ if TYPE_CHECKING:
 
 # -- relocalize -------------------------------------------------------------------------------
 
-def check_query_camera(rt: MapRuntime, camera: Camera, path: str) -> None:
+class QueryMap(CameraRegistry, Protocol):
+    """What answering a relocalize query needs of a map: the service's :class:`MapRuntime`,
+    or a worker process's replica (:class:`.processes.ReplicaMap`)."""
+
+    def cameras(self) -> dict[str, Camera]: ...
+
+    def map_state(self) -> MapState: ...
+
+    def check_method(self, method: str | None) -> str: ...
+
+    def relocalize(self, frame: Frame, *, method: str, prior: Prior | None,
+                   hypotheses: int) -> RelocResult: ...
+
+
+def check_query_camera(rt: QueryMap, camera: Camera, path: str) -> None:
     """An inline query camera may be no larger (in pixels) than the map's largest known
     camera: a query costs about 215 bytes of peak memory per pixel (measured, sbi/bow), so a
     4096x4096 query against a VGA map would cost 3.6 GB. A map with no camera yet is bounded
@@ -45,7 +60,7 @@ def check_query_camera(rt: MapRuntime, camera: Camera, path: str) -> None:
                         f"px (or name a camera of the map with camera_id)")
 
 
-def _largest_known_camera(rt: MapRuntime) -> tuple[int, int] | None:
+def _largest_known_camera(rt: QueryMap) -> tuple[int, int] | None:
     """(width, height) of the registered or keyframe camera with the most pixels."""
     sizes = [cam.size for cam in rt.cameras().values()]
     sizes += [kf.camera.size for kf in rt.map_state().keyframes.values()]
@@ -54,6 +69,17 @@ def _largest_known_camera(rt: MapRuntime) -> tuple[int, int] | None:
 
 def relocalize(rt: MapRuntime, payload: bytes, *, queued_s: float = 0.0) -> bytes:
     """RelocalizeRequest bytes -> RelocalizeReply bytes (ProtocolError for a bad request)."""
+    reply, ok, total = relocalize_reply(rt, payload, queued_s=queued_s)
+    rt.stats.record_relocalize(ok, total)
+    return reply
+
+
+def relocalize_reply(rt: QueryMap, payload: bytes, *, queued_s: float = 0.0
+                     ) -> tuple[bytes, bool, float]:
+    """(RelocalizeReply bytes, relocalized, total seconds) for RelocalizeRequest bytes on
+    ``rt`` (a map runtime or a worker process's replica: name, limits, cameras, methods,
+    map state, relocalize); ProtocolError for a bad request. Records no statistics (the
+    service's map runtime keeps them)."""
     start = time.perf_counter()
     request = wire.RelocalizeRequest.decode(payload, rt.limits)
     camera = resolve_camera(rt, request.camera_id, request.camera, "relocalize")
@@ -71,8 +97,7 @@ def relocalize(rt: MapRuntime, payload: bytes, *, queued_s: float = 0.0) -> byte
     timings["total"] = time.perf_counter() - start + queued_s
     answer = replace(result, timings=timings, request_id=request.request_id,
                      timestamp=request.timestamp)
-    rt.stats.record_relocalize(result.ok, timings["total"])
-    return reply_from_result(answer).encode()
+    return reply_from_result(answer).encode(), result.ok, timings["total"]
 
 
 def busy_reply(reason: str) -> bytes:

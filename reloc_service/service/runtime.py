@@ -18,11 +18,11 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from reloc_client import protocol as wire
-from reloc_client.protocol import ErrorCode, EventKind, ProtocolError
+from reloc_client.protocol import EventKind
 
 from ..cameras import Camera
 from ..engine import Engine
@@ -30,12 +30,27 @@ from ..errors import MapError, StorageError
 from ..frame import Frame
 from ..map import MapState
 from ..relocalizers.base import Prior, RelocResult
-from .codec import KeyframeInput, WithLimits, decode_camera_put, decode_keyframe_put, error_of
+from .codec import (
+    KeyframeInput,
+    WithLimits,
+    decode_camera_put,
+    decode_keyframe_put,
+    error_of,
+    served_method,
+)
 from .durability import REPLAY_LIMITS, MapStore, RestoreReport, ServiceMeta
 
 log = logging.getLogger(__name__)
 
 Publish = Callable[[str, EventKind, dict[str, Any]], None]
+
+
+class Replicas(Protocol):
+    """Where a map's applied changes go besides its engine (:class:`.processes.ProcessWorkers`)."""
+
+    def forward(self, name: str, op: str, *args: Any) -> None: ...
+
+    def rebase(self, rt: MapRuntime) -> None: ...
 
 
 class Stats:
@@ -119,6 +134,9 @@ class MapRuntime:
         self._unapplied: set[int] = set()
         self._journal_ahead = False
         self._closed = False
+        #: The worker processes holding replicas of this map (worker_mode "process"): every
+        #: change applied here is forwarded to them, in order (see :mod:`.processes`).
+        self.replicas: Replicas | None = None
 
     # -- reading -------------------------------------------------------------------------------
     def camera(self, camera_id: str) -> Camera | None:
@@ -133,20 +151,18 @@ class MapRuntime:
     def keyframe_camera_id(self, kf_id: int) -> str | None:
         return self._kf_camera_ids.get(kf_id)
 
+    def apply_lock(self) -> threading.RLock:
+        """The lock under which changes are journaled and applied, in order (held, no change
+        is applied: the replica processes save a base under it)."""
+        return self._apply_lock
+
     def map_state(self) -> MapState:
         """The map as the relocalizers currently see it."""
         return self.engine.map.snapshot()
 
     def check_method(self, method: str | None) -> str:
         """``method`` (default: the map's default) if served; UNKNOWN_METHOD otherwise."""
-        if method is None:
-            return self.default_method
-        method = ",".join(p.strip() for p in method.split(","))
-        if method not in self.methods:
-            raise ProtocolError(ErrorCode.UNKNOWN_METHOD,
-                                f"method {method!r} is not served on map {self.name!r}; "
-                                f"served: {list(self.methods)}")
-        return method
+        return served_method(self.name, self.methods, self.default_method, method)
 
     def relocalize(self, frame: Frame, *, method: str, prior: Prior | None,
                    hypotheses: int) -> RelocResult:
@@ -209,6 +225,8 @@ class MapRuntime:
                 self._journal_record({"op": "cam", "id": camera_id, "payload": payload})
                 previous = self._cameras.get(camera_id)
                 self._cameras[camera_id] = camera
+                if self.replicas is not None:
+                    self.replicas.forward(self.name, "cam", camera_id, camera)
             self.stats.count("cameras_put")
             if previous is None or previous.to_dict() == camera.to_dict():
                 self.publish(EventKind.CAMERA_ADDED, id=camera_id)
@@ -241,6 +259,8 @@ class MapRuntime:
             kf: KeyframeInput = item
             self.engine.add_keyframe(kf.kf_id, kf.image, kf.camera, kf.world_from_cam,
                                      **kf.engine_kwargs())
+            if self.replicas is not None:   # before keyframe_added: a query after it sees it
+                self.replicas.forward(self.name, "kf", kf)
             if kf.camera_id is not None:
                 self._kf_camera_ids[kf.kf_id] = kf.camera_id
             else:
@@ -251,6 +271,8 @@ class MapRuntime:
                              map_version=self.engine.map.version)
         elif op == "del":
             self.engine.remove_keyframe(item)
+            if self.replicas is not None:
+                self.replicas.forward(self.name, "del", item)
             self._kf_camera_ids.pop(item, None)
             if not replay:
                 self.stats.count("keyframes_deleted")
@@ -378,6 +400,8 @@ class MapRuntime:
                     self.publish(EventKind.TRAIN_PROGRESS, job_id=job.job_id,
                                  fraction=i / len(job.methods), stage=f"training {method}")
                     self.engine.train([method])
+                if self.replicas is not None:   # the new models, before train_done
+                    self.replicas.rebase(self)
                 self.publish(EventKind.TRAIN_PROGRESS, job_id=job.job_id, fraction=1.0,
                              stage="done")
         except Exception as exc:

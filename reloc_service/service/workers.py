@@ -2,9 +2,10 @@
 
 A :class:`WorkerPool` never blocks its caller: :meth:`WorkerPool.submit` returns False at once
 when the queue is full, and the caller answers "busy". With ``workers=1`` it is the service's
-single writer, which applies keyframe puts in arrival order. Threads (not processes) suffice:
-OpenCV, NumPy and PoseLib release the GIL in the heavy parts (measured by ``reloc bench``:
-two threads querying one engine against one, in its throughput section).
+single writer, which applies keyframe puts in arrival order. Relocalize queries run on these
+threads only with ``service.worker_mode = "thread"``; by default each relocalize thread hands
+its query to a worker process (:mod:`.processes`), since the Python around OpenCV holds the
+GIL (two threads querying one engine: about 1.25x one thread on 2 cores).
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ import zenoh
 from reloc_client import protocol as wire
 
 from ...geometry import pose_from_tq
-from .. import codec, handlers
+from .. import codec
 from ..workers import WorkerPool
 from . import convert, graph
 from . import types as ros
@@ -60,6 +60,8 @@ class Host(Protocol):
     def on_keyframe_sample(self, map_name: str, kf_id: int, payload: bytes | None) -> None: ...
 
     def on_camera_sample(self, map_name: str, camera_id: str, payload: bytes | None) -> None: ...
+
+    def relocalize_payload(self, rt: Any, payload: bytes, queued_s: float) -> bytes: ...
 
 
 @dataclass(frozen=True)
@@ -368,7 +370,7 @@ class MapNode:
         request = wire.RelocalizeRequest(image=latest.image, camera_id=CAMERA_ID,
                                          timestamp=convert.stamp_seconds(latest.stamp))
         reply = wire.RelocalizeReply.decode(
-            handlers.relocalize(rt, request.encode(), queued_s=queued_s), rt.limits)
+            self.bridge.host.relocalize_payload(rt, request.encode(), queued_s), rt.limits)
         if reply.status is not wire.ReplyStatus.OK or reply.world_from_cam is None:
             self.bridge.count("not_relocalized")
             return False, reply.reason or reply.status.value

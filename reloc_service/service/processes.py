@@ -1,0 +1,499 @@
+"""Relocalize workers as processes (``service.worker_mode = "process"``): each holds a
+read-only replica of every served map, kept in the parent's journal order.
+
+Why processes: a worker thread holds the GIL outside OpenCV (decoding the request, matching
+bookkeeping, RANSAC set-up), so 8 clients on 2 threads got 1.28x one client on 2 cores.
+
+How a replica stays current (the parent's :class:`~.runtime.MapRuntime` is the only writer):
+
+- **Base**: the parent saves the map's engine (``Engine.save``: map and trained models) into
+  a private directory and each worker loads it (``Engine.load``). This happens when a worker
+  starts (for every served map), when a map is first served, and after every training job
+  (the new models replace the old ones in one step; a trained model is not a journal record,
+  and retraining in every worker would cost N times the training).
+- **Changes**: every keyframe put/delete and camera put the parent *applies* is forwarded,
+  in the order applied, to every worker, which applies the same input to its engine (the
+  keyframe's features and landmarks are recomputed there: forwarding the decoded input is
+  a few hundred KB, while forwarding the resulting map delta would tie the IPC to the map's
+  internals). A put thus costs its mapping time once per worker, off the query path of the
+  other workers.
+- **Ordering**: each worker has one pipe, read in order. Changes are sent under the map's
+  apply lock before the parent publishes ``keyframe_added``; a query is sent later on the
+  same pipe, so a query dispatched after a change was applied is answered on a replica that
+  includes it. Bases are sent under the same lock, so no change is lost or applied twice.
+
+Queries go through the service's bounded :class:`~.workers.WorkerPool` (same busy reply);
+each pool thread borrows one idle process, sends the request bytes as received (compressed
+image: decoded in the worker) and gets back the reply bytes. A worker that dies (kill -9)
+gives the query it held an INTERNAL error reply and is replaced (new process, fresh bases).
+
+Processes are forked from a ``forkserver`` (a clean single-threaded server started by exec,
+with this module preloaded): never a fork of the service with Zenoh threads running, and a
+new worker costs a fork rather than a fresh interpreter importing OpenCV (~2 s CPU). Each
+worker uses one OpenCV thread (the processes are the parallelism). Workers start when
+``reloc serve`` has restored its maps (:meth:`ProcessWorkers.start`), or with the first
+relocalize query (a :class:`~.app.Service` used as a library).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import shutil
+import signal
+import tempfile
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from reloc_client import protocol as wire
+from reloc_client.protocol import ErrorCode
+
+from ..cameras import Camera
+from ..engine import Engine, EngineConf, MappingConf
+from ..frame import Frame
+from ..map import MapState
+from ..relocalizers.base import Prior, RelocResult
+from . import handlers
+from .codec import KeyframeInput, error_reply, served_method
+
+if TYPE_CHECKING:
+    from .runtime import MapRuntime
+
+log = logging.getLogger(__name__)
+
+#: Seconds a worker gets to exit after "stop" before it is terminated, then killed.
+STOP_GRACE_S = 3.0
+
+
+@dataclass(frozen=True)
+class EngineSpec:
+    """What a worker needs to build the engine of a replica (plain data: it is pickled)."""
+
+    methods: tuple[str, ...]
+    options: dict[str, dict[str, Any]]
+    mapping: dict[str, Any]
+    limits: wire.Limits
+
+    @classmethod
+    def of(cls, methods: tuple[str, ...], options: Mapping[str, Mapping[str, Any]],
+           mapping: Mapping[str, Any], limits: wire.Limits) -> EngineSpec:
+        return cls(tuple(methods), {k: dict(v) for k, v in options.items()}, dict(mapping),
+                   limits)
+
+    def engine_conf(self) -> EngineConf:
+        return EngineConf(methods=self.methods, options=self.options,
+                          mapping=MappingConf.from_options(self.mapping))
+
+
+# -- the worker process -----------------------------------------------------------------------
+
+class ReplicaMap:
+    """A map as a worker sees it: what :func:`handlers.relocalize_reply` needs of a runtime
+    (name, limits, cameras, methods, the engine), read-only except for forwarded changes."""
+
+    def __init__(self, name: str, engine: Engine, spec: EngineSpec,
+                 cameras: dict[str, Camera]) -> None:
+        self.name = name
+        self.engine = engine
+        self.limits = spec.limits
+        self.methods = spec.methods
+        self.default_method = spec.methods[0]
+        self._cameras = dict(cameras)
+
+    def camera(self, camera_id: str) -> Camera | None:
+        return self._cameras.get(camera_id)
+
+    def camera_ids(self) -> list[str]:
+        return sorted(self._cameras)
+
+    def cameras(self) -> dict[str, Camera]:
+        return dict(self._cameras)
+
+    def map_state(self) -> MapState:
+        return self.engine.map.snapshot()
+
+    def check_method(self, method: str | None) -> str:
+        return served_method(self.name, self.methods, self.default_method, method)
+
+    def relocalize(self, frame: Frame, *, method: str, prior: Prior | None,
+                   hypotheses: int) -> RelocResult:
+        return self.engine.relocalize(frame, method=method, prior=prior, hypotheses=hypotheses)
+
+    def apply(self, op: str, args: tuple[Any, ...]) -> None:
+        """Apply a change the parent applied (same input, same order)."""
+        if op == "kf":
+            kf: KeyframeInput = args[0]
+            self.engine.add_keyframe(kf.kf_id, kf.image, kf.camera, kf.world_from_cam,
+                                     **kf.engine_kwargs())
+        elif op == "del":
+            self.engine.remove_keyframe(args[0])
+        elif op == "cam":
+            self._cameras[args[0]] = args[1]
+        else:
+            raise ValueError(f"unknown replica change {op!r}")
+
+
+def worker_main(conn: Connection, index: int) -> None:
+    """A worker process: apply bases and changes, answer queries, in pipe order, until "stop"
+    or the parent is gone (EOF). A change that does not apply exits the process (status 3):
+    its replica would differ from the parent's map, and the replacement starts from a fresh
+    base."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C stops the parent, which stops us
+    import cv2
+
+    cv2.setNumThreads(1)
+    replicas: dict[str, ReplicaMap] = {}
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return                                 # the parent is gone
+        kind = msg[0]
+        if kind == "stop":
+            return
+        if kind == "query":
+            conn.send(_answer(replicas, *msg[1:]))
+        elif kind == "load":
+            _, name, base, spec, cameras = msg
+            try:
+                engine = Engine.load(base, spec.engine_conf(), train=False)   # as saved
+                replicas[name] = ReplicaMap(name, engine, spec, cameras)
+            except Exception:
+                log.exception("worker %d: the replica of map %s did not load from %s", index,
+                              name, base)
+                os._exit(3)
+            conn.send(("loaded", str(base)))
+        else:
+            _, name, *args = msg
+            replica = replicas.get(name)
+            if replica is None:
+                continue   # its base comes later and includes this change
+            try:
+                replica.apply(kind, tuple(args))
+            except Exception:
+                log.exception("worker %d: change %s on map %s did not apply", index, kind, name)
+                os._exit(3)
+
+
+def _answer(replicas: dict[str, ReplicaMap], token: int, name: str, payload: bytes,
+            queued_s: float) -> tuple[Any, ...]:
+    """("result", token, reply bytes, ok, total seconds) or ("error", token, error bytes)."""
+    replica = replicas.get(name)
+    try:
+        if replica is None:
+            raise wire.ProtocolError(ErrorCode.INTERNAL,
+                                     f"map {name!r} has no replica in worker process "
+                                     f"{os.getpid()}; retry")
+        reply, ok, total = handlers.relocalize_reply(replica, payload, queued_s=queued_s)
+        return ("result", token, reply, ok, total)
+    except Exception as exc:
+        return ("error", token, error_reply(exc))
+
+
+# -- the parent side --------------------------------------------------------------------------
+
+@dataclass
+class _Handle:
+    """One worker process and the parent's end of its pipe."""
+
+    process: Any
+    conn: Connection
+    send_lock: threading.Lock = field(default_factory=threading.Lock)
+    dead: bool = False
+
+    def send(self, msg: tuple[Any, ...]) -> bool:
+        """Send ``msg``; False if the worker is gone (the pipe is closed)."""
+        with self.send_lock:
+            if self.dead:
+                return False
+            try:
+                self.conn.send(msg)
+                return True
+            except (OSError, ValueError):
+                self.dead = True
+                return False
+
+    def exit_description(self) -> str:
+        self.process.join(1.0)
+        code = self.process.exitcode
+        if code is None:
+            return "stopped answering"
+        if code < 0:
+            return f"was killed by signal {signal.Signals(-code).name}"
+        return f"exited with status {code}"
+
+
+@dataclass
+class _Base:
+    """A saved engine that workers load; deleted once every worker it was sent to loaded it
+    (or died)."""
+
+    path: Path
+    waiting: set[int]
+
+
+@dataclass(frozen=True)
+class RemoteAnswer:
+    """A worker's answer: the reply bytes (``error`` False) or an error reply's bytes."""
+
+    payload: bytes
+    error: bool
+    ok: bool = False
+    total_s: float = 0.0
+
+
+class ProcessWorkers:
+    """``count`` worker processes holding replicas of the maps :meth:`attach`-ed to them."""
+
+    def __init__(self, count: int, spec: EngineSpec) -> None:
+        if count < 1:
+            raise ValueError(f"expected count >= 1 worker processes, got {count}")
+        self.count = count
+        self.spec = spec
+        self._ctx = multiprocessing.get_context("forkserver")
+        self._ctx.set_forkserver_preload([__name__])
+        self._lock = threading.Lock()                 # handles, idle list, bases, maps
+        self._start_lock = threading.Lock()           # the first start of the workers
+        self._handles: list[_Handle] = []
+        self._idle: list[_Handle] = []
+        self._idle_ready = threading.Condition(self._lock)
+        self._maps: dict[str, MapRuntime] = {}
+        self._bases: dict[int, _Base] = {}            # id -> base (several may be in flight)
+        self._started = False
+        self._closed = False
+        self._token = 0
+        self._in_flight = 0
+        self._scratch = Path(tempfile.mkdtemp(prefix="reloc-replicas-"))
+
+    # -- maps ------------------------------------------------------------------------------------
+    def attach(self, rt: MapRuntime) -> None:
+        """Serve map ``rt`` from the workers too: its changes are forwarded from now on, and
+        the running workers load its current state."""
+        with rt.apply_lock():   # no change between the first forward and the first base
+            rt.replicas = self
+            with self._lock:
+                self._maps[rt.name] = rt
+                handles = [h for h in self._handles if not h.dead]
+            if handles:
+                self.rebase(rt, handles)
+
+    def forward(self, name: str, op: str, *args: Any) -> None:
+        """Send a change the parent just applied to every worker (called under the map's
+        apply lock, so in journal order)."""
+        with self._lock:
+            handles = list(self._handles)
+        msg = (op, name, *args)
+        for handle in handles:
+            handle.send(msg)
+
+    def rebase(self, rt: MapRuntime, handles: list[_Handle] | None = None) -> None:
+        """Save ``rt``'s engine and have ``handles`` (default: every worker) load it. Under
+        the map's apply lock: no change is applied between the save and the sends."""
+        with rt.apply_lock():
+            with self._lock:
+                targets = [h for h in (handles if handles is not None else self._handles)
+                           if not h.dead]
+            if not targets:
+                return
+            path = Path(tempfile.mkdtemp(prefix=f"{rt.name}-", dir=self._scratch))
+            rt.engine.save(path)
+            base = _Base(path, {id(h) for h in targets})
+            with self._lock:
+                self._bases[id(base)] = base
+            msg = ("load", rt.name, path, self.spec, rt.cameras())
+            for handle in targets:
+                if not handle.send(msg):
+                    self._base_done(str(path), handle)
+
+    # -- queries ---------------------------------------------------------------------------------
+    def relocalize(self, name: str, payload: bytes, queued_s: float) -> RemoteAnswer:
+        """Answer a RelocalizeRequest on a worker (blocks the calling pool thread). A worker
+        found dead before it got the query is replaced and the query sent to the new one; a
+        worker dying while it holds the query gives it an INTERNAL error reply."""
+        for _ in range(2):
+            handle = self._borrow()
+            try:
+                with self._lock:
+                    self._token += 1
+                    token = self._token
+                    self._in_flight += 1
+                try:
+                    if not handle.send(("query", token, name, payload, queued_s)):
+                        continue   # gone before the query reached it: not held, send it again
+                    answer = self._receive(handle, token)
+                finally:
+                    with self._lock:
+                        self._in_flight -= 1
+                if answer is not None:
+                    return answer
+                why = handle.exit_description()
+                log.error("relocalize worker process %d %s while answering a query on map %s; "
+                          "it is replaced", handle.process.pid, why, name)
+                return _internal(f"the worker process answering this query {why}; it is being "
+                                 "replaced: retry")
+            finally:
+                self._give_back(handle)
+        return _internal("two worker processes in a row were gone before they got this query; "
+                         "retry")
+
+    @property
+    def in_flight(self) -> int:
+        """Queries sent to a worker and not answered yet."""
+        with self._lock:
+            return self._in_flight
+
+    def _receive(self, handle: _Handle, token: int) -> RemoteAnswer | None:
+        """The answer to query ``token`` (load acknowledgements read on the way); None if the
+        worker died."""
+        while True:
+            try:
+                msg = handle.conn.recv()
+            except (EOFError, OSError):
+                handle.dead = True
+                return None
+            if msg[0] == "loaded":
+                self._base_done(msg[1], handle)
+            elif msg[1] != token:
+                log.error("worker %d answered query %s, expected %s", handle.process.pid,
+                          msg[1], token)
+            elif msg[0] == "result":
+                return RemoteAnswer(msg[2], error=False, ok=msg[3], total_s=msg[4])
+            else:
+                return RemoteAnswer(msg[2], error=True)
+
+    def _borrow(self) -> _Handle:
+        """An idle worker, live: one found dead is replaced first (an exception here, a
+        worker that does not start, becomes the query's error reply)."""
+        self._ensure_started()
+        with self._idle_ready:
+            while not self._idle:
+                self._idle_ready.wait()
+            handle = self._idle.pop(0)   # round robin: every worker takes its turn
+        if not handle.dead and handle.process.is_alive():
+            return handle
+        try:
+            return self._replace(handle)
+        except BaseException:
+            self._give_back(handle)   # still dead: the next query tries again
+            raise
+
+    def _give_back(self, handle: _Handle) -> None:
+        with self._idle_ready:
+            self._idle.append(handle)
+            self._idle_ready.notify()
+
+    # -- life cycle ------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the workers now (``reloc serve`` does once its maps are restored, so the
+        first query does not wait for them); else the first query starts them. Idempotent;
+        nothing happens once :meth:`close` was called."""
+        self._ensure_started()
+
+    def _ensure_started(self) -> None:
+        with self._start_lock:   # one start; close() waits for it (no worker left behind)
+            with self._lock:
+                if self._started or self._closed:
+                    return
+                self._started = True
+            try:
+                handles = [self._new_process() for _ in range(self.count)]
+            except BaseException:
+                with self._lock:
+                    self._started = False   # the next query tries again
+                raise
+            with self._lock:
+                self._handles.extend(handles)
+        for rt in self._attached():
+            self.rebase(rt, handles)
+        with self._idle_ready:
+            self._idle.extend(handles)
+            self._idle_ready.notify_all()
+
+    def _replace(self, dead: _Handle) -> _Handle:
+        """A new worker (with fresh bases of every map) in place of ``dead``."""
+        self._drop(dead)
+        if self._closed:
+            raise RuntimeError("the service is stopping")
+        return self._spawn_one()
+
+    def _spawn_one(self) -> _Handle:
+        handle = self._new_process()
+        with self._lock:
+            self._handles.append(handle)
+        for rt in self._attached():
+            self.rebase(rt, [handle])
+        return handle
+
+    def _attached(self) -> list[MapRuntime]:
+        with self._lock:
+            return list(self._maps.values())
+
+    def _new_process(self) -> _Handle:
+        parent_end, child_end = self._ctx.Pipe()
+        with self._lock:
+            index = len(self._handles)
+        process = self._ctx.Process(target=worker_main, args=(child_end, index),
+                                    name=f"reloc-relocalize-{index}", daemon=True)
+        process.start()
+        child_end.close()   # the worker's end lives in the worker only: its death means EOF
+        return _Handle(process, parent_end)
+
+    def _drop(self, handle: _Handle) -> None:
+        handle.dead = True
+        with self._lock:
+            if handle in self._handles:
+                self._handles.remove(handle)
+            bases = list(self._bases.values())
+        for base in bases:
+            self._base_done(str(base.path), handle)
+        _terminate(handle)
+
+    def _base_done(self, path: str, handle: _Handle) -> None:
+        with self._lock:
+            for key, base in list(self._bases.items()):
+                if str(base.path) == path:
+                    base.waiting.discard(id(handle))
+                    if not base.waiting:
+                        del self._bases[key]
+                        shutil.rmtree(base.path, ignore_errors=True)
+
+    def pids(self) -> list[int]:
+        """Process ids of the live workers (empty before the first query)."""
+        with self._lock:
+            return [h.process.pid for h in self._handles if not h.dead]
+
+    def close(self) -> None:
+        """Stop every worker (asked, then terminated, then killed) and delete the bases."""
+        with self._start_lock, self._lock:
+            self._closed = True
+            handles = list(self._handles)
+            self._handles.clear()
+        for handle in handles:
+            handle.send(("stop",))
+        deadline = time.monotonic() + STOP_GRACE_S
+        for handle in handles:
+            handle.process.join(max(0.0, deadline - time.monotonic()))
+            _terminate(handle)
+        shutil.rmtree(self._scratch, ignore_errors=True)
+
+
+def _internal(message: str) -> RemoteAnswer:
+    return RemoteAnswer(wire.encode_error(ErrorCode.INTERNAL, message), error=True)
+
+
+def _terminate(handle: _Handle) -> None:
+    """Make sure ``handle``'s process is gone (SIGTERM, then SIGKILL) and reaped."""
+    process = handle.process
+    if process.is_alive():
+        process.terminate()
+        process.join(1.0)
+    if process.is_alive():
+        process.kill()
+        process.join(1.0)
+    handle.conn.close()
