@@ -188,6 +188,17 @@ def test_checksum_mismatch_is_named(tmp_path, synthetic_map):
         load_map(tmp_path)
 
 
+def test_flipped_byte_in_a_mapped_image_is_named(tmp_path, synthetic_map):
+    # images are hashed from their memory map at load (not read()): one flipped bit must fail
+    snap = _saved(tmp_path, synthetic_map)
+    image = snap / "images" / "0.png"
+    data = bytearray(image.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    image.write_bytes(bytes(data))
+    with pytest.raises(StorageError, match=r"images/0\.png.*checksum mismatch"):
+        load_map(tmp_path)
+
+
 def test_damaged_model_file_is_named(tmp_path, synthetic_map):
     snap = _saved(tmp_path, synthetic_map)
     (snap / "models" / "m" / "w").write_text("2")
