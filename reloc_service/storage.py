@@ -38,7 +38,7 @@ import os
 import re
 import shutil
 from collections.abc import Callable, Mapping
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -310,14 +310,19 @@ class _SnapshotReader:
     def __init__(self, root: Path, files: Mapping[str, Any]) -> None:
         self.root = root
         self.files = files
-        self._mapped: dict[str, npt.NDArray[np.uint8]] = {}
+        self._pending: dict[str, Future[npt.NDArray[np.uint8]]] = {}
 
-    def prefetch(self, relpaths: list[str]) -> None:
-        """Map and check ``relpaths`` on a few threads (hashlib hashes without the GIL, so the
-        1000 images of a big map hash on every core); the first damaged file in the order
-        given raises, as a sequential check would. Later ``map``/``check`` calls reuse them."""
-        with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
-            self._mapped.update(zip(relpaths, pool.map(self._map, relpaths), strict=True))
+    def prefetch(self, pool: ThreadPoolExecutor, relpaths: list[str]) -> None:
+        """Start mapping and checking ``relpaths`` on ``pool``: hashlib hashes without the
+        GIL, so the 1000 images of a big map hash on the other cores while this thread builds
+        keyframes; ``map``/``check`` wait for a file's own check (and raise its error)."""
+        for rel in relpaths:
+            self._pending[rel] = pool.submit(self._map, rel)
+
+    def wait_all(self) -> None:
+        """Every prefetched file checked (the first damaged one in order raises)."""
+        for future in self._pending.values():
+            future.result()
 
     def read(self, relpath: str) -> bytes:
         path = self.root / relpath
@@ -345,8 +350,8 @@ class _SnapshotReader:
 
     def map(self, relpath: str) -> npt.NDArray[np.uint8]:
         """``relpath``'s bytes memory-mapped read-only after checking them (see ``_map``)."""
-        mapped = self._mapped.get(relpath)
-        return self._map(relpath) if mapped is None else mapped
+        future = self._pending.get(relpath)
+        return self._map(relpath) if future is None else future.result()
 
     def _map(self, relpath: str) -> npt.NDArray[np.uint8]:
         """``relpath``'s bytes memory-mapped read-only after checking their size and SHA-256.
@@ -552,7 +557,9 @@ class _FeatureColumns:
             if len(set(lengths.values())) != 1:
                 raise StorageError(f"{reader.root}/features/{kind}.*.npy: columns of different "
                                    f"lengths {lengths}; expected one row per keypoint")
-            self.columns[kind] = cols
+            # plain ndarray views of the maps: slicing an np.memmap 8000 times (1000 keyframes
+            # x 8 columns) paid its __array_finalize__ each time; the views still read the map
+            self.columns[kind] = {f: c.view(np.ndarray) for f, c in cols.items()}
 
     def keyframe(self, reader: _SnapshotReader, entry: Mapping[str, Any]) -> Keyframe:
         where = f"{reader.root / MANIFEST_FILE}: keyframe {entry.get('id')!r}"
@@ -634,12 +641,19 @@ def load_map(directory: str | Path) -> tuple[MapState, Path | None]:
         landmarks = LandmarkTable.from_mapping(
             _read_landmarks(reader, manifest["landmarks"], keyframes))
     else:
-        reader.prefetch([rel for rel in manifest["files"]
-                         if not rel.startswith(MODELS_DIR + "/")])
-        columns = _FeatureColumns(reader, manifest)
-        keyframes = _read_keyframes(reader, manifest, columns.keyframe)
-        _attach_thumbnails(reader, manifest, list(keyframes.values()))
-        landmarks = LandmarkTable(_read_landmark_columns(reader, manifest, keyframes))
+        with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+            try:
+                # the columns first (needed before any keyframe), the images behind them
+                reader.prefetch(pool, sorted((rel for rel in manifest["files"]
+                                              if not rel.startswith(MODELS_DIR + "/")),
+                                             key=lambda rel: rel.startswith("images/")))
+                columns = _FeatureColumns(reader, manifest)
+                keyframes = _read_keyframes(reader, manifest, columns.keyframe)
+                _attach_thumbnails(reader, manifest, list(keyframes.values()))
+                landmarks = LandmarkTable(_read_landmark_columns(reader, manifest, keyframes))
+                reader.wait_all()
+            finally:
+                pool.shutdown(cancel_futures=True)   # a damaged file: do not hash the rest
     state = MapState(MappingProxyType(keyframes), landmarks,
                      manifest["map_version"], manifest["next_landmark_id"])
     models = snapshot / MODELS_DIR
