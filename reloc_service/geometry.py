@@ -16,6 +16,11 @@ from .errors import GeometryError
 Array = npt.NDArray[np.float64]
 
 _ORTHO_TOL = 1e-6
+_EYE3 = np.eye(3)
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+#: np.allclose(row, _LAST_ROW, atol=1e-9)'s bound (atol + rtol * |b|), compared directly:
+#: allclose's generic path cost more than the rest of check_pose (1000 keyframes per load).
+_LAST_ROW_TOL = 1e-9 + 1e-5 * np.abs(_LAST_ROW)
 
 
 def check_rotation(rotation: npt.ArrayLike, *, name: str = "rotation", tol: float = _ORTHO_TOL) -> Array:
@@ -23,13 +28,20 @@ def check_rotation(rotation: npt.ArrayLike, *, name: str = "rotation", tol: floa
     r = np.asarray(rotation, dtype=np.float64)
     if r.shape != (3, 3):
         raise GeometryError(f"{name}: expected a (3, 3) rotation matrix, got shape {r.shape}")
-    if not np.all(np.isfinite(r)):
+    if not np.isfinite(r).all():
         raise GeometryError(f"{name}: rotation has non-finite entries")
-    err = np.abs(r @ r.T - np.eye(3)).max()
-    if err > tol or np.linalg.det(r) < 0:
+    err = np.abs(r @ r.T - _EYE3).max()
+    if err > tol or _det3(r) < 0:
         raise GeometryError(f"{name}: not a proper rotation (|R R^T - I| = {err:.2e}, det = "
                             f"{np.linalg.det(r):.3f}); expected orthonormal with det +1")
     return r
+
+
+def _det3(r: Array) -> float:
+    """Determinant of a 3x3 by cofactors on Python floats (np.linalg.det's LU call costs
+    more than the whole orthonormality test for one small matrix)."""
+    (a, b, c), (d, e, f), (g, h, i) = r.tolist()
+    return float(a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g))
 
 
 def check_pose(pose: npt.ArrayLike, *, name: str = "world_from_cam", tol: float = _ORTHO_TOL) -> Array:
@@ -38,9 +50,9 @@ def check_pose(pose: npt.ArrayLike, *, name: str = "world_from_cam", tol: float 
     t = np.asarray(pose, dtype=np.float64)
     if t.shape != (4, 4):
         raise GeometryError(f"{name}: expected a (4, 4) homogeneous pose, got shape {t.shape}")
-    if not np.all(np.isfinite(t)):
+    if not np.isfinite(t).all():
         raise GeometryError(f"{name}: pose has non-finite entries")
-    if not np.allclose(t[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+    if not (np.abs(t[3] - _LAST_ROW) <= _LAST_ROW_TOL).all():
         raise GeometryError(f"{name}: last row must be [0 0 0 1], got {t[3].tolist()}")
     check_rotation(t[:3, :3], name=name, tol=tol)
     return t

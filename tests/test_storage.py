@@ -188,6 +188,17 @@ def test_checksum_mismatch_is_named(tmp_path, synthetic_map):
         load_map(tmp_path)
 
 
+def test_flipped_byte_in_a_mapped_image_is_named(tmp_path, synthetic_map):
+    # images are hashed from their memory map at load (not read()): one flipped bit must fail
+    snap = _saved(tmp_path, synthetic_map)
+    image = snap / "images" / "0.png"
+    data = bytearray(image.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    image.write_bytes(bytes(data))
+    with pytest.raises(StorageError, match=r"images/0\.png.*checksum mismatch"):
+        load_map(tmp_path)
+
+
 def test_damaged_model_file_is_named(tmp_path, synthetic_map):
     snap = _saved(tmp_path, synthetic_map)
     (snap / "models" / "m" / "w").write_text("2")
@@ -312,6 +323,15 @@ def test_format_0_or_unknown_versions_are_refused(tmp_path, synthetic_map):
         load_map(tmp_path)
 
 
+def _maps_a_file(a: np.ndarray) -> bool:
+    """``a`` is an np.memmap or a view (of a view...) of one: it reads the file, no copy."""
+    while isinstance(a, np.ndarray):
+        if isinstance(a, np.memmap):
+            return True
+        a = a.base
+    return False
+
+
 def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
     """Nothing is rebuilt at load: images, features, landmarks and thumbnails are views of
     the snapshot's files, read-only."""
@@ -329,8 +349,7 @@ def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
               state.landmarks.columns().points_world, state.landmarks.columns().obs_keyframe,
               kf.cache["sbi:40x30:2.5"]]
     for a in arrays:
-        assert isinstance(a.base if not isinstance(a, np.memmap) else a, np.memmap) or \
-            isinstance(a, np.memmap), type(a)
+        assert _maps_a_file(a), type(a)
         assert not a.flags.writeable
     assert np.array_equal(kf.cache["sbi:40x30:2.5"], rich_state.keyframes[1].cache["sbi:40x30:2.5"])
     with pytest.raises(ValueError, match="read-only"):
