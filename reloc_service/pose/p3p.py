@@ -325,12 +325,20 @@ class P3PPoseFinder(PoseFinder):
         guided_below_inliers: int = 50
         #: Keyframes near the first pose whose landmarks guided matching projects.
         guided_keyframes: int = 10
+        #: Match first against the landmarks of only this many best candidates (None: all of
+        #: the group at once); when that pose has fewer than ``guided_below_inliers``
+        #: inliers, or none, the whole group's landmarks are matched as without this. A query
+        #: that resembles its best keyframe then pays for one keyframe's landmarks, not five.
+        first_pool_keyframes: int | None = None
 
         def __post_init__(self) -> None:
             super().__post_init__()
             feature_lib.FeatureConf(kind=self.kind, max_features=self.max_features)
             if not 0 < self.ratio <= 1:
                 raise ConfigError(f"p3p: ratio must be in (0, 1], got {self.ratio}")
+            if self.first_pool_keyframes is not None and self.first_pool_keyframes < 1:
+                raise ConfigError(f"p3p: first_pool_keyframes must be >= 1 or None, got "
+                                  f"{self.first_pool_keyframes}")
 
     def __init__(self, conf: P3PPoseFinder.Conf) -> None:
         super().__init__(conf)
@@ -348,12 +356,15 @@ class P3PPoseFinder(PoseFinder):
             return None
         timings: dict[str, float] = {}
         feats = self.query_features(query, timings)
-        start = time.perf_counter()
-        q_idx, rows, pool = self.match_landmarks(feats, keyframes)
-        timings["match"] = time.perf_counter() - start
-        solved = solve_pnp_indexed(feats.keypoints_px[q_idx], pool.points_world[rows],
-                                   query.camera, self.conf,
-                                   uncertainty=pool.uncertainty(state, keyframes, rows))
+        first = self.conf.first_pool_keyframes
+        if first is not None and first < len(keyframes):
+            matched = self._match_and_solve(query, feats, keyframes[:first], state, timings)
+            solved = matched[3]
+            if solved is None or (solved[0].inliers or 0) < self.conf.guided_below_inliers:
+                matched = self._match_and_solve(query, feats, keyframes, state, timings)
+        else:
+            matched = self._match_and_solve(query, feats, keyframes, state, timings)
+        q_idx, rows, pool, solved = matched
         if solved is None:
             return PoseEstimate(world_from_cam=keyframes[0].world_from_cam.copy(),
                                 keyframe_ids=[kf.id for kf in keyframes], num_matches=len(q_idx),
@@ -363,8 +374,24 @@ class P3PPoseFinder(PoseFinder):
         if self.conf.guided and (est.inliers or 0) < self.conf.guided_below_inliers:
             est = self._grow(query, feats, est, keyframes, state, q_idx,
                              pool.landmark_ids[rows])
-        est.timings = {**timings, **est.timings}
+        est.timings = {**est.timings, **timings}  # every match and solve, guided's own
         return est
+
+    def _match_and_solve(self, query: Frame, feats: Features, keyframes: list[Keyframe],
+                         state: MapState, timings: dict[str, float]
+                         ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], LandmarkPool,
+                                    tuple[PoseEstimate, npt.NDArray[np.int64]] | None]:
+        """Ratio-test matches to the landmarks of ``keyframes`` and the pose they give
+        (:func:`solve_pnp_indexed`, or None); ``timings["match"]`` accumulates."""
+        start = time.perf_counter()
+        q_idx, rows, pool = self.match_landmarks(feats, keyframes)
+        matched = time.perf_counter()
+        solved = solve_pnp_indexed(feats.keypoints_px[q_idx], pool.points_world[rows],
+                                   query.camera, self.conf,
+                                   uncertainty=pool.uncertainty(state, keyframes, rows))
+        timings["match"] = timings.get("match", 0.0) + matched - start
+        timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - matched
+        return q_idx, rows, pool, solved
 
     def _grow(self, query: Frame, feats: Features, est: PoseEstimate, keyframes: list[Keyframe],
               state: MapState, q_idx: npt.NDArray[np.int64],
