@@ -272,7 +272,10 @@ def chance_agreement(projected_px: Array, px: Array, threshold_px: float,
     if n < 2:
         return uniform
     idx = np.unique(np.linspace(0, n - 1, min(n, max_points)).astype(np.int64))
-    d2 = ((projected_px[idx][:, None, :] - px[idx][None, :, :]) ** 2).sum(axis=2)
+    proj, pix = projected_px[idx], px[idx]
+    dx = proj[:, None, 0] - pix[None, :, 0]  # per axis: no (m, m, 2) array and its reduction
+    dy = proj[:, None, 1] - pix[None, :, 1]
+    d2 = dx * dx + dy * dy
     np.fill_diagonal(d2, np.inf)
     m = len(idx)
     return max(uniform, float(np.count_nonzero(d2 < threshold_px**2)) / (m * (m - 1)))
