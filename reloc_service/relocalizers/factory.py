@@ -5,7 +5,10 @@ about features) or a comma-separated fallback chain of those (``"sbi+p3p:orb,bow
 
 Method strings without a ``:`` mean what they always meant (``"sbi+p3p"`` is SIFT unless
 ``options["p3p"]["kind"]`` says otherwise); ``options["p3p:orb"]`` configures the ORB variant
-over ``options["p3p"]``."""
+over ``options["p3p"]``. The same strings name methods in ``reloc eval -m``, the service's
+``service.methods`` and the engine's saved models (``models/sbi+p3p_orb,bow+p3p,sbi+p3p``:
+``storage.model_dir_name`` turns the ``:`` into ``_``; a chain's steps save into
+``0_sbi_p3p_orb``, ``1_bow_p3p``, ...)."""
 
 from __future__ import annotations
 
@@ -27,10 +30,12 @@ from .multi import STEP_FEATURES
 
 Options = Mapping[str, Mapping[str, Any]]
 
-#: The method the engine and the service use when none is named: bag-of-words retrieval
-#: (rotation and exposure invariant) with P3P, and when it cannot verify, the small blurry
-#: image (which still ranks heavily blurred queries) with P3P. One set of defaults for every
-#: data set: see the README's results table.
+#: The method the engine and the service use when none is named: the fast path first (the
+#: small blurry image, P3P on 500 ORB features), and only
+#: where it cannot verify, the SIFT steps: bag-of-words retrieval (rotation and exposure
+#: invariant) with P3P, then the small blurry image (which still ranks heavily blurred
+#: queries) with P3P. Maps built for it carry ORB and SIFT landmarks. One set of defaults for
+#: every data set: see the README's results table.
 DEFAULT_METHOD = "sbi+p3p:orb,bow+p3p,sbi+p3p"
 
 
@@ -65,8 +70,8 @@ def list_methods() -> list[dict[str, Any]]:
                                 "description": f"multi relocalizer: {place_name} place finder, "
                                                f"{pose_name} pose finder{kind}"})
     methods.append({"method": DEFAULT_METHOD, "evaluation_only": False,
-                    "description": "the default: ORB first (500 features), the SIFT steps "
-                                   "only when it cannot verify"})
+                    "description": "the default (engine and service): a fallback chain, "
+                                   "each step only where the ones before cannot verify"})
     for name, cls in sorted(RELOCALIZERS.items()):
         if name in ("multi", "chain"):
             continue
