@@ -102,6 +102,21 @@ def test_poselib_camera_projects_exactly_as_ours(model):
                                atol=1e-9)
 
 
+@pytest.mark.parametrize("model", ["pinhole", "radtan", "radtan-k3"])
+def test_numpy_pixel_jacobian_equals_poselibs(model):
+    """Pinhole and radtan Jacobians are written out in numpy (faster than converting
+    PoseLib's list of 2x2 arrays): the same values as PoseLib's analytic ones."""
+    from reloc_service.pose.p3p import _pixel_jacobian, poselib_camera
+
+    camera = make_camera(model.split("-")[0])
+    if model == "radtan-k3":
+        camera = camera_from_dict({**camera.to_dict(), "distortion": [-0.28, 0.07, 1e-4, -2e-4,
+                                                                      0.02]})
+    xy = np.random.default_rng(8).uniform(-0.7, 0.7, (300, 2))
+    theirs = np.asarray(poselib_camera(camera).project_with_jac(xy)[1]).reshape(-1, 2, 2)
+    np.testing.assert_allclose(_pixel_jacobian(camera, xy), theirs, rtol=1e-12, atol=1e-9)
+
+
 def test_fov_has_no_poselib_camera():
     from reloc_service.pose.p3p import poselib_camera
 

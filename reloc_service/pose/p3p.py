@@ -14,7 +14,7 @@ import numpy.typing as npt
 import poselib
 
 from .. import features as feature_lib
-from ..cameras import Camera
+from ..cameras import Camera, RadTanCamera
 from ..errors import ConfigError, GeometryError
 from ..frame import Features, Frame, Keyframe
 from ..geometry import invert, se3_exp, transform_points
@@ -239,7 +239,17 @@ def _projection_jacobian(camera: Camera, points_cam: Array) -> Array:
 
 def _pixel_jacobian(camera: Camera, xy: Array) -> Array:
     """(N, 2, 2) derivative of pixels w.r.t. normalised coordinates ``xy`` (N, 2): PoseLib's
-    analytic Jacobian of the same camera model, or central differences for fov."""
+    analytic Jacobian of the same camera model (written out in numpy for pinhole and radtan:
+    PoseLib returns a list of 2x2 arrays whose conversion costs more than the maths), or
+    central differences for fov."""
+    if isinstance(camera, RadTanCamera):
+        dxx, dxy, dyx, dyy = camera._jacobian(xy[:, 0], xy[:, 1])
+        jac = np.empty((len(xy), 2, 2))
+        jac[:, 0, 0], jac[:, 0, 1] = camera.fx * dxx, camera.fx * dxy
+        jac[:, 1, 0], jac[:, 1, 1] = camera.fy * dyx, camera.fy * dyy
+        return jac
+    if camera.model == "pinhole":
+        return np.broadcast_to(np.diag([camera.fx, camera.fy]), (len(xy), 2, 2)).copy()
     model = poselib_camera(camera)
     if model is not None:
         return np.asarray(model.project_with_jac(np.ascontiguousarray(xy))[1]).reshape(-1, 2, 2)
