@@ -28,11 +28,23 @@ class FeatureConf:
             raise ConfigError(f"max_features must be positive, got {self.max_features}")
 
 
+#: Scale step between ORB's pyramid levels (ORB-SLAM's).
+ORB_SCALE_FACTOR = 1.2
+
+
+def level_scale_factor(kind: str) -> float:
+    """Scale step between the pyramid levels that ``Features.levels`` counts: ORB's
+    ``ORB_SCALE_FACTOR``, SIFT's octaves 2."""
+    if kind not in FEATURE_KINDS:
+        raise ConfigError(f"feature kind {kind!r} unknown; expected one of {FEATURE_KINDS}")
+    return ORB_SCALE_FACTOR if kind == "orb" else 2.0
+
+
 def _create(conf: FeatureConf) -> cv2.Feature2D:
     if conf.kind == "sift":
         return cv2.SIFT.create(nfeatures=conf.max_features)
     # FAST threshold low and a patch size suited to 640x480 images; 8 levels as in ORB-SLAM.
-    return cv2.ORB.create(nfeatures=conf.max_features, scaleFactor=1.2, nlevels=8,
+    return cv2.ORB.create(nfeatures=conf.max_features, scaleFactor=ORB_SCALE_FACTOR, nlevels=8,
                           fastThreshold=10)
 
 

@@ -109,11 +109,15 @@ class PointUncertainty:
 
 def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Camera,
                       conf: PnPConf | None = None, *,
-                      uncertainty: PointUncertainty | None = None
+                      uncertainty: PointUncertainty | None = None,
+                      keypoint_scales: Array | None = None
                       ) -> tuple[PoseEstimate, npt.NDArray[np.int64]] | None:
     """:func:`solve_pnp`, also returning the (I,) indices of the inlier correspondences. With
     ``uncertainty`` (of the N points), each residual is weighted by how precisely its point is
-    known as seen from the pose: an uncertain point still constrains the rotation."""
+    known as seen from the pose: an uncertain point still constrains the rotation. With
+    ``keypoint_scales`` (N,), keypoint i's localisation noise is ``keypoint_sigma_px`` times
+    its scale (the pyramid level's, see :func:`level_scales`); without, every keypoint's is
+    ``keypoint_sigma_px``."""
     conf = conf or PnPConf()
     start = time.perf_counter()
     px = np.asarray(query_px, dtype=np.float64).reshape(-1, 2)
@@ -128,35 +132,54 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
     world_from_cam = ransac_pinhole(ideal_px[usable], pts[usable], camera, conf)
     if world_from_cam is None:
         return None
-    world_from_cam, inliers = _refine(world_from_cam, px, pts, camera, conf, uncertainty)
+    scales = None if keypoint_scales is None else np.asarray(keypoint_scales, np.float64)
+    world_from_cam, inliers = _refine(world_from_cam, px, pts, camera, conf, uncertainty,
+                                      scales)
     if len(inliers) < 4:
         return None
-    weights = _weights(world_from_cam, pts, inliers, camera, conf, uncertainty)
+    weights = _weights(world_from_cam, pts, inliers, camera, conf, uncertainty, scales)
     est = _estimate(world_from_cam, px[inliers], pts[inliers], camera, conf, len(px),
                     time.perf_counter() - start, weights)
     est.inlier_sigmas_m = _point_sigmas(world_from_cam, pts[inliers], camera, conf,
                                         None if uncertainty is None
-                                        else uncertainty.depth_sigmas_m[inliers])
+                                        else uncertainty.depth_sigmas_m[inliers],
+                                        None if scales is None else scales[inliers])
     return est, inliers
 
 
+def level_scales(levels: npt.NDArray[np.integer], scale_factor: float) -> Array:
+    """(N,) scale of keypoints found at pyramid ``levels`` with ``scale_factor`` between
+    levels: a level-l keypoint is located to a pixel of the level-l image, ``factor^l``
+    pixels of the full image (ORB-SLAM's ``sigma^2 = factor^(2 l)``)."""
+    return np.power(float(scale_factor), np.asarray(levels, np.float64))
+
+
 def _point_sigmas(world_from_cam: Array, points_world: Array, camera: Camera, conf: PnPConf,
-                  depth_sigmas_m: Array | None) -> Array:
+                  depth_sigmas_m: Array | None, keypoint_scales: Array | None = None) -> Array:
     """(N,) 1-sigma position uncertainty of world points, metres: their depth uncertainty,
-    at least the ``keypoint_sigma_px`` of a keypoint at their range from ``world_from_cam``."""
+    at least the ``keypoint_sigma_px`` (times the keypoint's scale) of a keypoint at their
+    range from ``world_from_cam``."""
     ranges = np.linalg.norm(points_world - world_from_cam[:3, 3], axis=1)
     floor = ranges * conf.keypoint_sigma_px / max(camera.fx, camera.fy)
+    if keypoint_scales is not None:
+        floor = floor * keypoint_scales
     return floor if depth_sigmas_m is None else np.maximum(depth_sigmas_m, floor)
 
 
 def _weights(world_from_cam: Array, points_world: Array, rows: npt.NDArray[np.int64],
-             camera: Camera, conf: PnPConf, uncertainty: PointUncertainty | None) -> Array:
+             camera: Camera, conf: PnPConf, uncertainty: PointUncertainty | None,
+             keypoint_scales: Array | None = None) -> Array:
     """(M,) residual weights of points ``rows``: ``1 / (1 + (s / keypoint_sigma)^2)`` with
-    ``s`` their depth uncertainty in the query's pixels; ones without ``uncertainty``."""
+    ``s`` their depth uncertainty in the query's pixels (ones without ``uncertainty``); with
+    ``keypoint_scales`` ``c``, ``1 / (c^2 + (s / keypoint_sigma)^2)``: the inverse variance
+    in units of a level-0 keypoint's."""
     if uncertainty is None:
-        return np.ones(len(rows))
+        if keypoint_scales is None:
+            return np.ones(len(rows))
+        return 1.0 / keypoint_scales[rows] ** 2
     s = uncertainty.pixel_sigmas(world_from_cam, points_world[rows], camera, rows)
-    return 1.0 / (1.0 + (s / conf.keypoint_sigma_px) ** 2)
+    own = 1.0 if keypoint_scales is None else keypoint_scales[rows] ** 2
+    return 1.0 / (own + (s / conf.keypoint_sigma_px) ** 2)
 
 
 def ransac_pinhole(ideal_px: Array, points_world: Array, camera: Camera, conf: PnPConf
@@ -179,8 +202,8 @@ def ransac_pinhole(ideal_px: Array, points_world: Array, camera: Camera, conf: P
 
 
 def _refine(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
-            conf: PnPConf, uncertainty: PointUncertainty | None = None
-            ) -> tuple[Array, npt.NDArray[np.int64]]:
+            conf: PnPConf, uncertainty: PointUncertainty | None = None,
+            keypoint_scales: Array | None = None) -> tuple[Array, npt.NDArray[np.int64]]:
     """Gauss-Newton on the inliers' reprojection error (weighted, see :func:`_weights`)
     through the real camera model; returns the refined pose and the final inlier indices
     (residual below the threshold).
@@ -195,7 +218,7 @@ def _refine(world_from_cam: Array, px: Array, points_world: Array, camera: Camer
         residual, jac = _residuals_and_jacobian(world_from_cam, px[inliers], points_world[inliers],
                                                 camera)
         root_w = np.repeat(np.sqrt(_weights(world_from_cam, points_world, inliers, camera, conf,
-                                            uncertainty)), 2)
+                                            uncertainty, keypoint_scales)), 2)
         step, *_ = np.linalg.lstsq(jac * root_w[:, None], residual.ravel() * root_w, rcond=None)
         world_from_cam = world_from_cam @ se3_exp(step)
         if np.linalg.norm(step) < 1e-12:
@@ -343,6 +366,10 @@ class P3PPoseFinder(PoseFinder):
         #: inliers, or none, the whole group's landmarks are matched as without this. A query
         #: that resembles its best keyframe then pays for one keyframe's landmarks, not five.
         first_pool_keyframes: int | None = None
+        #: Weigh each keypoint by its pyramid level: its localisation noise is
+        #: ``keypoint_sigma_px * factor^level`` (``factor`` the detector's scale step between
+        #: levels). Off keeps every keypoint at ``keypoint_sigma_px``.
+        level_sigmas: bool = False
 
         def __post_init__(self) -> None:
             super().__post_init__()
@@ -401,7 +428,8 @@ class P3PPoseFinder(PoseFinder):
         matched = time.perf_counter()
         solved = solve_pnp_indexed(feats.keypoints_px[q_idx], pool.points_world[rows],
                                    query.camera, self.conf,
-                                   uncertainty=pool.uncertainty(state, keyframes, rows))
+                                   uncertainty=pool.uncertainty(state, keyframes, rows),
+                                   keypoint_scales=self._scales(feats, q_idx))
         timings["match"] = timings.get("match", 0.0) + matched - start
         timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - matched
         return q_idx, rows, pool, solved
@@ -426,7 +454,8 @@ class P3PPoseFinder(PoseFinder):
         q_all, rows_all = _union(g_idx, g_rows, q_idx, pool.rows_of(landmark_ids))
         solved = solve_pnp_indexed(feats.keypoints_px[q_all], pool.points_world[rows_all],
                                    query.camera, self.conf,
-                                   uncertainty=pool.uncertainty(state, local, rows_all))
+                                   uncertainty=pool.uncertainty(state, local, rows_all),
+                                   keypoint_scales=self._scales(feats, q_all))
         elapsed = time.perf_counter() - start
         seed = (est.num_matches, int(est.inliers or 0))
         if solved is None or solved[0].inliers is None or solved[0].inliers <= seed[1]:
@@ -441,6 +470,12 @@ class P3PPoseFinder(PoseFinder):
         grown.unguided_evidence = seed
         grown.timings = {"solve": est.timings.get("solve", 0.0), "guided": elapsed}
         return grown
+
+    def _scales(self, feats: Features, q_idx: npt.NDArray[np.int64]) -> Array | None:
+        """(M,) pyramid-level scales of query keypoints ``q_idx`` with ``level_sigmas``."""
+        if not self.conf.level_sigmas:
+            return None
+        return level_scales(feats.levels[q_idx], feature_lib.level_scale_factor(self.conf.kind))
 
     def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
         """The query's features of ``conf.kind``, extracted once and cached on the frame."""
