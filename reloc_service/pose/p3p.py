@@ -101,8 +101,9 @@ class PointUncertainty:
         moved = pts + self.depth_sigmas_m[rows, None] * ray
         cam_from_world = invert(world_from_cam)
         with np.errstate(invalid="ignore", divide="ignore"):
-            shift = (camera.project(transform_points(cam_from_world, moved))
-                     - camera.project(transform_points(cam_from_world, pts)))
+            # Both point sets in one projection (per-point arithmetic: the same values).
+            both = camera.project(transform_points(cam_from_world, np.concatenate([moved, pts])))
+            shift = both[:len(pts)] - both[len(pts):]
             sigma = np.linalg.norm(shift, axis=1)
         return np.where(np.isfinite(sigma), sigma, np.inf)
 
