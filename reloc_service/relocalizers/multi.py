@@ -228,7 +228,7 @@ class MultiRelocalizer(Relocalizer):
 #: candidate's landmarks before the whole group's (``first_pool_keyframes``), as the fast
 #: path spends its time in matching otherwise.
 STEP_FEATURES: dict[str, dict[str, Any]] = {
-    "orb": {"kind": "orb", "max_features": 500, "first_pool_keyframes": 1, "level_sigmas": True},
+    "orb": {"kind": "orb", "max_features": 500, "first_pool_keyframes": 1},
     "sift": {"kind": "sift", "max_features": 2000}}
 
 
