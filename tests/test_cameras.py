@@ -76,3 +76,34 @@ def test_scaled_keeps_rays(camera):
 def test_camera_errors(bad, match):
     with pytest.raises(CameraError, match=match):
         camera_from_dict(bad)
+
+
+def _newton_from_distorted(camera, xy_distorted):
+    """The radtan undistortion's definition: 2x2 Newton started at the distorted point."""
+    q = xy_distorted.copy()
+    for _ in range(30):
+        res = camera.distort(q) - xy_distorted
+        a, b, c, d = camera._jacobian(q[:, 0], q[:, 1])
+        det = a * d - b * c
+        step = np.column_stack([(d * res[:, 0] - b * res[:, 1]) / det,
+                                (-c * res[:, 0] + a * res[:, 1]) / det])
+        q = q - step
+        if np.abs(step).max() < 1e-15:
+            break
+    return q
+
+
+@pytest.mark.parametrize("distortion", [[-0.28, 0.07, 1e-4, -2e-4], [-0.4, 0.15, 0.0, 0.0],
+                                        [0.1, -0.05, 1e-3, 2e-3], [0.0, 0.0, 0.0, 0.0],
+                                        [0.2624, -0.9531, -0.0054, 0.0026, 1.1633]])
+def test_radtan_undistort_from_opencv_start_is_newtons_root(distortion):
+    """Newton starts from OpenCV's fixed-point undistortion (fewer numpy steps): the same
+    root as started from the distorted point, over the whole image and a little beyond."""
+    camera = camera_from_dict({"model": "radtan", "width": 640, "height": 480, "fx": 460.0,
+                               "fy": 459.0, "cx": 319.3, "cy": 241.2,
+                               "distortion": distortion})
+    px = np.random.default_rng(3).uniform([-20, -20], [660, 500], (3000, 2))
+    xy_distorted = camera.pixels_to_normalized(px)
+    np.testing.assert_allclose(camera.undistort(xy_distorted),
+                               _newton_from_distorted(camera, xy_distorted), rtol=0, atol=1e-12)
+    assert camera.undistort(np.zeros((0, 2))).shape == (0, 2)

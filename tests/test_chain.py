@@ -2,18 +2,21 @@
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
 from reloc_service import features as feature_lib
 from reloc_service.cameras import PinholeCamera
 from reloc_service.errors import ConfigError, NotTrainedError
-from reloc_service.frame import Frame, Keyframe
+from reloc_service.frame import Features, Frame, Keyframe
 from reloc_service.geometry import pose_error
 from reloc_service.map import KeyframeMap
 from reloc_service.relocalizers.base import Prior, Relocalizer, RelocResult
 from reloc_service.relocalizers.chain import ChainRelocalizer
-from reloc_service.relocalizers.factory import create_relocalizer
+from reloc_service.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, list_methods
 from reloc_service.relocalizers.multi import MultiRelocalizer
 from reloc_service.tools.synth.planar import PlanarScene, keyframe_grid, planar_scene, query_pose
 
@@ -138,3 +141,129 @@ def test_save_and_load_each_step(scene, tmp_path):
     chain.save(tmp_path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["0_sbi_p3p", "1_sbi_none"]
     assert chain.load(tmp_path) is False  # sbi has no trained model to restore
+
+
+# -- the default: an ORB step first, SIFT steps behind it ----------------------------------------
+
+@pytest.fixture(scope="module")
+def two_kind_scene() -> PlanarScene:
+    """SIFT and ORB landmarks on the same plane, as maps built for the default carry."""
+    return planar_scene(keyframe_grid(3, 2), kinds=("sift", "orb"), camera=CAMERA,
+                        max_features=1000)
+
+
+def _map_with_orb(scene: PlanarScene, orb_points: Callable[[Features], np.ndarray] | None
+                  ) -> KeyframeMap:
+    """A copy of ``scene``'s map whose ORB features lose their landmarks (``orb_points``
+    None) or get the world points ``orb_points(features)``; SIFT kept as it is."""
+    kmap = KeyframeMap()
+    for kf in scene.map.snapshot().keyframes.values():
+        orb = kf.features["orb"]
+        if orb_points is None:
+            orb = Features.create("orb", orb.keypoints_px, orb.descriptors, levels=orb.levels,
+                                  sizes=orb.sizes, angles=orb.angles)
+        else:
+            orb = dataclasses.replace(orb, points_world=orb_points(orb))
+        kmap.add_keyframe(Keyframe(image=kf.image, camera=CAMERA, id=kf.id,
+                                   world_from_cam=kf.world_from_cam,
+                                   features={"sift": kf.features["sift"], "orb": orb}))
+    return kmap
+
+
+def test_method_string_names_each_steps_features(two_kind_scene):
+    chain = create_relocalizer(DEFAULT_METHOD, two_kind_scene.map)
+    assert chain.method == DEFAULT_METHOD == "sbi+p3p:orb,bow+p3p,sbi+p3p"
+    orb_step, *sift_steps = chain.steps
+    assert orb_step.pose.conf.kind == "orb" and orb_step.pose.conf.max_features == 500
+    assert orb_step.pose.conf.first_pool_keyframes == 1
+    assert [s.pose.conf.kind for s in sift_steps] == ["sift", "sift"]
+    assert [s.pose.conf.first_pool_keyframes for s in sift_steps] == [None, None]
+    assert chain.required_features == {"orb", "sift"}
+    # Options of the pose finder apply to its variants, the variant's own table last; the
+    # suffix wins over options["p3p"]'s feature settings, so "sbi+p3p" keeps them.
+    options = {"p3p": {"kind": "orb", "max_features": 800, "ratio": 0.7},
+               "p3p:sift": {"max_features": 1500}}
+    plain, sift = create_relocalizer("sbi+p3p,sbi+p3p:sift", two_kind_scene.map,
+                                     options=options).steps
+    assert (plain.method, plain.pose.conf.kind, plain.pose.conf.max_features) == (
+        "sbi+p3p", "orb", 800)
+    assert (sift.method, sift.pose.conf.kind, sift.pose.conf.max_features) == (
+        "sbi+p3p:sift", "sift", 1500)
+    assert plain.pose.conf.ratio == sift.pose.conf.ratio == 0.7
+    with pytest.raises(ConfigError, match="features one of"):
+        create_relocalizer("sbi+p3p:surf", two_kind_scene.map)
+    with pytest.raises(ConfigError, match="takes no features"):
+        create_relocalizer("sbi+esm:orb", two_kind_scene.map)
+    with pytest.raises(ConfigError, match="unknown pose finder"):
+        create_relocalizer("sbi+p4p:orb", two_kind_scene.map)
+    listed = {m["method"] for m in list_methods()}
+    assert {"sbi+p3p:orb", "bow+p3p:sift", DEFAULT_METHOD} <= listed
+    assert "sbi+esm:orb" not in listed
+
+
+def test_default_answers_with_orb_when_it_verifies(two_kind_scene):
+    gt = query_pose(1)
+    query = Frame(two_kind_scene.render(gt), CAMERA)
+    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", two_kind_scene.map)
+    result = chain.relocalize(query)
+    assert result.ok and result.method == "sbi+p3p:orb"
+    # within the evaluation's 5 cm: ORB's coarser keypoints (8 pyramid levels, no sub-pixel
+    # refinement) give about 1 cm here where SIFT gives a few millimetres
+    assert pose_error(result.world_from_cam, gt)[0] < 0.05
+    assert set(query.features) == {"orb"}  # SIFT never extracted: the fast path answered
+
+
+def test_sift_step_answers_when_orb_cannot_verify(two_kind_scene):
+    kmap = _map_with_orb(two_kind_scene, None)  # ORB keypoints, but no ORB landmark
+    gt = query_pose(2)
+    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", kmap)
+    orb_alone = chain.steps[0].relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+    assert not orb_alone.ok and "too few inliers" in orb_alone.reason
+    result = chain.relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+    assert result.ok and result.method == "sbi+p3p"
+    assert pose_error(result.world_from_cam, gt)[0] < 0.01
+
+
+def test_orb_step_refuses_the_pose_of_scrambled_landmarks(two_kind_scene):
+    """ORB landmarks whose world points are shuffled among them: whatever pose RANSAC finds
+    on those matches is wrong, and the ORB step must say "not relocalized", not answer it;
+    the SIFT step behind it then answers the right pose."""
+    rng = np.random.default_rng(0)
+    all_points = np.concatenate([kf.features["orb"].points_world for kf in
+                                 two_kind_scene.map.snapshot().keyframes.values()])
+    all_points = all_points[np.isfinite(all_points).all(axis=1)]
+
+    def scrambled(orb: Features) -> np.ndarray:
+        points = orb.points_world.copy()
+        has = orb.landmark_ids >= 0
+        points[has] = all_points[rng.integers(0, len(all_points), int(has.sum()))]
+        return points
+
+    kmap = _map_with_orb(two_kind_scene, scrambled)
+    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", kmap)
+    for index in range(3):
+        gt = query_pose(index)
+        orb_alone = chain.steps[0].relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+        assert not orb_alone.ok and orb_alone.world_from_cam is None
+        result = chain.relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+        assert result.ok and result.method == "sbi+p3p"
+        assert pose_error(result.world_from_cam, gt)[0] < 0.01
+
+
+def test_a_later_step_reuses_the_orb_features_of_the_first(two_kind_scene):
+    strict = create_relocalizer("sbi+p3p:orb", two_kind_scene.map,
+                                options={"verify": {"min_inliers": 100_000}})
+    chain = ChainRelocalizer(two_kind_scene.map,
+                             [strict, create_relocalizer("sbi+p3p:orb", two_kind_scene.map)])
+    query = Frame(two_kind_scene.render(query_pose(0)), CAMERA)
+    first = strict.relocalize(query)
+    assert not first.ok
+    cached = query.features["orb"]
+    result = chain.relocalize(query)
+    assert result.ok and result.method == "sbi+p3p:orb"
+    assert query.features["orb"] is cached  # no step extracted ORB again
+
+
+def test_save_dirs_of_a_chain_with_feature_suffixes(two_kind_scene, tmp_path):
+    create_relocalizer("sbi+p3p:orb,sbi+p3p", two_kind_scene.map).save(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["0_sbi_p3p_orb", "1_sbi_p3p"]

@@ -74,3 +74,27 @@ def test_sift_uint8_is_lossless_and_matches_identically(image):
     assert len(ours[0]) > 20
     for a, b in zip(ours, theirs, strict=True):
         assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize(("n", "m", "width"), [(500, 3000, 32), (3, 2, 32), (70, 90, 12)])
+def test_hamming_ratio_test_is_the_bitwise_one(n, m, width):
+    """The popcount kernel gives the Hamming distances and matches that L2 on unpacked bits
+    gives (the definition): same pairs, same distances, also across chunks of query rows
+    and for widths that are no multiple of 8 bytes."""
+    rng = np.random.default_rng(n)
+    query = rng.integers(0, 256, (n, width), dtype=np.uint8)
+    train = rng.integers(0, 256, (m, width), dtype=np.uint8)
+    near = rng.choice(n, min(n, m) // 2, replace=False)
+    flips = (rng.random((len(near), width * 8)) < 0.05).astype(np.uint8)
+    train[:len(near)] = query[near] ^ np.packbits(flips, axis=1)  # true matches, a few bits off
+    q, t, dist = match_ratio(query, train, ratio=0.8)
+    bits_q = np.unpackbits(query, axis=1).astype(np.int64)
+    bits_t = np.unpackbits(train, axis=1).astype(np.int64)
+    full = np.abs(bits_q[:, None, :] - bits_t[None, :, :]).sum(axis=2)
+    best = np.sort(full, axis=1)
+    expected = np.flatnonzero(best[:, 0] < 0.8 * best[:, 1])
+    assert np.array_equal(q, expected)
+    assert np.array_equal(dist, best[expected, 0].astype(np.float32))
+    assert np.array_equal(full[q, t], best[q, 0])
+    if n == 500:
+        assert len(q) >= len(near) // 2  # the planted matches pass

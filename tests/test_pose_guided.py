@@ -51,3 +51,16 @@ def test_background_distance_is_a_low_quantile_of_unrelated_pairs():
     matched = np.linalg.norm(feats.descriptors - desc, axis=1)
     assert np.median(matched) < limit
     assert background_distance(feats.descriptors[:0], desc, 0.01) == 0.0
+
+
+def test_window_distances_of_binary_descriptors_are_hamming():
+    from reloc_service.pose.guided import _window_distances
+
+    rng = np.random.default_rng(3)
+    query = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    landmarks = rng.integers(0, 256, (25, 32), dtype=np.uint8)
+    near = rng.integers(0, 40, (25, 8))
+    dist = _window_distances(query, landmarks, near)
+    bits = np.unpackbits(query, axis=1).astype(np.int64)[near]
+    own = np.unpackbits(landmarks, axis=1).astype(np.int64)[:, None, :]
+    assert np.array_equal(dist, np.abs(bits - own).sum(axis=2).astype(np.float64))

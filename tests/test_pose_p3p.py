@@ -102,6 +102,21 @@ def test_poselib_camera_projects_exactly_as_ours(model):
                                atol=1e-9)
 
 
+@pytest.mark.parametrize("model", ["pinhole", "radtan", "radtan-k3"])
+def test_numpy_pixel_jacobian_equals_poselibs(model):
+    """Pinhole and radtan Jacobians are written out in numpy (faster than converting
+    PoseLib's list of 2x2 arrays): the same values as PoseLib's analytic ones."""
+    from reloc_service.pose.p3p import _pixel_jacobian, poselib_camera
+
+    camera = make_camera(model.split("-")[0])
+    if model == "radtan-k3":
+        camera = camera_from_dict({**camera.to_dict(), "distortion": [-0.28, 0.07, 1e-4, -2e-4,
+                                                                      0.02]})
+    xy = np.random.default_rng(8).uniform(-0.7, 0.7, (300, 2))
+    theirs = np.asarray(poselib_camera(camera).project_with_jac(xy)[1]).reshape(-1, 2, 2)
+    np.testing.assert_allclose(_pixel_jacobian(camera, xy), theirs, rtol=1e-12, atol=1e-9)
+
+
 def test_fov_has_no_poselib_camera():
     from reloc_service.pose.p3p import poselib_camera
 
@@ -305,3 +320,29 @@ def test_guided_matching_grows_a_weak_first_pose(scene):
     assert grown.unguided_evidence == (plain.num_matches, plain.inliers)
     assert pose_error(grown.world_from_cam, gt)[0] < 0.02
     assert "guided" in grown.timings
+
+
+def test_level_scales_weigh_coarse_keypoints_less():
+    """A keypoint found at pyramid level l is located to ``1.2^l`` pixels: weighted so, the
+    pose from keypoints whose noise grows with their level is closer to the truth than with
+    every keypoint weighed alike (the same correspondences, 30 draws)."""
+    from reloc_service.pose.p3p import _weights, level_scales
+
+    camera = make_camera("radtan")
+    np.testing.assert_allclose(level_scales(np.array([0, 1, 7]), 1.2), [1.0, 1.2, 1.2**7])
+    scales = level_scales(np.array([0, 3]), 1.2)
+    np.testing.assert_allclose(_weights(TRUE_POSE, np.zeros((2, 3)), np.arange(2), camera,
+                                        PnPConf(), None, scales), [1.0, 1.2**-6])
+    errors = {False: [], True: []}
+    for seed in range(30):
+        rng = np.random.default_rng(100 + seed)
+        px, points = correspondences(camera, TRUE_POSE, 80, rng)
+        levels = rng.integers(0, 8, len(px))
+        px = px + rng.normal(0.0, 0.4, px.shape) * level_scales(levels, 1.2)[:, None]
+        for weighted in errors:
+            solved = solve_pnp_indexed(px, points, camera, PnPConf(),
+                                       keypoint_scales=level_scales(levels, 1.2)
+                                       if weighted else None)
+            assert solved is not None
+            errors[weighted].append(pose_error(solved[0].world_from_cam, TRUE_POSE)[0])
+    assert np.median(errors[True]) < 0.85 * np.median(errors[False])

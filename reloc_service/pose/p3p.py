@@ -14,7 +14,7 @@ import numpy.typing as npt
 import poselib
 
 from .. import features as feature_lib
-from ..cameras import Camera
+from ..cameras import Camera, RadTanCamera
 from ..errors import ConfigError, GeometryError
 from ..frame import Features, Frame, Keyframe
 from ..geometry import invert, se3_exp, transform_points
@@ -101,19 +101,24 @@ class PointUncertainty:
         moved = pts + self.depth_sigmas_m[rows, None] * ray
         cam_from_world = invert(world_from_cam)
         with np.errstate(invalid="ignore", divide="ignore"):
-            shift = (camera.project(transform_points(cam_from_world, moved))
-                     - camera.project(transform_points(cam_from_world, pts)))
+            # Both point sets in one projection (per-point arithmetic: the same values).
+            both = camera.project(transform_points(cam_from_world, np.concatenate([moved, pts])))
+            shift = both[:len(pts)] - both[len(pts):]
             sigma = np.linalg.norm(shift, axis=1)
         return np.where(np.isfinite(sigma), sigma, np.inf)
 
 
 def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Camera,
                       conf: PnPConf | None = None, *,
-                      uncertainty: PointUncertainty | None = None
+                      uncertainty: PointUncertainty | None = None,
+                      keypoint_scales: Array | None = None
                       ) -> tuple[PoseEstimate, npt.NDArray[np.int64]] | None:
     """:func:`solve_pnp`, also returning the (I,) indices of the inlier correspondences. With
     ``uncertainty`` (of the N points), each residual is weighted by how precisely its point is
-    known as seen from the pose: an uncertain point still constrains the rotation."""
+    known as seen from the pose: an uncertain point still constrains the rotation. With
+    ``keypoint_scales`` (N,), keypoint i's localisation noise is ``keypoint_sigma_px`` times
+    its scale (the pyramid level's, see :func:`level_scales`); without, every keypoint's is
+    ``keypoint_sigma_px``."""
     conf = conf or PnPConf()
     start = time.perf_counter()
     px = np.asarray(query_px, dtype=np.float64).reshape(-1, 2)
@@ -128,35 +133,54 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
     world_from_cam = ransac_pinhole(ideal_px[usable], pts[usable], camera, conf)
     if world_from_cam is None:
         return None
-    world_from_cam, inliers = _refine(world_from_cam, px, pts, camera, conf, uncertainty)
+    scales = None if keypoint_scales is None else np.asarray(keypoint_scales, np.float64)
+    world_from_cam, inliers = _refine(world_from_cam, px, pts, camera, conf, uncertainty,
+                                      scales)
     if len(inliers) < 4:
         return None
-    weights = _weights(world_from_cam, pts, inliers, camera, conf, uncertainty)
+    weights = _weights(world_from_cam, pts, inliers, camera, conf, uncertainty, scales)
     est = _estimate(world_from_cam, px[inliers], pts[inliers], camera, conf, len(px),
                     time.perf_counter() - start, weights)
     est.inlier_sigmas_m = _point_sigmas(world_from_cam, pts[inliers], camera, conf,
                                         None if uncertainty is None
-                                        else uncertainty.depth_sigmas_m[inliers])
+                                        else uncertainty.depth_sigmas_m[inliers],
+                                        None if scales is None else scales[inliers])
     return est, inliers
 
 
+def level_scales(levels: npt.NDArray[np.integer], scale_factor: float) -> Array:
+    """(N,) scale of keypoints found at pyramid ``levels`` with ``scale_factor`` between
+    levels: a level-l keypoint is located to a pixel of the level-l image, ``factor^l``
+    pixels of the full image (ORB-SLAM's ``sigma^2 = factor^(2 l)``)."""
+    return np.power(float(scale_factor), np.asarray(levels, np.float64))
+
+
 def _point_sigmas(world_from_cam: Array, points_world: Array, camera: Camera, conf: PnPConf,
-                  depth_sigmas_m: Array | None) -> Array:
+                  depth_sigmas_m: Array | None, keypoint_scales: Array | None = None) -> Array:
     """(N,) 1-sigma position uncertainty of world points, metres: their depth uncertainty,
-    at least the ``keypoint_sigma_px`` of a keypoint at their range from ``world_from_cam``."""
+    at least the ``keypoint_sigma_px`` (times the keypoint's scale) of a keypoint at their
+    range from ``world_from_cam``."""
     ranges = np.linalg.norm(points_world - world_from_cam[:3, 3], axis=1)
     floor = ranges * conf.keypoint_sigma_px / max(camera.fx, camera.fy)
+    if keypoint_scales is not None:
+        floor = floor * keypoint_scales
     return floor if depth_sigmas_m is None else np.maximum(depth_sigmas_m, floor)
 
 
 def _weights(world_from_cam: Array, points_world: Array, rows: npt.NDArray[np.int64],
-             camera: Camera, conf: PnPConf, uncertainty: PointUncertainty | None) -> Array:
+             camera: Camera, conf: PnPConf, uncertainty: PointUncertainty | None,
+             keypoint_scales: Array | None = None) -> Array:
     """(M,) residual weights of points ``rows``: ``1 / (1 + (s / keypoint_sigma)^2)`` with
-    ``s`` their depth uncertainty in the query's pixels; ones without ``uncertainty``."""
+    ``s`` their depth uncertainty in the query's pixels (ones without ``uncertainty``); with
+    ``keypoint_scales`` ``c``, ``1 / (c^2 + (s / keypoint_sigma)^2)``: the inverse variance
+    in units of a level-0 keypoint's."""
     if uncertainty is None:
-        return np.ones(len(rows))
+        if keypoint_scales is None:
+            return np.ones(len(rows))
+        return 1.0 / keypoint_scales[rows] ** 2
     s = uncertainty.pixel_sigmas(world_from_cam, points_world[rows], camera, rows)
-    return 1.0 / (1.0 + (s / conf.keypoint_sigma_px) ** 2)
+    own = 1.0 if keypoint_scales is None else keypoint_scales[rows] ** 2
+    return 1.0 / (own + (s / conf.keypoint_sigma_px) ** 2)
 
 
 def ransac_pinhole(ideal_px: Array, points_world: Array, camera: Camera, conf: PnPConf
@@ -179,8 +203,8 @@ def ransac_pinhole(ideal_px: Array, points_world: Array, camera: Camera, conf: P
 
 
 def _refine(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
-            conf: PnPConf, uncertainty: PointUncertainty | None = None
-            ) -> tuple[Array, npt.NDArray[np.int64]]:
+            conf: PnPConf, uncertainty: PointUncertainty | None = None,
+            keypoint_scales: Array | None = None) -> tuple[Array, npt.NDArray[np.int64]]:
     """Gauss-Newton on the inliers' reprojection error (weighted, see :func:`_weights`)
     through the real camera model; returns the refined pose and the final inlier indices
     (residual below the threshold).
@@ -195,7 +219,7 @@ def _refine(world_from_cam: Array, px: Array, points_world: Array, camera: Camer
         residual, jac = _residuals_and_jacobian(world_from_cam, px[inliers], points_world[inliers],
                                                 camera)
         root_w = np.repeat(np.sqrt(_weights(world_from_cam, points_world, inliers, camera, conf,
-                                            uncertainty)), 2)
+                                            uncertainty, keypoint_scales)), 2)
         step, *_ = np.linalg.lstsq(jac * root_w[:, None], residual.ravel() * root_w, rcond=None)
         world_from_cam = world_from_cam @ se3_exp(step)
         if np.linalg.norm(step) < 1e-12:
@@ -239,7 +263,17 @@ def _projection_jacobian(camera: Camera, points_cam: Array) -> Array:
 
 def _pixel_jacobian(camera: Camera, xy: Array) -> Array:
     """(N, 2, 2) derivative of pixels w.r.t. normalised coordinates ``xy`` (N, 2): PoseLib's
-    analytic Jacobian of the same camera model, or central differences for fov."""
+    analytic Jacobian of the same camera model (written out in numpy for pinhole and radtan:
+    PoseLib returns a list of 2x2 arrays whose conversion costs more than the maths), or
+    central differences for fov."""
+    if isinstance(camera, RadTanCamera):
+        dxx, dxy, dyx, dyy = camera._jacobian(xy[:, 0], xy[:, 1])
+        jac = np.empty((len(xy), 2, 2))
+        jac[:, 0, 0], jac[:, 0, 1] = camera.fx * dxx, camera.fx * dxy
+        jac[:, 1, 0], jac[:, 1, 1] = camera.fy * dyx, camera.fy * dyy
+        return jac
+    if camera.model == "pinhole":
+        return np.broadcast_to(np.diag([camera.fx, camera.fy]), (len(xy), 2, 2)).copy()
     model = poselib_camera(camera)
     if model is not None:
         return np.asarray(model.project_with_jac(np.ascontiguousarray(xy))[1]).reshape(-1, 2, 2)
@@ -272,7 +306,10 @@ def chance_agreement(projected_px: Array, px: Array, threshold_px: float,
     if n < 2:
         return uniform
     idx = np.unique(np.linspace(0, n - 1, min(n, max_points)).astype(np.int64))
-    d2 = ((projected_px[idx][:, None, :] - px[idx][None, :, :]) ** 2).sum(axis=2)
+    proj, pix = projected_px[idx], px[idx]
+    dx = proj[:, None, 0] - pix[None, :, 0]  # per axis: no (m, m, 2) array and its reduction
+    dy = proj[:, None, 1] - pix[None, :, 1]
+    d2 = dx * dx + dy * dy
     np.fill_diagonal(d2, np.inf)
     m = len(idx)
     return max(uniform, float(np.count_nonzero(d2 < threshold_px**2)) / (m * (m - 1)))
@@ -325,12 +362,24 @@ class P3PPoseFinder(PoseFinder):
         guided_below_inliers: int = 50
         #: Keyframes near the first pose whose landmarks guided matching projects.
         guided_keyframes: int = 10
+        #: Match first against the landmarks of only this many best candidates (None: all of
+        #: the group at once); when that pose has fewer than ``guided_below_inliers``
+        #: inliers, or none, the whole group's landmarks are matched as without this. A query
+        #: that resembles its best keyframe then pays for one keyframe's landmarks, not five.
+        first_pool_keyframes: int | None = None
+        #: Weigh each keypoint by its pyramid level: its localisation noise is
+        #: ``keypoint_sigma_px * factor^level`` (``factor`` the detector's scale step between
+        #: levels). Off keeps every keypoint at ``keypoint_sigma_px``.
+        level_sigmas: bool = False
 
         def __post_init__(self) -> None:
             super().__post_init__()
             feature_lib.FeatureConf(kind=self.kind, max_features=self.max_features)
             if not 0 < self.ratio <= 1:
                 raise ConfigError(f"p3p: ratio must be in (0, 1], got {self.ratio}")
+            if self.first_pool_keyframes is not None and self.first_pool_keyframes < 1:
+                raise ConfigError(f"p3p: first_pool_keyframes must be >= 1 or None, got "
+                                  f"{self.first_pool_keyframes}")
 
     def __init__(self, conf: P3PPoseFinder.Conf) -> None:
         super().__init__(conf)
@@ -348,12 +397,15 @@ class P3PPoseFinder(PoseFinder):
             return None
         timings: dict[str, float] = {}
         feats = self.query_features(query, timings)
-        start = time.perf_counter()
-        q_idx, rows, pool = self.match_landmarks(feats, keyframes)
-        timings["match"] = time.perf_counter() - start
-        solved = solve_pnp_indexed(feats.keypoints_px[q_idx], pool.points_world[rows],
-                                   query.camera, self.conf,
-                                   uncertainty=pool.uncertainty(state, keyframes, rows))
+        first = self.conf.first_pool_keyframes
+        if first is not None and first < len(keyframes):
+            matched = self._match_and_solve(query, feats, keyframes[:first], state, timings)
+            solved = matched[3]
+            if solved is None or (solved[0].inliers or 0) < self.conf.guided_below_inliers:
+                matched = self._match_and_solve(query, feats, keyframes, state, timings)
+        else:
+            matched = self._match_and_solve(query, feats, keyframes, state, timings)
+        q_idx, rows, pool, solved = matched
         if solved is None:
             return PoseEstimate(world_from_cam=keyframes[0].world_from_cam.copy(),
                                 keyframe_ids=[kf.id for kf in keyframes], num_matches=len(q_idx),
@@ -363,8 +415,25 @@ class P3PPoseFinder(PoseFinder):
         if self.conf.guided and (est.inliers or 0) < self.conf.guided_below_inliers:
             est = self._grow(query, feats, est, keyframes, state, q_idx,
                              pool.landmark_ids[rows])
-        est.timings = {**timings, **est.timings}
+        est.timings = {**est.timings, **timings}  # every match and solve, guided's own
         return est
+
+    def _match_and_solve(self, query: Frame, feats: Features, keyframes: list[Keyframe],
+                         state: MapState, timings: dict[str, float]
+                         ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], LandmarkPool,
+                                    tuple[PoseEstimate, npt.NDArray[np.int64]] | None]:
+        """Ratio-test matches to the landmarks of ``keyframes`` and the pose they give
+        (:func:`solve_pnp_indexed`, or None); ``timings["match"]`` accumulates."""
+        start = time.perf_counter()
+        q_idx, rows, pool = self.match_landmarks(feats, keyframes)
+        matched = time.perf_counter()
+        solved = solve_pnp_indexed(feats.keypoints_px[q_idx], pool.points_world[rows],
+                                   query.camera, self.conf,
+                                   uncertainty=pool.uncertainty(state, keyframes, rows),
+                                   keypoint_scales=self._scales(feats, q_idx))
+        timings["match"] = timings.get("match", 0.0) + matched - start
+        timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - matched
+        return q_idx, rows, pool, solved
 
     def _grow(self, query: Frame, feats: Features, est: PoseEstimate, keyframes: list[Keyframe],
               state: MapState, q_idx: npt.NDArray[np.int64],
@@ -386,7 +455,8 @@ class P3PPoseFinder(PoseFinder):
         q_all, rows_all = _union(g_idx, g_rows, q_idx, pool.rows_of(landmark_ids))
         solved = solve_pnp_indexed(feats.keypoints_px[q_all], pool.points_world[rows_all],
                                    query.camera, self.conf,
-                                   uncertainty=pool.uncertainty(state, local, rows_all))
+                                   uncertainty=pool.uncertainty(state, local, rows_all),
+                                   keypoint_scales=self._scales(feats, q_all))
         elapsed = time.perf_counter() - start
         seed = (est.num_matches, int(est.inliers or 0))
         if solved is None or solved[0].inliers is None or solved[0].inliers <= seed[1]:
@@ -401,6 +471,12 @@ class P3PPoseFinder(PoseFinder):
         grown.unguided_evidence = seed
         grown.timings = {"solve": est.timings.get("solve", 0.0), "guided": elapsed}
         return grown
+
+    def _scales(self, feats: Features, q_idx: npt.NDArray[np.int64]) -> Array | None:
+        """(M,) pyramid-level scales of query keypoints ``q_idx`` with ``level_sigmas``."""
+        if not self.conf.level_sigmas:
+            return None
+        return level_scales(feats.levels[q_idx], feature_lib.level_scale_factor(self.conf.kind))
 
     def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
         """The query's features of ``conf.kind``, extracted once and cached on the frame."""

@@ -3,6 +3,7 @@ keyframes, a pose finder turns them into a pose, the shared verification judges 
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -17,7 +18,7 @@ from ..geometry import pose_error
 from ..map import KeyframeMap, MapState
 from ..place.base import PlaceCandidate, PlaceFinder, create_place_finder
 from ..plugins import make_conf
-from ..pose.base import PoseEstimate, PoseFinder, create_pose_finder
+from ..pose.base import POSE_FINDERS, PoseEstimate, PoseFinder, create_pose_finder
 from .base import Prior, Relocalizer, RelocResult, VerifyConf, register, result_from_estimate
 
 
@@ -47,33 +48,42 @@ class MultiRelocalizer(Relocalizer):
                 raise ConfigError("multi: agreement thresholds must be positive")
 
     def __init__(self, kmap: KeyframeMap, place: PlaceFinder, pose: PoseFinder, *,
-                 conf: MultiRelocalizer.Conf | None = None, verify_conf: VerifyConf | None = None
-                 ) -> None:
+                 conf: MultiRelocalizer.Conf | None = None, verify_conf: VerifyConf | None = None,
+                 pose_label: str | None = None) -> None:
         super().__init__(kmap)
         self.place = place
         self.pose = pose
         self.conf = conf or MultiRelocalizer.Conf()
         self.verify_conf = verify_conf or VerifyConf()
+        #: The pose part of the method string (``"p3p"`` or ``"p3p:orb"``).
+        self.pose_label = pose_label or pose.name
 
     @classmethod
     def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]]
                      ) -> MultiRelocalizer:
-        """Build ``"<place>+<pose>"``; ``options[name]`` configures each part, ``"multi"``
-        this class and ``"verify"`` the verification."""
+        """Build ``"<place>+<pose>"`` or ``"<place>+<pose>:<features>"``; ``options[name]``
+        configures each part, ``"multi"`` this class and ``"verify"`` the verification.
+
+        The ``:<features>`` suffix (``"sbi+p3p:orb"``) runs the pose finder on that feature
+        kind with the kind's own default count (:data:`STEP_FEATURES`), whatever
+        ``options[pose]`` says about ``kind`` and ``max_features``: so one chain can hold an
+        ORB step and a SIFT step. ``options["<pose>:<features>"]`` (e.g. ``"p3p:orb"``)
+        configures that variant further, over ``options[pose]``."""
         parts = [p.strip() for p in spec.split("+")]
         if len(parts) != 2 or not all(parts):
-            raise ConfigError(f"multi relocalizer: expected '<place>+<pose>' (e.g. 'sbi+p3p'), "
+            raise ConfigError(f"multi relocalizer: expected '<place>+<pose>' or "
+                              f"'<place>+<pose>:<features>' (e.g. 'sbi+p3p', 'sbi+p3p:orb'), "
                               f"got {spec!r}")
-        place_name, pose_name = parts
+        place_name, pose_label = parts
         place = create_place_finder({**options.get(place_name, {}), "name": place_name}, kmap)
-        pose = create_pose_finder({**options.get(pose_name, {}), "name": pose_name})
+        pose = create_pose_finder(pose_options(pose_label, options))
         conf = make_conf(cls.Conf, options.get("multi"), owner="relocalizer multi")
         verify_conf = make_conf(VerifyConf, options.get("verify"), owner="verify")
-        return cls(kmap, place, pose, conf=conf, verify_conf=verify_conf)
+        return cls(kmap, place, pose, conf=conf, verify_conf=verify_conf, pose_label=pose_label)
 
     @property
     def method(self) -> str:
-        return f"{self.place.name}+{self.pose.name}"
+        return f"{self.place.name}+{self.pose_label}"
 
     @property
     def required_features(self) -> frozenset[str]:
@@ -210,6 +220,33 @@ class MultiRelocalizer(Relocalizer):
 
         self.place.load_state(msgpack.unpackb(path.read_bytes(), raw=False, strict_map_key=False))
         return True
+
+
+#: What a ``:<kind>`` suffix sets in the pose finder's options (the keys its ``Conf`` has):
+#: the feature kind and its count per query (ORB's 500 are the fast path, ORB-SLAM's budget
+#: at 640x480; SIFT's 2000 the pose finder's default) and, for ORB, matching the best
+#: candidate's landmarks before the whole group's (``first_pool_keyframes``), as the fast
+#: path spends its time in matching otherwise.
+STEP_FEATURES: dict[str, dict[str, Any]] = {
+    "orb": {"kind": "orb", "max_features": 500, "first_pool_keyframes": 1},
+    "sift": {"kind": "sift", "max_features": 2000}}
+
+
+def pose_options(pose_label: str, options: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """The options dict (``name`` included) of the pose part ``"p3p"`` or ``"p3p:orb"``."""
+    name, sep, kind = (s.strip() for s in pose_label.partition(":"))
+    if not sep:
+        return {**options.get(name, {}), "name": name}
+    if not name or kind not in STEP_FEATURES:
+        raise ConfigError(f"multi relocalizer: expected '<pose>:<features>' with features one "
+                          f"of {sorted(STEP_FEATURES)} (e.g. 'p3p:orb'), got {pose_label!r}")
+    fields = {f.name for f in dataclasses.fields(POSE_FINDERS.lookup(name).Conf)}
+    preset = {k: v for k, v in STEP_FEATURES[kind].items() if k in fields}
+    if "kind" not in preset:
+        raise ConfigError(f"multi relocalizer: pose finder {name!r} takes no features, so "
+                          f"{pose_label!r} means nothing; expected e.g. 'p3p:orb'")
+    return {**options.get(name, {}), **preset, **options.get(f"{name}:{kind}", {}),
+            "name": name}
 
 
 def _weak(estimate: PoseEstimate | None) -> bool:
