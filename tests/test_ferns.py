@@ -91,6 +91,54 @@ def test_sparse_scores_equal_the_dense_formula() -> None:
     np.testing.assert_allclose(clf.scores(probe.astype(np.uint16)), expected, rtol=1e-5, atol=1e-5)
 
 
+def _reference_classify(clf: FernClassifier, leaves: np.ndarray, k: int
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Top-k labels and posteriors from the dense formula (eq. 3.22/3.23, float64)."""
+    m_ferns, num_leaves = clf.num_ferns, clf.num_leaves
+    fern, leaf, label, count = clf.count_table()
+    column = {int(c): i for i, c in enumerate(clf.class_ids)}
+    col = np.array([column[int(x)] for x in label], np.int64)
+    dense = np.zeros((m_ferns, num_leaves, clf.num_classes))
+    dense[fern, leaf, col] = count
+    nr = clf.conf.regularization
+    logp = np.log((dense + nr) / (clf.class_counts + num_leaves * nr))
+    scores = logp[np.arange(m_ferns)[None, :], leaves.astype(np.int64)].sum(1)
+    post = np.exp(scores - scores.max(1, keepdims=True))
+    post /= post.sum(1, keepdims=True)
+    top = np.argsort(-scores, axis=1, kind="stable")[:, :k]
+    return clf.class_ids[top], np.take_along_axis(post, top, 1)
+
+
+def test_block_scoring_equals_the_dense_reference(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fast path (rows gathered a few patches at a time, blocks of patches) gives the
+    reference's top classes and posteriors, and exactly the same output whatever the block
+    sizes (so cutting a query into blocks changes nothing)."""
+    from reloc_service.ferns import classifier as module
+
+    rng = np.random.default_rng(5)
+    clf = FernClassifier(FernConf(num_ferns=12, num_tests=7, regularization=0.5))
+    num_classes = 150
+    # Skewed leaves (some frequent, as on real patches) and skewed class sizes.
+    train = np.minimum(rng.geometric(0.05, (6000, 12)) - 1, 127).astype(np.uint16)
+    clf.add(train, rng.choice(np.arange(num_classes) * 7 + 3, 6000,
+                              p=np.arange(1, num_classes + 1) / (num_classes * (num_classes + 1) / 2)))
+    probe = np.minimum(rng.geometric(0.05, (333, 12)) - 1, 127).astype(np.uint16)
+    whole = clf.classify(probe, top_k=3)
+    want_labels, want_post = _reference_classify(clf, probe, 3)
+    np.testing.assert_array_equal(whole[0], want_labels)
+    np.testing.assert_allclose(whole[1], want_post, rtol=1e-4, atol=1e-6)
+    monkeypatch.setattr(module, "SCORE_BLOCK_FLOATS", 40 * num_classes)   # 9 blocks
+    monkeypatch.setattr(module, "GATHER_BLOCK_ENTRIES", 500)              # ~1-7 patches each
+    blocked = clf.classify(probe, top_k=3)
+    np.testing.assert_array_equal(blocked[0], whole[0])
+    np.testing.assert_array_equal(blocked[1], whole[1])
+    allowed = np.arange(clf.num_classes) % 3 == 0
+    np.testing.assert_array_equal(clf.classify(probe, top_k=2, allowed=allowed)[0],
+                                  clf.class_ids[allowed][np.argsort(
+                                      -clf.scores(probe)[:, allowed], axis=1,
+                                      kind="stable")[:, :2]])
+
+
 def test_posteriors_are_normalised_and_best_first() -> None:
     rng = np.random.default_rng(2)
     clf = FernClassifier(FernConf(num_ferns=10, num_tests=6))
