@@ -109,34 +109,42 @@ def _reference_classify(clf: FernClassifier, leaves: np.ndarray, k: int
     return clf.class_ids[top], np.take_along_axis(post, top, 1)
 
 
-def test_block_scoring_equals_the_dense_reference(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The fast path (rows gathered a few patches at a time, blocks of patches) gives the
-    reference's top classes and posteriors, and exactly the same output whatever the block
-    sizes (so cutting a query into blocks changes nothing)."""
+@pytest.mark.parametrize("compiled", [False, True])
+def test_fast_scoring_equals_the_dense_reference(compiled: bool,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """Both scoring paths (numpy in blocks of patches; the compiled one-pass kernel) give the
+    dense reference's top classes and posteriors, with and without a class mask; the numpy
+    path's output does not depend on its block size."""
     from reloc_service.ferns import classifier as module
+    from reloc_service.ferns import kernels
 
+    if compiled and not kernels.KERNELS_AVAILABLE:
+        pytest.skip("numba is not installed")
     rng = np.random.default_rng(5)
     clf = FernClassifier(FernConf(num_ferns=12, num_tests=7, regularization=0.5))
     num_classes = 150
     # Skewed leaves (some frequent, as on real patches) and skewed class sizes.
     train = np.minimum(rng.geometric(0.05, (6000, 12)) - 1, 127).astype(np.uint16)
-    clf.add(train, rng.choice(np.arange(num_classes) * 7 + 3, 6000,
-                              p=np.arange(1, num_classes + 1) / (num_classes * (num_classes + 1) / 2)))
+    weights = np.arange(1, num_classes + 1, dtype=np.float64)
+    clf.add(train, rng.choice(np.arange(num_classes) * 7 + 3, 6000, p=weights / weights.sum()))
     probe = np.minimum(rng.geometric(0.05, (333, 12)) - 1, 127).astype(np.uint16)
-    whole = clf.classify(probe, top_k=3)
+    scorer = clf.scorer()
+    got = scorer._classify(probe, 3, None, compiled=compiled)
     want_labels, want_post = _reference_classify(clf, probe, 3)
-    np.testing.assert_array_equal(whole[0], want_labels)
-    np.testing.assert_allclose(whole[1], want_post, rtol=1e-4, atol=1e-6)
-    monkeypatch.setattr(module, "SCORE_BLOCK_FLOATS", 40 * num_classes)   # 9 blocks
-    monkeypatch.setattr(module, "GATHER_BLOCK_ENTRIES", 500)              # ~1-7 patches each
-    blocked = clf.classify(probe, top_k=3)
-    np.testing.assert_array_equal(blocked[0], whole[0])
-    np.testing.assert_array_equal(blocked[1], whole[1])
-    allowed = np.arange(clf.num_classes) % 3 == 0
-    np.testing.assert_array_equal(clf.classify(probe, top_k=2, allowed=allowed)[0],
-                                  clf.class_ids[allowed][np.argsort(
-                                      -clf.scores(probe)[:, allowed], axis=1,
-                                      kind="stable")[:, :2]])
+    np.testing.assert_array_equal(got[0], want_labels)
+    np.testing.assert_allclose(got[1], want_post, rtol=1e-4, atol=1e-6)
+    # A mask leaving some patches' best classes out, and fewer allowed classes than k.
+    for allowed in (np.arange(clf.num_classes) % 3 == 0, np.arange(clf.num_classes) == 4):
+        labels, post = scorer._classify(probe, 3, allowed, compiled=compiled)
+        masked = np.where(allowed[None, :], scorer.scores(probe), -np.inf)
+        order = np.argsort(-masked, axis=1, kind="stable")[:, :3]
+        np.testing.assert_array_equal(labels, clf.class_ids[order])
+        assert np.all(post[:, int(allowed.sum()):] == 0)
+    if not compiled:
+        monkeypatch.setattr(module, "SCORE_BLOCK_FLOATS", 40 * num_classes)  # 9 blocks
+        blocked = scorer._classify(probe, 3, None, compiled=False)
+        np.testing.assert_array_equal(blocked[0], got[0])
+        np.testing.assert_array_equal(blocked[1], got[1])
 
 
 def test_posteriors_are_normalised_and_best_first() -> None:

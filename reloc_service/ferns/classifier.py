@@ -35,6 +35,7 @@ import scipy.sparse as sp
 
 from ..errors import ConfigError
 from ..numeric import top_k
+from . import kernels
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -49,9 +50,6 @@ _FLUSH_ENTRIES = 8_000_000
 #: Scores held at once while classifying (patches x classes): 256 K float32, 1 MB, which
 #: stays in cache.
 SCORE_BLOCK_FLOATS = 1 << 18
-#: Model entries (float32 log + int32 class, 8 bytes each) gathered at once while scoring:
-#: 256 K entries, 2 MB, which stay in cache until they are summed.
-GATHER_BLOCK_ENTRIES = 1 << 18
 
 
 @dataclass(frozen=True)
@@ -218,44 +216,45 @@ class FernScorer:
         Patches are scored in blocks of about :data:`SCORE_BLOCK_FLOATS` scores: the dense
         N x C matrix of a whole query (tens of MB) would be allocated, page-faulted and
         streamed through memory on every query, and its cost would swing with the state of
-        the allocator. Within a block the visited model rows are gathered a few patches at a
-        time (about :data:`GATHER_BLOCK_ENTRIES` entries, from the actual row lengths): the
-        rows of frequent leaves are long (85 entries per visit on average at 2000 classes,
-        against 27 per row of the model), so a block's rows at once are tens of MB that go to
-        memory and back between the gather and the sum; a few patches' stay in cache. The
-        sums are those of :meth:`scores`, term by term in the same order."""
-        rows = self.tests.rows_of(leaves)
-        n, c = len(rows), self.num_classes
+        the allocator. With numba (:mod:`.kernels`) each patch is scored and ranked in one
+        compiled pass instead: the same scores, posteriors within float32 rounding."""
+        return self._classify(leaves, top_k, allowed, compiled=kernels.KERNELS_AVAILABLE)
+
+    def _classify(self, leaves: npt.ArrayLike, top_k: int,
+                  allowed: npt.NDArray[np.bool_] | None, *, compiled: bool
+                  ) -> tuple[IntArray, npt.NDArray[np.float32]]:
+        leaves = np.asarray(leaves)
+        n, c = len(leaves), self.num_classes
         k = min(top_k, c)
         labels, posts = np.zeros((n, k), np.int64), np.zeros((n, k), np.float32)
         if k == 0 or n == 0:
             return labels, posts
+        if compiled:
+            return self._classify_compiled(leaves, k, allowed)
         block = max(1, SCORE_BLOCK_FLOATS // c)
-        ptr = self.log.indptr
-        per_patch = max(1.0, float((ptr[rows + 1] - ptr[rows]).sum()) / n)
-        gather = max(1, min(block, int(GATHER_BLOCK_ENTRIES / per_patch)))
         for start in range(0, n, block):
-            stop = min(n, start + block)
-            s = np.empty((stop - start, c), np.float32)
-            for sub in range(start, stop, gather):
-                end = min(stop, sub + gather)
-                self._sum_rows(rows[sub:end], s[sub - start:end - start])
-            s += self.const[None, :]
-            labels[start:stop], posts[start:stop] = self._top_posteriors(s, k, allowed)
+            rows = slice(start, start + block)
+            labels[rows], posts[rows] = self._classify_block(leaves[rows], k, allowed)
         return labels, posts
 
-    def _sum_rows(self, rows: IntArray, out: npt.NDArray[np.float32]) -> None:
-        """``out[i] = sum_m log[rows[i, m]]`` (dense, float32), as in :meth:`scores`."""
-        visited = self.log[rows.ravel()]
-        summed = sp.csr_matrix((visited.data, visited.indices, visited.indptr[:: rows.shape[1]]),
-                               shape=out.shape)
-        summed.toarray(out=out)  # zeroes ``out``, then duplicates add up in fern order
+    def _classify_compiled(self, leaves: npt.NDArray[Any], k: int,
+                           allowed: npt.NDArray[np.bool_] | None
+                           ) -> tuple[IntArray, npt.NDArray[np.float32]]:
+        rows = self.tests.rows_of(leaves)
+        mask = (np.zeros(0, bool) if allowed is None
+                else np.ascontiguousarray(allowed, dtype=bool))
+        if allowed is not None and mask.shape != (self.num_classes,):
+            raise ValueError(f"allowed: expected ({self.num_classes},), got {mask.shape}")
+        cols = np.empty((len(rows), k), np.int64)
+        posts = np.empty((len(rows), k), np.float32)
+        kernels.classify_rows(rows, self.log.indptr, self.log.indices, self.log.data,
+                              self.const, mask, allowed is not None, cols, posts)
+        return self.class_ids[cols], posts
 
-    def _top_posteriors(self, s: npt.NDArray[np.float32], k: int,
+    def _classify_block(self, leaves: npt.NDArray[Any], k: int,
                         allowed: npt.NDArray[np.bool_] | None
                         ) -> tuple[IntArray, npt.NDArray[np.float32]]:
-        """Best ``k`` classes of each row of the scores ``s`` (overwritten) and their
-        posteriors."""
+        s = self.scores(leaves)
         if allowed is not None:
             s[:, ~np.asarray(allowed, bool)] = -np.inf
         top = top_k(s, k)
