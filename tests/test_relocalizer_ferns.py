@@ -367,8 +367,10 @@ def two_places(scene: Scene) -> tuple[FernsRelocalizer, Scene, np.ndarray]:
                  if x >= 0})
     num_b = len(means)
     # Room for the larger place: two regions, which k-means cuts between the places.
+    # Four keyframes per place: the nearest keyframe alone votes (five would always include
+    # the other place's).
     reloc = FernsRelocalizer(kmap, FernsConf(**{**FAST, "max_classes": max(num_a, num_b),
-                                                "max_regions": 1}))
+                                                "max_regions": 1, "place_keyframes": 1}))
     reloc.train()
     return reloc, place_b, texture_b
 

@@ -11,10 +11,15 @@ per model, either the most observed landmarks in one model (``partition = "selec
 model per region of the map (``"regions"``: k-means of keyframe positions). Classifying a query
 against every model would multiply its cost by the number of regions, so a place prior picks
 the regions first (``region_prior = "sbi"``): PTAM's small blurry images (the fast place finder,
-one matrix-vector product over every keyframe) rank the keyframes, and the query is classified
-only against the ``max_regions`` regions holding the best-ranked keyframes. The correspondences
-of those models are pooled into one RANSAC and the shared verification, as before: a region
-picked wrongly gives correspondences that do not agree on a pose, hence "not relocalized".
+one matrix-vector product over every keyframe) rank the keyframes, the landmarks trained from
+the ``place_keyframes`` best-ranked ones vote for the regions whose models learned them (one
+vote per keyframe, split in proportion, so a keyframe rich in landmarks does not outvote the
+others), and the query is classified only against the ``max_regions`` regions with most votes
+(a landmark is learned by one region, not always its keyframe's). The correspondences of those models are
+pooled into one RANSAC and the shared verification, as before: a region picked wrongly gives
+correspondences that do not agree on a pose, hence no verified pose; then, with
+``region_fallback``, the query is classified against every other region too (the cost of the
+old exhaustive search, paid only by the queries the prior failed).
 
 Threads. No lock: training, updates and load run behind the engine (under its write lock, or
 on a fresh relocalizer built off-line and swapped in), never during a query; save runs beside
@@ -110,6 +115,8 @@ class FernsConf:
     partition: str = "regions"
     region_prior: str = "sbi"
     max_regions: int = 2
+    place_keyframes: int = 5
+    region_fallback: bool = True
     kind: str = "sift"
     detector: str = "sift"
     max_query_keypoints: int = 1000
@@ -132,9 +139,9 @@ class FernsConf:
             raise ConfigError(f"ferns: region_prior {self.region_prior!r} unknown; expected one "
                               f"of {REGION_PRIORS}")
         if min(self.workers, self.max_classes, self.max_query_keypoints, self.top_k,
-               self.max_regions) < 1:
-            raise ConfigError("ferns: workers, max_classes, max_query_keypoints, top_k and "
-                              "max_regions must be >= 1")
+               self.max_regions, self.place_keyframes) < 1:
+            raise ConfigError("ferns: workers, max_classes, max_query_keypoints, top_k, "
+                              "max_regions and place_keyframes must be >= 1")
         if not 0 <= self.min_posterior < 1:
             raise ConfigError(f"ferns: min_posterior must be in [0, 1), got {self.min_posterior}")
 
@@ -181,11 +188,12 @@ class _Region:
 @dataclass(frozen=True, eq=False)
 class _Published:
     """What queries read, swapped atomically after each update: one scorer per region, the
-    keyframes of each region and the region of each keyframe."""
+    keyframes of each region and, per keyframe, the fraction of its trained landmarks each
+    region learned ((R,) summing to 1)."""
 
     scorers: tuple[FernScorer, ...]
     region_keyframes: tuple[frozenset[int], ...]
-    region_of: Mapping[int, int] = dataclasses.field(default_factory=dict)
+    landmark_regions: Mapping[int, Array] = dataclasses.field(default_factory=dict)
 
 
 @register("ferns")
@@ -456,28 +464,42 @@ class FernsRelocalizer(Relocalizer):
             (clf.add if sign > 0 else clf.remove)(lv, labels)
 
     def _publish(self) -> None:
+        num = len(self._regions)
+        votes = {}
+        for kf_id, obs in self._trained.items():  # per keyframe, a bincount: bookkeeping
+            regions = [self._assign[lm] for lm in obs.landmark_ids.tolist() if lm in self._assign]
+            if regions:
+                votes[kf_id] = np.bincount(np.asarray(regions, np.int64), minlength=num) / len(
+                    regions)
         self._published = _Published(
             tuple(r.classifier.scorer() for r in self._regions),
-            tuple(frozenset(r.keyframe_ids) for r in self._regions),
-            {k: i for i, r in enumerate(self._regions) for k in r.keyframe_ids})
+            tuple(frozenset(r.keyframe_ids) for r in self._regions), votes)
 
     # -- query -------------------------------------------------------------------------------
     def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
                    ) -> RelocResult:
         """Pick the regions (place prior), classify the query's keypoints against their
-        models, P3P LO-RANSAC on the correspondences, verify."""
+        models, P3P LO-RANSAC on the correspondences, verify; with ``region_fallback``, a
+        query not verified there is classified against every region."""
         start = time.perf_counter()
         regions = self.choose_regions(query, prior=prior)
         place_seconds = time.perf_counter() - start
         result = self.relocalize_in(query, regions, prior=prior, hypotheses=hypotheses)
+        every = range(len(self._published.scorers))
+        if not result.ok and self.conf.region_fallback and len(regions) < len(every):
+            first = result.timings
+            result = self.relocalize_in(query, every, prior=prior, hypotheses=hypotheses)
+            for key, seconds in first.items():  # the query paid both attempts
+                result.timings[key] = result.timings.get(key, 0.0) + seconds
         result.timings["place"] = place_seconds
         return result
 
     def choose_regions(self, query: Frame, *, prior: Prior | None = None) -> tuple[int, ...]:
-        """Indices of the regions to classify ``query`` against, most likely first: every
+        """Indices of the regions to classify ``query`` against, most voted first: every
         region when there are at most ``max_regions`` (or ``region_prior = "none"``), else the
-        regions of the keyframes whose small blurry images are nearest the query's (only
-        keyframes within the prior's radius count), ``max_regions`` distinct ones."""
+        ``max_regions`` regions most voted for by the ``place_keyframes`` keyframes whose
+        small blurry images are nearest the query's (only keyframes within the prior's radius
+        count; module docstring); ties go to the lower region."""
         pub = self._published
         every = tuple(range(len(pub.scorers)))
         if self.conf.region_prior == "none" or len(every) <= self.conf.max_regions:
@@ -485,15 +507,14 @@ class FernsRelocalizer(Relocalizer):
         near = None if prior is None else set(self._near_keyframes(self.map.snapshot(), prior))
         if near is not None and not near:
             return every  # relocalize_in says "no keyframe within the prior's radius"
-        ranked = self._places.find_places(query, len(self._places), allowed=near)
-        chosen: list[int] = []
-        for cand in ranked:  # best keyframe first; its region, then the next new region
-            region = pub.region_of.get(cand.keyframe_id)
-            if region is not None and region not in chosen:
-                chosen.append(region)
-                if len(chosen) == self.conf.max_regions:
-                    break
-        return tuple(chosen) if chosen else every
+        ranked = self._places.find_places(query, self.conf.place_keyframes, allowed=near)
+        votes = np.zeros(len(every))
+        for cand in ranked:
+            votes += pub.landmark_regions.get(cand.keyframe_id, 0.0)
+        if not votes.any():
+            return every
+        order = top_k(votes, self.conf.max_regions, keep=votes > 0)
+        return tuple(int(r) for r in order)
 
     def relocalize_in(self, query: Frame, regions: Iterable[int], *, prior: Prior | None = None,
                       hypotheses: int = 1) -> RelocResult:
