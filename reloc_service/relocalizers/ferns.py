@@ -465,12 +465,16 @@ class FernsRelocalizer(Relocalizer):
 
     def _publish(self) -> None:
         num = len(self._regions)
+        ids = np.fromiter(self._assign.keys(), np.int64, len(self._assign))
+        regs = np.fromiter(self._assign.values(), np.int64, len(self._assign))
+        order = np.argsort(ids)
+        ids, regs = ids[order], regs[order]
         votes = {}
-        for kf_id, obs in self._trained.items():  # per keyframe, a bincount: bookkeeping
-            regions = [self._assign[lm] for lm in obs.landmark_ids.tolist() if lm in self._assign]
-            if regions:
-                votes[kf_id] = np.bincount(np.asarray(regions, np.int64), minlength=num) / len(
-                    regions)
+        for kf_id, obs in self._trained.items() if len(ids) else ():  # numpy per keyframe
+            pos = np.minimum(np.searchsorted(ids, obs.landmark_ids), len(ids) - 1)
+            regions = regs[pos[ids[pos] == obs.landmark_ids]]
+            if len(regions):
+                votes[kf_id] = np.bincount(regions, minlength=num) / len(regions)
         self._published = _Published(
             tuple(r.classifier.scorer() for r in self._regions),
             tuple(frozenset(r.keyframe_ids) for r in self._regions), votes)
