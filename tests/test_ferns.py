@@ -91,6 +91,62 @@ def test_sparse_scores_equal_the_dense_formula() -> None:
     np.testing.assert_allclose(clf.scores(probe.astype(np.uint16)), expected, rtol=1e-5, atol=1e-5)
 
 
+def _reference_classify(clf: FernClassifier, leaves: np.ndarray, k: int
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Top-k labels and posteriors from the dense formula (eq. 3.22/3.23, float64)."""
+    m_ferns, num_leaves = clf.num_ferns, clf.num_leaves
+    fern, leaf, label, count = clf.count_table()
+    column = {int(c): i for i, c in enumerate(clf.class_ids)}
+    col = np.array([column[int(x)] for x in label], np.int64)
+    dense = np.zeros((m_ferns, num_leaves, clf.num_classes))
+    dense[fern, leaf, col] = count
+    nr = clf.conf.regularization
+    logp = np.log((dense + nr) / (clf.class_counts + num_leaves * nr))
+    scores = logp[np.arange(m_ferns)[None, :], leaves.astype(np.int64)].sum(1)
+    post = np.exp(scores - scores.max(1, keepdims=True))
+    post /= post.sum(1, keepdims=True)
+    top = np.argsort(-scores, axis=1, kind="stable")[:, :k]
+    return clf.class_ids[top], np.take_along_axis(post, top, 1)
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_fast_scoring_equals_the_dense_reference(compiled: bool,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """Both scoring paths (numpy in blocks of patches; the compiled one-pass kernel) give the
+    dense reference's top classes and posteriors, with and without a class mask; the numpy
+    path's output does not depend on its block size."""
+    from reloc_service.ferns import classifier as module
+    from reloc_service.ferns import kernels
+
+    if compiled and not kernels.KERNELS_AVAILABLE:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(5)
+    clf = FernClassifier(FernConf(num_ferns=12, num_tests=7, regularization=0.5))
+    num_classes = 150
+    # Skewed leaves (some frequent, as on real patches) and skewed class sizes.
+    train = np.minimum(rng.geometric(0.05, (6000, 12)) - 1, 127).astype(np.uint16)
+    weights = np.arange(1, num_classes + 1, dtype=np.float64)
+    clf.add(train, rng.choice(np.arange(num_classes) * 7 + 3, 6000, p=weights / weights.sum()))
+    probe = np.minimum(rng.geometric(0.05, (333, 12)) - 1, 127).astype(np.uint16)
+    scorer = clf.scorer()
+    got = scorer._classify(probe, 3, None, compiled=compiled)
+    want_labels, want_post = _reference_classify(clf, probe, 3)
+    np.testing.assert_array_equal(got[0], want_labels)
+    np.testing.assert_allclose(got[1], want_post, rtol=1e-4, atol=1e-6)
+    # A mask leaving some patches' best classes out, and fewer allowed classes than k.
+    for allowed in (np.arange(clf.num_classes) % 3 == 0, np.arange(clf.num_classes) == 4):
+        labels, post = scorer._classify(probe, 3, allowed, compiled=compiled)
+        masked = np.where(allowed[None, :], scorer.scores(probe), -np.inf)
+        order = np.argsort(-masked, axis=1, kind="stable")[:, :3]
+        np.testing.assert_array_equal(labels, clf.class_ids[order])
+        assert np.all(post[:, int(allowed.sum()):] == 0)
+    if not compiled:
+        monkeypatch.setattr(module, "SCORE_BLOCK_FLOATS", 40 * num_classes)  # 9 blocks
+        blocked = scorer._classify(probe, 3, None, compiled=False)
+        np.testing.assert_array_equal(blocked[0], got[0])
+        np.testing.assert_array_equal(blocked[1], got[1])
+
+
 def test_posteriors_are_normalised_and_best_first() -> None:
     rng = np.random.default_rng(2)
     clf = FernClassifier(FernConf(num_ferns=10, num_tests=6))

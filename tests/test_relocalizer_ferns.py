@@ -7,6 +7,8 @@ within 6 mm become one landmark (as SVO would send them with the keyframes).
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import json
 from dataclasses import dataclass
 
@@ -328,3 +330,94 @@ def test_keypoints_proposing_several_landmarks_agree_by_chance_more_often():
     assert two == pytest.approx(1 - (1 - p) ** 2)
     assert log10_false_alarms(1000, 15, 3, p) < -2 < log10_false_alarms(1000, 15, 3, two)
     assert _per_keypoint_chance(None, 10, 5) is None
+
+
+# -- region prior ------------------------------------------------------------------------------
+PLACE_B_OFFSET = np.array([10.0, 0.0, 0.0])  # a second place 10 m away, another texture
+
+
+def _shifted(world_from_cam: np.ndarray) -> np.ndarray:
+    out = world_from_cam.copy()
+    out[:3, 3] += PLACE_B_OFFSET
+    return out
+
+
+@pytest.fixture(scope="module")
+def two_places(scene: Scene) -> tuple[FernsRelocalizer, Scene, np.ndarray]:
+    """The scene's plane (keyframes 0-3) and a plane of another photo 10 m away (keyframes
+    10-13, same relative poses), one region each; the relocalizer classifies a query against
+    one region only. Returns it, the second place's scene and its texture."""
+    texture_b = _grey("coffee")
+    views = make_views(texture_b, [kf.world_from_cam for kf in scene.keyframes])
+    labels = landmark_labels(views)
+    first_id = 1 + max(int(kf.features["sift"].landmark_ids.max()) for kf in scene.keyframes)
+    labels = [np.where(lab >= 0, lab + first_id, -1) for lab in labels]
+    points = np.concatenate([v.points_world for v in views]) + PLACE_B_OFFSET
+    flat = np.concatenate(labels)
+    means = {int(lab): points[flat == lab].mean(0) for lab in np.unique(flat[flat >= 0])}
+    for v in views:
+        v.world_from_cam = _shifted(v.world_from_cam)
+    keyframes_b = [make_keyframe(v, 10 + i, lab, means)
+                   for i, (v, lab) in enumerate(zip(views, labels, strict=True))]
+    place_b = Scene(texture_b, keyframes_b, scene.queries)
+    kmap = KeyframeMap()
+    for kf in scene.keyframes + keyframes_b:
+        kmap.add_keyframe(kf)
+    num_a = len({int(x) for kf in scene.keyframes for x in kf.features["sift"].landmark_ids
+                 if x >= 0})
+    num_b = len(means)
+    # Room for the larger place: two regions, which k-means cuts between the places.
+    # Four keyframes per place: the nearest keyframe alone votes (five would always include
+    # the other place's).
+    reloc = FernsRelocalizer(kmap, FernsConf(**{**FAST, "max_classes": max(num_a, num_b),
+                                                "max_regions": 1, "place_keyframes": 1}))
+    reloc.train()
+    return reloc, place_b, texture_b
+
+
+def _region_of(reloc: FernsRelocalizer, keyframe_id: int) -> int:
+    return next(i for i, r in enumerate(reloc.regions) if keyframe_id in r)
+
+
+def test_region_prior_picks_the_region_of_the_query(
+        scene: Scene, two_places: tuple[FernsRelocalizer, Scene, np.ndarray]) -> None:
+    reloc, place_b, texture_b = two_places
+    assert len(reloc.regions) == 2
+    assert _region_of(reloc, 0) != _region_of(reloc, 10)  # each place is its own region
+    for texture, offset, kf_id in ((scene.texture, np.zeros(3), 0), (texture_b, PLACE_B_OFFSET, 10)):
+        for world_from_cam in scene.queries:
+            query = Frame(render(texture, world_from_cam), CAMERA)
+            assert reloc.choose_regions(query) == (_region_of(reloc, kf_id),)
+            result = reloc.relocalize(query)
+            assert result.ok, result.reason
+            truth = world_from_cam.copy()
+            truth[:3, 3] += offset
+            dt, dr = pose_error(result.world_from_cam, truth)
+            assert dt < 0.03 and np.degrees(dr) < 1.0, (dt, np.degrees(dr))
+            assert "place" in result.timings
+
+
+def test_a_query_classified_in_the_wrong_region_is_not_relocalized(
+        scene: Scene, two_places: tuple[FernsRelocalizer, Scene, np.ndarray]) -> None:
+    reloc, place_b, texture_b = two_places
+    for texture, wrong in ((texture_b, _region_of(reloc, 0)), (scene.texture, _region_of(reloc, 10))):
+        for world_from_cam in scene.queries:
+            result = reloc.relocalize_in(Frame(render(texture, world_from_cam), CAMERA), [wrong])
+            assert not result.ok and result.world_from_cam is None and result.reason
+    with pytest.raises(ValueError):
+        reloc.relocalize_in(Frame(render(scene.texture, scene.queries[0]), CAMERA), [5])
+
+
+def test_without_region_prior_every_region_is_classified(
+        two_places: tuple[FernsRelocalizer, Scene, np.ndarray]) -> None:
+    reloc, place_b, texture_b = two_places
+    query = Frame(render(texture_b, place_b.queries[0]), CAMERA)
+    for changes in ({"region_prior": "none"}, {"max_regions": 2}):
+        every = copy.copy(reloc)  # the same trained models, other query options
+        every.conf = dataclasses.replace(reloc.conf, **changes)
+        assert every.choose_regions(query) == (0, 1)
+        assert every.relocalize(query).ok
+    with pytest.raises(ConfigError):
+        FernsConf(region_prior="nearest")
+    with pytest.raises(ConfigError):
+        FernsConf(max_regions=0)

@@ -8,8 +8,18 @@ only, so a keyframe (or a landmark) leaving the map subtracts exactly what it ad
 
 Scale (thesis 5.2.2: 1730 classes already strain one model): at most ``max_classes`` classes
 per model, either the most observed landmarks in one model (``partition = "select"``) or one
-model per region of the map (``"regions"``: k-means of keyframe positions); a query classifies
-against every model (or those near the prior) and pools the correspondences into one RANSAC.
+model per region of the map (``"regions"``: k-means of keyframe positions). Classifying a query
+against every model would multiply its cost by the number of regions, so a place prior picks
+the regions first (``region_prior = "sbi"``): PTAM's small blurry images (the fast place finder,
+one matrix-vector product over every keyframe) rank the keyframes, the landmarks trained from
+the ``place_keyframes`` best-ranked ones vote for the regions whose models learned them (one
+vote per keyframe, split in proportion, so a keyframe rich in landmarks does not outvote the
+others), and the query is classified only against the ``max_regions`` regions with most votes
+(a landmark is learned by one region, not always its keyframe's). The correspondences of those models are
+pooled into one RANSAC and the shared verification, as before: a region picked wrongly gives
+correspondences that do not agree on a pose, hence no verified pose; then, with
+``region_fallback``, the query is classified against every other region too (the cost of the
+old exhaustive search, paid only by the queries the prior failed).
 
 Threads. No lock: training, updates and load run behind the engine (under its write lock, or
 on a fresh relocalizer built off-line and swapped in), never during a query; save runs beside
@@ -46,6 +56,7 @@ from ..fileio import atomic_write
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap, MapState
 from ..numeric import top_k
+from ..place.sbi import SmallBlurryImageFinder
 from ..plugins import make_conf
 from ..pose.base import PoseEstimate
 from ..pose.p3p import PnPConf, solve_pnp_indexed
@@ -57,6 +68,7 @@ IntArray = npt.NDArray[np.int64]
 
 QUERY_DETECTORS = ("sift", "fast")
 PARTITIONS = ("select", "regions")
+REGION_PRIORS = ("sbi", "none")
 FORMAT_VERSION = 1
 _MODEL_FILE = "ferns.npz"
 _META_FILE = "ferns.json"
@@ -70,7 +82,9 @@ class FernsConf:
     Training: ``num_warps`` samples per observation (thesis: 100), warps as in
     :class:`~reloc_service.ferns.training.WarpConf`; ``online`` trains each new keyframe as it
     arrives (else only :meth:`train` does); ``workers`` threads warp keyframes in parallel.
-    Scale: ``max_classes`` per model, ``partition`` "select" or "regions" (module docstring).
+    Scale: ``max_classes`` per model, ``partition`` "select" or "regions" (module docstring);
+    with regions, ``region_prior`` "sbi" classifies a query against the ``max_regions`` regions
+    whose keyframes its small blurry image resembles most, "none" against every region.
     Query: ``detector`` "sift" (DoG, like the landmarks' keypoints) or "fast", at most
     ``max_query_keypoints``; each keypoint gives its ``top_k`` classes with posterior at least
     ``min_posterior``. ``kind`` is the feature kind whose landmarks are learned.
@@ -99,6 +113,10 @@ class FernsConf:
     workers: int = 2
     max_classes: int = 2000
     partition: str = "regions"
+    region_prior: str = "sbi"
+    max_regions: int = 2
+    place_keyframes: int = 5
+    region_fallback: bool = True
     kind: str = "sift"
     detector: str = "sift"
     max_query_keypoints: int = 1000
@@ -117,9 +135,13 @@ class FernsConf:
         if self.partition not in PARTITIONS:
             raise ConfigError(f"ferns: partition {self.partition!r} unknown; expected one of "
                               f"{PARTITIONS}")
-        if min(self.workers, self.max_classes, self.max_query_keypoints, self.top_k) < 1:
-            raise ConfigError("ferns: workers, max_classes, max_query_keypoints and top_k must "
-                              "be >= 1")
+        if self.region_prior not in REGION_PRIORS:
+            raise ConfigError(f"ferns: region_prior {self.region_prior!r} unknown; expected one "
+                              f"of {REGION_PRIORS}")
+        if min(self.workers, self.max_classes, self.max_query_keypoints, self.top_k,
+               self.max_regions, self.place_keyframes) < 1:
+            raise ConfigError("ferns: workers, max_classes, max_query_keypoints, top_k, "
+                              "max_regions and place_keyframes must be >= 1")
         if not 0 <= self.min_posterior < 1:
             raise ConfigError(f"ferns: min_posterior must be in [0, 1), got {self.min_posterior}")
 
@@ -165,11 +187,13 @@ class _Region:
 
 @dataclass(frozen=True, eq=False)
 class _Published:
-    """What queries read, swapped atomically after each update: one scorer per region and
-    the keyframes of each region."""
+    """What queries read, swapped atomically after each update: one scorer per region, the
+    keyframes of each region and, per keyframe, the fraction of its trained landmarks each
+    region learned ((R,) summing to 1)."""
 
     scorers: tuple[FernScorer, ...]
     region_keyframes: tuple[frozenset[int], ...]
+    landmark_regions: Mapping[int, Array] = dataclasses.field(default_factory=dict)
 
 
 @register("ferns")
@@ -188,6 +212,9 @@ class FernsRelocalizer(Relocalizer):
         self._warp_conf = self.conf.warp_conf()
         self._points_cache: tuple[int, IntArray, Array] = (-1, np.zeros(0, np.int64),
                                                            np.zeros((0, 3)))
+        # The place prior's own index of the keyframes (cheap: 40x30 floats per keyframe),
+        # kept in step with the map by add_keyframe / remove_keyframe / train / load.
+        self._places = SmallBlurryImageFinder(kmap, SmallBlurryImageFinder.Conf())
         self._reset()
         self._ever_trained = False
 
@@ -221,11 +248,13 @@ class FernsRelocalizer(Relocalizer):
     def add_keyframe(self, keyframe: Keyframe) -> None:
         """Train the observations the map gained (those of ``keyframe`` and any new ones on
         older keyframes) when ``online``; otherwise wait for :meth:`train`."""
+        self._places.add_keyframe(keyframe)
         if self.conf.online:
             self.update()
 
     def remove_keyframe(self, keyframe: Keyframe) -> None:
         """Subtract the samples of observations no longer in the map (when ``online``)."""
+        self._places.remove_keyframe(keyframe)
         if self.conf.online:
             self.update()
 
@@ -233,6 +262,7 @@ class FernsRelocalizer(Relocalizer):
         """Rebuild every model from the current map: partition, then train all observations."""
         state = self.map.snapshot()
         self._reset()
+        self._places.train()
         self._partition(state)
         self._sync(state, show_progress=progress)
         self._ever_trained = True
@@ -282,7 +312,7 @@ class FernsRelocalizer(Relocalizer):
         self._lm_trained: Counter[int] = Counter()  # landmark id -> trained observations
         self._kf_region: dict[int, int] = {}
         self._trained: dict[int, _Observations] = {}
-        self._published = _Published((), ())
+        self._published = _Published((), (), {})
 
     def _new_region(self, keyframe_ids: Iterable[int], centre_world: Array) -> int:
         self._regions.append(_Region(FernClassifier(self.conf.fern_conf()), set(keyframe_ids),
@@ -434,29 +464,85 @@ class FernsRelocalizer(Relocalizer):
             (clf.add if sign > 0 else clf.remove)(lv, labels)
 
     def _publish(self) -> None:
-        self._published = _Published(tuple(r.classifier.scorer() for r in self._regions),
-                                     tuple(frozenset(r.keyframe_ids) for r in self._regions))
+        num = len(self._regions)
+        ids = np.fromiter(self._assign.keys(), np.int64, len(self._assign))
+        regs = np.fromiter(self._assign.values(), np.int64, len(self._assign))
+        order = np.argsort(ids)
+        ids, regs = ids[order], regs[order]
+        votes = {}
+        for kf_id, obs in self._trained.items() if len(ids) else ():  # numpy per keyframe
+            pos = np.minimum(np.searchsorted(ids, obs.landmark_ids), len(ids) - 1)
+            regions = regs[pos[ids[pos] == obs.landmark_ids]]
+            if len(regions):
+                votes[kf_id] = np.bincount(regions, minlength=num) / len(regions)
+        self._published = _Published(
+            tuple(r.classifier.scorer() for r in self._regions),
+            tuple(frozenset(r.keyframe_ids) for r in self._regions), votes)
 
     # -- query -------------------------------------------------------------------------------
     def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
                    ) -> RelocResult:
-        """Classify the query's keypoints, P3P LO-RANSAC on the correspondences, verify."""
+        """Pick the regions (place prior), classify the query's keypoints against their
+        models, P3P LO-RANSAC on the correspondences, verify; with ``region_fallback``, a
+        query not verified there is classified against every region."""
+        start = time.perf_counter()
+        regions = self.choose_regions(query, prior=prior)
+        place_seconds = time.perf_counter() - start
+        result = self.relocalize_in(query, regions, prior=prior, hypotheses=hypotheses)
+        every = range(len(self._published.scorers))
+        if not result.ok and self.conf.region_fallback and len(regions) < len(every):
+            first = result.timings
+            result = self.relocalize_in(query, every, prior=prior, hypotheses=hypotheses)
+            for key, seconds in first.items():  # the query paid both attempts
+                result.timings[key] = result.timings.get(key, 0.0) + seconds
+        result.timings["place"] = place_seconds
+        return result
+
+    def choose_regions(self, query: Frame, *, prior: Prior | None = None) -> tuple[int, ...]:
+        """Indices of the regions to classify ``query`` against, most voted first: every
+        region when there are at most ``max_regions`` (or ``region_prior = "none"``), else the
+        ``max_regions`` regions most voted for by the ``place_keyframes`` keyframes whose
+        small blurry images are nearest the query's (only keyframes within the prior's radius
+        count; module docstring); ties go to the lower region."""
+        pub = self._published
+        every = tuple(range(len(pub.scorers)))
+        if self.conf.region_prior == "none" or len(every) <= self.conf.max_regions:
+            return every
+        near = None if prior is None else set(self._near_keyframes(self.map.snapshot(), prior))
+        if near is not None and not near:
+            return every  # relocalize_in says "no keyframe within the prior's radius"
+        ranked = self._places.find_places(query, self.conf.place_keyframes, allowed=near)
+        votes = np.zeros(len(every))
+        for cand in ranked:
+            votes += pub.landmark_regions.get(cand.keyframe_id, 0.0)
+        if not votes.any():
+            return every
+        order = top_k(votes, self.conf.max_regions, keep=votes > 0)
+        return tuple(int(r) for r in order)
+
+    def relocalize_in(self, query: Frame, regions: Iterable[int], *, prior: Prior | None = None,
+                      hypotheses: int = 1) -> RelocResult:
+        """:meth:`relocalize` against the models of ``regions`` only (indices into
+        :attr:`regions`)."""
         if not self.trained:
             raise NotTrainedError("ferns relocalizer: call train() first (online training is off)")
         state = self.map.snapshot()
         pub = self._published
         timings: dict[str, float] = {}
         fail: dict[str, Any] = dict(method=self.method, map_version=state.version, timings=timings)
-        if sum(s.num_classes for s in pub.scorers) == 0:
+        picked = sorted({int(r) for r in regions})
+        if any(not 0 <= r < len(pub.scorers) for r in picked):
+            raise ValueError(f"ferns: regions must be in [0, {len(pub.scorers)}), got {picked}")
+        if sum(pub.scorers[r].num_classes for r in picked) == 0:
             return RelocResult.failure(reason="no trained landmarks", **fail)
-        allowed = self._allowed(state, pub, prior)
+        allowed = self._allowed(state, [pub.scorers[r] for r in picked], prior)
         if allowed is None:
             return RelocResult.failure(reason="no keyframe within the prior's radius", **fail)
         start = time.perf_counter()
         px = self._detect(query)
         timings["features"] = time.perf_counter() - start
         start = time.perf_counter()
-        kp, lm, _ = self._classify(query, px, pub, allowed)
+        kp, lm, _ = self._classify(query, px, [pub.scorers[r] for r in picked], allowed)
         points, live = self._landmark_points(state, lm)
         kp, lm, points = kp[live], lm[live], points[live]
         timings["classify"] = time.perf_counter() - start
@@ -465,21 +551,27 @@ class FernsRelocalizer(Relocalizer):
         best.hypotheses = [r for r in results[1:] if r.ok]
         return best
 
-    def _allowed(self, state: MapState, pub: _Published, prior: Prior | None
+    def _near_keyframes(self, state: MapState, prior: Prior) -> list[int]:
+        """Keyframe ids within the prior's radius of its position."""
+        ids = state.keyframe_ids()
+        if not ids:
+            return []
+        dist = np.linalg.norm(state.positions_world(ids) - prior.world_from_cam[:3, 3], axis=1)
+        return [k for k, d in zip(ids, dist, strict=True) if d <= prior.radius_m]
+
+    def _allowed(self, state: MapState, scorers: list[FernScorer], prior: Prior | None
                  ) -> list[npt.NDArray[np.bool_] | None] | None:
-        """Per region, the mask of classes the prior allows (None: all); None if the prior
+        """Per model, the mask of classes the prior allows (None: all); None if the prior
         leaves no keyframe."""
         if prior is None:
-            return [None] * len(pub.scorers)
-        ids = state.keyframe_ids()
-        dist = np.linalg.norm(state.positions_world(ids) - prior.world_from_cam[:3, 3], axis=1)
-        near = [k for k, d in zip(ids, dist, strict=True) if d <= prior.radius_m]
+            return [None] * len(scorers)
+        near = self._near_keyframes(state, prior)
         if not near:
             return None
         lms = [state.keyframes[k].features[self.conf.kind].landmark_ids for k in near
                if self.conf.kind in state.keyframes[k].features]
         seen = np.unique(np.concatenate(lms)) if lms else np.zeros(0, np.int64)
-        return [np.isin(s.class_ids, seen) for s in pub.scorers]
+        return [np.isin(s.class_ids, seen) for s in scorers]
 
     def _detect(self, query: Frame) -> Array:
         """(N, 2) query keypoints (distinct pixels), cached on the frame."""
@@ -489,7 +581,7 @@ class FernsRelocalizer(Relocalizer):
                                                 self.conf.max_query_keypoints)
         return query.cache[key]
 
-    def _classify(self, query: Frame, px: Array, pub: _Published,
+    def _classify(self, query: Frame, px: Array, scorers: list[FernScorer],
                   allowed: list[npt.NDArray[np.bool_] | None]
                   ) -> tuple[IntArray, IntArray, npt.NDArray[np.float32]]:
         """Correspondences (keypoint index, landmark id, posterior), each keypoint's
@@ -500,7 +592,7 @@ class FernsRelocalizer(Relocalizer):
         image = prepare_image(query.image, self.conf.smoothing_sigma)
         leaves = self._tests.leaves_at(image, px)
         labels, posts = [], []
-        for scorer, mask in zip(pub.scorers, allowed, strict=True):
+        for scorer, mask in zip(scorers, allowed, strict=True):
             if scorer.num_classes == 0 or (mask is not None and not mask.any()):
                 continue
             lab, post = scorer.classify(leaves, top_k=self.conf.top_k, allowed=mask)
@@ -625,6 +717,7 @@ class FernsRelocalizer(Relocalizer):
             raise StorageError(f"{directory / _MODEL_FILE}: damaged ferns model "
                                f"({exc})") from exc
         self._reset()
+        self._places.train()
         self._regions, self._trained = regions, trained
         self._assign = dict(zip(arrays["assign_landmark"].tolist(),
                                 arrays["assign_region"].tolist(), strict=True))
