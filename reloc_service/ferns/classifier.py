@@ -218,7 +218,7 @@ class FernScorer:
         streamed through memory on every query, and its cost would swing with the state of
         the allocator. With numba (:mod:`.kernels`) each patch is scored and ranked in one
         compiled pass instead: the same scores, posteriors within float32 rounding."""
-        return self._classify(leaves, top_k, allowed, compiled=kernels.KERNELS_AVAILABLE)
+        return self._classify(leaves, top_k, allowed, compiled=kernels.compiled_classify_rows() is not None)
 
     def _classify(self, leaves: npt.ArrayLike, top_k: int,
                   allowed: npt.NDArray[np.bool_] | None, *, compiled: bool
@@ -247,8 +247,10 @@ class FernScorer:
             raise ValueError(f"allowed: expected ({self.num_classes},), got {mask.shape}")
         cols = np.empty((len(rows), k), np.int64)
         posts = np.empty((len(rows), k), np.float32)
-        kernels.classify_rows(rows, self.log.indptr, self.log.indices, self.log.data,
-                              self.const, mask, allowed is not None, cols, posts)
+        kernel = kernels.compiled_classify_rows()
+        assert kernel is not None  # _classify calls this only when numba is there
+        kernel(rows, self.log.indptr, self.log.indices, self.log.data, self.const, mask,
+               allowed is not None, cols, posts)
         return self.class_ids[cols], posts
 
     def _classify_block(self, leaves: npt.NDArray[Any], k: int,

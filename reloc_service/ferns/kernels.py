@@ -11,21 +11,19 @@ are added, and nothing is copied. The additions are done in the same order as
 class constant), so the scores are bit for bit the same; the posteriors' normaliser is summed
 in float64 (numpy sums float32 pairwise), so posteriors agree within float32 rounding.
 
-``KERNELS_AVAILABLE`` is False where numba is not installed; the classifier then uses its
-numpy/scipy path.
+:func:`compiled_classify_rows` imports numba on first use (numba and LLVM cost about half a
+second and tens of MB at import: only a process that classifies with ferns pays) and returns
+None where numba is not installed; the classifier then uses its numpy/scipy path.
 """
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 import numpy.typing as npt
-
-try:
-    import numba
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    numba = None
-
-KERNELS_AVAILABLE = numba is not None
 
 
 def _classify_rows(rows: npt.NDArray[np.int64], indptr: npt.NDArray[np.integer],
@@ -108,8 +106,15 @@ def _fill_unscored(cols: npt.NDArray[np.int64]) -> None:
         nxt += 1
 
 
-if numba is not None:
+@functools.cache
+def compiled_classify_rows() -> Callable[..., None] | None:
+    """:func:`_classify_rows` compiled by numba (cached on disk by numba after the first
+    compile), or None where numba is not installed."""
+    global _fill_unscored  # the compiled kernel calls the compiled helper by its global name
+    try:
+        import numba
+    except ImportError:
+        return None
     _fill_unscored = numba.njit(cache=True, nogil=True)(_fill_unscored)
-    classify_rows = numba.njit(cache=True, nogil=True)(_classify_rows)
-else:  # pragma: no cover
-    classify_rows = None
+    kernel: Any = numba.njit(cache=True, nogil=True)(_classify_rows)
+    return kernel
