@@ -287,7 +287,8 @@ def score_dataset(root: Path, methods: Sequence[str], *, show_progress: bool = T
     cams = sorted({dataset.camera(e).model for e in dataset.query_entries})
     return {"root": str(Path(root).resolve()), "landmark_source": source.value,
             "keyframes": len(state.keyframes),
-            "landmarks": len(state.landmarks), "queries": len(dataset.query_entries),
+            "landmarks": len(state.landmarks), "sift_landmarks": state.landmark_count("sift"),
+            "queries": len(dataset.query_entries),
             "camera_models": cams, "build_s": build_s, "train_s": train_s, "eval_s": eval_s,
             "results": results}
 
