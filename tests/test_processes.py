@@ -358,3 +358,19 @@ def _descendants(pid: int) -> list[int]:
         found.extend(children)
         frontier.extend(children)
     return found
+
+
+def test_stale_replica_directories_of_dead_services_are_removed(tmp_path):
+    """A service killed -9 cannot remove its replica bases; the next one removes the
+    directories whose pid no longer runs, and keeps those of running services."""
+    from reloc_service.service.processes import SCRATCH_PREFIX, remove_stale_scratch
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    dead = tmp_path / f"{SCRATCH_PREFIX}{gone.pid}-abc"
+    live = tmp_path / f"{SCRATCH_PREFIX}{os.getpid()}-def"
+    other = tmp_path / "reloc-replicas-notapid"
+    for path in (dead, live, other):
+        (path / "map-1").mkdir(parents=True)
+    assert remove_stale_scratch(tmp_path) == [dead]
+    assert not dead.exists() and live.is_dir() and other.is_dir()

@@ -248,6 +248,33 @@ class RemoteAnswer:
     total_s: float = 0.0
 
 
+#: Prefix of the private directory of a service's replica bases, followed by its pid.
+SCRATCH_PREFIX = "reloc-replicas-"
+
+
+def remove_stale_scratch(tmp: Path) -> list[Path]:
+    """Remove the replica directories of services that are gone (killed -9: no ``close``),
+    so a service restarted after crashes does not fill the disk; returns what was removed.
+    A directory counts as stale when the pid in its name no longer runs."""
+    removed = []
+    for path in tmp.glob(f"{SCRATCH_PREFIX}*-*"):
+        pid = path.name[len(SCRATCH_PREFIX):].split("-", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)) and path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: alive, not ours to judge
+        return True
+    return True
+
+
 class ProcessWorkers:
     """``count`` worker processes holding replicas of the maps :meth:`attach`-ed to them."""
 
@@ -269,7 +296,8 @@ class ProcessWorkers:
         self._closed = False
         self._token = 0
         self._in_flight = 0
-        self._scratch = Path(tempfile.mkdtemp(prefix="reloc-replicas-"))
+        remove_stale_scratch(Path(tempfile.gettempdir()))
+        self._scratch = Path(tempfile.mkdtemp(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-"))
 
     # -- maps ------------------------------------------------------------------------------------
     def attach(self, rt: MapRuntime) -> None:
