@@ -236,7 +236,9 @@ def test_worker_killed_while_idle_is_replaced(served):
 
 def test_full_queue_is_busy_and_every_query_answered(synthetic_scene):
     """1 worker process and 1 queue slot under 10 queries at once: some are "busy" at once,
-    the others answered; each query exactly one reply, no error."""
+    the others answered; each query exactly one reply, no error. (How many are answered
+    depends on whether the worker took the first query off the queue before the others
+    arrived: at least one, usually two.)"""
     port = free_port()
     service = _serve(service_conf(port, "", maps=(MAP,), workers=1, queue_size=1),
                      synthetic_scene, keyframes=3)
@@ -250,7 +252,7 @@ def test_full_queue_is_busy_and_every_query_answered(synthetic_scene):
             assert [kind for kind, _ in r] == ["ok"], r
             statuses.append(_pose(r[0][1])[0])
         assert statuses.count("busy") >= 1, statuses
-        assert len(statuses) - statuses.count("busy") >= 2, statuses
+        assert len(statuses) == 10 and len(statuses) - statuses.count("busy") >= 1, statuses
         assert set(statuses) <= {"busy", "ok", "not_relocalized"}, statuses
     finally:
         service.stop(final_snapshot=False)
