@@ -64,3 +64,21 @@ def test_window_distances_of_binary_descriptors_are_hamming():
     bits = np.unpackbits(query, axis=1).astype(np.int64)[near]
     own = np.unpackbits(landmarks, axis=1).astype(np.int64)[:, None, :]
     assert np.array_equal(dist, np.abs(bits - own).sum(axis=2).astype(np.float64))
+
+
+def test_window_distances_of_uint8_sift_are_l2_not_hamming():
+    """SIFT descriptors are kept as uint8 (lossless): the guided window must compare them by
+    L2 like their float32 originals, not as packed bits (a merge once sent them to the
+    Hamming path, which moved bow+p3p's poses on 7scenes)."""
+    from reloc_service.pose.guided import _window_distances
+
+    rng = np.random.default_rng(3)
+    query = rng.integers(0, 256, (40, 128), dtype=np.uint8)
+    landmarks = rng.integers(0, 256, (15, 128), dtype=np.uint8)
+    near = rng.integers(0, 40, (15, 4))
+    as_uint8 = _window_distances(query, landmarks, near)
+    as_float = _window_distances(query.astype(np.float32), landmarks.astype(np.float32), near)
+    np.testing.assert_allclose(as_uint8, as_float, rtol=1e-6)
+    expected = np.linalg.norm(query[near].astype(np.float64)
+                              - landmarks[:, None, :].astype(np.float64), axis=2)
+    np.testing.assert_allclose(as_uint8, expected, rtol=1e-5)

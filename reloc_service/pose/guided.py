@@ -102,9 +102,10 @@ def search_by_projection(feats: Features, camera: Camera, world_from_cam: Array,
 def _window_distances(query_desc: npt.NDArray[Any], landmark_desc: npt.NDArray[Any],
                       near: IntArray) -> Array:
     """(L, K) descriptor distance of each landmark to its K window keypoints."""
-    if query_desc.dtype == np.uint8 and query_desc.shape[1] % 8 == 0:
-        # Binary: popcount of XOR on 64-bit words, the Hamming distance exactly, without the
-        # (L, K, 8 x bytes) float array of unpacked bits (80 MB for 10k landmarks with ORB).
+    if is_binary_descriptor(query_desc) and query_desc.shape[1] % 8 == 0:
+        # Binary (ORB; SIFT is uint8 too, but compared by L2): popcount of XOR on 64-bit
+        # words, the Hamming distance exactly, without the (L, K, 8 x bytes) float array of
+        # unpacked bits (80 MB for 10k landmarks with ORB).
         words = np.ascontiguousarray(query_desc).view(np.uint64)[near]       # (L, K, W)
         own = np.ascontiguousarray(landmark_desc).view(np.uint64)[:, None, :]  # (L, 1, W)
         return np.bitwise_count(words ^ own).sum(axis=2, dtype=np.int64).astype(np.float64)
