@@ -71,7 +71,7 @@ def test_every_target_met_from_given_figures():
     rows = targets(run())
     measured = {x["item"]: x for x in rows}
     assert [x["met"] for x in rows[:-1]] == [True] * (len(rows) - 1)
-    # the before/after comparison cannot come from one run: said, not faked
+    # without a baseline run the before/after comparison is said to be missing, not faked
     assert rows[-1]["met"] is None and rows[-1]["measured"] is None
     assert measured["default method p50 on desk 640x480 JPEG, decode included"][
         "measured"] == 14.0
@@ -146,3 +146,51 @@ def test_targets_table_in_the_markdown_is_the_computed_one():
     md = cli.render_markdown({"targets": copy.deepcopy(rows), "suite": "full",
                               "created_utc": "now", "duration_s": 60.0, "machine": {}})
     assert "## Targets" in md and rss in md
+
+
+def test_no_recall_lost_compares_every_recall_both_runs_scored():
+    before = run()
+    before["code"] = {"commit": "abc123", "dirty": False}
+    rows = targets(run(), copy.deepcopy(before))
+    last = rows[-1]
+    assert last["item"].startswith("no recall lost") and last["met"] is True
+    assert last["measured"] == 0.0 and "abc123" in last["detail"]
+    # one query fewer within 25 cm on tum for sbi+p3p: lost, named, whatever else improved
+    after = run()
+    after["accuracy"]["datasets"]["tum"]["results"]["sbi+p3p"]["recall"]["25cm_10deg"] = 0.41
+    after["accuracy"]["datasets"]["room"]["results"]["sbi+p3p"]["recall"]["5cm_5deg"] = 1.0
+    last = targets(after, before)[-1]
+    assert last["met"] is False and last["measured"] == pytest.approx(-10.0)
+    assert "tum `sbi+p3p` @25cm_10deg -10.0" in last["detail"]
+    # a dataset or method only one run scored, or one that failed, is not compared
+    after = run()
+    del after["accuracy"]["datasets"]["tum"]
+    after["accuracy"]["datasets"]["room"]["results"]["sbi+p3p"] = {"error": "boom"}
+    before["accuracy"]["datasets"]["room"]["results"]["ferns"]["recall"]["5cm_5deg"] = 0.0
+    last = targets(after, before)[-1]
+    assert last["met"] is True and "tum" not in last["detail"]
+    assert last["measured"] == 0.0 and "8 recalls compared on room, room-hard" in last["detail"]
+    # nothing in common: not measured, not met
+    last = targets(after, {"accuracy": {"datasets": {"other": {"results": {}}}}})[-1]
+    assert last["met"] is None and "no dataset and method in common" in last["detail"]
+
+
+def test_baseline_file_must_hold_an_accuracy_section(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json", encoding="utf-8")
+    with pytest.raises(ValueError, match="expected a reloc bench JSON"):
+        cli.read_baseline(bad)
+    bad.write_text('{"latency": {}}', encoding="utf-8")
+    with pytest.raises(ValueError, match="accuracy section that ran"):
+        cli.read_baseline(bad)
+    good = tmp_path / "good.json"
+    good.write_text('{"accuracy": {"datasets": {}}}', encoding="utf-8")
+    assert cli.read_baseline(good) == {"accuracy": {"datasets": {}}}
+
+
+def test_code_record_names_the_commit_that_ran(tmp_path):
+    from reloc_service.tools.bench.machine import code_record
+
+    here = code_record()
+    assert here["commit"] is None or (len(here["commit"]) == 40 and here["dirty"] in (True, False))
+    assert code_record(tmp_path) == {"commit": None, "dirty": None}  # not a git checkout

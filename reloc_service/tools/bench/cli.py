@@ -55,6 +55,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--soak-restart-every", metavar="S", type=float, default=None,
                         help="soak section: seconds between stops of the service, kill -9 "
                              "and SIGTERM in turn (default 60, 20 with --quick)")
+    parser.add_argument("--baseline", metavar="JSON", type=Path,
+                        help="the JSON of a run of the code before a change: the targets "
+                             "table's \"no recall lost\" row compares every recall both runs "
+                             "scored (same dataset, method and threshold) with this run's")
     parser.add_argument("--workdir", metavar="DIR", type=Path,
                         help="keep the rendered scene and maps in DIR (default: a temporary "
                              "folder, removed afterwards)")
@@ -96,6 +100,13 @@ def main(args: argparse.Namespace) -> int:
         if problem:
             print(f"reloc bench: {problem}", file=sys.stderr)
             return 2
+    baseline = None
+    if getattr(args, "baseline", None) is not None:
+        try:
+            baseline = read_baseline(args.baseline)
+        except ValueError as exc:
+            print(f"reloc bench: {exc}", file=sys.stderr)
+            return 2
     if args.workdir is not None:
         args.workdir.mkdir(parents=True, exist_ok=True)
     partial = None if args.json is None else args.json.with_name(args.json.stem + ".partial.json")
@@ -112,7 +123,10 @@ def main(args: argparse.Namespace) -> int:
         soak.run_into(result, soak_conf(args), args.workdir, suite.say)
     from .targets import targets
 
-    result["targets"] = targets(result)
+    if baseline is not None:
+        result["baseline"] = {"path": str(args.baseline), "code": baseline.get("code"),
+                              "created_utc": baseline.get("created_utc")}
+    result["targets"] = targets(result, baseline)
     if args.plots is not None:
         from .plots import plot_all
 
@@ -267,6 +281,20 @@ def headline_lines(result: Mapping[str, Any]) -> list[str]:
             f"{', '.join(f'`{m}`' for m in big['p50_ms'])}; `Engine.load` in "
             f"{_f(big['engine_load_s'], 1)} s.")
     return lines
+
+
+def read_baseline(path: Path) -> dict[str, Any]:
+    """A earlier run's JSON for ``--baseline``: it must hold an accuracy section that ran.
+    Raises ValueError saying what was expected."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"--baseline {path}: expected a reloc bench JSON ({exc})") from exc
+    acc = data.get("accuracy") if isinstance(data, dict) else None
+    if not isinstance(acc, dict) or "error" in acc or not isinstance(acc.get("datasets"), dict):
+        raise ValueError(f"--baseline {path}: expected a reloc bench JSON with an accuracy "
+                         "section that ran (`reloc bench --only accuracy --json OUT`)")
+    return data
 
 
 def render_markdown(result: Mapping[str, Any], *, plots_dir: Path | None = None) -> str:

@@ -4,7 +4,9 @@ the machine and the thread settings, and the resident memory of this process."""
 from __future__ import annotations
 
 import os
+import subprocess
 import time
+from pathlib import Path
 from typing import Any
 
 from ..eval.evaluate import machine_info
@@ -40,6 +42,24 @@ def machine_record() -> dict[str, Any]:
     record["memory_total_mb"] = _meminfo_mb("MemTotal")
     record["started_unix"] = round(time.time(), 1)
     return record
+
+
+def code_record(repo: Path | None = None) -> dict[str, Any]:
+    """Which code ran: the git commit of the repository holding this package and whether its
+    tracked files had changes (both None outside a git checkout)."""
+    repo = repo or Path(__file__).resolve().parents[3]
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(repo), *args], capture_output=True,
+                                  text=True, timeout=10, check=False)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    status = git("status", "--porcelain", "--untracked-files=no") if commit else None
+    return {"commit": commit, "dirty": None if status is None else bool(status)}
 
 
 def rss_mb(field: str = "VmRSS") -> float | None:

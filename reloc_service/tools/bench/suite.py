@@ -50,7 +50,7 @@ from ...frame import Frame
 from ...progress import progress
 from ...relocalizers.base import RelocResult
 from ...relocalizers.factory import DEFAULT_METHOD
-from .machine import load_average, machine_record
+from .machine import code_record, load_average, machine_record
 from .samples import (
     JPEG_QUALITY,
     QuerySet,
@@ -516,7 +516,8 @@ def run_suite(conf: SuiteConf, *, command: str = "", workdir: Path | None = None
     result: dict[str, Any] = {
         "schema": "reloc-bench/1", "command": command, "suite": conf.name,
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "conf": json_safe(dataclasses.asdict(conf)), "machine": machine_record()}
+        "conf": json_safe(dataclasses.asdict(conf)), "machine": machine_record(),
+        "code": code_record()}
     cv2.setNumThreads(1)
     with contextlib.ExitStack() as stack:
         tmp = workdir or Path(stack.enter_context(tempfile.TemporaryDirectory(

@@ -191,20 +191,60 @@ def ferns(r: Result) -> list[dict[str, Any]]:
                 "" if ratio is None else f"{f['p50_ms']:.0f} ms vs {s['p50_ms']:.0f} ms")]
 
 
-def no_recall_lost(r: Result) -> list[dict[str, Any]]:
-    return [row("no recall lost anywhere (eval tables before and after)",
-                "before <= after", None, "", None,
-                "one run cannot compare before and after: diff the accuracy tables of the "
-                "runs before and after the change")]
+def recall_changes(r: Result, baseline: Result) -> list[dict[str, Any]]:
+    """Every recall of ``baseline``'s accuracy section that this run scored too (same dataset,
+    same method, every threshold both recorded): before, after and the change in points. Datasets or methods
+    scored in only one of the runs, or failed in either, are left out."""
+    now = _get(r, "accuracy", "datasets") or {}
+    before = _get(baseline, "accuracy", "datasets") or {}
+    out = []
+    for name in [k for k in before if k in now]:
+        b_res, a_res = _get(before, name, "results") or {}, _get(now, name, "results") or {}
+        for method in [m for m in b_res if m in a_res]:
+            b, a = b_res[method], a_res[method]
+            if not isinstance(b, Mapping) or not isinstance(a, Mapping) or "error" in b \
+                    or "error" in a:
+                continue
+            for t in [t for t in b.get("recall") or {} if t in (a.get("recall") or {})]:
+                rb, ra = _num(b["recall"][t]), _num(a["recall"][t])
+                if rb is not None and ra is not None:
+                    out.append({"dataset": name, "method": method, "recall": t,
+                                "before": rb, "after": ra, "points": 100.0 * (ra - rb)})
+    return out
+
+
+def no_recall_lost(r: Result, baseline: Result | None = None) -> list[dict[str, Any]]:
+    """Every recall scored by both this run and ``baseline`` (a run of the code before a
+    change, ``reloc bench --baseline OLD.json``) must not fall; the worst change is shown."""
+    item, target = "no recall lost anywhere (eval tables before and after)", "before <= after"
+    if baseline is None:
+        return [row(item, target, None, "", None,
+                    "needs the accuracy tables of a run before the change: "
+                    "`reloc bench --baseline BEFORE.json`")]
+    changes = recall_changes(r, baseline)
+    if not changes:
+        return [row(item, target, None, "", None,
+                    "the baseline and this run scored no dataset and method in common")]
+    worst = min(changes, key=lambda c: c["points"])
+    lost = [c for c in changes if c["points"] < 0]
+    sets = sorted({c["dataset"] for c in changes})
+    detail = (f"{len(changes)} recalls compared on {', '.join(sets)} against "
+              f"{baseline.get('code', {}).get('commit') or 'the baseline'}; ")
+    detail += ("lost: " + ", ".join(f"{c['dataset']} `{c['method']}` @{c['recall']} "
+                                    f"{c['points']:+.1f}" for c in lost)
+               if lost else f"worst: {worst['dataset']} `{worst['method']}` "
+                            f"@{worst['recall']} {worst['points']:+.1f}")
+    return [row(item, target, worst["points"], "points", not lost, detail)]
 
 
 ROWS: tuple[Callable[[Result], list[dict[str, Any]]], ...] = (
-    default_latency, default_recall, plain_opencv, throughput, memory, ferns, no_recall_lost)
+    default_latency, default_recall, plain_opencv, throughput, memory, ferns)
 
 
-def targets(result: Result) -> list[dict[str, Any]]:
-    """Every row of the table, in the order of the issue's "Done when" list."""
-    return [x for fn in ROWS for x in fn(result)]
+def targets(result: Result, baseline: Result | None = None) -> list[dict[str, Any]]:
+    """Every row of the table, in the order of the issue's "Done when" list; the last one
+    compares this run's accuracy tables with ``baseline``'s (a run before the change)."""
+    return [x for fn in ROWS for x in fn(result)] + no_recall_lost(result, baseline)
 
 
 def _value(x: Mapping[str, Any]) -> str:
