@@ -71,7 +71,9 @@ def served(synthetic_scene):
                      synthetic_scene)
     assert service.conf.service.worker_mode == "process"   # the default
     assert service.processes is not None
-    service.processes.start()   # as `reloc serve` does once its maps are restored
+    service.start_workers_in_background()   # as `reloc serve` and the demo do
+    # started before any query: the first one does not pay for spawning the workers
+    wait_until(lambda: len(service.processes.pids()) == 2, timeout=60)
     try:
         yield service, port, synthetic_scene
     finally:

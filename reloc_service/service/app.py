@@ -267,6 +267,22 @@ class Service:
             pool.close(timeout=_left(deadline, share=0.25))
         return journaled
 
+    def start_workers_in_background(self) -> None:
+        """Start the relocalize worker processes (worker_mode "process") on a thread once
+        every map is restored (each worker loads them all), so that the first query does not
+        wait for them; without this they start with the first query. No-op in thread mode."""
+        if self.processes is not None:
+            threading.Thread(target=self._start_workers, name="start-workers",
+                             daemon=True).start()
+
+    def _start_workers(self) -> None:
+        self.wait_ready()
+        assert self.processes is not None
+        try:
+            self.processes.start()
+        except Exception as exc:   # the first query tries again and reports it
+            log.error("starting the relocalize worker processes failed: %s", exc)
+
     def __enter__(self) -> Service:
         return self.start()
 
@@ -665,25 +681,13 @@ def serve(conf: ServiceConf) -> int:
     except BaseException:
         service.stop(final_snapshot=False)
         raise
-    if service.processes is not None:   # the first query does not wait for them
-        threading.Thread(target=_start_workers, args=(service,), name="start-workers",
-                         daemon=True).start()
+    service.start_workers_in_background()   # the first query does not wait for them
     service.run_forever(stop)
     # a restore stops at its next journal record; a snapshot load cannot: left to os._exit
     if not service.wait_ready(timeout=conf.service.stop_timeout_s):
         log.warning("a map restore was still running at exit")
     _exit_if_threads_linger(0)
     return 0
-
-
-def _start_workers(service: Service) -> None:
-    """Start the worker processes once every map is restored (each loads them all)."""
-    service.wait_ready()
-    assert service.processes is not None
-    try:
-        service.processes.start()
-    except Exception as exc:   # the first query tries again and reports it
-        log.error("starting the relocalize worker processes failed: %s", exc)
 
 
 def _exit_if_threads_linger(code: int) -> None:

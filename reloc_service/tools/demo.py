@@ -81,7 +81,8 @@ def _demo(args: argparse.Namespace, work: Path) -> int:
         "service": {"instance": "demo", "storage": str(work / "storage"), "methods": [method],
                     "default_method": method, "train_on_load": False}})
     _say(f"2/4 service up on {endpoint} (instance 'demo', method {method})")
-    with Service(conf):
+    with Service(conf) as service:
+        service.start_workers_in_background()   # while the map uploads, not on query 1
         _say("3/4 uploading the map, training and relocalizing every query over Zenoh ...")
         result = evaluate(dataset, [method], progress=not args.no_progress,
                           remote=RemoteSpec(endpoint, MAP_NAME))
