@@ -158,3 +158,30 @@ def test_noisy_plane_is_one_plane_and_a_bump_is_not():
     assert rejected <= 5  # the test's false rejection is 1 %
     pts[:60, 2] += 0.1    # a fifth of the points 10 sigma off the plane
     assert not on_one_plane(pts, sig)
+
+
+def test_plane_fit_stops_when_the_kept_points_repeat():
+    """Refitting on the same points gives the same plane, so stopping there decides as the
+    three fixed refits did (that procedure written out here), on planes with outliers."""
+    from reloc_service.relocalizers.base import _max_outside_3_sigma, on_one_plane
+
+    def three_refits(pts, sig):
+        keep = np.ones(len(pts), bool)
+        for _ in range(3):
+            if keep.sum() < 3:
+                return False
+            centre = pts[keep].mean(axis=0)
+            normal = np.linalg.svd(pts[keep] - centre, full_matrices=False)[2][2]
+            keep = np.abs((pts - centre) @ normal) / sig < 3.0
+        return int(np.count_nonzero(~keep)) <= _max_outside_3_sigma(len(pts), 0.01)
+
+    rng = np.random.default_rng(5)
+    decisions = []
+    for outliers in (0, 1, 3, 8, 30):
+        for _ in range(20):
+            pts = np.column_stack([rng.uniform(-1, 1, (120, 2)), rng.normal(0, 0.01, 120)])
+            pts[:outliers, 2] += rng.uniform(-0.5, 0.5, outliers)
+            sig = np.full(120, 0.01)
+            decisions.append(on_one_plane(pts, sig))
+            assert decisions[-1] == three_refits(pts, sig)
+    assert any(decisions) and not all(decisions)

@@ -216,14 +216,15 @@ def on_one_plane(points_world: Array, sigmas_m: Array, *, false_rejection: float
     pts = np.asarray(points_world, np.float64)
     sig = np.maximum(np.asarray(sigmas_m, np.float64), 1e-9)
     keep = np.ones(len(pts), bool)
-    z = np.zeros(len(pts))
     for _ in range(3):
         if keep.sum() < 3:
             return False
         centre = pts[keep].mean(axis=0)
         normal = np.linalg.svd(pts[keep] - centre, full_matrices=False)[2][2]
         z = np.abs((pts - centre) @ normal) / sig
-        keep = z < 3.0
+        refit, keep = keep, z < 3.0
+        if np.array_equal(keep, refit):  # the same points would give the same plane again
+            break
     return int(np.count_nonzero(~keep)) <= _max_outside_3_sigma(len(pts), false_rejection)
 
 
