@@ -185,7 +185,7 @@ def inlier_cells(estimate: PoseEstimate, grid: int) -> int | None:
     width, height = estimate.image_size
     col = np.clip((estimate.inlier_px[:, 0] + 0.5) * grid // width, 0, grid - 1).astype(int)
     row = np.clip((estimate.inlier_px[:, 1] + 0.5) * grid // height, 0, grid - 1).astype(int)
-    return len(np.unique(row * grid + col))
+    return int(np.count_nonzero(np.bincount(row * grid + col, minlength=grid * grid)))
 
 
 def planar_patch_fraction(estimate: PoseEstimate) -> float | None:
