@@ -185,3 +185,22 @@ def test_plane_fit_stops_when_the_kept_points_repeat():
             decisions.append(on_one_plane(pts, sig))
             assert decisions[-1] == three_refits(pts, sig)
     assert any(decisions) and not all(decisions)
+
+
+def test_inlier_spread_is_the_hull_and_skips_only_passing_planes():
+    """OpenCV's float32 hull area is scipy's within 1e-6 of the image, so a support spread
+    beyond the patch share (with a margin) passes the patch test as the plane fit would."""
+    from scipy.spatial import ConvexHull
+
+    from reloc_service.relocalizers.base import inlier_spread
+
+    rng = np.random.default_rng(9)
+    for _ in range(300):
+        n = int(rng.integers(3, 200))
+        px = rng.uniform(0, 640, 2) + rng.normal(0, rng.uniform(1, 200), (n, 2))
+        est = PoseEstimate(world_from_cam=np.eye(4), keyframe_ids=[], num_matches=n, inliers=n,
+                           inlier_px=px, image_size=(640, 480))
+        assert abs(inlier_spread(est) - ConvexHull(px).volume / (640 * 480)) < 1e-6
+    # A small planar patch is still refused; the same plane spread wide is accepted.
+    assert not verify(_patch_estimate(0.2), VerifyConf())[0]
+    assert verify(_patch_estimate(1.5), VerifyConf())[0]
