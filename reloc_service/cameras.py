@@ -117,12 +117,13 @@ class Camera(abc.ABC):
     def pixels_to_normalized(self, px: npt.ArrayLike) -> Array:
         """(N, 2) pixels to distorted normalised coordinates."""
         p = np.asarray(px, dtype=np.float64).reshape(-1, 2)
-        return np.column_stack([(p[:, 0] - self.cx) / self.fx, (p[:, 1] - self.cy) / self.fy])
+        # Per column the same two operations as written out per axis (one array each).
+        return (p - np.array([self.cx, self.cy])) / np.array([self.fx, self.fy])
 
     def normalized_to_pixels(self, xy: npt.ArrayLike) -> Array:
         """(N, 2) distorted normalised coordinates to pixels."""
         q = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        return np.column_stack([q[:, 0] * self.fx + self.cx, q[:, 1] * self.fy + self.cy])
+        return q * np.array([self.fx, self.fy]) + np.array([self.cx, self.cy])
 
     def in_image(self, px: npt.ArrayLike, *, margin: float = 0.0) -> npt.NDArray[np.bool_]:
         """(N,) mask of pixels inside the image, at least ``margin`` px from the border."""

@@ -16,7 +16,7 @@ from pathlib import Path
 SOURCES = {"reloc_service": Path("."), "reloc_client": Path("clients")}
 
 #: The library core (below the service, the tools and the CLI): reloc_service.<name>.
-CORE = {"geometry", "cameras", "frame", "map", "features", "triangulation", "landmarks", "storage",
+CORE = {"geometry", "cameras", "frame", "map", "features", "hamming", "triangulation", "landmarks", "storage",
         "mapping", "plugins", "progress", "errors", "fileio", "numeric", "engine", "place", "pose", "ferns",
         "relocalizers"}
 

@@ -13,7 +13,8 @@ ROOT = Path(__file__).resolve().parents[1]
 CLIENT = ROOT / "clients" / "reloc_client"
 
 #: The core's lower half: data types and I/O, below the algorithms and the engine.
-BASE = {"errors", "geometry", "cameras", "frame", "map", "triangulation", "landmarks", "features", "storage",
+BASE = {"errors", "geometry", "cameras", "frame", "map", "triangulation", "landmarks", "features",
+        "hamming", "storage",
         "plugins", "progress", "mapping", "fileio", "numeric"}
 
 

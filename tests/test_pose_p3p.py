@@ -278,6 +278,60 @@ def test_chance_agreement_is_higher_for_bunched_correspondences():
     assert chance_agreement(spread[:1], spread[:1], 5.0, (640, 480)) == uniform
 
 
+@pytest.mark.parametrize("spread_px", [2.0, 8.0, 200.0])
+def test_chance_agreement_counts_the_pairs_of_the_full_table(spread_px):
+    """Only pairs near in x are measured; the count is the full (m, m) table's, also with
+    points on the threshold's edge, duplicates and a NaN projection."""
+    from reloc_service.pose.p3p import _pairs_within
+
+    rng = np.random.default_rng(int(spread_px))
+    px = np.round(rng.normal((320.0, 240.0), spread_px, (200, 2)))  # integer: exact ties
+    projected = px + np.round(rng.normal(0.0, 3.0, px.shape))
+    projected[:10] = px[10:20] + [5.0, 0.0]  # exactly the threshold away: not agreeing
+    projected[20] = np.nan
+    dx = projected[:, None, 0] - px[None, :, 0]
+    dy = projected[:, None, 1] - px[None, :, 1]
+    d2 = dx * dx + dy * dy
+    np.fill_diagonal(d2, np.inf)
+    with np.errstate(invalid="ignore"):
+        expected = int(np.count_nonzero(d2 < 25.0))
+    assert _pairs_within(projected, px, 5.0) == expected
+    assert expected > 0
+
+
+def test_refined_estimate_is_the_one_recomputed_from_scratch():
+    """The pose, inliers and covariance reuse one projection per pose: the same values as
+    projecting anew for the weights and the covariance (what the refinement did before)."""
+    from reloc_service.pose.p3p import _estimate, _refine, _weights
+
+    camera = make_camera("radtan")
+    rng = np.random.default_rng(3)
+    px, pts = correspondences(camera, TRUE_POSE, 150, rng)
+    px = px + rng.normal(0.0, 0.5, px.shape)
+    px[:30] = rng.uniform([0, 0], [639, 479], (30, 2))  # outliers
+    unc = PointUncertainty(rng.uniform(0.0, 0.05, 150), pts + rng.normal(0, 1.0, pts.shape))
+    conf = PnPConf()
+    est, inliers = solve_pnp_indexed(px, pts, camera, conf, uncertainty=unc)
+    view = _refine(TRUE_POSE @ se3_exp_small(rng), px, pts, camera, conf, unc)
+    rows = view.inliers(px, conf)
+    fresh_w = _weights(view.world_from_cam, pts, rows, camera, conf, unc)
+    assert np.array_equal(fresh_w, _weights(view.world_from_cam, pts, rows, camera, conf, unc,
+                                            view=view))
+    fresh = _estimate(view.world_from_cam, px[rows], pts[rows], camera, conf, len(px), 0.0,
+                      fresh_w)
+    reused = _estimate(view.world_from_cam, px[rows], pts[rows], camera, conf, len(px), 0.0,
+                       fresh_w, fit=view.residuals_and_jacobian(px[rows], rows, camera))
+    assert np.array_equal(fresh.covariance, reused.covariance)
+    assert fresh.reprojection_rms_px == reused.reprojection_rms_px
+    assert len(inliers) >= 115 and not np.isin(np.arange(30), inliers).any()
+
+
+def se3_exp_small(rng: np.random.Generator) -> np.ndarray:
+    from reloc_service.geometry import se3_exp
+
+    return se3_exp(rng.normal(0.0, 0.01, 6))
+
+
 def test_uncertain_points_weigh_less_in_the_refinement():
     """Points triangulated from a keyframe 1 m to the side with depths 3 % off (within their
     stated uncertainty) pull an unweighted refinement off the pose; weighted by how far their

@@ -158,3 +158,49 @@ def test_noisy_plane_is_one_plane_and_a_bump_is_not():
     assert rejected <= 5  # the test's false rejection is 1 %
     pts[:60, 2] += 0.1    # a fifth of the points 10 sigma off the plane
     assert not on_one_plane(pts, sig)
+
+
+def test_plane_fit_stops_when_the_kept_points_repeat():
+    """Refitting on the same points gives the same plane, so stopping there decides as the
+    three fixed refits did (that procedure written out here), on planes with outliers."""
+    from reloc_service.relocalizers.base import _max_outside_3_sigma, on_one_plane
+
+    def three_refits(pts, sig):
+        keep = np.ones(len(pts), bool)
+        for _ in range(3):
+            if keep.sum() < 3:
+                return False
+            centre = pts[keep].mean(axis=0)
+            normal = np.linalg.svd(pts[keep] - centre, full_matrices=False)[2][2]
+            keep = np.abs((pts - centre) @ normal) / sig < 3.0
+        return int(np.count_nonzero(~keep)) <= _max_outside_3_sigma(len(pts), 0.01)
+
+    rng = np.random.default_rng(5)
+    decisions = []
+    for outliers in (0, 1, 3, 8, 30):
+        for _ in range(20):
+            pts = np.column_stack([rng.uniform(-1, 1, (120, 2)), rng.normal(0, 0.01, 120)])
+            pts[:outliers, 2] += rng.uniform(-0.5, 0.5, outliers)
+            sig = np.full(120, 0.01)
+            decisions.append(on_one_plane(pts, sig))
+            assert decisions[-1] == three_refits(pts, sig)
+    assert any(decisions) and not all(decisions)
+
+
+def test_inlier_spread_is_the_hull_and_skips_only_passing_planes():
+    """OpenCV's float32 hull area is scipy's within 1e-6 of the image, so a support spread
+    beyond the patch share (with a margin) passes the patch test as the plane fit would."""
+    from scipy.spatial import ConvexHull
+
+    from reloc_service.relocalizers.base import inlier_spread
+
+    rng = np.random.default_rng(9)
+    for _ in range(300):
+        n = int(rng.integers(3, 200))
+        px = rng.uniform(0, 640, 2) + rng.normal(0, rng.uniform(1, 200), (n, 2))
+        est = PoseEstimate(world_from_cam=np.eye(4), keyframe_ids=[], num_matches=n, inliers=n,
+                           inlier_px=px, image_size=(640, 480))
+        assert abs(inlier_spread(est) - ConvexHull(px).volume / (640 * 480)) < 1e-6
+    # A small planar patch is still refused; the same plane spread wide is accepted.
+    assert not verify(_patch_estimate(0.2), VerifyConf())[0]
+    assert verify(_patch_estimate(1.5), VerifyConf())[0]

@@ -92,20 +92,53 @@ class PointUncertainty:
     ray_origins_world: Array
 
     def pixel_sigmas(self, world_from_cam: Array, points_world: Array, camera: Camera,
-                     rows: npt.NDArray[np.int64] | slice = slice(None)) -> Array:
+                     rows: npt.NDArray[np.int64] | slice = slice(None), *,
+                     projected_px: Array | None = None) -> Array:
         """(M,) the depth uncertainty of points ``rows`` as seen from ``world_from_cam``:
-        pixels between a point and the point moved one sigma along its ray."""
+        pixels between a point and the point moved one sigma along its ray.
+        ``projected_px`` (M, 2): the points' pixels at that pose when already known."""
         pts = points_world
         ray = pts - self.ray_origins_world[rows]
         ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
         moved = pts + self.depth_sigmas_m[rows, None] * ray
         cam_from_world = invert(world_from_cam)
         with np.errstate(invalid="ignore", divide="ignore"):
-            # Both point sets in one projection (per-point arithmetic: the same values).
-            both = camera.project(transform_points(cam_from_world, np.concatenate([moved, pts])))
-            shift = both[:len(pts)] - both[len(pts):]
-            sigma = np.linalg.norm(shift, axis=1)
+            # Per-point arithmetic: projecting a point alone or among others gives its values.
+            if projected_px is None:
+                both = camera.project(transform_points(cam_from_world,
+                                                       np.concatenate([moved, pts])))
+                moved_px, projected_px = both[:len(pts)], both[len(pts):]
+            else:
+                moved_px = camera.project(transform_points(cam_from_world, moved))
+            sigma = np.linalg.norm(moved_px - projected_px, axis=1)
         return np.where(np.isfinite(sigma), sigma, np.inf)
+
+
+@dataclass(frozen=True, eq=False)
+class _View:
+    """N world points seen from one ``world_from_cam``: (N, 3) camera-frame points and their
+    (N, 2) pixels, computed once per pose for the inlier test, the Gauss-Newton residuals,
+    the weights and the covariance (each used to project the points anew)."""
+
+    world_from_cam: Array
+    points_cam: Array
+    px: Array
+
+    @classmethod
+    def at(cls, world_from_cam: Array, points_world: Array, camera: Camera) -> _View:
+        points_cam = transform_points(invert(world_from_cam), points_world)
+        return cls(world_from_cam, points_cam, camera.project(points_cam))
+
+    def inliers(self, px: Array, conf: PnPConf) -> npt.NDArray[np.int64]:
+        """Indices whose reprojection error (real camera model) is below the threshold."""
+        with np.errstate(invalid="ignore"):
+            err = np.linalg.norm(px - self.px, axis=1)
+            return np.flatnonzero(err < conf.max_reproj_error_px)
+
+    def residuals_and_jacobian(self, px: Array, rows: npt.NDArray[np.int64], camera: Camera
+                               ) -> tuple[Array, Array]:
+        """:func:`_residuals_and_jacobian` of points ``rows`` (``px`` their pixels)."""
+        return px - self.px[rows], _pose_jacobian(camera, self.points_cam[rows])
 
 
 def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Camera,
@@ -134,13 +167,15 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
     if world_from_cam is None:
         return None
     scales = None if keypoint_scales is None else np.asarray(keypoint_scales, np.float64)
-    world_from_cam, inliers = _refine(world_from_cam, px, pts, camera, conf, uncertainty,
-                                      scales)
+    view = _refine(world_from_cam, px, pts, camera, conf, uncertainty, scales)
+    world_from_cam, inliers = view.world_from_cam, view.inliers(px, conf)
     if len(inliers) < 4:
         return None
-    weights = _weights(world_from_cam, pts, inliers, camera, conf, uncertainty, scales)
+    weights = _weights(world_from_cam, pts, inliers, camera, conf, uncertainty, scales,
+                       view=view)
     est = _estimate(world_from_cam, px[inliers], pts[inliers], camera, conf, len(px),
-                    time.perf_counter() - start, weights)
+                    time.perf_counter() - start, weights,
+                    fit=view.residuals_and_jacobian(px[inliers], inliers, camera))
     est.inlier_sigmas_m = _point_sigmas(world_from_cam, pts[inliers], camera, conf,
                                         None if uncertainty is None
                                         else uncertainty.depth_sigmas_m[inliers],
@@ -169,16 +204,18 @@ def _point_sigmas(world_from_cam: Array, points_world: Array, camera: Camera, co
 
 def _weights(world_from_cam: Array, points_world: Array, rows: npt.NDArray[np.int64],
              camera: Camera, conf: PnPConf, uncertainty: PointUncertainty | None,
-             keypoint_scales: Array | None = None) -> Array:
+             keypoint_scales: Array | None = None, *, view: _View | None = None) -> Array:
     """(M,) residual weights of points ``rows``: ``1 / (1 + (s / keypoint_sigma)^2)`` with
     ``s`` their depth uncertainty in the query's pixels (ones without ``uncertainty``); with
     ``keypoint_scales`` ``c``, ``1 / (c^2 + (s / keypoint_sigma)^2)``: the inverse variance
-    in units of a level-0 keypoint's."""
+    in units of a level-0 keypoint's. ``view``: the points seen from ``world_from_cam``,
+    when already projected."""
     if uncertainty is None:
         if keypoint_scales is None:
             return np.ones(len(rows))
         return 1.0 / keypoint_scales[rows] ** 2
-    s = uncertainty.pixel_sigmas(world_from_cam, points_world[rows], camera, rows)
+    s = uncertainty.pixel_sigmas(world_from_cam, points_world[rows], camera, rows,
+                                 projected_px=None if view is None else view.px[rows])
     own = 1.0 if keypoint_scales is None else keypoint_scales[rows] ** 2
     return 1.0 / (own + (s / conf.keypoint_sigma_px) ** 2)
 
@@ -204,36 +241,28 @@ def ransac_pinhole(ideal_px: Array, points_world: Array, camera: Camera, conf: P
 
 def _refine(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
             conf: PnPConf, uncertainty: PointUncertainty | None = None,
-            keypoint_scales: Array | None = None) -> tuple[Array, npt.NDArray[np.int64]]:
+            keypoint_scales: Array | None = None) -> _View:
     """Gauss-Newton on the inliers' reprojection error (weighted, see :func:`_weights`)
-    through the real camera model; returns the refined pose and the final inlier indices
-    (residual below the threshold).
+    through the real camera model; returns the points seen from the refined pose (its
+    inliers: :meth:`_View.inliers`, residual below the threshold).
 
     Not ``poselib.refine_absolute_pose``: with a TRIVIAL loss it reaches the same pose
     unweighted, but PoseLib 2.0.5 takes no per-residual weights, and the landmarks' depth
     uncertainty needs them. The Jacobian is PoseLib's camera model's (:func:`_pixel_jacobian`)."""
-    inliers = _inliers(world_from_cam, px, points_world, camera, conf)
+    view = _View.at(world_from_cam, points_world, camera)
+    inliers = view.inliers(px, conf)
     for _ in range(conf.refine_iterations):
         if len(inliers) < 4:
             break
-        residual, jac = _residuals_and_jacobian(world_from_cam, px[inliers], points_world[inliers],
-                                                camera)
+        residual, jac = view.residuals_and_jacobian(px[inliers], inliers, camera)
         root_w = np.repeat(np.sqrt(_weights(world_from_cam, points_world, inliers, camera, conf,
-                                            uncertainty, keypoint_scales)), 2)
+                                            uncertainty, keypoint_scales, view=view)), 2)
         step, *_ = np.linalg.lstsq(jac * root_w[:, None], residual.ravel() * root_w, rcond=None)
         world_from_cam = world_from_cam @ se3_exp(step)
+        view = _View.at(world_from_cam, points_world, camera)
         if np.linalg.norm(step) < 1e-12:
             break
-    return world_from_cam, _inliers(world_from_cam, px, points_world, camera, conf)
-
-
-def _inliers(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
-             conf: PnPConf) -> npt.NDArray[np.int64]:
-    """Indices whose reprojection error (real camera model) is below the threshold."""
-    projected = camera.project(transform_points(invert(world_from_cam), points_world))
-    with np.errstate(invalid="ignore"):
-        err = np.linalg.norm(px - projected, axis=1)
-        return np.flatnonzero(err < conf.max_reproj_error_px)
+    return view
 
 
 def _residuals_and_jacobian(world_from_cam: Array, px: Array, points_world: Array,
@@ -241,14 +270,19 @@ def _residuals_and_jacobian(world_from_cam: Array, px: Array, points_world: Arra
     """(N, 2) residuals ``px - project(points)`` and the (2N, 6) Jacobian of the projection
     w.r.t. a right perturbation ``world_from_cam @ exp(xi)``, ``xi = (rho, omega)``."""
     points_cam = transform_points(invert(world_from_cam), points_world)
-    residual = px - camera.project(points_cam)
+    return px - camera.project(points_cam), _pose_jacobian(camera, points_cam)
+
+
+def _pose_jacobian(camera: Camera, points_cam: Array) -> Array:
+    """(2N, 6) Jacobian of the pixels of (N, 3) camera-frame points w.r.t. a right
+    perturbation of ``world_from_cam`` (see :func:`_residuals_and_jacobian`)."""
     d_px = _projection_jacobian(camera, points_cam)  # (N, 2, 3)
     # cam_from_world becomes exp(-xi) @ cam_from_world, so p_cam moves by -rho + [p_cam]x omega:
     # d px / d rho = -d_px, d px / d omega = d_px @ [p_cam]x (columns written out).
     x, y, z = (points_cam[:, None, i] for i in range(3))
     a0, a1, a2 = d_px[:, :, 0], d_px[:, :, 1], d_px[:, :, 2]
     jac = np.stack([-a0, -a1, -a2, a1 * z - a2 * y, a2 * x - a0 * z, a0 * y - a1 * x], axis=2)
-    return residual, jac.reshape(-1, 6)
+    return jac.reshape(-1, 6)
 
 
 def _projection_jacobian(camera: Camera, points_cam: Array) -> Array:
@@ -306,22 +340,38 @@ def chance_agreement(projected_px: Array, px: Array, threshold_px: float,
     if n < 2:
         return uniform
     idx = np.unique(np.linspace(0, n - 1, min(n, max_points)).astype(np.int64))
-    proj, pix = projected_px[idx], px[idx]
-    dx = proj[:, None, 0] - pix[None, :, 0]  # per axis: no (m, m, 2) array and its reduction
-    dy = proj[:, None, 1] - pix[None, :, 1]
-    d2 = dx * dx + dy * dy
-    np.fill_diagonal(d2, np.inf)
     m = len(idx)
-    return max(uniform, float(np.count_nonzero(d2 < threshold_px**2)) / (m * (m - 1)))
+    agree = _pairs_within(projected_px[idx], px[idx], threshold_px)
+    return max(uniform, float(agree) / (m * (m - 1)))
+
+
+def _pairs_within(projected_px: Array, px: Array, threshold_px: float) -> int:
+    """Number of pairs ``j != i`` with ``|projected_px[j] - px[i]| < threshold_px``: only
+    the pairs whose x coordinates lie within twice the threshold (``px`` sorted by x, a
+    superset of those that agree) are measured, with the same arithmetic as the full (m, m)
+    table (per axis difference, squares summed), so the count is the table's."""
+    order = np.argsort(px[:, 0], kind="stable")
+    xs = px[order, 0]
+    lo = np.searchsorted(xs, projected_px[:, 0] - 2.0 * threshold_px, side="left")
+    hi = np.searchsorted(xs, projected_px[:, 0] + 2.0 * threshold_px, side="right")
+    counts = np.maximum(hi - lo, 0)
+    j = np.repeat(np.arange(len(projected_px)), counts)
+    first = np.repeat(lo - (np.cumsum(counts) - counts), counts)  # lo[j] - start of j's run
+    i = order[first + np.arange(len(j))]
+    dx = projected_px[j, 0] - px[i, 0]  # per axis: the full table's element arithmetic
+    dy = projected_px[j, 1] - px[i, 1]
+    d2 = dx * dx + dy * dy
+    return int(np.count_nonzero((d2 < threshold_px**2) & (i != j)))
 
 
 def _estimate(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
-              conf: PnPConf, num_matches: int, elapsed: float, weights: Array | None = None
-              ) -> PoseEstimate:
+              conf: PnPConf, num_matches: int, elapsed: float, weights: Array | None = None,
+              *, fit: tuple[Array, Array] | None = None) -> PoseEstimate:
     """The estimate with the inliers' RMS and the weighted Gauss-Newton covariance
     ``sigma^2 (J^T W J)^-1`` (sigma from the weighted residuals, floored at
-    ``min_sigma_px``)."""
-    residual, jac = _residuals_and_jacobian(world_from_cam, px, points_world, camera)
+    ``min_sigma_px``). ``fit``: the residuals and Jacobian at ``world_from_cam`` when
+    already computed (:meth:`_View.residuals_and_jacobian`)."""
+    residual, jac = fit or _residuals_and_jacobian(world_from_cam, px, points_world, camera)
     chance = chance_agreement(px - residual, px, conf.max_reproj_error_px, camera.size)
     w = np.ones(len(px)) if weights is None else weights
     sq = float((residual**2).sum())

