@@ -25,7 +25,7 @@ memory-mapped columns it reads from.
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator, Mapping, MutableMapping
+from collections.abc import Iterator, Mapping, MutableMapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -144,6 +144,55 @@ def points_are_derived(table: LandmarkTable, landmark_ids: npt.NDArray[np.int64]
     if not table.contains(ids).all():
         return False
     return bool(np.array_equal(table.points(ids), points_world[has]))
+
+
+def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Features]]],
+                 table: LandmarkTable, landmarks: LandmarkColumns) -> dict[str, np.ndarray]:
+    """The columns a snapshot stores for ``kind`` (name -> array): ``owners`` are (keyframe
+    id, first row, features) of every keyframe holding ``kind``, in row order; rows narrowed
+    where lossless, and the derivable fields only where they are not what load derives
+    (sizes from a level table, ids from ``landmarks``' observations, points from ``table``)."""
+    # a part is the rows as a loaded snapshot stored them (never built since), or Features
+    parts: list[Features | dict[str, np.ndarray]] = [
+        _stored_rows(features, kind) or features[kind] for _, _, features in owners]
+    fields = [*STORED_FIELDS, *DERIVABLE_FIELDS[:2]]
+    if not all(points_are_derived(table, p.landmark_ids, p.points_world)
+               for p in parts if isinstance(p, Features)):
+        fields.append(DERIVED_FIELD)
+        parts = [features[kind] for _, _, features in owners]   # every keyframe's points
+    columns = {name: _concat([getattr(p, name) if isinstance(p, Features) else p[name]
+                              for p in parts]) for name in fields}
+    sizes = sizes_by_level(columns["levels"], columns["sizes"])
+    if sizes is not None:
+        del columns["sizes"]
+        columns[SIZE_TABLE] = sizes
+    order = sorted(range(len(owners)), key=lambda i: owners[i][0])
+    kf_ids = np.array([owners[i][0] for i in order], np.int64).reshape(-1)
+    starts = np.array([owners[i][1] for i in order], np.int64).reshape(-1)
+    ids = ids_from_observations(landmarks, kind, len(columns["landmark_ids"]), kf_ids, starts)
+    if ids is not None and np.array_equal(ids, columns["landmark_ids"]):
+        del columns["landmark_ids"]
+    return {name: narrow(name, column) for name, column in columns.items()}
+
+
+def feature_count(features: Mapping[str, Features], kind: str) -> int:
+    """Number of ``kind`` keypoints (a loaded keyframe's features are not built for it)."""
+    if isinstance(features, LazyFeatures):
+        return features.count(kind)
+    return len(features[kind])
+
+
+def _stored_rows(features: Mapping[str, Features], kind: str) -> dict[str, np.ndarray] | None:
+    return features.stored(kind) if isinstance(features, LazyFeatures) else None
+
+
+def _concat(parts: list[np.ndarray]) -> np.ndarray:
+    """Rows of ``parts`` in one array, in the widest dtype among them (empty parts may be
+    1-D placeholders of a 2-D field)."""
+    wide = [np.asarray(p) for p in parts if len(p)] or [np.asarray(p) for p in parts]
+    dtype = np.result_type(*wide)
+    return np.concatenate([np.asarray(p).reshape(len(p), *wide[0].shape[1:]).astype(dtype)
+                           for p in parts])
 
 
 class FeatureColumns:

@@ -56,15 +56,12 @@ from .cameras import Camera, camera_from_dict
 from .errors import CameraError, GeometryError, MapError, StorageError
 from .feature_columns import (
     DERIVABLE_FIELDS,
-    DERIVED_FIELD,
     SIZE_TABLE,
     STORED_FIELDS,
     FeatureColumns,
     LazyFeatures,
-    ids_from_observations,
-    narrow,
-    points_are_derived,
-    sizes_by_level,
+    feature_count,
+    kind_columns,
 )
 from .fileio import atomic_write, fsync_path
 from .frame import SIFT_DIM, EncodedImage, Features, Keyframe
@@ -189,63 +186,12 @@ def _feature_rows(keyframes: list[Keyframe]) -> dict[int, dict[str, tuple[int, i
 def _write_features(writer: _SnapshotWriter, keyframes: list[Keyframe], state: MapState,
                     landmarks: LandmarkColumns,
                     rows: Mapping[int, Mapping[str, tuple[int, int]]]) -> None:
-    """One ``.npy`` per kind and stored field (see :mod:`.feature_columns`): every
-    keyframe's rows in manifest order, narrowed where lossless; the derivable fields only
-    where they are not what load derives (sizes from a level table, ids from the landmarks'
-    observations, points from the landmarks' points)."""
-    kinds = sorted({k for kf in keyframes for k in kf.features})
-    for kind in kinds:
-        owners = [kf for kf in keyframes if kind in kf.features]
-        # a part is the rows as stored by the snapshot loaded (never built), or Features
-        parts: list[Features | dict[str, np.ndarray]] = [
-            _stored_rows(kf.features, kind) or kf.features[kind] for kf in owners]
-        fields = [*STORED_FIELDS, *DERIVABLE_FIELDS[:2]]
-        if not all(points_are_derived(state.landmarks, p.landmark_ids, p.points_world)
-                   for p in parts if isinstance(p, Features)):
-            fields.append(DERIVED_FIELD)
-            parts = [kf.features[kind] for kf in owners]   # every keyframe's points: build all
-        columns = {name: _concat([getattr(p, name) if isinstance(p, Features) else p[name]
-                                  for p in parts]) for name in fields}
-        table = sizes_by_level(columns["levels"], columns["sizes"])
-        if table is not None:
-            del columns["sizes"]
-            writer.write(f"features/{kind}.{SIZE_TABLE}.npy", _npy_bytes(table))
-        kf_ids, starts = _kind_starts(owners, rows, kind)
-        ids = ids_from_observations(landmarks, kind, len(columns["landmark_ids"]), kf_ids, starts)
-        if ids is not None and np.array_equal(ids, columns["landmark_ids"]):
-            del columns["landmark_ids"]
-        for name, column in columns.items():
-            writer.write(f"features/{kind}.{name}.npy", _npy_bytes(narrow(name, column)))
-
-
-def _kind_starts(keyframes: list[Keyframe], rows: Mapping[int, Mapping[str, Any]], kind: str
-                 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
-    """Ids (ascending) of ``keyframes`` holding ``kind`` and the first row of each's keypoints."""
-    pairs = sorted((kf.id, int(rows[kf.id][kind][0])) for kf in keyframes if kind in rows[kf.id])
-    return (np.array([p[0] for p in pairs], np.int64).reshape(-1),
-            np.array([p[1] for p in pairs], np.int64).reshape(-1))
-
-
-def feature_count(features: Mapping[str, Features], kind: str) -> int:
-    """Number of ``kind`` keypoints (a loaded keyframe's features are not built for it)."""
-    if isinstance(features, LazyFeatures):
-        return features.count(kind)
-    return len(features[kind])
-
-
-def _stored_rows(features: Mapping[str, Features], kind: str) -> dict[str, np.ndarray] | None:
-    """``kind``'s rows as a loaded snapshot stored them, if never built since (a save of a
-    loaded map copies them without building every keyframe's features)."""
-    return features.stored(kind) if isinstance(features, LazyFeatures) else None
-
-
-def _concat(parts: list[np.ndarray]) -> np.ndarray:
-    """Rows of ``parts`` in one array, in the widest dtype among them (empty parts may be
-    1-D placeholders of a 2-D field)."""
-    wide = [np.asarray(p) for p in parts if len(p)] or [np.asarray(p) for p in parts]
-    dtype = np.result_type(*wide)
-    return np.concatenate([np.asarray(p).reshape(len(p), *wide[0].shape[1:]).astype(dtype)
-                           for p in parts])
+    """One ``.npy`` per kind and stored column (:func:`.feature_columns.kind_columns`)."""
+    for kind in sorted({k for kf in keyframes for k in kf.features}):
+        owners = [(kf.id, rows[kf.id][kind][0], kf.features)
+                  for kf in keyframes if kind in kf.features]
+        for name, column in kind_columns(kind, owners, state.landmarks, landmarks).items():
+            writer.write(f"features/{kind}.{name}.npy", _npy_bytes(column))
 
 
 def _write_thumbnails(writer: _SnapshotWriter, keyframes: list[Keyframe]) -> list[str]:
