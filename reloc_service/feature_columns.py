@@ -54,12 +54,19 @@ def narrow(name: str, column: np.ndarray) -> np.ndarray:
     """``column`` in :data:`NARROWER`'s dtype for ``name`` when every value round-trips
     exactly (NaN included); else unchanged."""
     dtype = NARROWER.get(name)
-    if dtype is None or column.dtype == dtype or column.dtype.itemsize <= np.dtype(dtype).itemsize:
-        return column
-    with np.errstate(over="ignore", invalid="ignore"):
-        small = column.astype(dtype)
-    if np.array_equal(small.astype(column.dtype), column, equal_nan=column.dtype.kind == "f"):
-        return small
+    return column if dtype is None else narrowest(column, (dtype,))
+
+
+def narrowest(column: np.ndarray, dtypes: Sequence[Any]) -> np.ndarray:
+    """``column`` in the first of ``dtypes`` (narrowest first) that holds every value exactly
+    (NaN included) and is narrower than its own; else unchanged."""
+    for dtype in dtypes:
+        if np.dtype(dtype).itemsize >= column.dtype.itemsize:
+            continue
+        with np.errstate(over="ignore", invalid="ignore"):
+            small = column.astype(dtype)
+        if np.array_equal(small.astype(column.dtype), column, equal_nan=column.dtype.kind == "f"):
+            return small
     return column
 
 

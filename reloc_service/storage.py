@@ -62,6 +62,7 @@ from .feature_columns import (
     LazyFeatures,
     feature_count,
     kind_columns,
+    narrowest,
 )
 from .fileio import atomic_write, fsync_path
 from .frame import SIFT_DIM, EncodedImage, Features, Keyframe
@@ -87,6 +88,13 @@ OPTIONAL_LANDMARK_FIELDS = ("depth_sigmas_m",)
 #: Landmark columns of format 2 (``kinds`` lives in the manifest).
 LANDMARK_COLUMNS = ("ids", "points_world", "depth_sigmas_m", "obs_offsets", "obs_keyframe",
                     "obs_kind", "obs_keypoint")
+#: Narrower dtypes tried for landmark columns at save (format 3), and the dtypes they are
+#: read back in (a copy: these are the observation indices, 4-12 bytes per observation).
+LANDMARK_NARROWER: dict[str, tuple[type, ...]] = {
+    "obs_offsets": (np.int32,), "obs_keyframe": (np.int32,), "obs_kind": (np.int8,),
+    "obs_keypoint": (np.int16, np.int32)}
+LANDMARK_DTYPES = {"obs_offsets": np.int64, "obs_keyframe": np.int64, "obs_kind": np.int16,
+                   "obs_keypoint": np.int64}
 #: Keyframe cache entries saved with the map: PTAM's small blurry images (``Frame.cache``
 #: key prefix), so a place finder indexing a loaded map need not read every image.
 THUMBNAIL_PREFIX = "sbi:"
@@ -211,8 +219,11 @@ def _thumbnail_path(key: str) -> str:
 
 
 def _write_landmarks(writer: _SnapshotWriter, columns: LandmarkColumns) -> dict[str, Any]:
+    """The landmark columns, the observation indices narrowed where lossless (keypoint
+    indices fit int16, keyframe ids and offsets int32 in any map this size)."""
     for name in LANDMARK_COLUMNS:
-        writer.write(f"landmarks/{name}.npy", _npy_bytes(np.asarray(getattr(columns, name))))
+        column = narrowest(np.asarray(getattr(columns, name)), LANDMARK_NARROWER.get(name, ()))
+        writer.write(f"landmarks/{name}.npy", _npy_bytes(column))
     return {"dir": "landmarks", "kinds": list(columns.kinds)}
 
 
@@ -671,11 +682,21 @@ def _attach_thumbnails(reader: _SnapshotReader, manifest: Mapping[str, Any],
             kf.cache[str(key)] = thumb
 
 
+def _widened(column: np.ndarray, dtype: Any) -> np.ndarray:
+    """``column`` in ``dtype`` (a read-only copy when stored narrower), else as it is."""
+    if dtype is None or column.dtype == dtype:
+        return column
+    wide = column.view(np.ndarray).astype(dtype)
+    wide.flags.writeable = False
+    return wide
+
+
 def _read_landmark_columns(reader: _SnapshotReader, manifest: Mapping[str, Any],
                            keyframes: Mapping[int, Keyframe]) -> LandmarkColumns:
     meta = manifest["landmarks"]
     where = reader.root / "landmarks"
-    a = {name: reader.npy(f"landmarks/{name}.npy") for name in LANDMARK_COLUMNS}
+    a = {name: _widened(reader.npy(f"landmarks/{name}.npy"), LANDMARK_DTYPES.get(name))
+         for name in LANDMARK_COLUMNS}
     n, n_obs = len(a["ids"]), len(a["obs_keyframe"])
     offsets = a["obs_offsets"]
     if (a["points_world"].shape != (n, 3) or a["depth_sigmas_m"].shape != (n,)

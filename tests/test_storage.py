@@ -352,7 +352,7 @@ def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
     # arrays made for this keyframe only
     arrays = [*(getattr(kf.features[k], f) for k in kf.features for f in ("descriptors", "angles")),
               kf.features["sift"].sizes,
-              state.landmarks.columns().points_world, state.landmarks.columns().obs_keyframe,
+              state.landmarks.columns().points_world, state.landmarks.columns().ids,
               kf.cache["sbi:40x30:2.5"]]
     for a in arrays:
         assert _maps_a_file(a), type(a)
@@ -360,6 +360,9 @@ def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
     for k in kf.features:
         for f in ("keypoints_px", "levels", "landmark_ids", "points_world", "sizes"):
             assert not getattr(kf.features[k], f).flags.writeable
+    columns = state.landmarks.columns()               # observation indices: stored narrow
+    for name, dtype in storage.LANDMARK_DTYPES.items():
+        assert getattr(columns, name).dtype == dtype and not getattr(columns, name).flags.writeable
     assert "built=[]" in repr(state.keyframes[0].features)       # untouched: nothing made
     assert np.array_equal(kf.cache["sbi:40x30:2.5"], rich_state.keyframes[1].cache["sbi:40x30:2.5"])
     with pytest.raises(ValueError, match="read-only"):
@@ -440,6 +443,10 @@ def test_format_3_stores_narrow_columns_and_no_derived_points(tmp_path, rich_sta
             assert not (snap / "features" / f"{kind}.{derived}.npy").exists()
         assert _snapshot_npy(snap, f"features/{kind}.keypoints_px.npy").dtype == np.float32
         assert _snapshot_npy(snap, f"features/{kind}.levels.npy").dtype == np.int8
+    landmark_dtypes = {"obs_offsets": np.int32, "obs_keyframe": np.int32, "obs_kind": np.int8,
+                       "obs_keypoint": np.int16, "ids": np.int64, "points_world": np.float64}
+    for name, dtype in landmark_dtypes.items():
+        assert _snapshot_npy(snap, f"landmarks/{name}.npy").dtype == dtype, name
     # ORB's size is its level's (31 px times the scale); SIFT's varies within an octave
     table = _snapshot_npy(snap, "features/orb.sizes_by_level.npy")
     assert table.dtype == np.float32 and table.shape == (8, 2)
