@@ -51,7 +51,7 @@ import numpy.typing as npt
 
 from .cameras import Camera
 from .errors import ConfigError, MapError
-from .frame import Frame, Keyframe
+from .frame import EncodedImage, Frame, Keyframe
 from .map import KeyframeMap, MapState
 from .mapping import MapBuilder, MappingConf
 from .progress import progress as progress_bar
@@ -199,7 +199,8 @@ class Engine:
         self.builder = MapBuilder(self.map, self.conf.mapping.with_kinds(sorted(kinds)))
 
     # -- map changes (write) -------------------------------------------------------------------
-    def add_keyframe(self, kf_id: int, image: npt.ArrayLike, camera: Camera, world_from_cam: Array,
+    def add_keyframe(self, kf_id: int, image: npt.ArrayLike | EncodedImage, camera: Camera,
+                     world_from_cam: Array,
                      *, depth: npt.ArrayLike | None = None, timestamp: float | None = None,
                      given_keypoints_px: npt.ArrayLike | None = None,
                      given_landmark_ids: npt.ArrayLike | None = None,

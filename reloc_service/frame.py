@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import MutableMapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -123,30 +124,50 @@ def check_grey_image(image: npt.ArrayLike, camera: Camera | None = None) -> npt.
     return np.ascontiguousarray(img)
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_JPEG_SIGNATURE = b"\xff\xd8\xff"
+
+
 class EncodedImage:
-    """A grey image kept PNG-encoded (bytes or a read-only memory map of a PNG file) until a
+    """A grey image kept compressed (bytes or a read-only memory map of a file) until a
     :class:`Frame` first needs its pixels: a loaded map holds 1000s of keyframe images that
     most queries never look at (the place finders read thumbnails, the pose finders
-    features)."""
+    features). PNG (its size read from IHDR) or JPEG (the size given: ``shape``, (H, W));
+    decoded to grey as the service decodes a client's image (``cv2.IMREAD_GRAYSCALE``), so
+    a keyframe kept as the JPEG a client sent has the pixels its features came from."""
 
-    __slots__ = ("data", "shape")
+    __slots__ = ("data", "shape", "format")
 
-    def __init__(self, data: bytes | npt.NDArray[np.uint8]) -> None:
+    def __init__(self, data: bytes | npt.NDArray[np.uint8],
+                 shape: tuple[int, int] | None = None) -> None:
         head = bytes(data[:24])
-        if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
-            raise GeometryError("encoded image: expected a PNG file")
+        if len(head) >= 24 and head[:8] == _PNG_SIGNATURE and head[12:16] == b"IHDR":
+            self.format = "png"
+            # IHDR: big-endian width and height, so the size is known without decoding.
+            png_shape = (int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big"))
+            if shape is not None and tuple(shape) != png_shape:
+                raise GeometryError(f"encoded image: PNG of {png_shape}, expected {shape}")
+            shape = png_shape
+        elif head[:3] == _JPEG_SIGNATURE and shape is not None:
+            self.format = "jpg"
+        else:
+            raise GeometryError("encoded image: expected a PNG file, or a JPEG file and its "
+                                "(height, width)")
         self.data = data
-        # IHDR: big-endian width and height, so the size is known without decoding.
-        self.shape = (int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big"))
+        self.shape = (int(shape[0]), int(shape[1]))
 
     def decode(self) -> npt.NDArray[np.uint8]:
-        image = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_UNCHANGED)
+        image = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_GRAYSCALE)
         if image is None or image.shape != self.shape or image.dtype != np.uint8:
-            raise GeometryError(f"encoded image: expected a grey 8-bit PNG of {self.shape}")
+            raise GeometryError(f"encoded image: expected a {self.format.upper()} that "
+                                f"decodes to {self.shape} grey pixels")
         return image
 
     def tobytes(self) -> bytes:
         return bytes(self.data)
+
+    def __len__(self) -> int:
+        return len(self.data)
 
 
 @dataclass(frozen=True)
@@ -175,7 +196,7 @@ class Frame:
 
     image: npt.NDArray[np.uint8]
     camera: Camera
-    features: dict[str, Features] = field(default_factory=dict)
+    features: MutableMapping[str, Features] = field(default_factory=dict)
     cache: dict[str, Any] = field(default_factory=dict, repr=False)
     #: Ground-truth pose, set only by evaluation (the ``gt`` place finder refuses to run without).
     gt_world_from_cam: Array | None = None
@@ -222,14 +243,24 @@ class Keyframe(Frame):
     """A mapped frame: a :class:`Frame` with an id, its ``world_from_cam`` pose and metadata.
 
     ``depth`` is an optional (H, W) float32 Z-depth in metres (NaN where unknown).
+    ``encoded`` is the compressed image the pixels decode to exactly (what a client sent, or
+    the file a snapshot holds), kept to be saved as it is: set from an encoded ``image``,
+    or given with decoded pixels.
     """
 
     id: int = -1
     world_from_cam: Array = field(default_factory=lambda: np.eye(4))
     timestamp: float | None = None
     depth: npt.NDArray[np.float32] | None = None
+    encoded: EncodedImage | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
+        source = self.image_source
+        if isinstance(source, EncodedImage):
+            self.encoded = source
+        elif self.encoded is not None and self.encoded.shape != np.shape(source)[:2]:
+            raise GeometryError(f"keyframe {self.id}: encoded image of {self.encoded.shape}, "
+                                f"pixels of {np.shape(source)[:2]}")
         super().__post_init__()
         if isinstance(self.id, bool) or not isinstance(self.id, int | np.integer) or self.id < 0:
             raise MapError(f"keyframe id must be a non-negative integer, got {self.id!r}")

@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from .cameras import Camera
 from .errors import ConfigError, GeometryError
 from .features import FEATURE_KINDS, FeatureConf, compute_at, extract
-from .frame import Features, Keyframe, check_grey_image
+from .frame import EncodedImage, Features, Keyframe, check_grey_image
 from .landmarks import lift_pixels, sample_depth, triangulate_keyframe
 from .map import KeyframeMap, MapState
 from .plugins import make_conf
@@ -152,19 +152,25 @@ class MapBuilder:
         #: Statistics of the last :meth:`add_keyframe`, per feature kind.
         self.last_stats: dict[str, TriangulationStats] = {}
 
-    def add_keyframe(self, kf_id: int, image: npt.ArrayLike, camera: Camera, world_from_cam: Array,
+    def add_keyframe(self, kf_id: int, image: npt.ArrayLike | EncodedImage, camera: Camera,
+                     world_from_cam: Array,
                      *, depth: npt.ArrayLike | None = None, timestamp: float | None = None,
                      given_keypoints_px: npt.ArrayLike | None = None,
                      given_landmark_ids: npt.ArrayLike | None = None,
                      given_points_world: npt.ArrayLike | None = None) -> Keyframe:
         """Extract features, add the keyframe (replacing one with the same id), triangulate
-        against its neighbours; returns the keyframe as the map now holds it."""
-        grey = check_grey_image(image, camera)
+        against its neighbours; returns the keyframe as the map now holds it. An
+        :class:`EncodedImage` ``image`` (the JPEG or PNG a client sent) is decoded here and
+        kept as it is, to be saved without re-encoding."""
+        encoded = image if isinstance(image, EncodedImage) else None
+        grey = check_grey_image(image.decode() if isinstance(image, EncodedImage) else image,
+                                camera)
         given = GivenFeatures.check(given_keypoints_px, given_landmark_ids, given_points_world)
         depth_m = None if depth is None else np.asarray(depth, dtype=np.float32)
         features = {kind: self._features(grey, kind, given) for kind in self.conf.feature_kinds}
         keyframe = Keyframe(image=grey, camera=camera, features=features, id=kf_id,
-                            world_from_cam=world_from_cam, timestamp=timestamp, depth=depth_m)
+                            world_from_cam=world_from_cam, timestamp=timestamp, depth=depth_m,
+                            encoded=encoded)
         self.map.add_keyframe(keyframe)
         self._triangulate(keyframe, self.conf.feature_kinds)
         return self.map.snapshot().keyframe(keyframe.id)

@@ -1,25 +1,30 @@
 """Map persistence: a whole map saved as an immutable snapshot directory, switched atomically.
 
-Layout of a map directory ``MAP`` (format version 2)::
+Layout of a map directory ``MAP`` (format version 3)::
 
     MAP/CURRENT                     names the current snapshot: ``snapshots/000012``
     MAP/snapshots/000012/
         manifest.json               format, versions, keyframes, and a SHA-256 of every file
-        images/<id>.png             grey keyframe images (decoded when first used)
+        images/<id>.jpg|png         keyframe images: the JPEG (or grey PNG) a client sent, as
+                                    sent; else the pixels as PNG (decoded when first used)
         depth/<id>.npy              float32 Z-depth maps (keyframes that have one)
         features/<kind>.<field>.npy every keyframe's features of one kind, concatenated in
-                                    manifest order (each keyframe names its row range)
+                                    manifest order (each keyframe names its row range); narrow
+                                    where lossless, no field load can derive exactly (points
+                                    and ids from the landmarks, ORB sizes from the levels):
+                                    see :mod:`.feature_columns`
         thumbnails/<key>.npy        small blurry images already computed (one row a keyframe)
         landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR)
         models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote
 
-Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the PNG images
-too, decoded by the keyframe on first use): loading rebuilds
-nothing, the arrays stay on disk until a query touches them (each keyframe's features are
-views of the shared columns), and a change after loading copies what it changes (copy on
-write; the snapshot files are never written again). Each file's SHA-256 is checked at load
-(streamed, so a check does not hold the file in memory). Snapshots of format version 1
-(PNG images, one ``.npz`` per keyframe and kind) are still read.
+Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the images
+too, decoded by the keyframe on first use): loading rebuilds nothing but each kind's landmark
+ids (one scatter of the observations), the arrays stay on disk until a query touches them
+(each keyframe's features are built from the shared columns on first use), and a change after
+loading copies what it changes (copy on write; the snapshot files are never written again).
+Each file's SHA-256 is checked at load (streamed, so a check does not hold the file in
+memory). Snapshots of format version 2 (every feature field in full, PNG images) and 1 (PNG
+images, one ``.npz`` per keyframe and kind) are still read.
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
 ``CURRENT`` with :func:`os.replace` and prunes the snapshots it was built from (keeping the
@@ -49,12 +54,24 @@ import numpy.typing as npt
 
 from .cameras import Camera, camera_from_dict
 from .errors import CameraError, GeometryError, MapError, StorageError
+from .feature_columns import (
+    DERIVABLE_FIELDS,
+    SIZE_TABLE,
+    STORED_FIELDS,
+    FeatureColumns,
+    LazyFeatures,
+    feature_count,
+    kind_columns,
+    narrowest,
+)
 from .fileio import atomic_write, fsync_path
 from .frame import SIFT_DIM, EncodedImage, Features, Keyframe
 from .map import Landmark, LandmarkColumns, LandmarkTable, MapState
 
 FORMAT = "reloc map"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+#: Older format versions this reloc still reads.
+READABLE_VERSIONS = (1, 2, 3)
 CURRENT_FILE = "CURRENT"
 SNAPSHOTS_DIR = "snapshots"
 MANIFEST_FILE = "manifest.json"
@@ -71,6 +88,13 @@ OPTIONAL_LANDMARK_FIELDS = ("depth_sigmas_m",)
 #: Landmark columns of format 2 (``kinds`` lives in the manifest).
 LANDMARK_COLUMNS = ("ids", "points_world", "depth_sigmas_m", "obs_offsets", "obs_keyframe",
                     "obs_kind", "obs_keypoint")
+#: Narrower dtypes tried for landmark columns at save (format 3), and the dtypes they are
+#: read back in (a copy: these are the observation indices, 4-12 bytes per observation).
+LANDMARK_NARROWER: dict[str, tuple[type, ...]] = {
+    "obs_offsets": (np.int32,), "obs_keyframe": (np.int32,), "obs_kind": (np.int8,),
+    "obs_keypoint": (np.int16, np.int32)}
+LANDMARK_DTYPES = {"obs_offsets": np.int64, "obs_keyframe": np.int64, "obs_kind": np.int16,
+                   "obs_keypoint": np.int64}
 #: Keyframe cache entries saved with the map: PTAM's small blurry images (``Frame.cache``
 #: key prefix), so a place finder indexing a loaded map need not read every image.
 THUMBNAIL_PREFIX = "sbi:"
@@ -124,10 +148,13 @@ def _npy_bytes(array: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _image_png(kf: Keyframe) -> bytes:
-    """``kf``'s image as PNG: the loaded bytes when it was never decoded (no re-encoding)."""
-    source = kf.image_source
-    return source.tobytes() if isinstance(source, EncodedImage) else _png_bytes(source)
+def _image_file(kf: Keyframe) -> tuple[str, bytes]:
+    """``kf``'s image file (extension, bytes): the compressed image it was given (a client's
+    JPEG, a loaded snapshot's file: never re-encoded, and a lossy one not made lossier), else
+    its pixels as PNG."""
+    if kf.encoded is not None:
+        return kf.encoded.format, kf.encoded.tobytes()
+    return "png", _png_bytes(kf.image)
 
 
 def _png_bytes(image: npt.NDArray[np.uint8]) -> bytes:
@@ -140,10 +167,11 @@ def _png_bytes(image: npt.NDArray[np.uint8]) -> bytes:
 def _write_keyframe(writer: _SnapshotWriter, kf: Keyframe,
                     rows: Mapping[str, tuple[int, int]]) -> dict[str, Any]:
     """The manifest entry of ``kf`` (its image and depth written; features by row range)."""
+    ext, data = _image_file(kf)
     entry: dict[str, Any] = {
         "id": kf.id, "camera": kf.camera.to_dict(), "world_from_cam": kf.world_from_cam.tolist(),
         "timestamp": None if kf.timestamp is None else float(kf.timestamp),
-        "image": writer.write(f"images/{kf.id}.png", _image_png(kf)),
+        "image": writer.write(f"images/{kf.id}.{ext}", data),
         "depth": None, "features": {k: list(r) for k, r in sorted(rows.items())}}
     if kf.depth is not None:
         entry["depth"] = writer.write(f"depth/{kf.id}.npy", _npy_bytes(kf.depth.astype(np.float32)))
@@ -156,23 +184,21 @@ def _feature_rows(keyframes: list[Keyframe]) -> dict[int, dict[str, tuple[int, i
     out: dict[int, dict[str, tuple[int, int]]] = {}
     for kf in keyframes:
         out[kf.id] = {}
-        for kind, feats in sorted(kf.features.items()):
+        for kind in sorted(kf.features):
             start = ends.get(kind, 0)
-            ends[kind] = start + len(feats)
+            ends[kind] = start + feature_count(kf.features, kind)
             out[kf.id][kind] = (start, ends[kind])
     return out
 
 
-def _write_features(writer: _SnapshotWriter, keyframes: list[Keyframe]) -> None:
-    """One ``.npy`` per kind and field: every keyframe's rows, in manifest order."""
-    kinds = sorted({k for kf in keyframes for k in kf.features})
-    for kind in kinds:
-        feats = [kf.features[kind] for kf in keyframes if kind in kf.features]
-        for name in FEATURE_FIELDS:
-            parts = [np.asarray(getattr(f, name)) for f in feats]
-            wide = [p for p in parts if len(p)] or parts
-            column = np.concatenate([p.reshape(len(p), *wide[0].shape[1:]).astype(wide[0].dtype)
-                                     for p in parts])
+def _write_features(writer: _SnapshotWriter, keyframes: list[Keyframe], state: MapState,
+                    landmarks: LandmarkColumns,
+                    rows: Mapping[int, Mapping[str, tuple[int, int]]]) -> None:
+    """One ``.npy`` per kind and stored column (:func:`.feature_columns.kind_columns`)."""
+    for kind in sorted({k for kf in keyframes for k in kf.features}):
+        owners = [(kf.id, rows[kf.id][kind][0], kf.features)
+                  for kf in keyframes if kind in kf.features]
+        for name, column in kind_columns(kind, owners, state.landmarks, landmarks).items():
             writer.write(f"features/{kind}.{name}.npy", _npy_bytes(column))
 
 
@@ -193,8 +219,11 @@ def _thumbnail_path(key: str) -> str:
 
 
 def _write_landmarks(writer: _SnapshotWriter, columns: LandmarkColumns) -> dict[str, Any]:
+    """The landmark columns, the observation indices narrowed where lossless (keypoint
+    indices fit int16, keyframe ids and offsets int32 in any map this size)."""
     for name in LANDMARK_COLUMNS:
-        writer.write(f"landmarks/{name}.npy", _npy_bytes(np.asarray(getattr(columns, name))))
+        column = narrowest(np.asarray(getattr(columns, name)), LANDMARK_NARROWER.get(name, ()))
+        writer.write(f"landmarks/{name}.npy", _npy_bytes(column))
     return {"dir": "landmarks", "kinds": list(columns.kinds)}
 
 
@@ -256,9 +285,10 @@ def save_map(state: MapState, directory: str | Path, *,
     kfs = list(state.keyframes.values())
     rows = _feature_rows(kfs)
     keyframes = [_write_keyframe(writer, kf, rows[kf.id]) for kf in kfs]
-    _write_features(writer, kfs)
+    columns = state.landmarks.columns()
+    _write_features(writer, kfs, state, columns, rows)
     thumbnails = _write_thumbnails(writer, kfs)
-    landmarks = _write_landmarks(writer, state.landmarks.columns())
+    landmarks = _write_landmarks(writer, columns)
     model_dirs: dict[str, str] = {}
     for method, write_model in (models or {}).items():
         rel = f"{MODELS_DIR}/{model_dir_name(method)}"
@@ -430,9 +460,9 @@ def _read_manifest(snapshot: Path) -> dict[str, Any]:
     if version > FORMAT_VERSION:
         raise StorageError(f"{path}: written by a newer reloc (format version {version}; this "
                            f"version reads up to {FORMAT_VERSION}); upgrade reloc to load it")
-    if version < FORMAT_VERSION and version != 1:
+    if version not in READABLE_VERSIONS:
         raise StorageError(f"{path}: format version {version} is not readable by this reloc "
-                           f"(it reads 1 and {FORMAT_VERSION})")
+                           f"(it reads {', '.join(map(str, READABLE_VERSIONS))})")
     landmarks_type = str if version == 1 else dict
     for key, kind in (("keyframes", list), ("files", dict), ("models", dict),
                       ("map_version", int), ("next_landmark_id", int),
@@ -521,7 +551,8 @@ def _check_observations(where: Path, a: Mapping[str, np.ndarray], kinds: list[st
     if not known.all():
         unknown = np.unique(a["obs_keyframe"][~known])[:5].tolist()
         raise StorageError(f"{where}: observations of unknown keyframe(s) {unknown}")
-    sizes = np.array([[len(keyframes[k].features[kind]) if kind in keyframes[k].features else 0
+    sizes = np.array([[feature_count(keyframes[k].features, kind)
+                       if kind in keyframes[k].features else 0
                        for kind in kinds] for k in kf_ids.tolist()], dtype=np.int64)
     size = sizes[pos, a["obs_kind"].astype(np.int64)]
     bad = (a["obs_keypoint"] < 0) | (a["obs_keypoint"] >= size)
@@ -545,14 +576,23 @@ def _read_keyframes(reader: _SnapshotReader, manifest: Mapping[str, Any],
 
 
 class _FeatureColumns:
-    """The memory-mapped feature columns of a format-2 snapshot, cut into keyframes."""
+    """The memory-mapped feature columns of a format-2 or 3 snapshot, cut into keyframes
+    (format 3: narrow columns without derived points, built per keyframe on first use;
+    :mod:`.feature_columns`)."""
 
     def __init__(self, reader: _SnapshotReader, manifest: Mapping[str, Any]) -> None:
         kinds = sorted({k for e in manifest["keyframes"] for k in dict(e.get("features", {}))})
+        self.lazy = manifest["format_version"] >= 3
         self.columns: dict[str, dict[str, np.ndarray]] = {}
         self._cameras: dict[str, Camera] = {}
+        tables: dict[str, np.ndarray] = {}
         for kind in kinds:
-            cols = {f: reader.npy(f"features/{kind}.{f}.npy") for f in FEATURE_FIELDS}
+            fields = [*STORED_FIELDS, *(f for f in DERIVABLE_FIELDS
+                                        if f"features/{kind}.{f}.npy" in manifest["files"])]
+            cols = {f: reader.npy(f"features/{kind}.{f}.npy")
+                    for f in (fields if self.lazy else FEATURE_FIELDS)}
+            if self.lazy and "sizes" not in cols:
+                tables[kind] = _size_table(reader, f"features/{kind}.{SIZE_TABLE}.npy")
             lengths = {f: len(c) for f, c in cols.items()}
             if len(set(lengths.values())) != 1:
                 raise StorageError(f"{reader.root}/features/{kind}.*.npy: columns of different "
@@ -560,16 +600,28 @@ class _FeatureColumns:
             # plain ndarray views of the maps: slicing an np.memmap 8000 times (1000 keyframes
             # x 8 columns) paid its __array_finalize__ each time; the views still read the map
             self.columns[kind] = {f: c.view(np.ndarray) for f, c in cols.items()}
+        self.shared = FeatureColumns(self.columns, tables)
+        self.starts: dict[str, list[tuple[int, int]]] = {}
+
+    def attach_landmarks(self, landmarks: LandmarkColumns) -> None:
+        """Give the lazily built features the landmark columns (ids and points derived)."""
+        starts = {kind: (np.array([p[0] for p in sorted(pairs)], np.int64).reshape(-1),
+                         np.array([p[1] for p in sorted(pairs)], np.int64).reshape(-1))
+                  for kind, pairs in self.starts.items()}
+        try:
+            self.shared.attach_landmarks(landmarks, starts)
+        except MapError as exc:
+            raise StorageError(f"features: {exc}") from exc
 
     def keyframe(self, reader: _SnapshotReader, entry: Mapping[str, Any]) -> Keyframe:
         where = f"{reader.root / MANIFEST_FILE}: keyframe {entry.get('id')!r}"
         try:
-            features = {kind: self._features(kind, rows)
-                        for kind, rows in dict(entry["features"]).items()}
-            image = EncodedImage(reader.map(entry["image"]))
+            features = self._keyframe_features(int(entry["id"]), dict(entry["features"]))
+            camera = self._camera(entry["camera"])
+            image = EncodedImage(reader.map(entry["image"]), (camera.height, camera.width))
             depth = None if entry.get("depth") is None else reader.npy(entry["depth"])
             timestamp = entry.get("timestamp")
-            return Keyframe(image=image, camera=self._camera(entry["camera"]),
+            return Keyframe(image=image, camera=camera,
                             features=features, id=entry["id"],
                             world_from_cam=np.array(entry["world_from_cam"], np.float64),
                             timestamp=None if timestamp is None else float(timestamp),
@@ -590,13 +642,32 @@ class _FeatureColumns:
             camera = self._cameras[key] = camera_from_dict(d)
         return camera
 
-    def _features(self, kind: str, rows: Any) -> Features:
+    def _keyframe_features(self, kf_id: int, entry: Mapping[str, Any]
+                           ) -> dict[str, Features] | LazyFeatures:
+        rows = {kind: self._rows(kind, r) for kind, r in entry.items()}
+        for kind, (start, _) in rows.items():
+            self.starts.setdefault(kind, []).append((kf_id, start))
+        if self.lazy:
+            return LazyFeatures(self.shared, rows)
+        return {kind: Features(kind=kind, **self.shared.raw(kind, *r)) for kind, r in rows.items()}
+
+    def _rows(self, kind: str, rows: Any) -> tuple[int, int]:
         start, stop = (int(r) for r in rows)
-        cols = self.columns[kind]
-        if not 0 <= start <= stop <= len(cols["keypoints_px"]):
-            raise ValueError(f"{kind} rows [{start}, {stop}) outside the "
-                             f"{len(cols['keypoints_px'])} saved")
-        return Features(kind=kind, **{f: c[start:stop] for f, c in cols.items()})
+        if kind not in self.columns:
+            raise ValueError(f"{kind} features listed but not saved")
+        n = len(self.columns[kind]["keypoints_px"])
+        if not 0 <= start <= stop <= n:
+            raise ValueError(f"{kind} rows [{start}, {stop}) outside the {n} saved")
+        return start, stop
+
+
+def _size_table(reader: _SnapshotReader, relpath: str) -> np.ndarray:
+    table = np.asarray(reader.npy(relpath))
+    if table.ndim != 2 or table.shape[1] != 2 or table.dtype != np.float32 or np.any(
+            np.diff(table[:, 0]) <= 0):
+        raise StorageError(f"{reader.root / relpath}: expected a (K, 2) float32 table of "
+                           f"(level ascending, size), got {table.shape} {table.dtype}")
+    return table
 
 
 def _attach_thumbnails(reader: _SnapshotReader, manifest: Mapping[str, Any],
@@ -611,11 +682,21 @@ def _attach_thumbnails(reader: _SnapshotReader, manifest: Mapping[str, Any],
             kf.cache[str(key)] = thumb
 
 
+def _widened(column: np.ndarray, dtype: Any) -> np.ndarray:
+    """``column`` in ``dtype`` (a read-only copy when stored narrower), else as it is."""
+    if dtype is None or column.dtype == dtype:
+        return column
+    wide = column.view(np.ndarray).astype(dtype)
+    wide.flags.writeable = False
+    return wide
+
+
 def _read_landmark_columns(reader: _SnapshotReader, manifest: Mapping[str, Any],
                            keyframes: Mapping[int, Keyframe]) -> LandmarkColumns:
     meta = manifest["landmarks"]
     where = reader.root / "landmarks"
-    a = {name: reader.npy(f"landmarks/{name}.npy") for name in LANDMARK_COLUMNS}
+    a = {name: _widened(reader.npy(f"landmarks/{name}.npy"), LANDMARK_DTYPES.get(name))
+         for name in LANDMARK_COLUMNS}
     n, n_obs = len(a["ids"]), len(a["obs_keyframe"])
     offsets = a["obs_offsets"]
     if (a["points_world"].shape != (n, 3) or a["depth_sigmas_m"].shape != (n,)
@@ -650,7 +731,9 @@ def load_map(directory: str | Path) -> tuple[MapState, Path | None]:
                 columns = _FeatureColumns(reader, manifest)
                 keyframes = _read_keyframes(reader, manifest, columns.keyframe)
                 _attach_thumbnails(reader, manifest, list(keyframes.values()))
-                landmarks = LandmarkTable(_read_landmark_columns(reader, manifest, keyframes))
+                landmark_columns = _read_landmark_columns(reader, manifest, keyframes)
+                columns.attach_landmarks(landmark_columns)
+                landmarks = LandmarkTable(landmark_columns)
                 reader.wait_all()
             finally:
                 pool.shutdown(cancel_futures=True)   # a damaged file: do not hash the rest

@@ -86,6 +86,27 @@ def test_grow_state_adds_distractors_with_their_own_landmarks(small_scene):
     assert scaling.grow_state(base, 3, distractors, small_scene.camera) is base
 
 
+def test_distractors_arrive_as_jpeg_as_a_client_sends_them(small_scene):
+    """A distractor keyframe holds the JPEG a client would send (what the map saves) and
+    features of its decoded pixels; without a quality, raw pixels (saved as PNG)."""
+    import cv2
+
+    from reloc_service.frame import EncodedImage
+    from reloc_service.tools.bench.samples import JPEG_QUALITY
+
+    (d,) = scaling.make_distractors(1, small_scene.camera, 10, seed=0)
+    (raw,) = scaling.make_distractors(1, small_scene.camera, 10, seed=0, jpeg_quality=None)
+    assert isinstance(d.image, EncodedImage) and d.image.format == "jpg"
+    ok, same = cv2.imencode(".jpg", raw.image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    assert d.image.tobytes() == same.tobytes()
+    kf = scaling.grow_state(small_scene.map.snapshot(), len(small_scene.map.snapshot().keyframes) + 1,
+                            [d], small_scene.camera)
+    new = max(kf.keyframes)
+    assert kf.keyframes[new].encoded is d.image
+    assert np.array_equal(kf.keyframes[new].image, d.image.decode())
+    assert isinstance(raw.image, np.ndarray)
+
+
 def test_procedural_images_differ_and_are_seeded():
     a = scaling.procedural_image(np.random.default_rng(0), 64, 48)
     b = scaling.procedural_image(np.random.default_rng(0), 64, 48)

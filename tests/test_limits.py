@@ -110,6 +110,26 @@ def test_decoder_checks_the_header_against_the_camera_before_allocating():
         assert "header declares 4096x4096" in err.value.message
 
 
+def test_a_keyframe_keeps_the_jpeg_or_grey_png_it_was_sent_as(synthetic_scene):
+    """The map saves a keyframe's image as the client sent it (a JPEG a third of a PNG of its
+    pixels, never re-encoded); raw or colour images are kept as pixels (saved as grey PNG)."""
+    from reloc_service.frame import EncodedImage
+
+    camera, grey = synthetic_scene.camera, synthetic_scene.keyframe_images[0]
+    for fmt, ext in (("jpeg", ".jpg"), ("png", ".png")):
+        ok, data = cv2.imencode(ext, grey)
+        image = wire.WireImage(wire.ImageFormat(fmt), 320, 240, data.tobytes())
+        kept = codec.keyframe_image(image, camera, "keyframe.image")
+        assert isinstance(kept, EncodedImage) and kept.tobytes() == data.tobytes()
+        assert np.array_equal(kept.decode(), codec.decode_image(image, camera, "keyframe.image"))
+    ok, colour = cv2.imencode(".png", cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR))
+    kept = codec.keyframe_image(wire.WireImage(wire.ImageFormat.PNG, 320, 240, colour.tobytes()),
+                                camera, "keyframe.image")
+    assert isinstance(kept, np.ndarray) and np.array_equal(kept, grey)
+    raw = codec.keyframe_image(wire.WireImage.from_array(grey), camera, "keyframe.image")
+    assert isinstance(raw, np.ndarray) and np.array_equal(raw, grey)
+
+
 def test_default_pixel_limit_fits_a_companion_computer():
     assert ServiceConf().limits.max_image_pixels == 1280 * 960
     assert load_config(ROOT / "config" / "default.toml") == ServiceConf(), \

@@ -13,6 +13,7 @@ import pytest
 
 from reloc_service import storage
 from reloc_service.errors import StorageError
+from reloc_service.feature_columns import LazyFeatures
 from reloc_service.frame import EncodedImage, Keyframe
 from reloc_service.map import KeyframeMap, MapState
 from reloc_service.storage import (
@@ -229,7 +230,7 @@ def _edit_manifest(snap: Path, **changes) -> None:
 def test_newer_format_version_is_refused(tmp_path, synthetic_map):
     snap = _saved(tmp_path, synthetic_map)
     _edit_manifest(snap, format_version=storage.FORMAT_VERSION + 1)
-    with pytest.raises(StorageError, match=r"newer reloc .*format version 3.*reads up to 2"):
+    with pytest.raises(StorageError, match=r"newer reloc .*format version 4.*reads up to 3"):
         load_map(tmp_path)
 
 
@@ -345,12 +346,24 @@ def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
     assert isinstance(image.data.base.obj, mmap.mmap)
     assert np.array_equal(kf.image, rich_state.keyframes[1].image)
     assert isinstance(kf.image_source, np.ndarray)    # decoded once, kept
-    arrays = [*(getattr(kf.features[k], f) for k in kf.features for f in FEATURE_FIELDS),
-              state.landmarks.columns().points_world, state.landmarks.columns().obs_keyframe,
+    assert isinstance(kf.features, LazyFeatures) and "built=[]" in repr(kf.features)
+    # stored in their own dtype: views of the files; narrowed or derived (keypoints float32
+    # on disk, ids and points from the landmarks, ORB sizes from the levels): read-only
+    # arrays made for this keyframe only
+    arrays = [*(getattr(kf.features[k], f) for k in kf.features for f in ("descriptors", "angles")),
+              kf.features["sift"].sizes,
+              state.landmarks.columns().points_world, state.landmarks.columns().ids,
               kf.cache["sbi:40x30:2.5"]]
     for a in arrays:
         assert _maps_a_file(a), type(a)
         assert not a.flags.writeable
+    for k in kf.features:
+        for f in ("keypoints_px", "levels", "landmark_ids", "points_world", "sizes"):
+            assert not getattr(kf.features[k], f).flags.writeable
+    columns = state.landmarks.columns()               # observation indices: stored narrow
+    for name, dtype in storage.LANDMARK_DTYPES.items():
+        assert getattr(columns, name).dtype == dtype and not getattr(columns, name).flags.writeable
+    assert "built=[]" in repr(state.keyframes[0].features)       # untouched: nothing made
     assert np.array_equal(kf.cache["sbi:40x30:2.5"], rich_state.keyframes[1].cache["sbi:40x30:2.5"])
     with pytest.raises(ValueError, match="read-only"):
         kf.features["sift"].descriptors[0, 0] = 1
@@ -407,3 +420,179 @@ def test_restore_current_verifies_the_snapshot_first(tmp_path, synthetic_map):
     with pytest.raises(StorageError, match="checksum mismatch"):
         storage.restore_current(tmp_path, snap.name)
     assert not (tmp_path / "CURRENT").exists()
+
+
+# -- format 3: narrow columns, derived points, images as sent ---------------------------------
+
+V2_MAP = Path(__file__).parent / "data" / "map_v2"
+
+
+def _snapshot_npy(snapshot: Path, rel: str) -> np.ndarray:
+    return np.load(snapshot / rel, allow_pickle=False)
+
+
+def test_format_3_stores_narrow_columns_and_no_derived_points(tmp_path, rich_state):
+    """OpenCV's keypoints are float32 values, levels fit int8, ids int32, and every point is
+    its landmark's: so none of them costs its full width on disk, and all load back exactly."""
+    snap = save_map(rich_state, tmp_path)
+    manifest = json.loads((snap / "manifest.json").read_text())
+    assert manifest["format_version"] == 3
+    for kind in ("sift", "orb"):
+        for derived in ("points_world", "landmark_ids"):
+            assert f"features/{kind}.{derived}.npy" not in manifest["files"]
+            assert not (snap / "features" / f"{kind}.{derived}.npy").exists()
+        assert _snapshot_npy(snap, f"features/{kind}.keypoints_px.npy").dtype == np.float32
+        assert _snapshot_npy(snap, f"features/{kind}.levels.npy").dtype == np.int8
+    landmark_dtypes = {"obs_offsets": np.int32, "obs_keyframe": np.int32, "obs_kind": np.int8,
+                       "obs_keypoint": np.int16, "ids": np.int64, "points_world": np.float64}
+    for name, dtype in landmark_dtypes.items():
+        assert _snapshot_npy(snap, f"landmarks/{name}.npy").dtype == dtype, name
+    # ORB's size is its level's (31 px times the scale); SIFT's varies within an octave
+    table = _snapshot_npy(snap, "features/orb.sizes_by_level.npy")
+    assert table.dtype == np.float32 and table.shape == (8, 2)
+    assert not (snap / "features" / "orb.sizes.npy").exists()
+    assert (snap / "features" / "sift.sizes.npy").is_file()
+    state, _ = load_map(tmp_path)
+    _assert_states_equal(rich_state, state)
+    feats = state.keyframes[1].features["sift"]
+    has = feats.landmark_ids >= 0
+    assert has.any() and np.isnan(feats.points_world[~has]).all()
+    assert np.array_equal(feats.points_world[has], state.landmarks.points(feats.landmark_ids[has]))
+
+
+def test_points_that_are_not_the_landmarks_are_stored(tmp_path, synthetic_map):
+    """A client may give a keypoint a point other than its landmark's: that kind keeps its
+    points column, and the round trip stays exact."""
+    kmap = KeyframeMap()
+    kmap.replace_state(synthetic_map)
+    kf = synthetic_map.keyframes[1]
+    feats = kf.features["sift"]
+    i = int(np.flatnonzero(feats.landmark_ids >= 0)[0])
+    moved = feats.with_landmarks([i], feats.landmark_ids[[i]], feats.points_world[[i]] + 0.5)
+    kmap.add_keyframe(kf.with_features("sift", moved))
+    state = kmap.snapshot()
+    snap = save_map(state, tmp_path)
+    assert (snap / "features" / "sift.points_world.npy").is_file()
+    loaded, _ = load_map(tmp_path)
+    _assert_states_equal(state, loaded)
+    assert np.array_equal(loaded.keyframes[1].features["sift"].points_world[i],
+                          feats.points_world[i] + 0.5)
+
+
+def test_keypoints_that_are_not_float32_values_stay_float64(tmp_path, synthetic_map):
+    from reloc_service.frame import Features
+
+    kmap = KeyframeMap()
+    kmap.replace_state(synthetic_map)
+    kf = synthetic_map.keyframes[0]
+    f = kf.features["sift"]
+    exact = Features(**{**{n: getattr(f, n) for n in FEATURE_FIELDS}, "kind": "sift",
+                        "keypoints_px": f.keypoints_px + 1e-9})
+    kmap.add_keyframe(kf.with_features("sift", exact))
+    snap = save_map(kmap.snapshot(), tmp_path)
+    assert _snapshot_npy(snap, "features/sift.keypoints_px.npy").dtype == np.float64
+    _assert_states_equal(kmap.snapshot(), load_map(tmp_path)[0])
+
+
+@pytest.mark.parametrize("rel", ["features/sift.keypoints_px.npy", "features/orb.sizes_by_level.npy",
+                                 "features/sift.descriptors.npy"])
+def test_a_flipped_bit_in_a_format_3_column_fails_the_load(tmp_path, rich_state, rel):
+    snap = save_map(rich_state, tmp_path)
+    path = snap / rel
+    data = bytearray(path.read_bytes())
+    data[-3] ^= 0x04
+    path.write_bytes(bytes(data))
+    with pytest.raises(StorageError, match=f"{rel}: checksum mismatch"):
+        load_map(tmp_path)
+
+
+def test_format_2_snapshots_are_read(tmp_path):
+    """A snapshot written by format 2 (made by that version's code from the format-1 fixture,
+    plus keyframe 1's ORB features: none in its 32x24 image, an empty kind, and the small
+    blurry images; kept in tests/data) loads as it was, and saves as format 3."""
+    v1, _ = load_map(V1_MAP)
+    state, models = load_map(V2_MAP)
+    assert models is None and state.keyframe_ids() == [0, 1]
+    assert sorted(state.keyframes[1].features) == ["orb", "sift"]
+    assert len(state.keyframes[1].features["orb"]) == 0
+    assert state.keyframes[1].features["orb"].descriptors.shape == (0, 32)
+    for k in (0, 1):
+        for name in FEATURE_FIELDS:
+            a = getattr(v1.keyframes[k].features["sift"], name)
+            b = getattr(state.keyframes[k].features["sift"], name)
+            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), name
+        assert "sbi:40x30:2.5" in state.keyframes[k].cache
+    assert sorted(state.landmarks) == sorted(v1.landmarks)
+    snap = save_map(state, tmp_path)
+    assert json.loads((snap / "manifest.json").read_text())["format_version"] == 3
+    again, _ = load_map(tmp_path)
+    _assert_states_equal(state, again)
+
+
+def test_saving_a_loaded_map_copies_its_columns_without_building_features(tmp_path, rich_state):
+    save_map(rich_state, tmp_path / "a")
+    state, _ = load_map(tmp_path / "a")
+    snap = save_map(state, tmp_path / "b")
+    assert all("built=[]" in repr(kf.features) for kf in state.keyframes.values())
+    first = current_snapshot(tmp_path / "a")
+    for path in sorted((first / "features").iterdir()):
+        assert (snap / "features" / path.name).read_bytes() == path.read_bytes(), path.name
+    _assert_states_equal(rich_state, load_map(tmp_path / "b")[0])
+
+
+def test_a_keyframe_sent_as_jpeg_is_saved_as_those_bytes(tmp_path, synthetic_scene):
+    """The map keeps the JPEG a client sent (a third of a PNG of its pixels): the file saved
+    is those bytes, and its pixels and features load back exactly."""
+    import cv2
+
+    from reloc_service.mapping import MapBuilder
+
+    image = synthetic_scene.keyframe_images[0]
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    assert ok
+    sent = EncodedImage(buf.tobytes(), image.shape)
+    kmap = KeyframeMap()
+    kf = MapBuilder(kmap).add_keyframe(3, sent, synthetic_scene.camera,
+                                       synthetic_scene.keyframe_poses[0])
+    assert kf.encoded is sent and np.array_equal(kf.image, cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE))
+    snap = save_map(kmap.snapshot(), tmp_path)
+    assert (snap / "images" / "3.jpg").read_bytes() == buf.tobytes()
+    assert not (snap / "images" / "3.png").exists()
+    state, _ = load_map(tmp_path)
+    _assert_states_equal(kmap.snapshot(), state)
+    again = save_map(state, tmp_path)                     # never re-encoded
+    assert (again / "images" / "3.jpg").read_bytes() == buf.tobytes()
+
+
+def test_an_encoded_image_must_match_its_pixels(synthetic_scene):
+    import cv2
+
+    from reloc_service.errors import GeometryError
+
+    image = synthetic_scene.keyframe_images[0]
+    ok, buf = cv2.imencode(".jpg", image[:100])
+    with pytest.raises(GeometryError, match="encoded image"):
+        Keyframe(image=image, camera=synthetic_scene.camera, id=1,
+                 encoded=EncodedImage(buf.tobytes(), (100, image.shape[1])))
+    with pytest.raises(GeometryError, match="a JPEG file and its"):
+        EncodedImage(buf.tobytes())
+
+
+def test_ids_the_observations_do_not_give_are_stored(tmp_path, synthetic_map):
+    """A keypoint naming a landmark that does not list it as an observation (the ids are not
+    the observations' inverse): the ids column is kept, and the round trip stays exact."""
+    from types import MappingProxyType
+
+    kf = synthetic_map.keyframes[0]
+    feats = kf.features["sift"]
+    free = int(np.flatnonzero(feats.landmark_ids < 0)[0])
+    lm = next(iter(synthetic_map.landmarks.values()))
+    odd = feats.with_landmarks([free], [lm.id], [lm.point_world])
+    state = MapState(MappingProxyType({**synthetic_map.keyframes, 0: kf.with_features("sift", odd)}),
+                     synthetic_map.landmarks, synthetic_map.version, synthetic_map.next_landmark_id)
+    snap = save_map(state, tmp_path)
+    assert (snap / "features" / "sift.landmark_ids.npy").is_file()
+    assert not (snap / "features" / "sift.points_world.npy").exists()
+    loaded, _ = load_map(tmp_path)
+    _assert_states_equal(state, loaded)
+    assert loaded.keyframes[0].features["sift"].landmark_ids[free] == lm.id

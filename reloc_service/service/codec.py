@@ -29,6 +29,7 @@ from ..errors import (
     NotTrainedError,
     StorageError,
 )
+from ..frame import EncodedImage
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +103,18 @@ def decode_image(image: wire.WireImage, camera: Camera, path: str) -> npt.NDArra
     return np.asarray(grey, dtype=np.uint8)
 
 
+def keyframe_image(image: wire.WireImage, camera: Camera, path: str
+                   ) -> npt.NDArray[np.uint8] | EncodedImage:
+    """A keyframe's image as the map keeps it: the bytes sent when they are a JPEG or an
+    8-bit grey PNG (checked to decode like :func:`decode_image`: a saved map stores them
+    instead of re-encoding the pixels, a JPEG at a third of a PNG's size), else the pixels."""
+    pixels = decode_image(image, camera, path)
+    png = wire.png_header(image.data) if image.format is wire.ImageFormat.PNG else None
+    if image.format is wire.ImageFormat.JPEG or (png is not None and png[2:] == (8, 0)):
+        return EncodedImage(bytes(image.data), pixels.shape)
+    return pixels
+
+
 def _check_header_size(image: wire.WireImage, camera: Camera, path: str) -> None:
     """The PNG IHDR / JPEG SOF size must be the camera's before ``cv2.imdecode`` allocates
     what the header declares (a 16 KB PNG can declare 4096x4096)."""
@@ -169,7 +182,9 @@ class KeyframeInput:
     """A validated, decoded keyframe put, ready for the engine."""
 
     kf_id: int
-    image: npt.NDArray[np.uint8]
+    #: the client's JPEG or grey PNG as sent (checked to decode; the map keeps and saves it
+    #: as it is), or the pixels (raw MONO8, or a PNG in another colour type or depth)
+    image: npt.NDArray[np.uint8] | EncodedImage
     camera: Camera
     camera_id: str | None
     world_from_cam: Array
@@ -195,7 +210,7 @@ def decode_keyframe_put(rt: CameraRegistry, kf_id: int, payload: bytes) -> Keyfr
         raise ProtocolError(ErrorCode.BAD_VALUE,
                             f"keyframe.id: {put.id} does not match the key's id {kf_id}")
     camera = resolve_camera(rt, put.camera_id, put.camera, "keyframe")
-    image = decode_image(put.image, camera, "keyframe.image")
+    image = keyframe_image(put.image, camera, "keyframe.image")
     depth = None if put.depth is None else decode_depth(put.depth, "keyframe.depth")
     kp = ids = pts = None
     if put.features is not None:

@@ -5,10 +5,12 @@ Building a 1000-keyframe map by rendering and triangulation takes too long for a
 so big maps are made cheaply and said to be made so (see :func:`grow_state`): the real map
 (rendered keyframes, triangulated landmarks) plus *distractor* keyframes elsewhere in the
 world. A distractor is a procedural 640x480 texture (blurred noise at four scales and random
-shapes: nothing like the scene, so it must not be proposed for a query) with real SIFT
-features, a share of them given landmarks at random depths (1 to 4 m) like the real
-keyframes'. ``unique`` distractors are rendered and described; the others repeat them at new
-world positions with new landmark ids, so every keyframe holds its own arrays once loaded.
+shapes: nothing like the scene, so it must not be proposed for a query) sent as a client
+sends a keyframe, JPEG (quality :data:`~.samples.JPEG_QUALITY`, as the bench's queries; the
+map keeps those bytes), with real SIFT features of the decoded image, a share of them given
+landmarks at random depths (1 to 4 m) like the real keyframes'. ``unique`` distractors are
+rendered and described; the others repeat them at new world positions with new landmark
+ids, so every keyframe holds its own arrays once loaded.
 
 Memory and load time are measured in a fresh subprocess (:func:`probe_map`) that loads the
 saved map (with trained models) through :meth:`Engine.load`, so the numbers hold only what a
@@ -35,9 +37,10 @@ import numpy.typing as npt
 
 from ...cameras import Camera
 from ...features import FeatureConf, extract
-from ...frame import Features, Keyframe
+from ...frame import EncodedImage, Features, Keyframe
 from ...geometry import look_at
 from ...map import Landmark, MapState
+from .samples import JPEG_QUALITY
 
 Array = npt.NDArray[np.float64]
 
@@ -71,30 +74,44 @@ def procedural_image(rng: np.random.Generator, width: int, height: int
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Distractor:
-    """One unique distractor: its image, SIFT features, and for the keypoints given landmarks
-    their indices and (K, 3) points in the camera frame."""
+    """One unique distractor: its image (pixels, or the JPEG they decode from), SIFT
+    features, and for the keypoints given landmarks their indices and (K, 3) points in the
+    camera frame."""
 
-    image: npt.NDArray[np.uint8]
+    image: npt.NDArray[np.uint8] | EncodedImage
     features: Features
     landmark_idx: npt.NDArray[np.int64]
     points_cam: Array
 
 
 def make_distractors(count: int, camera: Camera, landmarks_per_keyframe: int, *,
-                     max_features: int = 2000, seed: int = 0) -> list[Distractor]:
+                     max_features: int = 2000, seed: int = 0,
+                     jpeg_quality: int | None = JPEG_QUALITY) -> list[Distractor]:
     """``count`` unique distractors seen by ``camera``, each with up to
-    ``landmarks_per_keyframe`` landmarked keypoints (a seeded random choice)."""
+    ``landmarks_per_keyframe`` landmarked keypoints (a seeded random choice); sent as JPEG
+    of ``jpeg_quality`` (None: as raw pixels, which a map saves as PNG)."""
     rng = np.random.default_rng(seed)
     out = []
     for _ in range(count):
-        image = procedural_image(rng, camera.width, camera.height)
-        feats = extract(image, FeatureConf(kind="sift", max_features=max_features))
+        pixels = procedural_image(rng, camera.width, camera.height)
+        image: npt.NDArray[np.uint8] | EncodedImage = pixels
+        if jpeg_quality is not None:
+            image = _as_jpeg(pixels, jpeg_quality)
+            pixels = image.decode()          # what a client's JPEG gives the service
+        feats = extract(pixels, FeatureConf(kind="sift", max_features=max_features))
         k = min(landmarks_per_keyframe, len(feats))
         idx = np.sort(rng.choice(len(feats), size=k, replace=False)).astype(np.int64)
         bearings = camera.unproject(feats.keypoints_px[idx])
         depth = rng.uniform(1.0, 4.0, k)
         out.append(Distractor(image, feats, idx, bearings * (depth / bearings[:, 2])[:, None]))
     return out
+
+
+def _as_jpeg(image: npt.NDArray[np.uint8], quality: int) -> EncodedImage:
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError("could not encode a distractor as JPEG")
+    return EncodedImage(buf.tobytes(), image.shape)
 
 
 def distractor_pose(index: int) -> Array:
@@ -126,7 +143,7 @@ def grow_state(base: MapState, size: int, distractors: Sequence[Distractor],
         ids = next_lm + np.arange(len(d.landmark_idx), dtype=np.int64)
         next_lm += len(ids)
         points = d.points_cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
-        keyframes[kf_id] = Keyframe(image=d.image, camera=camera, id=kf_id,
+        keyframes[kf_id] = Keyframe(image=d.image, camera=camera, id=kf_id,  # type: ignore[arg-type]
                                     world_from_cam=world_from_cam,
                                     features={"sift": d.features.with_landmarks(
                                         d.landmark_idx, ids, points)})

@@ -403,7 +403,9 @@ def bench_scaling(ws: Workspace) -> dict[str, Any]:
             "distractor_landmarks_per_keyframe": per_kf, "distractors_made_s": made_s,
             "how": "the real map (rendered keyframes, triangulated landmarks) plus distractor "
                    "keyframes far from the scene: procedural textures of the camera's size "
-                   "(noise at four scales and random shapes) with real SIFT features, "
+                   "(noise at four scales and random shapes) sent as JPEG (quality "
+                   f"{JPEG_QUALITY}, as a client sends keyframes; the map keeps those bytes) "
+                   "with real SIFT features, "
                    f"{per_kf} of them per keyframe given landmarks at random depths of 1-4 m "
                    f"(the real keyframes' median); {unique} unique distractors are rendered and "
                    "repeated at new poses with new landmark ids; each map is saved with its "
