@@ -273,3 +273,39 @@ def test_subset_and_first_tests_are_consistent_with_training() -> None:
     only = FernClassifier(FernConf(num_ferns=4, num_tests=8))
     only.add(leaves[keep], labels[keep])
     assert _same(_table(clf.subset([0, 1, 2, 3])), _table(only))
+
+
+def test_compiled_leaves_equal_numpy_leaves(photo: np.ndarray) -> None:
+    """The compiled leaves (clamped coordinates) equal numpy's (gathers from a padded copy),
+    for patches inside the image, sticking out of it, and centred outside it (clamped)."""
+    from reloc_service.ferns import kernels
+
+    if kernels.compiled_leaves_at() is None:
+        pytest.skip("numba is not installed")
+    image = prepare_image(photo, 1.0)
+    h, w = image.shape
+    rng = np.random.default_rng(7)
+    points = np.vstack([rng.uniform(-5, [w + 5, h + 5], (300, 2)),   # also outside: clamped
+                        [[0, 0], [w - 1, h - 1], [17, 17], [w - 18, h - 18]]])
+    clf = FernClassifier(FernConf(num_ferns=30, num_tests=11, patch_size=32, seed=2))
+    pts = np.rint(points).astype(np.int64)
+    xs, ys = np.clip(pts[:, 0], 0, w - 1), np.clip(pts[:, 1], 0, h - 1)
+    compiled = clf._leaves_at(image, xs, ys, compiled=True)
+    np.testing.assert_array_equal(compiled, clf._leaves_at(image, xs, ys, compiled=False))
+    np.testing.assert_array_equal(compiled, clf.leaves_at(image, points))
+    assert len(np.unique(compiled)) > 100  # real outcomes, not a constant
+    # uint8 images (training reads warped uint8 canvases too) give the same leaves.
+    np.testing.assert_array_equal(clf._leaves_at(photo, xs, ys, compiled=True),
+                                  clf._leaves_at(photo, xs, ys, compiled=False))
+
+
+def test_skipped_exponentials_cannot_change_a_float32_posterior() -> None:
+    """Every class the kernel leaves out of the normaliser (score below the best minus
+    ``negligible_log_ratio``) adds, all together, less than half a float32 step to it."""
+    from reloc_service.ferns.kernels import negligible_log_ratio
+
+    for classes in (2, 150, 2000, 100_000):
+        t = negligible_log_ratio(classes)
+        left_out = classes * np.exp(-t)  # at most that much of a normaliser >= 1
+        assert left_out < np.finfo(np.float32).eps / 2
+        assert np.float32(1.0 + left_out) == np.float32(1.0)

@@ -133,15 +133,30 @@ class FernTests:
     def leaves_at(self, image: npt.ArrayLike, points_px: npt.ArrayLike) -> Leaves:
         """Leaves of the patches of ``image`` (H, W) centred at ``points_px`` (N, 2) (x, y,
         rounded to the nearest pixel, clamped into the image) -> (N, M) uint16. Pixels
-        outside the image repeat the border. Only the 2 S M test pixels are read."""
+        outside the image repeat the border. Only the 2 S M test pixels are read: by one
+        compiled pass with numba (:mod:`.kernels`), else by numpy gathers (the same leaves)."""
         img = np.asarray(image)
         if img.ndim != 2:
             raise ValueError(f"image: expected (H, W), got {img.shape}")
         pts = np.rint(np.asarray(points_px, dtype=np.float64).reshape(-1, 2)).astype(np.int64)
         h, w = img.shape
         xs, ys = np.clip(pts[:, 0], 0, w - 1), np.clip(pts[:, 1], 0, h - 1)
+        return self._leaves_at(img, xs, ys, compiled=kernels.compiled_leaves_at() is not None)
+
+    def _leaves_at(self, img: npt.NDArray[Any], xs: IntArray, ys: IntArray, *,
+                   compiled: bool) -> Leaves:
+        """:meth:`leaves_at` of pixels ``(xs, ys)`` inside ``img``: compiled (numba), or by
+        numpy's (N, S M) gathers from a copy padded only when a patch sticks out."""
+        if compiled:
+            leaves = np.empty((len(xs), self.num_ferns), np.uint16)
+            kernel = kernels.compiled_leaves_at()
+            assert kernel is not None  # leaves_at asks for this only when numba is there
+            kernel(np.ascontiguousarray(img), xs, ys, self.off_a, self.off_b, self.num_ferns,
+                   leaves)
+            return leaves
+        h, w = img.shape
         reach = self.conf.patch_size // 2 + 1
-        inside = len(pts) == 0 or (xs.min() >= reach and ys.min() >= reach
+        inside = len(xs) == 0 or (xs.min() >= reach and ys.min() >= reach
                                    and xs.max() < w - reach and ys.max() < h - reach)
         pad = 0 if inside else reach  # pad (replicating the border) only when a patch sticks out
         if pad:
