@@ -451,3 +451,17 @@ def test_a_fallback_classifies_each_region_once(
     assert result.ok, result.reason
     assert calls == {"leaves": 1, "classify": len(reloc.regions)}
     np.testing.assert_allclose(result.world_from_cam, expected.world_from_cam, atol=1e-9)
+
+
+def test_regions_are_tried_in_the_prior_order_one_more_each_time(
+        two_places: tuple[FernsRelocalizer, Scene, np.ndarray]) -> None:
+    """The best region alone, then pooled with the next, ..., then every region (with the
+    fallback); a prior that ranked no region (all of them returned) gives one attempt."""
+    reloc, _, _ = two_places
+    staged = copy.copy(reloc)
+    staged.conf = dataclasses.replace(reloc.conf, max_regions=2)
+    assert staged._attempts((4, 1), 6) == [(4,), (4, 1), (0, 1, 2, 3, 4, 5)]
+    assert staged._attempts((3,), 6) == [(3,), (0, 1, 2, 3, 4, 5)]
+    assert staged._attempts((0, 1), 2) == [(0, 1)]
+    staged.conf = dataclasses.replace(reloc.conf, max_regions=2, region_fallback=False)
+    assert staged._attempts((4, 1), 6) == [(4,), (4, 1)]

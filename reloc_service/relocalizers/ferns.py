@@ -15,11 +15,14 @@ one matrix-vector product over every keyframe) rank the keyframes, the landmarks
 the ``place_keyframes`` best-ranked ones vote for the regions whose models learned them (one
 vote per keyframe, split in proportion, so a keyframe rich in landmarks does not outvote the
 others), and the query is classified only against the ``max_regions`` regions with most votes
-(a landmark is learned by one region, not always its keyframe's). The correspondences of those models are
-pooled into one RANSAC and the shared verification, as before: a region picked wrongly gives
+(a landmark is learned by one region, not always its keyframe's). The regions are tried in
+the prior's order: the best region's correspondences alone, then pooled with the second's, ...
+each attempt one RANSAC and the shared verification: most queries are verified by their best
+region and never pay the others' classification. A region picked wrongly gives
 correspondences that do not agree on a pose, hence no verified pose; then, with
 ``region_fallback``, the query is classified against every other region too (the cost of the
-old exhaustive search, paid only by the queries the prior failed).
+old exhaustive search, paid only by the queries the prior failed). A query's leaves and each
+region's classes are computed once, whatever the number of attempts.
 
 Threads. No lock: training, updates and load run behind the engine (under its write lock, or
 on a fresh relocalizer built off-line and swapped in), never during a query; save runs beside
@@ -84,7 +87,9 @@ class FernsConf:
     arrives (else only :meth:`train` does); ``workers`` threads warp keyframes in parallel.
     Scale: ``max_classes`` per model, ``partition`` "select" or "regions" (module docstring);
     with regions, ``region_prior`` "sbi" classifies a query against the ``max_regions`` regions
-    whose keyframes its small blurry image resembles most, "none" against every region.
+    whose keyframes its small blurry image resembles most (tried best first, one more each
+    time until a pose is verified; then every region with ``region_fallback``), "none"
+    against every region.
     Query: ``detector`` "sift" (DoG, like the landmarks' keypoints) or "fast", at most
     ``max_query_keypoints``; each keypoint gives its ``top_k`` classes with posterior at least
     ``min_posterior``. ``kind`` is the feature kind whose landmarks are learned.
@@ -494,21 +499,35 @@ class FernsRelocalizer(Relocalizer):
     def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
                    ) -> RelocResult:
         """Pick the regions (place prior), classify the query's keypoints against their
-        models, P3P LO-RANSAC on the correspondences, verify; with ``region_fallback``, a
-        query not verified there is classified against every region."""
+        models, P3P LO-RANSAC on the correspondences, verify. Regions the prior ranked are
+        tried in its order, each attempt pooling one more region's correspondences (the best
+        region alone, then with the second, ...), until a pose is verified; with
+        ``region_fallback``, a query verified in none of them is classified against every
+        region. Each region classifies a query once (:class:`_QueryWork`)."""
         pub, work = self._published, _QueryWork()
         start = time.perf_counter()
         regions = self.choose_regions(query, prior=prior)
         place_seconds = time.perf_counter() - start
-        result = self._relocalize_in(query, regions, pub, work, prior, hypotheses)
-        every = range(len(pub.scorers))
-        if not result.ok and self.conf.region_fallback and len(regions) < len(every):
-            first = result.timings
-            result = self._relocalize_in(query, every, pub, work, prior, hypotheses)
-            for key, seconds in first.items():  # the query paid both attempts
-                result.timings[key] = result.timings.get(key, 0.0) + seconds
+        spent: dict[str, float] = {}
+        for attempt in self._attempts(regions, len(pub.scorers)):
+            result = self._relocalize_in(query, attempt, pub, work, prior, hypotheses)
+            for key, seconds in result.timings.items():  # the query paid every attempt
+                spent[key] = spent.get(key, 0.0) + seconds
+            if result.ok:
+                break
+        result.timings.update(spent)
         result.timings["place"] = place_seconds
         return result
+
+    def _attempts(self, regions: tuple[int, ...], num_regions: int) -> list[tuple[int, ...]]:
+        """The region sets :meth:`relocalize` tries in turn: growing prefixes of the prior's
+        ranking ``regions``, then every region (``region_fallback``); just every region when
+        the prior ranked none (``regions`` is all of them)."""
+        every = tuple(range(num_regions))
+        if len(regions) >= num_regions:
+            return [every]
+        attempts = [regions[:i] for i in range(1, len(regions) + 1)]
+        return attempts + [every] if self.conf.region_fallback else attempts
 
     def choose_regions(self, query: Frame, *, prior: Prior | None = None) -> tuple[int, ...]:
         """Indices of the regions to classify ``query`` against, most voted first: every
