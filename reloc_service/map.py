@@ -230,6 +230,31 @@ class LandmarkTable(Mapping[int, Landmark]):
         (KeyError if None)."""
         return self._column(landmark_ids, "depth_sigmas_m", 3, default)
 
+    def observing_keyframes(self, landmark_ids: npt.ArrayLike
+                            ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+        """Keyframes observing the distinct ``landmark_ids`` (ids that are not landmarks are
+        ignored): (K,) keyframe ids ascending and (K,) how many of those landmarks each
+        observes (a landmark counts once per keyframe, whatever its observations' kinds).
+        Vectorised over the base's observation runs; only overlay landmarks are objects."""
+        ids = np.unique(np.asarray(landmark_ids, np.int64).ravel())
+        hit, pos = self._overlay_rows(ids)
+        in_overlay = np.zeros(len(ids), bool)
+        in_overlay[hit] = True
+        base = self._base
+        rows = base.rows(ids[~in_overlay])
+        rows = rows[rows >= 0]
+        starts, counts = base.obs_offsets[rows], np.diff(base.obs_offsets)[rows]
+        run = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
+        pairs = [np.column_stack([np.repeat(rows, counts), base.obs_keyframe[run]])]
+        for lm_id in ids[hit].tolist():  # the overlay's landmarks only
+            lm = self._overlay[lm_id]
+            if lm is not None:
+                kfs = sorted({o[0] for o in lm.observations})
+                pairs.append(np.column_stack([np.full(len(kfs), -1 - lm_id), kfs]))
+        seen = np.unique(np.concatenate(pairs).astype(np.int64), axis=0)
+        kf_ids, votes = np.unique(seen[:, 1], return_counts=True)
+        return kf_ids.astype(np.int64), votes.astype(np.int64)
+
     def _overlay_arrays(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_], Array,
                                        Array]:
         """The overlay as sorted columns (ids, alive, points, sigmas), made once per table

@@ -227,7 +227,8 @@ def test_removing_samples_never_added_fails() -> None:
 
 
 def test_large_counts_stay_exact() -> None:
-    """Counts are decoded from float32 logs: exact far beyond realistic sample numbers."""
+    """Counts are integers in the smallest type holding them: exact far beyond realistic
+    sample numbers, and scored through a table as long as the largest count."""
     clf = FernClassifier(FernConf(num_ferns=1, num_tests=2, regularization=1.0))
     n = 300_001
     leaves = np.zeros((n, 1), np.uint16)
@@ -237,6 +238,21 @@ def test_large_counts_stay_exact() -> None:
     clf.remove(np.full((2, 1), 2, np.uint16), np.zeros(2, np.int64))
     _, leaf, _, count = clf.count_table()
     assert dict(zip(leaf.tolist(), count.tolist(), strict=True)) == {0: 200_000, 1: 100_001, 2: 3}
+    n_c = n + 3
+    expected = np.log((np.array([200_000, 100_001, 3, 0]) + 1.0) / (n_c + 4 * 1.0))
+    np.testing.assert_allclose(clf.scores(np.arange(4, dtype=np.uint16)[:, None])[:, 0],
+                               expected, rtol=1e-6)
+
+
+def test_counts_take_three_bytes_per_non_zero() -> None:
+    """Under 65536 classes and counts under 256 (100 warps a view), a non-zero count costs a
+    uint16 column and a uint8 count: the scoring kernel reads 3 bytes per entry, not 8."""
+    rng = np.random.default_rng(8)
+    clf = FernClassifier(FernConf(num_ferns=20, num_tests=10))
+    clf.add(rng.integers(0, 2**10, (30_000, 20)).astype(np.uint16), rng.integers(0, 3000, 30_000))
+    model = clf.scorer().counts
+    assert model.columns.dtype == np.uint16 and model.counts.dtype == np.uint8
+    assert clf.nbytes() - model.indptr.nbytes < 3 * clf.nnz + 100_000
 
 
 def test_memory_grows_with_samples_not_with_leaves() -> None:
@@ -273,3 +289,39 @@ def test_subset_and_first_tests_are_consistent_with_training() -> None:
     only = FernClassifier(FernConf(num_ferns=4, num_tests=8))
     only.add(leaves[keep], labels[keep])
     assert _same(_table(clf.subset([0, 1, 2, 3])), _table(only))
+
+
+def test_compiled_leaves_equal_numpy_leaves(photo: np.ndarray) -> None:
+    """The compiled leaves (clamped coordinates) equal numpy's (gathers from a padded copy),
+    for patches inside the image, sticking out of it, and centred outside it (clamped)."""
+    from reloc_service.ferns import kernels
+
+    if kernels.compiled_leaves_at() is None:
+        pytest.skip("numba is not installed")
+    image = prepare_image(photo, 1.0)
+    h, w = image.shape
+    rng = np.random.default_rng(7)
+    points = np.vstack([rng.uniform(-5, [w + 5, h + 5], (300, 2)),   # also outside: clamped
+                        [[0, 0], [w - 1, h - 1], [17, 17], [w - 18, h - 18]]])
+    clf = FernClassifier(FernConf(num_ferns=30, num_tests=11, patch_size=32, seed=2))
+    pts = np.rint(points).astype(np.int64)
+    xs, ys = np.clip(pts[:, 0], 0, w - 1), np.clip(pts[:, 1], 0, h - 1)
+    compiled = clf._leaves_at(image, xs, ys, compiled=True)
+    np.testing.assert_array_equal(compiled, clf._leaves_at(image, xs, ys, compiled=False))
+    np.testing.assert_array_equal(compiled, clf.leaves_at(image, points))
+    assert len(np.unique(compiled)) > 100  # real outcomes, not a constant
+    # uint8 images (training reads warped uint8 canvases too) give the same leaves.
+    np.testing.assert_array_equal(clf._leaves_at(photo, xs, ys, compiled=True),
+                                  clf._leaves_at(photo, xs, ys, compiled=False))
+
+
+def test_skipped_exponentials_cannot_change_a_float32_posterior() -> None:
+    """Every class the kernel leaves out of the normaliser (score below the best minus
+    ``negligible_log_ratio``) adds, all together, less than half a float32 step to it."""
+    from reloc_service.ferns.kernels import negligible_log_ratio
+
+    for classes in (2, 150, 2000, 100_000):
+        t = negligible_log_ratio(classes)
+        left_out = classes * np.exp(-t)  # at most that much of a normaliser >= 1
+        assert left_out < np.finfo(np.float32).eps / 2
+        assert np.float32(1.0 + left_out) == np.float32(1.0)

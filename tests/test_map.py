@@ -172,6 +172,14 @@ def test_landmark_table_copy_on_write_matches_a_dict(monkeypatch):
                 if i in m:
                     assert t[i].observations == m[i].observations
             assert t.sigmas([99], default=-1.0).tolist() == [-1.0]
+            query = rng.integers(0, 45, int(rng.integers(0, 30)))  # repeats, non-landmarks
+            votes: dict[int, int] = {}
+            for i in set(query.tolist()) & set(m):
+                for kf in {o[0] for o in m[i].observations}:
+                    votes[kf] = votes.get(kf, 0) + 1
+            kf_ids, counts = t.observing_keyframes(query)
+            assert dict(zip(kf_ids.tolist(), counts.tolist(), strict=True)) == votes
+            assert kf_ids.tolist() == sorted(votes)
 
 
 def test_encoded_image_decodes_on_first_use_and_checks_its_size():

@@ -421,3 +421,47 @@ def test_without_region_prior_every_region_is_classified(
         FernsConf(region_prior="nearest")
     with pytest.raises(ConfigError):
         FernsConf(max_regions=0)
+
+
+def test_a_fallback_classifies_each_region_once(
+        scene: Scene, two_places: tuple[FernsRelocalizer, Scene, np.ndarray],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A query the prior sends to the wrong region falls back to every region: its leaves
+    are read once and each region classifies it once (the wrong region's classes are
+    reused), and the pose is the one classifying every region at once gives."""
+    from reloc_service.ferns.classifier import FernScorer, FernTests
+
+    reloc, place_b, texture_b = two_places
+    query_image = render(texture_b, place_b.queries[0])
+    wrong = _region_of(reloc, 0)
+    expected = reloc.relocalize_in(Frame(query_image, CAMERA), range(len(reloc.regions)))
+    assert expected.ok, expected.reason
+    calls = {"leaves": 0, "classify": 0}
+
+    def counted(name: str, fn):  # noqa: ANN001, ANN202 (test scaffolding)
+        def wrapper(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+            calls[name] += 1
+            return fn(*args, **kwargs)
+        return wrapper
+
+    monkeypatch.setattr(FernTests, "leaves_at", counted("leaves", FernTests.leaves_at))
+    monkeypatch.setattr(FernScorer, "classify", counted("classify", FernScorer.classify))
+    monkeypatch.setattr(reloc, "choose_regions", lambda query, prior=None: (wrong,))
+    result = reloc.relocalize(Frame(query_image, CAMERA))
+    assert result.ok, result.reason
+    assert calls == {"leaves": 1, "classify": len(reloc.regions)}
+    np.testing.assert_allclose(result.world_from_cam, expected.world_from_cam, atol=1e-9)
+
+
+def test_regions_are_tried_in_the_prior_order_one_more_each_time(
+        two_places: tuple[FernsRelocalizer, Scene, np.ndarray]) -> None:
+    """The best region alone, then pooled with the next, ..., then every region (with the
+    fallback); a prior that ranked no region (all of them returned) gives one attempt."""
+    reloc, _, _ = two_places
+    staged = copy.copy(reloc)
+    staged.conf = dataclasses.replace(reloc.conf, max_regions=2)
+    assert staged._attempts((4, 1), 6) == [(4,), (4, 1), (0, 1, 2, 3, 4, 5)]
+    assert staged._attempts((3,), 6) == [(3,), (0, 1, 2, 3, 4, 5)]
+    assert staged._attempts((0, 1), 2) == [(0, 1)]
+    staged.conf = dataclasses.replace(reloc.conf, max_regions=2, region_fallback=False)
+    assert staged._attempts((4, 1), 6) == [(4,), (4, 1)]

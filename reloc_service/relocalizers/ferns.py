@@ -15,11 +15,14 @@ one matrix-vector product over every keyframe) rank the keyframes, the landmarks
 the ``place_keyframes`` best-ranked ones vote for the regions whose models learned them (one
 vote per keyframe, split in proportion, so a keyframe rich in landmarks does not outvote the
 others), and the query is classified only against the ``max_regions`` regions with most votes
-(a landmark is learned by one region, not always its keyframe's). The correspondences of those models are
-pooled into one RANSAC and the shared verification, as before: a region picked wrongly gives
+(a landmark is learned by one region, not always its keyframe's). The regions are tried in
+the prior's order: the best region's correspondences alone, then pooled with the second's, ...
+each attempt one RANSAC and the shared verification: most queries are verified by their best
+region and never pay the others' classification. A region picked wrongly gives
 correspondences that do not agree on a pose, hence no verified pose; then, with
 ``region_fallback``, the query is classified against every other region too (the cost of the
-old exhaustive search, paid only by the queries the prior failed).
+old exhaustive search, paid only by the queries the prior failed). A query's leaves and each
+region's classes are computed once, whatever the number of attempts.
 
 Threads. No lock: training, updates and load run behind the engine (under its write lock, or
 on a fresh relocalizer built off-line and swapped in), never during a query; save runs beside
@@ -84,7 +87,9 @@ class FernsConf:
     arrives (else only :meth:`train` does); ``workers`` threads warp keyframes in parallel.
     Scale: ``max_classes`` per model, ``partition`` "select" or "regions" (module docstring);
     with regions, ``region_prior`` "sbi" classifies a query against the ``max_regions`` regions
-    whose keyframes its small blurry image resembles most, "none" against every region.
+    whose keyframes its small blurry image resembles most (tried best first, one more each
+    time until a pose is verified; then every region with ``region_fallback``), "none"
+    against every region.
     Query: ``detector`` "sift" (DoG, like the landmarks' keypoints) or "fast", at most
     ``max_query_keypoints``; each keypoint gives its ``top_k`` classes with posterior at least
     ``min_posterior``. ``kind`` is the feature kind whose landmarks are learned.
@@ -194,6 +199,17 @@ class _Published:
     scorers: tuple[FernScorer, ...]
     region_keyframes: tuple[frozenset[int], ...]
     landmark_regions: Mapping[int, Array] = dataclasses.field(default_factory=dict)
+
+
+@dataclass(eq=False)
+class _QueryWork:
+    """What one query computed (for one published model set) that a second attempt on
+    more regions reuses: its (N, M) leaves and, per region, its keypoints' top classes and
+    posteriors (with the same class mask: the prior is the query's)."""
+
+    leaves: npt.NDArray[np.uint16] | None = None
+    classified: dict[int, tuple[IntArray, npt.NDArray[np.float32]]] = dataclasses.field(
+        default_factory=dict)
 
 
 @register("ferns")
@@ -483,20 +499,35 @@ class FernsRelocalizer(Relocalizer):
     def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
                    ) -> RelocResult:
         """Pick the regions (place prior), classify the query's keypoints against their
-        models, P3P LO-RANSAC on the correspondences, verify; with ``region_fallback``, a
-        query not verified there is classified against every region."""
+        models, P3P LO-RANSAC on the correspondences, verify. Regions the prior ranked are
+        tried in its order, each attempt pooling one more region's correspondences (the best
+        region alone, then with the second, ...), until a pose is verified; with
+        ``region_fallback``, a query verified in none of them is classified against every
+        region. Each region classifies a query once (:class:`_QueryWork`)."""
+        pub, work = self._published, _QueryWork()
         start = time.perf_counter()
         regions = self.choose_regions(query, prior=prior)
         place_seconds = time.perf_counter() - start
-        result = self.relocalize_in(query, regions, prior=prior, hypotheses=hypotheses)
-        every = range(len(self._published.scorers))
-        if not result.ok and self.conf.region_fallback and len(regions) < len(every):
-            first = result.timings
-            result = self.relocalize_in(query, every, prior=prior, hypotheses=hypotheses)
-            for key, seconds in first.items():  # the query paid both attempts
-                result.timings[key] = result.timings.get(key, 0.0) + seconds
+        spent: dict[str, float] = {}
+        for attempt in self._attempts(regions, len(pub.scorers)):
+            result = self._relocalize_in(query, attempt, pub, work, prior, hypotheses)
+            for key, seconds in result.timings.items():  # the query paid every attempt
+                spent[key] = spent.get(key, 0.0) + seconds
+            if result.ok:
+                break
+        result.timings.update(spent)
         result.timings["place"] = place_seconds
         return result
+
+    def _attempts(self, regions: tuple[int, ...], num_regions: int) -> list[tuple[int, ...]]:
+        """The region sets :meth:`relocalize` tries in turn: growing prefixes of the prior's
+        ranking ``regions``, then every region (``region_fallback``); just every region when
+        the prior ranked none (``regions`` is all of them)."""
+        every = tuple(range(num_regions))
+        if len(regions) >= num_regions:
+            return [every]
+        attempts = [regions[:i] for i in range(1, len(regions) + 1)]
+        return attempts + [every] if self.conf.region_fallback else attempts
 
     def choose_regions(self, query: Frame, *, prior: Prior | None = None) -> tuple[int, ...]:
         """Indices of the regions to classify ``query`` against, most voted first: every
@@ -524,10 +555,16 @@ class FernsRelocalizer(Relocalizer):
                       hypotheses: int = 1) -> RelocResult:
         """:meth:`relocalize` against the models of ``regions`` only (indices into
         :attr:`regions`)."""
+        return self._relocalize_in(query, regions, self._published, _QueryWork(), prior,
+                                   max(1, hypotheses))
+
+    def _relocalize_in(self, query: Frame, regions: Iterable[int], pub: _Published,
+                       work: _QueryWork, prior: Prior | None, hypotheses: int) -> RelocResult:
+        """:meth:`relocalize_in` on the published models ``pub``, reusing (and adding to) what
+        ``work`` holds of this query: its leaves and the classes each region gave it."""
         if not self.trained:
             raise NotTrainedError("ferns relocalizer: call train() first (online training is off)")
         state = self.map.snapshot()
-        pub = self._published
         timings: dict[str, float] = {}
         fail: dict[str, Any] = dict(method=self.method, map_version=state.version, timings=timings)
         picked = sorted({int(r) for r in regions})
@@ -542,7 +579,7 @@ class FernsRelocalizer(Relocalizer):
         px = self._detect(query)
         timings["features"] = time.perf_counter() - start
         start = time.perf_counter()
-        kp, lm, _ = self._classify(query, px, [pub.scorers[r] for r in picked], allowed)
+        kp, lm, _ = self._classify(query, px, pub, picked, allowed, work)
         points, live = self._landmark_points(state, lm)
         kp, lm, points = kp[live], lm[live], points[live]
         timings["classify"] = time.perf_counter() - start
@@ -581,23 +618,27 @@ class FernsRelocalizer(Relocalizer):
                                                 self.conf.max_query_keypoints)
         return query.cache[key]
 
-    def _classify(self, query: Frame, px: Array, scorers: list[FernScorer],
-                  allowed: list[npt.NDArray[np.bool_] | None]
+    def _classify(self, query: Frame, px: Array, pub: _Published, regions: list[int],
+                  allowed: list[npt.NDArray[np.bool_] | None], work: _QueryWork
                   ) -> tuple[IntArray, IntArray, npt.NDArray[np.float32]]:
         """Correspondences (keypoint index, landmark id, posterior), each keypoint's
-        ``top_k`` classes over all models with posterior >= ``min_posterior``."""
+        ``top_k`` classes over the models of ``regions`` with posterior >= ``min_posterior``.
+        The leaves (they depend on the image only) and each region's classes are computed
+        once per query: a fallback to every region classifies only the regions not yet
+        tried."""
         empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
         if len(px) == 0:
             return empty
-        image = prepare_image(query.image, self.conf.smoothing_sigma)
-        leaves = self._tests.leaves_at(image, px)
         labels, posts = [], []
-        for scorer, mask in zip(scorers, allowed, strict=True):
+        for r, mask in zip(regions, allowed, strict=True):
+            scorer = pub.scorers[r]
             if scorer.num_classes == 0 or (mask is not None and not mask.any()):
                 continue
-            lab, post = scorer.classify(leaves, top_k=self.conf.top_k, allowed=mask)
-            labels.append(lab)
-            posts.append(post)
+            if r not in work.classified:
+                work.classified[r] = scorer.classify(self._leaves(query, px, work),
+                                                     top_k=self.conf.top_k, allowed=mask)
+            labels.append(work.classified[r][0])
+            posts.append(work.classified[r][1])
         if not labels:
             return empty
         lab, post = np.hstack(labels), np.hstack(posts)
@@ -607,6 +648,13 @@ class FernsRelocalizer(Relocalizer):
         kp = np.repeat(np.arange(len(px)), k)
         keep = post.ravel() >= max(self.conf.min_posterior, 1e-12)
         return kp[keep], lab.ravel()[keep], post.ravel()[keep]
+
+    def _leaves(self, query: Frame, px: Array, work: _QueryWork) -> npt.NDArray[np.uint16]:
+        """(N, M) leaves of the query keypoints ``px`` (once per query)."""
+        if work.leaves is None:
+            image = prepare_image(query.image, self.conf.smoothing_sigma)
+            work.leaves = self._tests.leaves_at(image, px)
+        return work.leaves
 
     def _landmark_points(self, state: MapState, landmark_ids: IntArray
                          ) -> tuple[Array, npt.NDArray[np.bool_]]:
@@ -810,13 +858,9 @@ def _per_keypoint_chance(p: float | None, correspondences: int, keypoints: int
 
 
 def _keyframes_seeing(state: MapState, landmark_ids: IntArray) -> list[int]:
-    """Keyframes observing the most of ``landmark_ids``, most first."""
-    counts: Counter[int] = Counter()
-    for lm in np.unique(landmark_ids).tolist():
-        landmark = state.landmarks.get(lm)
-        if landmark is not None:
-            counts.update({o[0] for o in landmark.observations})
-    return [k for k, _ in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))]
+    """Keyframes observing the most of ``landmark_ids``, most first (ties: lower id)."""
+    kf_ids, votes = state.landmarks.observing_keyframes(landmark_ids)
+    return kf_ids[np.lexsort((kf_ids, -votes))].tolist()
 
 
 def _image_crc(keyframe: Keyframe) -> int:
