@@ -219,9 +219,9 @@ class FernScorer:
             return np.zeros((n, c), np.float32) + self.const[None, :]
         positions, lengths = self.counts.gather(rows.ravel())
         per_patch = np.concatenate([[0], np.cumsum(lengths.reshape(n, m).sum(1))])
-        values = np.take(self.log_table, np.take(self.counts.counts, positions))
-        columns = np.take(self.counts.columns, positions).astype(np.int32)
-        summed = sp.csr_matrix((values, columns, per_patch), shape=(n, c))
+        summed = sp.csr_matrix((self.log_table[self.counts.counts[positions]],
+                                self.counts.columns[positions].astype(np.int32), per_patch),
+                               shape=(n, c))
         out = summed.toarray()  # duplicates add up (csr_todense accumulates)
         out += self.const[None, :]
         return out

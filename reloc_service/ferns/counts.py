@@ -74,8 +74,8 @@ class SparseCounts:
                ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
         """Entries of ``rows`` (R,), concatenated in order: (E,) positions into
         :attr:`columns` / :attr:`counts`, and (R,) the number of entries of each row."""
-        starts = np.take(self.indptr, rows).astype(np.int64)
-        lengths = np.take(self.indptr, rows + 1).astype(np.int64) - starts
+        starts = self.indptr[rows].astype(np.int64)
+        lengths = self.indptr[rows + 1].astype(np.int64) - starts
         positions = np.repeat(starts - np.cumsum(lengths) + lengths, lengths)
         positions += np.arange(len(positions))
         return positions, lengths
