@@ -10,17 +10,17 @@ the semi-naive Bayes log-likelihood (eq. 3.22 with 3.23)::
 
 The first term is a constant per class; the second is non-zero only where ``N_m[k_m, c] > 0``.
 Almost every (leaf, class) count is zero, so the model is sparse: a CSR matrix with rows
-``(fern, leaf)`` flattened (``m K + k``), columns = classes, holding the non-zero counts in
-their smallest types (:mod:`.counts`: 3 bytes per non-zero with up to 65536 classes and counts
-below 256). Memory and time grow with the training samples, not with ``M K C`` (the dense
-table of the thesis: 78 MB for 200 classes). A count becomes its float32 log correction
-``log(1 + N / Nr)`` through a table; scoring ``N`` patches sums the corrections of the
-visited rows (one sparse product: an ``(N, M K)`` indicator of the visited leaves times that
-matrix).
+``(fern, leaf)`` flattened (``m K + k``), columns = classes, holding the float32 log
+corrections ``log(1 + N / Nr)`` of the non-zero counts (8 bytes per non-zero: a float32 and an
+int32 column). Memory and time grow with the training samples, not with ``M K C`` (the dense
+table of the thesis: 78 MB for 200 classes). Scoring ``N`` patches is one sparse product: an
+``(N, M K)`` indicator of the visited leaves times that matrix.
 
-Counts are exact integers, so removing samples that were added (the same leaves, the same
-classes) gives back exactly the previous model. Updates are buffered as integer deltas and
-merged lazily; :meth:`FernClassifier.scorer` publishes an immutable snapshot for readers.
+The counts are not stored twice: ``N = Nr expm1(correction)`` recovers them exactly (float32
+keeps 24 bits: exact for every count below 2^20, and a class may not have more samples than
+that). So counts stay exact integers, and removing samples that were added (the same leaves,
+the same classes) gives back exactly the previous model. Updates are buffered as integer deltas
+and merged lazily; :meth:`FernClassifier.scorer` publishes an immutable snapshot for readers.
 """
 
 from __future__ import annotations
@@ -36,7 +36,6 @@ import scipy.sparse as sp
 from ..errors import ConfigError
 from ..numeric import top_k
 from . import kernels
-from .counts import SparseCounts
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -44,7 +43,7 @@ Leaves = npt.NDArray[np.uint16]
 
 #: Leaves are stored as uint16, so a fern has at most 16 tests (65536 leaves).
 MAX_TESTS = 16
-#: Most samples of one class (float32 log corrections of counts up to this stay distinct).
+#: Most samples of one class: counts up to this round-trip exactly through float32 logs.
 MAX_CLASS_SAMPLES = 1 << 20
 #: Buffered (fern, leaf, class) increments merged into the model beyond this many.
 _FLUSH_ENTRIES = 8_000_000
@@ -192,14 +191,12 @@ class FernTests:
 
 @dataclass(frozen=True, eq=False)
 class FernScorer:
-    """An immutable snapshot of a trained model, safe to share between threads: ``counts``
-    (M K, C) sparse counts, ``log_table`` (T,) float32 with ``log_table[n] = log(1 + n / Nr)``
-    for every count ``n`` in the model, ``const`` (C,) per-class constants, ``class_ids`` (C,)."""
+    """An immutable snapshot of a trained model, safe to share between threads: ``log`` (M K,
+    C) float32 CSR log corrections, ``const`` (C,) per-class constants, ``class_ids`` (C,)."""
 
     tests: FernTests
     class_ids: IntArray
-    counts: SparseCounts
-    log_table: npt.NDArray[np.float32]
+    log: sp.csr_matrix
     const: npt.NDArray[np.float32]
 
     @property
@@ -210,18 +207,15 @@ class FernScorer:
         """(N, M) leaves -> (N, C) log-likelihoods ``log P(F_1..F_M | c)`` (eq. 3.22 with
         3.23), columns in :attr:`class_ids` order.
 
-        The M visited rows of each patch are gathered and read as ONE row of N x C with
-        repeated columns, which densifying sums (ferns in order): no sparse product needed."""
+        The M visited rows of each patch are gathered (one sparse row index) and read as ONE
+        row of N x C with repeated columns, which densifying sums: no sparse product needed."""
         rows = self.tests.rows_of(leaves)
         n, m = rows.shape
         c = self.num_classes
         if n == 0 or c == 0:
             return np.zeros((n, c), np.float32) + self.const[None, :]
-        positions, lengths = self.counts.gather(rows.ravel())
-        per_patch = np.concatenate([[0], np.cumsum(lengths.reshape(n, m).sum(1))])
-        summed = sp.csr_matrix((self.log_table[self.counts.counts[positions]],
-                                self.counts.columns[positions].astype(np.int32), per_patch),
-                               shape=(n, c))
+        visited = self.log[rows.ravel()]
+        summed = sp.csr_matrix((visited.data, visited.indices, visited.indptr[::m]), shape=(n, c))
         out = summed.toarray()  # duplicates add up (csr_todense accumulates)
         out += self.const[None, :]
         return out
@@ -270,9 +264,8 @@ class FernScorer:
         posts = np.empty((len(rows), k), np.float32)
         kernel = kernels.compiled_classify_rows()
         assert kernel is not None  # _classify calls this only when numba is there
-        model = self.counts
-        kernel(rows, model.indptr, model.columns, model.counts, self.log_table, self.const,
-               mask, allowed is not None, cols, posts)
+        kernel(rows, self.log.indptr, self.log.indices, self.log.data, self.const, mask,
+               allowed is not None, cols, posts)
         return self.class_ids[cols], posts
 
     def _classify_block(self, leaves: npt.NDArray[Any], k: int,
@@ -299,20 +292,38 @@ class FernScorer:
 
 
 class _LogCodec:
-    """The float32 log corrections ``log(1 + N / Nr)`` of counts, as a table (exact, and much
-    faster than float64 transcendental functions over millions of entries)."""
+    """Counts <-> float32 ``log(1 + N / Nr)`` through a table (exact, and much faster than
+    float64 transcendental functions over millions of entries)."""
 
     def __init__(self, regularization: float) -> None:
         self.nr = regularization
         self.table = np.zeros(0, np.float32)
 
-    def table_up_to(self, max_count: int) -> npt.NDArray[np.float32]:
-        """(T,) table with ``T > max_count``; replaced (never changed in place) when it grows,
-        so a published scorer's table stays valid."""
-        if len(self.table) <= max_count:
-            size = max(1024, 2 * max_count + 1)
-            self.table = np.log1p(np.arange(size, dtype=np.float64) / self.nr).astype(np.float32)
-        return self.table
+    def _ensure(self, max_count: int) -> None:
+        if len(self.table) > max_count:
+            return
+        size = max(1024, 2 * max_count + 1)
+        table = np.log1p(np.arange(size, dtype=np.float64) / self.nr).astype(np.float32)
+        if np.any(np.diff(table) <= 0):
+            raise ValueError(f"regularization {self.nr} too small: counts up to {size} are not "
+                             "distinct in float32")
+        self.table = table
+
+    def encode(self, counts: npt.NDArray[np.integer]) -> npt.NDArray[np.float32]:
+        self._ensure(int(counts.max(initial=0)))
+        return self.table[counts]
+
+    def decode(self, values: npt.NDArray[np.float32]) -> npt.NDArray[np.int32]:
+        """Exact counts of encoded ``values``."""
+        if len(values) == 0:
+            return np.zeros(0, np.int32)
+        self._ensure(int(np.rint(self.nr * np.expm1(float(values.max())))) + 1)
+        guess = np.rint(np.float32(self.nr) * np.expm1(values)).astype(np.int64)
+        np.clip(guess, 0, len(self.table) - 1, out=guess)
+        wrong = self.table[guess] != values  # float32 expm1 is off by one on rare large counts
+        if wrong.any():
+            guess[wrong] = np.searchsorted(self.table, values[wrong])
+        return guess.astype(np.int32)
 
 
 class FernClassifier(FernTests):
@@ -328,7 +339,7 @@ class FernClassifier(FernTests):
         self._class_counts = np.zeros(0, np.int64)
         self._column: dict[int, int] = {}
         self._codec = _LogCodec(self.conf.regularization)
-        self._counts = SparseCounts.empty(self.num_rows)
+        self._log = sp.csr_matrix((self.num_rows, 0), dtype=np.float32)
         self._pending: list[tuple[npt.NDArray[Any], npt.NDArray[Any], int]] = []
         self._pending_entries = 0
         self._scorer: FernScorer | None = None
@@ -355,12 +366,12 @@ class FernClassifier(FernTests):
     def nnz(self) -> int:
         """Number of non-zero (fern, leaf, class) counts."""
         self._flush()
-        return self._counts.nnz
+        return int(self._log.nnz)
 
     def nbytes(self) -> int:
-        """Bytes held by the model: sparse counts, log table, class arrays, constants, tests."""
+        """Bytes held by the model: sparse log corrections, class arrays, constants, tests."""
         sc = self.scorer()
-        total = sc.counts.nbytes + sc.log_table.nbytes
+        total = sc.log.data.nbytes + sc.log.indices.nbytes + sc.log.indptr.nbytes
         total += self._class_ids.nbytes + self._class_counts.nbytes + sc.const.nbytes
         return int(total + self.off_a.nbytes + self.off_b.nbytes)
 
@@ -375,8 +386,7 @@ class FernClassifier(FernTests):
         if self._scorer is None:
             nr, m, k = self.conf.regularization, self.num_ferns, self.num_leaves
             const = (m * (np.log(nr) - np.log(self._class_counts + k * nr))).astype(np.float32)
-            table = self._codec.table_up_to(self._counts.max_count())
-            self._scorer = FernScorer(self, self._class_ids.copy(), self._counts, table, const)
+            self._scorer = FernScorer(self, self._class_ids.copy(), self._log, const)
         return self._scorer
 
     def scores(self, leaves: npt.ArrayLike) -> npt.NDArray[np.float32]:
@@ -459,11 +469,19 @@ class FernClassifier(FernTests):
         if counts.nnz and counts.data.min() < 0:
             raise ValueError("remove: a (leaf, class) count went negative; samples removed "
                              "were not the ones added")
-        self._counts = SparseCounts.from_csr(self._drop_empty_classes(counts))
+        self._log = self._encode(self._drop_empty_classes(counts))
 
     def _count_matrix(self, num_cols: int | None = None) -> sp.csr_matrix:
-        """The exact integer counts N[m K + k, c] (int32 CSR)."""
-        return self._counts.to_csr(num_cols)
+        """The exact integer counts N[m K + k, c] (int32 CSR) decoded from the model."""
+        lg = self._log
+        data = self._codec.decode(lg.data)
+        return sp.csr_matrix((data, lg.indices, lg.indptr),
+                             shape=(self.num_rows, lg.shape[1] if num_cols is None else num_cols))
+
+    def _encode(self, counts: sp.csr_matrix) -> sp.csr_matrix:
+        """Integer counts -> float32 log corrections log(1 + N / Nr), same structure."""
+        return sp.csr_matrix((self._codec.encode(counts.data), counts.indices, counts.indptr),
+                             shape=counts.shape)
 
     def _drop_empty_classes(self, counts: sp.csr_matrix) -> sp.csr_matrix:
         keep = self._class_counts > 0
@@ -499,8 +517,7 @@ class FernClassifier(FernTests):
                         self.conf.regularization, self.conf.seed)
         idx = (np.arange(self.num_tests)[:, None] * self.num_ferns + np.arange(num_ferns)).ravel()
         sub = self._derived(conf, self.off_a[idx], self.off_b[idx])
-        sub._counts = SparseCounts.from_csr(
-            self._count_matrix()[: num_ferns * self.num_leaves].tocsr())
+        sub._log = self._log[: num_ferns * self.num_leaves].tocsr()
         return sub
 
     def first_tests(self, num_tests: int) -> FernClassifier:
@@ -520,7 +537,7 @@ class FernClassifier(FernTests):
                               shape=(sub.num_rows, self.num_rows))
         counts = (merge @ self._count_matrix()).tocsr()
         counts.sort_indices()
-        sub._counts = SparseCounts.from_csr(counts)
+        sub._log = sub._encode(counts)
         return sub
 
     def subset(self, labels: npt.ArrayLike) -> FernClassifier:
@@ -530,9 +547,8 @@ class FernClassifier(FernTests):
         sub = self._derived(self.conf, self.off_a, self.off_b)
         sub._class_ids, sub._class_counts = self._class_ids[keep], self._class_counts[keep]
         sub._column = {int(lab): i for i, lab in enumerate(sub._class_ids.tolist())}
-        counts = self._count_matrix()[:, keep].tocsr()
-        counts.sort_indices()
-        sub._counts = SparseCounts.from_csr(counts)
+        sub._log = self._log[:, keep].tocsr()
+        sub._log.sort_indices()
         return sub
 
     def count_table(self) -> tuple[IntArray, IntArray, IntArray, IntArray]:
@@ -576,5 +592,5 @@ class FernClassifier(FernTests):
         counts.sort_indices()
         clf._class_ids, clf._class_counts = ids, class_counts
         clf._column = {int(lab): i for i, lab in enumerate(ids.tolist())}
-        clf._counts = SparseCounts.from_csr(counts)
+        clf._log = clf._encode(counts)
         return clf

@@ -44,12 +44,11 @@ def negligible_log_ratio(num_classes: int) -> float:
 
 
 def _classify_rows(rows: npt.NDArray[np.int64], indptr: npt.NDArray[np.integer],
-                   indices: npt.NDArray[np.integer], counts: npt.NDArray[np.unsignedinteger],
-                   log_table: npt.NDArray[np.float32], const: npt.NDArray[np.float32],
-                   allowed: npt.NDArray[np.bool_], use_allowed: bool,
-                   top_cols: npt.NDArray[np.int64], top_post: npt.NDArray[np.float32]) -> None:
-    """For each patch ``i`` (its model rows ``rows[i]`` of the CSR counts ``indptr``,
-    ``indices``, ``counts``, read as ``log_table[count]``): the columns of the ``k`` best
+                   indices: npt.NDArray[np.int32], data: npt.NDArray[np.float32],
+                   const: npt.NDArray[np.float32], allowed: npt.NDArray[np.bool_],
+                   use_allowed: bool, top_cols: npt.NDArray[np.int64],
+                   top_post: npt.NDArray[np.float32]) -> None:
+    """For each patch ``i`` (its model rows ``rows[i]``): the columns of the ``k`` best
     scores (best first, ties to the lower column; disallowed columns score -inf) into
     ``top_cols[i]`` and their posteriors (0 where -inf) into ``top_post[i]``."""
     n, m = rows.shape
@@ -60,7 +59,6 @@ def _classify_rows(rows: npt.NDArray[np.int64], indptr: npt.NDArray[np.integer],
     starts = np.empty(m, np.int64)
     ends = np.empty(m, np.int64)
     touched = np.zeros(1, np.float32)
-    line = max(1, 64 // indices.itemsize)  # column entries per 64-byte cache line
     cutoff = -negligible_log_ratio(c)
     for i in range(n):
         # The M rows lie anywhere in a model of tens of MB: read a little of each, every
@@ -72,13 +70,13 @@ def _classify_rows(rows: npt.NDArray[np.int64], indptr: npt.NDArray[np.integer],
             ends[j] = indptr[r + 1]
         acc = np.float32(0.0)
         for j in range(m):
-            for e in range(starts[j], ends[j], line):  # counts are smaller: fewer lines
-                acc += np.float32(counts[e]) + np.float32(indices[e])
+            for e in range(starts[j], ends[j], 16):  # 16 entries: one 64-byte line
+                acc += data[e] + np.float32(indices[e])
         touched[0] += acc  # keeps the reads from being optimised away
         s[:] = 0.0
         for j in range(m):
             for e in range(starts[j], ends[j]):
-                s[indices[e]] += log_table[counts[e]]
+                s[indices[e]] += data[e]
         best[:] = -np.inf
         top_cols[i, :] = -1
         for col in range(c):
