@@ -1,6 +1,6 @@
 """Map persistence: a whole map saved as an immutable snapshot directory, switched atomically.
 
-Layout of a map directory ``MAP`` (format version 3)::
+Layout of a map directory ``MAP`` (format version 4)::
 
     MAP/CURRENT                     names the current snapshot: ``snapshots/000012``
     MAP/snapshots/000012/
@@ -14,7 +14,11 @@ Layout of a map directory ``MAP`` (format version 3)::
                                     and ids from the landmarks, ORB sizes from the levels):
                                     see :mod:`.feature_columns`
         thumbnails/<key>.npy        small blurry images already computed (one row a keyframe)
-        landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR)
+        landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR):
+                                    integers in the narrowest exact type, points as float32
+                                    offsets from an observing keyframe where the rounding is
+                                    far below each landmark's uncertainty (see
+                                    :mod:`.landmark_codec`), else float64
         models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote
 
 Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the images
@@ -23,8 +27,8 @@ ids (one scatter of the observations), the arrays stay on disk until a query tou
 (each keyframe's features are built from the shared columns on first use), and a change after
 loading copies what it changes (copy on write; the snapshot files are never written again).
 Each file's SHA-256 is checked at load (streamed, so a check does not hold the file in
-memory). Snapshots of format version 2 (every feature field in full, PNG images) and 1 (PNG
-images, one ``.npz`` per keyframe and kind) are still read.
+memory). Snapshots of format version 3 (float64 landmark points), 2 (every feature field in
+full, PNG images) and 1 (PNG images, one ``.npz`` per keyframe and kind) are still read.
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
 ``CURRENT`` with :func:`os.replace` and prunes the snapshots it was built from (keeping the
@@ -66,12 +70,13 @@ from .feature_columns import (
 )
 from .fileio import atomic_write, fsync_path
 from .frame import SIFT_DIM, EncodedImage, Features, Keyframe
+from .landmark_codec import ANCHORED_POINTS, decode_points, encode_geometry
 from .map import Landmark, LandmarkColumns, LandmarkTable, MapState
 
 FORMAT = "reloc map"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 #: Older format versions this reloc still reads.
-READABLE_VERSIONS = (1, 2, 3)
+READABLE_VERSIONS = (1, 2, 3, 4)
 CURRENT_FILE = "CURRENT"
 SNAPSHOTS_DIR = "snapshots"
 MANIFEST_FILE = "manifest.json"
@@ -88,13 +93,15 @@ OPTIONAL_LANDMARK_FIELDS = ("depth_sigmas_m",)
 #: Landmark columns of format 2 (``kinds`` lives in the manifest).
 LANDMARK_COLUMNS = ("ids", "points_world", "depth_sigmas_m", "obs_offsets", "obs_keyframe",
                     "obs_kind", "obs_keypoint")
-#: Narrower dtypes tried for landmark columns at save (format 3), and the dtypes they are
-#: read back in (a copy: these are the observation indices, 4-12 bytes per observation).
+#: Narrower dtypes tried for landmark integer columns at save (narrowest first; formats 3 and
+#: 4), and the dtypes every landmark column is read back in (a copy when stored narrower).
 LANDMARK_NARROWER: dict[str, tuple[type, ...]] = {
-    "obs_offsets": (np.int32,), "obs_keyframe": (np.int32,), "obs_kind": (np.int8,),
-    "obs_keypoint": (np.int16, np.int32)}
-LANDMARK_DTYPES = {"obs_offsets": np.int64, "obs_keyframe": np.int64, "obs_kind": np.int16,
-                   "obs_keypoint": np.int64}
+    "ids": (np.int32,), "obs_offsets": (np.int32,), "obs_keyframe": (np.int16, np.int32),
+    "obs_kind": (np.int8,), "obs_keypoint": (np.int16, np.int32)}
+LANDMARK_DTYPES = {"ids": np.int64, "depth_sigmas_m": np.float64, "obs_offsets": np.int64,
+                   "obs_keyframe": np.int64, "obs_kind": np.int16, "obs_keypoint": np.int64}
+#: Landmark columns stored as they are or narrowed (points and sigmas: :func:`encode_geometry`).
+LANDMARK_INTEGERS = ("ids", "obs_offsets", "obs_keyframe", "obs_kind", "obs_keypoint")
 #: Keyframe cache entries saved with the map: PTAM's small blurry images (``Frame.cache``
 #: key prefix), so a place finder indexing a loaded map need not read every image.
 THUMBNAIL_PREFIX = "sbi:"
@@ -218,11 +225,14 @@ def _thumbnail_path(key: str) -> str:
     return f"thumbnails/{re.sub(r'[^A-Za-z0-9._-]', '_', key)}.npy"
 
 
-def _write_landmarks(writer: _SnapshotWriter, columns: LandmarkColumns) -> dict[str, Any]:
-    """The landmark columns, the observation indices narrowed where lossless (keypoint
-    indices fit int16, keyframe ids and offsets int32 in any map this size)."""
-    for name in LANDMARK_COLUMNS:
-        column = narrowest(np.asarray(getattr(columns, name)), LANDMARK_NARROWER.get(name, ()))
+def _write_landmarks(writer: _SnapshotWriter, columns: LandmarkColumns,
+                     keyframes: Mapping[int, Keyframe]) -> dict[str, Any]:
+    """The landmark columns: ids and observation indices in the narrowest exact integer
+    type, points and sigmas float32 where :func:`encode_geometry` allows."""
+    for name in LANDMARK_INTEGERS:
+        column = narrowest(np.asarray(getattr(columns, name)), LANDMARK_NARROWER[name])
+        writer.write(f"landmarks/{name}.npy", _npy_bytes(column))
+    for name, column in encode_geometry(columns, keyframes).items():
         writer.write(f"landmarks/{name}.npy", _npy_bytes(column))
     return {"dir": "landmarks", "kinds": list(columns.kinds)}
 
@@ -288,7 +298,7 @@ def save_map(state: MapState, directory: str | Path, *,
     columns = state.landmarks.columns()
     _write_features(writer, kfs, state, columns, rows)
     thumbnails = _write_thumbnails(writer, kfs)
-    landmarks = _write_landmarks(writer, columns)
+    landmarks = _write_landmarks(writer, columns, state.keyframes)
     model_dirs: dict[str, str] = {}
     for method, write_model in (models or {}).items():
         rel = f"{MODELS_DIR}/{model_dir_name(method)}"
@@ -695,8 +705,14 @@ def _read_landmark_columns(reader: _SnapshotReader, manifest: Mapping[str, Any],
                            keyframes: Mapping[int, Keyframe]) -> LandmarkColumns:
     meta = manifest["landmarks"]
     where = reader.root / "landmarks"
+    anchored = f"landmarks/{ANCHORED_POINTS}.npy" in manifest["files"]
     a = {name: _widened(reader.npy(f"landmarks/{name}.npy"), LANDMARK_DTYPES.get(name))
-         for name in LANDMARK_COLUMNS}
+         for name in LANDMARK_COLUMNS if not (anchored and name == "points_world")}
+    if anchored:
+        a["points_world"] = reader.npy(f"landmarks/{ANCHORED_POINTS}.npy")
+        if a["points_world"].dtype != np.float32:
+            raise StorageError(f"{where}/{ANCHORED_POINTS}.npy: expected float32, got "
+                               f"{a['points_world'].dtype}")
     n, n_obs = len(a["ids"]), len(a["obs_keyframe"])
     offsets = a["obs_offsets"]
     if (a["points_world"].shape != (n, 3) or a["depth_sigmas_m"].shape != (n,)
@@ -707,6 +723,13 @@ def _read_landmark_columns(reader: _SnapshotReader, manifest: Mapping[str, Any],
                            f"{a['points_world'].shape}, {n_obs} observations)")
     kinds = [str(k) for k in meta.get("kinds", [])]
     _check_observations(where, a, kinds, keyframes)
+    if anchored:
+        try:
+            a["points_world"] = decode_points(a["points_world"], offsets, a["obs_keyframe"],
+                                              keyframes)
+        except ValueError as exc:
+            raise StorageError(f"{where}/{ANCHORED_POINTS}.npy: {exc}") from exc
+        a["points_world"].flags.writeable = False
     return LandmarkColumns(a["ids"], a["points_world"], a["depth_sigmas_m"], offsets,
                            a["obs_keyframe"], a["obs_kind"], a["obs_keypoint"], tuple(kinds))
 
