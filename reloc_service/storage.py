@@ -11,7 +11,8 @@ Layout of a map directory ``MAP`` (format version 4)::
         features/<kind>.<field>.npy every keyframe's features of one kind, concatenated in
                                     manifest order (each keyframe names its row range); narrow
                                     where lossless, no field load can derive exactly (points
-                                    and ids from the landmarks, ORB sizes from the levels):
+                                    and ids from the landmarks, ORB sizes from the levels, ORB
+                                    keypoints from int16 pixels of their level):
                                     see :mod:`.feature_columns`
         thumbnails/<key>.npy        small blurry images already computed (one row a keyframe)
         landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR):
@@ -60,6 +61,8 @@ from .cameras import Camera, camera_from_dict
 from .errors import CameraError, GeometryError, MapError, StorageError
 from .feature_columns import (
     DERIVABLE_FIELDS,
+    LEVEL_PIXELS,
+    SCALE_TABLE,
     SIZE_TABLE,
     STORED_FIELDS,
     FeatureColumns,
@@ -596,13 +599,23 @@ class _FeatureColumns:
         self.columns: dict[str, dict[str, np.ndarray]] = {}
         self._cameras: dict[str, Camera] = {}
         tables: dict[str, np.ndarray] = {}
+        scales: dict[str, np.ndarray] = {}
         for kind in kinds:
-            fields = [*STORED_FIELDS, *(f for f in DERIVABLE_FIELDS
-                                        if f"features/{kind}.{f}.npy" in manifest["files"])]
+            listed = {f for f in (*DERIVABLE_FIELDS, LEVEL_PIXELS)
+                      if f"features/{kind}.{f}.npy" in manifest["files"]}
+            stored = [f for f in STORED_FIELDS
+                      if not (f == "keypoints_px" and LEVEL_PIXELS in listed)]
+            fields = [*stored, *sorted(listed)]
             cols = {f: reader.npy(f"features/{kind}.{f}.npy")
                     for f in (fields if self.lazy else FEATURE_FIELDS)}
             if self.lazy and "sizes" not in cols:
                 tables[kind] = _size_table(reader, f"features/{kind}.{SIZE_TABLE}.npy")
+            if self.lazy and LEVEL_PIXELS in cols:
+                scales[kind] = _size_table(reader, f"features/{kind}.{SCALE_TABLE}.npy")
+                if cols[LEVEL_PIXELS].dtype != np.int16 or cols[LEVEL_PIXELS].ndim != 2:
+                    raise StorageError(f"{reader.root}/features/{kind}.{LEVEL_PIXELS}.npy: "
+                                       f"expected (N, 2) int16, got {cols[LEVEL_PIXELS].shape} "
+                                       f"{cols[LEVEL_PIXELS].dtype}")
             lengths = {f: len(c) for f, c in cols.items()}
             if len(set(lengths.values())) != 1:
                 raise StorageError(f"{reader.root}/features/{kind}.*.npy: columns of different "
@@ -610,7 +623,7 @@ class _FeatureColumns:
             # plain ndarray views of the maps: slicing an np.memmap 8000 times (1000 keyframes
             # x 8 columns) paid its __array_finalize__ each time; the views still read the map
             self.columns[kind] = {f: c.view(np.ndarray) for f, c in cols.items()}
-        self.shared = FeatureColumns(self.columns, tables)
+        self.shared = FeatureColumns(self.columns, tables, scales)
         self.starts: dict[str, list[tuple[int, int]]] = {}
 
     def attach_landmarks(self, landmarks: LandmarkColumns) -> None:
@@ -665,18 +678,19 @@ class _FeatureColumns:
         start, stop = (int(r) for r in rows)
         if kind not in self.columns:
             raise ValueError(f"{kind} features listed but not saved")
-        n = len(self.columns[kind]["keypoints_px"])
+        n = len(self.columns[kind]["levels"])
         if not 0 <= start <= stop <= n:
             raise ValueError(f"{kind} rows [{start}, {stop}) outside the {n} saved")
         return start, stop
 
 
 def _size_table(reader: _SnapshotReader, relpath: str) -> np.ndarray:
+    """A (K, 2) float32 table of (level ascending, value): sizes or scales by level."""
     table = np.asarray(reader.npy(relpath))
     if table.ndim != 2 or table.shape[1] != 2 or table.dtype != np.float32 or np.any(
             np.diff(table[:, 0]) <= 0):
         raise StorageError(f"{reader.root / relpath}: expected a (K, 2) float32 table of "
-                           f"(level ascending, size), got {table.shape} {table.dtype}")
+                           f"(level ascending, value), got {table.shape} {table.dtype}")
     return table
 
 

@@ -473,8 +473,12 @@ def test_format_4_stores_narrow_columns_and_no_derived_points(tmp_path, rich_sta
         for derived in ("points_world", "landmark_ids"):
             assert f"features/{kind}.{derived}.npy" not in manifest["files"]
             assert not (snap / "features" / f"{kind}.{derived}.npy").exists()
-        assert _snapshot_npy(snap, f"features/{kind}.keypoints_px.npy").dtype == np.float32
         assert _snapshot_npy(snap, f"features/{kind}.levels.npy").dtype == np.int8
+    assert _snapshot_npy(snap, "features/sift.keypoints_px.npy").dtype == np.float32
+    # ORB's keypoints are integer pixels of their level times its scale: int16 and a table
+    assert not (snap / "features" / "orb.keypoints_px.npy").exists()
+    assert _snapshot_npy(snap, "features/orb.keypoints_level_px.npy").dtype == np.int16
+    assert _snapshot_npy(snap, "features/orb.keypoint_scales_by_level.npy").shape == (8, 2)
     landmark_dtypes = {"obs_offsets": np.int32, "obs_keyframe": np.int16, "obs_kind": np.int8,
                        "obs_keypoint": np.int16, "ids": np.int32, "anchored_points_world":
                        np.float32, "depth_sigmas_m": np.float32}
@@ -513,6 +517,22 @@ def test_points_that_are_not_the_landmarks_are_stored(tmp_path, synthetic_map):
                           feats.points_world[i] + 0.5)
 
 
+def test_orb_keypoints_off_their_level_grid_stay_float32(tmp_path, rich_state):
+    """A client's keypoints (described where given) are not level pixels times a scale: that
+    map keeps the float32 column, exactly."""
+    from reloc_service.features import compute_at
+
+    kmap = KeyframeMap()
+    kmap.replace_state(rich_state)
+    kf = rich_state.keyframes[1]
+    given, _ = compute_at(kf.image, "orb", kf.features["orb"].keypoints_px[:50] + 0.25)
+    kmap.add_keyframe(kf.with_features("orb", given))
+    snap = save_map(kmap.snapshot(), tmp_path)
+    assert _snapshot_npy(snap, "features/orb.keypoints_px.npy").dtype == np.float32
+    assert not (snap / "features" / "orb.keypoints_level_px.npy").exists()
+    _assert_states_equal(kmap.snapshot(), load_map(tmp_path)[0])
+
+
 def test_keypoints_that_are_not_float32_values_stay_float64(tmp_path, synthetic_map):
     from reloc_service.frame import Features
 
@@ -529,6 +549,8 @@ def test_keypoints_that_are_not_float32_values_stay_float64(tmp_path, synthetic_
 
 
 @pytest.mark.parametrize("rel", ["features/sift.keypoints_px.npy", "features/orb.sizes_by_level.npy",
+                                 "features/orb.keypoints_level_px.npy",
+                                 "features/orb.keypoint_scales_by_level.npy",
                                  "features/sift.descriptors.npy"])
 def test_a_flipped_bit_in_a_format_3_column_fails_the_load(tmp_path, rich_state, rel):
     snap = save_map(rich_state, tmp_path)
