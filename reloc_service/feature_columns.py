@@ -17,7 +17,10 @@ concatenated. What a column holds is exactly what the map held, in fewer bytes:
   are stored as one (level, size) table per kind (:func:`sizes_by_level`);
 - ``keypoints_px`` that are integer pixels of their pyramid level times the level's float32
   scale (OpenCV's ORB) are stored as int16 level pixels and one (level, scale) table per kind
-  (:func:`level_pixels`; format 4), when every keypoint of the kind is exactly that.
+  (:func:`level_pixels`; format 4), when every keypoint of the kind is exactly that;
+- ORB's ``angles`` are not stored (format 4): nothing reads a map keypoint's angle after
+  extraction (its descriptor is already steered by it), so a loaded ORB keypoint has
+  :data:`NO_ANGLE`, OpenCV's "no orientation", as a client-given keypoint has.
 
 Loaded keyframes get a :class:`LazyFeatures` mapping: the canonical dtypes of
 :class:`Features` (float64 keypoints, int64 ids, the points) are made per keyframe and kind
@@ -47,6 +50,9 @@ DERIVABLE_FIELDS = ("sizes", "landmark_ids", "points_world")
 DERIVED_FIELD = "points_world"
 #: The (K, 2) float32 table (level, size) a kind's sizes are read from when not stored.
 SIZE_TABLE = "sizes_by_level"
+#: Kinds whose keypoint angles a snapshot does not store, and the angle they load with.
+ANGLELESS_KINDS = ("orb",)
+NO_ANGLE = -1.0
 #: The (N, 2) int16 pixels of each keypoint on its pyramid level, and the (K, 2) float32 table
 #: (level, scale) that makes them ``keypoints_px`` (stored instead of it, format 4).
 LEVEL_PIXELS = "keypoints_level_px"
@@ -229,6 +235,8 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     if ids is not None and np.array_equal(ids, columns["landmark_ids"]):
         del columns["landmark_ids"]
     out = {name: narrow(name, column) for name, column in columns.items()}
+    if kind in ANGLELESS_KINDS:
+        del out["angles"]
     if kind == "orb":
         found = level_pixels(out["keypoints_px"], out["levels"], level_scale_factor(kind))
         if found is not None:
@@ -302,6 +310,8 @@ class FeatureColumns:
         out = {f: c[start:stop] for f, c in self.columns[kind].items()}
         if "sizes" not in out:
             out["sizes"] = sizes_from_table(self.tables[kind], out["levels"])
+        if "angles" not in out:
+            out["angles"] = np.full(len(out["levels"]), NO_ANGLE, np.float32)
         if LEVEL_PIXELS in out:
             out["keypoints_px"] = pixels_from_levels(out.pop(LEVEL_PIXELS), out["levels"],
                                                      self.scales[kind])

@@ -60,6 +60,7 @@ import numpy.typing as npt
 from .cameras import Camera, camera_from_dict
 from .errors import CameraError, GeometryError, MapError, StorageError
 from .feature_columns import (
+    ANGLELESS_KINDS,
     DERIVABLE_FIELDS,
     LEVEL_PIXELS,
     SCALE_TABLE,
@@ -604,7 +605,9 @@ class _FeatureColumns:
             listed = {f for f in (*DERIVABLE_FIELDS, LEVEL_PIXELS)
                       if f"features/{kind}.{f}.npy" in manifest["files"]}
             stored = [f for f in STORED_FIELDS
-                      if not (f == "keypoints_px" and LEVEL_PIXELS in listed)]
+                      if not (f == "keypoints_px" and LEVEL_PIXELS in listed)
+                      and not (f == "angles" and manifest["format_version"] >= 4
+                               and kind in ANGLELESS_KINDS)]
             fields = [*stored, *sorted(listed)]
             cols = {f: reader.npy(f"features/{kind}.{f}.npy")
                     for f in (fields if self.lazy else FEATURE_FIELDS)}

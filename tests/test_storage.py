@@ -13,7 +13,7 @@ import pytest
 
 from reloc_service import storage
 from reloc_service.errors import StorageError
-from reloc_service.feature_columns import LazyFeatures
+from reloc_service.feature_columns import ANGLELESS_KINDS, NO_ANGLE, LazyFeatures
 from reloc_service.frame import EncodedImage, Keyframe
 from reloc_service.landmark_codec import ROUNDING_SHARE, anchors, position_sigmas
 from reloc_service.map import KeyframeMap, MapState
@@ -47,6 +47,8 @@ def _assert_states_equal(a: MapState, b: MapState) -> None:
                 assert va.dtype == vb.dtype, name
                 if name == "points_world":
                     va = _as_loaded_points(a, b, ka.features[kind].landmark_ids, va, vb)
+                if name == "angles" and kind in ANGLELESS_KINDS:   # not saved: OpenCV's "none"
+                    va = np.full_like(va, NO_ANGLE)
                 assert np.array_equal(va, vb, equal_nan=True), name
     assert sorted(a.landmarks) == sorted(b.landmarks)
     for i, lm in a.landmarks.items():
@@ -381,14 +383,14 @@ def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
     # stored in their own dtype: views of the files; narrowed or derived (keypoints float32
     # on disk, ids and points from the landmarks, ORB sizes from the levels): read-only
     # arrays made for this keyframe only
-    arrays = [*(getattr(kf.features[k], f) for k in kf.features for f in ("descriptors", "angles")),
+    arrays = [*(kf.features[k].descriptors for k in kf.features), kf.features["sift"].angles,
               kf.features["sift"].sizes,
               kf.cache["sbi:40x30:2.5"]]
     for a in arrays:
         assert _maps_a_file(a), type(a)
         assert not a.flags.writeable
     for k in kf.features:
-        for f in ("keypoints_px", "levels", "landmark_ids", "points_world", "sizes"):
+        for f in ("keypoints_px", "levels", "landmark_ids", "points_world", "sizes", "angles"):
             assert not getattr(kf.features[k], f).flags.writeable
     columns = state.landmarks.columns()   # ids, indices, geometry: stored narrow, widened
     assert not columns.points_world.flags.writeable and columns.points_world.dtype == np.float64
@@ -479,6 +481,9 @@ def test_format_4_stores_narrow_columns_and_no_derived_points(tmp_path, rich_sta
     assert not (snap / "features" / "orb.keypoints_px.npy").exists()
     assert _snapshot_npy(snap, "features/orb.keypoints_level_px.npy").dtype == np.int16
     assert _snapshot_npy(snap, "features/orb.keypoint_scales_by_level.npy").shape == (8, 2)
+    # ORB's angles: read by nothing after extraction, not saved, loaded as OpenCV's "none"
+    assert not (snap / "features" / "orb.angles.npy").exists()
+    assert (snap / "features" / "sift.angles.npy").is_file()
     landmark_dtypes = {"obs_offsets": np.int32, "obs_keyframe": np.int16, "obs_kind": np.int8,
                        "obs_keypoint": np.int16, "ids": np.int32, "anchored_points_world":
                        np.float32, "depth_sigmas_m": np.float32}
@@ -492,6 +497,8 @@ def test_format_4_stores_narrow_columns_and_no_derived_points(tmp_path, rich_sta
     assert (snap / "features" / "sift.sizes.npy").is_file()
     state, _ = load_map(tmp_path)
     _assert_states_equal(rich_state, state)
+    assert np.all(state.keyframes[1].features["orb"].angles == -1.0)
+    assert np.any(rich_state.keyframes[1].features["orb"].angles != -1.0)
     feats = state.keyframes[1].features["sift"]
     has = feats.landmark_ids >= 0
     assert has.any() and np.isnan(feats.points_world[~has]).all()
