@@ -12,8 +12,8 @@ Layout of a map directory ``MAP`` (format version 4)::
                                     manifest order (each keyframe names its row range); narrow
                                     where lossless, no field load can derive exactly (points
                                     and ids from the landmarks, ORB sizes from the levels, ORB
-                                    keypoints from int16 pixels of their level):
-                                    see :mod:`.feature_columns`
+                                    keypoints from int16 pixels of their level; ORB angles,
+                                    read by nothing, not at all): see :mod:`.feature_columns`
         thumbnails/<key>.npy        small blurry images already computed (one row a keyframe)
         landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR):
                                     integers in the narrowest exact type, points as float32
@@ -24,7 +24,8 @@ Layout of a map directory ``MAP`` (format version 4)::
 
 Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the images
 too, decoded by the keyframe on first use): loading rebuilds nothing but each kind's landmark
-ids (one scatter of the observations), the arrays stay on disk until a query touches them
+ids (one scatter of the observations) and the landmark columns stored narrower than they are
+held (float64 points and sigmas, int64 ids and indices: one vectorised copy each), the arrays stay on disk until a query touches them
 (each keyframe's features are built from the shared columns on first use), and a change after
 loading copies what it changes (copy on write; the snapshot files are never written again).
 Each file's SHA-256 is checked at load (streamed, so a check does not hold the file in
