@@ -25,12 +25,13 @@ Layout of a map directory ``MAP`` (format version 4)::
 Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the images
 too, decoded by the keyframe on first use): loading rebuilds nothing but each kind's landmark
 ids (one scatter of the observations) and the landmark columns stored narrower than they are
-held (float64 points and sigmas, int64 ids and indices: one vectorised copy each), the arrays stay on disk until a query touches them
-(each keyframe's features are built from the shared columns on first use), and a change after
-loading copies what it changes (copy on write; the snapshot files are never written again).
-Each file's SHA-256 is checked at load (streamed, so a check does not hold the file in
-memory). Snapshots of format version 3 (float64 landmark points), 2 (every feature field in
-full, PNG images) and 1 (PNG images, one ``.npz`` per keyframe and kind) are still read.
+held (float64 points and sigmas, int64 ids and indices: one vectorised copy each), the arrays
+stay on disk until a query touches them (each keyframe's features are built from the shared
+columns on first use), and a change after loading copies what it changes (copy on write; the
+snapshot files are never written again). Each file's SHA-256 is checked at load (streamed, so
+a check does not hold the file in memory). Snapshots of format version 3 (float64 landmark
+points, float32 ORB keypoints and angles), 2 (every feature field in full, PNG images) and 1
+(PNG images, one ``.npz`` per keyframe and kind) are still read.
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
 ``CURRENT`` with :func:`os.replace` and prunes the snapshots it was built from (keeping the
