@@ -16,6 +16,7 @@ the map keeps float64 points and sigmas (format 3's columns), so no map loses mo
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -94,19 +95,79 @@ def encode_geometry(columns: LandmarkColumns, keyframes: Mapping[int, Keyframe]
     return {ANCHORED_POINTS: offsets32, "depth_sigmas_m": sigmas32} if fits else full
 
 
-def decode_points(anchored: npt.NDArray[np.float32], obs_offsets: npt.NDArray[np.int64],
-                  obs_keyframe: npt.NDArray[np.int64], keyframes: Mapping[int, Keyframe]
-                  ) -> Array:
-    """(L, 3) float64 world points from their :func:`encode_geometry` offsets (observation
-    columns already checked against ``keyframes``); ValueError when a landmark has no
-    observation to anchor it."""
+class RowDecoded:
+    """A read-only float64 column decoded row by row from a narrower stored one: ``column[rows]``
+    (an index, slice, index array or mask) decodes only those rows, so a loaded map keeps the
+    memory-mapped file on disk until queries touch it, as format 3's float64 columns were;
+    ``np.asarray(column)`` decodes every row."""
+
+    dtype = np.dtype(np.float64)
+
+    def __init__(self, shape: tuple[int, ...]) -> None:
+        self.shape = shape
+        self.ndim = len(shape)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, rows: Any) -> Array:
+        return self._rows(rows)
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> Array:
+        out = self._rows(slice(None))
+        return out if dtype is None else out.astype(dtype)
+
+    def _rows(self, rows: Any) -> Array:
+        raise NotImplementedError
+
+
+class WidenedColumn(RowDecoded):
+    """A float32 column (depth sigmas) read as float64."""
+
+    def __init__(self, column: np.ndarray) -> None:
+        super().__init__(tuple(column.shape))
+        self._column = column
+
+    def _rows(self, rows: Any) -> Array:
+        return np.asarray(self._column[rows], np.float64)
+
+
+class AnchoredPoints(RowDecoded):
+    """(L, 3) float64 world points: the centre of each landmark's anchor keyframe plus its
+    stored float32 offset (:func:`encode_geometry`), decoded per row."""
+
+    def __init__(self, offsets: npt.NDArray[np.float32], anchor: np.ndarray,
+                 centres_world: Array) -> None:
+        super().__init__((len(offsets), 3))
+        self._offsets, self._anchor, self._centres = offsets, anchor, centres_world
+
+    def _rows(self, rows: Any) -> Array:
+        return self._centres[self._anchor[rows]] + self._offsets[rows].astype(np.float64)
+
+
+def anchored_points(anchored: npt.NDArray[np.float32], obs_offsets: npt.NDArray[np.int64],
+                    obs_keyframe: npt.NDArray[np.int64], keyframes: Mapping[int, Keyframe]
+                    ) -> AnchoredPoints:
+    """The (L, 3) world points of :func:`encode_geometry`'s offsets ``anchored`` (kept as
+    they are, memory-mapped), decoded on read; the observation columns already checked
+    against ``keyframes``. ValueError when a landmark has no observation to anchor it."""
     offsets = np.asarray(obs_offsets, np.int64)
-    if len(anchored) == 0:
-        return np.zeros((0, 3))
-    if np.any(np.diff(offsets) <= 0):
-        raise ValueError("anchored landmark points need an observation per landmark")
-    first_kf = np.asarray(obs_keyframe, np.int64)[offsets[:-1]]
     kf_ids = np.array(sorted(keyframes), np.int64)
     centres = np.array([keyframes[int(k)].world_from_cam[:3, 3] for k in kf_ids],
                        np.float64).reshape(-1, 3)
-    return centres[np.searchsorted(kf_ids, first_kf)] + np.asarray(anchored, np.float64)
+    if len(anchored) == 0:
+        return AnchoredPoints(anchored, np.zeros(0, np.int32), centres)
+    if np.any(np.diff(offsets) <= 0):
+        raise ValueError("anchored landmark points need an observation per landmark")
+    first_kf = np.asarray(obs_keyframe, np.int64)[offsets[:-1]]
+    # one small index per landmark (int16 up to 32767 keyframes) is all load makes
+    anchor = np.searchsorted(kf_ids, first_kf).astype(
+        np.int16 if len(kf_ids) <= np.iinfo(np.int16).max else np.int32)
+    return AnchoredPoints(anchored, anchor, centres)
+
+
+def decode_points(anchored: npt.NDArray[np.float32], obs_offsets: npt.NDArray[np.int64],
+                  obs_keyframe: npt.NDArray[np.int64], keyframes: Mapping[int, Keyframe]
+                  ) -> Array:
+    """(L, 3) float64 world points of :func:`anchored_points`, every row decoded."""
+    return np.asarray(anchored_points(anchored, obs_offsets, obs_keyframe, keyframes))

@@ -22,16 +22,16 @@ Layout of a map directory ``MAP`` (format version 4)::
                                     :mod:`.landmark_codec`), else float64
         models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote
 
-Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the images
-too, decoded by the keyframe on first use): loading rebuilds nothing but each kind's landmark
-ids (one scatter of the observations) and the landmark columns stored narrower than they are
-held (float64 points and sigmas, int64 ids and indices: one vectorised copy each), the arrays
-stay on disk until a query touches them (each keyframe's features are built from the shared
-columns on first use), and a change after loading copies what it changes (copy on write; the
-snapshot files are never written again). Each file's SHA-256 is checked at load (streamed, so
-a check does not hold the file in memory). Snapshots of format version 3 (float64 landmark
-points, float32 ORB keypoints and angles), 2 (every feature field in full, PNG images) and 1
-(PNG images, one ``.npz`` per keyframe and kind) are still read.
+Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the images too,
+decoded by the keyframe on first use): loading rebuilds nothing but each kind's landmark ids
+(one scatter of the observations) and the landmark integer columns stored narrower than they
+are held (one vectorised copy each; float32 points and sigmas stay mapped, their float64 rows
+decoded on read), the arrays stay on disk until a query touches them (each keyframe's features
+are built from the shared columns on first use), and a change after loading copies what it
+changes (copy on write; the snapshot files are never written again). Each file's SHA-256 is
+checked at load (streamed, so a check does not hold the file in memory). Snapshots of format
+version 3 (float64 landmark points, float32 ORB keypoints and angles), 2 (every feature field
+in full, PNG images) and 1 (PNG images, one ``.npz`` per keyframe and kind) are still read.
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
 ``CURRENT`` with :func:`os.replace` and prunes the snapshots it was built from (keeping the
@@ -76,7 +76,7 @@ from .feature_columns import (
 )
 from .fileio import atomic_write, fsync_path
 from .frame import SIFT_DIM, EncodedImage, Features, Keyframe
-from .landmark_codec import ANCHORED_POINTS, decode_points, encode_geometry
+from .landmark_codec import ANCHORED_POINTS, WidenedColumn, anchored_points, encode_geometry
 from .map import Landmark, LandmarkColumns, LandmarkTable, MapState
 
 FORMAT = "reloc map"
@@ -104,8 +104,8 @@ LANDMARK_COLUMNS = ("ids", "points_world", "depth_sigmas_m", "obs_offsets", "obs
 LANDMARK_NARROWER: dict[str, tuple[type, ...]] = {
     "ids": (np.int32,), "obs_offsets": (np.int32,), "obs_keyframe": (np.int16, np.int32),
     "obs_kind": (np.int8,), "obs_keypoint": (np.int16, np.int32)}
-LANDMARK_DTYPES = {"ids": np.int64, "depth_sigmas_m": np.float64, "obs_offsets": np.int64,
-                   "obs_keyframe": np.int64, "obs_kind": np.int16, "obs_keypoint": np.int64}
+LANDMARK_DTYPES = {"ids": np.int64, "obs_offsets": np.int64, "obs_keyframe": np.int64,
+                   "obs_kind": np.int16, "obs_keypoint": np.int64}
 #: Landmark columns stored as they are or narrowed (points and sigmas: :func:`encode_geometry`).
 LANDMARK_INTEGERS = ("ids", "obs_offsets", "obs_keyframe", "obs_kind", "obs_keypoint")
 #: Keyframe cache entries saved with the map: PTAM's small blurry images (``Frame.cache``
@@ -742,13 +742,14 @@ def _read_landmark_columns(reader: _SnapshotReader, manifest: Mapping[str, Any],
                            f"{a['points_world'].shape}, {n_obs} observations)")
     kinds = [str(k) for k in meta.get("kinds", [])]
     _check_observations(where, a, kinds, keyframes)
-    if anchored:
+    if anchored:   # float32 on disk, float64 rows decoded on read (memory-mapped until then)
         try:
-            a["points_world"] = decode_points(a["points_world"], offsets, a["obs_keyframe"],
-                                              keyframes)
+            a["points_world"] = anchored_points(a["points_world"], offsets, a["obs_keyframe"],
+                                                keyframes)  # type: ignore[assignment]
         except ValueError as exc:
             raise StorageError(f"{where}/{ANCHORED_POINTS}.npy: {exc}") from exc
-        a["points_world"].flags.writeable = False
+    if a["depth_sigmas_m"].dtype == np.float32:
+        a["depth_sigmas_m"] = WidenedColumn(a["depth_sigmas_m"])  # type: ignore[assignment]
     return LandmarkColumns(a["ids"], a["points_world"], a["depth_sigmas_m"], offsets,
                            a["obs_keyframe"], a["obs_kind"], a["obs_keypoint"], tuple(kinds))
 

@@ -11,6 +11,8 @@ import pytest
 from reloc_service.landmark_codec import (
     ANCHORED_POINTS,
     ROUNDING_SHARE,
+    WidenedColumn,
+    anchored_points,
     anchors,
     decode_points,
     encode_geometry,
@@ -86,3 +88,21 @@ def test_unanchored_landmarks_keep_float64_and_cannot_be_decoded(synthetic_map):
     nan = dataclasses.replace(columns, points_world=np.where(
         np.arange(len(columns))[:, None] == 3, np.nan, columns.points_world))
     assert "points_world" in encode_geometry(nan, synthetic_map.keyframes)
+
+
+def test_anchored_points_decode_any_row_selection_like_the_whole_column(synthetic_map):
+    """A loaded map's points are decoded per row: an index, slice, index array or mask gives
+    exactly the rows of the full decode, and numpy functions see a (L, 3) float64 array."""
+    columns = synthetic_map.landmarks.columns()
+    stored = encode_geometry(columns, synthetic_map.keyframes)
+    lazy = anchored_points(stored[ANCHORED_POINTS], columns.obs_offsets, columns.obs_keyframe,
+                           synthetic_map.keyframes)
+    full = np.asarray(lazy)
+    assert full.dtype == np.float64 and full.shape == lazy.shape == (len(columns), 3)
+    mask = np.arange(len(columns)) % 3 == 0
+    for rows in (5, slice(2, 9), np.array([7, 0, 7, 3]), mask):
+        assert np.array_equal(lazy[rows], full[rows])
+    assert np.array_equal(np.concatenate([lazy, full[:2]]), np.concatenate([full, full[:2]]))
+    sigmas = WidenedColumn(stored["depth_sigmas_m"])
+    assert sigmas[[1, 2]].dtype == np.float64 and len(sigmas) == len(columns)
+    assert np.array_equal(np.asarray(sigmas), stored["depth_sigmas_m"].astype(np.float64))

@@ -15,7 +15,13 @@ from reloc_service import storage
 from reloc_service.errors import StorageError
 from reloc_service.feature_columns import ANGLELESS_KINDS, NO_ANGLE, LazyFeatures
 from reloc_service.frame import EncodedImage, Keyframe
-from reloc_service.landmark_codec import ROUNDING_SHARE, anchors, position_sigmas
+from reloc_service.landmark_codec import (
+    ROUNDING_SHARE,
+    AnchoredPoints,
+    WidenedColumn,
+    anchors,
+    position_sigmas,
+)
 from reloc_service.map import KeyframeMap, MapState
 from reloc_service.storage import (
     FEATURE_FIELDS,
@@ -392,8 +398,16 @@ def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
     for k in kf.features:
         for f in ("keypoints_px", "levels", "landmark_ids", "points_world", "sizes", "angles"):
             assert not getattr(kf.features[k], f).flags.writeable
-    columns = state.landmarks.columns()   # ids, indices, geometry: stored narrow, widened
-    assert not columns.points_world.flags.writeable and columns.points_world.dtype == np.float64
+    columns = state.landmarks.columns()   # ids, indices: stored narrow, widened at load
+    # points and sigmas: float32 files, still mapped, float64 rows decoded on read
+    assert isinstance(columns.points_world, AnchoredPoints)
+    assert isinstance(columns.depth_sigmas_m, WidenedColumn)
+    assert _maps_a_file(columns.points_world._offsets)
+    assert _maps_a_file(columns.depth_sigmas_m._column)
+    rows = np.array([3, 0, 7])
+    assert columns.points_world[rows].dtype == np.float64
+    assert np.array_equal(columns.points_world[rows], np.asarray(columns.points_world)[rows])
+    assert np.array_equal(columns.depth_sigmas_m[rows], np.asarray(columns.depth_sigmas_m)[rows])
     for name, dtype in storage.LANDMARK_DTYPES.items():
         assert getattr(columns, name).dtype == dtype and not getattr(columns, name).flags.writeable
     assert "built=[]" in repr(state.keyframes[0].features)       # untouched: nothing made
