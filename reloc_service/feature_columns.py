@@ -14,7 +14,13 @@ concatenated. What a column holds is exactly what the map held, in fewer bytes:
 - ``landmark_ids`` is the inverse of the landmarks' observations (keyframe, kind, keypoint):
   rebuilt from them at load (:func:`ids_from_observations`), stored only where it differs;
 - ``sizes`` that are a function of the pyramid level (ORB: 31 px times the level's scale)
-  are stored as one (level, size) table per kind (:func:`sizes_by_level`).
+  are stored as one (level, size) table per kind (:func:`sizes_by_level`);
+- ``keypoints_px`` that are integer pixels of their pyramid level times the level's float32
+  scale (OpenCV's ORB) are stored as int16 level pixels and one (level, scale) table per kind
+  (:func:`level_pixels`; format 4), when every keypoint of the kind is exactly that;
+- ORB's ``angles`` are not stored (format 4): nothing reads a map keypoint's angle after
+  extraction (its descriptor is already steered by it), so a loaded ORB keypoint has
+  :data:`NO_ANGLE`, OpenCV's "no orientation", as a client-given keypoint has.
 
 Loaded keyframes get a :class:`LazyFeatures` mapping: the canonical dtypes of
 :class:`Features` (float64 keypoints, int64 ids, the points) are made per keyframe and kind
@@ -32,6 +38,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .errors import MapError
+from .features import level_scale_factor
 from .frame import Features
 from .map import LandmarkColumns, LandmarkTable
 
@@ -43,6 +50,13 @@ DERIVABLE_FIELDS = ("sizes", "landmark_ids", "points_world")
 DERIVED_FIELD = "points_world"
 #: The (K, 2) float32 table (level, size) a kind's sizes are read from when not stored.
 SIZE_TABLE = "sizes_by_level"
+#: Kinds whose keypoint angles a snapshot does not store, and the angle they load with.
+ANGLELESS_KINDS = ("orb",)
+NO_ANGLE = -1.0
+#: The (N, 2) int16 pixels of each keypoint on its pyramid level, and the (K, 2) float32 table
+#: (level, scale) that makes them ``keypoints_px`` (stored instead of it, format 4).
+LEVEL_PIXELS = "keypoints_level_px"
+SCALE_TABLE = "keypoint_scales_by_level"
 #: The dtype :class:`Features` holds each field in (descriptors keep theirs).
 CANONICAL = {"keypoints_px": np.float64, "levels": np.int16, "sizes": np.float32,
              "angles": np.float32, "landmark_ids": np.int64, "points_world": np.float64}
@@ -89,6 +103,47 @@ def sizes_from_table(table: npt.NDArray[np.float32], levels: npt.NDArray[Any]
     if len(levels) and not np.array_equal(table[pos, 0], levels):
         raise MapError("keypoint levels outside the saved (level, size) table")
     return np.ascontiguousarray(table[pos, 1], dtype=np.float32)
+
+
+def level_scales(levels: npt.NDArray[Any], scale_factor: float) -> npt.NDArray[np.float32]:
+    """(K,) OpenCV ORB's float32 scale of each pyramid level in ``levels``:
+    ``(float)std::pow((double)scaleFactor, level)`` with ``scaleFactor`` the float the
+    detector was created with (orb.cpp ``getScale``; ``ORB::create`` takes a float)."""
+    factor = float(np.float32(scale_factor))
+    return np.array([factor ** int(v) for v in levels], np.float64).astype(np.float32)
+
+
+def level_pixels(keypoints: np.ndarray, levels: npt.NDArray[Any], scale_factor: float
+                 ) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.float32]] | None:
+    """OpenCV's ORB detects at integer pixels of pyramid level ``l`` and returns them times
+    the level's float32 scale (orb.cpp: ``allKeypoints[i].pt *= layerScale[octave]``, a
+    float product): (N, 2) int16 level pixels and the (K, 2) float32 (level, scale) table
+    when every float32 keypoint is exactly ``float32(pixel) * scale`` (checked here), else
+    None (float64 keypoints, given keypoints, another detector)."""
+    if keypoints.dtype != np.float32 or keypoints.ndim != 2 or len(keypoints) == 0:
+        return None
+    values, index = np.unique(levels, return_inverse=True)
+    if values[0] < 0 or values[-1] > 31:
+        return None
+    scales = level_scales(values, scale_factor)
+    scale = scales[index.ravel()][:, None]
+    with np.errstate(invalid="ignore", over="ignore"):
+        pixels = np.rint(keypoints / scale)
+        if not np.all(np.abs(pixels) <= np.iinfo(np.int16).max):   # NaN fails too
+            return None
+        small = pixels.astype(np.int16)
+    if not np.array_equal(small.astype(np.float32) * scale, keypoints):
+        return None
+    return small, np.stack([values.astype(np.float32), scales], axis=1)
+
+
+def pixels_from_levels(pixels: npt.NDArray[np.int16], levels: npt.NDArray[Any],
+                       table: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+    """(N, 2) float32 keypoints from :func:`level_pixels`' columns (the same float product)."""
+    pos = np.clip(np.searchsorted(table[:, 0], levels), 0, max(len(table) - 1, 0))
+    if len(levels) and not np.array_equal(table[pos, 0], levels):
+        raise MapError("keypoint levels outside the saved (level, scale) table")
+    return pixels.astype(np.float32) * table[pos, 1][:, None]
 
 
 def observation_owners(landmarks: LandmarkColumns) -> npt.NDArray[np.int64]:
@@ -179,7 +234,15 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     ids = ids_from_observations(landmarks, kind, len(columns["landmark_ids"]), kf_ids, starts)
     if ids is not None and np.array_equal(ids, columns["landmark_ids"]):
         del columns["landmark_ids"]
-    return {name: narrow(name, column) for name, column in columns.items()}
+    out = {name: narrow(name, column) for name, column in columns.items()}
+    if kind in ANGLELESS_KINDS:
+        del out["angles"]
+    if kind == "orb":
+        found = level_pixels(out["keypoints_px"], out["levels"], level_scale_factor(kind))
+        if found is not None:
+            del out["keypoints_px"]
+            out[LEVEL_PIXELS], out[SCALE_TABLE] = found
+    return out
 
 
 def feature_count(features: Mapping[str, Features], kind: str) -> int:
@@ -208,9 +271,12 @@ class FeatureColumns:
     and ids are derived from (set once they are read: :meth:`attach_landmarks`)."""
 
     def __init__(self, columns: Mapping[str, Mapping[str, np.ndarray]],
-                 tables: Mapping[str, npt.NDArray[np.float32]] | None = None) -> None:
+                 tables: Mapping[str, npt.NDArray[np.float32]] | None = None,
+                 scales: Mapping[str, npt.NDArray[np.float32]] | None = None) -> None:
         self.columns = {kind: dict(cols) for kind, cols in columns.items()}
         self.tables = dict(tables or {})
+        #: kind -> (level, scale) table of the kinds whose keypoints are stored as level pixels
+        self.scales = dict(scales or {})
         self.landmarks: LandmarkColumns | None = None
 
     def attach_landmarks(self, landmarks: LandmarkColumns,
@@ -227,7 +293,7 @@ class FeatureColumns:
             if owners is None:
                 owners = observation_owners(landmarks)
             kf_ids, first = starts.get(kind, (np.zeros(0, np.int64), np.zeros(0, np.int64)))
-            ids = ids_from_observations(landmarks, kind, len(cols["keypoints_px"]), kf_ids,
+            ids = ids_from_observations(landmarks, kind, len(cols["levels"]), kf_ids,
                                         first, owners)
             if ids is None:
                 raise MapError(f"{kind} landmark ids not saved and not given by the landmarks' "
@@ -236,14 +302,19 @@ class FeatureColumns:
             cols["landmark_ids"] = ids
 
     def length(self, kind: str) -> int:
-        return len(self.columns[kind]["keypoints_px"])
+        return len(self.columns[kind]["levels"])
 
     def raw(self, kind: str, start: int, stop: int) -> dict[str, np.ndarray]:
-        """Rows ``start:stop`` of ``kind``'s columns as stored (no copy), sizes from their
-        table where not stored; no derived points."""
+        """Rows ``start:stop`` of ``kind``'s columns as stored (no copy), sizes and
+        keypoints from their tables where not stored (float32); no derived points."""
         out = {f: c[start:stop] for f, c in self.columns[kind].items()}
         if "sizes" not in out:
             out["sizes"] = sizes_from_table(self.tables[kind], out["levels"])
+        if "angles" not in out:
+            out["angles"] = np.full(len(out["levels"]), NO_ANGLE, np.float32)
+        if LEVEL_PIXELS in out:
+            out["keypoints_px"] = pixels_from_levels(out.pop(LEVEL_PIXELS), out["levels"],
+                                                     self.scales[kind])
         return out
 
     def features(self, kind: str, start: int, stop: int) -> Features:

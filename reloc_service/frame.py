@@ -37,7 +37,8 @@ class Features:
         kind: name of the detector/descriptor.
         keypoints_px: (N, 2) float64 pixel positions in the full-resolution image.
         levels: (N,) int16 pyramid level (octave) where the keypoint was found.
-        sizes: (N,) float32 keypoint diameter in pixels; angles: (N,) float32 degrees (OpenCV).
+        sizes: (N,) float32 keypoint diameter in pixels; angles: (N,) float32 degrees (OpenCV;
+            -1 where unknown: given keypoints, and ORB keypoints of a loaded map).
         descriptors: (N, D) uint8: SIFT's 128 integer values 0-255 (see :data:`SIFT_DIM`),
             or ORB's packed bits; float32 SIFT (client-given, older maps) is accepted too.
         landmark_ids: (N,) int64 map landmark of each keypoint, -1 where none.

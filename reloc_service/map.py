@@ -55,8 +55,11 @@ class LandmarkColumns:
     ascending, ``points_world`` (L, 3) float64, ``depth_sigmas_m`` (L,) float64, and the
     observations in CSR form: landmark i's are rows ``obs_offsets[i]:obs_offsets[i + 1]`` of
     ``obs_keyframe`` (int64), ``obs_kind`` (int16 index into ``kinds``), ``obs_keypoint``
-    (int64). Point and sigma stay float64: a landmark is a world coordinate, and float32
-    would move points 100 m from the origin by up to 4 micrometres per save."""
+    (int64). Point and sigma are read as float64: a landmark is a world coordinate, and
+    world float32 would move points 100 m from the origin by up to 4 micrometres (a snapshot
+    stores float32 offsets from an observing keyframe instead, where that is far below the
+    landmark's uncertainty, and a loaded map decodes their rows on read: points and sigmas
+    are then :class:`~.landmark_codec.RowDecoded` columns, gathered by row like arrays)."""
 
     ids: npt.NDArray[np.int64]
     points_world: Array

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any, Protocol
 
 import numpy as np
@@ -29,6 +30,8 @@ Array = npt.NDArray[np.float64]
 #: A detected keypoint closer than this to a given (SVO) keypoint is dropped: the given one
 #: carries the landmark, a second keypoint there would only make a duplicate.
 GIVEN_KEYPOINT_RADIUS_PX = 2.0
+#: Strongest keypoints kept per keyframe for a kind ``MappingConf.max_features`` does not name.
+DEFAULT_MAX_FEATURES = 2000
 
 
 @dataclass(frozen=True)
@@ -37,8 +40,9 @@ class MappingConf:
 
     #: Feature kinds extracted for every keyframe (the engine adds what its methods need).
     feature_kinds: tuple[str, ...] = ("sift",)
-    #: Strongest keypoints kept per kind and keyframe.
-    max_features: int = 2000
+    #: Strongest keypoints kept per keyframe: one number for every kind, or a table kind ->
+    #: number (a kind it does not name keeps :data:`DEFAULT_MAX_FEATURES`).
+    max_features: int | Mapping[str, int] = DEFAULT_MAX_FEATURES
     #: Keyframes a new keyframe is matched against: the nearest posed keyframes by centre
     #: distance whose optical axis is within ``max_view_angle_deg`` of the new one's.
     neighbours: int = 5
@@ -56,8 +60,7 @@ class MappingConf:
         if unknown or not self.feature_kinds:
             raise ConfigError(f"mapping.feature_kinds: expected some of {FEATURE_KINDS}, got "
                               f"{list(self.feature_kinds)}")
-        if self.max_features <= 0:
-            raise ConfigError(f"mapping.max_features must be positive, got {self.max_features}")
+        object.__setattr__(self, "max_features", _check_max_features(self.max_features))
         if self.neighbours < 0:
             raise ConfigError(f"mapping.neighbours must be >= 0, got {self.neighbours}")
         if not 0 < self.max_view_angle_deg <= 180:
@@ -69,10 +72,39 @@ class MappingConf:
         """From a config table; a nested ``triangulation`` table sets :class:`TriangulationConf`."""
         return make_conf(cls, options, owner="mapping")
 
+    def features_for(self, kind: str) -> int:
+        """Strongest keypoints of ``kind`` kept per keyframe."""
+        if isinstance(self.max_features, int):
+            return self.max_features
+        return self.max_features.get(kind, DEFAULT_MAX_FEATURES)
+
     def with_kinds(self, kinds: Sequence[str]) -> MappingConf:
         """This configuration extracting ``kinds`` too (order kept, no duplicates)."""
         merged = tuple(dict.fromkeys([*self.feature_kinds, *kinds]))
         return dataclasses.replace(self, feature_kinds=merged)
+
+
+def _check_max_features(value: object) -> int | Mapping[str, int]:
+    """``mapping.max_features`` validated: a positive integer, or a table of feature kinds to
+    positive integers (returned read-only)."""
+    def positive(v: object) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool) and v > 0
+
+    if isinstance(value, Mapping):
+        unknown = sorted(str(k) for k in value if k not in FEATURE_KINDS)
+        if unknown:
+            raise ConfigError(f"mapping.max_features: unknown feature kind(s) {unknown}; "
+                              f"expected some of {list(FEATURE_KINDS)}")
+        bad = {k: v for k, v in value.items() if not positive(v)}
+        if bad:
+            raise ConfigError(f"mapping.max_features: expected a positive integer per kind, "
+                              f"got {bad}")
+        return MappingProxyType(dict(value))
+    if not positive(value):
+        raise ConfigError(f"mapping.max_features: expected a positive integer or a table "
+                          f"kind -> positive integer (e.g. {{sift = 2000, orb = 1000}}), got "
+                          f"{value!r}")
+    return value  # type: ignore[return-value]
 
 
 def select_neighbours(state: MapState, keyframe: Keyframe, count: int, max_view_angle_deg: float
@@ -202,7 +234,7 @@ class MapBuilder:
 
     def _features(self, image: npt.NDArray[np.uint8], kind: str, given: GivenFeatures | None
                   ) -> Features:
-        detected = extract(image, FeatureConf(kind=kind, max_features=self.conf.max_features))
+        detected = extract(image, FeatureConf(kind, self.conf.features_for(kind)))
         if given is None or len(given.keypoints_px) == 0:
             return detected
         supplied = _given_features(image, kind, given.keypoints_px, given.landmark_ids,

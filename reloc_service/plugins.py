@@ -64,7 +64,14 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
             if arg is type(None) and value is None:
                 return None
         args = [a for a in typing.get_args(hint) if a is not type(None)]
-        return _coerce(value, args[0], where)
+        error: ConfigError | None = None
+        for arg in args:   # the first member the value fits (``int | Mapping[str, int]``)
+            try:
+                return _coerce(value, arg, where)
+            except ConfigError as exc:
+                error = error or exc
+        assert error is not None
+        raise error
     if hint is float and isinstance(value, int | float) and not isinstance(value, bool):
         return float(value)
     if hint is int and isinstance(value, int) and not isinstance(value, bool):

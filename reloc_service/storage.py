@@ -1,6 +1,6 @@
 """Map persistence: a whole map saved as an immutable snapshot directory, switched atomically.
 
-Layout of a map directory ``MAP`` (format version 3)::
+Layout of a map directory ``MAP`` (format version 4)::
 
     MAP/CURRENT                     names the current snapshot: ``snapshots/000012``
     MAP/snapshots/000012/
@@ -11,20 +11,27 @@ Layout of a map directory ``MAP`` (format version 3)::
         features/<kind>.<field>.npy every keyframe's features of one kind, concatenated in
                                     manifest order (each keyframe names its row range); narrow
                                     where lossless, no field load can derive exactly (points
-                                    and ids from the landmarks, ORB sizes from the levels):
-                                    see :mod:`.feature_columns`
+                                    and ids from the landmarks, ORB sizes from the levels, ORB
+                                    keypoints from int16 pixels of their level; ORB angles,
+                                    read by nothing, not at all): see :mod:`.feature_columns`
         thumbnails/<key>.npy        small blurry images already computed (one row a keyframe)
-        landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR)
+        landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR):
+                                    integers in the narrowest exact type, points as float32
+                                    offsets from an observing keyframe where the rounding is
+                                    far below each landmark's uncertainty (see
+                                    :mod:`.landmark_codec`), else float64
         models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote
 
-Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the images
-too, decoded by the keyframe on first use): loading rebuilds nothing but each kind's landmark
-ids (one scatter of the observations), the arrays stay on disk until a query touches them
-(each keyframe's features are built from the shared columns on first use), and a change after
-loading copies what it changes (copy on write; the snapshot files are never written again).
-Each file's SHA-256 is checked at load (streamed, so a check does not hold the file in
-memory). Snapshots of format version 2 (every feature field in full, PNG images) and 1 (PNG
-images, one ``.npz`` per keyframe and kind) are still read.
+Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the images too,
+decoded by the keyframe on first use): loading rebuilds nothing but each kind's landmark ids
+(one scatter of the observations) and the landmark integer columns stored narrower than they
+are held (one vectorised copy each; float32 points and sigmas stay mapped, their float64 rows
+decoded on read), the arrays stay on disk until a query touches them (each keyframe's features
+are built from the shared columns on first use), and a change after loading copies what it
+changes (copy on write; the snapshot files are never written again). Each file's SHA-256 is
+checked at load (streamed, so a check does not hold the file in memory). Snapshots of format
+version 3 (float64 landmark points, float32 ORB keypoints and angles), 2 (every feature field
+in full, PNG images) and 1 (PNG images, one ``.npz`` per keyframe and kind) are still read.
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
 ``CURRENT`` with :func:`os.replace` and prunes the snapshots it was built from (keeping the
@@ -55,7 +62,10 @@ import numpy.typing as npt
 from .cameras import Camera, camera_from_dict
 from .errors import CameraError, GeometryError, MapError, StorageError
 from .feature_columns import (
+    ANGLELESS_KINDS,
     DERIVABLE_FIELDS,
+    LEVEL_PIXELS,
+    SCALE_TABLE,
     SIZE_TABLE,
     STORED_FIELDS,
     FeatureColumns,
@@ -66,12 +76,13 @@ from .feature_columns import (
 )
 from .fileio import atomic_write, fsync_path
 from .frame import SIFT_DIM, EncodedImage, Features, Keyframe
+from .landmark_codec import ANCHORED_POINTS, WidenedColumn, anchored_points, encode_geometry
 from .map import Landmark, LandmarkColumns, LandmarkTable, MapState
 
 FORMAT = "reloc map"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 #: Older format versions this reloc still reads.
-READABLE_VERSIONS = (1, 2, 3)
+READABLE_VERSIONS = (1, 2, 3, 4)
 CURRENT_FILE = "CURRENT"
 SNAPSHOTS_DIR = "snapshots"
 MANIFEST_FILE = "manifest.json"
@@ -88,13 +99,15 @@ OPTIONAL_LANDMARK_FIELDS = ("depth_sigmas_m",)
 #: Landmark columns of format 2 (``kinds`` lives in the manifest).
 LANDMARK_COLUMNS = ("ids", "points_world", "depth_sigmas_m", "obs_offsets", "obs_keyframe",
                     "obs_kind", "obs_keypoint")
-#: Narrower dtypes tried for landmark columns at save (format 3), and the dtypes they are
-#: read back in (a copy: these are the observation indices, 4-12 bytes per observation).
+#: Narrower dtypes tried for landmark integer columns at save (narrowest first; formats 3 and
+#: 4), and the dtypes every landmark column is read back in (a copy when stored narrower).
 LANDMARK_NARROWER: dict[str, tuple[type, ...]] = {
-    "obs_offsets": (np.int32,), "obs_keyframe": (np.int32,), "obs_kind": (np.int8,),
-    "obs_keypoint": (np.int16, np.int32)}
-LANDMARK_DTYPES = {"obs_offsets": np.int64, "obs_keyframe": np.int64, "obs_kind": np.int16,
-                   "obs_keypoint": np.int64}
+    "ids": (np.int32,), "obs_offsets": (np.int32,), "obs_keyframe": (np.int16, np.int32),
+    "obs_kind": (np.int8,), "obs_keypoint": (np.int16, np.int32)}
+LANDMARK_DTYPES = {"ids": np.int64, "obs_offsets": np.int64, "obs_keyframe": np.int64,
+                   "obs_kind": np.int16, "obs_keypoint": np.int64}
+#: Landmark columns stored as they are or narrowed (points and sigmas: :func:`encode_geometry`).
+LANDMARK_INTEGERS = ("ids", "obs_offsets", "obs_keyframe", "obs_kind", "obs_keypoint")
 #: Keyframe cache entries saved with the map: PTAM's small blurry images (``Frame.cache``
 #: key prefix), so a place finder indexing a loaded map need not read every image.
 THUMBNAIL_PREFIX = "sbi:"
@@ -218,11 +231,14 @@ def _thumbnail_path(key: str) -> str:
     return f"thumbnails/{re.sub(r'[^A-Za-z0-9._-]', '_', key)}.npy"
 
 
-def _write_landmarks(writer: _SnapshotWriter, columns: LandmarkColumns) -> dict[str, Any]:
-    """The landmark columns, the observation indices narrowed where lossless (keypoint
-    indices fit int16, keyframe ids and offsets int32 in any map this size)."""
-    for name in LANDMARK_COLUMNS:
-        column = narrowest(np.asarray(getattr(columns, name)), LANDMARK_NARROWER.get(name, ()))
+def _write_landmarks(writer: _SnapshotWriter, columns: LandmarkColumns,
+                     keyframes: Mapping[int, Keyframe]) -> dict[str, Any]:
+    """The landmark columns: ids and observation indices in the narrowest exact integer
+    type, points and sigmas float32 where :func:`encode_geometry` allows."""
+    for name in LANDMARK_INTEGERS:
+        column = narrowest(np.asarray(getattr(columns, name)), LANDMARK_NARROWER[name])
+        writer.write(f"landmarks/{name}.npy", _npy_bytes(column))
+    for name, column in encode_geometry(columns, keyframes).items():
         writer.write(f"landmarks/{name}.npy", _npy_bytes(column))
     return {"dir": "landmarks", "kinds": list(columns.kinds)}
 
@@ -288,7 +304,7 @@ def save_map(state: MapState, directory: str | Path, *,
     columns = state.landmarks.columns()
     _write_features(writer, kfs, state, columns, rows)
     thumbnails = _write_thumbnails(writer, kfs)
-    landmarks = _write_landmarks(writer, columns)
+    landmarks = _write_landmarks(writer, columns, state.keyframes)
     model_dirs: dict[str, str] = {}
     for method, write_model in (models or {}).items():
         rel = f"{MODELS_DIR}/{model_dir_name(method)}"
@@ -586,13 +602,25 @@ class _FeatureColumns:
         self.columns: dict[str, dict[str, np.ndarray]] = {}
         self._cameras: dict[str, Camera] = {}
         tables: dict[str, np.ndarray] = {}
+        scales: dict[str, np.ndarray] = {}
         for kind in kinds:
-            fields = [*STORED_FIELDS, *(f for f in DERIVABLE_FIELDS
-                                        if f"features/{kind}.{f}.npy" in manifest["files"])]
+            listed = {f for f in (*DERIVABLE_FIELDS, LEVEL_PIXELS)
+                      if f"features/{kind}.{f}.npy" in manifest["files"]}
+            stored = [f for f in STORED_FIELDS
+                      if not (f == "keypoints_px" and LEVEL_PIXELS in listed)
+                      and not (f == "angles" and manifest["format_version"] >= 4
+                               and kind in ANGLELESS_KINDS)]
+            fields = [*stored, *sorted(listed)]
             cols = {f: reader.npy(f"features/{kind}.{f}.npy")
                     for f in (fields if self.lazy else FEATURE_FIELDS)}
             if self.lazy and "sizes" not in cols:
                 tables[kind] = _size_table(reader, f"features/{kind}.{SIZE_TABLE}.npy")
+            if self.lazy and LEVEL_PIXELS in cols:
+                scales[kind] = _size_table(reader, f"features/{kind}.{SCALE_TABLE}.npy")
+                if cols[LEVEL_PIXELS].dtype != np.int16 or cols[LEVEL_PIXELS].ndim != 2:
+                    raise StorageError(f"{reader.root}/features/{kind}.{LEVEL_PIXELS}.npy: "
+                                       f"expected (N, 2) int16, got {cols[LEVEL_PIXELS].shape} "
+                                       f"{cols[LEVEL_PIXELS].dtype}")
             lengths = {f: len(c) for f, c in cols.items()}
             if len(set(lengths.values())) != 1:
                 raise StorageError(f"{reader.root}/features/{kind}.*.npy: columns of different "
@@ -600,7 +628,7 @@ class _FeatureColumns:
             # plain ndarray views of the maps: slicing an np.memmap 8000 times (1000 keyframes
             # x 8 columns) paid its __array_finalize__ each time; the views still read the map
             self.columns[kind] = {f: c.view(np.ndarray) for f, c in cols.items()}
-        self.shared = FeatureColumns(self.columns, tables)
+        self.shared = FeatureColumns(self.columns, tables, scales)
         self.starts: dict[str, list[tuple[int, int]]] = {}
 
     def attach_landmarks(self, landmarks: LandmarkColumns) -> None:
@@ -655,18 +683,19 @@ class _FeatureColumns:
         start, stop = (int(r) for r in rows)
         if kind not in self.columns:
             raise ValueError(f"{kind} features listed but not saved")
-        n = len(self.columns[kind]["keypoints_px"])
+        n = len(self.columns[kind]["levels"])
         if not 0 <= start <= stop <= n:
             raise ValueError(f"{kind} rows [{start}, {stop}) outside the {n} saved")
         return start, stop
 
 
 def _size_table(reader: _SnapshotReader, relpath: str) -> np.ndarray:
+    """A (K, 2) float32 table of (level ascending, value): sizes or scales by level."""
     table = np.asarray(reader.npy(relpath))
     if table.ndim != 2 or table.shape[1] != 2 or table.dtype != np.float32 or np.any(
             np.diff(table[:, 0]) <= 0):
         raise StorageError(f"{reader.root / relpath}: expected a (K, 2) float32 table of "
-                           f"(level ascending, size), got {table.shape} {table.dtype}")
+                           f"(level ascending, value), got {table.shape} {table.dtype}")
     return table
 
 
@@ -695,8 +724,14 @@ def _read_landmark_columns(reader: _SnapshotReader, manifest: Mapping[str, Any],
                            keyframes: Mapping[int, Keyframe]) -> LandmarkColumns:
     meta = manifest["landmarks"]
     where = reader.root / "landmarks"
+    anchored = f"landmarks/{ANCHORED_POINTS}.npy" in manifest["files"]
     a = {name: _widened(reader.npy(f"landmarks/{name}.npy"), LANDMARK_DTYPES.get(name))
-         for name in LANDMARK_COLUMNS}
+         for name in LANDMARK_COLUMNS if not (anchored and name == "points_world")}
+    if anchored:
+        a["points_world"] = reader.npy(f"landmarks/{ANCHORED_POINTS}.npy")
+        if a["points_world"].dtype != np.float32:
+            raise StorageError(f"{where}/{ANCHORED_POINTS}.npy: expected float32, got "
+                               f"{a['points_world'].dtype}")
     n, n_obs = len(a["ids"]), len(a["obs_keyframe"])
     offsets = a["obs_offsets"]
     if (a["points_world"].shape != (n, 3) or a["depth_sigmas_m"].shape != (n,)
@@ -707,6 +742,14 @@ def _read_landmark_columns(reader: _SnapshotReader, manifest: Mapping[str, Any],
                            f"{a['points_world'].shape}, {n_obs} observations)")
     kinds = [str(k) for k in meta.get("kinds", [])]
     _check_observations(where, a, kinds, keyframes)
+    if anchored:   # float32 on disk, float64 rows decoded on read (memory-mapped until then)
+        try:
+            a["points_world"] = anchored_points(a["points_world"], offsets, a["obs_keyframe"],
+                                                keyframes)  # type: ignore[assignment]
+        except ValueError as exc:
+            raise StorageError(f"{where}/{ANCHORED_POINTS}.npy: {exc}") from exc
+    if a["depth_sigmas_m"].dtype == np.float32:
+        a["depth_sigmas_m"] = WidenedColumn(a["depth_sigmas_m"])  # type: ignore[assignment]
     return LandmarkColumns(a["ids"], a["points_world"], a["depth_sigmas_m"], offsets,
                            a["obs_keyframe"], a["obs_kind"], a["obs_keypoint"], tuple(kinds))
 

@@ -98,3 +98,25 @@ def test_hamming_ratio_test_is_the_bitwise_one(n, m, width):
     assert np.array_equal(full[q, t], best[q, 0])
     if n == 500:
         assert len(q) >= len(near) // 2  # the planted matches pass
+
+
+def test_orb_keypoints_are_level_pixels_times_the_level_scale(synthetic_scene):
+    """OpenCV's ORB returns integer pixels of pyramid level l times float32(1.2f ** l): every
+    keypoint of a real extraction rebuilds bit-exactly from int16 pixels (what a snapshot
+    stores), and one moved by a float32 ulp does not."""
+    from reloc_service.feature_columns import level_pixels, pixels_from_levels
+    from reloc_service.features import ORB_SCALE_FACTOR
+
+    feats = extract(synthetic_scene.keyframe_images[0], FeatureConf("orb", 2000))
+    keypoints = feats.keypoints_px.astype(np.float32)
+    assert np.array_equal(keypoints.astype(np.float64), feats.keypoints_px)
+    assert len(np.unique(feats.levels)) == 8
+    found = level_pixels(keypoints, feats.levels, ORB_SCALE_FACTOR)
+    assert found is not None
+    pixels, table = found
+    assert pixels.dtype == np.int16 and table.shape == (8, 2)
+    assert np.array_equal(pixels_from_levels(pixels, feats.levels, table), keypoints)
+    moved = keypoints.copy()
+    i = int(np.flatnonzero(feats.levels == 5)[0])
+    moved[i, 0] = np.nextafter(moved[i, 0], np.float32(1e9))
+    assert level_pixels(moved, feats.levels, ORB_SCALE_FACTOR) is None

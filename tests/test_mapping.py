@@ -3,6 +3,8 @@ landmarks, extra feature kinds, configuration, and landmark_errors."""
 
 from __future__ import annotations
 
+import tomllib
+
 import numpy as np
 import pytest
 from conftest import SyntheticScene
@@ -11,12 +13,14 @@ from reloc_service.errors import ConfigError, GeometryError, MapError
 from reloc_service.geometry import invert, look_at, transform_points
 from reloc_service.map import KeyframeMap
 from reloc_service.mapping import (
+    DEFAULT_MAX_FEATURES,
     MapBuilder,
     MappingConf,
     first_observations,
     landmark_errors,
     select_neighbours,
 )
+from reloc_service.service.config import parse_config
 from reloc_service.triangulation import TriangulationConf
 
 
@@ -222,6 +226,32 @@ def test_mapping_conf_from_options():
         MappingConf.from_options({"triangulation": {"ratio": 2.0, "x": 1}})
     with pytest.raises(ConfigError, match="feature_kinds"):
         MappingConf(feature_kinds=("surf",))
+
+
+def test_max_features_one_number_or_a_table_per_kind():
+    assert MappingConf.from_options({"max_features": 1500}).features_for("orb") == 1500
+    table = MappingConf.from_options({"max_features": {"orb": 700}})
+    assert (table.features_for("orb"), table.features_for("sift")) == (700, DEFAULT_MAX_FEATURES)
+    with pytest.raises(ConfigError, match=r"unknown feature kind\(s\) \['surf'\]"):
+        MappingConf.from_options({"max_features": {"surf": 100}})
+    with pytest.raises(ConfigError, match="positive integer per kind.*'orb': 0"):
+        MappingConf.from_options({"max_features": {"orb": 0}})
+    for bad in (-3, "2000", True, 2.5):
+        with pytest.raises(ConfigError, match="mapping.max_features: expected a positive"):
+            MappingConf.from_options({"max_features": bad})
+    toml = tomllib.loads("[mapping.max_features]\nsift = 1800\norb = 900\n")
+    conf = MappingConf.from_options(parse_config(toml).mapping)
+    assert (conf.features_for("sift"), conf.features_for("orb")) == (1800, 900)
+
+
+def test_max_features_per_kind_caps_each_kind(synthetic_scene):
+    conf = MappingConf(feature_kinds=("sift", "orb"), max_features={"sift": 300, "orb": 120})
+    kf = _build(synthetic_scene, conf, ids=[0]).map.snapshot().keyframe(0)
+    # ORB spreads the cap over its pyramid levels and may keep a few fewer
+    assert 100 < len(kf.features["orb"]) <= 120 and 250 < len(kf.features["sift"]) <= 300
+    wide = _build(synthetic_scene, MappingConf(feature_kinds=("orb",), max_features=300),
+                  ids=[0]).map.snapshot().keyframe(0)
+    assert 250 < len(wide.features["orb"]) <= 300
 
 
 def test_first_observations_pick_the_lowest_keyframe(synthetic_map):

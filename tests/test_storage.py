@@ -13,8 +13,15 @@ import pytest
 
 from reloc_service import storage
 from reloc_service.errors import StorageError
-from reloc_service.feature_columns import LazyFeatures
+from reloc_service.feature_columns import ANGLELESS_KINDS, NO_ANGLE, LazyFeatures
 from reloc_service.frame import EncodedImage, Keyframe
+from reloc_service.landmark_codec import (
+    ROUNDING_SHARE,
+    AnchoredPoints,
+    WidenedColumn,
+    anchors,
+    position_sigmas,
+)
 from reloc_service.map import KeyframeMap, MapState
 from reloc_service.storage import (
     FEATURE_FIELDS,
@@ -27,6 +34,8 @@ from reloc_service.storage import (
 
 
 def _assert_states_equal(a: MapState, b: MapState) -> None:
+    """``b`` is ``a`` exactly, but for landmark points and sigmas: exact, or (stored as
+    anchored float32) within the rounding :mod:`reloc_service.landmark_codec` allows."""
     assert (a.version, a.next_landmark_id) == (b.version, b.next_landmark_id)
     assert a.keyframe_ids() == b.keyframe_ids()
     for k in a.keyframe_ids():
@@ -42,12 +51,40 @@ def _assert_states_equal(a: MapState, b: MapState) -> None:
             for name in FEATURE_FIELDS:
                 va, vb = getattr(ka.features[kind], name), getattr(kb.features[kind], name)
                 assert va.dtype == vb.dtype, name
+                if name == "points_world":
+                    va = _as_loaded_points(a, b, ka.features[kind].landmark_ids, va, vb)
+                if name == "angles" and kind in ANGLELESS_KINDS:   # not saved: OpenCV's "none"
+                    va = np.full_like(va, NO_ANGLE)
                 assert np.array_equal(va, vb, equal_nan=True), name
     assert sorted(a.landmarks) == sorted(b.landmarks)
     for i, lm in a.landmarks.items():
-        assert np.array_equal(lm.point_world, b.landmarks[i].point_world)
         assert lm.observations == b.landmarks[i].observations
-        assert lm.depth_sigma_m == b.landmarks[i].depth_sigma_m
+    _assert_landmark_geometry_close(a, b)
+
+
+def _as_loaded_points(a: MapState, b: MapState, ids: np.ndarray, points: np.ndarray,
+                      loaded: np.ndarray) -> np.ndarray:
+    """``points`` with each that is its landmark's point in ``a`` and was not loaded as it
+    is (not a stored column) replaced by that landmark's point in ``b``: derived at load."""
+    out = points.copy()
+    has = np.flatnonzero((ids >= 0) & a.landmarks.contains(ids))
+    derived = (np.all(a.landmark_points(ids[has]) == points[has], axis=1)
+               & ~np.all(loaded[has] == points[has], axis=1))
+    out[has[derived]] = b.landmark_points(ids[has[derived]])
+    return out
+
+
+def _assert_landmark_geometry_close(a: MapState, b: MapState) -> None:
+    ids = np.array(sorted(a.landmarks), np.int64)
+    pa, pb = a.landmark_points(ids), b.landmark_points(ids)
+    sa, sb = a.landmark_sigmas(ids), b.landmark_sigmas(ids)
+    found = anchors(a.landmarks.columns(), a.keyframes)
+    if found is None:
+        assert np.array_equal(pa, pb) and np.array_equal(sa, sb)
+        return
+    allowed = ROUNDING_SHARE * position_sigmas(pa, *found, sa)
+    assert np.all(np.linalg.norm(pa - pb, axis=1) <= allowed)
+    assert np.all(np.abs(sa - sb) <= allowed)
 
 
 @pytest.fixture(scope="module")
@@ -181,11 +218,11 @@ def test_truncated_file_is_named(tmp_path, synthetic_map):
 
 def test_checksum_mismatch_is_named(tmp_path, synthetic_map):
     snap = _saved(tmp_path, synthetic_map)
-    path = snap / "landmarks" / "points_world.npy"
+    path = snap / "landmarks" / "anchored_points_world.npy"
     data = bytearray(path.read_bytes())
     data[-10] ^= 0xFF
     path.write_bytes(bytes(data))
-    with pytest.raises(StorageError, match=r"points_world\.npy.*checksum mismatch"):
+    with pytest.raises(StorageError, match=r"anchored_points_world\.npy.*checksum mismatch"):
         load_map(tmp_path)
 
 
@@ -230,7 +267,9 @@ def _edit_manifest(snap: Path, **changes) -> None:
 def test_newer_format_version_is_refused(tmp_path, synthetic_map):
     snap = _saved(tmp_path, synthetic_map)
     _edit_manifest(snap, format_version=storage.FORMAT_VERSION + 1)
-    with pytest.raises(StorageError, match=r"newer reloc .*format version 4.*reads up to 3"):
+    newer = storage.FORMAT_VERSION + 1
+    with pytest.raises(StorageError, match=rf"newer reloc .*format version {newer}.*reads up "
+                                           rf"to {storage.FORMAT_VERSION}"):
         load_map(tmp_path)
 
 
@@ -350,17 +389,25 @@ def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
     # stored in their own dtype: views of the files; narrowed or derived (keypoints float32
     # on disk, ids and points from the landmarks, ORB sizes from the levels): read-only
     # arrays made for this keyframe only
-    arrays = [*(getattr(kf.features[k], f) for k in kf.features for f in ("descriptors", "angles")),
+    arrays = [*(kf.features[k].descriptors for k in kf.features), kf.features["sift"].angles,
               kf.features["sift"].sizes,
-              state.landmarks.columns().points_world, state.landmarks.columns().ids,
               kf.cache["sbi:40x30:2.5"]]
     for a in arrays:
         assert _maps_a_file(a), type(a)
         assert not a.flags.writeable
     for k in kf.features:
-        for f in ("keypoints_px", "levels", "landmark_ids", "points_world", "sizes"):
+        for f in ("keypoints_px", "levels", "landmark_ids", "points_world", "sizes", "angles"):
             assert not getattr(kf.features[k], f).flags.writeable
-    columns = state.landmarks.columns()               # observation indices: stored narrow
+    columns = state.landmarks.columns()   # ids, indices: stored narrow, widened at load
+    # points and sigmas: float32 files, still mapped, float64 rows decoded on read
+    assert isinstance(columns.points_world, AnchoredPoints)
+    assert isinstance(columns.depth_sigmas_m, WidenedColumn)
+    assert _maps_a_file(columns.points_world._offsets)
+    assert _maps_a_file(columns.depth_sigmas_m._column)
+    rows = np.array([3, 0, 7])
+    assert columns.points_world[rows].dtype == np.float64
+    assert np.array_equal(columns.points_world[rows], np.asarray(columns.points_world)[rows])
+    assert np.array_equal(columns.depth_sigmas_m[rows], np.asarray(columns.depth_sigmas_m)[rows])
     for name, dtype in storage.LANDMARK_DTYPES.items():
         assert getattr(columns, name).dtype == dtype and not getattr(columns, name).flags.writeable
     assert "built=[]" in repr(state.keyframes[0].features)       # untouched: nothing made
@@ -431,20 +478,30 @@ def _snapshot_npy(snapshot: Path, rel: str) -> np.ndarray:
     return np.load(snapshot / rel, allow_pickle=False)
 
 
-def test_format_3_stores_narrow_columns_and_no_derived_points(tmp_path, rich_state):
+def test_format_4_stores_narrow_columns_and_no_derived_points(tmp_path, rich_state):
     """OpenCV's keypoints are float32 values, levels fit int8, ids int32, and every point is
-    its landmark's: so none of them costs its full width on disk, and all load back exactly."""
+    its landmark's: so none of them costs its full width on disk, and all load back exactly;
+    landmark points are float32 offsets from their anchor keyframes."""
     snap = save_map(rich_state, tmp_path)
     manifest = json.loads((snap / "manifest.json").read_text())
-    assert manifest["format_version"] == 3
+    assert manifest["format_version"] == 4
     for kind in ("sift", "orb"):
         for derived in ("points_world", "landmark_ids"):
             assert f"features/{kind}.{derived}.npy" not in manifest["files"]
             assert not (snap / "features" / f"{kind}.{derived}.npy").exists()
-        assert _snapshot_npy(snap, f"features/{kind}.keypoints_px.npy").dtype == np.float32
         assert _snapshot_npy(snap, f"features/{kind}.levels.npy").dtype == np.int8
-    landmark_dtypes = {"obs_offsets": np.int32, "obs_keyframe": np.int32, "obs_kind": np.int8,
-                       "obs_keypoint": np.int16, "ids": np.int64, "points_world": np.float64}
+    assert _snapshot_npy(snap, "features/sift.keypoints_px.npy").dtype == np.float32
+    # ORB's keypoints are integer pixels of their level times its scale: int16 and a table
+    assert not (snap / "features" / "orb.keypoints_px.npy").exists()
+    assert _snapshot_npy(snap, "features/orb.keypoints_level_px.npy").dtype == np.int16
+    assert _snapshot_npy(snap, "features/orb.keypoint_scales_by_level.npy").shape == (8, 2)
+    # ORB's angles: read by nothing after extraction, not saved, loaded as OpenCV's "none"
+    assert not (snap / "features" / "orb.angles.npy").exists()
+    assert (snap / "features" / "sift.angles.npy").is_file()
+    landmark_dtypes = {"obs_offsets": np.int32, "obs_keyframe": np.int16, "obs_kind": np.int8,
+                       "obs_keypoint": np.int16, "ids": np.int32, "anchored_points_world":
+                       np.float32, "depth_sigmas_m": np.float32}
+    assert not (snap / "landmarks" / "points_world.npy").exists()
     for name, dtype in landmark_dtypes.items():
         assert _snapshot_npy(snap, f"landmarks/{name}.npy").dtype == dtype, name
     # ORB's size is its level's (31 px times the scale); SIFT's varies within an octave
@@ -454,6 +511,8 @@ def test_format_3_stores_narrow_columns_and_no_derived_points(tmp_path, rich_sta
     assert (snap / "features" / "sift.sizes.npy").is_file()
     state, _ = load_map(tmp_path)
     _assert_states_equal(rich_state, state)
+    assert np.all(state.keyframes[1].features["orb"].angles == -1.0)
+    assert np.any(rich_state.keyframes[1].features["orb"].angles != -1.0)
     feats = state.keyframes[1].features["sift"]
     has = feats.landmark_ids >= 0
     assert has.any() and np.isnan(feats.points_world[~has]).all()
@@ -479,6 +538,22 @@ def test_points_that_are_not_the_landmarks_are_stored(tmp_path, synthetic_map):
                           feats.points_world[i] + 0.5)
 
 
+def test_orb_keypoints_off_their_level_grid_stay_float32(tmp_path, rich_state):
+    """A client's keypoints (described where given) are not level pixels times a scale: that
+    map keeps the float32 column, exactly."""
+    from reloc_service.features import compute_at
+
+    kmap = KeyframeMap()
+    kmap.replace_state(rich_state)
+    kf = rich_state.keyframes[1]
+    given, _ = compute_at(kf.image, "orb", kf.features["orb"].keypoints_px[:50] + 0.25)
+    kmap.add_keyframe(kf.with_features("orb", given))
+    snap = save_map(kmap.snapshot(), tmp_path)
+    assert _snapshot_npy(snap, "features/orb.keypoints_px.npy").dtype == np.float32
+    assert not (snap / "features" / "orb.keypoints_level_px.npy").exists()
+    _assert_states_equal(kmap.snapshot(), load_map(tmp_path)[0])
+
+
 def test_keypoints_that_are_not_float32_values_stay_float64(tmp_path, synthetic_map):
     from reloc_service.frame import Features
 
@@ -495,6 +570,8 @@ def test_keypoints_that_are_not_float32_values_stay_float64(tmp_path, synthetic_
 
 
 @pytest.mark.parametrize("rel", ["features/sift.keypoints_px.npy", "features/orb.sizes_by_level.npy",
+                                 "features/orb.keypoints_level_px.npy",
+                                 "features/orb.keypoint_scales_by_level.npy",
                                  "features/sift.descriptors.npy"])
 def test_a_flipped_bit_in_a_format_3_column_fails_the_load(tmp_path, rich_state, rel):
     snap = save_map(rich_state, tmp_path)
@@ -524,9 +601,28 @@ def test_format_2_snapshots_are_read(tmp_path):
         assert "sbi:40x30:2.5" in state.keyframes[k].cache
     assert sorted(state.landmarks) == sorted(v1.landmarks)
     snap = save_map(state, tmp_path)
-    assert json.loads((snap / "manifest.json").read_text())["format_version"] == 3
+    assert json.loads((snap / "manifest.json").read_text())["format_version"] == 4
     again, _ = load_map(tmp_path)
     _assert_states_equal(state, again)
+
+
+V3_MAP = Path(__file__).parent / "data" / "map_v3"
+
+
+def test_format_3_snapshots_are_read(tmp_path):
+    """A snapshot written by format 3 (made by that version's code from the format-2 fixture:
+    float64 landmark points, int64 ids; kept in tests/data) loads as the format-2 one, and
+    saves as format 4."""
+    manifest = json.loads((V3_MAP / "snapshots" / "000001" / "manifest.json").read_text())
+    assert manifest["format_version"] == 3
+    v2, _ = load_map(V2_MAP)
+    state, _ = load_map(V3_MAP)
+    _assert_states_equal(v2, state)
+    assert np.array_equal(state.landmark_points(sorted(v2.landmarks)),
+                          v2.landmark_points(sorted(v2.landmarks)))
+    snap = save_map(state, tmp_path)
+    assert json.loads((snap / "manifest.json").read_text())["format_version"] == 4
+    _assert_states_equal(state, load_map(tmp_path)[0])
 
 
 def test_saving_a_loaded_map_copies_its_columns_without_building_features(tmp_path, rich_state):
@@ -537,6 +633,10 @@ def test_saving_a_loaded_map_copies_its_columns_without_building_features(tmp_pa
     first = current_snapshot(tmp_path / "a")
     for path in sorted((first / "features").iterdir()):
         assert (snap / "features" / path.name).read_bytes() == path.read_bytes(), path.name
+    # rounding happens once: the loaded float32 landmark geometry saves to the same bytes
+    for path in sorted((first / "landmarks").iterdir()):
+        assert (snap / "landmarks" / path.name).read_bytes() == path.read_bytes(), path.name
+    assert (first / "landmarks" / "anchored_points_world.npy").is_file()
     _assert_states_equal(rich_state, load_map(tmp_path / "b")[0])
 
 
