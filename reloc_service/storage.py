@@ -42,15 +42,12 @@ One process writes a map directory at a time.
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
-import mmap
 import os
 import re
-import shutil
 from collections.abc import Callable, Mapping
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -74,21 +71,29 @@ from .feature_columns import (
     kind_columns,
     narrowest,
 )
-from .fileio import atomic_write, fsync_path
+from .fileio import fsync_path
 from .frame import SIFT_DIM, EncodedImage, Features, Keyframe
 from .landmark_codec import ANCHORED_POINTS, WidenedColumn, anchored_points, encode_geometry
 from .map import Landmark, LandmarkColumns, LandmarkTable, MapState
+from .snapshot_files import (
+    CURRENT_FILE,
+    MANIFEST_FILE,
+    SNAPSHOTS_DIR,
+    SnapshotReader,
+    SnapshotWriter,
+    current_or_none,
+    current_snapshot,
+    fsync_tree,
+    new_snapshot_dir,
+    prune_snapshots,
+    switch_current,
+)
 
 FORMAT = "reloc map"
 FORMAT_VERSION = 4
 #: Older format versions this reloc still reads.
 READABLE_VERSIONS = (1, 2, 3, 4)
-CURRENT_FILE = "CURRENT"
-SNAPSHOTS_DIR = "snapshots"
-MANIFEST_FILE = "manifest.json"
 MODELS_DIR = "models"
-#: Snapshots kept after a save: the new one and the one it replaced.
-KEEP_SNAPSHOTS = 2
 
 FEATURE_FIELDS = ("keypoints_px", "levels", "sizes", "angles", "descriptors", "landmark_ids",
                   "points_world")
@@ -122,39 +127,6 @@ def model_dir_name(method: str) -> str:
 
 # -- writing ----------------------------------------------------------------------------------
 
-class _SnapshotWriter:
-    """Writes files into a new snapshot directory, fsynced, recording their checksums."""
-
-    def __init__(self, root: Path) -> None:
-        self.root = root
-        self.files: dict[str, dict[str, Any]] = {}
-
-    def write(self, relpath: str, data: bytes) -> str:
-        path = self.root / relpath
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        self.files[relpath] = {"sha256": hashlib.sha256(data).hexdigest(), "size": len(data)}
-        return relpath
-
-    def record_tree(self, relroot: str) -> None:
-        """Checksum (and fsync) every file written by someone else under ``relroot``."""
-        for path in sorted((self.root / relroot).rglob("*")):
-            if path.is_file():
-                data = path.read_bytes()
-                fsync_path(path)
-                rel = path.relative_to(self.root).as_posix()
-                self.files[rel] = {"sha256": hashlib.sha256(data).hexdigest(), "size": len(data)}
-
-
-def _fsync_tree(root: Path) -> None:
-    """fsync every directory under ``root`` (and ``root``), so new entries are durable."""
-    for path in [root, *sorted(p for p in root.rglob("*") if p.is_dir())]:
-        fsync_path(path)
-
-
 def _npy_bytes(array: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, array, allow_pickle=False)
@@ -177,7 +149,7 @@ def _png_bytes(image: npt.NDArray[np.uint8]) -> bytes:
     return buf.tobytes()
 
 
-def _write_keyframe(writer: _SnapshotWriter, kf: Keyframe,
+def _write_keyframe(writer: SnapshotWriter, kf: Keyframe,
                     rows: Mapping[str, tuple[int, int]]) -> dict[str, Any]:
     """The manifest entry of ``kf`` (its image and depth written; features by row range)."""
     ext, data = _image_file(kf)
@@ -204,7 +176,7 @@ def _feature_rows(keyframes: list[Keyframe]) -> dict[int, dict[str, tuple[int, i
     return out
 
 
-def _write_features(writer: _SnapshotWriter, keyframes: list[Keyframe], state: MapState,
+def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: MapState,
                     landmarks: LandmarkColumns,
                     rows: Mapping[int, Mapping[str, tuple[int, int]]]) -> None:
     """One ``.npy`` per kind and stored column (:func:`.feature_columns.kind_columns`)."""
@@ -215,7 +187,7 @@ def _write_features(writer: _SnapshotWriter, keyframes: list[Keyframe], state: M
             writer.write(f"features/{kind}.{name}.npy", _npy_bytes(column))
 
 
-def _write_thumbnails(writer: _SnapshotWriter, keyframes: list[Keyframe]) -> list[str]:
+def _write_thumbnails(writer: SnapshotWriter, keyframes: list[Keyframe]) -> list[str]:
     """Small blurry images every keyframe already has (same cache key), one file per key."""
     if not keyframes:
         return []
@@ -231,7 +203,7 @@ def _thumbnail_path(key: str) -> str:
     return f"thumbnails/{re.sub(r'[^A-Za-z0-9._-]', '_', key)}.npy"
 
 
-def _write_landmarks(writer: _SnapshotWriter, columns: LandmarkColumns,
+def _write_landmarks(writer: SnapshotWriter, columns: LandmarkColumns,
                      keyframes: Mapping[int, Keyframe]) -> dict[str, Any]:
     """The landmark columns: ids and observation indices in the narrowest exact integer
     type, points and sigmas float32 where :func:`encode_geometry` allows."""
@@ -243,60 +215,15 @@ def _write_landmarks(writer: _SnapshotWriter, columns: LandmarkColumns,
     return {"dir": "landmarks", "kinds": list(columns.kinds)}
 
 
-def _new_snapshot_dir(directory: Path) -> Path:
-    """Create ``snapshots/<n>`` with n above every existing snapshot (atomic mkdir)."""
-    snaps = directory / SNAPSHOTS_DIR
-    snaps.mkdir(parents=True, exist_ok=True)
-    numbers = [int(p.name) for p in snaps.iterdir() if p.name.isdigit()]
-    n = max(numbers, default=0) + 1
-    while True:
-        path = snaps / f"{n:06d}"
-        try:
-            path.mkdir()
-            return path
-        except FileExistsError:
-            n += 1
-
-
-def _switch_current(directory: Path, snapshot: Path) -> None:
-    """Atomically point ``CURRENT`` at ``snapshot`` (write, fsync, rename, fsync directory)."""
-    atomic_write(directory / CURRENT_FILE, snapshot.relative_to(directory).as_posix() + "\n")
-
-
-def _prune(directory: Path, keep: Path, previous: Path | None) -> None:
-    """Remove the snapshots the new one ``keep`` was built from, except ``previous`` (kept as
-    a fallback): those numbered below ``previous``, and debris of crashed saves between the
-    two (no manifest). Without a ``previous`` (``CURRENT`` was missing) nothing is removed:
-    the new state was not built from the snapshots present, so they may hold what it lacks."""
-    if previous is None:
-        return
-    floor = int(previous.name)
-    for path in snapshot_dirs(directory):
-        number = int(path.name)
-        if path in (keep, previous) or number > int(keep.name):
-            continue
-        if number < floor or not (path / MANIFEST_FILE).is_file():
-            shutil.rmtree(path, ignore_errors=True)
-
-
-def snapshot_dirs(directory: str | Path) -> list[Path]:
-    """The numbered snapshot directories of map directory ``directory``, oldest first."""
-    snaps = Path(directory) / SNAPSHOTS_DIR
-    if not snaps.is_dir():
-        return []
-    return sorted((p for p in snaps.iterdir() if p.name.isdigit() and p.is_dir()),
-                  key=lambda p: int(p.name))
-
-
 def save_map(state: MapState, directory: str | Path, *,
              models: Mapping[str, ModelWriter] | None = None) -> Path:
     """Save ``state`` (and models: method -> writer called with its own empty directory) as a
     new snapshot of map directory ``directory``; returns the snapshot path."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    previous = _current_or_none(directory)
-    snapshot = _new_snapshot_dir(directory)
-    writer = _SnapshotWriter(snapshot)
+    previous = current_or_none(directory)
+    snapshot = new_snapshot_dir(directory)
+    writer = SnapshotWriter(snapshot)
     # insertion order, kept by load_map: a replica copies the map in the order it was built
     kfs = list(state.keyframes.values())
     rows = _feature_rows(kfs)
@@ -318,146 +245,14 @@ def save_map(state: MapState, directory: str | Path, *,
                 "models": model_dirs,
                 "files": writer.files}
     writer.write(MANIFEST_FILE, json.dumps(manifest, indent=1).encode("utf-8"))
-    _fsync_tree(snapshot)
+    fsync_tree(snapshot)
     fsync_path(snapshot.parent)
-    _switch_current(directory, snapshot)
-    _prune(directory, snapshot, previous)
+    switch_current(directory, snapshot)
+    prune_snapshots(directory, snapshot, previous)
     return snapshot
 
 
 # -- reading ----------------------------------------------------------------------------------
-
-def _current_or_none(directory: Path) -> Path | None:
-    try:
-        return current_snapshot(directory)
-    except StorageError:
-        return None
-
-
-def current_snapshot(directory: str | Path) -> Path:
-    """The snapshot directory ``CURRENT`` names; StorageError if there is none."""
-    directory = Path(directory)
-    current = directory / CURRENT_FILE
-    if not current.is_file():
-        raise StorageError(f"{directory}: no saved map (missing {CURRENT_FILE}); expected a "
-                           f"directory written by save_map")
-    text = current.read_text(encoding="utf-8", errors="replace").strip()
-    if not re.fullmatch(rf"{SNAPSHOTS_DIR}/\d+", text):
-        raise StorageError(f"{current}: expected '{SNAPSHOTS_DIR}/<number>', got {text[:80]!r}")
-    snapshot = directory / text
-    if not snapshot.is_dir():
-        raise StorageError(f"{current}: names {text!r}, which does not exist")
-    return snapshot
-
-
-class _SnapshotReader:
-    """Reads files of a snapshot, checking size and SHA-256 against the manifest."""
-
-    def __init__(self, root: Path, files: Mapping[str, Any]) -> None:
-        self.root = root
-        self.files = files
-        self._pending: dict[str, Future[npt.NDArray[np.uint8]]] = {}
-
-    def prefetch(self, pool: ThreadPoolExecutor, relpaths: list[str]) -> None:
-        """Start mapping and checking ``relpaths`` on ``pool``: hashlib hashes without the
-        GIL, so the 1000 images of a big map hash on the other cores while this thread builds
-        keyframes; ``map``/``check`` wait for a file's own check (and raise its error)."""
-        for rel in relpaths:
-            self._pending[rel] = pool.submit(self._map, rel)
-
-    def wait_all(self) -> None:
-        """Every prefetched file checked (the first damaged one in order raises)."""
-        for future in self._pending.values():
-            future.result()
-
-    def read(self, relpath: str) -> bytes:
-        path = self.root / relpath
-        expected = self.files.get(relpath)
-        if not isinstance(expected, dict) or "sha256" not in expected:
-            raise StorageError(f"{path}: not listed with a checksum in {MANIFEST_FILE}")
-        try:
-            data = path.read_bytes()
-        except OSError as exc:
-            raise StorageError(f"{path}: cannot read ({exc.strerror}); the map is damaged") from exc
-        if len(data) != expected.get("size", len(data)):
-            raise StorageError(f"{path}: {len(data)} bytes, expected {expected['size']} "
-                               f"(truncated or damaged)")
-        digest = hashlib.sha256(data).hexdigest()
-        if digest != expected["sha256"]:
-            raise StorageError(f"{path}: checksum mismatch (sha256 {digest[:12]}..., expected "
-                               f"{str(expected['sha256'])[:12]}...); the file is damaged")
-        return data
-
-    def check(self, relpath: str) -> Path:
-        """``relpath``'s path after checking its size and SHA-256 (hashed from a memory map,
-        nothing copied or kept)."""
-        self.map(relpath)
-        return self.root / relpath
-
-    def map(self, relpath: str) -> npt.NDArray[np.uint8]:
-        """``relpath``'s bytes memory-mapped read-only after checking them (see ``_map``)."""
-        future = self._pending.get(relpath)
-        return self._map(relpath) if future is None else future.result()
-
-    def _map(self, relpath: str) -> npt.NDArray[np.uint8]:
-        """``relpath``'s bytes memory-mapped read-only after checking their size and SHA-256.
-        One open and no copy: hashing the mapping instead of read() chunks halves the load
-        time of a big map (reads copied every byte once more before hashing it)."""
-        path = self.root / relpath
-        expected = self.files.get(relpath)
-        if not isinstance(expected, dict) or "sha256" not in expected:
-            raise StorageError(f"{path}: not listed with a checksum in {MANIFEST_FILE}")
-        try:
-            with open(path, "rb") as fh:
-                size = os.fstat(fh.fileno()).st_size
-                mapped = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) if size else None
-        except OSError as exc:
-            raise StorageError(f"{path}: cannot read ({exc.strerror}); the map is damaged") from exc
-        if size != expected.get("size", size):
-            raise StorageError(f"{path}: {size} bytes, expected {expected['size']} "
-                               f"(truncated or damaged)")
-        digest = hashlib.sha256(mapped if mapped is not None else b"").hexdigest()
-        if mapped is not None:
-            # hashing touched every page: drop them from this process (they stay in the page
-            # cache) so a kept mapping costs resident memory only once its bytes are used
-            mapped.madvise(mmap.MADV_DONTNEED)
-        data = np.frombuffer(mapped, np.uint8) if mapped is not None else np.zeros(0, np.uint8)
-        if digest != expected["sha256"]:
-            raise StorageError(f"{path}: checksum mismatch (sha256 {digest[:12]}..., "
-                               f"expected {str(expected['sha256'])[:12]}...); the file is damaged")
-        return data
-
-    def npy(self, relpath: str) -> np.ndarray:
-        """The checked array of ``relpath``, memory-mapped read-only (a plain array when it
-        has no element: an empty map cannot be mapped)."""
-        path = self.check(relpath)
-        try:
-            array = np.load(path, mmap_mode="r", allow_pickle=False)
-        except ValueError as exc:
-            try:
-                array = np.load(path, allow_pickle=False)
-            except (ValueError, OSError, EOFError):
-                raise StorageError(f"{path}: not a readable .npy ({exc})") from exc
-        return array
-
-    def npz(self, relpath: str, fields: tuple[str, ...], *, optional: tuple[str, ...] = ()
-            ) -> dict[str, np.ndarray]:
-        """The arrays ``fields`` (all required) and those of ``optional`` that are present."""
-        try:
-            with np.load(io.BytesIO(self.read(relpath)), allow_pickle=False) as data:
-                missing = [f for f in fields if f not in data.files]
-                if missing:
-                    raise StorageError(f"{self.root / relpath}: missing array(s) {missing}; "
-                                       f"expected {list(fields)}")
-                return {f: data[f] for f in (*fields, *optional) if f in data.files}
-        except (ValueError, OSError, EOFError) as exc:
-            raise StorageError(f"{self.root / relpath}: not a readable .npz ({exc})") from exc
-
-    def verify_tree(self, relroot: str) -> None:
-        for rel in self.files:
-            if rel.startswith(relroot + "/"):
-                self.read(rel)
-
 
 def _read_manifest(snapshot: Path) -> dict[str, Any]:
     path = snapshot / MANIFEST_FILE
@@ -488,7 +283,7 @@ def _read_manifest(snapshot: Path) -> dict[str, Any]:
     return manifest
 
 
-def _read_image(reader: _SnapshotReader, relpath: str) -> npt.NDArray[np.uint8]:
+def _read_image(reader: SnapshotReader, relpath: str) -> npt.NDArray[np.uint8]:
     data = np.frombuffer(reader.read(relpath), np.uint8)
     image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if image is None or image.ndim != 2 or image.dtype != np.uint8:
@@ -496,7 +291,7 @@ def _read_image(reader: _SnapshotReader, relpath: str) -> npt.NDArray[np.uint8]:
     return np.asarray(image, dtype=np.uint8)
 
 
-def _read_keyframe(reader: _SnapshotReader, entry: Mapping[str, Any]) -> Keyframe:
+def _read_keyframe(reader: SnapshotReader, entry: Mapping[str, Any]) -> Keyframe:
     where = f"{reader.root / MANIFEST_FILE}: keyframe {entry.get('id')!r}"
     try:
         features = {}
@@ -529,7 +324,7 @@ def _compact_descriptors(descriptors: np.ndarray) -> np.ndarray:
     return d
 
 
-def _read_landmarks(reader: _SnapshotReader, relpath: str,
+def _read_landmarks(reader: SnapshotReader, relpath: str,
                     keyframes: Mapping[int, Keyframe]) -> dict[int, Landmark]:
     a = reader.npz(relpath, LANDMARK_FIELDS, optional=OPTIONAL_LANDMARK_FIELDS)
     where = reader.root / relpath
@@ -579,8 +374,8 @@ def _check_observations(where: Path, a: Mapping[str, np.ndarray], kinds: list[st
                            f"outside [0, {int(size[i])})")
 
 
-def _read_keyframes(reader: _SnapshotReader, manifest: Mapping[str, Any],
-                    read: Callable[[_SnapshotReader, Mapping[str, Any]], Keyframe]
+def _read_keyframes(reader: SnapshotReader, manifest: Mapping[str, Any],
+                    read: Callable[[SnapshotReader, Mapping[str, Any]], Keyframe]
                     ) -> dict[int, Keyframe]:
     keyframes: dict[int, Keyframe] = {}
     for entry in manifest["keyframes"]:
@@ -596,7 +391,7 @@ class _FeatureColumns:
     (format 3: narrow columns without derived points, built per keyframe on first use;
     :mod:`.feature_columns`)."""
 
-    def __init__(self, reader: _SnapshotReader, manifest: Mapping[str, Any]) -> None:
+    def __init__(self, reader: SnapshotReader, manifest: Mapping[str, Any]) -> None:
         kinds = sorted({k for e in manifest["keyframes"] for k in dict(e.get("features", {}))})
         self.lazy = manifest["format_version"] >= 3
         self.columns: dict[str, dict[str, np.ndarray]] = {}
@@ -641,7 +436,7 @@ class _FeatureColumns:
         except MapError as exc:
             raise StorageError(f"features: {exc}") from exc
 
-    def keyframe(self, reader: _SnapshotReader, entry: Mapping[str, Any]) -> Keyframe:
+    def keyframe(self, reader: SnapshotReader, entry: Mapping[str, Any]) -> Keyframe:
         where = f"{reader.root / MANIFEST_FILE}: keyframe {entry.get('id')!r}"
         try:
             features = self._keyframe_features(int(entry["id"]), dict(entry["features"]))
@@ -689,7 +484,7 @@ class _FeatureColumns:
         return start, stop
 
 
-def _size_table(reader: _SnapshotReader, relpath: str) -> np.ndarray:
+def _size_table(reader: SnapshotReader, relpath: str) -> np.ndarray:
     """A (K, 2) float32 table of (level ascending, value): sizes or scales by level."""
     table = np.asarray(reader.npy(relpath))
     if table.ndim != 2 or table.shape[1] != 2 or table.dtype != np.float32 or np.any(
@@ -699,7 +494,7 @@ def _size_table(reader: _SnapshotReader, relpath: str) -> np.ndarray:
     return table
 
 
-def _attach_thumbnails(reader: _SnapshotReader, manifest: Mapping[str, Any],
+def _attach_thumbnails(reader: SnapshotReader, manifest: Mapping[str, Any],
                        keyframes: list[Keyframe]) -> None:
     """Put the saved small blurry images back into the keyframes' caches."""
     for key in manifest.get("thumbnails", []):
@@ -720,7 +515,7 @@ def _widened(column: np.ndarray, dtype: Any) -> np.ndarray:
     return wide
 
 
-def _read_landmark_columns(reader: _SnapshotReader, manifest: Mapping[str, Any],
+def _read_landmark_columns(reader: SnapshotReader, manifest: Mapping[str, Any],
                            keyframes: Mapping[int, Keyframe]) -> LandmarkColumns:
     meta = manifest["landmarks"]
     where = reader.root / "landmarks"
@@ -759,7 +554,7 @@ def load_map(directory: str | Path) -> tuple[MapState, Path | None]:
     StorageError naming the file if the map is missing, damaged or from a newer version."""
     snapshot = current_snapshot(directory)
     manifest = _read_manifest(snapshot)
-    reader = _SnapshotReader(snapshot, manifest["files"])
+    reader = SnapshotReader(snapshot, manifest["files"])
     if manifest["format_version"] == 1:
         keyframes = _read_keyframes(reader, manifest, _read_keyframe)
         landmarks = LandmarkTable.from_mapping(
@@ -794,7 +589,7 @@ def verify_snapshot(snapshot: str | Path) -> int:
     number of files checked. StorageError naming the first damaged or missing file."""
     snapshot = Path(snapshot)
     manifest = _read_manifest(snapshot)
-    reader = _SnapshotReader(snapshot, manifest["files"])
+    reader = SnapshotReader(snapshot, manifest["files"])
     for rel in manifest["files"]:
         reader.read(rel)
     return len(manifest["files"])
@@ -811,7 +606,7 @@ def restore_current(directory: str | Path, snapshot: str | Path) -> Path:
     if not path.is_dir():
         raise StorageError(f"{path}: does not exist")
     verify_snapshot(path)
-    _switch_current(directory, path)
+    switch_current(directory, path)
     return path
 
 

@@ -14,8 +14,8 @@ CLIENT = ROOT / "clients" / "reloc_client"
 
 #: The core's lower half: data types and I/O, below the algorithms and the engine.
 BASE = {"errors", "geometry", "cameras", "frame", "map", "triangulation", "landmarks", "features",
-        "hamming", "storage", "feature_columns", "landmark_codec", "plugins", "progress", "mapping",
-        "fileio", "numeric"}
+        "hamming", "storage", "snapshot_files", "feature_columns", "landmark_codec", "plugins",
+        "progress", "mapping", "fileio", "numeric"}
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reloc_service import storage
+from reloc_service import snapshot_files, storage
 from reloc_service.errors import StorageError
 from reloc_service.feature_columns import ANGLELESS_KINDS, NO_ANGLE, LazyFeatures
 from reloc_service.frame import EncodedImage, Keyframe
@@ -187,15 +187,15 @@ def test_crash_before_the_switch_keeps_the_previous_snapshot(tmp_path, synthetic
     if when == "switch":
         monkeypatch.setattr(storage.os, "replace", boom)
     else:
-        real_write = storage._SnapshotWriter.write
+        real_write = snapshot_files.SnapshotWriter.write
 
         def write(self, relpath, data):
-            if relpath == storage.MANIFEST_FILE:
+            if relpath == snapshot_files.MANIFEST_FILE:
                 real_write(self, relpath, data[: len(data) // 2])
                 raise OSError("crash while writing the manifest")
             return real_write(self, relpath, data)
 
-        monkeypatch.setattr(storage._SnapshotWriter, "write", write)
+        monkeypatch.setattr(snapshot_files.SnapshotWriter, "write", write)
     with pytest.raises(OSError):
         save_map(synthetic_map, tmp_path)
     monkeypatch.undo()
@@ -447,9 +447,9 @@ def test_a_save_without_current_deletes_no_snapshot(tmp_path, synthetic_map):
     new = save_map(_tiny_state(synthetic_map, 0), tmp_path)
     assert old.is_dir()
     assert storage.verify_snapshot(old) > 0
-    assert [p.name for p in storage.snapshot_dirs(tmp_path)] == [old.name, new.name]
+    assert [p.name for p in snapshot_files.snapshot_dirs(tmp_path)] == [old.name, new.name]
     newest = save_map(_tiny_state(synthetic_map, 1), tmp_path)   # CURRENT back: ancestors go
-    assert [p.name for p in storage.snapshot_dirs(tmp_path)] == [new.name, newest.name]
+    assert [p.name for p in snapshot_files.snapshot_dirs(tmp_path)] == [new.name, newest.name]
 
 
 def test_restore_current_verifies_the_snapshot_first(tmp_path, synthetic_map):

@@ -35,7 +35,8 @@ from ..cameras import Camera, camera_from_dict
 from ..engine import Engine, EngineConf
 from ..errors import CameraError, StorageError
 from ..fileio import atomic_write
-from ..storage import CURRENT_FILE, restore_current, snapshot_dirs
+from ..snapshot_files import CURRENT_FILE, snapshot_dirs
+from ..storage import restore_current
 from .journal import Journal, JournalReport
 
 log = logging.getLogger(__name__)

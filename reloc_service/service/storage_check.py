@@ -10,7 +10,8 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import StorageError
-from ..storage import CURRENT_FILE, current_snapshot, snapshot_dirs, verify_snapshot
+from ..snapshot_files import CURRENT_FILE, current_snapshot, snapshot_dirs
+from ..storage import verify_snapshot
 from .durability import SERVICE_FILE, read_service_file
 from .journal import QUARANTINE_DIR, Journal, scan_segment, segment_name
 
