@@ -1,4 +1,5 @@
-"""Random ferns (thesis 3.2): a classifier with sparse counts and its warped training samples."""
+"""Random ferns (thesis 3.2): a classifier with sparse counts, its warped training samples, and
+the region models the ferns relocalizer trains incrementally."""
 
 from .classifier import FernClassifier, FernConf, FernScorer, FernTests
 from .training import WarpConf, Warps, draw_warps, extract_patches, prepare_image, sample_leaves

@@ -2,9 +2,10 @@
 classifier trained on warped views of their observations; query keypoints are classified into
 2D-3D correspondences and the pose comes from P3P LO-RANSAC, then the shared verification.
 
-Training is exact and incremental: every trained observation ``(keyframe, keypoint, landmark)``
-is recorded, its samples are a function of the keyframe image and ``(seed, keyframe id, warp)``
-only, so a keyframe (or a landmark) leaving the map subtracts exactly what it added.
+Training is exact and incremental (:mod:`reloc_service.ferns.models`): every trained
+observation ``(keyframe, keypoint, landmark)`` is recorded, its samples are a function of the
+keyframe image and ``(seed, keyframe id, warp)`` only, so a keyframe (or a landmark) leaving the
+map subtracts exactly what it added.
 
 Scale (thesis 5.2.2: 1730 classes already strain one model): at most ``max_classes`` classes
 per model, either the most observed landmarks in one model (``partition = "select"``) or one
@@ -27,22 +28,18 @@ region's classes are computed once, whatever the number of attempts.
 Threads. No lock: training, updates and load run behind the engine (under its write lock, or
 on a fresh relocalizer built off-line and swapped in), never during a query; save runs beside
 queries and, like them, only reads. Queries may run concurrently; they read the published
-models (:class:`_Published`, replaced whole after each update) and write only the landmark
-lookup table of :meth:`FernsRelocalizer._landmark_points`: one tuple, read and replaced whole,
-and every concurrent query pins the same map version, so racing queries at most build the
-same table twice.
+models (:class:`~reloc_service.ferns.models.Published`, replaced whole after each update) and
+write only the landmark lookup table of :meth:`FernsRelocalizer._landmark_points`: one tuple,
+read and replaced whole, and every concurrent query pins the same map version, so racing
+queries at most build the same table twice.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import time
-import zlib
-from collections import Counter, deque
-from collections.abc import Iterable, Iterator, Mapping
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -54,7 +51,8 @@ import numpy.typing as npt
 from ..errors import ConfigError, NotTrainedError, StorageError
 from ..features import FEATURE_KINDS
 from ..ferns.classifier import FernClassifier, FernConf, FernScorer, FernTests
-from ..ferns.training import WarpConf, draw_warps, prepare_image, sample_leaves
+from ..ferns.models import FernModels, ModelsConf, Published
+from ..ferns.training import WarpConf, prepare_image
 from ..fileio import atomic_write
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap, MapState
@@ -63,7 +61,6 @@ from ..place.sbi import SmallBlurryImageFinder
 from ..plugins import make_conf
 from ..pose.base import PoseEstimate
 from ..pose.p3p import PnPConf, solve_pnp_indexed
-from ..progress import progress
 from .base import Prior, Relocalizer, RelocResult, VerifyConf, register, result_from_estimate
 
 Array = npt.NDArray[np.float64]
@@ -154,51 +151,18 @@ class FernsConf:
         return FernConf(self.num_ferns, self.num_tests, self.patch_size, self.regularization,
                         self.seed)
 
+    def models_conf(self) -> ModelsConf:
+        """What :class:`~reloc_service.ferns.models.FernModels` needs of these options."""
+        return ModelsConf(kind=self.kind, partition=self.partition, max_classes=self.max_classes,
+                          num_warps=self.num_warps, workers=self.workers, fern=self.fern_conf(),
+                          warp=self.warp_conf(), seed=self.seed)
+
     def warp_conf(self) -> WarpConf:
         return WarpConf(num_warps=self.num_warps, include_identity=True,
                         max_rotation_rad=self.max_rotation_rad, min_scale=self.min_scale,
                         max_scale=self.max_scale, affine=self.affine,
                         max_noise_sigma=self.max_noise_sigma, max_blur_sigma=self.max_blur_sigma,
                         smoothing_sigma=self.smoothing_sigma, seed=self.seed)
-
-
-@dataclass(frozen=True, eq=False)
-class _Observations:
-    """Trained (or to be trained) observations of one keyframe: keypoint indices (n,) into
-    ``keyframe.features[kind]`` and their landmark ids (n,)."""
-
-    keyframe: Keyframe
-    kp_idx: IntArray
-    landmark_ids: IntArray
-
-    def subset(self, mask: npt.NDArray[np.bool_]) -> _Observations:
-        return _Observations(self.keyframe, self.kp_idx[mask], self.landmark_ids[mask])
-
-    def landmark_at(self, num_keypoints: int) -> IntArray:
-        """(num_keypoints,) landmark id of each keypoint, -1 where none is recorded."""
-        out = np.full(num_keypoints, -1, np.int64)
-        out[self.kp_idx] = self.landmark_ids
-        return out
-
-
-@dataclass(eq=False)
-class _Region:
-    """One model: its classifier, the keyframes of its region and their mean position."""
-
-    classifier: FernClassifier
-    keyframe_ids: set[int]
-    centre_world: Array
-
-
-@dataclass(frozen=True, eq=False)
-class _Published:
-    """What queries read, swapped atomically after each update: one scorer per region, the
-    keyframes of each region and, per keyframe, the fraction of its trained landmarks each
-    region learned ((R,) summing to 1)."""
-
-    scorers: tuple[FernScorer, ...]
-    region_keyframes: tuple[frozenset[int], ...]
-    landmark_regions: Mapping[int, Array] = dataclasses.field(default_factory=dict)
 
 
 @dataclass(eq=False)
@@ -225,13 +189,12 @@ class FernsRelocalizer(Relocalizer):
         self.verify_conf = verify_conf or VerifyConf()
         self.pnp_conf = pnp_conf or PnPConf()
         self._tests = FernTests(self.conf.fern_conf())
-        self._warp_conf = self.conf.warp_conf()
         self._points_cache: tuple[int, IntArray, Array] = (-1, np.zeros(0, np.int64),
                                                            np.zeros((0, 3)))
         # The place prior's own index of the keyframes (cheap: 40x30 floats per keyframe),
         # kept in step with the map by add_keyframe / remove_keyframe / train / load.
         self._places = SmallBlurryImageFinder(kmap, SmallBlurryImageFinder.Conf())
-        self._reset()
+        self._models = FernModels(self.conf.models_conf(), self._tests)
         self._ever_trained = False
 
     @classmethod
@@ -276,16 +239,15 @@ class FernsRelocalizer(Relocalizer):
 
     def train(self, *, progress: bool = False) -> None:
         """Rebuild every model from the current map: partition, then train all observations."""
-        state = self.map.snapshot()
-        self._reset()
+        models = FernModels(self.conf.models_conf(), self._tests)
         self._places.train()
-        self._partition(state)
-        self._sync(state, show_progress=progress)
+        models.train(self.map.snapshot(), show_progress=progress)
+        self._models = models
         self._ever_trained = True
 
     def update(self, *, show_progress: bool = False) -> None:
         """Bring the models in line with the current map (adds and removes exactly)."""
-        self._sync(self.map.snapshot(), show_progress=show_progress)
+        self._models.update(self.map.snapshot(), show_progress=show_progress)
 
     @property
     def tests(self) -> FernTests:
@@ -295,205 +257,30 @@ class FernsRelocalizer(Relocalizer):
     @property
     def scorers(self) -> tuple[FernScorer, ...]:
         """The published models (one per region), as queries see them."""
-        return self._published.scorers
+        return self._models.published.scorers
 
     @property
     def regions(self) -> tuple[frozenset[int], ...]:
         """The keyframe ids of each model's region (one region in "select" mode)."""
-        return self._published.region_keyframes
+        return self._models.published.region_keyframes
 
     @property
     def classifiers(self) -> tuple[FernClassifier, ...]:
         """The trainable models, one per region (do not modify them directly)."""
-        return tuple(r.classifier for r in self._regions)
+        return self._models.classifiers
 
     @property
     def num_classes(self) -> int:
         """Landmarks trained, over all models."""
-        return sum(s.num_classes for s in self._published.scorers)
+        return sum(s.num_classes for s in self._models.published.scorers)
 
     def model_nbytes(self) -> int:
         """Bytes held by the classifiers (sparse counts, classes, tests)."""
-        return sum(r.classifier.nbytes() for r in self._regions)
+        return self._models.nbytes()
 
     def trained_observations(self) -> set[tuple[int, int, int]]:
         """Every trained ``(landmark id, keyframe id, keypoint index)``."""
-        return {(int(lm), kf_id, int(i)) for kf_id, obs in self._trained.items()
-                for i, lm in zip(obs.kp_idx, obs.landmark_ids, strict=True)}
-
-    # -- bookkeeping -------------------------------------------------------------------------
-    def _reset(self) -> None:
-        self._regions: list[_Region] = []
-        self._assign: dict[int, int] = {}          # landmark id -> region index
-        self._lm_trained: Counter[int] = Counter()  # landmark id -> trained observations
-        self._kf_region: dict[int, int] = {}
-        self._trained: dict[int, _Observations] = {}
-        self._published = _Published((), (), {})
-
-    def _new_region(self, keyframe_ids: Iterable[int], centre_world: Array) -> int:
-        self._regions.append(_Region(FernClassifier(self.conf.fern_conf()), set(keyframe_ids),
-                                     np.asarray(centre_world, np.float64)))
-        return len(self._regions) - 1
-
-    def _partition(self, state: MapState) -> None:
-        """Regions and the landmarks each learns (thesis 5.2.2's scaling problem)."""
-        current = _current_observations(state, self.conf.kind)
-        kf_ids = sorted(current)
-        lms = _concat([current[k].landmark_ids for k in kf_ids])
-        obs_kf = _concat([np.full(len(current[k].kp_idx), k) for k in kf_ids])
-        num_landmarks = len(np.unique(lms))
-        num_regions = 1
-        if self.conf.partition == "regions" and kf_ids:
-            num_regions = min(len(kf_ids), max(1, math.ceil(num_landmarks / self.conf.max_classes)))
-        if not kf_ids:
-            self._new_region([], np.zeros(3))
-            return
-        positions = state.positions_world(kf_ids)
-        labels = _kmeans(positions, num_regions, self.conf.seed)
-        num_regions = int(labels.max()) + 1
-        for r in range(num_regions):
-            members = [k for k, lab in zip(kf_ids, labels, strict=True) if lab == r]
-            self._new_region(members, positions[labels == r].mean(0))
-            self._kf_region.update({k: r for k in members})
-        region_of_obs = labels[np.searchsorted(kf_ids, obs_kf)]
-        self._assign = _assign_landmarks(lms, region_of_obs, num_regions, self.conf.max_classes)
-
-    def _region_for_keyframe(self, keyframe: Keyframe) -> int:
-        """Region of a keyframe: known, else the nearest region centre (a new one if none)."""
-        if keyframe.id in self._kf_region:
-            return self._kf_region[keyframe.id]
-        if not self._regions:
-            self._new_region([], keyframe.position_world)
-        centres = np.stack([r.centre_world for r in self._regions])
-        r = int(np.argmin(np.linalg.norm(centres - keyframe.position_world, axis=1)))
-        self._kf_region[keyframe.id] = r
-        self._regions[r].keyframe_ids.add(keyframe.id)
-        return r
-
-    def _assignable(self, obs: _Observations) -> npt.NDArray[np.bool_]:
-        """Mask of observations whose landmark has (or now gets) a model with room."""
-        region = self._region_for_keyframe(obs.keyframe)
-        room = self.conf.max_classes - sum(1 for r in self._assign.values() if r == region)
-        ok = np.zeros(len(obs.kp_idx), bool)
-        for i, lm in enumerate(obs.landmark_ids.tolist()):  # per landmark, bookkeeping only
-            if lm not in self._assign and room > 0:
-                self._assign[lm] = region
-                room -= 1
-            ok[i] = lm in self._assign
-        return ok
-
-    def _sync(self, state: MapState, *, show_progress: bool) -> None:
-        """Subtract trained observations that left the map, train the new ones, publish."""
-        current = _current_observations(state, self.conf.kind)
-        removals: list[_Observations] = []
-        additions: list[_Observations] = []
-        for kf_id in sorted(set(self._trained) | set(current)):
-            removed, added = self._diff(self._trained.get(kf_id), current.get(kf_id))
-            removals += removed
-            additions += added
-        self._apply(removals, -1, show_progress)
-        self._release(removals)
-        additions = [obs.subset(self._assignable(obs)) for obs in additions]
-        self._apply([a for a in additions if len(a.kp_idx)], +1, show_progress)
-        self._record(additions)
-        self._publish()
-
-    def _diff(self, trained: _Observations | None, cur: _Observations | None
-              ) -> tuple[list[_Observations], list[_Observations]]:
-        """For one keyframe, the trained observations to subtract and the map's observations
-        to add; drops the subtracted ones from the record."""
-        removed = []
-        replaced = cur is None or (trained is not None
-                                   and cur.keyframe.image is not trained.keyframe.image)
-        if trained is not None and replaced:
-            removed.append(trained)  # keyframe removed, or replaced by another image
-            del self._trained[trained.keyframe.id]
-            trained = None
-        if cur is None:
-            return removed, []
-        num_keypoints = len(cur.keyframe.features[self.conf.kind])
-        now = cur.landmark_at(num_keypoints)
-        if trained is not None:
-            stale = now[trained.kp_idx] != trained.landmark_ids  # landmark gone or changed
-            if stale.any():
-                removed.append(trained.subset(stale))
-                trained = self._trained[cur.keyframe.id] = trained.subset(~stale)
-        before = (trained.landmark_at(num_keypoints) if trained is not None
-                  else np.full(num_keypoints, -1, np.int64))
-        fresh = cur.subset(now[cur.kp_idx] != before[cur.kp_idx])
-        return removed, ([fresh] if len(fresh.kp_idx) else [])
-
-    def _release(self, removed: list[_Observations]) -> None:
-        """Forget the landmarks left with no trained observation (frees their model's room)."""
-        for obs in removed:
-            self._lm_trained.subtract(obs.landmark_ids.tolist())
-        for lm in [lm for lm, n in self._lm_trained.items() if n <= 0]:
-            del self._lm_trained[lm]
-            self._assign.pop(lm, None)
-
-    def _record(self, added: list[_Observations]) -> None:
-        for obs in added:
-            if not len(obs.kp_idx):
-                continue
-            self._lm_trained.update(obs.landmark_ids.tolist())
-            old = self._trained.get(obs.keyframe.id)
-            if old is None:
-                self._trained[obs.keyframe.id] = obs
-            else:
-                self._trained[obs.keyframe.id] = _Observations(
-                    obs.keyframe, np.concatenate([old.kp_idx, obs.kp_idx]),
-                    np.concatenate([old.landmark_ids, obs.landmark_ids]))
-
-    def _apply(self, batches: list[_Observations], sign: int, show_progress: bool) -> None:
-        """Sample every batch (threads; a keyframe's warps split between them) and add or
-        remove the samples."""
-        if not batches:
-            return
-        chunks = np.array_split(np.arange(self.conf.num_warps), min(self.conf.workers,
-                                                                    self.conf.num_warps))
-        tasks = [(obs, chunk) for obs in batches for chunk in chunks]
-        desc = "ferns: training" if sign > 0 else "ferns: forgetting"
-        with ThreadPoolExecutor(max_workers=self.conf.workers) as pool:
-            results = _bounded_map(pool, self._samples, tasks, 2 * self.conf.workers)
-            if show_progress:
-                results = progress(results, total=len(tasks), desc=desc)
-            for (obs, _), leaves in zip(tasks, results, strict=True):
-                self._count(obs, leaves, sign)
-
-    def _samples(self, task: tuple[_Observations, IntArray]) -> npt.NDArray[np.uint16]:
-        """(w, n, M) leaves of the warped views ``task[1]`` of ``task[0]`` (a worker thread)."""
-        obs, warp_indices = task
-        feats = obs.keyframe.features[self.conf.kind]
-        warps = draw_warps(self._warp_conf, obs.keyframe.id).take(warp_indices)
-        return sample_leaves(self._tests, obs.keyframe.image, feats.keypoints_px[obs.kp_idx],
-                             warps, self._warp_conf)
-
-    def _count(self, obs: _Observations, leaves: npt.NDArray[np.uint16], sign: int) -> None:
-        regions = np.fromiter((self._assign[lm] for lm in obs.landmark_ids.tolist()), np.int64,
-                              len(obs.landmark_ids))
-        num_warps = leaves.shape[0]
-        for r in np.unique(regions).tolist():
-            sel = regions == r
-            lv = leaves[:, sel].reshape(-1, leaves.shape[2])
-            labels = np.tile(obs.landmark_ids[sel], num_warps)
-            clf = self._regions[r].classifier
-            (clf.add if sign > 0 else clf.remove)(lv, labels)
-
-    def _publish(self) -> None:
-        num = len(self._regions)
-        ids = np.fromiter(self._assign.keys(), np.int64, len(self._assign))
-        regs = np.fromiter(self._assign.values(), np.int64, len(self._assign))
-        order = np.argsort(ids)
-        ids, regs = ids[order], regs[order]
-        votes = {}
-        for kf_id, obs in self._trained.items() if len(ids) else ():  # numpy per keyframe
-            pos = np.minimum(np.searchsorted(ids, obs.landmark_ids), len(ids) - 1)
-            regions = regs[pos[ids[pos] == obs.landmark_ids]]
-            if len(regions):
-                votes[kf_id] = np.bincount(regions, minlength=num) / len(regions)
-        self._published = _Published(
-            tuple(r.classifier.scorer() for r in self._regions),
-            tuple(frozenset(r.keyframe_ids) for r in self._regions), votes)
+        return self._models.trained_observations()
 
     # -- query -------------------------------------------------------------------------------
     def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
@@ -504,7 +291,7 @@ class FernsRelocalizer(Relocalizer):
         region alone, then with the second, ...), until a pose is verified; with
         ``region_fallback``, a query verified in none of them is classified against every
         region. Each region classifies a query once (:class:`_QueryWork`)."""
-        pub, work = self._published, _QueryWork()
+        pub, work = self._models.published, _QueryWork()
         start = time.perf_counter()
         regions = self.choose_regions(query, prior=prior)
         place_seconds = time.perf_counter() - start
@@ -535,7 +322,7 @@ class FernsRelocalizer(Relocalizer):
         ``max_regions`` regions most voted for by the ``place_keyframes`` keyframes whose
         small blurry images are nearest the query's (only keyframes within the prior's radius
         count; module docstring); ties go to the lower region."""
-        pub = self._published
+        pub = self._models.published
         every = tuple(range(len(pub.scorers)))
         if self.conf.region_prior == "none" or len(every) <= self.conf.max_regions:
             return every
@@ -555,10 +342,10 @@ class FernsRelocalizer(Relocalizer):
                       hypotheses: int = 1) -> RelocResult:
         """:meth:`relocalize` against the models of ``regions`` only (indices into
         :attr:`regions`)."""
-        return self._relocalize_in(query, regions, self._published, _QueryWork(), prior,
+        return self._relocalize_in(query, regions, self._models.published, _QueryWork(), prior,
                                    max(1, hypotheses))
 
-    def _relocalize_in(self, query: Frame, regions: Iterable[int], pub: _Published,
+    def _relocalize_in(self, query: Frame, regions: Iterable[int], pub: Published,
                        work: _QueryWork, prior: Prior | None, hypotheses: int) -> RelocResult:
         """:meth:`relocalize_in` on the published models ``pub``, reusing (and adding to) what
         ``work`` holds of this query: its leaves and the classes each region gave it."""
@@ -618,7 +405,7 @@ class FernsRelocalizer(Relocalizer):
                                                 self.conf.max_query_keypoints)
         return query.cache[key]
 
-    def _classify(self, query: Frame, px: Array, pub: _Published, regions: list[int],
+    def _classify(self, query: Frame, px: Array, pub: Published, regions: list[int],
                   allowed: list[npt.NDArray[np.bool_] | None], work: _QueryWork
                   ) -> tuple[IntArray, IntArray, npt.NDArray[np.float32]]:
         """Correspondences (keypoint index, landmark id, posterior), each keypoint's
@@ -711,24 +498,9 @@ class FernsRelocalizer(Relocalizer):
     def save(self, directory: Path) -> None:
         """Write ``ferns.npz`` (counts, records) and ``ferns.json`` (format, conf, regions)."""
         directory = Path(directory)
-        arrays: dict[str, Any] = {}
-        for i, region in enumerate(self._regions):
-            arrays.update({f"r{i}_{k}": v for k, v in region.classifier.to_arrays().items()})
-        kf_ids = sorted(self._trained)
-        arrays["obs_keyframe"] = _concat([np.full(len(self._trained[k].kp_idx), k)
-                                          for k in kf_ids])
-        arrays["obs_keypoint"] = _concat([self._trained[k].kp_idx for k in kf_ids])
-        arrays["obs_landmark"] = _concat([self._trained[k].landmark_ids for k in kf_ids])
-        n = len(self._assign)
-        arrays["assign_landmark"] = np.fromiter(self._assign.keys(), np.int64, n)
-        arrays["assign_region"] = np.fromiter(self._assign.values(), np.int64, n)
+        arrays, models = self._models.to_files()
         meta = {"format_version": FORMAT_VERSION, "conf": dataclasses.asdict(self.conf),
-                "ever_trained": self._ever_trained,
-                "regions": [{"keyframe_ids": sorted(r.keyframe_ids),
-                             "centre_world": r.centre_world.tolist()} for r in self._regions],
-                "keyframe_region": {str(k): v for k, v in self._kf_region.items()},
-                "keyframe_crc32": {str(k): _image_crc(self._trained[k].keyframe)
-                                   for k in kf_ids}}
+                "ever_trained": self._ever_trained, **models}
         # Uncompressed: zlib takes seconds on ~10^7 counts and gains little on the indices.
         atomic_write(directory / _MODEL_FILE, lambda f: np.savez(f, **arrays))
         atomic_write(directory / _META_FILE, json.dumps(meta))
@@ -752,27 +524,13 @@ class FernsRelocalizer(Relocalizer):
         state = self.map.snapshot()
         with np.load(directory / _MODEL_FILE) as npz:
             arrays = {k: npz[k] for k in npz.files}
-        trained = _restore_records(state, self.conf.kind, arrays, meta["keyframe_crc32"])
-        if trained is None:
+        models = FernModels.from_files(self.conf.models_conf(), self._tests, state, arrays,
+                                       meta, where=str(directory / _MODEL_FILE))
+        if models is None:
             return False
-        try:
-            regions = [_Region(FernClassifier.from_arrays(
-                self.conf.fern_conf(), {k[len(f"r{i}_"):]: v for k, v in arrays.items()
-                                        if k.startswith(f"r{i}_")}),
-                set(r["keyframe_ids"]), np.asarray(r["centre_world"], np.float64))
-                for i, r in enumerate(meta["regions"])]
-        except (KeyError, ValueError) as exc:
-            raise StorageError(f"{directory / _MODEL_FILE}: damaged ferns model "
-                               f"({exc})") from exc
-        self._reset()
         self._places.train()
-        self._regions, self._trained = regions, trained
-        self._assign = dict(zip(arrays["assign_landmark"].tolist(),
-                                arrays["assign_region"].tolist(), strict=True))
-        self._lm_trained = Counter(arrays["obs_landmark"].tolist())
-        self._kf_region = {int(k): int(v) for k, v in meta["keyframe_region"].items()}
+        self._models = models
         self._ever_trained = bool(meta.get("ever_trained", True))
-        self._publish()
         return True
 
 
@@ -796,56 +554,6 @@ def detect_keypoints(image: npt.NDArray[np.uint8], detector: str, max_keypoints:
     return pts[np.sort(first)][:max_keypoints]
 
 
-def _current_observations(state: MapState, kind: str) -> dict[int, _Observations]:
-    """Per keyframe, its keypoints of ``kind`` observing a landmark of ``state``."""
-    live = np.fromiter(state.landmarks.keys(), np.int64, len(state.landmarks))
-    out = {}
-    for kf_id, kf in state.keyframes.items():
-        feats = kf.features.get(kind)
-        if feats is None or not len(feats):
-            continue
-        idx = np.flatnonzero((feats.landmark_ids >= 0) & np.isin(feats.landmark_ids, live))
-        if len(idx):
-            out[kf_id] = _Observations(kf, idx.astype(np.int64), feats.landmark_ids[idx].copy())
-    return out
-
-
-def _kmeans(positions: Array, k: int, seed: int) -> IntArray:
-    """Region label of each keyframe position (k-means, seeded); all 0 when k == 1."""
-    if k <= 1 or len(positions) <= 1:
-        return np.zeros(len(positions), np.int64)
-    from scipy.cluster.vq import kmeans2
-
-    _, labels = kmeans2(positions, k, seed=np.random.default_rng(seed), minit="++")
-    # Renumber the non-empty clusters 0..k'-1.
-    return np.unique(labels, return_inverse=True)[1].astype(np.int64)
-
-
-def _assign_landmarks(landmarks: IntArray, region_of_obs: IntArray, num_regions: int,
-                      max_classes: int) -> dict[int, int]:
-    """Each landmark to one region: the most observed landmarks first (the most distinctive:
-    seen from most views; ties by id), each to the region that observes it most and still has
-    room for ``max_classes`` classes; a landmark whose regions are all full is left out."""
-    if len(landmarks) == 0:
-        return {}
-    pairs, votes = np.unique(np.column_stack([landmarks, region_of_obs]), axis=0,
-                             return_counts=True)
-    order = np.lexsort((pairs[:, 1], -votes, pairs[:, 0]))  # per landmark: most votes first
-    pairs = pairs[order]
-    ids, total = np.unique(landmarks, return_counts=True)
-    starts = np.searchsorted(pairs[:, 0], ids)
-    ends = np.r_[starts[1:], len(pairs)]
-    room = np.full(num_regions, max_classes)
-    out: dict[int, int] = {}
-    for i in np.lexsort((ids, -total)).tolist():  # per landmark, at training time only
-        for r in pairs[starts[i]:ends[i], 1].tolist():
-            if room[r] > 0:
-                out[int(ids[i])] = r
-                room[r] -= 1
-                break
-    return out
-
-
 def _per_keypoint_chance(p: float | None, correspondences: int, keypoints: int
                          ) -> float | None:
     """Chance that a query keypoint agrees with a wrong pose when it proposes
@@ -863,40 +571,4 @@ def _keyframes_seeing(state: MapState, landmark_ids: IntArray) -> list[int]:
     return kf_ids[np.lexsort((kf_ids, -votes))].tolist()
 
 
-def _image_crc(keyframe: Keyframe) -> int:
-    return zlib.crc32(np.ascontiguousarray(keyframe.image).data)
-
-
-def _restore_records(state: MapState, kind: str, arrays: dict[str, npt.NDArray[Any]],
-                     crcs: dict[str, int]) -> dict[int, _Observations] | None:
-    """Trained records rebound to the map's keyframes; None if a keyframe is missing or its
-    image or keypoints changed since the model was saved."""
-    kf, kp, lm = arrays["obs_keyframe"], arrays["obs_keypoint"], arrays["obs_landmark"]
-    out = {}
-    for kf_id in np.unique(kf).tolist():
-        keyframe = state.keyframes.get(kf_id)
-        if (keyframe is None or kind not in keyframe.features
-                or _image_crc(keyframe) != crcs.get(str(kf_id))):
-            return None
-        sel = kf == kf_id
-        if kp[sel].max() >= len(keyframe.features[kind]):
-            return None
-        out[kf_id] = _Observations(keyframe, kp[sel].astype(np.int64), lm[sel].astype(np.int64))
-    return out
-
-
-def _bounded_map(pool: ThreadPoolExecutor, fn: Any, items: list[Any], window: int
-                 ) -> Iterator[Any]:
-    """``pool.map(fn, items)`` in order, with at most ``window`` results waiting (memory)."""
-    pending: deque[Future[Any]] = deque()
-    for item in items:
-        pending.append(pool.submit(fn, item))
-        if len(pending) >= window:
-            yield pending.popleft().result()
-    while pending:
-        yield pending.popleft().result()
-
-
-def _concat(parts: list[npt.NDArray[Any]]) -> IntArray:
-    return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
 
