@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import time
+import weakref
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -564,6 +565,11 @@ class LandmarkPool:
         """Pool ``kind`` landmarks of ``keyframes`` (best first). A landmark seen by several
         keyframes keeps one row: duplicates would fail Lowe's ratio test against themselves."""
         feats = [kf.features.get(kind) for kf in keyframes]
+        if len(feats) == 1 and feats[0] is not None and len(feats[0]):
+            f = feats[0]
+            idx = _landmark_rows(f)
+            return cls(f.descriptors[idx], f.landmark_ids[idx], f.points_world[idx],
+                       np.zeros(len(idx), np.int64))
         local = [np.zeros(0, np.int64) if f is None else np.flatnonzero(f.landmark_ids >= 0)
                  for f in feats]
         if not sum(len(i) for i in local):
@@ -604,6 +610,26 @@ class LandmarkPool:
         counts = np.bincount(self.keyframe_rows[rows], minlength=len(keyframe_ids))
         order = np.argsort(-counts, kind="stable")
         return [keyframe_ids[i] for i in order if counts[i] > 0]
+
+
+#: Per keyframe features: the rows :meth:`LandmarkPool.gather` keeps of it alone (a few
+#: kB each, weakly held: gone with the features). Features are never changed in place
+#: (:meth:`Features.with_landmarks` copies), so the rows stay right while they live.
+_LANDMARK_ROWS: weakref.WeakKeyDictionary[Features, npt.NDArray[np.int64]] = (
+    weakref.WeakKeyDictionary())
+
+
+def _landmark_rows(features: Features) -> npt.NDArray[np.int64]:
+    """Rows of ``features`` with a landmark, the first row of each landmark id (ascending):
+    the rows a pool of this keyframe alone holds. Computed once per features object (the
+    fast path pools the best keyframe alone for every query)."""
+    rows = _LANDMARK_ROWS.get(features)
+    if rows is None:
+        local = np.flatnonzero(features.landmark_ids >= 0)
+        rows = local[np.sort(np.unique(features.landmark_ids[local], return_index=True)[1])]
+        rows.flags.writeable = False
+        _LANDMARK_ROWS[features] = rows
+    return rows
 
 
 def _union(first_q: npt.NDArray[np.int64], first_rows: npt.NDArray[np.int64],
