@@ -15,7 +15,7 @@ import numpy.typing as npt
 import poselib
 
 from .. import features as feature_lib
-from ..cameras import Camera, RadTanCamera
+from ..cameras import _NEWTON_ITERS, Camera, RadTanCamera
 from ..errors import ConfigError, GeometryError
 from ..frame import Features, Frame, Keyframe
 from ..geometry import invert, se3_exp, transform_points
@@ -23,6 +23,7 @@ from ..map import MapState
 from ..place.base import PlaceCandidate
 from .base import PoseEstimate, PoseFinder, register
 from .guided import GuidedConf, search_by_projection
+from .kernels import camera_params, compiled
 
 Array = npt.NDArray[np.float64]
 
@@ -99,18 +100,30 @@ class PointUncertainty:
         pixels between a point and the point moved one sigma along its ray.
         ``projected_px`` (M, 2): the points' pixels at that pose when already known."""
         pts = points_world
-        ray = pts - self.ray_origins_world[rows]
-        ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
-        moved = pts + self.depth_sigmas_m[rows, None] * ray
+        kernels = compiled()
+        if kernels is None:
+            ray = pts - self.ray_origins_world[rows]
+            ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
+            moved = pts + self.depth_sigmas_m[rows, None] * ray
+        else:
+            moved = np.empty_like(pts, np.float64)
+            kernels.moved_points(np.ascontiguousarray(pts, np.float64),
+                                 np.ascontiguousarray(self.ray_origins_world[rows], np.float64),
+                                 np.ascontiguousarray(self.depth_sigmas_m[rows], np.float64),
+                                 moved)
         cam_from_world = invert(world_from_cam)
         with np.errstate(invalid="ignore", divide="ignore"):
             # Per-point arithmetic: projecting a point alone or among others gives its values.
             if projected_px is None:
-                both = camera.project(transform_points(cam_from_world,
-                                                       np.concatenate([moved, pts])))
+                both = _project(camera, transform_points(cam_from_world,
+                                                         np.concatenate([moved, pts])))
                 moved_px, projected_px = both[:len(pts)], both[len(pts):]
             else:
-                moved_px = camera.project(transform_points(cam_from_world, moved))
+                moved_px = _project(camera, transform_points(cam_from_world, moved))
+            if kernels is not None:
+                sigma = np.empty(len(pts))
+                kernels.pixel_distances(moved_px, np.ascontiguousarray(projected_px), sigma)
+                return sigma
             sigma = np.linalg.norm(moved_px - projected_px, axis=1)
         return np.where(np.isfinite(sigma), sigma, np.inf)
 
@@ -128,7 +141,7 @@ class _View:
     @classmethod
     def at(cls, world_from_cam: Array, points_world: Array, camera: Camera) -> _View:
         points_cam = transform_points(invert(world_from_cam), points_world)
-        return cls(world_from_cam, points_cam, camera.project(points_cam))
+        return cls(world_from_cam, points_cam, _project(camera, points_cam))
 
     def inliers(self, px: Array, conf: PnPConf) -> npt.NDArray[np.int64]:
         """Indices whose reprojection error (real camera model) is below the threshold."""
@@ -160,7 +173,7 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
     if len(px) != len(pts):
         raise GeometryError(f"solve_pnp: expected as many points as pixels, "
                             f"got {len(pts)} and {len(px)}")
-    ideal_px = camera.undistort_pixels(px)
+    ideal_px = _undistort_pixels(camera, px)
     usable = np.flatnonzero(np.isfinite(ideal_px).all(1) & np.isfinite(pts).all(1))
     if len(usable) < 4:
         return None
@@ -271,12 +284,48 @@ def _residuals_and_jacobian(world_from_cam: Array, px: Array, points_world: Arra
     """(N, 2) residuals ``px - project(points)`` and the (2N, 6) Jacobian of the projection
     w.r.t. a right perturbation ``world_from_cam @ exp(xi)``, ``xi = (rho, omega)``."""
     points_cam = transform_points(invert(world_from_cam), points_world)
-    return px - camera.project(points_cam), _pose_jacobian(camera, points_cam)
+    return px - _project(camera, points_cam), _pose_jacobian(camera, points_cam)
+
+
+@functools.lru_cache(maxsize=64)
+def _kernel_camera(camera: Camera) -> tuple[Array, bool] | None:
+    """:func:`.kernels.camera_params` of ``camera`` (made once per camera)."""
+    return camera_params(camera)
+
+
+def _project(camera: Camera, points_cam: Array) -> Array:
+    """``camera.project`` of (N, 3) camera-frame points: compiled for pinhole and radtan
+    cameras where numba is installed (:mod:`.kernels`, the same values)."""
+    kernels, params = compiled(), _kernel_camera(camera)
+    if kernels is None or params is None:
+        return camera.project(points_cam)
+    out = np.empty((len(points_cam), 2))
+    kernels.project(np.ascontiguousarray(points_cam, np.float64), params[0], params[1], out)
+    return out
+
+
+def _undistort_pixels(camera: Camera, px: Array) -> Array:
+    """``camera.undistort_pixels`` of (N, 2) pixels: the radtan Newton iterations compiled
+    where numba is installed (:mod:`.kernels`, the same values)."""
+    kernels, params = compiled(), _kernel_camera(camera)
+    if kernels is None or params is None or not params[1] or not isinstance(camera, RadTanCamera):
+        return camera.undistort_pixels(px)
+    target = camera.pixels_to_normalized(px)
+    q = np.array(camera._initial_undistort(target), np.float64, order="C")
+    kernels.undistort_newton(q, np.ascontiguousarray(target), params[0], _NEWTON_ITERS)
+    return camera.normalized_to_pixels(q)
 
 
 def _pose_jacobian(camera: Camera, points_cam: Array) -> Array:
     """(2N, 6) Jacobian of the pixels of (N, 3) camera-frame points w.r.t. a right
-    perturbation of ``world_from_cam`` (see :func:`_residuals_and_jacobian`)."""
+    perturbation of ``world_from_cam`` (see :func:`_residuals_and_jacobian`); compiled
+    like :func:`_project`."""
+    kernels, params = compiled(), _kernel_camera(camera)
+    if kernels is not None and params is not None:
+        out = np.empty((2 * len(points_cam), 6))
+        kernels.pose_jacobian(np.ascontiguousarray(points_cam, np.float64), params[0],
+                              params[1], out)
+        return out
     d_px = _projection_jacobian(camera, points_cam)  # (N, 2, 3)
     # cam_from_world becomes exp(-xi) @ cam_from_world, so p_cam moves by -rho + [p_cam]x omega:
     # d px / d rho = -d_px, d px / d omega = d_px @ [p_cam]x (columns written out).
@@ -350,7 +399,13 @@ def _pairs_within(projected_px: Array, px: Array, threshold_px: float) -> int:
     """Number of pairs ``j != i`` with ``|projected_px[j] - px[i]| < threshold_px``: only
     the pairs whose x coordinates lie within twice the threshold (``px`` sorted by x, a
     superset of those that agree) are measured, with the same arithmetic as the full (m, m)
-    table (per axis difference, squares summed), so the count is the table's."""
+    table (per axis difference, squares summed), so the count is the table's. Compiled
+    where numba is installed (:mod:`.kernels`, the same count)."""
+    kernels = compiled()
+    if kernels is not None:
+        return int(kernels.pairs_within(np.ascontiguousarray(projected_px, np.float64),
+                                        np.ascontiguousarray(px, np.float64),
+                                        float(threshold_px), float(threshold_px)**2))
     order = np.argsort(px[:, 0], kind="stable")
     xs = px[order, 0]
     lo = np.searchsorted(xs, projected_px[:, 0] - 2.0 * threshold_px, side="left")
