@@ -326,6 +326,23 @@ def test_chance_agreement_counts_the_pairs_of_the_full_table(spread_px):
     assert expected > 0
 
 
+def test_chance_agreement_pairs_every_correspondence_up_to_max_points():
+    """Up to ``max_points`` correspondences all are paired; beyond, an even choice of them."""
+    from reloc_service.pose.p3p import _pairs_within, chance_agreement
+
+    rng = np.random.default_rng(4)
+    px = rng.normal((320.0, 240.0), 30.0, (450, 2))
+    projected = px + rng.normal(0.0, 4.0, px.shape)
+    for n in (2, 120, 200):
+        want = _pairs_within(projected[:n], px[:n], 5.0) / (n * (n - 1))
+        assert chance_agreement(projected[:n], px[:n], 5.0, (640, 480)) == max(
+            want, np.pi * 25 / (640 * 480))
+    idx = np.unique(np.linspace(0, 449, 200).astype(np.int64))
+    assert len(idx) == 200
+    want = _pairs_within(projected[idx], px[idx], 5.0) / (200 * 199)
+    assert chance_agreement(projected, px, 5.0, (640, 480)) == want > 0
+
+
 def test_refined_estimate_is_the_one_recomputed_from_scratch():
     """The pose, inliers and covariance reuse one projection per pose: the same values as
     projecting anew for the weights and the covariance (what the refinement did before)."""

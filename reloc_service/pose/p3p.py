@@ -389,9 +389,12 @@ def chance_agreement(projected_px: Array, px: Array, threshold_px: float,
     n = len(px)
     if n < 2:
         return uniform
-    idx = np.unique(np.linspace(0, n - 1, min(n, max_points)).astype(np.int64))
-    m = len(idx)
-    agree = _pairs_within(projected_px[idx], px[idx], threshold_px)
+    if n <= max_points:  # every correspondence (what the even choice below picks then)
+        m, agree = n, _pairs_within(projected_px, px, threshold_px)
+    else:
+        idx = np.unique(np.linspace(0, n - 1, max_points).astype(np.int64))
+        m = len(idx)
+        agree = _pairs_within(projected_px[idx], px[idx], threshold_px)
     return max(uniform, float(agree) / (m * (m - 1)))
 
 
