@@ -69,6 +69,29 @@ def test_undistortion_is_the_numpy_value(index, monkeypatch):
     assert np.array_equal(fast, camera.undistort_pixels(px), equal_nan=True)
 
 
+def test_opencv_start_is_opencvs_undistortion():
+    """The compiled start of the radtan undistortion is ``cv2.undistortPoints`` to the bit,
+    also far outside the image, where a strong lens's radial factor turns negative."""
+    import cv2
+
+    rng = np.random.default_rng(8)
+    assert kernels.compiled() is not None  # the compiled helper replaces the Python one
+    assert hasattr(kernels._opencv_undistort, "py_func")
+    for dist in ([0.262383, -0.953104, -0.005358, 0.002628, 1.163314],
+                 [-0.28, 0.07, 1e-4, -2e-4], [-2.0, 0.3, 0.01, -0.02, 0.1]):
+        camera = camera_from_dict({"model": "radtan", "width": 640, "height": 480, "fx": 1.0,
+                                   "fy": 1.0, "cx": 0.0, "cy": 0.0, "distortion": dist})
+        params, _ = kernels.camera_params(camera)
+        normalised = rng.uniform(-1.5, 1.5, (4000, 2))
+        want = cv2.undistortPoints(normalised.reshape(-1, 1, 2), np.eye(3),
+                                   np.asarray(dist, np.float64),
+                                   criteria=(cv2.TERM_CRITERIA_COUNT, 40, 0.0)).reshape(-1, 2)
+        starts = np.array([kernels._opencv_undistort(u, v, params, 40) for u, v in normalised])
+        assert np.array_equal(starts, want, equal_nan=True), dist
+    r2 = (normalised**2).sum(1)
+    assert ((1 + ((0.1 * r2 + 0.3) * r2 - 2.0) * r2) < 0).any()  # the negative factor's branch
+
+
 def test_pixel_sigmas_and_chance_pairs_are_the_numpy_values(monkeypatch):
     """Depth uncertainty in pixels (rays from keyframe centres, some points on a centre,
     one NaN) and the count of chance agreements (many near ties in x), both paths."""

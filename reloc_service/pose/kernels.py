@@ -88,15 +88,57 @@ def _pose_jacobian(points_cam: Array, params: Array, distorted: bool, out: Array
             out[row, 5] = a0 * py - a1 * px
 
 
-def _undistort_newton(q: Array, target: Array, params: Array, iterations: int) -> None:
-    """``RadTanCamera.undistort``'s Newton iterations from ``q`` (N, 2, updated in place)
-    towards the distorted normalised points ``target``: every point steps in every
-    iteration, until the largest step (NaN ignored) is below 1e-15, as in numpy."""
-    k1, k2, p1, p2, k3 = params[4], params[5], params[6], params[7], params[8]
+def _opencv_undistort(u: float, v: float, params: Array, iterations: int
+                      ) -> tuple[float, float]:
+    """``cv2.undistortPoints`` of one distorted normalised point (identity camera matrix,
+    radtan coefficients, ``TERM_CRITERIA_COUNT`` of ``iterations``), written as OpenCV's
+    C++ computes it: the identity tilt and rectification products included, the six
+    unused coefficients as zeros, the start point again where the radial factor turns
+    negative (tests compare it with OpenCV on the points of a strong lens)."""
+    k0, k1, k2, k3, k4 = params[4], params[5], params[6], params[7], params[8]
+    x = (u - 0.0) * 1.0
+    y = (v - 0.0) * 1.0
+    tz = 0.0 * x + 0.0 * y + 1.0 * 1.0
+    inv = 1.0 / tz if tz != 0 else 1.0
+    x0 = x = inv * (1.0 * x + 0.0 * y + 0.0 * 1.0)
+    y0 = y = inv * (0.0 * x + 1.0 * y + 0.0 * 1.0)
     for _ in range(iterations):
+        r2 = x * x + y * y
+        icdist = ((1 + ((0.0 * r2 + 0.0) * r2 + 0.0) * r2)
+                  / (1 + ((k4 * r2 + k1) * r2 + k0) * r2))
+        if icdist < 0:
+            x = (u - 0.0) * 1.0
+            y = (v - 0.0) * 1.0
+            break
+        delta_x = 2 * k2 * x * y + k3 * (r2 + 2 * x * x) + 0.0 * r2 + 0.0 * r2 * r2
+        delta_y = k2 * (r2 + 2 * y * y) + 2 * k3 * x * y + 0.0 * r2 + 0.0 * r2 * r2
+        x = (x0 - delta_x) * icdist
+        y = (y0 - delta_y) * icdist
+    ww = 1.0 / (0.0 * x + 0.0 * y + 1.0)
+    return (1.0 * x + 0.0 * y + 0.0) * ww, (0.0 * x + 1.0 * y + 0.0) * ww
+
+
+def _undistort_pixels(px: Array, params: Array, opencv_iterations: int,
+                      newton_iterations: int, out: Array) -> None:
+    """``RadTanCamera.undistort_pixels`` of (N, 2) pixels into ``out``: normalised, OpenCV's
+    fixed-point start (:func:`_opencv_undistort`; the target itself where that is not
+    finite), then the Newton iterations of ``RadTanCamera.undistort``: every point steps
+    in every iteration, until the largest step (NaN ignored) is below 1e-15; back to
+    pixels."""
+    fx, fy, cx, cy = params[0], params[1], params[2], params[3]
+    k1, k2, p1, p2, k3 = params[4], params[5], params[6], params[7], params[8]
+    n = px.shape[0]
+    target = np.empty((n, 2))
+    for i in range(n):
+        tx, ty = (px[i, 0] - cx) / fx, (px[i, 1] - cy) / fy
+        target[i, 0], target[i, 1] = tx, ty
+        gx, gy = _opencv_undistort(tx, ty, params, opencv_iterations)
+        out[i, 0] = gx if math.isfinite(gx) else tx
+        out[i, 1] = gy if math.isfinite(gy) else ty
+    for _ in range(newton_iterations):
         largest = 0.0
-        for i in range(q.shape[0]):
-            x, y = q[i, 0], q[i, 1]
+        for i in range(n):
+            x, y = out[i, 0], out[i, 1]
             dx, dy = _distort(x, y, params, True)
             res0, res1 = dx - target[i, 0], dy - target[i, 1]
             r2 = x * x + y * y
@@ -110,11 +152,16 @@ def _undistort_newton(q: Array, target: Array, params: Array, iterations: int) -
                 det = 1e-12
             s0 = (d * res0 - b * res1) / det
             s1 = (-b * res0 + a * res1) / det
-            q[i, 0], q[i, 1] = x - s0, y - s1
-            largest = max(largest, abs(s0)) if abs(s0) == abs(s0) else largest
-            largest = max(largest, abs(s1)) if abs(s1) == abs(s1) else largest
+            out[i, 0], out[i, 1] = x - s0, y - s1
+            if not math.isnan(s0):
+                largest = max(largest, abs(s0))
+            if not math.isnan(s1):
+                largest = max(largest, abs(s1))
         if largest < 1e-15:
-            return
+            break
+    for i in range(n):
+        out[i, 0] = out[i, 0] * fx + cx
+        out[i, 1] = out[i, 1] * fy + cy
 
 
 def _moved_points(points: Array, origins: Array, sigmas: Array, out: Array) -> None:
@@ -165,7 +212,7 @@ class Kernels(NamedTuple):
 
     project: Callable[..., None]
     pose_jacobian: Callable[..., None]
-    undistort_newton: Callable[..., None]
+    undistort_pixels: Callable[..., None]
     moved_points: Callable[..., None]
     pixel_distances: Callable[..., None]
     pairs_within: Callable[..., int]
@@ -175,14 +222,15 @@ class Kernels(NamedTuple):
 def compiled() -> Kernels | None:
     """The kernels compiled by numba (cached on disk by numba after the first compile), or
     None where numba is not installed."""
-    global _distort  # the kernels call the compiled helper by this name
+    global _distort, _opencv_undistort  # the kernels call the compiled helpers by these names
     try:
         import numba
     except ImportError:
         return None
     _distort = numba.njit(cache=True, nogil=True, inline="always")(_distort)
+    _opencv_undistort = numba.njit(cache=True, nogil=True)(_opencv_undistort)
     jit: Any = numba.njit(cache=True, nogil=True)
-    return Kernels(jit(_project), jit(_pose_jacobian), jit(_undistort_newton),
+    return Kernels(jit(_project), jit(_pose_jacobian), jit(_undistort_pixels),
                    jit(_moved_points), jit(_pixel_distances), jit(_pairs_within))
 
 

@@ -15,7 +15,7 @@ import numpy.typing as npt
 import poselib
 
 from .. import features as feature_lib
-from ..cameras import _NEWTON_ITERS, Camera, RadTanCamera
+from ..cameras import _CV_UNDISTORT_CRITERIA, _NEWTON_ITERS, Camera, RadTanCamera
 from ..errors import ConfigError, GeometryError
 from ..frame import Features, Frame, Keyframe
 from ..geometry import invert, se3_exp, transform_points
@@ -305,15 +305,15 @@ def _project(camera: Camera, points_cam: Array) -> Array:
 
 
 def _undistort_pixels(camera: Camera, px: Array) -> Array:
-    """``camera.undistort_pixels`` of (N, 2) pixels: the radtan Newton iterations compiled
-    where numba is installed (:mod:`.kernels`, the same values)."""
+    """``camera.undistort_pixels`` of (N, 2) pixels: for radtan compiled where numba is
+    installed (:mod:`.kernels`: OpenCV's start and the Newton iterations, the same values)."""
     kernels, params = compiled(), _kernel_camera(camera)
     if kernels is None or params is None or not params[1] or not isinstance(camera, RadTanCamera):
         return camera.undistort_pixels(px)
-    target = camera.pixels_to_normalized(px)
-    q = np.array(camera._initial_undistort(target), np.float64, order="C")
-    kernels.undistort_newton(q, np.ascontiguousarray(target), params[0], _NEWTON_ITERS)
-    return camera.normalized_to_pixels(q)
+    out = np.empty((len(px), 2))
+    kernels.undistort_pixels(np.ascontiguousarray(px, np.float64), params[0],
+                             _CV_UNDISTORT_CRITERIA[1], _NEWTON_ITERS, out)
+    return out
 
 
 def _pose_jacobian(camera: Camera, points_cam: Array) -> Array:
