@@ -120,6 +120,18 @@ def test_pixel_sigmas_and_chance_pairs_are_the_numpy_values(monkeypatch):
         assert np.array_equal(f, s)
 
 
+def test_best_match_per_landmark_is_the_numpy_choice():
+    """Many query keypoints per pool row, equal distances among them: the same kept
+    matches (nearest, the first of equally near ones) from rows as from landmark ids."""
+    rng = np.random.default_rng(9)
+    ids = rng.permutation(np.arange(100, 400))  # a pool: one row per landmark
+    rows = rng.integers(0, len(ids), 500)
+    dist = rng.integers(0, 6, 500).astype(np.float32)  # many ties
+    fast = p3p._best_per_landmark(ids[rows], dist, rows, len(ids))
+    slow = p3p._best_per_landmark(ids[rows], dist)
+    assert np.array_equal(fast, slow) and len(np.unique(rows)) == len(fast) < len(rows)
+
+
 def test_relocalizations_of_real_images_are_the_same_with_and_without_kernels(monkeypatch):
     """The default method on the TUM fixture's queries: the same poses, covariances, inliers
     and verdicts, compiled or not (one engine, the kernels switched off in between)."""

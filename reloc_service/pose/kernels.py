@@ -207,6 +207,23 @@ def _pairs_within(projected_px: Array, px: Array, threshold_px: float, threshold
     return count
 
 
+def _best_per_row(rows: npt.NDArray[np.int64], dist: npt.NDArray[np.float32],
+                  best: npt.NDArray[np.int64], keep: npt.NDArray[np.int64]) -> int:
+    """``p3p._best_per_landmark`` over pool rows (one per landmark): for each row the match
+    of the smallest distance, the first of equal ones (a stable sort's choice); their
+    indices, ascending, into ``keep``; returns how many. ``best`` (pool size,) holds -1."""
+    for k in range(rows.shape[0]):
+        r = rows[k]
+        if best[r] < 0 or dist[k] < dist[best[r]]:
+            best[r] = k
+    count = 0
+    for k in range(rows.shape[0]):
+        if best[rows[k]] == k:
+            keep[count] = k
+            count += 1
+    return count
+
+
 class Kernels(NamedTuple):
     """The compiled functions (see the module's doc)."""
 
@@ -216,6 +233,7 @@ class Kernels(NamedTuple):
     moved_points: Callable[..., None]
     pixel_distances: Callable[..., None]
     pairs_within: Callable[..., int]
+    best_per_row: Callable[..., int]
 
 
 @functools.cache
@@ -231,7 +249,8 @@ def compiled() -> Kernels | None:
     _opencv_undistort = numba.njit(cache=True, nogil=True)(_opencv_undistort)
     jit: Any = numba.njit(cache=True, nogil=True)
     return Kernels(jit(_project), jit(_pose_jacobian), jit(_undistort_pixels),
-                   jit(_moved_points), jit(_pixel_distances), jit(_pairs_within))
+                   jit(_moved_points), jit(_pixel_distances), jit(_pairs_within),
+                   jit(_best_per_row))
 
 
 def camera_params(camera: Any) -> tuple[Array, bool] | None:

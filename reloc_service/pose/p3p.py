@@ -604,7 +604,7 @@ class P3PPoseFinder(PoseFinder):
         pool = LandmarkPool.gather(keyframes, self.conf.kind)
         q_idx, rows, dist = feature_lib.match_ratio(feats.descriptors, pool.descriptors,
                                                     ratio=self.conf.ratio)
-        keep = _best_per_landmark(pool.landmark_ids[rows], dist)
+        keep = _best_per_landmark(pool.landmark_ids[rows], dist, rows, len(pool.landmark_ids))
         return q_idx[keep], rows[keep], pool
 
 
@@ -703,9 +703,19 @@ def _union(first_q: npt.NDArray[np.int64], first_rows: npt.NDArray[np.int64],
     return q[keep], rows[keep]
 
 
-def _best_per_landmark(landmark_ids: npt.NDArray[np.int64], dist: npt.NDArray[np.float32]
+def _best_per_landmark(landmark_ids: npt.NDArray[np.int64], dist: npt.NDArray[np.float32],
+                       rows: npt.NDArray[np.int64] | None = None, pool_size: int = 0
                        ) -> npt.NDArray[np.int64]:
-    """Indices of the matches to keep: for each landmark, the query keypoint nearest to it."""
+    """Indices of the matches to keep: for each landmark, the query keypoint nearest to it
+    (the first of equally near ones). With the matches' pool ``rows`` (one row per landmark,
+    ``pool_size`` rows), one compiled pass where numba is installed (:mod:`.kernels`)."""
+    kernels = compiled()
+    if kernels is not None and rows is not None:
+        keep = np.empty(len(rows), np.int64)
+        count = kernels.best_per_row(np.ascontiguousarray(rows, np.int64),
+                                     np.ascontiguousarray(dist, np.float32),
+                                     np.full(pool_size, -1, np.int64), keep)
+        return keep[:count]
     order = np.lexsort((dist, landmark_ids))
     _, first = np.unique(landmark_ids[order], return_index=True)
     return np.sort(order[first])
