@@ -157,3 +157,9 @@ def test_relocalizations_of_real_images_are_the_same_with_and_without_kernels(mo
             fast, slow, strict=True):
         assert (ok_f, inl_f, why_f) == (ok_s, inl_s, why_s)
         assert np.array_equal(pose_f, pose_s) and np.array_equal(cov_f, cov_s)
+
+
+def test_warm_up_loads_every_kernel():
+    """A service worker's start loads each kernel (compiled or from numba's disk cache)."""
+    kernels.warm_up()
+    assert all(fn.signatures for fn in kernels.compiled())

@@ -263,3 +263,23 @@ def camera_params(camera: Any) -> tuple[Array, bool] | None:
         return np.array([camera.fx, camera.fy, camera.cx, camera.cy, k1, k2, p1, p2,
                          rest[0] if rest else 0.0]), True
     return None
+
+
+def warm_up() -> None:
+    """Load (or compile) every kernel now, on a few points: a service worker calls this at
+    start so that its first query does not pay numba's import and cache load."""
+    k = compiled()
+    if k is None:
+        return
+    params = np.array([500.0, 500.0, 320.0, 240.0, -0.2, 0.05, 1e-4, -1e-4, 0.0])
+    pts = np.array([[0.1, -0.2, 2.0], [0.3, 0.1, 3.0], [-0.2, 0.2, 4.0]])
+    px, jac, sig = np.empty((3, 2)), np.empty((6, 6)), np.empty(3)
+    for distorted in (False, True):
+        k.project(pts, params, distorted, px)
+        k.pose_jacobian(pts, params, distorted, jac)
+    k.undistort_pixels(px, params, 40, 30, np.empty((3, 2)))
+    k.moved_points(pts, pts[::-1].copy(), np.ones(3), np.empty((3, 3)))
+    k.pixel_distances(px, px, sig)
+    k.pairs_within(px, px, 5.0, 25.0)
+    k.best_per_row(np.array([0, 1, 0]), np.ones(3, np.float32), np.full(2, -1), np.empty(3, np.int64))
+
