@@ -5,8 +5,8 @@ Both rank the train rows of each query row by (distance, row index): the nearest
 row at the smallest distance, the second the first row at the smallest distance among the
 others, as two ``argmin`` passes give. The compiled kernel measures one query row against
 every train row at a time (no (N, M) distance matrix) and finds the two nearest by two
-branch-free minimum passes: about 9x the numpy path's speed at 500 x 1000 ORB descriptors
-(0.27 ms); :func:`compiled_knn2` imports numba on first use and
+branch-free minimum passes: about 10x the numpy path's speed at 500 x 1100 ORB descriptors
+(0.24 ms); :func:`compiled_knn2` imports numba on first use and
 returns None where it is not installed.
 """
 
@@ -36,9 +36,15 @@ def knn2(a: npt.NDArray[np.uint8], b: npt.NDArray[np.uint8], *, compiled: bool |
     if len(b) >= 1 << 32:
         raise ValueError(f"hamming.knn2: the compiled kernel takes fewer than 2^32 train rows, "
                          f"got {len(b)}")
+    words_a, cols_b = _pad_words(words_a), np.ascontiguousarray(_pad_words(words_b).T)
     out_d = np.empty((len(a), 2), np.float32)
     out_i = np.empty((len(a), 2), np.int64)
-    kernel(_pad_words(words_a), np.ascontiguousarray(_pad_words(words_b).T), out_d, out_i)
+    if 64 * words_a.shape[1] < 1 << 9 and len(b) <= 1 << 22:  # distance << 22 | row fits
+        key: npt.NDArray[np.integer] = np.empty(len(b), np.int32)
+        kernel(words_a, cols_b, key, 22, np.int32(np.iinfo(np.int32).max), out_d, out_i)
+    else:
+        key = np.empty(len(b), np.int64)
+        kernel(words_a, cols_b, key, 32, np.int64(np.iinfo(np.int64).max), out_d, out_i)
     return out_d, out_i
 
 
@@ -99,35 +105,45 @@ def _popcount64(x: Any) -> Any:
 
 
 def _knn2_rows(words_a: npt.NDArray[np.uint64], cols_b: npt.NDArray[np.uint64],
+               key: npt.NDArray[np.integer], shift: int, big: Any,
                out_d: npt.NDArray[np.float32], out_i: npt.NDArray[np.int64]) -> None:
     """For each row ``i`` of ``words_a`` (N, W), W a multiple of 4: its distances to every
     train row (``cols_b`` (W, M), word-major so the loop over train rows reads contiguous
     rows and vectorises, four words per pass), then the two nearest into ``out_d[i]`` and
-    ``out_i[i]``. Each train row j gets the key ``distance << 32 | j``: the smallest key is
-    the first row at the smallest distance (``argmin``'s answer), the smallest of the other
-    keys the first row at the smallest distance among the rest, so two branch-free minimum
-    passes replace searching (M < 2^32)."""
+    ``out_i[i]``. Each train row j gets the key ``distance << shift | j`` in ``key`` (M,):
+    the smallest key is the first row at the smallest distance (``argmin``'s answer), the
+    smallest of the other keys the first row at the smallest distance among the rest, so two
+    branch-free minimum passes replace searching. ``key`` is int32 (``shift`` 22: twice the
+    lanes per pass) where distances and rows fit, else int64 (``shift`` 32); ``big`` is
+    its largest value."""
     n, w = words_a.shape
     m = cols_b.shape[1]
-    key = np.empty(m, np.int64)
-    big = np.iinfo(np.int64).max
+    mask = (1 << shift) - 1
     for i in range(n):
         for g in range(0, w, 4):
             q0, q1, q2, q3 = words_a[i, g], words_a[i, g + 1], words_a[i, g + 2], words_a[i, g + 3]
             c0, c1, c2, c3 = cols_b[g], cols_b[g + 1], cols_b[g + 2], cols_b[g + 3]
+            if w == 4:  # ORB's 32 bytes: the keys in the same pass
+                for j in range(m):
+                    key[j] = (np.int64(_popcount64(q0 ^ c0[j]) + _popcount64(q1 ^ c1[j])
+                                       + _popcount64(q2 ^ c2[j]) + _popcount64(q3 ^ c3[j]))
+                              << shift) | j
+            else:
+                for j in range(m):
+                    d = np.int64(_popcount64(q0 ^ c0[j]) + _popcount64(q1 ^ c1[j])
+                                 + _popcount64(q2 ^ c2[j]) + _popcount64(q3 ^ c3[j]))
+                    key[j] = d if g == 0 else key[j] + d
+        if w != 4:
             for j in range(m):
-                d = np.int64(_popcount64(q0 ^ c0[j]) + _popcount64(q1 ^ c1[j])
-                             + _popcount64(q2 ^ c2[j]) + _popcount64(q3 ^ c3[j]))
-                key[j] = d if g == 0 else key[j] + d
+                key[j] = (key[j] << shift) | j
         first = big
         for j in range(m):
-            key[j] = (key[j] << 32) | j
             first = min(first, key[j])
         second = big
         for j in range(m):
             second = min(second, big if key[j] == first else key[j])
-        out_d[i, 0], out_d[i, 1] = first >> 32, second >> 32
-        out_i[i, 0], out_i[i, 1] = first & 0xFFFFFFFF, second & 0xFFFFFFFF
+        out_d[i, 0], out_d[i, 1] = first >> shift, second >> shift
+        out_i[i, 0], out_i[i, 1] = first & mask, second & mask
 
 
 @functools.cache
