@@ -120,6 +120,22 @@ def test_pixel_sigmas_and_chance_pairs_are_the_numpy_values(monkeypatch):
         assert np.array_equal(f, s)
 
 
+def test_inlier_test_is_the_numpy_choice(monkeypatch):
+    """Reprojection errors against the threshold: the same inliers, points behind the
+    camera (NaN pixels) and NaN keypoints never among them."""
+    camera, rng = _cameras()[0], np.random.default_rng(10)
+    pts = _points_cam()
+    view = p3p._View.at(np.eye(4), pts, camera)
+    px = view.px + rng.normal(scale=4.0, size=view.px.shape)
+    px[7] = np.nan
+    conf = p3p.PnPConf()
+    fast = view.inliers(px, conf)
+    _numpy_path(monkeypatch)
+    slow = view.inliers(px, conf)
+    assert np.array_equal(fast, slow) and 0 < len(fast) < len(px) - 6
+    assert not np.isin([0, 1, 2, 3, 4, 5, 7], fast).any()
+
+
 def test_best_match_per_landmark_is_the_numpy_choice():
     """Many query keypoints per pool row, equal distances among them: the same kept
     matches (nearest, the first of equally near ones) from rows as from landmark ids."""

@@ -145,6 +145,12 @@ class _View:
 
     def inliers(self, px: Array, conf: PnPConf) -> npt.NDArray[np.int64]:
         """Indices whose reprojection error (real camera model) is below the threshold."""
+        kernels = compiled()
+        if kernels is not None:  # the same distances (inf where not finite: never below)
+            err = np.empty(len(px))
+            kernels.pixel_distances(np.ascontiguousarray(px, np.float64),
+                                    np.ascontiguousarray(self.px), err)
+            return np.flatnonzero(err < conf.max_reproj_error_px)
         with np.errstate(invalid="ignore"):
             err = np.linalg.norm(px - self.px, axis=1)
             return np.flatnonzero(err < conf.max_reproj_error_px)
