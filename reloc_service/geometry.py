@@ -11,6 +11,11 @@ import numpy.typing as npt
 from reloc_client.protocol.geometry import quat_xyzw_to_rotation, rotation_to_quat_xyzw_array
 from scipy.spatial.transform import Rotation
 
+try:  # the compiled functions Rotation calls for NumPy input (SciPy >= 1.16)
+    from scipy.spatial.transform import _rotation_cy as _rotation_kernels
+except ImportError:  # older SciPy: Rotation itself
+    _rotation_kernels = None
+
 from .errors import GeometryError
 
 Array = npt.NDArray[np.float64]
@@ -144,8 +149,15 @@ def skew(v: npt.ArrayLike) -> Array:
 
 
 def so3_exp(omega: npt.ArrayLike) -> Array:
-    """Rotation vector (3,) (axis * angle, radians) to a (3, 3) rotation matrix."""
-    return Rotation.from_rotvec(np.asarray(omega, dtype=np.float64)).as_matrix()
+    """Rotation vector (3,) (axis * angle, radians) to a (3, 3) rotation matrix:
+    ``Rotation.from_rotvec(omega).as_matrix()``, by the compiled functions that runs where
+    SciPy has them (the same values, without its array-API dispatch: about 3 instead of 9
+    microseconds, and P3P's refinement takes one per query)."""
+    v = np.asarray(omega, dtype=np.float64)
+    if _rotation_kernels is not None and v.shape == (3,):
+        matrix: Array = _rotation_kernels.as_matrix(_rotation_kernels.from_rotvec(v)[None, :])[0]
+        return matrix
+    return Rotation.from_rotvec(v).as_matrix()
 
 
 def so3_log(rotation: npt.ArrayLike) -> Array:

@@ -102,3 +102,20 @@ def test_quaternion_round_trip_through_the_one_implementation():
         np.testing.assert_allclose(g.quat_xyzw_to_matrix(qi), ri, atol=1e-15)
         np.testing.assert_allclose(g.matrix_to_quat_xyzw(ri), back[len(back) - len(q)
                                    + list(map(tuple, q)).index(tuple(qi))], atol=1e-15)
+
+
+def test_so3_exp_is_scipys_rotation_to_the_bit():
+    """so3_exp calls SciPy's compiled rotation functions directly where SciPy has them: the
+    values of ``Rotation.from_rotvec(v).as_matrix()``, at every scale of angle (SciPy's
+    small-angle series included), and a (1, 3) vector still goes through Rotation."""
+    from scipy.spatial.transform import Rotation
+
+    from reloc_service import geometry
+
+    assert geometry._rotation_kernels is not None  # the SciPy the project installs has them
+    rng = np.random.default_rng(11)
+    for scale in (0.0, 1e-9, 1e-5, 1e-3, 0.1, 1.0, 3.0):
+        for v in rng.normal(size=(2000, 3)) * scale:
+            assert np.array_equal(geometry.so3_exp(v), Rotation.from_rotvec(v).as_matrix())
+    batch = geometry.so3_exp(np.array([[0.1, 0.2, 0.3]]))
+    assert batch.shape == (1, 3, 3)

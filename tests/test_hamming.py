@@ -63,3 +63,16 @@ def test_compiled_path_without_numba_says_how_to_get_it(monkeypatch):
     with pytest.raises(ImportError, match="jit"):
         hamming.knn2(a, a, compiled=True)
     assert hamming.knn2(a, a)[0].shape == (2, 2)  # None: falls back to numpy
+
+
+def test_compiled_path_on_wider_descriptors_than_orb(real_pair):
+    """Descriptors of more than 4 words (64 and 40 bytes: two ORB rows side by side, cut)
+    pass through the kernel's 4-word steps, zero-padded, with the numpy answers."""
+    pytest.importorskip("numba")
+    a, b = real_pair
+    wide_a, wide_b = np.hstack([a, a[::-1]]), np.hstack([b, b[::-1]])
+    for qa, qb in ((wide_a, wide_b), (wide_a[:, :40], wide_b[:, :40])):
+        np_d, np_i = hamming.knn2(qa, qb, compiled=False)
+        jit_d, jit_i = hamming.knn2(qa, qb, compiled=True)
+        assert np.array_equal(np_d, jit_d) and np.array_equal(np_i, jit_i)
+        assert np.array_equal(jit_d, _reference(qa, qb)[0])

@@ -202,6 +202,33 @@ def test_landmark_pool_keeps_one_row_per_landmark_from_the_best_keyframe():
     assert len(LandmarkPool.gather([keyframe(1, [-1], 0.0)], "sift").landmark_ids) == 0
 
 
+
+def test_landmark_pool_of_one_keyframe_is_the_general_pool_and_its_rows_are_kept():
+    """One keyframe alone (the fast path's first pool) gives the rows the general path gives
+    (its first keypoint of each landmark), from rows computed once per features object; a
+    copy with other landmarks gets its own."""
+    from reloc_service.pose.p3p import _landmark_rows
+
+    camera = make_camera("pinhole", 64, 48)
+    image = np.zeros((48, 64), np.uint8)
+    ids = [4, -1, 4, 2, 9, 2, -1, 7]
+    rng = np.random.default_rng(3)
+    feats = Features.create("orb", rng.uniform(0, 40, (len(ids), 2)),
+                            rng.integers(0, 256, (len(ids), 32), dtype=np.uint8),
+                            landmark_ids=ids, points_world=rng.normal(size=(len(ids), 3)))
+    alone = Keyframe(image=image, camera=camera, id=1, features={"orb": feats})
+    without = Keyframe(image=image, camera=camera, id=2, features={})
+    one, general = LandmarkPool.gather([alone], "orb"), LandmarkPool.gather([alone, without], "orb")
+    for name in ("descriptors", "landmark_ids", "points_world", "keyframe_rows"):
+        assert np.array_equal(getattr(one, name), getattr(general, name)), name
+        assert getattr(one, name).dtype == getattr(general, name).dtype, name
+    assert one.landmark_ids.tolist() == [4, 2, 9, 7]
+    assert _landmark_rows(feats) is _landmark_rows(feats)  # once per features object
+    moved = feats.with_landmarks([1], [5], [[0.0, 0.0, 1.0]])
+    assert _landmark_rows(moved).tolist() == [0, 1, 3, 4, 7]
+    assert _landmark_rows(feats).tolist() == [0, 3, 4, 7]
+
+
 # -- image based: a textured plane with a small map ---------------------------------------------
 
 @pytest.fixture(scope="module")
@@ -297,6 +324,23 @@ def test_chance_agreement_counts_the_pairs_of_the_full_table(spread_px):
         expected = int(np.count_nonzero(d2 < 25.0))
     assert _pairs_within(projected, px, 5.0) == expected
     assert expected > 0
+
+
+def test_chance_agreement_pairs_every_correspondence_up_to_max_points():
+    """Up to ``max_points`` correspondences all are paired; beyond, an even choice of them."""
+    from reloc_service.pose.p3p import _pairs_within, chance_agreement
+
+    rng = np.random.default_rng(4)
+    px = rng.normal((320.0, 240.0), 30.0, (450, 2))
+    projected = px + rng.normal(0.0, 4.0, px.shape)
+    for n in (2, 120, 200):
+        want = _pairs_within(projected[:n], px[:n], 5.0) / (n * (n - 1))
+        assert chance_agreement(projected[:n], px[:n], 5.0, (640, 480)) == max(
+            want, np.pi * 25 / (640 * 480))
+    idx = np.unique(np.linspace(0, 449, 200).astype(np.int64))
+    assert len(idx) == 200
+    want = _pairs_within(projected[idx], px[idx], 5.0) / (200 * 199)
+    assert chance_agreement(projected, px, 5.0, (640, 480)) == want > 0
 
 
 def test_refined_estimate_is_the_one_recomputed_from_scratch():

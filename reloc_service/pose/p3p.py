@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import time
+import weakref
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -14,7 +15,7 @@ import numpy.typing as npt
 import poselib
 
 from .. import features as feature_lib
-from ..cameras import Camera, RadTanCamera
+from ..cameras import _CV_UNDISTORT_CRITERIA, _NEWTON_ITERS, Camera, RadTanCamera
 from ..errors import ConfigError, GeometryError
 from ..frame import Features, Frame, Keyframe
 from ..geometry import invert, se3_exp, transform_points
@@ -22,6 +23,7 @@ from ..map import MapState
 from ..place.base import PlaceCandidate
 from .base import PoseEstimate, PoseFinder, register
 from .guided import GuidedConf, search_by_projection
+from .kernels import camera_params, compiled
 
 Array = npt.NDArray[np.float64]
 
@@ -98,18 +100,30 @@ class PointUncertainty:
         pixels between a point and the point moved one sigma along its ray.
         ``projected_px`` (M, 2): the points' pixels at that pose when already known."""
         pts = points_world
-        ray = pts - self.ray_origins_world[rows]
-        ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
-        moved = pts + self.depth_sigmas_m[rows, None] * ray
+        kernels = compiled()
+        if kernels is None:
+            ray = pts - self.ray_origins_world[rows]
+            ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
+            moved = pts + self.depth_sigmas_m[rows, None] * ray
+        else:
+            moved = np.empty_like(pts, np.float64)
+            kernels.moved_points(np.ascontiguousarray(pts, np.float64),
+                                 np.ascontiguousarray(self.ray_origins_world[rows], np.float64),
+                                 np.ascontiguousarray(self.depth_sigmas_m[rows], np.float64),
+                                 moved)
         cam_from_world = invert(world_from_cam)
         with np.errstate(invalid="ignore", divide="ignore"):
             # Per-point arithmetic: projecting a point alone or among others gives its values.
             if projected_px is None:
-                both = camera.project(transform_points(cam_from_world,
-                                                       np.concatenate([moved, pts])))
+                both = _project(camera, transform_points(cam_from_world,
+                                                         np.concatenate([moved, pts])))
                 moved_px, projected_px = both[:len(pts)], both[len(pts):]
             else:
-                moved_px = camera.project(transform_points(cam_from_world, moved))
+                moved_px = _project(camera, transform_points(cam_from_world, moved))
+            if kernels is not None:
+                sigma = np.empty(len(pts))
+                kernels.pixel_distances(moved_px, np.ascontiguousarray(projected_px), sigma)
+                return sigma
             sigma = np.linalg.norm(moved_px - projected_px, axis=1)
         return np.where(np.isfinite(sigma), sigma, np.inf)
 
@@ -127,10 +141,16 @@ class _View:
     @classmethod
     def at(cls, world_from_cam: Array, points_world: Array, camera: Camera) -> _View:
         points_cam = transform_points(invert(world_from_cam), points_world)
-        return cls(world_from_cam, points_cam, camera.project(points_cam))
+        return cls(world_from_cam, points_cam, _project(camera, points_cam))
 
     def inliers(self, px: Array, conf: PnPConf) -> npt.NDArray[np.int64]:
         """Indices whose reprojection error (real camera model) is below the threshold."""
+        kernels = compiled()
+        if kernels is not None:  # the same distances (inf where not finite: never below)
+            err = np.empty(len(px))
+            kernels.pixel_distances(np.ascontiguousarray(px, np.float64),
+                                    np.ascontiguousarray(self.px), err)
+            return np.flatnonzero(err < conf.max_reproj_error_px)
         with np.errstate(invalid="ignore"):
             err = np.linalg.norm(px - self.px, axis=1)
             return np.flatnonzero(err < conf.max_reproj_error_px)
@@ -159,7 +179,7 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
     if len(px) != len(pts):
         raise GeometryError(f"solve_pnp: expected as many points as pixels, "
                             f"got {len(pts)} and {len(px)}")
-    ideal_px = camera.undistort_pixels(px)
+    ideal_px = _undistort_pixels(camera, px)
     usable = np.flatnonzero(np.isfinite(ideal_px).all(1) & np.isfinite(pts).all(1))
     if len(usable) < 4:
         return None
@@ -270,12 +290,48 @@ def _residuals_and_jacobian(world_from_cam: Array, px: Array, points_world: Arra
     """(N, 2) residuals ``px - project(points)`` and the (2N, 6) Jacobian of the projection
     w.r.t. a right perturbation ``world_from_cam @ exp(xi)``, ``xi = (rho, omega)``."""
     points_cam = transform_points(invert(world_from_cam), points_world)
-    return px - camera.project(points_cam), _pose_jacobian(camera, points_cam)
+    return px - _project(camera, points_cam), _pose_jacobian(camera, points_cam)
+
+
+@functools.lru_cache(maxsize=64)
+def _kernel_camera(camera: Camera) -> tuple[Array, bool] | None:
+    """:func:`.kernels.camera_params` of ``camera`` (made once per camera)."""
+    return camera_params(camera)
+
+
+def _project(camera: Camera, points_cam: Array) -> Array:
+    """``camera.project`` of (N, 3) camera-frame points: compiled for pinhole and radtan
+    cameras where numba is installed (:mod:`.kernels`, the same values)."""
+    kernels, params = compiled(), _kernel_camera(camera)
+    if kernels is None or params is None:
+        return camera.project(points_cam)
+    out = np.empty((len(points_cam), 2))
+    kernels.project(np.ascontiguousarray(points_cam, np.float64), params[0], params[1], out)
+    return out
+
+
+def _undistort_pixels(camera: Camera, px: Array) -> Array:
+    """``camera.undistort_pixels`` of (N, 2) pixels: for radtan compiled where numba is
+    installed (:mod:`.kernels`: OpenCV's start and the Newton iterations, the same values)."""
+    kernels, params = compiled(), _kernel_camera(camera)
+    if kernels is None or params is None or not params[1] or not isinstance(camera, RadTanCamera):
+        return camera.undistort_pixels(px)
+    out = np.empty((len(px), 2))
+    kernels.undistort_pixels(np.ascontiguousarray(px, np.float64), params[0],
+                             _CV_UNDISTORT_CRITERIA[1], _NEWTON_ITERS, out)
+    return out
 
 
 def _pose_jacobian(camera: Camera, points_cam: Array) -> Array:
     """(2N, 6) Jacobian of the pixels of (N, 3) camera-frame points w.r.t. a right
-    perturbation of ``world_from_cam`` (see :func:`_residuals_and_jacobian`)."""
+    perturbation of ``world_from_cam`` (see :func:`_residuals_and_jacobian`); compiled
+    like :func:`_project`."""
+    kernels, params = compiled(), _kernel_camera(camera)
+    if kernels is not None and params is not None:
+        out = np.empty((2 * len(points_cam), 6))
+        kernels.pose_jacobian(np.ascontiguousarray(points_cam, np.float64), params[0],
+                              params[1], out)
+        return out
     d_px = _projection_jacobian(camera, points_cam)  # (N, 2, 3)
     # cam_from_world becomes exp(-xi) @ cam_from_world, so p_cam moves by -rho + [p_cam]x omega:
     # d px / d rho = -d_px, d px / d omega = d_px @ [p_cam]x (columns written out).
@@ -339,9 +395,12 @@ def chance_agreement(projected_px: Array, px: Array, threshold_px: float,
     n = len(px)
     if n < 2:
         return uniform
-    idx = np.unique(np.linspace(0, n - 1, min(n, max_points)).astype(np.int64))
-    m = len(idx)
-    agree = _pairs_within(projected_px[idx], px[idx], threshold_px)
+    if n <= max_points:  # every correspondence (what the even choice below picks then)
+        m, agree = n, _pairs_within(projected_px, px, threshold_px)
+    else:
+        idx = np.unique(np.linspace(0, n - 1, max_points).astype(np.int64))
+        m = len(idx)
+        agree = _pairs_within(projected_px[idx], px[idx], threshold_px)
     return max(uniform, float(agree) / (m * (m - 1)))
 
 
@@ -349,7 +408,13 @@ def _pairs_within(projected_px: Array, px: Array, threshold_px: float) -> int:
     """Number of pairs ``j != i`` with ``|projected_px[j] - px[i]| < threshold_px``: only
     the pairs whose x coordinates lie within twice the threshold (``px`` sorted by x, a
     superset of those that agree) are measured, with the same arithmetic as the full (m, m)
-    table (per axis difference, squares summed), so the count is the table's."""
+    table (per axis difference, squares summed), so the count is the table's. Compiled
+    where numba is installed (:mod:`.kernels`, the same count)."""
+    kernels = compiled()
+    if kernels is not None:
+        return int(kernels.pairs_within(np.ascontiguousarray(projected_px, np.float64),
+                                        np.ascontiguousarray(px, np.float64),
+                                        float(threshold_px), float(threshold_px)**2))
     order = np.argsort(px[:, 0], kind="stable")
     xs = px[order, 0]
     lo = np.searchsorted(xs, projected_px[:, 0] - 2.0 * threshold_px, side="left")
@@ -545,7 +610,7 @@ class P3PPoseFinder(PoseFinder):
         pool = LandmarkPool.gather(keyframes, self.conf.kind)
         q_idx, rows, dist = feature_lib.match_ratio(feats.descriptors, pool.descriptors,
                                                     ratio=self.conf.ratio)
-        keep = _best_per_landmark(pool.landmark_ids[rows], dist)
+        keep = _best_per_landmark(pool.landmark_ids[rows], dist, rows, len(pool.landmark_ids))
         return q_idx[keep], rows[keep], pool
 
 
@@ -564,6 +629,11 @@ class LandmarkPool:
         """Pool ``kind`` landmarks of ``keyframes`` (best first). A landmark seen by several
         keyframes keeps one row: duplicates would fail Lowe's ratio test against themselves."""
         feats = [kf.features.get(kind) for kf in keyframes]
+        if len(feats) == 1 and feats[0] is not None and len(feats[0]):
+            f = feats[0]
+            idx = _landmark_rows(f)
+            return cls(f.descriptors[idx], f.landmark_ids[idx], f.points_world[idx],
+                       np.zeros(len(idx), np.int64))
         local = [np.zeros(0, np.int64) if f is None else np.flatnonzero(f.landmark_ids >= 0)
                  for f in feats]
         if not sum(len(i) for i in local):
@@ -606,6 +676,26 @@ class LandmarkPool:
         return [keyframe_ids[i] for i in order if counts[i] > 0]
 
 
+#: Per keyframe features: the rows :meth:`LandmarkPool.gather` keeps of it alone (a few
+#: kB each, weakly held: gone with the features). Features are never changed in place
+#: (:meth:`Features.with_landmarks` copies), so the rows stay right while they live.
+_LANDMARK_ROWS: weakref.WeakKeyDictionary[Features, npt.NDArray[np.int64]] = (
+    weakref.WeakKeyDictionary())
+
+
+def _landmark_rows(features: Features) -> npt.NDArray[np.int64]:
+    """Rows of ``features`` with a landmark, the first row of each landmark id (ascending):
+    the rows a pool of this keyframe alone holds. Computed once per features object (the
+    fast path pools the best keyframe alone for every query)."""
+    rows = _LANDMARK_ROWS.get(features)
+    if rows is None:
+        local = np.flatnonzero(features.landmark_ids >= 0)
+        rows = local[np.sort(np.unique(features.landmark_ids[local], return_index=True)[1])]
+        rows.flags.writeable = False
+        _LANDMARK_ROWS[features] = rows
+    return rows
+
+
 def _union(first_q: npt.NDArray[np.int64], first_rows: npt.NDArray[np.int64],
            second_q: npt.NDArray[np.int64], second_rows: npt.NDArray[np.int64]
            ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
@@ -619,9 +709,19 @@ def _union(first_q: npt.NDArray[np.int64], first_rows: npt.NDArray[np.int64],
     return q[keep], rows[keep]
 
 
-def _best_per_landmark(landmark_ids: npt.NDArray[np.int64], dist: npt.NDArray[np.float32]
+def _best_per_landmark(landmark_ids: npt.NDArray[np.int64], dist: npt.NDArray[np.float32],
+                       rows: npt.NDArray[np.int64] | None = None, pool_size: int = 0
                        ) -> npt.NDArray[np.int64]:
-    """Indices of the matches to keep: for each landmark, the query keypoint nearest to it."""
+    """Indices of the matches to keep: for each landmark, the query keypoint nearest to it
+    (the first of equally near ones). With the matches' pool ``rows`` (one row per landmark,
+    ``pool_size`` rows), one compiled pass where numba is installed (:mod:`.kernels`)."""
+    kernels = compiled()
+    if kernels is not None and rows is not None:
+        keep = np.empty(len(rows), np.int64)
+        count = kernels.best_per_row(np.ascontiguousarray(rows, np.int64),
+                                     np.ascontiguousarray(dist, np.float32),
+                                     np.full(pool_size, -1, np.int64), keep)
+        return keep[:count]
     order = np.lexsort((dist, landmark_ids))
     _, first = np.unique(landmark_ids[order], return_index=True)
     return np.sort(order[first])

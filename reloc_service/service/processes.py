@@ -51,14 +51,16 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode
 
 from .. import hamming
 from ..cameras import Camera
 from ..engine import Engine, EngineConf, MappingConf
-from ..frame import Frame
+from ..frame import Frame, area_downscale
 from ..map import MapState
+from ..pose import kernels as pose_kernels
 from ..relocalizers.base import Prior, RelocResult
 from . import handlers
 from .codec import KeyframeInput, error_reply, served_method
@@ -149,9 +151,11 @@ def worker_main(conn: Connection, index: int) -> None:
     import cv2
 
     cv2.setNumThreads(1)
-    # The compiled Hamming kernel (numba, the [jit] extra; about a second to import) loads
-    # with the worker, not within its first query's answer time.
+    # The compiled kernels (numba, the [jit] extra; about a second to import) load with the
+    # worker, not within its first query's answer time.
     hamming.compiled_knn2()
+    pose_kernels.warm_up()
+    area_downscale(np.zeros((32, 32), np.uint8), 2, 2)
     replicas: dict[str, ReplicaMap] = {}
     while True:
         try:
