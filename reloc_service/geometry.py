@@ -6,15 +6,12 @@ compose as ``a_from_c = a_from_b @ b_from_c``. The map convention is ``world_fro
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import numpy.typing as npt
 from reloc_client.protocol.geometry import quat_xyzw_to_rotation, rotation_to_quat_xyzw_array
 from scipy.spatial.transform import Rotation
-
-try:  # the compiled functions Rotation calls for NumPy input (SciPy >= 1.16)
-    from scipy.spatial.transform import _rotation_cy as _rotation_kernels
-except ImportError:  # older SciPy: Rotation itself
-    _rotation_kernels = None
 
 from .errors import GeometryError
 
@@ -146,6 +143,26 @@ def skew(v: npt.ArrayLike) -> Array:
     """(3,) vector to its (3, 3) cross-product matrix."""
     x, y, z = np.asarray(v, dtype=np.float64)
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def _compiled_rotation_kernels() -> Any:
+    """SciPy's compiled rotation module (what ``Rotation`` runs for NumPy input, SciPy >= 1.16),
+    if it is there and gives ``Rotation``'s own matrices on a check vector; else None. It is
+    private API: any change of it (missing, renamed, other signature or values) means None,
+    and :func:`so3_exp` uses ``Rotation`` itself."""
+    try:
+        from scipy.spatial.transform import _rotation_cy as kernels
+
+        v = np.array([0.3, -1.2, 2.1])
+        matrix = kernels.as_matrix(kernels.from_rotvec(v)[None, :])[0]
+        if np.array_equal(matrix, Rotation.from_rotvec(v).as_matrix()):
+            return kernels
+    except Exception:  # noqa: BLE001 - private API: whatever it does, fall back
+        pass
+    return None
+
+
+_rotation_kernels = _compiled_rotation_kernels()
 
 
 def so3_exp(omega: npt.ArrayLike) -> Array:
