@@ -71,16 +71,16 @@ def position_sigmas(points_world: Array, centres_world: Array, focal_px: Array,
     return np.maximum(depth_sigmas_m, ranges * KEYPOINT_SIGMA_PX / focal_px)
 
 
-def encode_geometry(columns: LandmarkColumns, keyframes: Mapping[int, Keyframe]
-                    ) -> dict[str, np.ndarray]:
+def encode_geometry(columns: LandmarkColumns, keyframes: Mapping[int, Keyframe], *,
+                    exact: bool = False) -> dict[str, np.ndarray]:
     """The landmark geometry columns a snapshot stores: ``{ANCHORED_POINTS: (L, 3) float32,
     "depth_sigmas_m": (L,) float32}`` when every landmark's rounding error (point and sigma)
-    is at most ``ROUNDING_SHARE`` of its :func:`position_sigmas`, else ``{"points_world":
-    (L, 3) float64, "depth_sigmas_m": (L,) float64}`` as held."""
+    is at most ``ROUNDING_SHARE`` of its :func:`position_sigmas`, else (or when ``exact``)
+    ``{"points_world": (L, 3) float64, "depth_sigmas_m": (L,) float64}`` as held."""
     points = np.asarray(columns.points_world, np.float64)
     sigmas = np.asarray(columns.depth_sigmas_m, np.float64)
     full = {"points_world": points, "depth_sigmas_m": sigmas}
-    found = anchors(columns, keyframes)
+    found = None if exact else anchors(columns, keyframes)
     if found is None:
         return full
     centres, focal = found

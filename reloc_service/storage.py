@@ -204,21 +204,25 @@ def _thumbnail_path(key: str) -> str:
 
 
 def _write_landmarks(writer: SnapshotWriter, columns: LandmarkColumns,
-                     keyframes: Mapping[int, Keyframe]) -> dict[str, Any]:
+                     keyframes: Mapping[int, Keyframe], *, exact: bool) -> dict[str, Any]:
     """The landmark columns: ids and observation indices in the narrowest exact integer
-    type, points and sigmas float32 where :func:`encode_geometry` allows."""
+    type, points and sigmas float32 where :func:`encode_geometry` allows (never if ``exact``)."""
     for name in LANDMARK_INTEGERS:
         column = narrowest(np.asarray(getattr(columns, name)), LANDMARK_NARROWER[name])
         writer.write(f"landmarks/{name}.npy", _npy_bytes(column))
-    for name, column in encode_geometry(columns, keyframes).items():
+    for name, column in encode_geometry(columns, keyframes, exact=exact).items():
         writer.write(f"landmarks/{name}.npy", _npy_bytes(column))
     return {"dir": "landmarks", "kinds": list(columns.kinds)}
 
 
 def save_map(state: MapState, directory: str | Path, *,
-             models: Mapping[str, ModelWriter] | None = None) -> Path:
+             models: Mapping[str, ModelWriter] | None = None,
+             exact_geometry: bool = False) -> Path:
     """Save ``state`` (and models: method -> writer called with its own empty directory) as a
-    new snapshot of map directory ``directory``; returns the snapshot path."""
+    new snapshot of map directory ``directory``; returns the snapshot path. With
+    ``exact_geometry`` landmark points and sigmas are stored float64 as held (a replica that
+    must answer bit for bit as this map does), else float32 where far below their
+    uncertainty (:func:`.landmark_codec.encode_geometry`)."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     previous = current_or_none(directory)
@@ -231,7 +235,7 @@ def save_map(state: MapState, directory: str | Path, *,
     columns = state.landmarks.columns()
     _write_features(writer, kfs, state, columns, rows)
     thumbnails = _write_thumbnails(writer, kfs)
-    landmarks = _write_landmarks(writer, columns, state.keyframes)
+    landmarks = _write_landmarks(writer, columns, state.keyframes, exact=exact_geometry)
     model_dirs: dict[str, str] = {}
     for method, write_model in (models or {}).items():
         rel = f"{MODELS_DIR}/{model_dir_name(method)}"

@@ -696,3 +696,19 @@ def test_ids_the_observations_do_not_give_are_stored(tmp_path, synthetic_map):
     loaded, _ = load_map(tmp_path)
     _assert_states_equal(state, loaded)
     assert loaded.keyframes[0].features["sift"].landmark_ids[free] == lm.id
+
+
+def test_exact_geometry_saves_landmarks_as_held(tmp_path, synthetic_map):
+    """``exact_geometry`` (the snapshot a service's worker processes load) keeps float64
+    points and sigmas, so a replica's landmarks are the map's bit for bit; by default the
+    same map is stored as float32 offsets, and loads back only approximately."""
+    state = synthetic_map
+    snap = save_map(state, tmp_path / "exact", exact_geometry=True)
+    assert _snapshot_npy(snap, "landmarks/points_world.npy").dtype == np.float64
+    assert not (snap / "landmarks" / "anchored_points_world.npy").exists()
+    ids = state.landmarks.id_array()
+    exact, _ = load_map(tmp_path / "exact")
+    assert np.array_equal(exact.landmark_points(ids), state.landmark_points(ids))
+    save_map(state, tmp_path / "compact")
+    compact, _ = load_map(tmp_path / "compact")
+    assert not np.array_equal(compact.landmark_points(ids), state.landmark_points(ids))

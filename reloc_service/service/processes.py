@@ -338,7 +338,8 @@ class ProcessWorkers:
             if not targets:
                 return
             path = Path(tempfile.mkdtemp(prefix=f"{rt.name}-", dir=self._scratch))
-            rt.engine.save(path)
+            # float64 geometry as the map holds it: a worker answers bit for bit as this map does
+            rt.engine.save(path, exact_geometry=True)
             base = _Base(path, {id(h) for h in targets})
             with self._lock:
                 self._bases[id(base)] = base
