@@ -24,10 +24,10 @@ Array = npt.NDArray[np.float64]
 
 CAMERA_MODELS: dict[str, type[Camera]] = {}
 
-_NEWTON_ITERS = 30
+UNDISTORT_NEWTON_ITERS = 30
 #: OpenCV's fixed-point radtan undistortion as Newton's start: 40 iterations leave about
 #: 1e-15 in normalised coordinates on a strong (k1 = -0.28) lens, one Newton step checks it.
-_CV_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT, 40, 0.0)
+CV_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT, 40, 0.0)
 
 
 def register_camera(name: str):
@@ -220,7 +220,7 @@ class RadTanCamera(Camera):
     def undistort(self, xy_distorted: Array) -> Array:
         target = np.asarray(xy_distorted, dtype=np.float64).reshape(-1, 2)
         q = self._initial_undistort(target)
-        for _ in range(_NEWTON_ITERS):  # 2x2 Newton per point, all points at once
+        for _ in range(UNDISTORT_NEWTON_ITERS):  # 2x2 Newton per point, all points at once
             res = self.distort(q) - target
             a, b, c, d = self._jacobian(q[:, 0], q[:, 1])
             det = a * d - b * c
@@ -240,7 +240,7 @@ class RadTanCamera(Camera):
             return target.copy()
         guess = cv2.undistortPoints(np.ascontiguousarray(target).reshape(-1, 1, 2), np.eye(3),
                                     np.asarray(self.distortion, np.float64),
-                                    criteria=_CV_UNDISTORT_CRITERIA).reshape(-1, 2)
+                                    criteria=CV_UNDISTORT_CRITERIA).reshape(-1, 2)
         return np.where(np.isfinite(guess), guess, target)
 
 
@@ -287,7 +287,7 @@ class EquidistantCamera(_RadialCamera):
 
     def _radius_undistort(self, r_d: Array) -> Array:
         theta = r_d.copy()
-        for _ in range(_NEWTON_ITERS):
+        for _ in range(UNDISTORT_NEWTON_ITERS):
             value, deriv = self._theta_d(theta)
             step = (value - r_d) / deriv
             theta = np.clip(theta - step, 0.0, np.pi / 2 - 1e-9)

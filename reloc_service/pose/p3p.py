@@ -15,7 +15,7 @@ import numpy.typing as npt
 import poselib
 
 from .. import features as feature_lib
-from ..cameras import _CV_UNDISTORT_CRITERIA, _NEWTON_ITERS, Camera, RadTanCamera
+from ..cameras import CV_UNDISTORT_CRITERIA, UNDISTORT_NEWTON_ITERS, Camera, RadTanCamera
 from ..errors import ConfigError, GeometryError
 from ..frame import Features, Frame, Keyframe
 from ..geometry import invert, se3_exp, transform_points
@@ -318,7 +318,7 @@ def _undistort_pixels(camera: Camera, px: Array) -> Array:
         return camera.undistort_pixels(px)
     out = np.empty((len(px), 2))
     kernels.undistort_pixels(np.ascontiguousarray(px, np.float64), params[0],
-                             _CV_UNDISTORT_CRITERIA[1], _NEWTON_ITERS, out)
+                             CV_UNDISTORT_CRITERIA[1], UNDISTORT_NEWTON_ITERS, out)
     return out
 
 
