@@ -13,7 +13,7 @@ import pytest
 from reloc_service.cameras import Camera, camera_from_dict
 from reloc_service.engine import Engine, EngineConf
 from reloc_service.frame import Frame
-from reloc_service.pose import kernels, p3p
+from reloc_service.pose import kernels, p3p, pnp
 from reloc_service.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.tools.data.dataset import read_dataset
 
@@ -41,6 +41,7 @@ def _points_cam(n: int = 400) -> np.ndarray:
 
 
 def _numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(pnp, "compiled", lambda: None)
     monkeypatch.setattr(p3p, "compiled", lambda: None)
 
 
@@ -48,9 +49,9 @@ def _numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_projection_and_jacobian_are_the_numpy_values(index, monkeypatch):
     camera, pts = _cameras()[index], _points_cam()
     assert kernels.compiled() is not None
-    fast_px, fast_jac = p3p._project(camera, pts), p3p._pose_jacobian(camera, pts[6:])
+    fast_px, fast_jac = pnp._project(camera, pts), pnp._pose_jacobian(camera, pts[6:])
     _numpy_path(monkeypatch)
-    slow_px, slow_jac = p3p._project(camera, pts), p3p._pose_jacobian(camera, pts[6:])
+    slow_px, slow_jac = pnp._project(camera, pts), pnp._pose_jacobian(camera, pts[6:])
     assert np.array_equal(fast_px, slow_px, equal_nan=True)
     assert np.array_equal(fast_px, camera.project(pts), equal_nan=True)
     assert np.isnan(fast_px[:6]).all() and np.isfinite(fast_px[6:]).all()
@@ -63,9 +64,9 @@ def test_undistortion_is_the_numpy_value(index, monkeypatch):
     rng = np.random.default_rng(6)
     px = np.vstack([rng.uniform([-40, -40], [camera.width + 40, camera.height + 40], (500, 2)),
                     [[np.nan, 3.0]]])
-    fast = p3p._undistort_pixels(camera, px)
+    fast = pnp._undistort_pixels(camera, px)
     _numpy_path(monkeypatch)
-    assert np.array_equal(fast, p3p._undistort_pixels(camera, px), equal_nan=True)
+    assert np.array_equal(fast, pnp._undistort_pixels(camera, px), equal_nan=True)
     assert np.array_equal(fast, camera.undistort_pixels(px), equal_nan=True)
 
 
@@ -102,20 +103,20 @@ def test_pixel_sigmas_and_chance_pairs_are_the_numpy_values(monkeypatch):
     origins[:3] = pts[:3]  # a zero ray: the norm's floor
     sigmas = rng.uniform(0, 0.3, len(pts))
     sigmas[3] = np.nan
-    unc = p3p.PointUncertainty(sigmas, origins)
+    unc = pnp.PointUncertainty(sigmas, origins)
     rows = np.arange(len(pts))
     px = np.round(rng.uniform([0, 0], [640, 480], (300, 2)) / 4) * 4  # ties in x
     projected = px + rng.normal(scale=3, size=px.shape)
     fast = [unc.pixel_sigmas(world_from_cam, pts, camera, rows),
             unc.pixel_sigmas(world_from_cam, pts, camera, rows,
                              projected_px=camera.project(pts)),
-            p3p._pairs_within(projected, px, 5.0), p3p._pairs_within(projected, px, 2.5)]
+            pnp._pairs_within(projected, px, 5.0), pnp._pairs_within(projected, px, 2.5)]
     assert np.isinf(fast[0][3]) and fast[2] > fast[3] > 0
     _numpy_path(monkeypatch)
     slow = [unc.pixel_sigmas(world_from_cam, pts, camera, rows),
             unc.pixel_sigmas(world_from_cam, pts, camera, rows,
                              projected_px=camera.project(pts)),
-            p3p._pairs_within(projected, px, 5.0), p3p._pairs_within(projected, px, 2.5)]
+            pnp._pairs_within(projected, px, 5.0), pnp._pairs_within(projected, px, 2.5)]
     for f, s in zip(fast, slow, strict=True):
         assert np.array_equal(f, s)
 
@@ -125,10 +126,10 @@ def test_inlier_test_is_the_numpy_choice(monkeypatch):
     camera (NaN pixels) and NaN keypoints never among them."""
     camera, rng = _cameras()[0], np.random.default_rng(10)
     pts = _points_cam()
-    view = p3p._View.at(np.eye(4), pts, camera)
+    view = pnp._View.at(np.eye(4), pts, camera)
     px = view.px + rng.normal(scale=4.0, size=view.px.shape)
     px[7] = np.nan
-    conf = p3p.PnPConf()
+    conf = pnp.PnPConf()
     fast = view.inliers(px, conf)
     _numpy_path(monkeypatch)
     slow = view.inliers(px, conf)

@@ -13,8 +13,8 @@ from reloc_service.geometry import invert, look_at, pose_error, se3_log, transfo
 from reloc_service.map import KeyframeMap
 from reloc_service.place.base import PlaceCandidate
 from reloc_service.pose.base import create_pose_finder
-from reloc_service.pose.p3p import (
-    LandmarkPool,
+from reloc_service.pose.p3p import LandmarkPool
+from reloc_service.pose.pnp import (
     PnPConf,
     PointUncertainty,
     solve_pnp,
@@ -67,7 +67,7 @@ def test_recovers_pose_exactly_with_half_outliers(model):
 @pytest.mark.parametrize("model", sorted(DISTORTIONS))
 def test_jacobian_matches_finite_differences(model):
     from reloc_service.geometry import se3_exp
-    from reloc_service.pose.p3p import _residuals_and_jacobian
+    from reloc_service.pose.pnp import _residuals_and_jacobian
 
     rng = np.random.default_rng(6)
     camera = make_camera(model)
@@ -88,7 +88,7 @@ def test_jacobian_matches_finite_differences(model):
 def test_poselib_camera_projects_exactly_as_ours(model):
     """The refinement's Jacobian comes from PoseLib's camera model: it must be our model,
     parameter for parameter, over the whole image."""
-    from reloc_service.pose.p3p import poselib_camera
+    from reloc_service.pose.pnp import poselib_camera
 
     camera = make_camera(model.split("-")[0])
     if model == "radtan-k3":
@@ -106,7 +106,7 @@ def test_poselib_camera_projects_exactly_as_ours(model):
 def test_numpy_pixel_jacobian_equals_poselibs(model):
     """Pinhole and radtan Jacobians are written out in numpy (faster than converting
     PoseLib's list of 2x2 arrays): the same values as PoseLib's analytic ones."""
-    from reloc_service.pose.p3p import _pixel_jacobian, poselib_camera
+    from reloc_service.pose.pnp import _pixel_jacobian, poselib_camera
 
     camera = make_camera(model.split("-")[0])
     if model == "radtan-k3":
@@ -118,7 +118,7 @@ def test_numpy_pixel_jacobian_equals_poselibs(model):
 
 
 def test_fov_has_no_poselib_camera():
-    from reloc_service.pose.p3p import poselib_camera
+    from reloc_service.pose.pnp import poselib_camera
 
     assert poselib_camera(make_camera("fov")) is None
 
@@ -294,7 +294,7 @@ def test_find_pose_with_keyframes_lacking_features_is_refused():
 
 
 def test_chance_agreement_is_higher_for_bunched_correspondences():
-    from reloc_service.pose.p3p import chance_agreement
+    from reloc_service.pose.pnp import chance_agreement
 
     rng = np.random.default_rng(0)
     spread = np.column_stack([rng.uniform(0, 640, 200), rng.uniform(0, 480, 200)])
@@ -309,7 +309,7 @@ def test_chance_agreement_is_higher_for_bunched_correspondences():
 def test_chance_agreement_counts_the_pairs_of_the_full_table(spread_px):
     """Only pairs near in x are measured; the count is the full (m, m) table's, also with
     points on the threshold's edge, duplicates and a NaN projection."""
-    from reloc_service.pose.p3p import _pairs_within
+    from reloc_service.pose.pnp import _pairs_within
 
     rng = np.random.default_rng(int(spread_px))
     px = np.round(rng.normal((320.0, 240.0), spread_px, (200, 2)))  # integer: exact ties
@@ -328,7 +328,7 @@ def test_chance_agreement_counts_the_pairs_of_the_full_table(spread_px):
 
 def test_chance_agreement_pairs_every_correspondence_up_to_max_points():
     """Up to ``max_points`` correspondences all are paired; beyond, an even choice of them."""
-    from reloc_service.pose.p3p import _pairs_within, chance_agreement
+    from reloc_service.pose.pnp import _pairs_within, chance_agreement
 
     rng = np.random.default_rng(4)
     px = rng.normal((320.0, 240.0), 30.0, (450, 2))
@@ -346,7 +346,7 @@ def test_chance_agreement_pairs_every_correspondence_up_to_max_points():
 def test_refined_estimate_is_the_one_recomputed_from_scratch():
     """The pose, inliers and covariance reuse one projection per pose: the same values as
     projecting anew for the weights and the covariance (what the refinement did before)."""
-    from reloc_service.pose.p3p import _estimate, _refine, _weights
+    from reloc_service.pose.pnp import _estimate, _refine, _weights
 
     camera = make_camera("radtan")
     rng = np.random.default_rng(3)
@@ -424,7 +424,7 @@ def test_level_scales_weigh_coarse_keypoints_less():
     """A keypoint found at pyramid level l is located to ``1.2^l`` pixels: weighted so, the
     pose from keypoints whose noise grows with their level is closer to the truth than with
     every keypoint weighed alike (the same correspondences, 30 draws)."""
-    from reloc_service.pose.p3p import _weights, level_scales
+    from reloc_service.pose.pnp import _weights, level_scales
 
     camera = make_camera("radtan")
     np.testing.assert_allclose(level_scales(np.array([0, 1, 7]), 1.2), [1.0, 1.2, 1.2**7])

@@ -7,7 +7,7 @@ each on arrays of a few hundred values, so the calls, not the arithmetic, cost t
 each point's values come from one loop iteration. Every expression below is the numpy path's
 (:meth:`~reloc_service.cameras.Camera.project`, :meth:`RadTanCamera.distort
 <reloc_service.cameras.RadTanCamera.distort>`, ``RadTanCamera._jacobian``,
-:func:`~reloc_service.pose.p3p._pose_jacobian`) with its operations in the same order (Python
+:func:`~reloc_service.pose.pnp._pose_jacobian`) with its operations in the same order (Python
 evaluates ``2 * p1 * x * y`` as ``((2 * p1) * x) * y``, and so does numba; numba contracts no
 multiply-add into an FMA without ``fastmath``), so the results are the same to the bit:
 ``tests/test_pose_kernels.py`` compares both paths on the points of real queries.
@@ -57,7 +57,7 @@ def _project(points_cam: Array, params: Array, distorted: bool, out: Array) -> N
 
 
 def _pose_jacobian(points_cam: Array, params: Array, distorted: bool, out: Array) -> None:
-    """:func:`~reloc_service.pose.p3p._pose_jacobian` of (N, 3) camera-frame points into
+    """:func:`~reloc_service.pose.pnp._pose_jacobian` of (N, 3) camera-frame points into
     ``out`` (2N, 6): the pixel Jacobian w.r.t. normalised coordinates (radtan's analytic one,
     or the pinhole's ``diag(fx, fy)``), through ``1 / Z``, then w.r.t. the twist."""
     fx, fy = params[0], params[1]
@@ -188,7 +188,7 @@ def _pixel_distances(a: Array, b: Array, out: Array) -> None:
 
 def _pairs_within(projected_px: Array, px: Array, threshold_px: float, threshold_sq: float
                   ) -> int:
-    """:func:`~reloc_service.pose.p3p._pairs_within`: pairs ``j != i`` with
+    """:func:`~reloc_service.pose.pnp._pairs_within`: pairs ``j != i`` with
     ``|projected_px[j] - px[i]| < threshold_px`` (per axis differences, squares summed),
     measured only where the x coordinates lie within twice the threshold (a superset);
     ``threshold_sq`` is Python's ``threshold_px**2``."""

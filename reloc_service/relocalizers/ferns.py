@@ -60,7 +60,7 @@ from ..numeric import top_k
 from ..place.sbi import SmallBlurryImageFinder
 from ..plugins import make_conf
 from ..pose.base import PoseEstimate
-from ..pose.p3p import PnPConf, solve_pnp_indexed
+from ..pose.pnp import PnPConf, solve_pnp_indexed
 from .base import Prior, Relocalizer, RelocResult, VerifyConf, register, result_from_estimate
 
 Array = npt.NDArray[np.float64]

@@ -24,7 +24,8 @@ from ...cameras import Camera
 from ...frame import Frame, Keyframe
 from ...geometry import invert, pose_error
 from ...map import KeyframeMap
-from ...pose.p3p import P3PPoseFinder, ransac_pinhole, solve_pnp
+from ...pose.p3p import P3PPoseFinder
+from ...pose.pnp import ransac_pinhole, solve_pnp
 from ...relocalizers.factory import create_relocalizer
 from ..synth.planar import (
     DEFAULT_CAMERA,
