@@ -15,6 +15,7 @@ import numpy.typing as npt
 from .cameras import Camera
 from .errors import ConfigError, GeometryError, MapError
 from .geometry import check_pose
+from .numeric import numba_or_none
 
 Array = npt.NDArray[np.float64]
 
@@ -286,9 +287,8 @@ def _block_means(image: npt.NDArray[np.uint8], factor: int, shift: int,
 @functools.cache
 def _compiled_block_means() -> Callable[..., None] | None:
     """:func:`_block_means` compiled by numba (cached on disk), or None without numba."""
-    try:
-        import numba
-    except ImportError:
+    numba = numba_or_none()
+    if numba is None:
         return None
     kernel: Callable[..., None] = numba.njit(cache=True, nogil=True)(_block_means)
     return kernel

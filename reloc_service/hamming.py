@@ -19,6 +19,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from .numeric import numba_or_none
+
 Knn2 = tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]
 
 
@@ -151,9 +153,8 @@ def compiled_knn2() -> Callable[..., None] | None:
     """:func:`_knn2_rows` compiled by numba (cached on disk by numba after the first
     compile), or None where numba is not installed."""
     global _popcount64  # the kernel calls the compiled helper by this name
-    try:
-        import numba
-    except ImportError:
+    numba = numba_or_none()
+    if numba is None:
         return None
     _popcount64 = numba.njit(cache=True, nogil=True, inline="always")(_popcount64)
     kernel: Any = numba.njit(cache=True, nogil=True)(_knn2_rows)

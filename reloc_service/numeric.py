@@ -1,6 +1,9 @@
-"""Small numeric helpers shared by the algorithms: zero-mean NCC and top-k selection."""
+"""Small numeric helpers shared by the algorithms: zero-mean NCC, top-k selection, and the
+switch of the optional compiled kernels."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -81,3 +84,14 @@ def _top_k_rows(scores: npt.NDArray[np.floating], k: int) -> IntArray:
     if len(exhausted):
         out[exhausted] = np.argsort(-scores[exhausted], axis=1, kind="stable")[:, :k]
     return out
+
+
+def numba_or_none() -> Any:
+    """The numba module where the optional ``[jit]`` extra is installed, else None: the one
+    switch of every compiled kernel (each caller keeps its numpy path for None). Imported on
+    first use: numba and LLVM cost about half a second and tens of MB."""
+    try:
+        import numba
+    except ImportError:
+        return None
+    return numba

@@ -32,6 +32,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from ..numeric import numba_or_none
+
 
 def negligible_log_ratio(num_classes: int) -> float:
     """Score difference below which a class cannot change a posterior in float32: the
@@ -173,7 +175,7 @@ def compiled_classify_rows() -> Callable[..., None] | None:
     """:func:`_classify_rows` compiled by numba (cached on disk by numba after the first
     compile), or None where numba is not installed."""
     global _fill_unscored, negligible_log_ratio  # the kernel calls compiled helpers by name
-    numba = _numba()
+    numba = numba_or_none()
     if numba is None:
         return None
     _fill_unscored = numba.njit(cache=True, nogil=True)(_fill_unscored)
@@ -185,16 +187,8 @@ def compiled_classify_rows() -> Callable[..., None] | None:
 @functools.cache
 def compiled_leaves_at() -> Callable[..., None] | None:
     """:func:`_leaves_at` compiled by numba, or None where numba is not installed."""
-    numba = _numba()
+    numba = numba_or_none()
     if numba is None:
         return None
     kernel: Any = numba.njit(cache=True, nogil=True)(_leaves_at)
     return kernel
-
-
-def _numba() -> Any:
-    try:
-        import numba
-    except ImportError:
-        return None
-    return numba

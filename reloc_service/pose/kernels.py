@@ -26,6 +26,8 @@ from typing import Any, NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from ..numeric import numba_or_none
+
 Array = npt.NDArray[np.float64]
 
 
@@ -241,9 +243,8 @@ def compiled() -> Kernels | None:
     """The kernels compiled by numba (cached on disk by numba after the first compile), or
     None where numba is not installed."""
     global _distort, _opencv_undistort  # the kernels call the compiled helpers by these names
-    try:
-        import numba
-    except ImportError:
+    numba = numba_or_none()
+    if numba is None:
         return None
     _distort = numba.njit(cache=True, nogil=True, inline="always")(_distort)
     _opencv_undistort = numba.njit(cache=True, nogil=True)(_opencv_undistort)
