@@ -105,7 +105,8 @@ def sizes_from_table(table: npt.NDArray[np.float32], levels: npt.NDArray[Any]
     return np.ascontiguousarray(table[pos, 1], dtype=np.float32)
 
 
-def level_scales(levels: npt.NDArray[Any], scale_factor: float) -> npt.NDArray[np.float32]:
+def opencv_level_scales(levels: npt.NDArray[Any], scale_factor: float
+                        ) -> npt.NDArray[np.float32]:
     """(K,) OpenCV ORB's float32 scale of each pyramid level in ``levels``:
     ``(float)std::pow((double)scaleFactor, level)`` with ``scaleFactor`` the float the
     detector was created with (orb.cpp ``getScale``; ``ORB::create`` takes a float)."""
@@ -125,7 +126,7 @@ def level_pixels(keypoints: np.ndarray, levels: npt.NDArray[Any], scale_factor: 
     values, index = np.unique(levels, return_inverse=True)
     if values[0] < 0 or values[-1] > 31:
         return None
-    scales = level_scales(values, scale_factor)
+    scales = opencv_level_scales(values, scale_factor)
     scale = scales[index.ravel()][:, None]
     with np.errstate(invalid="ignore", over="ignore"):
         pixels = np.rint(keypoints / scale)
