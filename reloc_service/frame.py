@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import threading
+from collections import OrderedDict
 from collections.abc import Callable, MutableMapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
@@ -160,17 +162,78 @@ class EncodedImage:
         self.shape = (int(shape[0]), int(shape[1]))
 
     def decode(self) -> npt.NDArray[np.uint8]:
-        image = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_GRAYSCALE)
-        if image is None or image.shape != self.shape or image.dtype != np.uint8:
-            raise GeometryError(f"encoded image: expected a {self.format.upper()} that "
-                                f"decodes to {self.shape} grey pixels")
+        """The grey pixels, read-only: the ones decoded last time while they are among the
+        recently decoded (:data:`RECENT_PIXELS`), else decoded now (and remembered)."""
+        image = RECENT_PIXELS.get(self)
+        if image is None:
+            image = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+            if image is None or image.shape != self.shape or image.dtype != np.uint8:
+                raise GeometryError(f"encoded image: expected a {self.format.upper()} that "
+                                    f"decodes to {self.shape} grey pixels")
+            image = self.remember(image)
         return image
+
+    def remember(self, pixels: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+        """Record ``pixels`` as what this image decodes to (the service decodes a client's
+        JPEG to check it: the map then reuses those pixels instead of decoding again); returns
+        them read-only, as every reader shares them."""
+        if pixels.shape != self.shape or pixels.dtype != np.uint8:
+            raise GeometryError(f"encoded image: pixels of {pixels.shape} {pixels.dtype}, "
+                                f"expected {self.shape} uint8")
+        pixels = np.asarray(pixels)
+        pixels.flags.writeable = False
+        RECENT_PIXELS.put(self, pixels)
+        return pixels
 
     def tobytes(self) -> bytes:
         return bytes(self.data)
 
     def __len__(self) -> int:
         return len(self.data)
+
+
+class RecentPixels:
+    """The decoded pixels of the last few :class:`EncodedImage` s read, at most ``max_bytes``
+    in all (least recently used dropped first). A keyframe keeps its image encoded (a live
+    map of 1000 VGA keyframes would otherwise hold 300 MB of pixels nobody reads after
+    mapping); the few readers of its pixels in a row (feature extraction, the place finders'
+    thumbnails, ferns training) share one decode through this. Thread-safe."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self._lock = threading.Lock()
+        # id -> (image, pixels): the image is held so its id is not reused while listed
+        self._items: OrderedDict[int, tuple[EncodedImage, npt.NDArray[np.uint8]]] = OrderedDict()
+        self._bytes = 0
+
+    def get(self, image: EncodedImage) -> npt.NDArray[np.uint8] | None:
+        with self._lock:
+            item = self._items.get(id(image))
+            if item is None or item[0] is not image:
+                return None
+            self._items.move_to_end(id(image))
+            return item[1]
+
+    def put(self, image: EncodedImage, pixels: npt.NDArray[np.uint8]) -> None:
+        if pixels.nbytes > self.max_bytes:
+            return
+        with self._lock:
+            old = self._items.pop(id(image), None)
+            if old is not None:
+                self._bytes -= old[1].nbytes
+            self._items[id(image)] = (image, pixels)
+            self._bytes += pixels.nbytes
+            while self._bytes > self.max_bytes:
+                _, (_, dropped) = self._items.popitem(last=False)
+                self._bytes -= dropped.nbytes
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+#: Shared by every :class:`EncodedImage` of the process: 8 MiB, about 27 VGA images (a
+#: burst of queued keyframe puts, each decoded by the service once to be checked).
+RECENT_PIXELS = RecentPixels(8 << 20)
 
 
 @dataclass(frozen=True)
@@ -203,6 +266,10 @@ class Frame:
     cache: dict[str, Any] = field(default_factory=dict, repr=False)
     #: Ground-truth pose, set only by evaluation (the ``gt`` place finder refuses to run without).
     gt_world_from_cam: Array | None = None
+    #: Whether an encoded image, once decoded, is replaced by its pixels (a query's: read
+    #: all through the query) or stays encoded (a keyframe's: read while it is mapped, then
+    #: hardly ever, and a map holds thousands).
+    keeps_pixels: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         source = self.image_source
@@ -217,8 +284,15 @@ class Frame:
 
     @property
     def image_source(self) -> npt.NDArray[np.uint8] | EncodedImage:
-        """The image as held: pixels, or an :class:`EncodedImage` not decoded yet."""
+        """The image as held: pixels, or an :class:`EncodedImage` (not decoded yet, or a
+        keyframe's: see :attr:`keeps_pixels`)."""
         return self.__dict__["_image"]  # type: ignore[no-any-return]
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        """(H, W) of the image, without decoding it."""
+        source = self.image_source
+        return source.shape if isinstance(source, EncodedImage) else source.shape[:2]
 
     def pyramid(self, levels: int) -> list[npt.NDArray[np.uint8]]:
         """``levels`` images, each half the size of the previous (level 0 = the image)."""
@@ -301,7 +375,8 @@ class Keyframe(Frame):
     ``depth`` is an optional (H, W) float32 Z-depth in metres (NaN where unknown).
     ``encoded`` is the compressed image the pixels decode to exactly (what a client sent, or
     the file a snapshot holds), kept to be saved as it is: set from an encoded ``image``,
-    or given with decoded pixels.
+    or given with decoded pixels. A keyframe with one holds its image encoded only (its
+    pixels are decoded when read, shared through :data:`RECENT_PIXELS` while read in a row).
     """
 
     id: int = -1
@@ -309,22 +384,27 @@ class Keyframe(Frame):
     timestamp: float | None = None
     depth: npt.NDArray[np.float32] | None = None
     encoded: EncodedImage | None = field(default=None, repr=False)
+    keeps_pixels: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
         source = self.image_source
         if isinstance(source, EncodedImage):
             self.encoded = source
-        elif self.encoded is not None and self.encoded.shape != np.shape(source)[:2]:
-            raise GeometryError(f"keyframe {self.id}: encoded image of {self.encoded.shape}, "
-                                f"pixels of {np.shape(source)[:2]}")
+        elif self.encoded is not None:
+            if self.encoded.shape != np.shape(source)[:2]:
+                raise GeometryError(f"keyframe {self.id}: encoded image of "
+                                    f"{self.encoded.shape}, pixels of {np.shape(source)[:2]}")
+            # Held encoded (the pixels are what it decodes to, shared while read in a row).
+            self.image = self.encoded  # type: ignore[assignment]  # the property takes both
+            self.encoded.remember(check_grey_image(source))
         super().__post_init__()
         if isinstance(self.id, bool) or not isinstance(self.id, int | np.integer) or self.id < 0:
             raise MapError(f"keyframe id must be a non-negative integer, got {self.id!r}")
         self.id = int(self.id)
         self.world_from_cam = check_pose(self.world_from_cam, name=f"keyframe {self.id} world_from_cam")
-        if self.depth is not None and self.depth.shape != self.image.shape:
+        if self.depth is not None and self.depth.shape != self.image_shape:
             raise GeometryError(f"keyframe {self.id}: depth shape {self.depth.shape} != image "
-                                f"shape {self.image.shape}")
+                                f"shape {self.image_shape}")
 
     @property
     def position_world(self) -> Array:
@@ -341,12 +421,16 @@ class Keyframe(Frame):
 
 
 def _get_image(frame: Frame) -> npt.NDArray[np.uint8]:
-    """``Frame.image``: the pixels, decoded on first use when held encoded. Two threads
-    decoding at once each store the same pixels (a duplicate decode, no torn state)."""
+    """``Frame.image``: the pixels, decoded on first use when held encoded. A query frame
+    then keeps them (two threads decoding at once each store the same pixels: a duplicate
+    decode, no torn state); a keyframe stays encoded, its pixels shared through
+    :data:`RECENT_PIXELS` while they are read in a row."""
     image = frame.__dict__["_image"]
     if isinstance(image, EncodedImage):
-        image = check_grey_image(image.decode(), frame.camera)
-        frame.__dict__["_image"] = image
+        pixels = check_grey_image(image.decode(), frame.camera)
+        if frame.keeps_pixels:
+            frame.__dict__["_image"] = pixels
+        return pixels
     return image  # type: ignore[no-any-return]
 
 

@@ -195,10 +195,49 @@ def test_encoded_image_decodes_on_first_use_and_checks_its_size():
     feats = Features.create("sift", np.zeros((0, 2)), np.zeros((0, 128), np.uint8))
     copy = kf.with_features("sift", feats)
     assert isinstance(kf.image_source, EncodedImage) and isinstance(copy.image_source, EncodedImage)
-    assert np.array_equal(kf.image, img) and isinstance(kf.image_source, np.ndarray)
+    assert np.array_equal(kf.image, img) and isinstance(kf.image_source, EncodedImage)
     assert np.array_equal(copy.small_blurry_image(), Frame(img, CAM).small_blurry_image())
+    query = Frame(EncodedImage(png), CAM)             # a query keeps its pixels once decoded
+    assert np.array_equal(query.image, img) and isinstance(query.image_source, np.ndarray)
     small = cv2.imencode(".png", img[:24, :32])[1].tobytes()
     with pytest.raises(GeometryError, match="32x24 does not match the camera's 64x48"):
         Keyframe(image=EncodedImage(small), camera=CAM, id=5)
     with pytest.raises(GeometryError, match="expected a PNG"):
         EncodedImage(b"not a png at all, just some bytes")
+
+
+def test_keyframes_keep_images_encoded_and_share_recent_pixels():
+    """A keyframe given its pixels and the encoded image they decode from holds only the
+    encoded one; its next readers get those pixels (no decode), read-only, until the bounded
+    cache of recently decoded images drops them, then decode the same pixels again."""
+    import cv2
+
+    from reloc_service.frame import RECENT_PIXELS, EncodedImage, RecentPixels
+
+    img = np.random.default_rng(4).integers(0, 256, (48, 64)).astype(np.uint8)
+    encoded = EncodedImage(cv2.imencode(".png", img)[1].tobytes())
+    pixels = encoded.decode().copy()
+    kf = Keyframe(image=pixels, camera=CAM, id=1, encoded=encoded)
+    assert kf.image_source is encoded and kf.encoded is encoded
+    assert kf.image is pixels and not pixels.flags.writeable     # the pixels given: no decode
+    with pytest.raises(ValueError, match="read-only"):
+        kf.image[0, 0] = 1
+    # a bounded LRU: the least recently read drops out first
+    cache = RecentPixels(max_bytes=2 * img.nbytes)
+    images = [EncodedImage(cv2.imencode(".png", img)[1].tobytes()) for _ in range(3)]
+    for e in images[:2]:
+        cache.put(e, img)
+    assert cache.get(images[0]) is img                 # now the most recent
+    cache.put(images[2], img)
+    assert cache.get(images[1]) is None and cache.get(images[0]) is img and len(cache) == 2
+    cache.put(EncodedImage(cv2.imencode(".png", img)[1].tobytes()), np.zeros((200, 200), np.uint8))
+    assert len(cache) == 2                             # larger than the budget: not kept
+    # after the process-wide cache forgot them, the keyframe decodes the same pixels again
+    for _ in range(RECENT_PIXELS.max_bytes // img.nbytes + 1):
+        other = EncodedImage(cv2.imencode(".png", img)[1].tobytes())
+        other.decode()
+    assert RECENT_PIXELS.get(encoded) is None
+    again = kf.image
+    assert again is not pixels and np.array_equal(again, img)
+    with pytest.raises(GeometryError, match=r"pixels of \(4, 4\) uint8, expected \(48, 64\)"):
+        encoded.remember(np.zeros((4, 4), np.uint8))

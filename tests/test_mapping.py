@@ -296,3 +296,30 @@ def test_room_landmarks_within_a_centimetre(tmp_path_factory):
     errors, ranges = landmark_errors(builder.map.snapshot(), dataset, return_range=True)
     near_two = (ranges > 1.5) & (ranges < 2.5)
     assert np.median(errors) < 0.01 and np.median(errors[near_two]) < 0.01
+
+
+def test_a_jpeg_keyframe_is_decoded_once_and_kept_encoded(synthetic_scene):
+    """The service decodes a client's JPEG once to check it; the map extracts features from
+    those very pixels (no second decode) and keeps the keyframe as its JPEG, not 300 kB of
+    pixels a keyframe (its pixels are decoded again when read after they left the cache)."""
+    import cv2
+    from reloc_client.protocol import WireImage
+
+    from reloc_service.frame import RECENT_PIXELS, EncodedImage
+    from reloc_service.service.codec import keyframe_image
+
+    scene = synthetic_scene
+    jpeg = cv2.imencode(".jpg", scene.keyframe_images[0], [cv2.IMWRITE_JPEG_QUALITY, 90])[1]
+    image = keyframe_image(WireImage.from_bytes(jpeg.tobytes()), scene.camera, "keyframe.image")
+    assert isinstance(image, EncodedImage)
+    checked = RECENT_PIXELS.get(image)              # the pixels the service checked
+    assert checked is not None and np.array_equal(checked, cv2.imdecode(jpeg, 0))
+    builder = MapBuilder(KeyframeMap())
+    kf = builder.add_keyframe(0, image, scene.camera, scene.keyframe_poses[0])
+    assert kf.image_source is image and kf.encoded is image
+    assert kf.image is checked                      # read while recent: the same pixels
+    plain = MapBuilder(KeyframeMap()).add_keyframe(0, checked.copy(), scene.camera,
+                                                   scene.keyframe_poses[0])
+    a, b = kf.features["sift"], plain.features["sift"]
+    assert np.array_equal(a.keypoints_px, b.keypoints_px)
+    assert np.array_equal(a.descriptors, b.descriptors)

@@ -383,8 +383,10 @@ def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
     image = kf.image_source                           # PNG, decoded on first use
     assert isinstance(image, EncodedImage) and not image.data.flags.writeable
     assert isinstance(image.data.base.obj, mmap.mmap)
-    assert np.array_equal(kf.image, rich_state.keyframes[1].image)
-    assert isinstance(kf.image_source, np.ndarray)    # decoded once, kept
+    pixels = kf.image
+    assert np.array_equal(pixels, rich_state.keyframes[1].image)
+    assert kf.image_source is image                   # a keyframe stays encoded ...
+    assert kf.image is pixels and not pixels.flags.writeable   # ... its pixels shared, read-only
     assert isinstance(kf.features, LazyFeatures) and "built=[]" in repr(kf.features)
     # stored in their own dtype: views of the files; narrowed or derived (keypoints float32
     # on disk, ids and points from the landmarks, ORB sizes from the levels): read-only

@@ -204,8 +204,9 @@ class FernModels:
         """For one keyframe, the trained observations to subtract and the map's observations
         to add; drops the subtracted ones from the record."""
         removed = []
-        replaced = cur is None or (trained is not None
-                                   and cur.keyframe.image is not trained.keyframe.image)
+        # a new image object: a keyframe replaced (an unchanged one keeps its image object)
+        replaced = cur is None or (trained is not None and cur.keyframe.image_source
+                                   is not trained.keyframe.image_source)
         if trained is not None and replaced:
             removed.append(trained)  # keyframe removed, or replaced by another image
             del self._trained[trained.keyframe.id]

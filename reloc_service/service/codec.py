@@ -111,7 +111,9 @@ def keyframe_image(image: wire.WireImage, camera: Camera, path: str
     pixels = decode_image(image, camera, path)
     png = wire.png_header(image.data) if image.format is wire.ImageFormat.PNG else None
     if image.format is wire.ImageFormat.JPEG or (png is not None and png[2:] == (8, 0)):
-        return EncodedImage(bytes(image.data), pixels.shape)
+        encoded = EncodedImage(bytes(image.data), pixels.shape)
+        encoded.remember(pixels)     # the map extracts features from these: no second decode
+        return encoded
     return pixels
 
 
