@@ -105,6 +105,26 @@ class PoseFinder(abc.ABC):
                   ) -> PoseEstimate | None:
         """Best estimate from ``candidates`` (best first) in map ``state``; None if none."""
 
+    def prepare_candidates(self, query: Frame, candidates: list[PlaceCandidate],
+                           state: MapState) -> dict[str, float]:
+        """The work of :meth:`find_pose` on ``candidates`` that needs the map alone, not the
+        query's features, done ahead and cached in ``query.cache`` (the multi relocalizer
+        runs it on its helper thread, beside :meth:`prepare_query`); the seconds of each
+        stage. Default: nothing."""
+        return {}
+
+    def query_kinds(self, query: Frame) -> frozenset[str]:
+        """Feature kinds :meth:`prepare_query` would extract for ``query`` (none yet cached
+        on it); empty when it has nothing to do."""
+        return frozenset()
+
+    def prepare_query(self, query: Frame) -> dict[str, float]:
+        """The work of :meth:`find_pose` that needs the query image alone (its features),
+        done ahead and cached on ``query``; the seconds of each stage. The multi
+        relocalizer runs it while the place finder ranks keyframes on a helper thread, so
+        it writes only ``query.features[kind]`` for :meth:`query_kinds`."""
+        return {}
+
 
 def create_pose_finder(options: dict[str, Any]) -> PoseFinder:
     """``create_pose_finder({"name": "p3p", **options})``."""

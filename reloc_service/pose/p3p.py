@@ -111,11 +111,16 @@ class P3PPoseFinder(PoseFinder):
         """Ratio-test matches to the landmarks of ``keyframes`` and the pose they give
         (:func:`solve_pnp_indexed`, or None); ``timings["match"]`` accumulates."""
         start = time.perf_counter()
-        q_idx, rows, pool = self.match_landmarks(feats, keyframes)
+        prepared = query.cache.get(_pool_key(self.conf.kind, keyframes, state))
+        if prepared is not None and prepared.state is not state:
+            prepared = None  # gathered in another map state (a frame asked again)
+        q_idx, rows, pool = self.match_landmarks(
+            feats, keyframes, pool=None if prepared is None else prepared.pool)
         matched = time.perf_counter()
+        uncertainty = (pool.uncertainty(state, keyframes, rows) if prepared is None
+                       else prepared.uncertainty.take(rows))
         solved = solve_pnp_indexed(feats.keypoints_px[q_idx], pool.points_world[rows],
-                                   query.camera, self.conf,
-                                   uncertainty=pool.uncertainty(state, keyframes, rows),
+                                   query.camera, self.conf, uncertainty=uncertainty,
                                    keypoint_scales=self._scales(feats, q_idx))
         timings["match"] = timings.get("match", 0.0) + matched - start
         timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - matched
@@ -164,6 +169,14 @@ class P3PPoseFinder(PoseFinder):
             return None
         return level_scales(feats.levels[q_idx], feature_lib.level_scale_factor(self.conf.kind))
 
+    def query_kinds(self, query: Frame) -> frozenset[str]:
+        return frozenset() if self.conf.kind in query.features else self.required_features
+
+    def prepare_query(self, query: Frame) -> dict[str, float]:
+        timings: dict[str, float] = {}
+        self.query_features(query, timings)
+        return timings
+
     def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
         """The query's features of ``conf.kind``, extracted once and cached on the frame."""
         kind = self.conf.kind
@@ -174,11 +187,33 @@ class P3PPoseFinder(PoseFinder):
         timings["features"] = time.perf_counter() - start
         return query.features[kind]
 
-    def match_landmarks(self, feats: Features, keyframes: list[Keyframe]
+    def prepare_candidates(self, query: Frame, candidates: list[PlaceCandidate],
+                           state: MapState) -> dict[str, float]:
+        """The landmark pool :meth:`find_pose` matches first (the best
+        ``first_pool_keyframes`` candidates', or the whole group's) and its landmarks' depth
+        uncertainty, gathered ahead into ``query.cache``: what the multi relocalizer does on
+        its helper thread while this thread extracts the query's features."""
+        start = time.perf_counter()
+        keyframes = [state.keyframes[c.keyframe_id] for c in candidates
+                     if c.keyframe_id in state.keyframes]
+        first = self.conf.first_pool_keyframes
+        if first is not None and first < len(keyframes):
+            keyframes = keyframes[:first]
+        if keyframes:
+            pool = LandmarkPool.gather(keyframes, self.conf.kind)
+            rows = np.arange(len(pool.landmark_ids))
+            query.cache[_pool_key(self.conf.kind, keyframes, state)] = _PreparedPool(
+                pool, pool.uncertainty(state, keyframes, rows), state)
+        return {"pool": time.perf_counter() - start}
+
+    def match_landmarks(self, feats: Features, keyframes: list[Keyframe], *,
+                        pool: LandmarkPool | None = None
                         ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], LandmarkPool]:
-        """Ratio-test matches of the query ``feats`` to the pooled landmarks of ``keyframes``:
-        (M,) query indices, (M,) pool rows (one query keypoint per landmark) and the pool."""
-        pool = LandmarkPool.gather(keyframes, self.conf.kind)
+        """Ratio-test matches of the query ``feats`` to the pooled landmarks of ``keyframes``
+        (``pool``: :meth:`LandmarkPool.gather` of them, when already gathered): (M,) query
+        indices, (M,) pool rows (one query keypoint per landmark) and the pool."""
+        if pool is None:
+            pool = LandmarkPool.gather(keyframes, self.conf.kind)
         q_idx, rows, dist = feature_lib.match_ratio(feats.descriptors, pool.descriptors,
                                                     ratio=self.conf.ratio)
         keep = _best_per_landmark(pool.landmark_ids[rows], dist, rows, len(pool.landmark_ids))
@@ -245,6 +280,21 @@ class LandmarkPool:
         counts = np.bincount(self.keyframe_rows[rows], minlength=len(keyframe_ids))
         order = np.argsort(-counts, kind="stable")
         return [keyframe_ids[i] for i in order if counts[i] > 0]
+
+
+@dataclass(frozen=True)
+class _PreparedPool:
+    """A pool gathered ahead (:meth:`P3PPoseFinder.prepare_candidates`), the depth
+    uncertainty of all its rows and the map state they come from."""
+
+    pool: LandmarkPool
+    uncertainty: PointUncertainty
+    state: MapState
+
+
+def _pool_key(kind: str, keyframes: list[Keyframe], state: MapState) -> str:
+    """The ``query.cache`` key of the prepared pool of ``keyframes`` in map ``state``."""
+    return f"p3p:pool:{kind}:{state.version}:{','.join(str(kf.id) for kf in keyframes)}"
 
 
 #: Per keyframe features: the rows :meth:`LandmarkPool.gather` keeps of it alone (a few

@@ -91,6 +91,10 @@ class PointUncertainty:
     depth_sigmas_m: Array
     ray_origins_world: Array
 
+    def take(self, rows: npt.NDArray[np.int64]) -> PointUncertainty:
+        """The uncertainty of points ``rows`` alone."""
+        return PointUncertainty(self.depth_sigmas_m[rows], self.ray_origins_world[rows])
+
     def pixel_sigmas(self, world_from_cam: Array, points_world: Array, camera: Camera,
                      rows: npt.NDArray[np.int64] | slice = slice(None), *,
                      projected_px: Array | None = None) -> Array:

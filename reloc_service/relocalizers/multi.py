@@ -20,6 +20,7 @@ from ..place.base import PlaceCandidate, PlaceFinder, create_place_finder
 from ..plugins import make_conf
 from ..pose.base import POSE_FINDERS, PoseEstimate, PoseFinder, create_pose_finder
 from .base import Prior, Relocalizer, RelocResult, VerifyConf, register, result_from_estimate
+from .overlap import run_beside
 
 
 @register("multi")
@@ -39,6 +40,11 @@ class MultiRelocalizer(Relocalizer):
         require_agreement: bool | None = None
         agreement_max_distance_m: float = 0.25
         agreement_max_angle_rad: float = 0.087
+        #: Extract the query's features for the pose finder on an idle helper thread while
+        #: the place finder ranks keyframes (OpenCV releases the GIL, so a query uses a second
+        #: core when one is free: :mod:`.overlap`). Answers are the same either way; off, the
+        #: pose finder extracts them after the place finder, on the query's thread.
+        overlap: bool = True
 
         def __post_init__(self) -> None:
             if self.num_candidates < 1 or self.max_groups < 1:
@@ -123,16 +129,64 @@ class MultiRelocalizer(Relocalizer):
                                   "train()")
         state = self.map.snapshot()
         timings: dict[str, float] = {}
-        start = time.perf_counter()
         allowed = _allowed_ids(state, prior)
-        groups = self._candidate_groups(query, state, allowed, max(1, hypotheses))
-        timings["place"] = time.perf_counter() - start
+        if self._overlaps(query):
+            groups = self._groups_beside_features(query, state, allowed, max(1, hypotheses),
+                                                  timings)
+        else:
+            start = time.perf_counter()
+            groups = self._candidate_groups(query, state, allowed, max(1, hypotheses))
+            timings["place"] = time.perf_counter() - start
         if not groups:
             return RelocResult.failure(self.method, _no_candidate_reason(state, allowed),
                                        timings=timings, map_version=state.version)
         results, weak_first = self._answer_groups(query, groups, state, timings,
                                                   max(1, hypotheses))
         return self._combine(results, weak_first, timings, state.version, max(1, hypotheses))
+
+    def _overlaps(self, query: Frame) -> bool:
+        """Whether the place finder runs beside the pose finder's feature extraction: with
+        ``conf.overlap``, when the pose finder has features to extract that the place finder
+        does not extract itself (two threads would each extract them)."""
+        if not self.conf.overlap:
+            return False
+        kinds = self.pose.query_kinds(query)
+        return bool(kinds) and not kinds & self.place.required_features
+
+    def _groups_beside_features(self, query: Frame, state: MapState, allowed: set[int] | None,
+                                hypotheses: int, timings: dict[str, float]
+                                ) -> list[list[PlaceCandidate]]:
+        """:meth:`_candidate_groups`, then :meth:`PoseFinder.prepare_candidates` of the first
+        group, on a helper thread (:mod:`.overlap`) while this thread extracts the query's
+        features (:meth:`PoseFinder.prepare_query`, cached on the query). The place
+        finder's error is raised here; work done ahead that fails is left to
+        :meth:`PoseFinder.find_pose`, which meets the same error where it needs that work,
+        as it would without the overlap."""
+        query.image  # noqa: B018 (decoded here, once, before two threads read the pixels)
+
+        def place() -> tuple[list[list[PlaceCandidate]], dict[str, float]]:
+            start = time.perf_counter()
+            groups = self._candidate_groups(query, state, allowed, hypotheses)
+            spent = {"place": time.perf_counter() - start}
+            if groups:
+                try:
+                    spent.update(self.pose.prepare_candidates(query, groups[0], state))
+                except Exception:  # noqa: BLE001, S110 (met again by find_pose, see above)
+                    pass
+            return groups, spent
+
+        beside = run_beside(place)
+        try:
+            _add_timings(timings, self.pose.prepare_query(query))
+        except Exception:  # noqa: BLE001, S110 (met again by find_pose, see above)
+            pass
+        finally:
+            waited = time.perf_counter()
+            groups, spent = beside.result()
+        if beside.overlapped:  # the helper's time beyond the extraction
+            timings["overlap_wait"] = time.perf_counter() - waited
+        _add_timings(timings, spent)
+        return groups
 
     def _candidate_groups(self, query: Frame, state: MapState, allowed: set[int] | None,
                           hypotheses: int) -> list[list[PlaceCandidate]]:

@@ -1,0 +1,136 @@
+"""The helper threads of relocalizers/overlap.py and the multi relocalizer's overlap option:
+the place finder beside the query's feature extraction gives the same answers as without,
+and the errors of either side reach the caller as without."""
+
+from __future__ import annotations
+
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+from reloc_service.engine import Engine, EngineConf
+from reloc_service.errors import ConfigError, GeometryError, MapError
+from reloc_service.frame import Frame
+from reloc_service.relocalizers import overlap
+from reloc_service.relocalizers.chain import ChainRelocalizer
+from reloc_service.relocalizers.factory import DEFAULT_METHOD, create_relocalizer
+from reloc_service.relocalizers.multi import MultiRelocalizer
+from reloc_service.service.config import parse_config
+
+OFF = {"multi": {"overlap": False}}
+
+
+@pytest.fixture(scope="module")
+def engines(synthetic_scene):
+    """The default method over the rendered room, with the overlap on (the default) and off."""
+    built = {}
+    for name, options in (("on", {}), ("off", OFF)):
+        engine = Engine(EngineConf(options=options))
+        for i, (image, pose) in enumerate(zip(synthetic_scene.keyframe_images,
+                                              synthetic_scene.keyframe_poses, strict=True)):
+            engine.add_keyframe(i, image, synthetic_scene.camera, pose)
+        engine.train()
+        built[name] = engine
+    return built
+
+
+def jpeg_queries(scene) -> list[np.ndarray]:
+    """The rendered queries and an unrelated image (the ORB step cannot verify it, so the
+    SIFT steps run), each through a JPEG as the service receives it."""
+    unrelated = np.ascontiguousarray(np.rot90(scene.keyframe_images[0], 2))
+    images = [*scene.query_images, unrelated]
+    return [cv2.imdecode(cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, 90])[1],
+                         cv2.IMREAD_GRAYSCALE) for im in images]
+
+
+def test_the_overlap_gives_the_same_answers(engines, synthetic_scene):
+    overlapped = 0
+    for image in jpeg_queries(synthetic_scene):
+        on = engines["on"].relocalize(Frame(image.copy(), synthetic_scene.camera))
+        off = engines["off"].relocalize(Frame(image.copy(), synthetic_scene.camera))
+        assert (on.status, on.method, on.reason) == (off.status, off.method, off.reason)
+        assert (on.inliers, on.num_matches, on.matched_keyframe_ids) == (
+            off.inliers, off.num_matches, off.matched_keyframe_ids)
+        assert on.confidence == off.confidence
+        if on.ok:
+            assert np.array_equal(on.world_from_cam, off.world_from_cam)
+            assert np.array_equal(on.covariance, off.covariance)
+        assert "overlap_wait" not in off.timings
+        overlapped += "overlap_wait" in on.timings
+    assert sum(r.ok for r in [engines["off"].relocalize(Frame(im, synthetic_scene.camera))
+                              for im in jpeg_queries(synthetic_scene)]) >= 2
+    assert overlapped >= 2, "the helper thread never ran the place finder"
+
+
+def test_the_option_is_read_from_the_service_config(synthetic_map):
+    conf = parse_config({"options": {"multi": {"overlap": False}}})
+    engine = Engine(EngineConf(options=conf.options))
+    chain = engine.relocalizer(DEFAULT_METHOD)
+    assert isinstance(chain, ChainRelocalizer)
+    assert [step.conf.overlap for step in chain.steps] == [False, False, False]
+    default = create_relocalizer("sbi+p3p:orb", Engine().map)
+    assert isinstance(default, MultiRelocalizer) and default.conf.overlap is True
+    with pytest.raises(ConfigError, match="overlap"):
+        create_relocalizer("sbi+p3p", Engine().map, options={"multi": {"overlap": "sometimes"}})
+
+
+@pytest.mark.parametrize("mode", ["on", "off"])
+def test_a_place_finder_error_reaches_the_caller(engines, synthetic_scene, monkeypatch, mode):
+    """On a helper thread the place finder's error is the caller's, as without the overlap."""
+    step = engines[mode].relocalizer(DEFAULT_METHOD).steps[0]
+    threads = []
+
+    def broken(*_, **__):
+        threads.append(threading.get_ident())
+        raise MapError("the place finder's index is broken")
+
+    monkeypatch.setattr(step.place, "find_places", broken)
+    with pytest.raises(MapError, match="index is broken"):
+        engines[mode].relocalize(Frame(synthetic_scene.query_images[0], synthetic_scene.camera))
+    assert (threads[0] != threading.get_ident()) == (mode == "on")
+
+
+@pytest.mark.parametrize("mode", ["on", "off"])
+def test_a_feature_error_reaches_the_caller(engines, synthetic_scene, monkeypatch, mode):
+    """An extraction that fails beside the place finder fails the query with its error."""
+    from reloc_service.pose import p3p
+
+    def broken(*_, **__):
+        raise GeometryError("the detector refused the image")
+
+    monkeypatch.setattr(p3p.feature_lib, "extract", broken)
+    with pytest.raises(GeometryError, match="detector refused"):
+        engines[mode].relocalize(Frame(synthetic_scene.query_images[0], synthetic_scene.camera))
+
+
+def test_run_beside_runs_on_a_helper_and_gives_back_its_error():
+    seen = overlap.run_beside(threading.get_ident)
+    assert seen.overlapped and seen.result() != threading.get_ident()
+    error = ValueError("from the helper")
+
+    def fail():
+        raise error
+
+    failed = overlap.run_beside(fail)
+    with pytest.raises(ValueError) as caught:
+        failed.result()
+    assert caught.value is error
+    inline = overlap.run_beside(threading.get_ident, enabled=False)
+    assert not inline.overlapped and inline.result() == threading.get_ident()
+
+
+def test_a_query_that_finds_every_helper_busy_runs_the_step_itself():
+    release = threading.Event()
+    held = [overlap.run_beside(release.wait) for _ in range(overlap.MAX_HELPERS)]
+    try:
+        assert all(h.overlapped for h in held)
+        busy = overlap.run_beside(threading.get_ident)
+        assert not busy.overlapped and busy.result() == threading.get_ident()
+    finally:
+        release.set()
+        for h in held:
+            h.result()
+    again = overlap.run_beside(threading.get_ident)
+    assert again.overlapped and again.result() != threading.get_ident()
