@@ -22,6 +22,12 @@ from reloc_service.service.config import parse_config
 OFF = {"multi": {"overlap": False}}
 
 
+@pytest.fixture
+def idle(monkeypatch):
+    """A machine with a core to spare, whatever else runs beside the tests."""
+    monkeypatch.setattr(overlap, "idle_core", lambda: True)
+
+
 @pytest.fixture(scope="module")
 def engines(synthetic_scene):
     """The default method over the rendered room, with the overlap on (the default) and off."""
@@ -45,7 +51,7 @@ def jpeg_queries(scene) -> list[np.ndarray]:
                          cv2.IMREAD_GRAYSCALE) for im in images]
 
 
-def test_the_overlap_gives_the_same_answers(engines, synthetic_scene):
+def test_the_overlap_gives_the_same_answers(engines, synthetic_scene, idle):
     overlapped = 0
     for image in jpeg_queries(synthetic_scene):
         on = engines["on"].relocalize(Frame(image.copy(), synthetic_scene.camera))
@@ -77,7 +83,8 @@ def test_the_option_is_read_from_the_service_config(synthetic_map):
 
 
 @pytest.mark.parametrize("mode", ["on", "off"])
-def test_a_place_finder_error_reaches_the_caller(engines, synthetic_scene, monkeypatch, mode):
+def test_a_place_finder_error_reaches_the_caller(engines, synthetic_scene, monkeypatch, mode,
+                                                idle):
     """On a helper thread the place finder's error is the caller's, as without the overlap."""
     step = engines[mode].relocalizer(DEFAULT_METHOD).steps[0]
     threads = []
@@ -93,7 +100,7 @@ def test_a_place_finder_error_reaches_the_caller(engines, synthetic_scene, monke
 
 
 @pytest.mark.parametrize("mode", ["on", "off"])
-def test_a_feature_error_reaches_the_caller(engines, synthetic_scene, monkeypatch, mode):
+def test_a_feature_error_reaches_the_caller(engines, synthetic_scene, monkeypatch, mode, idle):
     """An extraction that fails beside the place finder fails the query with its error."""
     from reloc_service.pose import p3p
 
@@ -105,7 +112,7 @@ def test_a_feature_error_reaches_the_caller(engines, synthetic_scene, monkeypatc
         engines[mode].relocalize(Frame(synthetic_scene.query_images[0], synthetic_scene.camera))
 
 
-def test_run_beside_runs_on_a_helper_and_gives_back_its_error():
+def test_run_beside_runs_on_a_helper_and_gives_back_its_error(idle):
     seen = overlap.run_beside(threading.get_ident)
     assert seen.overlapped and seen.result() != threading.get_ident()
     error = ValueError("from the helper")
@@ -121,7 +128,7 @@ def test_run_beside_runs_on_a_helper_and_gives_back_its_error():
     assert not inline.overlapped and inline.result() == threading.get_ident()
 
 
-def test_a_query_that_finds_every_helper_busy_runs_the_step_itself():
+def test_a_query_that_finds_every_helper_busy_runs_the_step_itself(idle):
     release = threading.Event()
     held = [overlap.run_beside(release.wait) for _ in range(overlap.MAX_HELPERS)]
     try:
@@ -134,3 +141,26 @@ def test_a_query_that_finds_every_helper_busy_runs_the_step_itself():
             h.result()
     again = overlap.run_beside(threading.get_ident)
     assert again.overlapped and again.result() != threading.get_ident()
+
+
+def test_without_an_idle_core_the_step_runs_in_the_callers_thread(monkeypatch):
+    monkeypatch.setattr(overlap, "idle_core", lambda: False)
+    step = overlap.run_beside(threading.get_ident)
+    assert not step.overlapped and step.result() == threading.get_ident()
+
+
+@pytest.mark.parametrize(("running", "idle"), [(1, True), (2, False), (5, False)])
+def test_an_idle_core_is_read_from_the_kernels_run_queue(tmp_path, monkeypatch, running, idle):
+    loadavg = tmp_path / "loadavg"
+    loadavg.write_text(f"1.93 2.20 1.92 {running}/124 22149\n")
+    monkeypatch.setattr(overlap, "_RUN_QUEUE", overlap._RunQueue(str(loadavg), cores=2))
+    assert overlap.idle_core() is idle
+    monkeypatch.setattr(overlap, "_RUN_QUEUE", overlap._RunQueue(str(tmp_path / "none")))
+    assert overlap.idle_core() is True  # no /proc: as on a machine of its own
+
+
+def test_the_running_count_of_this_machines_loadavg():
+    with open(overlap.LOADAVG) as f:
+        assert overlap.running_threads(f.read()) >= 1  # this test's thread runs
+    with pytest.raises(ValueError, match="loadavg"):
+        overlap.running_threads("1.0 2.0")
