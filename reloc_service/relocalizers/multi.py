@@ -130,10 +130,11 @@ class MultiRelocalizer(Relocalizer):
         state = self.map.snapshot()
         timings: dict[str, float] = {}
         allowed = _allowed_ids(state, prior)
+        groups = None
         if self._overlaps(query):
             groups = self._groups_beside_features(query, state, allowed, max(1, hypotheses),
                                                   timings)
-        else:
+        if groups is None:  # the place finder, then the pose finder, on this thread
             start = time.perf_counter()
             groups = self._candidate_groups(query, state, allowed, max(1, hypotheses))
             timings["place"] = time.perf_counter() - start
@@ -155,13 +156,14 @@ class MultiRelocalizer(Relocalizer):
 
     def _groups_beside_features(self, query: Frame, state: MapState, allowed: set[int] | None,
                                 hypotheses: int, timings: dict[str, float]
-                                ) -> list[list[PlaceCandidate]]:
+                                ) -> list[list[PlaceCandidate]] | None:
         """:meth:`_candidate_groups`, then :meth:`PoseFinder.prepare_candidates` of the first
         group, on a helper thread (:mod:`.overlap`) while this thread extracts the query's
         features (:meth:`PoseFinder.prepare_query`, cached on the query). The place
         finder's error is raised here; work done ahead that fails is left to
         :meth:`PoseFinder.find_pose`, which meets the same error where it needs that work,
-        as it would without the overlap."""
+        as it would without the overlap. None, having done nothing, when no helper runs
+        (no idle core: see :func:`.overlap.run_beside`)."""
         query.image  # noqa: B018 (decoded here, once, before two threads read the pixels)
 
         def place() -> tuple[list[list[PlaceCandidate]], dict[str, float]]:
@@ -176,6 +178,8 @@ class MultiRelocalizer(Relocalizer):
             return groups, spent
 
         beside = run_beside(place)
+        if not beside.overlapped:
+            return None
         try:
             _add_timings(timings, self.pose.prepare_query(query))
         except Exception:  # noqa: BLE001, S110 (met again by find_pose, see above)
@@ -183,8 +187,7 @@ class MultiRelocalizer(Relocalizer):
         finally:
             waited = time.perf_counter()
             groups, spent = beside.result()
-        if beside.overlapped:  # the helper's time beyond the extraction
-            timings["overlap_wait"] = time.perf_counter() - waited
+        timings["overlap_wait"] = time.perf_counter() - waited  # beyond the extraction
         _add_timings(timings, spent)
         return groups
 
