@@ -153,10 +153,24 @@ def test_without_an_idle_core_the_step_runs_in_the_callers_thread(monkeypatch):
 def test_an_idle_core_is_read_from_the_kernels_run_queue(tmp_path, monkeypatch, running, idle):
     loadavg = tmp_path / "loadavg"
     loadavg.write_text(f"1.93 2.20 1.92 {running}/124 22149\n")
+    monkeypatch.setattr(overlap, "IDLE_READING_S", 0.0)
     monkeypatch.setattr(overlap, "_RUN_QUEUE", overlap._RunQueue(str(loadavg), cores=2))
     assert overlap.idle_core() is idle
     monkeypatch.setattr(overlap, "_RUN_QUEUE", overlap._RunQueue(str(tmp_path / "none")))
     assert overlap.idle_core() is True  # no /proc: as on a machine of its own
+
+
+def test_a_reading_of_the_run_queue_answers_for_a_while(tmp_path, monkeypatch):
+    loadavg = tmp_path / "loadavg"
+    loadavg.write_text("1.0 1.0 1.0 3/124 22149\n")
+    monkeypatch.setattr(overlap, "IDLE_READING_S", 60.0)
+    monkeypatch.setattr(overlap, "_last_reading", (-1e9, True))
+    monkeypatch.setattr(overlap, "_RUN_QUEUE", overlap._RunQueue(str(loadavg), cores=2))
+    assert overlap.idle_core() is False
+    loadavg.write_text("0.1 0.1 0.1 1/124 22150\n")
+    assert overlap.idle_core() is False  # the same reading
+    monkeypatch.setattr(overlap, "IDLE_READING_S", 0.0)
+    assert overlap.idle_core() is True
 
 
 def test_the_running_count_of_this_machines_loadavg():
