@@ -1,5 +1,5 @@
-"""Small numeric helpers shared by the algorithms: zero-mean NCC, top-k selection, and the
-switch of the optional compiled kernels."""
+"""Small numeric helpers shared by the algorithms: zero-mean NCC, top-k selection, the
+switch of the optional compiled kernels, and the thread count of the BLAS NumPy and SciPy use."""
 
 from __future__ import annotations
 
@@ -95,3 +95,23 @@ def numba_or_none() -> Any:
     except ImportError:
         return None
     return numba
+
+
+def limit_blas_threads(threads: int) -> list[int]:
+    """Have every BLAS loaded in this process (NumPy's, SciPy's, OpenCV's OpenBLAS) use
+    ``threads`` threads (0: leave them as they are); returns the counts they now use.
+
+    reloc's matrix products are small (6x6 normal equations, descriptor distances of one
+    query), so a query gains little from BLAS threads, while a BLAS thread that keeps spinning
+    after a product takes the core that another worker, or a query's own helper thread
+    (:mod:`.relocalizers.overlap`), would use: workers and the benchmark run with one, as
+    they run OpenCV with one. Call it after the modules that load a BLAS are imported (a BLAS
+    loaded later keeps its own default)."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    if threads < 0:
+        raise ValueError(f"BLAS threads: expected 0 (the default) or a positive count, "
+                         f"got {threads}")
+    if threads:
+        threadpool_limits(limits=threads, user_api="blas")
+    return [int(lib["num_threads"]) for lib in threadpool_info() if lib["user_api"] == "blas"]

@@ -51,6 +51,7 @@ def test_unknown_keys_name_the_key_and_the_allowed_ones(doc, named):
     ({"service": {"workers": 0}}, "service.workers"),
     ({"service": {"workers": "2"}}, "expected int"),
     ({"service": {"opencv_threads": -1}}, "service.opencv_threads"),
+    ({"service": {"blas_threads": -1}}, "service.blas_threads"),
     ({"service": {"worker_mode": "fork"}}, "service.worker_mode: expected one of"),
     ({"service": {"default_method": "ferns"}}, "default_method"),
     ({"service": {"prefix": "a/*"}}, "prefix"),

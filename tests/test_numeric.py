@@ -1,11 +1,11 @@
-"""The shared numeric helpers: zero-mean NCC and top-k selection."""
+"""The shared numeric helpers: zero-mean NCC, top-k selection and the BLAS thread limit."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from reloc_service.numeric import top_k, zncc
+from reloc_service.numeric import limit_blas_threads, top_k, zncc
 
 
 def test_zncc_of_related_and_unrelated_images():
@@ -72,3 +72,20 @@ def test_top_k_refuses_what_it_cannot_rank():
         top_k(np.zeros((2, 2, 2)), 1)
     with pytest.raises(ValueError, match="1-D scores"):
         top_k(np.zeros((2, 3)), 1, keep=np.ones((2, 3), bool))
+
+
+def test_blas_threads_are_limited_and_restored():
+    """Every loaded BLAS (NumPy's at least) takes the limit; 0 leaves them as they are; a
+    negative count is refused. The process's counts are put back afterwards."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    before = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+    assert before, "NumPy loads a BLAS"
+    with threadpool_limits(limits=None):       # restores the counts on exit
+        assert limit_blas_threads(1) == [1] * len(before)
+        assert limit_blas_threads(0) == [1] * len(before)
+        assert (np.ones((64, 64)) @ np.ones((64, 64)))[0, 0] == 64.0
+        with pytest.raises(ValueError, match="expected 0 .* or a positive count, got -2"):
+            limit_blas_threads(-2)
+    assert [lib["num_threads"] for lib in threadpool_info()
+            if lib["user_api"] == "blas"] == before

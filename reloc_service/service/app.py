@@ -31,6 +31,7 @@ from reloc_client.protocol import ErrorCode, EventKind, ProtocolError
 
 from ..engine import EngineConf, MappingConf
 from ..errors import ConfigError, StorageError
+from ..numeric import limit_blas_threads
 from . import handlers
 from .codec import decode_camera_put, decode_keyframe_put, error_of, error_reply
 from .config import ServiceConf
@@ -108,6 +109,7 @@ class Service:
             import cv2
 
             cv2.setNumThreads(self.conf.service.opencv_threads)
+        limit_blas_threads(self.conf.service.blas_threads)
         if self.storage is not None:
             check_storage(self.storage)
         names = self._restore_order(self._stored_map_names() + sorted(self.conf.maps))

@@ -60,6 +60,7 @@ from ..cameras import Camera
 from ..engine import Engine, EngineConf, MappingConf
 from ..frame import Frame, area_downscale
 from ..map import MapState
+from ..numeric import limit_blas_threads
 from ..pose import kernels as pose_kernels
 from ..relocalizers.base import Prior, RelocResult
 from . import handlers
@@ -151,6 +152,7 @@ def worker_main(conn: Connection, index: int) -> None:
     import cv2
 
     cv2.setNumThreads(1)
+    limit_blas_threads(1)
     # The compiled kernels (numba, the [jit] extra; about a second to import) load with the
     # worker, not within its first query's answer time.
     hamming.compiled_knn2()

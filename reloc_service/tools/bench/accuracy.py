@@ -34,6 +34,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ...numeric import limit_blas_threads
 from ...progress import progress
 from ...relocalizers.base import RelocResult, RelocStatus
 from .samples import json_safe
@@ -178,6 +179,7 @@ def bench_accuracy(conf: AccuracyConf, workdir: Path, *, show_progress: bool = T
     """Render the presets into ``workdir``, then score every method and peer on every
     dataset (a failing dataset is recorded, the others still run)."""
     cv2.setNumThreads(1)  # as the rest of the bench (one core per service worker)
+    limit_blas_threads(1)
     methods, default = conf.columns()
     reals, notes = real_sets(conf.real_root)
     if conf.real_skipped:

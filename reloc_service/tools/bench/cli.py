@@ -367,8 +367,17 @@ def _machine(m: Mapping[str, Any]) -> list[str]:
             f"{_f(m.get('memory_total_mb', 0) / 1024, 0)} GB; {m.get('platform')}; Python "
             f"{m.get('python')}; {versions}.", "",
             f"Load average (1, 5, 15 min) at the start {m.get('load_average_at_start')}, at "
-            f"the end {m.get('load_average_at_end')}. OpenCV runs on one thread (each service "
-            f"worker is meant to use one core); BLAS threads: {m.get('blas_threads')}.", ""]
+            f"the end {m.get('load_average_at_end')}. OpenCV and the BLAS behind NumPy run on "
+            f"one thread each, as in a service worker (one core a worker; the default method "
+            f"may add its helper thread when a core is idle); BLAS threads: "
+            f"{_blas(m.get('blas_threads'))}.", ""]
+
+
+def _blas(threads: Any) -> str:
+    """The BLAS libraries' threads as recorded (a table, or the older environment string)."""
+    if isinstance(threads, Mapping):
+        return ", ".join(f"{name} {n}" for name, n in sorted(threads.items())) or "none loaded"
+    return str(threads)
 
 
 def _scene(s: Mapping[str, Any]) -> list[str]:

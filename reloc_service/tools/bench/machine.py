@@ -38,7 +38,7 @@ def machine_record() -> dict[str, Any]:
             record["libraries"][name] = None
     record["load_average_at_start"] = load_average()
     record["opencv_threads"] = cv2.getNumThreads()
-    record["blas_threads"] = os.environ.get("OPENBLAS_NUM_THREADS", "default")
+    record["blas_threads"] = blas_threads_record()
     record["memory_total_mb"] = _meminfo_mb("MemTotal")
     record["started_unix"] = round(time.time(), 1)
     return record
@@ -60,6 +60,14 @@ def code_record(repo: Path | None = None) -> dict[str, Any]:
     commit = git("rev-parse", "HEAD")
     status = git("status", "--porcelain", "--untracked-files=no") if commit else None
     return {"commit": commit, "dirty": None if status is None else bool(status)}
+
+
+def blas_threads_record() -> dict[str, int]:
+    """Threads of each BLAS loaded in this process (file name -> threads), as they are now."""
+    from threadpoolctl import threadpool_info
+
+    return {Path(lib["filepath"]).name: int(lib["num_threads"])
+            for lib in threadpool_info() if lib["user_api"] == "blas"}
 
 
 def rss_mb(field: str = "VmRSS") -> float | None:

@@ -2,8 +2,8 @@
 small-blurry-image place finder at 1000 keyframes, and PoseLib against OpenCV's PnP RANSAC.
 
 Every ``bench_*`` function returns a plain dict (milliseconds, metres, degrees) for
-``reloc bench``. Run them on one core: OpenCV threads are set to 1 here; set
-``OPENBLAS_NUM_THREADS=1`` in the environment for NumPy's matrix products (reported).
+``reloc bench``. Run them on one core: OpenCV threads are set to 1 here, and the BLAS
+behind NumPy is limited to one thread by the suite (reported).
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from ..synth.planar import (
     query_pose,
     texture_mosaic,
 )
+from .machine import blas_threads_record
 
 Array = npt.NDArray[np.float64]
 
@@ -83,7 +84,7 @@ def _measure(fn: Callable[[], Any], repeats: int) -> Timing:
 
 
 def _environment() -> dict[str, Any]:
-    return {"opencv_threads": 1, "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS", "default"),
+    return {"opencv_threads": 1, "blas_threads": blas_threads_record(),
             "cpu_count": os.cpu_count()}
 
 

@@ -40,6 +40,7 @@ from ...features import FeatureConf, extract
 from ...frame import EncodedImage, Features, Keyframe
 from ...geometry import look_at
 from ...map import Landmark, MapState
+from ...numeric import limit_blas_threads
 from .samples import JPEG_QUALITY
 
 Array = npt.NDArray[np.float64]
@@ -218,6 +219,7 @@ def probe_map(map_dir: Path, queries_dir: Path, methods: Sequence[str],
     cv2.setNumThreads(1)
     conf = EngineConf(methods=tuple(methods), options=options)
     Engine(conf)  # every method's modules imported and warmed before the baseline
+    limit_blas_threads(1)  # as the suite (one OpenCV and one BLAS thread, as a worker)
     queries = QuerySet.load(queries_dir)
     baseline = rss_mb()
     start = time.perf_counter()
