@@ -336,7 +336,7 @@ def _notes() -> list[str]:
             "- Every number comes from the run named at the top; ratios are of medians (p50) "
             "measured in that run, with the compared paths interleaved query by query so "
             "that changes in machine load hit both sides alike.",
-            "- OpenCV is set to one thread. The machine may be shared: the load average is "
+            "- OpenCV and the BLAS are set to one thread. The machine may be shared: the load average is "
             "recorded above; throughput and p99 suffer most from other load.",
             "- The ferns relocalizer runs with `online = false`: nothing is added after "
             "training here, and `Engine.load` feeds every keyframe to the relocalizer "
