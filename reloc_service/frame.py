@@ -176,11 +176,12 @@ class EncodedImage:
     def remember(self, pixels: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
         """Record ``pixels`` as what this image decodes to (the service decodes a client's
         JPEG to check it: the map then reuses those pixels instead of decoding again); returns
-        them read-only, as every reader shares them."""
+        a read-only view of them, which every later reader shares (``pixels`` itself stays as
+        it was)."""
         if pixels.shape != self.shape or pixels.dtype != np.uint8:
             raise GeometryError(f"encoded image: pixels of {pixels.shape} {pixels.dtype}, "
                                 f"expected {self.shape} uint8")
-        pixels = np.asarray(pixels)
+        pixels = np.asarray(pixels).view()
         pixels.flags.writeable = False
         RECENT_PIXELS.put(self, pixels)
         return pixels
@@ -396,7 +397,8 @@ class Keyframe(Frame):
                                     f"{self.encoded.shape}, pixels of {np.shape(source)[:2]}")
             # Held encoded (the pixels are what it decodes to, shared while read in a row).
             self.image = self.encoded  # type: ignore[assignment]  # the property takes both
-            self.encoded.remember(check_grey_image(source))
+            if RECENT_PIXELS.get(self.encoded) is None:   # else they are remembered already
+                self.encoded.remember(check_grey_image(source))
         super().__post_init__()
         if isinstance(self.id, bool) or not isinstance(self.id, int | np.integer) or self.id < 0:
             raise MapError(f"keyframe id must be a non-negative integer, got {self.id!r}")

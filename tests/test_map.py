@@ -215,13 +215,16 @@ def test_keyframes_keep_images_encoded_and_share_recent_pixels():
     from reloc_service.frame import RECENT_PIXELS, EncodedImage, RecentPixels
 
     img = np.random.default_rng(4).integers(0, 256, (48, 64)).astype(np.uint8)
-    encoded = EncodedImage(cv2.imencode(".png", img)[1].tobytes())
-    pixels = encoded.decode().copy()
+    png = cv2.imencode(".png", img)[1].tobytes()
+    pixels = EncodedImage(png).decode().copy()       # decoded elsewhere (as the service does)
+    encoded = EncodedImage(png)
     kf = Keyframe(image=pixels, camera=CAM, id=1, encoded=encoded)
     assert kf.image_source is encoded and kf.encoded is encoded
-    assert kf.image is pixels and not pixels.flags.writeable     # the pixels given: no decode
+    shared = kf.image
+    assert np.shares_memory(shared, pixels) and kf.image is shared  # the pixels given: no decode
     with pytest.raises(ValueError, match="read-only"):
         kf.image[0, 0] = 1
+    assert pixels.flags.writeable                     # the caller's array is left as it was
     # a bounded LRU: the least recently read drops out first
     cache = RecentPixels(max_bytes=2 * img.nbytes)
     images = [EncodedImage(cv2.imencode(".png", img)[1].tobytes()) for _ in range(3)]
@@ -238,6 +241,6 @@ def test_keyframes_keep_images_encoded_and_share_recent_pixels():
         other.decode()
     assert RECENT_PIXELS.get(encoded) is None
     again = kf.image
-    assert again is not pixels and np.array_equal(again, img)
+    assert not np.shares_memory(again, pixels) and np.array_equal(again, img)
     with pytest.raises(GeometryError, match=r"pixels of \(4, 4\) uint8, expected \(48, 64\)"):
         encoded.remember(np.zeros((4, 4), np.uint8))
