@@ -77,15 +77,14 @@ class P3PPoseFinder(PoseFinder):
 
         When too few matches survive for a pose, the estimate is the best keyframe's pose with
         zero inliers, so the verification refuses it with the counts as the reason."""
-        keyframes = [state.keyframes[c.keyframe_id] for c in candidates
-                     if c.keyframe_id in state.keyframes]
+        keyframes = _keyframes_in(candidates, state)
         if not keyframes:
             return None
         timings: dict[str, float] = {}
         feats = self.query_features(query, timings)
-        first = self.conf.first_pool_keyframes
-        if first is not None and first < len(keyframes):
-            matched = self._match_and_solve(query, feats, keyframes[:first], state, timings)
+        first = self._first_pool(keyframes)
+        if len(first) < len(keyframes):
+            matched = self._match_and_solve(query, feats, first, state, timings)
             solved = matched[3]
             if solved is None or (solved[0].inliers or 0) < self.conf.guided_below_inliers:
                 matched = self._match_and_solve(query, feats, keyframes, state, timings)
@@ -169,6 +168,12 @@ class P3PPoseFinder(PoseFinder):
             return None
         return level_scales(feats.levels[q_idx], feature_lib.level_scale_factor(self.conf.kind))
 
+    def _first_pool(self, keyframes: list[Keyframe]) -> list[Keyframe]:
+        """The keyframes whose landmarks are matched first: the best
+        ``conf.first_pool_keyframes`` (all of them when None)."""
+        first = self.conf.first_pool_keyframes
+        return keyframes if first is None else keyframes[:first]
+
     def query_kinds(self, query: Frame) -> frozenset[str]:
         return frozenset() if self.conf.kind in query.features else self.required_features
 
@@ -194,11 +199,7 @@ class P3PPoseFinder(PoseFinder):
         uncertainty, gathered ahead into ``query.cache``: what the multi relocalizer does on
         its helper thread while this thread extracts the query's features."""
         start = time.perf_counter()
-        keyframes = [state.keyframes[c.keyframe_id] for c in candidates
-                     if c.keyframe_id in state.keyframes]
-        first = self.conf.first_pool_keyframes
-        if first is not None and first < len(keyframes):
-            keyframes = keyframes[:first]
+        keyframes = self._first_pool(_keyframes_in(candidates, state))
         if keyframes:
             pool = LandmarkPool.gather(keyframes, self.conf.kind)
             rows = np.arange(len(pool.landmark_ids))
@@ -280,6 +281,12 @@ class LandmarkPool:
         counts = np.bincount(self.keyframe_rows[rows], minlength=len(keyframe_ids))
         order = np.argsort(-counts, kind="stable")
         return [keyframe_ids[i] for i in order if counts[i] > 0]
+
+
+def _keyframes_in(candidates: list[PlaceCandidate], state: MapState) -> list[Keyframe]:
+    """The keyframes of ``candidates`` still in ``state``, in the candidates' order."""
+    return [state.keyframes[c.keyframe_id] for c in candidates
+            if c.keyframe_id in state.keyframes]
 
 
 @dataclass(frozen=True)

@@ -51,7 +51,7 @@ from ...numeric import limit_blas_threads
 from ...progress import progress
 from ...relocalizers.base import RelocResult
 from ...relocalizers.factory import DEFAULT_METHOD
-from .machine import blas_threads_record, code_record, load_average, machine_record
+from .machine import code_record, load_average, machine_record
 from .samples import (
     JPEG_QUALITY,
     QuerySet,
@@ -516,14 +516,13 @@ def run_suite(conf: SuiteConf, *, command: str = "", workdir: Path | None = None
     section (so that an interrupted run keeps what it measured). Returns the JSON-ready
     result."""
     started = time.perf_counter()
+    cv2.setNumThreads(1)
+    limit_blas_threads(1)   # as a service worker runs its queries (one OpenCV, one BLAS thread)
     result: dict[str, Any] = {
         "schema": "reloc-bench/1", "command": command, "suite": conf.name,
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "conf": json_safe(dataclasses.asdict(conf)), "machine": machine_record(),
         "code": code_record()}
-    cv2.setNumThreads(1)
-    limit_blas_threads(1)   # as a service worker runs its queries (one OpenCV, one BLAS thread)
-    result["machine"]["blas_threads"] = blas_threads_record()
     with contextlib.ExitStack() as stack:
         tmp = workdir or Path(stack.enter_context(tempfile.TemporaryDirectory(
             prefix="reloc-bench-")))
