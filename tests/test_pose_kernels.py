@@ -1,6 +1,8 @@
 """The compiled projection, pose Jacobian and undistortion (reloc_service.pose.kernels) give
-the numpy path's values to the bit, on their own and through whole relocalizations of the
-real TUM fixture."""
+the numpy path's values to the bit; the fused fit (inliers and normal equations of a pose),
+the Gauss-Newton update and the covariance's inverse give them to rounding (sums in another
+order): on their own, and through whole relocalizations of the real TUM fixture (the same
+inliers and verdicts)."""
 
 from __future__ import annotations
 
@@ -173,7 +175,84 @@ def test_relocalizations_of_real_images_are_the_same_with_and_without_kernels(mo
     for (ok_f, inl_f, pose_f, cov_f, why_f), (ok_s, inl_s, pose_s, cov_s, why_s) in zip(
             fast, slow, strict=True):
         assert (ok_f, inl_f, why_f) == (ok_s, inl_s, why_s)
-        assert np.array_equal(pose_f, pose_s) and np.array_equal(cov_f, cov_s)
+        np.testing.assert_allclose(pose_f, pose_s, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(cov_f, cov_s, rtol=1e-9, atol=0)
+
+
+def _correspondences(camera: Camera, uncertain: bool, scaled: bool):
+    """Points seen from a pose, their pixels with noise, outliers, a NaN keypoint and points
+    behind the camera; optional depth uncertainty and keypoint scales."""
+    rng = np.random.default_rng(12)
+    world_from_cam = pnp.se3_exp(np.array([0.3, -0.2, 0.1, 0.05, -0.1, 0.02]))
+    pts_cam = _points_cam()
+    pts_cam[5] = [0.1, 0.1, 2.0]  # _points_cam's NaN point: a finite one, the NaN is a pixel
+    px = pnp._project(camera, pts_cam) + rng.normal(0.0, 1.5, (len(pts_cam), 2))
+    px[6:60] = rng.uniform([0, 0], [640, 480], (54, 2))
+    px[61] = np.nan
+    pts = pts_cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+    unc = (pnp.PointUncertainty(rng.uniform(0.0, 0.2, len(pts)),
+                                pts + rng.normal(0.0, 1.0, pts.shape)) if uncertain else None)
+    scales = pnp.level_scales(rng.integers(0, 8, len(pts)), 1.2) if scaled else None
+    return world_from_cam @ pnp.se3_exp(rng.normal(0.0, 0.003, 6)), px, pts, unc, scales
+
+
+@pytest.mark.parametrize("index", range(3))
+@pytest.mark.parametrize("uncertain,scaled", [(False, False), (True, False), (False, True),
+                                              (True, True)])
+def test_fused_fit_is_the_numpy_fit(index, uncertain, scaled):
+    """One pass per pose gives the inliers, their projections, the normal equations and the
+    residual sums of the numpy path's projections, residuals, Jacobian and weights."""
+    camera = _cameras()[index]
+    pose, px, pts, unc, scales = _correspondences(camera, uncertain, scaled)
+    conf = pnp.PnPConf()
+    fast = pnp._fit_at(pose, px, pts, camera, conf, unc, scales)
+    slow = pnp._fit_numpy(pose, px, pts, camera, conf, unc, scales)
+    assert np.array_equal(fast.inliers, slow.inliers) and 200 < len(fast.inliers) < 340
+    assert not np.isin([0, 1, 2, 3, 4, 61], fast.inliers).any()
+    np.testing.assert_allclose(fast.projected_px, slow.projected_px, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(fast.normal, slow.normal, rtol=1e-11)
+    np.testing.assert_allclose(fast.rhs, slow.rhs, rtol=1e-9, atol=1e-9 * np.abs(slow.rhs).max())
+    assert fast.sq == pytest.approx(slow.sq, rel=1e-12)
+    assert fast.weighted_sq == pytest.approx(slow.weighted_sq, rel=1e-12)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-5, 2e-4, 0.3, 3.0])
+def test_gauss_newton_update_is_solve_then_exp(angle, monkeypatch):
+    """The compiled update (Cholesky solve, Rodrigues and the left Jacobian, Taylor series
+    for small angles) gives LAPACK's step and ``geometry.se3_exp``'s pose; the covariance's
+    inverse is LAPACK's."""
+    rng = np.random.default_rng(int(angle * 1e9) % 1000)
+    a = rng.normal(size=(40, 6))
+    normal = a.T @ a
+    axis = rng.normal(size=3)
+    step = np.concatenate([rng.normal(size=3), axis / np.linalg.norm(axis) * angle])
+    fit = pnp._Fit(pnp.se3_exp(rng.normal(size=6)), np.arange(4), np.zeros((4, 2)), normal,
+                   normal @ step, 0.0, 0.0)
+    fast_step, fast_pose = pnp._gauss_newton_update(fit)
+    fast_inverse = pnp._normal_inverse(normal)
+    _numpy_path(monkeypatch)
+    slow_step, slow_pose = pnp._gauss_newton_update(fit)
+    np.testing.assert_allclose(fast_step, slow_step, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fast_pose, slow_pose, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fast_inverse, pnp._normal_inverse(normal), rtol=1e-9,
+                               atol=1e-12 * np.abs(fast_inverse).max())
+
+
+def test_singular_normal_equations_take_the_least_squares_step():
+    """Normal equations that are not positive definite (a direction the points do not
+    constrain) leave the kernel to LAPACK: the minimum-norm step, an infinite covariance
+    where they are exactly singular."""
+    k = kernels.compiled()
+    a = np.random.default_rng(2).normal(size=(40, 6))
+    a[:, 5] = 0.0
+    normal, rhs = a.T @ a, a.T @ np.ones(40)
+    assert not k.gauss_newton_update(np.eye(4), normal, rhs, np.empty(6), np.empty((4, 4)))
+    assert not k.spd_inverse(normal, np.empty((6, 6)))
+    fit = pnp._Fit(np.eye(4), np.arange(4), np.zeros((4, 2)), normal, rhs, 0.0, 0.0)
+    step, pose = pnp._gauss_newton_update(fit)
+    np.testing.assert_allclose(step, np.linalg.lstsq(a, np.ones(40), rcond=None)[0], atol=1e-12)
+    assert step[5] == 0.0 and np.isfinite(pose).all()
+    assert np.isinf(pnp._normal_inverse(np.zeros((6, 6)))).all()
 
 
 def test_warm_up_loads_every_kernel():

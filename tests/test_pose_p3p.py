@@ -67,7 +67,11 @@ def test_recovers_pose_exactly_with_half_outliers(model):
 @pytest.mark.parametrize("model", sorted(DISTORTIONS))
 def test_jacobian_matches_finite_differences(model):
     from reloc_service.geometry import se3_exp
-    from reloc_service.pose.pnp import _residuals_and_jacobian
+    from reloc_service.pose.pnp import _View
+
+    def _residuals_and_jacobian(world_from_cam, px, points, camera):
+        return _View.at(world_from_cam, points, camera).residuals_and_jacobian(
+            px, np.arange(len(px)), camera)
 
     rng = np.random.default_rng(6)
     camera = make_camera(model)
@@ -344,9 +348,9 @@ def test_chance_agreement_pairs_every_correspondence_up_to_max_points():
 
 
 def test_refined_estimate_is_the_one_recomputed_from_scratch():
-    """The pose, inliers and covariance reuse one projection per pose: the same values as
-    projecting anew for the weights and the covariance (what the refinement did before)."""
-    from reloc_service.pose.pnp import _estimate, _refine, _weights
+    """The pose, inliers, normal equations and covariance come from one pass per pose: the
+    same values as projecting anew for the residuals, the Jacobian and the weights."""
+    from reloc_service.pose.pnp import _View, _estimate, _refine, _weights
 
     camera = make_camera("radtan")
     rng = np.random.default_rng(3)
@@ -356,18 +360,28 @@ def test_refined_estimate_is_the_one_recomputed_from_scratch():
     unc = PointUncertainty(rng.uniform(0.0, 0.05, 150), pts + rng.normal(0, 1.0, pts.shape))
     conf = PnPConf()
     est, inliers = solve_pnp_indexed(px, pts, camera, conf, uncertainty=unc)
-    view = _refine(TRUE_POSE @ se3_exp_small(rng), px, pts, camera, conf, unc)
-    rows = view.inliers(px, conf)
-    fresh_w = _weights(view.world_from_cam, pts, rows, camera, conf, unc)
-    assert np.array_equal(fresh_w, _weights(view.world_from_cam, pts, rows, camera, conf, unc,
-                                            view=view))
-    fresh = _estimate(view.world_from_cam, px[rows], pts[rows], camera, conf, len(px), 0.0,
-                      fresh_w)
-    reused = _estimate(view.world_from_cam, px[rows], pts[rows], camera, conf, len(px), 0.0,
-                       fresh_w, fit=view.residuals_and_jacobian(px[rows], rows, camera))
-    assert np.array_equal(fresh.covariance, reused.covariance)
-    assert fresh.reprojection_rms_px == reused.reprojection_rms_px
+    fit = _refine(TRUE_POSE @ se3_exp_small(rng), px, pts, camera, conf, unc)
+    rows = _View.at(fit.world_from_cam, pts, camera).inliers(px, conf)
+    assert np.array_equal(fit.inliers, rows)
+    residual = px[rows] - camera.project(transform_points(invert(fit.world_from_cam), pts[rows]))
+    jac = _View.at(fit.world_from_cam, pts[rows], camera).residuals_and_jacobian(
+        px[rows], np.arange(len(rows)), camera)[1]
+    w = _weights(fit.world_from_cam, pts, rows, camera, conf, unc)
+    w_rows = np.repeat(w, 2)
+    np.testing.assert_allclose(fit.normal, jac.T @ (jac * w_rows[:, None]), rtol=1e-12)
+    np.testing.assert_allclose(fit.rhs, jac.T @ (residual.ravel() * w_rows), rtol=1e-9,
+                               atol=1e-9 * np.abs(fit.rhs).max())
+    assert fit.sq == pytest.approx(float((residual**2).sum()), rel=1e-12)
+    assert fit.weighted_sq == pytest.approx(float((w[:, None] * residual**2).sum()), rel=1e-12)
+    refit = _estimate(fit, px[rows], pts[rows], camera, conf, len(px), 0.0)
+    sigma2 = max(float((w[:, None] * residual**2).sum()) / (residual.size - 6),
+                 conf.min_sigma_px**2)
+    np.testing.assert_allclose(refit.covariance,
+                               sigma2 * np.linalg.inv(jac.T @ (jac * w_rows[:, None])),
+                               rtol=1e-9, atol=1e-12)
+    assert refit.reprojection_rms_px == pytest.approx(np.sqrt((residual**2).sum() / len(rows)))
     assert len(inliers) >= 115 and not np.isin(np.arange(30), inliers).any()
+    assert np.array_equal(est.inlier_px, px[inliers])
 
 
 def se3_exp_small(rng: np.random.Generator) -> np.ndarray:

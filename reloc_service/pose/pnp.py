@@ -2,7 +2,9 @@
 refined by weighted Gauss-Newton through the real camera model, with the inliers'
 reprojection RMS, a 6x6 covariance and the chance that a wrong pose gathers as many inliers
 (:func:`chance_agreement`) as evidence for verification. Where numba is installed (the
-``[jit]`` extra) projection, Jacobian and undistortion run as :mod:`.kernels`, the same values.
+``[jit]`` extra) projection, Jacobian and undistortion run as :mod:`.kernels`, the same values,
+and each pose's inliers and normal equations come from one compiled pass (:func:`_fit_at`),
+the same to rounding.
 
 Used by the P3P pose finder (:mod:`.p3p`, query features matched to landmarks) and by the
 ferns relocalizer (classified keypoints)."""
@@ -159,7 +161,9 @@ class _View:
 
     def residuals_and_jacobian(self, px: Array, rows: npt.NDArray[np.int64], camera: Camera
                                ) -> tuple[Array, Array]:
-        """:func:`_residuals_and_jacobian` of points ``rows`` (``px`` their pixels)."""
+        """(M, 2) residuals ``px - projection`` of points ``rows`` (``px`` their pixels) and
+        their (2M, 6) Jacobian w.r.t. a right perturbation ``world_from_cam @ exp(xi)``,
+        ``xi = (rho, omega)``."""
         return px - self.px[rows], _pose_jacobian(camera, self.points_cam[rows])
 
 
@@ -189,16 +193,13 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
     if world_from_cam is None:
         return None
     scales = None if keypoint_scales is None else np.asarray(keypoint_scales, np.float64)
-    view = _refine(world_from_cam, px, pts, camera, conf, uncertainty, scales)
-    world_from_cam, inliers = view.world_from_cam, view.inliers(px, conf)
-    if len(inliers) < 4:
+    fit = _refine(world_from_cam, px, pts, camera, conf, uncertainty, scales)
+    if len(fit.inliers) < 4:
         return None
-    weights = _weights(world_from_cam, pts, inliers, camera, conf, uncertainty, scales,
-                       view=view)
-    est = _estimate(world_from_cam, px[inliers], pts[inliers], camera, conf, len(px),
-                    time.perf_counter() - start, weights,
-                    fit=view.residuals_and_jacobian(px[inliers], inliers, camera))
-    est.inlier_sigmas_m = _point_sigmas(world_from_cam, pts[inliers], camera, conf,
+    inliers = fit.inliers
+    est = _estimate(fit, px[inliers], pts[inliers], camera, conf, len(px),
+                    time.perf_counter() - start)
+    est.inlier_sigmas_m = _point_sigmas(fit.world_from_cam, pts[inliers], camera, conf,
                                         None if uncertainty is None
                                         else uncertainty.depth_sigmas_m[inliers],
                                         None if scales is None else scales[inliers])
@@ -261,48 +262,106 @@ def ransac_pinhole(ideal_px: Array, points_world: Array, camera: Camera, conf: P
     return invert(cam_from_world)
 
 
+@dataclass(frozen=True, eq=False)
+class _Fit:
+    """The inliers of one ``world_from_cam`` (reprojection error through the real camera model
+    below the threshold) and their weighted normal equations: ``normal = J^T W J`` (6, 6)
+    and ``rhs = J^T W r`` (6,) of the residuals ``r = px - projected``, the weights of
+    :func:`_weights`; ``weighted_sq = sum w r^2`` and ``sq = sum r^2``. One pass over the
+    points gives the Gauss-Newton step, the covariance and the RMS of a pose."""
+
+    world_from_cam: Array
+    inliers: npt.NDArray[np.int64]
+    projected_px: Array  # (I, 2) the inliers' points at world_from_cam
+    normal: Array
+    rhs: Array
+    weighted_sq: float
+    sq: float
+
+
+def _fit_at(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
+            conf: PnPConf, uncertainty: PointUncertainty | None = None,
+            keypoint_scales: Array | None = None) -> _Fit:
+    """:class:`_Fit` of ``world_from_cam``: compiled in one pass for pinhole and radtan
+    cameras where numba is installed (:func:`.kernels._fit`, the same values to rounding),
+    else :func:`_fit_numpy`."""
+    kernels, params = compiled(), _kernel_camera(camera)
+    if kernels is None or params is None:
+        return _fit_numpy(world_from_cam, px, points_world, camera, conf, uncertainty,
+                          keypoint_scales)
+    n = len(points_world)
+    projected, inliers = np.empty((n, 2)), np.empty(n, np.int64)
+    normal, rhs, sums = np.empty((6, 6)), np.empty(6), np.empty(2)
+    empty = np.empty((0, 3))
+    count = kernels.fit(
+        invert(world_from_cam), np.ascontiguousarray(px, np.float64),
+        np.ascontiguousarray(points_world, np.float64), params[0], params[1],
+        float(conf.max_reproj_error_px),
+        empty if uncertainty is None else np.ascontiguousarray(uncertainty.ray_origins_world,
+                                                               np.float64),
+        empty[:, 0] if uncertainty is None else np.ascontiguousarray(uncertainty.depth_sigmas_m,
+                                                                     np.float64),
+        empty[:, 0] if keypoint_scales is None else np.ascontiguousarray(keypoint_scales,
+                                                                         np.float64),
+        float(conf.keypoint_sigma_px), projected, inliers, normal, rhs, sums)
+    inliers = inliers[:count]
+    return _Fit(world_from_cam, inliers, projected[inliers], normal, rhs, float(sums[0]),
+                float(sums[1]))
+
+
+def _fit_numpy(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
+               conf: PnPConf, uncertainty: PointUncertainty | None = None,
+               keypoint_scales: Array | None = None) -> _Fit:
+    """:class:`_Fit` of ``world_from_cam`` from array operations: the points projected
+    once (:class:`_View`), the inliers, their residuals, Jacobian and weights."""
+    view = _View.at(world_from_cam, points_world, camera)
+    inliers = view.inliers(px, conf)
+    residual, jac = view.residuals_and_jacobian(px[inliers], inliers, camera)
+    w = _weights(world_from_cam, points_world, inliers, camera, conf, uncertainty,
+                 keypoint_scales, view=view)
+    weighted = jac * np.repeat(w, 2)[:, None]
+    return _Fit(world_from_cam, inliers, view.px[inliers], weighted.T @ jac,
+                weighted.T @ residual.ravel(), float((w[:, None] * residual**2).sum()),
+                float((residual**2).sum()))
+
+
 def _refine(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
             conf: PnPConf, uncertainty: PointUncertainty | None = None,
-            keypoint_scales: Array | None = None) -> _View:
+            keypoint_scales: Array | None = None) -> _Fit:
     """Gauss-Newton on the inliers' reprojection error (weighted, see :func:`_weights`)
-    through the real camera model; returns the points seen from the refined pose (its
-    inliers: :meth:`_View.inliers`, residual below the threshold).
+    through the real camera model; returns the :class:`_Fit` of the refined pose.
 
     Not ``poselib.refine_absolute_pose``: with a TRIVIAL loss it reaches the same pose
     unweighted, but PoseLib 2.0.5 takes no per-residual weights, and the landmarks' depth
     uncertainty needs them. The Jacobian is PoseLib's camera model's (:func:`_pixel_jacobian`)."""
-    view = _View.at(world_from_cam, points_world, camera)
-    inliers = view.inliers(px, conf)
+    fit = _fit_at(world_from_cam, px, points_world, camera, conf, uncertainty, keypoint_scales)
     for _ in range(conf.refine_iterations):
-        if len(inliers) < 4:
+        if len(fit.inliers) < 4:
             break
-        residual, jac = view.residuals_and_jacobian(px[inliers], inliers, camera)
-        root_w = np.repeat(np.sqrt(_weights(world_from_cam, points_world, inliers, camera, conf,
-                                            uncertainty, keypoint_scales, view=view)), 2)
-        step = _gauss_newton_step(jac * root_w[:, None], residual.ravel() * root_w)
-        world_from_cam = world_from_cam @ se3_exp(step)
-        view = _View.at(world_from_cam, points_world, camera)
+        step, updated = _gauss_newton_update(fit)
+        fit = _fit_at(updated, px, points_world, camera, conf, uncertainty, keypoint_scales)
         if np.linalg.norm(step) < 1e-12:
             break
-    return view
+    return fit
 
 
-def _gauss_newton_step(jac: Array, residual: Array) -> Array:
-    """(6,) least-squares step of the (2N, 6) weighted Jacobian and (2N,) residuals: the
-    normal equations ``J^T J x = J^T r`` (a 6x6 solve, a fraction of an SVD's time for a few
-    hundred rows); the SVD's minimum-norm answer where they are singular."""
+def _gauss_newton_update(fit: _Fit) -> tuple[Array, Array]:
+    """The (6,) solution ``step`` of ``fit``'s normal equations ``J^T W J x = J^T W r`` and
+    ``world_from_cam @ se3_exp(step)``: compiled where numba is installed
+    (:func:`.kernels._gauss_newton_update`, Cholesky); else, or where they are not positive
+    definite, LAPACK's solve, and where they are singular the minimum-norm least-squares
+    step (the pseudo-inverse's: that of the weighted Jacobian's least squares)."""
+    kernels = compiled()
+    if kernels is not None:
+        step, updated = np.empty(6), np.empty((4, 4))
+        if kernels.gauss_newton_update(np.ascontiguousarray(fit.world_from_cam, np.float64),
+                                       fit.normal, fit.rhs, step, updated):
+            return step, updated
     try:
-        return np.linalg.solve(jac.T @ jac, jac.T @ residual)
+        step = np.linalg.solve(fit.normal, fit.rhs)
     except np.linalg.LinAlgError:
-        return np.linalg.lstsq(jac, residual, rcond=None)[0]
-
-
-def _residuals_and_jacobian(world_from_cam: Array, px: Array, points_world: Array,
-                            camera: Camera) -> tuple[Array, Array]:
-    """(N, 2) residuals ``px - project(points)`` and the (2N, 6) Jacobian of the projection
-    w.r.t. a right perturbation ``world_from_cam @ exp(xi)``, ``xi = (rho, omega)``."""
-    points_cam = transform_points(invert(world_from_cam), points_world)
-    return px - _project(camera, points_cam), _pose_jacobian(camera, points_cam)
+        step = np.linalg.lstsq(fit.normal, fit.rhs, rcond=None)[0]
+    return step, fit.world_from_cam @ se3_exp(step)
 
 
 @functools.lru_cache(maxsize=64)
@@ -336,7 +395,7 @@ def _undistort_pixels(camera: Camera, px: Array) -> Array:
 
 def _pose_jacobian(camera: Camera, points_cam: Array) -> Array:
     """(2N, 6) Jacobian of the pixels of (N, 3) camera-frame points w.r.t. a right
-    perturbation of ``world_from_cam`` (see :func:`_residuals_and_jacobian`); compiled
+    perturbation of ``world_from_cam`` (see :meth:`_View.residuals_and_jacobian`); compiled
     like :func:`_project`."""
     kernels, params = compiled(), _kernel_camera(camera)
     if kernels is not None and params is not None:
@@ -441,27 +500,35 @@ def _pairs_within(projected_px: Array, px: Array, threshold_px: float) -> int:
     return int(np.count_nonzero((d2 < threshold_px**2) & (i != j)))
 
 
-def _estimate(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
-              conf: PnPConf, num_matches: int, elapsed: float, weights: Array | None = None,
-              *, fit: tuple[Array, Array] | None = None) -> PoseEstimate:
-    """The estimate with the inliers' RMS and the weighted Gauss-Newton covariance
-    ``sigma^2 (J^T W J)^-1`` (sigma from the weighted residuals, floored at
-    ``min_sigma_px``). ``fit``: the residuals and Jacobian at ``world_from_cam`` when
-    already computed (:meth:`_View.residuals_and_jacobian`)."""
-    residual, jac = fit or _residuals_and_jacobian(world_from_cam, px, points_world, camera)
-    chance = chance_agreement(px - residual, px, conf.max_reproj_error_px, camera.size)
-    w = np.ones(len(px)) if weights is None else weights
-    sq = float((residual**2).sum())
-    dof = max(residual.size - 6, 1)
-    sigma2 = max(float((w[:, None] * residual**2).sum()) / dof, conf.min_sigma_px**2)
-    w_rows = np.repeat(w, 2)
-    try:
-        covariance: Array = sigma2 * np.linalg.inv(jac.T @ (jac * w_rows[:, None]))
-    except np.linalg.LinAlgError:  # degenerate geometry: unknown, so infinitely uncertain
-        covariance = np.full((6, 6), np.inf)
-    return PoseEstimate(world_from_cam=world_from_cam, keyframe_ids=[], num_matches=num_matches,
-                        inliers=len(px), reprojection_rms_px=float(np.sqrt(sq / len(px))),
-                        covariance=covariance, timings={"solve": elapsed},
+def _estimate(fit: _Fit, px: Array, points_world: Array, camera: Camera, conf: PnPConf,
+              num_matches: int, elapsed: float) -> PoseEstimate:
+    """The estimate of ``fit`` (``px`` and ``points_world``: its inliers') with their RMS and
+    the weighted Gauss-Newton covariance ``sigma^2 (J^T W J)^-1`` (sigma from the weighted
+    residuals, floored at ``min_sigma_px``)."""
+    chance = chance_agreement(fit.projected_px, px, conf.max_reproj_error_px, camera.size)
+    dof = max(2 * len(px) - 6, 1)
+    sigma2 = max(fit.weighted_sq / dof, conf.min_sigma_px**2)
+    return PoseEstimate(world_from_cam=fit.world_from_cam, keyframe_ids=[],
+                        num_matches=num_matches, inliers=len(px),
+                        reprojection_rms_px=float(np.sqrt(fit.sq / len(px))),
+                        covariance=sigma2 * _normal_inverse(fit.normal),
+                        timings={"solve": elapsed},
                         inlier_px=px.copy(), inlier_points_world=points_world.copy(),
                         image_size=camera.size, inlier_threshold_px=conf.max_reproj_error_px,
                         chance_probability=chance)
+
+
+def _normal_inverse(normal: Array) -> Array:
+    """``(J^T W J)^-1``: compiled where numba is installed (Cholesky), else, or where it is
+    not positive definite, LAPACK's inverse; all infinite where singular (degenerate
+    geometry: unknown, so infinitely uncertain)."""
+    kernels = compiled()
+    if kernels is not None:
+        out = np.empty((6, 6))
+        if kernels.spd_inverse(normal, out):
+            return out
+    try:
+        inverse: Array = np.linalg.inv(normal)
+    except np.linalg.LinAlgError:
+        return np.full((6, 6), np.inf)
+    return inverse
