@@ -350,7 +350,7 @@ def test_chance_agreement_pairs_every_correspondence_up_to_max_points():
 def test_refined_estimate_is_the_one_recomputed_from_scratch():
     """The pose, inliers, normal equations and covariance come from one pass per pose: the
     same values as projecting anew for the residuals, the Jacobian and the weights."""
-    from reloc_service.pose.pnp import _View, _estimate, _refine, _weights
+    from reloc_service.pose.pnp import _estimate, _refine, _View, _weights
 
     camera = make_camera("radtan")
     rng = np.random.default_rng(3)

@@ -358,10 +358,10 @@ def _gauss_newton_update(fit: _Fit) -> tuple[Array, Array]:
                                        fit.normal, fit.rhs, step, updated):
             return step, updated
     try:
-        step = np.linalg.solve(fit.normal, fit.rhs)
+        solved: Array = np.linalg.solve(fit.normal, fit.rhs)
     except np.linalg.LinAlgError:
-        step = np.linalg.lstsq(fit.normal, fit.rhs, rcond=None)[0]
-    return step, fit.world_from_cam @ se3_exp(step)
+        solved = np.linalg.lstsq(fit.normal, fit.rhs, rcond=None)[0]
+    return solved, fit.world_from_cam @ se3_exp(solved)
 
 
 @functools.lru_cache(maxsize=64)
@@ -528,7 +528,6 @@ def _normal_inverse(normal: Array) -> Array:
         if kernels.spd_inverse(normal, out):
             return out
     try:
-        inverse: Array = np.linalg.inv(normal)
+        return np.asarray(np.linalg.inv(normal), np.float64)
     except np.linalg.LinAlgError:
         return np.full((6, 6), np.inf)
-    return inverse
