@@ -358,10 +358,10 @@ def _gauss_newton_update(fit: _Fit) -> tuple[Array, Array]:
                                        fit.normal, fit.rhs, step, updated):
             return step, updated
     try:
-        solved: Array = np.linalg.solve(fit.normal, fit.rhs)
+        solved = np.linalg.solve(fit.normal, fit.rhs)
     except np.linalg.LinAlgError:
         solved = np.linalg.lstsq(fit.normal, fit.rhs, rcond=None)[0]
-    return solved, fit.world_from_cam @ se3_exp(solved)
+    return np.asarray(solved, np.float64), fit.world_from_cam @ se3_exp(solved)
 
 
 @functools.lru_cache(maxsize=64)
