@@ -37,8 +37,9 @@ def test_record_from_result_measures_translation_and_rotation_error():
     gt = _pose(0.0)
     est = gt @ se3_exp([0.0, 0.0, 0.0, 0.0, math.radians(2.0), 0.0])
     est[:3, 3] += [0.03, 0.04, 0.0]
+    covariance = np.diag([0.01**2, 0.03**2, 0.02**2, 1e-4, 1e-4, 1e-4])
     rec = ev.record_from_result("q.png", _ok(est, confidence=0.7, inliers=42,
-                                             matched_keyframe_ids=[3],
+                                             matched_keyframe_ids=[3], covariance=covariance,
                                              timings={"solve": 0.002}), gt, 12.5)
     assert rec.returned and rec.status == "ok"
     assert rec.t_err_m == pytest.approx(0.05)
@@ -46,6 +47,7 @@ def test_record_from_result_measures_translation_and_rotation_error():
     assert (rec.latency_ms, rec.confidence, rec.inliers) == (12.5, 0.7, 42)
     assert rec.timings_ms == {"solve": pytest.approx(2.0)}
     assert rec.est_world_from_cam == pytest.approx(pose_to_tum(est).tolist())
+    assert rec.position_sigma_m == pytest.approx(0.03)  # the covariance's largest axis
 
 
 def test_record_from_failure_has_no_error():
@@ -54,17 +56,21 @@ def test_record_from_failure_has_no_error():
                                 _pose(0.0), 3.0)
     assert not rec.returned and rec.status == "not_relocalized"
     assert rec.t_err_m is None and rec.r_err_deg is None and rec.est_world_from_cam is None
+    assert rec.position_sigma_m is None
     assert rec.reason == "too few inliers" and rec.matched_keyframe_ids == [1]
 
 
 def _records() -> list[ev.QueryRecord]:
-    """Five queries: errors 1 cm, 10 cm, 30 cm, 1 m (wrong), and one not relocalized."""
+    """Five queries: errors 1 cm, 10 cm, 30 cm, 1 m (wrong), and one not relocalized; the
+    first three state a 5 cm position sigma, the fourth no covariance."""
     gt = _pose(0.0)
     recs = []
     for i, dx in enumerate([0.01, 0.10, 0.30, 1.0]):
         est = gt.copy()
         est[0, 3] += dx
-        recs.append(ev.record_from_result(f"q{i}.png", _ok(est), gt, 10.0 * (i + 1)))
+        covariance = np.diag([0.05**2] * 3 + [1e-4] * 3) if i < 3 else None
+        recs.append(ev.record_from_result(f"q{i}.png", _ok(est, covariance=covariance), gt,
+                                          10.0 * (i + 1)))
     recs.append(ev.record_from_result("q4.png", RelocResult.failure("fake", "no"), gt, 50.0))
     return recs
 
@@ -77,6 +83,7 @@ def test_summarize_by_hand():
     assert s.wrong_rate == pytest.approx(0.2)
     assert s.not_relocalized_rate == pytest.approx(0.2)
     assert s.median_t_err_m == pytest.approx(0.20)
+    assert s.median_t_err_over_sigma == pytest.approx(2.0)  # of 0.2, 2 and 6 sigmas
     assert s.mean_t_err_m == pytest.approx((0.01 + 0.10 + 0.30 + 1.0) / 4)
     assert s.latency_p50_ms == pytest.approx(30.0)
     assert s.latency_p99_ms == pytest.approx(40.0 + 0.96 * 10.0)
@@ -131,8 +138,8 @@ def test_machine_info():
 def test_table_rows_and_markdown():
     result = _result()
     (row,) = report.table_rows(result)
-    assert row == ["fake", "20.0", "40.0", "60.0", "20.00", "0.00", "20.0", "20.0", "30.0",
-                   "49.6"]
+    assert row == ["fake", "20.0", "40.0", "60.0", "20.00", "0.00", "2.0", "20.0", "20.0",
+                   "30.0", "49.6"]
     table = report.format_table(result)
     assert table.splitlines()[0].split()[:2] == ["method", "@5cm/5deg"]
     assert report.format_markdown(result).count("\n") == 2

@@ -29,7 +29,7 @@ from ...errors import ConfigError, DatasetError
 from ...frame import Frame
 from ...geometry import pose_error, pose_to_tum
 from ...progress import progress as progress_bar
-from ...relocalizers.base import RelocResult
+from ...relocalizers.base import RelocResult, position_sigma_m
 from ..data.dataset import Dataset, DatasetEntry, read_dataset
 from . import gt as _gt  # noqa: F401 (importing it registers the ground-truth place finder)
 from . import metrics
@@ -77,6 +77,9 @@ class QueryRecord:
     gt_world_from_cam: list[float]
     est_world_from_cam: list[float] | None
     timings_ms: dict[str, float] = field(default_factory=dict)
+    #: The result's own 1-sigma position uncertainty (:func:`position_sigma_m` of its
+    #: covariance), None when no pose or no covariance was returned.
+    position_sigma_m: float | None = None
 
 
 @dataclass
@@ -95,6 +98,9 @@ class MethodSummary:
     latency_p99_ms: float
     latency_mean_ms: float
     rank_histogram: dict[int, int]
+    #: Median of translation error / stated position sigma over returned poses with a
+    #: covariance (:func:`.metrics.error_over_sigma`): about 1 when the covariance is honest.
+    median_t_err_over_sigma: float = math.nan
 
 
 @dataclass
@@ -322,12 +328,14 @@ def record_from_result(image_path: str, result: RelocResult, gt_world_from_cam: 
     """Score one :class:`RelocResult` against the ground truth (rank left None)."""
     est_pose = result.world_from_cam if result.ok else None
     returned = est_pose is not None
-    t_err = r_err = None
+    t_err = r_err = sigma = None
     est = None
     if est_pose is not None:
         dt, dr = pose_error(est_pose, gt_world_from_cam)
         t_err, r_err = dt, math.degrees(dr)
         est = pose_to_tum(est_pose).tolist()
+        if result.covariance is not None:
+            sigma = position_sigma_m(result.covariance)
     return QueryRecord(
         image_path=image_path, returned=returned, status=result.status.value,
         reason=result.reason, method_used=result.method, t_err_m=t_err, r_err_deg=r_err,
@@ -337,7 +345,8 @@ def record_from_result(image_path: str, result: RelocResult, gt_world_from_cam: 
                              else float(result.reprojection_rms_px)),
         matched_keyframe_ids=[int(k) for k in result.matched_keyframe_ids], rank=None,
         gt_world_from_cam=pose_to_tum(gt_world_from_cam).tolist(), est_world_from_cam=est,
-        timings_ms={k: float(v) * 1e3 for k, v in result.timings.items()})
+        timings_ms={k: float(v) * 1e3 for k, v in result.timings.items()},
+        position_sigma_m=sigma)
 
 
 def _with_ranks(records: list[QueryRecord], dataset: Dataset) -> list[QueryRecord]:
@@ -370,7 +379,10 @@ def summarize(records: Sequence[QueryRecord]) -> MethodSummary:
         latency_p50_ms=metrics.percentile(latency, 50),
         latency_p99_ms=metrics.percentile(latency, 99),
         latency_mean_ms=float(latency.mean()) if len(latency) else math.nan,
-        rank_histogram=metrics.rank_histogram(ranks))
+        rank_histogram=metrics.rank_histogram(ranks),
+        median_t_err_over_sigma=metrics.error_over_sigma(
+            t, np.array([math.nan if r.position_sigma_m is None else r.position_sigma_m
+                         for r in records]), ok))
 
 
 def _map_info(backend: Backend, dataset: Dataset, source: LandmarkSource, build_s: float,

@@ -55,6 +55,24 @@ def recall(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.Array
     return float(mask.mean()) if len(mask) else math.nan
 
 
+def error_over_sigma(t_err_m: npt.ArrayLike, sigma_m: npt.ArrayLike, returned: npt.ArrayLike
+                     ) -> float:
+    """Median of ``t_err_m / sigma_m`` over returned poses with a finite, positive stated
+    sigma (the largest axis of the position covariance): how far the answers are from the
+    truth in units of the precision they claim. A covariance that says what it knows gives
+    about 1 (0.7 to 1.5 for a Gaussian, from one dominant axis to three equal ones); 10 means
+    the answers are ten times less precise than stated. NaN when no pose qualifies."""
+    t = np.asarray(t_err_m, dtype=np.float64).ravel()
+    s = np.asarray(sigma_m, dtype=np.float64).ravel()
+    ok = np.asarray(returned, dtype=bool).ravel()
+    if not (len(t) == len(s) == len(ok)):
+        raise ValueError(f"per-query arrays differ in length: t {len(t)}, sigma {len(s)}, "
+                         f"returned {len(ok)}")
+    with np.errstate(invalid="ignore"):
+        use = ok & np.isfinite(t) & np.isfinite(s) & (s > 0)
+    return float(np.median(t[use] / s[use])) if use.any() else math.nan
+
+
 def recalls(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.ArrayLike,
             thresholds: tuple[tuple[float, float], ...] = RECALL_THRESHOLDS) -> dict[str, float]:
     """``{threshold_key: recall}`` for each (metres, degrees) pair of ``thresholds``."""
