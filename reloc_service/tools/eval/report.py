@@ -38,8 +38,9 @@ def table_rows(result: EvalResult) -> list[list[str]]:
         rows.append([m.method]
                     + [_pct(s.recall[threshold_key(t, r)]) for t, r in RECALL_THRESHOLDS]
                     + [_num(s.median_t_err_m, 100, 2), _num(s.median_r_err_deg, 1, 2),
-                       _num(s.median_t_err_over_sigma, 1, 1), _pct(s.wrong_rate), _pct(s.not_relocalized_rate),
-                       _num(s.latency_p50_ms), _num(s.latency_p99_ms)])
+                       _num(s.median_t_err_over_sigma, 1, 1), _pct(s.wrong_rate),
+                       _pct(s.not_relocalized_rate), _num(s.latency_p50_ms),
+                       _num(s.latency_p99_ms)])
     return rows
 
 
