@@ -9,6 +9,7 @@ from reloc_service.relocalizers.base import (
     RelocStatus,
     VerifyConf,
     log10_false_alarms_px,
+    position_sigma_m,
     result_from_estimate,
     verify,
 )
@@ -204,3 +205,27 @@ def test_inlier_spread_is_the_hull_and_skips_only_passing_planes():
     # A small planar patch is still refused; the same plane spread wide is accepted.
     assert not verify(_patch_estimate(0.2), VerifyConf())[0]
     assert verify(_patch_estimate(1.5), VerifyConf())[0]
+
+
+def test_largest_eigenvalue_in_closed_form_is_lapacks():
+    """The position sigma's closed-form eigenvalue equals ``eigvalsh``'s on covariances of
+    every shape: random, badly conditioned, tiny and large, diagonal, isotropic with a
+    perturbation (a near-triple root), rank-deficient, negative definite."""
+    from reloc_service.relocalizers.base import largest_eigenvalue_sym3
+
+    rng = np.random.default_rng(4)
+    cases = [np.diag([3e-4, 1e-4, 2e-4]), np.eye(3) * 2e-5,
+             np.eye(3) * 1e-4 + 1e-19 * np.ones((3, 3)), np.zeros((3, 3)), -np.eye(3),
+             np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0]) * 1e-6]
+    for scale in (1e-10, 1e-4, 1.0, 1e3):
+        for _ in range(50):
+            a = rng.normal(size=(3, 3))
+            u = np.linalg.qr(a)[0]
+            eig = rng.uniform(0.0, 1.0, 3) ** rng.integers(1, 8)  # condition up to ~1e7
+            cases.append(scale * (u * eig) @ u.T)
+    for c in cases:
+        c = (c + c.T) / 2
+        want = np.linalg.eigvalsh(c).max()
+        got = largest_eigenvalue_sym3(c.tolist())
+        assert abs(got - want) <= 1e-9 * max(np.abs(c).max(), 1e-300), (c, got, want)
+    assert position_sigma_m(np.diag([0.04, 0.01, 0.09, 1.0, 1.0, 1.0])) == pytest.approx(0.3)

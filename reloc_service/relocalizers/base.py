@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import abc
 import functools
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -259,10 +260,29 @@ def position_sigma_m(covariance: Array | None) -> float:
     translation block; 0 when no covariance is known."""
     if covariance is None:
         return 0.0
-    block = np.asarray(covariance)[:3, :3]
+    block = np.asarray(covariance, np.float64)[:3, :3]
     if not np.all(np.isfinite(block)):
         return float("inf")
-    return float(np.sqrt(max(np.linalg.eigvalsh(block).max(), 0.0)))
+    return math.sqrt(max(largest_eigenvalue_sym3(block.tolist()), 0.0))
+
+
+def largest_eigenvalue_sym3(a: list[list[float]]) -> float:
+    """Largest eigenvalue of the symmetric 3x3 matrix ``a`` (its upper triangle is read), in
+    closed form: the trigonometric solution of the characteristic cubic (Smith 1961), equal
+    to LAPACK's ``eigvalsh`` to rounding. Python floats: a few microseconds where
+    ``eigvalsh``'s call costs tens (every verified pose asks it once)."""
+    a00, a01, a02, a11, a12, a22 = a[0][0], a[0][1], a[0][2], a[1][1], a[1][2], a[2][2]
+    off = a01 * a01 + a02 * a02 + a12 * a12
+    if off == 0.0:
+        return max(a00, a11, a22)
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p = math.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * off) / 6.0)
+    # det(A - qI) / (2 p^3): the cosine of three times the angle of the largest root.
+    det = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02)
+           + a02 * (a01 * a12 - b11 * a02))
+    r = min(max(det / (2.0 * p * p * p), -1.0), 1.0)
+    return q + 2.0 * p * math.cos(math.acos(r) / 3.0)
 
 
 def result_from_estimate(estimate: PoseEstimate | None, conf: VerifyConf, *, method: str,
