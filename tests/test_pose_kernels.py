@@ -15,7 +15,7 @@ import pytest
 from reloc_service.cameras import Camera, camera_from_dict
 from reloc_service.engine import Engine, EngineConf
 from reloc_service.frame import Frame
-from reloc_service.pose import kernels, p3p, pnp
+from reloc_service.pose import chance, kernels, p3p, pnp
 from reloc_service.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.tools.data.dataset import read_dataset
 
@@ -45,6 +45,7 @@ def _points_cam(n: int = 400) -> np.ndarray:
 def _numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(pnp, "compiled", lambda: None)
     monkeypatch.setattr(p3p, "compiled", lambda: None)
+    monkeypatch.setattr(chance, "compiled", lambda: None)
 
 
 @pytest.mark.parametrize("index", range(3))
@@ -112,13 +113,13 @@ def test_pixel_sigmas_and_chance_pairs_are_the_numpy_values(monkeypatch):
     fast = [unc.pixel_sigmas(world_from_cam, pts, camera, rows),
             unc.pixel_sigmas(world_from_cam, pts, camera, rows,
                              projected_px=camera.project(pts)),
-            pnp._pairs_within(projected, px, 5.0), pnp._pairs_within(projected, px, 2.5)]
+            chance._pairs_within(projected, px, 5.0), chance._pairs_within(projected, px, 2.5)]
     assert np.isinf(fast[0][3]) and fast[2] > fast[3] > 0
     _numpy_path(monkeypatch)
     slow = [unc.pixel_sigmas(world_from_cam, pts, camera, rows),
             unc.pixel_sigmas(world_from_cam, pts, camera, rows,
                              projected_px=camera.project(pts)),
-            pnp._pairs_within(projected, px, 5.0), pnp._pairs_within(projected, px, 2.5)]
+            chance._pairs_within(projected, px, 5.0), chance._pairs_within(projected, px, 2.5)]
     for f, s in zip(fast, slow, strict=True):
         assert np.array_equal(f, s)
 

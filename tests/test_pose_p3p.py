@@ -298,7 +298,7 @@ def test_find_pose_with_keyframes_lacking_features_is_refused():
 
 
 def test_chance_agreement_is_higher_for_bunched_correspondences():
-    from reloc_service.pose.pnp import chance_agreement
+    from reloc_service.pose.chance import chance_agreement
 
     rng = np.random.default_rng(0)
     spread = np.column_stack([rng.uniform(0, 640, 200), rng.uniform(0, 480, 200)])
@@ -313,7 +313,7 @@ def test_chance_agreement_is_higher_for_bunched_correspondences():
 def test_chance_agreement_counts_the_pairs_of_the_full_table(spread_px):
     """Only pairs near in x are measured; the count is the full (m, m) table's, also with
     points on the threshold's edge, duplicates and a NaN projection."""
-    from reloc_service.pose.pnp import _pairs_within
+    from reloc_service.pose.chance import _pairs_within
 
     rng = np.random.default_rng(int(spread_px))
     px = np.round(rng.normal((320.0, 240.0), spread_px, (200, 2)))  # integer: exact ties
@@ -332,7 +332,7 @@ def test_chance_agreement_counts_the_pairs_of_the_full_table(spread_px):
 
 def test_chance_agreement_pairs_every_correspondence_up_to_max_points():
     """Up to ``max_points`` correspondences all are paired; beyond, an even choice of them."""
-    from reloc_service.pose.pnp import _pairs_within, chance_agreement
+    from reloc_service.pose.chance import _pairs_within, chance_agreement
 
     rng = np.random.default_rng(4)
     px = rng.normal((320.0, 240.0), 30.0, (450, 2))

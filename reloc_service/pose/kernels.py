@@ -269,12 +269,12 @@ def _fit(cam_from_world: Array, px: Array, points: Array, params: Array, distort
     return count
 
 
-def _cholesky_solve(normal: Array, rhs: Array, out: Array) -> bool:
-    """``out`` = the solution of ``normal x = rhs`` (6, 6) by Cholesky; False where ``normal``
-    is not positive definite (a pivot not above 1e-12 times the largest diagonal term, or
-    not finite): the caller then takes the least-squares answer."""
+def _cholesky(normal: Array, low: Array) -> bool:
+    """``low`` (n, n) = the lower Cholesky factor of ``normal``; False where ``normal`` is
+    not positive definite (a pivot not above 1e-12 times the largest diagonal term, or not
+    finite): the caller then takes LAPACK's answer."""
     n = normal.shape[0]
-    low = np.zeros((n, n))
+    low[:, :] = 0.0
     floor = 0.0
     for i in range(n):
         floor = max(floor, abs(normal[i, i]))
@@ -291,6 +291,12 @@ def _cholesky_solve(normal: Array, rhs: Array, out: Array) -> bool:
             for k in range(j):
                 v -= low[i, k] * low[j, k]
             low[i, j] = v / low[j, j]
+    return True
+
+
+def _solve_factored(low: Array, rhs: Array, out: Array) -> None:
+    """``out`` = the solution of ``L L^T x = rhs`` given the Cholesky factor ``L``."""
+    n = low.shape[0]
     for i in range(n):  # L y = rhs
         v = rhs[i]
         for k in range(i):
@@ -301,7 +307,6 @@ def _cholesky_solve(normal: Array, rhs: Array, out: Array) -> bool:
         for k in range(i + 1, n):
             v -= low[k, i] * out[k]
         out[i] = v / low[i, i]
-    return True
 
 
 def _se3_exp_into(xi: Array, out: Array) -> None:
@@ -335,10 +340,12 @@ def _se3_exp_into(xi: Array, out: Array) -> None:
 def _gauss_newton_update(world_from_cam: Array, normal: Array, rhs: Array, step: Array,
                          out: Array) -> bool:
     """One Gauss-Newton update of the normal equations (:func:`_fit`): ``step`` (6,) their
-    solution (:func:`_cholesky_solve`), ``out`` = ``world_from_cam @ se3_exp(step)``; False
+    solution (:func:`_cholesky`), ``out`` = ``world_from_cam @ se3_exp(step)``; False
     (nothing written to ``out``) where they are not positive definite."""
-    if not _cholesky_solve(normal, rhs, step):
+    low = np.empty((6, 6))
+    if not _cholesky(normal, low):
         return False
+    _solve_factored(low, rhs, step)
     delta = np.empty((4, 4))
     _se3_exp_into(step, delta)
     for i in range(4):
@@ -351,15 +358,17 @@ def _gauss_newton_update(world_from_cam: Array, normal: Array, rhs: Array, step:
 
 
 def _spd_inverse(normal: Array, out: Array) -> bool:
-    """``out`` = the inverse of the (6, 6) ``normal`` matrix by Cholesky, column by column;
-    False where it is not positive definite."""
+    """``out`` = the inverse of the (n, n) ``normal`` matrix: one Cholesky factorisation,
+    then a solve per column; False where it is not positive definite."""
     n = normal.shape[0]
+    low = np.empty((n, n))
+    if not _cholesky(normal, low):
+        return False
     unit, column = np.zeros(n), np.empty(n)
     for j in range(n):
         unit[:] = 0.0
         unit[j] = 1.0
-        if not _cholesky_solve(normal, unit, column):
-            return False
+        _solve_factored(low, unit, column)
         out[:, j] = column
     return True
 
@@ -373,7 +382,7 @@ def _transformed(a_from_b: Array, x: float, y: float, z: float) -> tuple[float, 
 
 def _pairs_within(projected_px: Array, px: Array, threshold_px: float, threshold_sq: float
                   ) -> int:
-    """:func:`~reloc_service.pose.pnp._pairs_within`: pairs ``j != i`` with
+    """:func:`~reloc_service.pose.chance._pairs_within`: pairs ``j != i`` with
     ``|projected_px[j] - px[i]| < threshold_px`` (per axis differences, squares summed),
     measured only where the x coordinates lie within twice the threshold (a superset);
     ``threshold_sq`` is Python's ``threshold_px**2``."""
@@ -430,7 +439,7 @@ def compiled() -> Kernels | None:
     None where numba is not installed."""
     # the kernels call the compiled helpers by these names
     global _distort, _opencv_undistort, _project_point, _point_jacobian, _transformed
-    global _cholesky_solve, _se3_exp_into
+    global _cholesky, _solve_factored, _se3_exp_into
     numba = numba_or_none()
     if numba is None:
         return None
@@ -439,7 +448,8 @@ def compiled() -> Kernels | None:
     _project_point = numba.njit(cache=True, nogil=True)(_project_point)
     _point_jacobian = numba.njit(cache=True, nogil=True)(_point_jacobian)
     _transformed = numba.njit(cache=True, nogil=True)(_transformed)
-    _cholesky_solve = numba.njit(cache=True, nogil=True)(_cholesky_solve)
+    _cholesky = numba.njit(cache=True, nogil=True)(_cholesky)
+    _solve_factored = numba.njit(cache=True, nogil=True)(_solve_factored)
     _se3_exp_into = numba.njit(cache=True, nogil=True)(_se3_exp_into)
     jit: Any = numba.njit(cache=True, nogil=True)
     return Kernels(jit(_project), jit(_pose_jacobian), jit(_undistort_pixels),

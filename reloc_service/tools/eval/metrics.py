@@ -25,14 +25,21 @@ def threshold_key(t_max_m: float, r_max_deg: float) -> str:
     return f"{t_max_m * 100:g}cm_{r_max_deg:g}deg"
 
 
+def _per_query(returned: npt.ArrayLike, **values: npt.ArrayLike
+               ) -> tuple[list[Array], npt.NDArray[np.bool_]]:
+    """``values`` as flat float64 arrays and ``returned`` as a flat mask, all one entry per
+    query (ValueError naming each length otherwise)."""
+    arrays = [np.asarray(v, dtype=np.float64).ravel() for v in values.values()]
+    ok = np.asarray(returned, dtype=bool).ravel()
+    if any(len(a) != len(ok) for a in arrays):
+        lengths = ", ".join(f"{name} {len(a)}" for name, a in zip(values, arrays, strict=True))
+        raise ValueError(f"per-query arrays differ in length: {lengths}, returned {len(ok)}")
+    return arrays, ok
+
+
 def _arrays(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.ArrayLike
             ) -> tuple[Array, Array, npt.NDArray[np.bool_]]:
-    t = np.asarray(t_err_m, dtype=np.float64).ravel()
-    r = np.asarray(r_err_deg, dtype=np.float64).ravel()
-    ok = np.asarray(returned, dtype=bool).ravel()
-    if not (len(t) == len(r) == len(ok)):
-        raise ValueError(f"per-query arrays differ in length: t {len(t)}, r {len(r)}, "
-                         f"returned {len(ok)}")
+    (t, r), ok = _per_query(returned, t=t_err_m, r=r_err_deg)
     if np.any(ok & ~(np.isfinite(t) & np.isfinite(r))):
         raise ValueError("a returned pose has a non-finite error; expected finite errors for "
                          "every returned pose")
@@ -62,12 +69,7 @@ def error_over_sigma(t_err_m: npt.ArrayLike, sigma_m: npt.ArrayLike, returned: n
     truth in units of the precision they claim. A covariance that says what it knows gives
     about 1 (0.7 to 1.5 for a Gaussian, from one dominant axis to three equal ones); 10 means
     the answers are ten times less precise than stated. NaN when no pose qualifies."""
-    t = np.asarray(t_err_m, dtype=np.float64).ravel()
-    s = np.asarray(sigma_m, dtype=np.float64).ravel()
-    ok = np.asarray(returned, dtype=bool).ravel()
-    if not (len(t) == len(s) == len(ok)):
-        raise ValueError(f"per-query arrays differ in length: t {len(t)}, sigma {len(s)}, "
-                         f"returned {len(ok)}")
+    (t, s), ok = _per_query(returned, t=t_err_m, sigma=sigma_m)
     with np.errstate(invalid="ignore"):
         use = ok & np.isfinite(t) & np.isfinite(s) & (s > 0)
     return float(np.median(t[use] / s[use])) if use.any() else math.nan
