@@ -2,6 +2,7 @@
 tests inside them, and the P3P pose finder growing a weak first pose with it."""
 
 import numpy as np
+import pytest
 
 from reloc_service.cameras import PinholeCamera
 from reloc_service.frame import Features
@@ -82,3 +83,65 @@ def test_window_distances_of_uint8_sift_are_l2_not_hamming():
     expected = np.linalg.norm(query[near].astype(np.float64)
                               - landmarks[:, None, :].astype(np.float64), axis=2)
     np.testing.assert_allclose(as_uint8, expected, rtol=1e-5)
+
+
+def _windows(rng: np.random.Generator, n_query: int, rows: int, k: int) -> np.ndarray:
+    """(rows, k) window keypoints with empty slots (``n_query``, as cKDTree marks them),
+    repeated keypoints (equal distances) and rows with no keypoint at all."""
+    near = rng.integers(0, n_query, (rows, k))
+    near[rng.random((rows, k)) < 0.3] = n_query
+    near[: rows // 10] = n_query
+    if k > 1:
+        near[rows // 10: rows // 5, 1] = near[rows // 10: rows // 5, 0]
+    return np.sort(near, axis=1)     # cKDTree lists empty slots last
+
+
+@pytest.mark.parametrize("width,k", [(32, 8), (32, 1), (128, 8), (128, 2)])
+def test_compiled_window_test_is_the_numpy_choice(width, k, monkeypatch):
+    """The compiled window pass gives the numpy path's smallest and next distances (the same
+    dtype and values) and the same slot, the first of equal ones, for ORB's Hamming and
+    uint8 SIFT's L2, with empty slots, repeated keypoints and empty windows."""
+    pytest.importorskip("numba")
+    from reloc_service.pose import guided
+
+    rng = np.random.default_rng(width + k)
+    query = rng.integers(0, 256, (300, width), dtype=np.uint8)
+    landmarks = rng.integers(0, 256, (2000, width), dtype=np.uint8)
+    landmarks[::7] = query[rng.integers(0, 300, len(landmarks[::7]))]   # exact matches too
+    near = _windows(rng, len(query), len(landmarks), k)
+    compiled = guided._window_best(query, landmarks, near)
+    monkeypatch.setattr(guided, "compiled", lambda: None)
+    plain = guided._window_best(query, landmarks, near)
+    for a, b in zip(compiled, plain, strict=True):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    assert (compiled[2] == -1).any() and np.isinf(compiled[1]).any()
+
+
+def test_compiled_background_distance_is_the_numpy_quantile(monkeypatch):
+    """ORB's background distance from the compiled histogram equals numpy's quantile of the
+    same pairs (to rounding), so every window verdict is the same."""
+    pytest.importorskip("numba")
+    from reloc_service.pose import guided
+
+    rng = np.random.default_rng(11)
+    for n_query, n_map in [(500, 4000), (3, 5), (1, 1)]:
+        query = rng.integers(0, 256, (n_query, 32), dtype=np.uint8)
+        landmarks = rng.integers(0, 256, (n_map, 32), dtype=np.uint8)
+        for quantile in (0.0, 0.01, 0.3, 0.5, 0.77, 1.0):
+            compiled = guided.background_distance(query, landmarks, quantile)
+            with monkeypatch.context() as m:
+                m.setattr(guided, "compiled", lambda: None)
+                plain = guided.background_distance(query, landmarks, quantile)
+            assert compiled == pytest.approx(plain, rel=1e-12, abs=1e-12)
+
+
+def test_histogram_quantile_is_numpys_quantile():
+    from reloc_service.pose.guided import _histogram_quantile
+
+    rng = np.random.default_rng(2)
+    for n in (1, 2, 7, 65536):
+        values = rng.integers(0, 40, n)
+        counts = np.bincount(values, minlength=257)
+        for quantile in rng.random(20):
+            assert _histogram_quantile(counts, quantile) == pytest.approx(
+                np.quantile(values, quantile), rel=1e-12, abs=1e-12)

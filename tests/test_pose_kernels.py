@@ -15,7 +15,7 @@ import pytest
 from reloc_service.cameras import Camera, camera_from_dict
 from reloc_service.engine import Engine, EngineConf
 from reloc_service.frame import Frame
-from reloc_service.pose import chance, kernels, p3p, pnp
+from reloc_service.pose import chance, guided, kernels, p3p, pnp
 from reloc_service.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.tools.data.dataset import read_dataset
 
@@ -46,15 +46,16 @@ def _numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(pnp, "compiled", lambda: None)
     monkeypatch.setattr(p3p, "compiled", lambda: None)
     monkeypatch.setattr(chance, "compiled", lambda: None)
+    monkeypatch.setattr(guided, "compiled", lambda: None)
 
 
 @pytest.mark.parametrize("index", range(3))
 def test_projection_and_jacobian_are_the_numpy_values(index, monkeypatch):
     camera, pts = _cameras()[index], _points_cam()
     assert kernels.compiled() is not None
-    fast_px, fast_jac = pnp._project(camera, pts), pnp._pose_jacobian(camera, pts[6:])
+    fast_px, fast_jac = pnp.project_cam(camera, pts), pnp._pose_jacobian(camera, pts[6:])
     _numpy_path(monkeypatch)
-    slow_px, slow_jac = pnp._project(camera, pts), pnp._pose_jacobian(camera, pts[6:])
+    slow_px, slow_jac = pnp.project_cam(camera, pts), pnp._pose_jacobian(camera, pts[6:])
     assert np.array_equal(fast_px, slow_px, equal_nan=True)
     assert np.array_equal(fast_px, camera.project(pts), equal_nan=True)
     assert np.isnan(fast_px[:6]).all() and np.isfinite(fast_px[6:]).all()
@@ -187,7 +188,7 @@ def _correspondences(camera: Camera, uncertain: bool, scaled: bool):
     world_from_cam = pnp.se3_exp(np.array([0.3, -0.2, 0.1, 0.05, -0.1, 0.02]))
     pts_cam = _points_cam()
     pts_cam[5] = [0.1, 0.1, 2.0]  # _points_cam's NaN point: a finite one, the NaN is a pixel
-    px = pnp._project(camera, pts_cam) + rng.normal(0.0, 1.5, (len(pts_cam), 2))
+    px = pnp.project_cam(camera, pts_cam) + rng.normal(0.0, 1.5, (len(pts_cam), 2))
     px[6:60] = rng.uniform([0, 0], [640, 480], (54, 2))
     px[61] = np.nan
     pts = pts_cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]

@@ -120,11 +120,11 @@ class PointUncertainty:
         with np.errstate(invalid="ignore", divide="ignore"):
             # Per-point arithmetic: projecting a point alone or among others gives its values.
             if projected_px is None:
-                both = _project(camera, transform_points(cam_from_world,
+                both = project_cam(camera, transform_points(cam_from_world,
                                                          np.concatenate([moved, pts])))
                 moved_px, projected_px = both[:len(pts)], both[len(pts):]
             else:
-                moved_px = _project(camera, transform_points(cam_from_world, moved))
+                moved_px = project_cam(camera, transform_points(cam_from_world, moved))
             if kernels is not None:
                 sigma = np.empty(len(pts))
                 kernels.pixel_distances(moved_px, np.ascontiguousarray(projected_px), sigma)
@@ -146,7 +146,7 @@ class _View:
     @classmethod
     def at(cls, world_from_cam: Array, points_world: Array, camera: Camera) -> _View:
         points_cam = transform_points(invert(world_from_cam), points_world)
-        return cls(world_from_cam, points_cam, _project(camera, points_cam))
+        return cls(world_from_cam, points_cam, project_cam(camera, points_cam))
 
     def inliers(self, px: Array, conf: PnPConf) -> npt.NDArray[np.int64]:
         """Indices whose reprojection error (real camera model) is below the threshold."""
@@ -371,7 +371,7 @@ def _kernel_camera(camera: Camera) -> tuple[Array, bool] | None:
     return camera_params(camera)
 
 
-def _project(camera: Camera, points_cam: Array) -> Array:
+def project_cam(camera: Camera, points_cam: Array) -> Array:
     """``camera.project`` of (N, 3) camera-frame points: compiled for pinhole and radtan
     cameras where numba is installed (:mod:`.kernels`, the same values)."""
     kernels, params = compiled(), _kernel_camera(camera)
@@ -397,7 +397,7 @@ def _undistort_pixels(camera: Camera, px: Array) -> Array:
 def _pose_jacobian(camera: Camera, points_cam: Array) -> Array:
     """(2N, 6) Jacobian of the pixels of (N, 3) camera-frame points w.r.t. a right
     perturbation of ``world_from_cam`` (see :meth:`_View.residuals_and_jacobian`); compiled
-    like :func:`_project`."""
+    like :func:`project_cam`."""
     kernels, params = compiled(), _kernel_camera(camera)
     if kernels is not None and params is not None:
         out = np.empty((2 * len(points_cam), 6))
