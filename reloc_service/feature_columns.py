@@ -40,7 +40,7 @@ import numpy.typing as npt
 from .errors import MapError
 from .features import level_scale_factor
 from .frame import Features
-from .map import LandmarkColumns, LandmarkTable
+from .landmark_table import LandmarkColumns, LandmarkTable
 
 Array = npt.NDArray[np.float64]
 

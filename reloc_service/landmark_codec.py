@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .frame import Keyframe
-from .map import LandmarkColumns
+from .landmark_table import LandmarkColumns
 from .triangulation import TriangulationConf
 
 Array = npt.NDArray[np.float64]

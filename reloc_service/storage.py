@@ -74,7 +74,8 @@ from .feature_columns import (
 from .fileio import fsync_path
 from .frame import SIFT_DIM, EncodedImage, Features, Keyframe
 from .landmark_codec import ANCHORED_POINTS, WidenedColumn, anchored_points, encode_geometry
-from .map import Landmark, LandmarkColumns, LandmarkTable, MapState
+from .landmark_table import Landmark, LandmarkColumns, LandmarkTable
+from .map import MapState
 from .snapshot_files import (
     CURRENT_FILE,
     MANIFEST_FILE,

@@ -136,10 +136,10 @@ def test_depth_sigmas_follow_landmarks_through_updates():
 def test_landmark_table_copy_on_write_matches_a_dict(monkeypatch):
     """The columnar table behaves like the dict of Landmark objects it replaces, through
     overlay changes and compactions (forced often here), and old tables never change."""
-    from reloc_service import map as map_mod
-    from reloc_service.map import Landmark, LandmarkTable
+    from reloc_service import landmark_table
+    from reloc_service.landmark_table import Landmark, LandmarkTable
 
-    monkeypatch.setattr(map_mod, "COMPACT_MIN_OVERLAY", 5)
+    monkeypatch.setattr(landmark_table, "COMPACT_MIN_OVERLAY", 5)
     rng = np.random.default_rng(0)
     model: dict[int, Landmark] = {}
     table = LandmarkTable()

@@ -39,7 +39,8 @@ from ...cameras import Camera
 from ...features import FeatureConf, extract
 from ...frame import EncodedImage, Features, Keyframe
 from ...geometry import look_at
-from ...map import Landmark, MapState
+from ...landmark_table import Landmark
+from ...map import MapState
 from ...numeric import limit_blas_threads
 from .samples import JPEG_QUALITY
 
