@@ -16,9 +16,9 @@ from pathlib import Path
 SOURCES = {"reloc_service": Path("."), "reloc_client": Path("clients")}
 
 #: The library core (below the service, the tools and the CLI): reloc_service.<name>.
-CORE = {"geometry", "cameras", "frame", "map", "features", "hamming", "triangulation", "landmarks",
-        "storage", "snapshot_files", "feature_columns", "landmark_codec", "mapping", "plugins",
-        "progress", "errors", "fileio", "numeric",
+CORE = {"geometry", "cameras", "frame", "map", "landmark_table", "features", "hamming",
+        "triangulation", "landmarks", "storage", "snapshot_files", "feature_columns",
+        "landmark_codec", "mapping", "plugins", "progress", "errors", "fileio", "numeric",
         "engine", "place", "pose", "ferns", "relocalizers"}
 
 #: What the core and the service may import from the client package: its numpy-only parts,

@@ -13,9 +13,9 @@ ROOT = Path(__file__).resolve().parents[1]
 CLIENT = ROOT / "clients" / "reloc_client"
 
 #: The core's lower half: data types and I/O, below the algorithms and the engine.
-BASE = {"errors", "geometry", "cameras", "frame", "map", "triangulation", "landmarks", "features",
-        "hamming", "storage", "snapshot_files", "feature_columns", "landmark_codec", "plugins",
-        "progress", "mapping", "fileio", "numeric"}
+BASE = {"errors", "geometry", "cameras", "frame", "map", "landmark_table", "triangulation",
+        "landmarks", "features", "hamming", "storage", "snapshot_files", "feature_columns",
+        "landmark_codec", "plugins", "progress", "mapping", "fileio", "numeric"}
 
 
 @pytest.fixture(scope="module")
