@@ -88,9 +88,12 @@ def test_hamming_ratio_test_is_the_bitwise_one(n, m, width):
     flips = (rng.random((len(near), width * 8)) < 0.05).astype(np.uint8)
     train[:len(near)] = query[near] ^ np.packbits(flips, axis=1)  # true matches, a few bits off
     q, t, dist = match_ratio(query, train, ratio=0.8)
-    bits_q = np.unpackbits(query, axis=1).astype(np.int64)
-    bits_t = np.unpackbits(train, axis=1).astype(np.int64)
-    full = np.abs(bits_q[:, None, :] - bits_t[None, :, :]).sum(axis=2)
+    bits_q = np.unpackbits(query, axis=1).astype(np.float64)
+    bits_t = np.unpackbits(train, axis=1).astype(np.float64)
+    # squared L2 of 0/1 vectors, |a|^2 + |b|^2 - 2 a.b: exact integers in float64 (not the
+    # (n, m, bits) array of differences, 3 GB at 500 x 3000)
+    full = (bits_q.sum(1)[:, None] + bits_t.sum(1)[None, :] - 2.0 * bits_q @ bits_t.T
+            ).astype(np.int64)
     best = np.sort(full, axis=1)
     expected = np.flatnonzero(best[:, 0] < 0.8 * best[:, 1])
     assert np.array_equal(q, expected)
