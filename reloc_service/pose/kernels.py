@@ -428,6 +428,36 @@ def _best_per_row(rows: npt.NDArray[np.int64], dist: npt.NDArray[np.float32],
     return count
 
 
+def _hamming_words(a_words: npt.NDArray[np.uint64], i: int, b_words: npt.NDArray[np.uint64],
+                   j: int) -> int:
+    """Hamming distance of row ``i`` of ``a_words`` and row ``j`` of ``b_words`` (64-bit
+    words of binary descriptors)."""
+    d = 0
+    for t in range(a_words.shape[1]):
+        d += _popcount64(a_words[i, t] ^ b_words[j, t])
+    return d
+
+
+def _squared_l2_bytes(a: npt.NDArray[np.uint8], i: int, b: npt.NDArray[np.uint8], j: int) -> int:
+    """Squared L2 distance of row ``i`` of ``a`` and row ``j`` of ``b`` (uint8 SIFT), exact."""
+    d2 = 0
+    for t in range(a.shape[1]):
+        diff = np.int64(a[i, t]) - np.int64(b[j, t])
+        d2 += diff * diff
+    return d2
+
+
+def _with_candidate(dist: Any, slot: int, best: Any, second: Any, first: int
+                    ) -> tuple[Any, Any, int]:
+    """The running smallest and next smallest distances of a scan, and the slot of the
+    smallest, after ``dist`` at ``slot``: a stable sort's order (the first of equal ones)."""
+    if dist < best:
+        return dist, best, slot
+    if dist < second:
+        return best, dist, first
+    return best, second, first
+
+
 def _window_best_hamming(query_words: npt.NDArray[np.uint64],
                          landmark_words: npt.NDArray[np.uint64], near: npt.NDArray[np.int64],
                          best: Array, second: Array, first: npt.NDArray[np.int64]) -> None:
@@ -436,21 +466,13 @@ def _window_best_hamming(query_words: npt.NDArray[np.uint64],
     ``near[r]`` (those ``>= len(query_words)`` are empty slots), the smallest into
     ``best[r]`` and its slot (the first of equal ones) into ``first[r]`` (-1 if none), the
     next smallest into ``second[r]`` (inf if none)."""
-    n_query, words = query_words.shape
     for r in range(near.shape[0]):
         b, s, f = math.inf, math.inf, -1
         for j in range(near.shape[1]):
             q = near[r, j]
-            if q >= n_query:
-                continue
-            d = 0
-            for t in range(words):
-                d += _popcount64(query_words[q, t] ^ landmark_words[r, t])
-            dist = float(d)
-            if dist < b:
-                b, s, f = dist, b, j
-            elif dist < s:
-                s = dist
+            if q < query_words.shape[0]:
+                dist = float(_hamming_words(query_words, q, landmark_words, r))
+                b, s, f = _with_candidate(dist, j, b, s, f)
         best[r], second[r], first[r] = b, s, f
 
 
@@ -461,23 +483,14 @@ def _window_best_l2(query_desc: npt.NDArray[np.uint8], landmark_desc: npt.NDArra
     numpy path's: the squared distance is an exact integer (below 2^24, so float32 holds
     it exactly too), and its float64 root rounded to float32 is the float32 root (double
     rounding is harmless for square roots)."""
-    n_query, dim = query_desc.shape
     inf = np.float32(np.inf)
     for r in range(near.shape[0]):
         b, s, f = inf, inf, -1
         for j in range(near.shape[1]):
             q = near[r, j]
-            if q >= n_query:
-                continue
-            d2 = 0
-            for t in range(dim):
-                diff = np.int64(query_desc[q, t]) - np.int64(landmark_desc[r, t])
-                d2 += diff * diff
-            dist = np.float32(math.sqrt(d2))
-            if dist < b:
-                b, s, f = dist, b, j
-            elif dist < s:
-                s = dist
+            if q < query_desc.shape[0]:
+                dist = np.float32(math.sqrt(_squared_l2_bytes(query_desc, q, landmark_desc, r)))
+                b, s, f = _with_candidate(dist, j, b, s, f)
         best[r], second[r], first[r] = b, s, f
 
 
@@ -485,13 +498,9 @@ def _hamming_histogram(a_words: npt.NDArray[np.uint64], b_words: npt.NDArray[np.
                        counts: npt.NDArray[np.int64]) -> None:
     """``counts[d]`` += the number of (row of ``a_words``, row of ``b_words``) pairs at
     Hamming distance d."""
-    words = a_words.shape[1]
     for i in range(a_words.shape[0]):
         for j in range(b_words.shape[0]):
-            d = 0
-            for t in range(words):
-                d += _popcount64(a_words[i, t] ^ b_words[j, t])
-            counts[d] += 1
+            counts[_hamming_words(a_words, i, b_words, j)] += 1
 
 
 class Kernels(NamedTuple):
@@ -519,6 +528,7 @@ def compiled() -> Kernels | None:
     # the kernels call the compiled helpers by these names
     global _distort, _opencv_undistort, _project_point, _point_jacobian, _transformed
     global _cholesky, _solve_factored, _se3_exp_into, _popcount64
+    global _hamming_words, _squared_l2_bytes, _with_candidate
     numba = numba_or_none()
     if numba is None:
         return None
@@ -532,6 +542,9 @@ def compiled() -> Kernels | None:
     _se3_exp_into = numba.njit(cache=True, nogil=True)(_se3_exp_into)
     _popcount64 = numba.njit(cache=True, nogil=True, inline="always")(
         getattr(_popcount64, "py_func", _popcount64))
+    _hamming_words = numba.njit(cache=True, nogil=True, inline="always")(_hamming_words)
+    _squared_l2_bytes = numba.njit(cache=True, nogil=True, inline="always")(_squared_l2_bytes)
+    _with_candidate = numba.njit(cache=True, nogil=True, inline="always")(_with_candidate)
     jit: Any = numba.njit(cache=True, nogil=True)
     return Kernels(jit(_project), jit(_pose_jacobian), jit(_undistort_pixels),
                    jit(_moved_points), jit(_pixel_distances), jit(_pairs_within),
