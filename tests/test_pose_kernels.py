@@ -15,7 +15,7 @@ import pytest
 from reloc_service.cameras import Camera, camera_from_dict
 from reloc_service.engine import Engine, EngineConf
 from reloc_service.frame import Frame
-from reloc_service.pose import chance, guided, kernels, p3p, pnp
+from reloc_service.pose import chance, guided, guided_kernels, kernels, p3p, pnp
 from reloc_service.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.tools.data.dataset import read_dataset
 
@@ -258,6 +258,8 @@ def test_singular_normal_equations_take_the_least_squares_step():
 
 
 def test_warm_up_loads_every_kernel():
-    """A service worker's start loads each kernel (compiled or from numba's disk cache)."""
+    """A service worker's start loads each kernel (compiled or from numba's disk cache),
+    guided matching's too."""
     kernels.warm_up()
     assert all(fn.signatures for fn in kernels.compiled())
+    assert all(fn.signatures for fn in guided_kernels.compiled())

@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 from ..cameras import Camera
 from ..frame import Features, is_binary_descriptor
 from ..geometry import invert, transform_points
-from .kernels import compiled
+from .guided_kernels import compiled
 from .pnp import project_cam
 
 Array = npt.NDArray[np.float64]
@@ -66,8 +66,9 @@ def background_distance(query_desc: npt.NDArray[Any], map_desc: npt.NDArray[Any]
     """The ``quantile`` of distances between query and map descriptors drawn at random (almost
     all unrelated pairs): a match closer than this is unlikely to be chance. Binary
     descriptors' distances are counted into a histogram where numba is installed
-    (:mod:`.kernels`): the same quantile to rounding, and the same verdicts, since a Hamming
-    distance is an integer and the quantile lies either on one or strictly between two."""
+    (:mod:`.guided_kernels`): the same quantile to rounding, and the same verdicts, since a
+    Hamming distance is an integer and the quantile lies either on one or strictly between
+    two."""
     if len(query_desc) == 0 or len(map_desc) == 0:
         return 0.0
     rng = np.random.default_rng(rng_seed)
@@ -90,7 +91,8 @@ def _histogram_quantile(counts: npt.NDArray[np.int64], quantile: float) -> float
     position = quantile * (n - 1)
     below = int(np.floor(position))
     cumulative = np.cumsum(counts)
-    lo, hi = (int(np.searchsorted(cumulative, i, side="right")) for i in (below, min(below + 1, n - 1)))
+    lo, hi = (int(np.searchsorted(cumulative, i, side="right"))
+              for i in (below, min(below + 1, n - 1)))
     return float(lo + (hi - lo) * (position - below))
 
 
@@ -121,7 +123,7 @@ def _window_best(query_desc: npt.NDArray[Any], landmark_desc: npt.NDArray[Any], 
     keypoints ``near`` (L, K) (indices ``>= len(query_desc)``: empty slots): (L,) the
     smallest, (L,) the next smallest (inf if none) and (L,) the slot of the smallest, the
     first of equal ones (-1 if none). One compiled pass where numba is installed
-    (:mod:`.kernels`, the same values: exact integer distances, the same float32 roots);
+    (:mod:`.guided_kernels`, the same values: exact integer distances, the same float32 roots);
     else array operations on the (L, K) distances."""
     rows, k = near.shape
     kernels = compiled()
