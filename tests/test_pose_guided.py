@@ -117,6 +117,23 @@ def test_compiled_window_test_is_the_numpy_choice(width, k, monkeypatch):
     assert (compiled[2] == -1).any() and np.isinf(compiled[1]).any()
 
 
+def test_a_map_of_float_sift_against_uint8_queries_takes_the_numpy_path(monkeypatch):
+    """Client-given float descriptors in the map (not integers) are not truncated to the
+    query's uint8: the compiled pass is only for two sides of one dtype."""
+    pytest.importorskip("numba")
+    from reloc_service.pose import guided
+
+    rng = np.random.default_rng(4)
+    query = rng.integers(0, 256, (50, 128), dtype=np.uint8)
+    landmarks = rng.uniform(0, 255, (80, 128)).astype(np.float32)
+    near = _windows(rng, len(query), len(landmarks), 8)
+    mixed = guided._window_best(query, landmarks, near)
+    monkeypatch.setattr(guided, "compiled", lambda: None)
+    plain = guided._window_best(query, landmarks, near)
+    for a, b in zip(mixed, plain, strict=True):
+        assert np.array_equal(a, b)
+
+
 def test_compiled_background_distance_is_the_numpy_quantile(monkeypatch):
     """ORB's background distance from the compiled histogram equals numpy's quantile of the
     same pairs (to rounding), so every window verdict is the same."""

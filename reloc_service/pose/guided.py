@@ -75,7 +75,7 @@ def background_distance(query_desc: npt.NDArray[Any], map_desc: npt.NDArray[Any]
     a = query_desc[rng.integers(0, len(query_desc), _BACKGROUND_SAMPLE)]
     b = map_desc[rng.integers(0, len(map_desc), _BACKGROUND_SAMPLE)]
     kernels = compiled()
-    if kernels is not None and _packs_into_words(a):
+    if kernels is not None and _packs_into_words(a) and _same_kind(a, b):
         counts = np.zeros(8 * a.shape[1] + 1, np.int64)
         kernels.hamming_histogram(_words(a), _words(b), counts)
         return _histogram_quantile(counts, quantile)
@@ -122,12 +122,14 @@ def _window_best(query_desc: npt.NDArray[Any], landmark_desc: npt.NDArray[Any], 
     """For each landmark (row of ``landmark_desc``), the descriptor distances to its window
     keypoints ``near`` (L, K) (indices ``>= len(query_desc)``: empty slots): (L,) the
     smallest, (L,) the next smallest (inf if none) and (L,) the slot of the smallest, the
-    first of equal ones (-1 if none). One compiled pass where numba is installed
-    (:mod:`.guided_kernels`, the same values: exact integer distances, the same float32 roots);
-    else array operations on the (L, K) distances."""
+    first of equal ones (-1 if none). One compiled pass where numba is installed and both
+    sides are ORB's words or uint8 SIFT (:mod:`.guided_kernels`, the same values: exact
+    integer distances, the same float32 roots); else array operations on the (L, K)
+    distances (float SIFT descriptors, a map holding another dtype than the query)."""
     rows, k = near.shape
     kernels = compiled()
-    if kernels is not None and (_packs_into_words(query_desc) or _is_uint8_sift(query_desc)):
+    if kernels is not None and _same_kind(query_desc, landmark_desc) and (
+            _packs_into_words(query_desc) or _is_uint8_sift(query_desc)):
         first = np.empty(rows, np.int64)
         if _packs_into_words(query_desc):
             best, second = np.empty(rows), np.empty(rows)
@@ -152,6 +154,11 @@ def _window_best(query_desc: npt.NDArray[Any], landmark_desc: npt.NDArray[Any], 
 def _packs_into_words(desc: npt.NDArray[Any]) -> bool:
     """Binary descriptors whose bytes make whole 64-bit words (ORB's 32)."""
     return is_binary_descriptor(desc) and desc.shape[1] % 8 == 0
+
+
+def _same_kind(a: npt.NDArray[Any], b: npt.NDArray[Any]) -> bool:
+    """Descriptors of one dtype and width (what the compiled passes take)."""
+    return a.dtype == b.dtype and a.shape[1:] == b.shape[1:]
 
 
 def _is_uint8_sift(desc: npt.NDArray[Any]) -> bool:
