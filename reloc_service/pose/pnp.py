@@ -121,7 +121,7 @@ class PointUncertainty:
             # Per-point arithmetic: projecting a point alone or among others gives its values.
             if projected_px is None:
                 both = project_cam(camera, transform_points(cam_from_world,
-                                                         np.concatenate([moved, pts])))
+                                                            np.concatenate([moved, pts])))
                 moved_px, projected_px = both[:len(pts)], both[len(pts):]
             else:
                 moved_px = project_cam(camera, transform_points(cam_from_world, moved))
