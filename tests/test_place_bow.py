@@ -14,7 +14,8 @@ from reloc_service.features import FeatureConf, extract
 from reloc_service.frame import Frame, Keyframe
 from reloc_service.map import KeyframeMap
 from reloc_service.place.base import create_place_finder
-from reloc_service.place.bow import BagOfWords, VocabularyTree
+from reloc_service.place.bow import BagOfWords
+from reloc_service.place.vocabulary import VocabularyTree
 
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 319.5, 239.5)
 PHOTOS = ("camera", "astronaut", "coffee", "chelsea", "brick", "grass", "gravel", "rocket",
