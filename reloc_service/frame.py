@@ -295,6 +295,35 @@ class Frame:
         source = self.image_source
         return source.shape if isinstance(source, EncodedImage) else source.shape[:2]
 
+    def features_of(self, kind: str, extract: Callable[[], Features]) -> Features:
+        """``features[kind]``: cached; else the extraction started ahead for it
+        (:meth:`expect_features`), waited for; else ``extract()`` now, then cached. An
+        extraction ahead that failed is run again here, so its error reaches this caller."""
+        feats = self.features.get(kind)
+        if feats is not None:
+            return feats
+        pending = self.cache.pop(_pending_key(kind), None)
+        if pending is not None:
+            try:
+                pending.result()
+            except Exception:  # noqa: BLE001, S110 (extract() below meets it again)
+                pass
+            feats = self.features.get(kind)
+            if feats is not None:
+                return feats
+        feats = self.features[kind] = extract()
+        return feats
+
+    def expect_features(self, kind: str, pending: Any) -> None:
+        """Note that ``features[kind]`` is being extracted elsewhere (another thread) and
+        will be stored when ``pending.result()`` returns: :meth:`features_of` waits for it
+        rather than extracting the same features twice."""
+        self.cache[_pending_key(kind)] = pending
+
+    def pending_features(self, kind: str) -> bool:
+        """Whether an extraction of ``kind`` started ahead has not been waited for yet."""
+        return _pending_key(kind) in self.cache
+
     def pyramid(self, levels: int) -> list[npt.NDArray[np.uint8]]:
         """``levels`` images, each half the size of the previous (level 0 = the image)."""
         key = f"pyramid:{levels}"
@@ -314,6 +343,10 @@ class Frame:
             blurred = cv2.GaussianBlur(small.astype(np.float32), (0, 0), sigma)
             self.cache[key] = blurred - blurred.mean()
         return self.cache[key]
+
+
+def _pending_key(kind: str) -> str:
+    return f"features-pending:{kind}"
 
 
 def area_downscale(image: npt.NDArray[np.uint8], width: int, height: int

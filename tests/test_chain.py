@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import threading
 from collections.abc import Callable
 
 import numpy as np
@@ -14,6 +15,7 @@ from reloc_service.errors import ConfigError, NotTrainedError
 from reloc_service.frame import Features, Frame, Keyframe
 from reloc_service.geometry import pose_error
 from reloc_service.map import KeyframeMap
+from reloc_service.relocalizers import overlap
 from reloc_service.relocalizers.base import Prior, Relocalizer, RelocResult
 from reloc_service.relocalizers.chain import ChainRelocalizer
 from reloc_service.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, list_methods
@@ -222,6 +224,47 @@ def test_sift_step_answers_when_orb_cannot_verify(two_kind_scene):
     result = chain.relocalize(Frame(two_kind_scene.render(gt), CAMERA))
     assert result.ok and result.method == "sbi+p3p"
     assert pose_error(result.world_from_cam, gt)[0] < 0.01
+
+
+def test_a_failed_group_starts_the_next_steps_extraction_ahead(two_kind_scene, monkeypatch):
+    """The ORB step (no ORB landmark here) fails its first group with another to go: with
+    ``look_ahead`` the SIFT step's features are extracted then, once, on a helper thread,
+    and the answer is the same as without; a first group that verifies starts nothing."""
+    monkeypatch.setattr(overlap, "idle_core", lambda: True)
+    calls: list[tuple[str, str]] = []
+    real_extract = feature_lib.extract
+
+    def counted(image, conf=None, **kwargs):
+        calls.append((conf.kind, threading.current_thread().name))
+        return real_extract(image, conf, **kwargs)
+
+    monkeypatch.setattr(feature_lib, "extract", counted)
+    kmap = _map_with_orb(two_kind_scene, None)
+    gt = query_pose(2)
+    answers = {}
+    for look_ahead in (True, False):
+        calls.clear()
+        chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", kmap,
+                                   options={"multi": {"look_ahead": look_ahead}})
+        assert len(chain.steps[0]._candidate_groups(
+            Frame(two_kind_scene.render(gt), CAMERA), kmap.snapshot(), None, 1)) >= 2
+        query = Frame(two_kind_scene.render(gt), CAMERA)
+        result = chain.relocalize(query)
+        assert result.ok and result.method == "sbi+p3p"
+        answers[look_ahead] = result
+        sift = [thread for kind, thread in calls if kind == "sift"]
+        main = threading.current_thread().name
+        assert sift == (["reloc-beside"] if look_ahead else [main])
+        assert not query.pending_features("sift")
+    on, off = answers[True], answers[False]
+    assert np.array_equal(on.world_from_cam, off.world_from_cam)
+    assert (on.inliers, on.num_matches, on.matched_keyframe_ids) == (
+        off.inliers, off.num_matches, off.matched_keyframe_ids)
+    calls.clear()
+    query = Frame(two_kind_scene.render(query_pose(1)), CAMERA)
+    verified = create_relocalizer("sbi+p3p:orb,sbi+p3p", two_kind_scene.map).relocalize(query)
+    assert verified.ok and verified.method == "sbi+p3p:orb"
+    assert [kind for kind, _ in calls] == ["orb"] and set(query.features) == {"orb"}
 
 
 def test_orb_step_refuses_the_pose_of_scrambled_landmarks(two_kind_scene):

@@ -10,8 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
+from reloc_service import features as feature_lib
 from reloc_service.engine import Engine, EngineConf
 from reloc_service.errors import ConfigError, GeometryError, MapError
+from reloc_service.features import FeatureConf
 from reloc_service.frame import Frame
 from reloc_service.relocalizers import overlap
 from reloc_service.relocalizers.chain import ChainRelocalizer
@@ -80,6 +82,12 @@ def test_the_option_is_read_from_the_service_config(synthetic_map):
     assert isinstance(default, MultiRelocalizer) and default.conf.overlap is True
     with pytest.raises(ConfigError, match="overlap"):
         create_relocalizer("sbi+p3p", Engine().map, options={"multi": {"overlap": "sometimes"}})
+    conf = parse_config({"options": {"multi": {"look_ahead": False}}})
+    chain = Engine(EngineConf(options=conf.options)).relocalizer(DEFAULT_METHOD)
+    assert [step.conf.look_ahead for step in chain.steps] == [False, False, False]
+    assert default.conf.look_ahead is True
+    with pytest.raises(ConfigError, match="look_ahead"):
+        create_relocalizer("sbi+p3p", Engine().map, options={"multi": {"look_ahead": 2}})
 
 
 @pytest.mark.parametrize("mode", ["on", "off"])
@@ -147,6 +155,84 @@ def test_without_an_idle_core_the_step_runs_in_the_callers_thread(monkeypatch):
     monkeypatch.setattr(overlap, "idle_core", lambda: False)
     step = overlap.run_beside(threading.get_ident)
     assert not step.overlapped and step.result() == threading.get_ident()
+
+
+def test_run_ahead_needs_nobody_to_wait_and_frees_its_helper_when_done(idle):
+    release = threading.Event()
+    ahead = overlap.run_ahead(lambda: release.wait() and threading.get_ident())
+    assert ahead is not None and not ahead.done
+    release.set()
+    assert ahead.result() != threading.get_ident()
+    # its helper is free for the next query once the step ended, whoever waited for it
+    release = threading.Event()
+    held = [overlap.run_beside(release.wait) for _ in range(overlap.MAX_HELPERS)]
+    release.set()
+    assert all([h.overlapped for h in held]) and [h.result() for h in held]
+    error = ValueError("from ahead")
+
+    def fail():
+        raise error
+
+    failed = overlap.run_ahead(fail)
+    assert failed is not None
+    with pytest.raises(ValueError) as caught:
+        failed.result()
+    assert caught.value is error
+
+
+def test_run_ahead_without_an_idle_core_or_a_free_helper_runs_nothing(monkeypatch):
+    ran = []
+    monkeypatch.setattr(overlap, "idle_core", lambda: False)
+    assert overlap.run_ahead(lambda: ran.append(1)) is None
+    monkeypatch.setattr(overlap, "idle_core", lambda: True)
+    release = threading.Event()
+    held = [overlap.run_beside(release.wait) for _ in range(overlap.MAX_HELPERS)]
+    try:
+        assert overlap.run_ahead(lambda: ran.append(1)) is None
+    finally:
+        release.set()
+        for h in held:
+            h.result()
+    assert ran == []
+
+
+def test_features_of_waits_for_the_extraction_ahead(synthetic_scene, idle):
+    frame = Frame(synthetic_scene.query_images[0], synthetic_scene.camera)
+    orb = feature_lib.extract(frame.image, FeatureConf("orb", 200))
+    release = threading.Event()
+
+    def slow() -> None:
+        release.wait()
+        frame.features["orb"] = orb
+
+    ahead = overlap.run_ahead(slow)
+    assert ahead is not None
+    frame.expect_features("orb", ahead)
+    assert frame.pending_features("orb") and "orb" not in frame.features
+    threading.Timer(0.05, release.set).start()
+    assert frame.features_of("orb", lambda: pytest.fail("extracted twice")) is orb
+    assert not frame.pending_features("orb")
+    assert frame.features_of("orb", lambda: pytest.fail("extracted twice")) is orb
+
+
+def test_features_of_redoes_a_failed_extraction_ahead_and_raises_its_error(synthetic_scene,
+                                                                         idle):
+    frame = Frame(synthetic_scene.query_images[0], synthetic_scene.camera)
+
+    def broken() -> None:
+        raise GeometryError("the detector refused the image ahead")
+
+    def broken_here() -> None:
+        raise GeometryError("the detector refused the image here too")
+
+    ahead = overlap.run_ahead(broken)
+    assert ahead is not None
+    frame.expect_features("sift", ahead)
+    with pytest.raises(GeometryError, match="here too"):  # the extraction ran again, here
+        frame.features_of("sift", broken_here)
+    assert "sift" not in frame.features
+    sift = frame.features_of("sift", lambda: feature_lib.extract(frame.image))
+    assert frame.features["sift"] is sift and len(sift) > 0
 
 
 @pytest.mark.parametrize(("running", "idle"), [(1, True), (2, False), (5, False)])

@@ -6,6 +6,7 @@ import abc
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+from ..features import FeatureConf
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap
 from ..plugins import Registry, make_conf
@@ -58,6 +59,12 @@ class PlaceFinder(abc.ABC):
     @property
     def trained(self) -> bool:
         return True
+
+    def feature_confs(self) -> dict[str, FeatureConf]:
+        """The query features :meth:`find_places` extracts, by kind, with the settings it
+        extracts them with (so they can be extracted ahead, elsewhere, to the same
+        result); default: none."""
+        return {}
 
     @abc.abstractmethod
     def find_places(self, query: Frame, k: int, *, allowed: set[int] | None = None

@@ -240,14 +240,14 @@ class BagOfWords(PlaceFinder):
         return index
 
     # -- queries -----------------------------------------------------------------------------
+    def feature_confs(self) -> dict[str, FeatureConf]:
+        return {self.conf.kind: FeatureConf(self.conf.kind, self.conf.max_features)}
+
     def query_features(self, query: Frame) -> Features:
         """The query's features of ``kind``, extracted and stored in ``query.features`` if
-        missing (so a pose finder reuses them)."""
-        feats = query.features.get(self.conf.kind)
-        if feats is None:
-            feats = extract(query.image, FeatureConf(self.conf.kind, self.conf.max_features))
-            query.features[self.conf.kind] = feats
-        return feats
+        missing (so a pose finder reuses them; or extracted ahead: :meth:`Frame.features_of`)."""
+        (kind, conf), = self.feature_confs().items()
+        return query.features_of(kind, lambda: extract(query.image, conf))
 
     def find_places(self, query: Frame, k: int, *, allowed: set[int] | None = None
                     ) -> list[PlaceCandidate]:

@@ -10,6 +10,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
+from ..features import FeatureConf
 from ..frame import Frame
 from ..map import MapState
 from ..place.base import PlaceCandidate
@@ -111,6 +112,12 @@ class PoseFinder(abc.ABC):
         query's features, done ahead and cached in ``query.cache`` (the multi relocalizer
         runs it on its helper thread, beside :meth:`prepare_query`); the seconds of each
         stage. Default: nothing."""
+        return {}
+
+    def feature_confs(self) -> dict[str, FeatureConf]:
+        """The query features :meth:`find_pose` extracts, by kind, with the settings it
+        extracts them with (so they can be extracted ahead, elsewhere, to the same
+        result); default: none."""
         return {}
 
     def query_kinds(self, query: Frame) -> frozenset[str]:

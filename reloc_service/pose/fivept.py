@@ -158,15 +158,19 @@ class FivePointPoseFinder(PoseFinder):
         est.num_matches, est.timings = num_matches, timings
         return est
 
+    def feature_confs(self) -> dict[str, feature_lib.FeatureConf]:
+        return {self.conf.kind: feature_lib.FeatureConf(kind=self.conf.kind,
+                                                        max_features=self.conf.max_features)}
+
     def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
         """The query's features of ``conf.kind``, extracted once and cached on the frame
-        (as the p3p pose finder does, so both share them)."""
+        (as the p3p pose finder does, so both share them; or extracted ahead:
+        :meth:`Frame.features_of`)."""
         start = time.perf_counter()
-        if self.conf.kind not in query.features:
-            conf = feature_lib.FeatureConf(kind=self.conf.kind, max_features=self.conf.max_features)
-            query.features[self.conf.kind] = feature_lib.extract(query.image, conf)
+        (kind, conf), = self.feature_confs().items()
+        feats = query.features_of(kind, lambda: feature_lib.extract(query.image, conf))
         timings["features"] = time.perf_counter() - start
-        return query.features[self.conf.kind]
+        return feats
 
     def _match(self, feats: Features, keyframe: Keyframe) -> tuple[Array, Array, Array] | None:
         """Ratio-test matches to *all* the keyframe's keypoints: query pixels, keyframe

@@ -182,15 +182,18 @@ class P3PPoseFinder(PoseFinder):
         self.query_features(query, timings)
         return timings
 
+    def feature_confs(self) -> dict[str, feature_lib.FeatureConf]:
+        return {self.conf.kind: feature_lib.FeatureConf(kind=self.conf.kind,
+                                                        max_features=self.conf.max_features)}
+
     def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
-        """The query's features of ``conf.kind``, extracted once and cached on the frame."""
-        kind = self.conf.kind
+        """The query's features of ``conf.kind``, extracted once and cached on the frame
+        (or extracted ahead: :meth:`Frame.features_of`)."""
         start = time.perf_counter()
-        if kind not in query.features:
-            conf = feature_lib.FeatureConf(kind=kind, max_features=self.conf.max_features)
-            query.features[kind] = feature_lib.extract(query.image, conf)
+        (kind, conf), = self.feature_confs().items()
+        feats = query.features_of(kind, lambda: feature_lib.extract(query.image, conf))
         timings["features"] = time.perf_counter() - start
-        return query.features[kind]
+        return feats
 
     def prepare_candidates(self, query: Frame, candidates: list[PlaceCandidate],
                            state: MapState) -> dict[str, float]:

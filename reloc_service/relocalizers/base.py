@@ -24,6 +24,7 @@ from scipy import stats
 from scipy.spatial import ConvexHull, QhullError
 
 from ..errors import ConfigError
+from ..features import FeatureConf
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap
 from ..plugins import Registry
@@ -301,6 +302,19 @@ def result_from_estimate(estimate: PoseEstimate | None, conf: VerifyConf, *, met
                        confidence=confidence, covariance=estimate.covariance, **common)
 
 
+#: ``query.cache`` key of a callable a fallback chain leaves to the step it runs: the step
+#: calls it (once, through :func:`doubt`) when it first has reason to expect it may not
+#: verify, so the chain can start the next step's work on an idle core meanwhile.
+ON_DOUBT = "relocalizer:on-doubt"
+
+
+def doubt(query: Frame) -> None:
+    """Call the hook a chain left on ``query`` (:data:`ON_DOUBT`), if any, and drop it."""
+    hook = query.cache.pop(ON_DOUBT, None)
+    if hook is not None:
+        hook()
+
+
 class Relocalizer(abc.ABC):
     """``add_keyframe``, ``remove_keyframe``, ``train``, ``relocalize`` (thesis chapter 4).
 
@@ -323,6 +337,12 @@ class Relocalizer(abc.ABC):
     def required_features(self) -> frozenset[str]:
         """Feature kinds (``"sift"``, ``"orb"``) keyframes must carry, with landmarks."""
         return frozenset()
+
+    def feature_confs(self) -> dict[str, FeatureConf]:
+        """The query features :meth:`relocalize` extracts, by kind, with the settings it
+        extracts them with: what a chain may extract ahead for it (:data:`ON_DOUBT`) to
+        the same result. Default: none."""
+        return {}
 
     @abc.abstractmethod
     def add_keyframe(self, keyframe: Keyframe) -> None:

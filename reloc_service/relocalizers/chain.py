@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import functools
 import re
 from pathlib import Path
 
+from .. import features as feature_lib
 from ..errors import ConfigError, NotTrainedError
+from ..features import FeatureConf
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap
-from .base import Prior, Relocalizer, RelocResult
+from .base import ON_DOUBT, Prior, Relocalizer, RelocResult
+from .overlap import Ahead, run_ahead
 
 
 class ChainRelocalizer(Relocalizer):
@@ -29,6 +33,9 @@ class ChainRelocalizer(Relocalizer):
     @property
     def required_features(self) -> frozenset[str]:
         return frozenset().union(*(step.required_features for step in self.steps))
+
+    def feature_confs(self) -> dict[str, FeatureConf]:
+        return self.steps[0].feature_confs()
 
     def add_keyframe(self, keyframe: Keyframe) -> None:
         for step in self.steps:
@@ -53,12 +60,17 @@ class ChainRelocalizer(Relocalizer):
         timings: dict[str, float] = {}
         reasons: list[str] = []
         map_version = self.map.version
-        for step in self.steps:
+        for i, step in enumerate(self.steps):
+            if i + 1 < len(self.steps):
+                query.cache[ON_DOUBT] = functools.partial(extract_ahead, query,
+                                                          self.steps[i + 1])
             try:
                 result = step.relocalize(query, prior=prior, hypotheses=hypotheses)
             except NotTrainedError as exc:
                 reasons.append(f"{step.method}: not trained ({exc})")
                 continue
+            finally:
+                query.cache.pop(ON_DOUBT, None)
             for stage, seconds in result.timings.items():
                 timings[stage] = timings.get(stage, 0.0) + seconds
             map_version = result.map_version
@@ -82,6 +94,28 @@ class ChainRelocalizer(Relocalizer):
                   for i, step in enumerate(self.steps)
                   if (directory / _step_dir(i, step.method)).is_dir()]
         return any(loaded)
+
+
+def extract_ahead(query: Frame, step: Relocalizer) -> Ahead[None] | None:
+    """Start extracting the query features ``step`` will extract (those not on ``query``
+    yet, nor under way) on an idle helper thread (:func:`.overlap.run_ahead`), noting them
+    on ``query`` so ``step`` waits for them rather than extracting them again. None when
+    there is nothing to extract or no idle core."""
+    confs = {kind: conf for kind, conf in step.feature_confs().items()
+             if kind not in query.features and not query.pending_features(kind)}
+    if not confs:
+        return None
+    image = query.image
+
+    def extract_all() -> None:
+        for kind, conf in confs.items():
+            query.features[kind] = feature_lib.extract(image, conf)
+
+    ahead = run_ahead(extract_all)
+    if ahead is not None:
+        for kind in confs:
+            query.expect_features(kind, ahead)
+    return ahead
 
 
 def _step_dir(index: int, method: str) -> str:

@@ -13,13 +13,14 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, NotTrainedError
+from ..features import FeatureConf
 from ..frame import Frame, Keyframe
 from ..geometry import pose_error
 from ..map import KeyframeMap, MapState
 from ..place.base import PlaceCandidate, PlaceFinder, create_place_finder
 from ..plugins import make_conf
 from ..pose.base import POSE_FINDERS, PoseEstimate, PoseFinder, create_pose_finder
-from .base import Prior, Relocalizer, RelocResult, VerifyConf, register, result_from_estimate
+from .base import Prior, Relocalizer, RelocResult, VerifyConf, doubt, register, result_from_estimate
 from .overlap import run_beside
 
 
@@ -45,6 +46,12 @@ class MultiRelocalizer(Relocalizer):
         #: core when one is free: :mod:`.overlap`). Answers are the same either way; off, the
         #: pose finder extracts them after the place finder, on the query's thread.
         overlap: bool = True
+        #: When a candidate group fails to verify and more remain, let a fallback chain
+        #: start its next step's feature extraction on an idle helper thread
+        #: (:func:`.base.doubt`): where this step fails altogether, the next one finds its
+        #: features extracted or under way. Answers are the same either way; work done
+        #: ahead for nothing (a later group verifies) only ever uses an idle core.
+        look_ahead: bool = True
 
         def __post_init__(self) -> None:
             if self.num_candidates < 1 or self.max_groups < 1:
@@ -94,6 +101,11 @@ class MultiRelocalizer(Relocalizer):
     @property
     def required_features(self) -> frozenset[str]:
         return frozenset(self.place.required_features) | frozenset(self.pose.required_features)
+
+    def feature_confs(self) -> dict[str, FeatureConf]:
+        """The pose finder's, and the place finder's (which extracts first where both
+        extract one kind: bow+p3p)."""
+        return {**self.pose.feature_confs(), **self.place.feature_confs()}
 
     @property
     def group_size(self) -> int:
@@ -220,6 +232,9 @@ class MultiRelocalizer(Relocalizer):
                                           map_version=state.version, timings={})
             _add_timings(timings, {"verify": time.perf_counter() - start})
             results.append(result)
+            if (self.conf.look_ahead and not result.ok and len(results) < len(groups)
+                    and not any(r.ok for r in results)):
+                doubt(query)
             if result.ok and sum(r.ok for r in results) == 1 and _weak(estimate):
                 weak_first = True
                 wanted = max(wanted, 2)

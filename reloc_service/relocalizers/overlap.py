@@ -4,7 +4,11 @@ query's thread extracts its features; OpenCV's extraction releases the GIL, so t
 use two cores). A query that finds no idle core (other queries, other processes: counted by
 the kernel, :func:`idle_core`) or every helper busy runs the step itself, in order: a
 second thread on a busy machine would only take time from the first, and concurrent queries
-never wait for each other's helpers."""
+never wait for each other's helpers.
+
+:func:`run_beside` is for work the query needs now (it waits for it); :func:`run_ahead` for
+work it may need later, or not at all (a fallback chain's next step's features, started when
+the current step begins to fail), which nobody has to wait for."""
 
 from __future__ import annotations
 
@@ -23,24 +27,29 @@ MAX_HELPERS = max(1, (os.cpu_count() or 2) - 1)
 
 
 class _Helper:
-    """One daemon thread running the steps put in its inbox, each outcome (ok, value or
-    exception) into its outbox. Queues, not a ``concurrent.futures`` pool: a hand-off is
-    two C-level queue operations (a pool's submit took 0.13 ms of Python per query)."""
+    """One daemon thread running the tasks put in its inbox; a task delivers its own outcome
+    (:class:`Beside` into the helper's outbox, :class:`Ahead` into itself). Queues, not a
+    ``concurrent.futures`` pool: a hand-off is two C-level queue operations (a pool's submit
+    took 0.13 ms of Python per query)."""
 
     def __init__(self) -> None:
-        self.inbox: queue.SimpleQueue[Callable[[], Any]] = queue.SimpleQueue()
+        self.inbox: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
         self.outbox: queue.SimpleQueue[tuple[bool, Any]] = queue.SimpleQueue()
         threading.Thread(target=self._serve, name="reloc-beside", daemon=True).start()
 
     def _serve(self) -> None:
         while True:
-            step = self.inbox.get()
-            try:
-                outcome: tuple[bool, Any] = (True, step())
-            except BaseException as exc:  # noqa: BLE001 (handed to the caller as it is)
-                outcome = (False, exc)
-            del step
-            self.outbox.put(outcome)
+            task = self.inbox.get()
+            task()
+            del task
+
+
+def _outcome(step: Callable[[], T]) -> tuple[bool, Any]:
+    """(True, value) or (False, the exception ``step`` raised)."""
+    try:
+        return True, step()
+    except BaseException as exc:  # noqa: BLE001 (handed to the caller as it is)
+        return False, exc
 
 
 class Beside(Generic[T]):
@@ -176,5 +185,50 @@ def run_beside(step: Callable[[], T], *, enabled: bool = True) -> Beside[T]:
     helper = _HELPERS.borrow() if enabled and idle_core() else None
     if helper is None:
         return Beside(call=step)
-    helper.inbox.put(step)
+    outbox = helper.outbox
+    helper.inbox.put(lambda: outbox.put(_outcome(step)))
     return Beside(helper=helper)
+
+
+class Ahead(Generic[T]):
+    """A step started by :func:`run_ahead`, which nobody has to wait for: its helper goes
+    back to the pool when the step ends. :meth:`result` waits for it and returns its value,
+    or raises the exception it raised."""
+
+    def __init__(self) -> None:
+        self._done = threading.Event()
+        self._outcome: tuple[bool, Any] = (False, None)
+
+    def _finish(self, outcome: tuple[bool, Any]) -> None:
+        self._outcome = outcome
+        self._done.set()
+
+    @property
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    def result(self) -> T:
+        self._done.wait()
+        ok, value = self._outcome
+        if not ok:
+            raise value
+        return value  # type: ignore[no-any-return]
+
+
+def run_ahead(step: Callable[[], T]) -> Ahead[T] | None:
+    """Start ``step`` on a helper thread, when a core is idle (:func:`idle_core`) and a
+    helper free, and return at once; None (``step`` not run) otherwise. For work a query may
+    not need (features of a later fallback step): unlike :func:`run_beside`, the step may
+    outlive its query, and its helper serves other queries only once it ends."""
+    helper = _HELPERS.borrow() if idle_core() else None
+    if helper is None:
+        return None
+    ahead: Ahead[T] = Ahead()
+
+    def task() -> None:
+        outcome = _outcome(step)
+        _HELPERS.give_back(helper)  # first: whoever saw the step end finds its helper free
+        ahead._finish(outcome)
+
+    helper.inbox.put(task)
+    return ahead

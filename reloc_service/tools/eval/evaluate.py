@@ -9,12 +9,13 @@ in this process) or a remote one reached through the service (:mod:`.remote`).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import platform
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -227,7 +228,8 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
     try:
         build_s = _build_map(backend, dataset, source, progress)
         train_s = _timed(lambda: backend.train(progress=progress))
-        results = [_evaluate_method(backend, dataset, m, progress) for m in methods]
+        with _as_a_service_worker(backend):
+            results = [_evaluate_method(backend, dataset, m, progress) for m in methods]
         map_info = _map_info(backend, dataset, source, build_s, train_s)
     finally:
         backend.close()
@@ -235,6 +237,27 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
                       machine=machine_info(), backend=backend.description,
                       options=_json_safe(dict(options or {})),
                       created_utc=datetime.now(UTC).isoformat(timespec="seconds"))
+
+
+@contextlib.contextmanager
+def _as_a_service_worker(backend: Backend) -> Iterator[None]:
+    """Queries answered in this process run as a service worker runs them: one OpenCV
+    thread and one BLAS thread (restored after). So the latencies are the service's, and a
+    query's helper thread (:mod:`~reloc_service.relocalizers.overlap`) finds the idle core
+    it would find there, not one taken by a BLAS thread spinning after a product."""
+    if not isinstance(backend, InProcessBackend):
+        yield
+        return
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(limits=1, user_api="blas"):
+            yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 def _method_list(method: str | Sequence[str]) -> list[str]:
