@@ -48,6 +48,13 @@ def test_record_from_result_measures_translation_and_rotation_error():
     assert rec.timings_ms == {"solve": pytest.approx(2.0)}
     assert rec.est_world_from_cam == pytest.approx(pose_to_tum(est).tolist())
     assert rec.position_sigma_m == pytest.approx(0.03)  # the covariance's largest axis
+    # the error in the estimate's camera frame (x right, y down, z forward; look_at's
+    # camera looks along world +y): world (0.03, 0.04, 0) is camera (-0.03, 0, -0.04) to
+    # first order, weighed by the sigmas of camera x (1 cm) and z (2 cm)
+    rho = est[:3, :3].T @ (gt[:3, 3] - est[:3, 3])
+    assert rho == pytest.approx([-0.03, 0.0, -0.04], abs=2e-3)
+    assert rec.t_err_mahalanobis == pytest.approx(
+        math.sqrt((rho[0] / 0.01) ** 2 + (rho[1] / 0.03) ** 2 + (rho[2] / 0.02) ** 2))
 
 
 def test_record_from_failure_has_no_error():
@@ -56,7 +63,7 @@ def test_record_from_failure_has_no_error():
                                 _pose(0.0), 3.0)
     assert not rec.returned and rec.status == "not_relocalized"
     assert rec.t_err_m is None and rec.r_err_deg is None and rec.est_world_from_cam is None
-    assert rec.position_sigma_m is None
+    assert rec.position_sigma_m is None and rec.t_err_mahalanobis is None
     assert rec.reason == "too few inliers" and rec.matched_keyframe_ids == [1]
 
 
@@ -84,6 +91,7 @@ def test_summarize_by_hand():
     assert s.not_relocalized_rate == pytest.approx(0.2)
     assert s.median_t_err_m == pytest.approx(0.20)
     assert s.median_t_err_over_sigma == pytest.approx(2.0)  # of 0.2, 2 and 6 sigmas
+    assert s.covariance_scale == pytest.approx(2.0 / metrics.CHI3_MEDIAN)  # isotropic: alike
     assert s.mean_t_err_m == pytest.approx((0.01 + 0.10 + 0.30 + 1.0) / 4)
     assert s.latency_p50_ms == pytest.approx(30.0)
     assert s.latency_p99_ms == pytest.approx(40.0 + 0.96 * 10.0)
@@ -138,7 +146,7 @@ def test_machine_info():
 def test_table_rows_and_markdown():
     result = _result()
     (row,) = report.table_rows(result)
-    assert row == ["fake", "20.0", "40.0", "60.0", "20.00", "0.00", "2.0", "20.0", "20.0",
+    assert row == ["fake", "20.0", "40.0", "60.0", "20.00", "0.00", "2.0", "1.3", "20.0", "20.0",
                    "30.0", "49.6"]
     table = report.format_table(result)
     assert table.splitlines()[0].split()[:2] == ["method", "@5cm/5deg"]

@@ -98,3 +98,41 @@ def test_rank_histogram_skips_zero():
 def test_threshold_key():
     assert metrics.threshold_key(0.05, 5.0) == "5cm_5deg"
     assert metrics.threshold_key(0.25, 10) == "25cm_10deg"
+
+
+def test_chi3_median_is_scipys():
+    stats = pytest.importorskip("scipy.stats")
+    assert metrics.CHI3_MEDIAN == pytest.approx(math.sqrt(stats.chi2.ppf(0.5, 3)), rel=1e-12)
+
+
+@pytest.mark.parametrize("inflation", [1.0, 2.0, 0.5])
+def test_covariance_scale_recovers_how_far_the_stated_sigmas_are_off(inflation):
+    """Errors drawn from an anisotropic, rotated covariance, scored against that covariance
+    scaled: the scale says how many times the stated sigmas must grow to fit the errors."""
+    rng = np.random.default_rng(7)
+    from reloc_service.geometry import se3_exp
+
+    est = se3_exp([0.3, -0.2, 1.0, 0.4, -0.7, 0.2])
+    a = rng.normal(size=(3, 3))
+    cov_t = a @ a.T * 1e-4 + np.diag([1e-6, 4e-6, 9e-6])
+    covariance = np.zeros((6, 6))
+    covariance[:3, :3] = cov_t / inflation**2
+    covariance[3:, 3:] = np.eye(3) * 1e-6
+    rho = rng.multivariate_normal(np.zeros(3), cov_t, size=4000)
+    distances = []
+    for r in rho:
+        gt = est.copy()
+        gt[:3, 3] = est[:3, 3] + est[:3, :3] @ r  # the right perturbation, to first order
+        distances.append(metrics.translation_mahalanobis(est, gt, covariance))
+    scale = metrics.covariance_scale(distances, np.ones(len(distances), bool))
+    assert scale == pytest.approx(inflation, rel=0.05)
+
+
+def test_covariance_scale_skips_unreturned_and_singular():
+    singular = np.zeros((6, 6))
+    assert metrics.translation_mahalanobis(np.eye(4), np.eye(4), singular) == math.inf
+    nan_cov = np.full((6, 6), np.nan)
+    assert metrics.translation_mahalanobis(np.eye(4), np.eye(4), nan_cov) == math.inf
+    assert metrics.covariance_scale([1.0, math.inf, 5.0], [True, True, False]) == pytest.approx(
+        1.0 / metrics.CHI3_MEDIAN)
+    assert math.isnan(metrics.covariance_scale([math.nan], [False]))

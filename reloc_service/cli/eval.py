@@ -17,7 +17,8 @@ score it against its ground truth. Several --method options are evaluated on the
 once). A comma inside one method is a fallback chain ("bow+p3p,sbi+esm"), not two methods.
 Prints one row per method: recall within 5cm/5deg, 25cm/10deg, 50cm/15deg (% of all queries),
 median translation (cm) and rotation (deg) errors of the returned poses, wrong poses (returned
-but beyond 50cm/15deg) and not relocalized (% of all queries), p50/p99 latency (ms)."""
+but beyond 50cm/15deg) and not relocalized (% of all queries), p50/p99 latency (ms; in-process,
+queries run as in a service worker: one OpenCV thread, one BLAS thread)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -81,6 +81,9 @@ class QueryRecord:
     #: The result's own 1-sigma position uncertainty (:func:`position_sigma_m` of its
     #: covariance), None when no pose or no covariance was returned.
     position_sigma_m: float | None = None
+    #: Length of the translation error under the result's covariance
+    #: (:func:`.metrics.translation_mahalanobis`), None when no pose or no covariance.
+    t_err_mahalanobis: float | None = None
 
 
 @dataclass
@@ -102,6 +105,10 @@ class MethodSummary:
     #: Median of translation error / stated position sigma over returned poses with a
     #: covariance (:func:`.metrics.error_over_sigma`): about 1 when the covariance is honest.
     median_t_err_over_sigma: float = math.nan
+    #: Median Mahalanobis length of the translation errors over its Gaussian value
+    #: (:func:`.metrics.covariance_scale`): 1 when the covariance is honest, 2 when its
+    #: sigmas are half what the errors show.
+    covariance_scale: float = math.nan
 
 
 @dataclass
@@ -351,7 +358,7 @@ def record_from_result(image_path: str, result: RelocResult, gt_world_from_cam: 
     """Score one :class:`RelocResult` against the ground truth (rank left None)."""
     est_pose = result.world_from_cam if result.ok else None
     returned = est_pose is not None
-    t_err = r_err = sigma = None
+    t_err = r_err = sigma = mahalanobis = None
     est = None
     if est_pose is not None:
         dt, dr = pose_error(est_pose, gt_world_from_cam)
@@ -359,6 +366,8 @@ def record_from_result(image_path: str, result: RelocResult, gt_world_from_cam: 
         est = pose_to_tum(est_pose).tolist()
         if result.covariance is not None:
             sigma = position_sigma_m(result.covariance)
+            mahalanobis = metrics.translation_mahalanobis(est_pose, gt_world_from_cam,
+                                                          result.covariance)
     return QueryRecord(
         image_path=image_path, returned=returned, status=result.status.value,
         reason=result.reason, method_used=result.method, t_err_m=t_err, r_err_deg=r_err,
@@ -369,7 +378,7 @@ def record_from_result(image_path: str, result: RelocResult, gt_world_from_cam: 
         matched_keyframe_ids=[int(k) for k in result.matched_keyframe_ids], rank=None,
         gt_world_from_cam=pose_to_tum(gt_world_from_cam).tolist(), est_world_from_cam=est,
         timings_ms={k: float(v) * 1e3 for k, v in result.timings.items()},
-        position_sigma_m=sigma)
+        position_sigma_m=sigma, t_err_mahalanobis=mahalanobis)
 
 
 def _with_ranks(records: list[QueryRecord], dataset: Dataset) -> list[QueryRecord]:
@@ -405,7 +414,10 @@ def summarize(records: Sequence[QueryRecord]) -> MethodSummary:
         rank_histogram=metrics.rank_histogram(ranks),
         median_t_err_over_sigma=metrics.error_over_sigma(
             t, np.array([math.nan if r.position_sigma_m is None else r.position_sigma_m
-                         for r in records]), ok))
+                         for r in records]), ok),
+        covariance_scale=metrics.covariance_scale(
+            [math.nan if r.t_err_mahalanobis is None else r.t_err_mahalanobis
+             for r in records], ok))
 
 
 def _map_info(backend: Backend, dataset: Dataset, source: LandmarkSource, build_s: float,

@@ -75,6 +75,42 @@ def error_over_sigma(t_err_m: npt.ArrayLike, sigma_m: npt.ArrayLike, returned: n
     return float(np.median(t[use] / s[use])) if use.any() else math.nan
 
 
+#: Median of the chi distribution with 3 degrees of freedom: the median Mahalanobis length of
+#: a 3-D Gaussian error under its own covariance (``sqrt(scipy.stats.chi2.ppf(0.5, 3))``).
+CHI3_MEDIAN = 1.5381722544550522
+
+
+def translation_mahalanobis(est_world_from_cam: npt.ArrayLike, gt_world_from_cam: npt.ArrayLike,
+                            covariance: npt.ArrayLike) -> float:
+    """Length of the translation error under the pose's stated covariance (6x6, twist
+    (rho, omega), right perturbation ``world_from_cam @ exp(xi)``): the error is taken into
+    the estimate's camera frame (``rho ~ R^T (t_gt - t_est)``) and weighed by the inverse of
+    the translation block. inf when that block is singular or not finite."""
+    est, gt = np.asarray(est_world_from_cam, np.float64), np.asarray(gt_world_from_cam, np.float64)
+    block = np.asarray(covariance, np.float64)[:3, :3]
+    rho = est[:3, :3].T @ (gt[:3, 3] - est[:3, 3])
+    if not np.all(np.isfinite(block)):
+        return math.inf
+    try:
+        weighed = np.linalg.solve(block, rho)
+    except np.linalg.LinAlgError:
+        return math.inf
+    return math.sqrt(max(float(rho @ weighed), 0.0))
+
+
+def covariance_scale(mahalanobis: npt.ArrayLike, returned: npt.ArrayLike) -> float:
+    """How many times larger the stated position sigmas would have to be for the errors to
+    look like draws from them: the median Mahalanobis length of the returned poses' errors
+    (:func:`translation_mahalanobis`) over :data:`CHI3_MEDIAN`, its median for Gaussian
+    errors that follow the stated covariance. 1: honest; 2: the sigmas are half what the
+    errors show (a filter fusing the poses should inflate them twofold); NaN when no
+    returned pose has a finite value."""
+    (d,), ok = _per_query(returned, d=mahalanobis)
+    with np.errstate(invalid="ignore"):
+        use = ok & np.isfinite(d)
+    return float(np.median(d[use]) / CHI3_MEDIAN) if use.any() else math.nan
+
+
 def recalls(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.ArrayLike,
             thresholds: tuple[tuple[float, float], ...] = RECALL_THRESHOLDS) -> dict[str, float]:
     """``{threshold_key: recall}`` for each (metres, degrees) pair of ``thresholds``."""

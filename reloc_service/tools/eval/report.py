@@ -18,8 +18,8 @@ _NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
 
 _COLUMNS = (["method"]
             + [f"@{t * 100:g}cm/{r:g}deg" for t, r in RECALL_THRESHOLDS]
-            + ["med t cm", "med r deg", "t err/sigma", "wrong %", "not reloc %", "p50 ms",
-               "p99 ms"])
+            + ["med t cm", "med r deg", "t err/sigma", "cov scale", "wrong %", "not reloc %",
+               "p50 ms", "p99 ms"])
 
 
 def _pct(x: float) -> str:
@@ -38,7 +38,8 @@ def table_rows(result: EvalResult) -> list[list[str]]:
         rows.append([m.method]
                     + [_pct(s.recall[threshold_key(t, r)]) for t, r in RECALL_THRESHOLDS]
                     + [_num(s.median_t_err_m, 100, 2), _num(s.median_r_err_deg, 1, 2),
-                       _num(s.median_t_err_over_sigma, 1, 1), _pct(s.wrong_rate),
+                       _num(s.median_t_err_over_sigma, 1, 1), _num(s.covariance_scale, 1, 1),
+                       _pct(s.wrong_rate),
                        _pct(s.not_relocalized_rate), _num(s.latency_p50_ms),
                        _num(s.latency_p99_ms)])
     return rows
