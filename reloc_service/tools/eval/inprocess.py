@@ -1,0 +1,98 @@
+"""The in-process backend of ``reloc eval``: an :class:`~reloc_service.engine.Engine` in this
+process, its queries answered as a service worker answers them (:func:`as_a_service_worker`)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ...cameras import Camera
+from ...frame import Frame
+from ...relocalizers.base import RelocResult
+from ..data.dataset import Dataset
+from .backends import LandmarkSource
+
+Array = npt.NDArray[np.float64]
+
+
+@contextmanager
+def as_a_service_worker() -> Iterator[None]:
+    """Queries answered in this process run as a service worker runs them: one OpenCV
+    thread and one BLAS thread (restored after). So the latencies are the service's, and a
+    query's helper thread (:mod:`~reloc_service.relocalizers.overlap`) finds the idle core
+    it would find there, not one taken by a BLAS thread spinning after a product."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(limits=1, user_api="blas"):
+            yield
+    finally:
+        cv2.setNumThreads(before)
+
+
+class InProcessBackend:
+    """An :class:`~reloc_service.engine.Engine` in this process, created in evaluation mode
+    (so the ground-truth ``gt`` place finder is allowed)."""
+
+    description = "in-process"
+
+    def __init__(self, methods: Sequence[str], options: Mapping[str, Any],
+                 landmark_source: LandmarkSource) -> None:
+        from ...engine import Engine
+
+        self.engine = Engine(engine_conf(methods, options, landmark_source))
+
+    def add_keyframe(self, kf_id: int, image: npt.NDArray[np.uint8], camera: Camera,
+                     world_from_cam: Array, *, depth: npt.NDArray[np.float32] | None) -> None:
+        self.engine.add_keyframe(kf_id, image, camera, world_from_cam, depth=depth)
+
+    def train(self, *, progress: bool) -> None:
+        self.engine.train(progress=progress)
+
+    def relocalize(self, image: npt.NDArray[np.uint8], camera: Camera, *, method: str,
+                   gt_world_from_cam: Array) -> RelocResult:
+        return self.engine.relocalize(Frame(image, camera, gt_world_from_cam=gt_world_from_cam),
+                                      method=method)
+
+    def map_counts(self) -> tuple[int, int]:
+        state = self.engine.map.snapshot()
+        return len(state.keyframes), len(state.landmarks)
+
+    def landmarks_per_keyframe(self) -> list[int]:
+        """Distinct landmarks each keyframe observes (any feature kind), in id order."""
+        state = self.engine.map.snapshot()
+        return [len(np.unique(np.concatenate([f.landmark_ids[f.landmark_ids >= 0]
+                                              for f in state.keyframes[k].features.values()]
+                                             or [np.zeros(0, np.int64)])))
+                for k in state.keyframe_ids()]
+
+    def landmark_errors_m(self, dataset: Dataset) -> Array | None:
+        try:
+            from ...mapping import landmark_errors
+        except ImportError:
+            return None
+        errors = landmark_errors(self.engine.map.snapshot(), dataset)  # type: ignore[arg-type]
+        return np.asarray(errors, dtype=np.float64)
+
+    def close(self) -> None:
+        close = getattr(self.engine, "close", None)
+        if close is not None:
+            close()
+
+
+def engine_conf(methods: Sequence[str], options: Mapping[str, Any],
+                landmark_source: LandmarkSource) -> Any:
+    """The :class:`~reloc_service.engine.EngineConf` for ``methods``; ``options["mapping"]``
+    (if any) configures the map building, the other keys are plugin options."""
+    from ...engine import EngineConf, MappingConf
+
+    plugin_options = {k: v for k, v in options.items() if k != "mapping"}
+    mapping = MappingConf.from_options(options.get("mapping"))
+    return EngineConf(methods=tuple(methods), options=plugin_options, mapping=mapping)
