@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import abc
+import time
 from dataclasses import dataclass, field
 from math import lgamma
 from typing import Any, ClassVar
@@ -10,8 +11,9 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
+from .. import features as feature_lib
 from ..features import FeatureConf
-from ..frame import Frame
+from ..frame import Features, Frame
 from ..map import MapState
 from ..place.base import PlaceCandidate
 from ..plugins import Registry, make_conf
@@ -119,6 +121,17 @@ class PoseFinder(abc.ABC):
         extracts them with (so they can be extracted ahead, elsewhere, to the same
         result); default: none."""
         return {}
+
+    def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
+        """The query's features of the one kind :meth:`feature_confs` names, extracted once
+        and cached on the frame (or waited for, when extracted ahead:
+        :meth:`Frame.features_of`), so pose finders of one kind share them;
+        ``timings["features"]`` is the time this took."""
+        start = time.perf_counter()
+        (kind, conf), = self.feature_confs().items()
+        feats = query.features_of(kind, lambda: feature_lib.extract(query.image, conf))
+        timings["features"] = time.perf_counter() - start
+        return feats
 
     def query_kinds(self, query: Frame) -> frozenset[str]:
         """Feature kinds :meth:`prepare_query` would extract for ``query`` (none yet cached

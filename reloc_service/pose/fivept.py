@@ -162,16 +162,6 @@ class FivePointPoseFinder(PoseFinder):
         return {self.conf.kind: feature_lib.FeatureConf(kind=self.conf.kind,
                                                         max_features=self.conf.max_features)}
 
-    def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
-        """The query's features of ``conf.kind``, extracted once and cached on the frame
-        (as the p3p pose finder does, so both share them; or extracted ahead:
-        :meth:`Frame.features_of`)."""
-        start = time.perf_counter()
-        (kind, conf), = self.feature_confs().items()
-        feats = query.features_of(kind, lambda: feature_lib.extract(query.image, conf))
-        timings["features"] = time.perf_counter() - start
-        return feats
-
     def _match(self, feats: Features, keyframe: Keyframe) -> tuple[Array, Array, Array] | None:
         """Ratio-test matches to *all* the keyframe's keypoints: query pixels, keyframe
         pixels and landmarks. SIFT repeats a keypoint with several orientations: one match

@@ -186,15 +186,6 @@ class P3PPoseFinder(PoseFinder):
         return {self.conf.kind: feature_lib.FeatureConf(kind=self.conf.kind,
                                                         max_features=self.conf.max_features)}
 
-    def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
-        """The query's features of ``conf.kind``, extracted once and cached on the frame
-        (or extracted ahead: :meth:`Frame.features_of`)."""
-        start = time.perf_counter()
-        (kind, conf), = self.feature_confs().items()
-        feats = query.features_of(kind, lambda: feature_lib.extract(query.image, conf))
-        timings["features"] = time.perf_counter() - start
-        return feats
-
     def prepare_candidates(self, query: Frame, candidates: list[PlaceCandidate],
                            state: MapState) -> dict[str, float]:
         """The landmark pool :meth:`find_pose` matches first (the best
