@@ -34,9 +34,9 @@ from reloc_service.tools.synth.scene import (
     Lighting,
     Scene,
     Texture,
-    build_scene,
     facing_quad,
 )
+from reloc_service.tools.synth.scenes import build_scene
 from reloc_service.tools.synth.trajectories import make_trajectories
 
 SCALE = 0.25  # 160 x 120 images: fast, still enough texture for photometric checks

@@ -18,7 +18,7 @@ from reloc_service.tools.synth import PRESETS, render_dataset
 from reloc_service.tools.synth.depth_sensor import sensor_depth
 from reloc_service.tools.synth.presets import STEREO_BASELINE_M, DepthSensor
 from reloc_service.tools.synth.renderer import render_frame
-from reloc_service.tools.synth.scene import build_scene
+from reloc_service.tools.synth.scenes import build_scene
 from reloc_service.tools.synth.trajectories import make_trajectories
 
 SMALL_STEREO = dataclasses.replace(PRESETS["stereo"], n_map=2, n_query=1)

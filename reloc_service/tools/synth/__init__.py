@@ -51,7 +51,7 @@ def render_dataset(preset: str | Preset, out: Path, *, seed: int = 0, workers: i
     in parallel (1: in this process). The workers are spawned, so a script that calls this
     with ``workers > 1`` needs the usual ``if __name__ == "__main__":`` guard."""
     from ..data.dataset import DatasetEntry, write_dataset
-    from .scene import build_scene
+    from .scenes import build_scene
     from .trajectories import make_trajectories
 
     preset = get_preset(preset) if isinstance(preset, str) else preset

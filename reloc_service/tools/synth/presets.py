@@ -84,7 +84,7 @@ class Preset:
 
     name: str
     description: str
-    scene: str  # a key of scene.SCENES
+    scene: str  # a key of scenes.SCENES
     trajectory: str  # a key of trajectories.TRAJECTORIES
     camera: Camera
     n_map: int
@@ -181,3 +181,11 @@ register_preset(Preset(
 register_preset(Preset(
     "rotation-baseline", "as rotation, but keyframe centres spread over 3-4 cm (tiny "
     "baselines), queries within ~5 cm", "room", "rotation-baseline", LENS_640, 12, 12))
+register_preset(Preset(
+    "repeated", "a room built from repetition: four pictures hung 12 times (as printed, "
+    "mirrored, cropped, as mosaics), periodic tiled walls and floor, identical windows, rugs, "
+    "cabinets, crates and benches; 84 map / 69 query frames on the room laps",
+    "repeated", "room", LENS_640, 84, 69))
+register_preset(Preset(
+    "repeated-hard", "repeated, queries with motion blur, exposure change and occlusion",
+    "repeated", "room", LENS_640, 84, 69, Degradation()))

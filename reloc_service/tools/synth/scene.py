@@ -10,8 +10,7 @@ x right, y down, z into the picture, so a viewer looking at the front sees the t
 from __future__ import annotations
 
 import functools
-import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -426,14 +425,3 @@ def build_desk(rng: np.random.Generator) -> Scene:
         b.box(box, 0.001)
     occ = b.occluders(6, 0.5, 0.0015)
     return b.scene("desk", Lighting(lamp_position=(2.2, 2.2, 2.3), lamp_range=2.0), occ)
-
-
-SCENES: dict[str, Callable[[np.random.Generator], Scene]] = {"room": build_room,
-                                                             "desk": build_desk}
-
-
-def build_scene(name: str, seed: int) -> Scene:
-    """The scene ``name`` with textures drawn from ``seed`` (same seed -> same scene)."""
-    if name not in SCENES:
-        raise ConfigError(f"unknown scene {name!r}; expected one of {sorted(SCENES)}")
-    return SCENES[name](np.random.default_rng([seed, zlib.crc32(name.encode())]))
