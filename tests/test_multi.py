@@ -155,14 +155,16 @@ def test_max_groups_falls_back_to_later_groups(scene):
 
     gt = query_pose(1)
     place = create_place_finder({"name": "sbi"}, scene.map)
-    for max_groups, expect_ok in ((1, False), (3, True)):
+    for max_groups, unique, expect_ok, calls in ((1, True, False, 1), (3, True, True, 3),
+                                                 (3, False, True, 2)):
         pose = FirstGroupFails()
         pose.pools_candidates = True
-        conf = MultiRelocalizer.Conf(num_candidates=3, max_groups=max_groups)
+        conf = MultiRelocalizer.Conf(num_candidates=3, max_groups=max_groups, unique=unique)
         reloc = MultiRelocalizer(scene.map, place, pose, conf=conf)
         result = reloc.relocalize(Frame(scene.render(gt), CAMERA))
         assert result.ok is expect_ok
-        assert pose.calls == (1 if max_groups == 1 else 2)  # stops at the first verified group
+        # Every group is heard for uniqueness; without it, the first verified group answers.
+        assert pose.calls == calls
 
 
 @dataclass
@@ -338,26 +340,15 @@ def test_save_and_load_the_place_finders_model(scene, tmp_path):
     assert other.loaded == {"words": b"\x00\x01\x02", "k": 3, "ids": [4, 5]}
 
 
-@dataclass
-class WeakFirst(FixedPoses):
-    """Answers ``poses`` in turn; the first needed guided matching (a weak first pose)."""
-
-    def find_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
-                  ) -> PoseEstimate | None:
-        est = super().find_pose(query, candidates, state)
-        if self.calls == 1:
-            est.unguided_evidence = (40, 12)
-        return est
-
-
-def test_weak_first_answer_contradicted_by_the_next_group_is_ambiguous(scene):
+def test_disagreeing_verified_groups_without_features_to_compare_are_ambiguous(scene):
     place = create_place_finder({"name": "sbi"}, scene.map)
     query = Frame(scene.render(query_pose(0)), CAMERA)
     a, b = downward_pose(0.0, 0.0, 1.2), downward_pose(1.5, 0.0, 1.2)
     conf = MultiRelocalizer.Conf(num_candidates=3)
-    refused = MultiRelocalizer(scene.map, place, WeakFirst([a, b]), conf=conf).relocalize(query)
-    assert not refused.ok and refused.reason.startswith("ambiguous places")
-    confirmed = MultiRelocalizer(scene.map, place, WeakFirst([a, a]), conf=conf)
-    assert confirmed.relocalize(query).ok and confirmed.pose.calls == 2
-    strong = MultiRelocalizer(scene.map, place, FixedPoses([a, b]), conf=conf)
-    assert strong.relocalize(query).ok and strong.pose.calls == 1    # not weak: one group
+    refused = MultiRelocalizer(scene.map, place, FixedPoses([a, b]), conf=conf).relocalize(query)
+    assert not refused.ok and refused.reason.startswith("ambiguous places"), refused.reason
+    confirmed = MultiRelocalizer(scene.map, place, FixedPoses([a, a]), conf=conf)
+    assert confirmed.relocalize(query).ok and confirmed.pose.calls == 3
+    first_only = MultiRelocalizer(scene.map, place, FixedPoses([a, b]),
+                                  conf=MultiRelocalizer.Conf(num_candidates=3, unique=False))
+    assert first_only.relocalize(query).ok and first_only.pose.calls == 1

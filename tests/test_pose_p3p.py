@@ -13,7 +13,7 @@ from reloc_service.geometry import invert, look_at, pose_error, se3_log, transfo
 from reloc_service.map import KeyframeMap
 from reloc_service.place.base import PlaceCandidate
 from reloc_service.pose.base import create_pose_finder
-from reloc_service.pose.p3p import LandmarkPool
+from reloc_service.pose.landmark_pool import LandmarkPool
 from reloc_service.pose.pnp import (
     PnPConf,
     PointUncertainty,
@@ -211,7 +211,7 @@ def test_landmark_pool_of_one_keyframe_is_the_general_pool_and_its_rows_are_kept
     """One keyframe alone (the fast path's first pool) gives the rows the general path gives
     (its first keypoint of each landmark), from rows computed once per features object; a
     copy with other landmarks gets its own."""
-    from reloc_service.pose.p3p import _landmark_rows
+    from reloc_service.pose.landmark_pool import _landmark_rows
 
     camera = make_camera("pinhole", 64, 48)
     image = np.zeros((48, 64), np.uint8)

@@ -67,6 +67,29 @@ class PoseEstimate:
     #: around projections agree with the pose by construction. None: ``num_matches``,
     #: ``inliers``.
     unguided_evidence: tuple[int, int] | None = None
+    #: (N,) indices of the inliers' query keypoints (in the finder's features) and (N,) the
+    #: ids of their landmarks, where the finder knows them: what a repetition of the map
+    #: around the pose is looked for with (:mod:`.repetition`).
+    inlier_keypoints: npt.NDArray[np.int64] | None = None
+    inlier_landmark_ids: npt.NDArray[np.int64] | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Support:
+    """The query keypoints a pose explains: (E,) ``keypoints`` (ascending query keypoint
+    indices) matched to (E,) ``landmark_ids`` of the local map where the pose projects them,
+    out of ``predicted`` local-map landmarks the pose puts inside the image."""
+
+    keypoints: npt.NDArray[np.int64]
+    landmark_ids: npt.NDArray[np.int64]
+    predicted: int
+
+    def __len__(self) -> int:
+        return len(self.keypoints)
+
+    @classmethod
+    def empty(cls) -> Support:
+        return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), 0)
 
 
 def log10_false_alarms(num_matches: int, inliers: int, sample_size: int, p: float) -> float:
@@ -107,6 +130,19 @@ class PoseFinder(abc.ABC):
     def find_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
                   ) -> PoseEstimate | None:
         """Best estimate from ``candidates`` (best first) in map ``state``; None if none."""
+
+    def support(self, query: Frame, world_from_cam: Array, state: MapState) -> Support | None:
+        """The query keypoints the map around ``world_from_cam`` explains
+        (:mod:`.support`), for comparing hypotheses; None when this finder has no
+        features to judge by (photometric finders). Call after :meth:`find_pose` on
+        ``query``: it reads the features that extracted."""
+        return None
+
+    def alternatives(self, query: Frame, estimate: PoseEstimate, state: MapState
+                     ) -> list[PoseEstimate]:
+        """Other poses the map around ``estimate`` offers for the same query keypoints
+        (:mod:`.repetition`: twins of its landmarks nearby), unverified; default: none."""
+        return []
 
     def prepare_candidates(self, query: Frame, candidates: list[PlaceCandidate],
                            state: MapState) -> dict[str, float]:

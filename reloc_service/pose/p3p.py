@@ -6,9 +6,8 @@ verification)."""
 from __future__ import annotations
 
 import time
-import weakref
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 import numpy.typing as npt
@@ -18,10 +17,13 @@ from ..errors import ConfigError
 from ..frame import Features, Frame, Keyframe
 from ..map import MapState
 from ..place.base import PlaceCandidate
-from .base import PoseEstimate, PoseFinder, register
+from .base import PoseEstimate, PoseFinder, Support, register
 from .guided import GuidedConf, search_by_projection
 from .kernels import compiled
+from .landmark_pool import LandmarkPool
 from .pnp import PnPConf, PointUncertainty, level_scales, solve_pnp_indexed
+from .repetition import RepetitionConf, alternative_poses, twin_correspondences
+from .support import explained_keypoints
 
 Array = npt.NDArray[np.float64]
 
@@ -97,6 +99,8 @@ class P3PPoseFinder(PoseFinder):
                                 inliers=0, timings=timings)
         est, inliers = solved
         est.keyframe_ids = pool.keyframes_of(rows[inliers], [kf.id for kf in keyframes])
+        est.inlier_keypoints = q_idx[inliers]
+        est.inlier_landmark_ids = pool.landmark_ids[rows[inliers]]
         if self.conf.guided and (est.inliers or 0) < self.conf.guided_below_inliers:
             est = self._grow(query, feats, est, keyframes, state, q_idx,
                              pool.landmark_ids[rows])
@@ -159,7 +163,49 @@ class P3PPoseFinder(PoseFinder):
         supporting = pool.keyframes_of(rows_all[inliers], [kf.id for kf in local])
         grown.keyframe_ids = [k for k in supporting if k in ids] or est.keyframe_ids
         grown.unguided_evidence = seed
+        grown.inlier_keypoints = q_all[inliers]
+        grown.inlier_landmark_ids = pool.landmark_ids[rows_all[inliers]]
         grown.timings = {"solve": est.timings.get("solve", 0.0), "guided": elapsed}
+        return grown
+
+    def support(self, query: Frame, world_from_cam: Array, state: MapState) -> Support | None:
+        """The query's features of this finder's kind explained by the landmarks of the
+        keyframes near ``world_from_cam`` (the local map guided matching projects), in
+        windows as guided matching's; None before the features are extracted."""
+        feats = query.features.get(self.conf.kind)
+        if feats is None:
+            return None
+        conf = GuidedConf(local_keyframes=self.conf.guided_keyframes)
+        return explained_keypoints(feats, query.camera, world_from_cam, state, self.conf.kind,
+                                   radius_px=conf.window_factor * self.conf.max_reproj_error_px,
+                                   conf=conf)
+
+    def alternatives(self, query: Frame, estimate: PoseEstimate, state: MapState
+                     ) -> list[PoseEstimate]:
+        """Poses the twins of ``estimate``'s landmarks in the local map support
+        (:mod:`.repetition`): the landmarks of the keyframes near the pose (those guided
+        matching projects), matched to the inliers' query keypoints as closely as Lowe's
+        ratio allows; each grown by guided matching."""
+        feats = query.features.get(self.conf.kind)
+        if feats is None or estimate.inlier_keypoints is None or estimate.inlier_landmark_ids is None:
+            return []
+        guided = GuidedConf(local_keyframes=self.conf.guided_keyframes)
+        near = state.nearest_keyframes(estimate.world_from_cam, guided.local_keyframes,
+                                       guided.max_view_angle_deg)
+        local = [state.keyframes[k] for k in near]
+        pool = LandmarkPool.gather(local, self.conf.kind)
+        conf = RepetitionConf(ratio=self.conf.ratio)
+        twins = twin_correspondences(feats, estimate.inlier_keypoints,
+                                     estimate.inlier_landmark_ids, pool,
+                                     state.landmark_sigmas(pool.landmark_ids, 0.0), conf)
+        grown = []
+        for alt in alternative_poses(feats, query.camera, twins, pool, self.conf, conf):
+            assert alt.inlier_landmark_ids is not None
+            alt.keyframe_ids = pool.keyframes_of(pool.rows_of(alt.inlier_landmark_ids), near)
+            # Twins are the few repeated keypoints: the alternative is grown over its own
+            # local map, as a first pose with few inliers is (judged on its twin consensus).
+            grown.append(self._grow(query, feats, alt, local, state, twins[0],
+                                    pool.landmark_ids[twins[1]]))
         return grown
 
     def _scales(self, feats: Features, q_idx: npt.NDArray[np.int64]) -> Array | None:
@@ -215,68 +261,6 @@ class P3PPoseFinder(PoseFinder):
         return q_idx[keep], rows[keep], pool
 
 
-@dataclass(frozen=True)
-class LandmarkPool:
-    """The landmarks seen by some keyframes, one row per landmark (L rows): the descriptor of
-    its observation in the best-ranked keyframe, its id, world point and that keyframe."""
-
-    descriptors: npt.NDArray[Any]
-    landmark_ids: npt.NDArray[np.int64]
-    points_world: Array
-    keyframe_rows: npt.NDArray[np.int64]
-
-    @classmethod
-    def gather(cls, keyframes: list[Keyframe], kind: str) -> LandmarkPool:
-        """Pool ``kind`` landmarks of ``keyframes`` (best first). A landmark seen by several
-        keyframes keeps one row: duplicates would fail Lowe's ratio test against themselves."""
-        feats = [kf.features.get(kind) for kf in keyframes]
-        if len(feats) == 1 and feats[0] is not None and len(feats[0]):
-            f = feats[0]
-            idx = _landmark_rows(f)
-            return cls(f.descriptors[idx], f.landmark_ids[idx], f.points_world[idx],
-                       np.zeros(len(idx), np.int64))
-        local = [np.zeros(0, np.int64) if f is None else np.flatnonzero(f.landmark_ids >= 0)
-                 for f in feats]
-        if not sum(len(i) for i in local):
-            width = 128 if kind == "sift" else 32     # both kinds are uint8 descriptors
-            return cls(np.zeros((0, width), np.uint8), np.zeros(0, np.int64), np.zeros((0, 3)),
-                       np.zeros(0, np.int64))
-        ids = np.concatenate([f.landmark_ids[i] for f, i in zip(feats, local, strict=True)
-                              if f is not None])
-        kf_rows = np.repeat(np.arange(len(feats)), [len(i) for i in local])
-        # The first occurrence is in the best-ranked keyframe; sorted, rows stay grouped by
-        # keyframe, so only the kept descriptors are copied (not every observation's).
-        first = np.sort(np.unique(ids, return_index=True)[1])
-        rows, idx = kf_rows[first], np.concatenate(local)[first]
-        picks = [(feats[r], idx[rows == r]) for r in np.unique(rows)]
-        return cls(np.concatenate([f.descriptors[i] for f, i in picks if f is not None]),
-                   ids[first], np.concatenate([f.points_world[i] for f, i in picks
-                                               if f is not None]), rows)
-
-    def uncertainty(self, state: MapState, keyframes: list[Keyframe],
-                    rows: npt.NDArray[np.int64]) -> PointUncertainty:
-        """The depth uncertainty of the landmarks of pool ``rows`` (``keyframes`` as given to
-        :meth:`gather`), along the rays from the keyframe each row came from."""
-        sigmas = state.landmark_sigmas(self.landmark_ids[rows], 0.0)
-        centres = np.array([kf.position_world for kf in keyframes]).reshape(-1, 3)
-        return PointUncertainty(sigmas, centres[self.keyframe_rows[rows]])
-
-    def rows_of(self, landmark_ids: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
-        """(M,) pool row of each landmark id; -1 where the pool does not hold it."""
-        if len(self.landmark_ids) == 0:
-            return np.full(len(landmark_ids), -1, np.int64)
-        order = np.argsort(self.landmark_ids, kind="stable")
-        pos = np.clip(np.searchsorted(self.landmark_ids[order], landmark_ids), 0, len(order) - 1)
-        return np.where(self.landmark_ids[order][pos] == landmark_ids, order[pos], -1
-                        ).astype(np.int64)
-
-    def keyframes_of(self, rows: npt.NDArray[np.int64], keyframe_ids: list[int]) -> list[int]:
-        """Ids of the keyframes whose landmarks (pool ``rows``) gave inliers, most first."""
-        counts = np.bincount(self.keyframe_rows[rows], minlength=len(keyframe_ids))
-        order = np.argsort(-counts, kind="stable")
-        return [keyframe_ids[i] for i in order if counts[i] > 0]
-
-
 def _keyframes_in(candidates: list[PlaceCandidate], state: MapState) -> list[Keyframe]:
     """The keyframes of ``candidates`` still in ``state``, in the candidates' order."""
     return [state.keyframes[c.keyframe_id] for c in candidates
@@ -296,26 +280,6 @@ class _PreparedPool:
 def _pool_key(kind: str, keyframes: list[Keyframe], state: MapState) -> str:
     """The ``query.cache`` key of the prepared pool of ``keyframes`` in map ``state``."""
     return f"p3p:pool:{kind}:{state.version}:{','.join(str(kf.id) for kf in keyframes)}"
-
-
-#: Per keyframe features: the rows :meth:`LandmarkPool.gather` keeps of it alone (a few
-#: kB each, weakly held: gone with the features). Features are never changed in place
-#: (:meth:`Features.with_landmarks` copies), so the rows stay right while they live.
-_LANDMARK_ROWS: weakref.WeakKeyDictionary[Features, npt.NDArray[np.int64]] = (
-    weakref.WeakKeyDictionary())
-
-
-def _landmark_rows(features: Features) -> npt.NDArray[np.int64]:
-    """Rows of ``features`` with a landmark, the first row of each landmark id (ascending):
-    the rows a pool of this keyframe alone holds. Computed once per features object (the
-    fast path pools the best keyframe alone for every query)."""
-    rows = _LANDMARK_ROWS.get(features)
-    if rows is None:
-        local = np.flatnonzero(features.landmark_ids >= 0)
-        rows = local[np.sort(np.unique(features.landmark_ids[local], return_index=True)[1])]
-        rows.flags.writeable = False
-        _LANDMARK_ROWS[features] = rows
-    return rows
 
 
 def _union(first_q: npt.NDArray[np.int64], first_rows: npt.NDArray[np.int64],

@@ -49,7 +49,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import ConfigError, NotTrainedError, StorageError
-from ..features import FEATURE_KINDS
+from ..features import FEATURE_KINDS, FeatureConf
 from ..ferns.classifier import FernClassifier, FernConf, FernScorer, FernTests
 from ..ferns.models import FernModels, ModelsConf, Published
 from ..ferns.training import WarpConf, prepare_image
@@ -60,7 +60,10 @@ from ..numeric import top_k
 from ..place.sbi import SmallBlurryImageFinder
 from ..plugins import make_conf
 from ..pose.base import PoseEstimate
+from ..pose.guided import GuidedConf
 from ..pose.pnp import PnPConf, solve_pnp_indexed
+from ..pose.support import query_support
+from . import uniqueness
 from .base import Prior, Relocalizer, RelocResult, VerifyConf, register, result_from_estimate
 
 Array = npt.NDArray[np.float64]
@@ -125,6 +128,11 @@ class FernsConf:
     top_k: int = 2
     min_posterior: float = 0.01
     seed: int = 0
+    #: Solve again on the correspondences a verified pose leaves, up to this many times, and
+    #: answer only the pose that explains the query significantly better than every other
+    #: verified one (:mod:`.uniqueness`; a keypoint's second class is often a repeated
+    #: landmark's twin). 0: the first verified pose answers.
+    competitors: int = 2
 
     def __post_init__(self) -> None:
         self.fern_conf()
@@ -144,6 +152,8 @@ class FernsConf:
                self.max_regions, self.place_keyframes) < 1:
             raise ConfigError("ferns: workers, max_classes, max_query_keypoints, top_k, "
                               "max_regions and place_keyframes must be >= 1")
+        if self.competitors < 0:
+            raise ConfigError(f"ferns: competitors must be >= 0, got {self.competitors}")
         if not 0 <= self.min_posterior < 1:
             raise ConfigError(f"ferns: min_posterior must be in [0, 1), got {self.min_posterior}")
 
@@ -461,10 +471,13 @@ class FernsRelocalizer(Relocalizer):
 
     def _solve(self, query: Frame, px: Array, kp: IntArray, lm: IntArray, points: Array,
                state: MapState, hypotheses: int, timings: dict[str, float]) -> list[RelocResult]:
-        """Up to ``hypotheses`` verified results: RANSAC, then again on the outliers."""
+        """Verified results, the answer first: RANSAC, then again on the correspondences
+        each verified pose leaves (``hypotheses`` in all, at least ``1 + competitors``), the
+        answer chosen among them by :func:`.uniqueness.decide`."""
         results: list[RelocResult] = []
+        estimates: list[PoseEstimate] = []
         remaining = np.arange(len(kp))
-        for _ in range(hypotheses):
+        for _ in range(max(hypotheses, 1 + self.conf.competitors)):
             start = time.perf_counter()
             est = self._estimate(query, px, kp[remaining], lm[remaining], points[remaining], state)
             timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - start
@@ -473,11 +486,38 @@ class FernsRelocalizer(Relocalizer):
                                           method=self.method, map_version=state.version,
                                           timings=timings)
             timings["verify"] = timings.get("verify", 0.0) + time.perf_counter() - start
-            results.append(result)
             if est is None or not result.ok:
+                results.append(result)
                 break
-            remaining = remaining[~np.isin(kp[remaining], kp[remaining][est[1]])]
-        return results
+            results.append(result)
+            estimates.append(est[0])
+            # The next solve keeps these keypoints' other classes: a repeated landmark's twin
+            # is the second class of the keypoints the first pose explained.
+            remaining = np.delete(remaining, est[1])
+        if len(estimates) < 2:
+            return results[:max(hypotheses, 1)]
+        return self._unique(query, state, results, estimates, timings)[:max(hypotheses, 1)]
+
+    def _unique(self, query: Frame, state: MapState, results: list[RelocResult],
+                estimates: list[PoseEstimate], timings: dict[str, float]) -> list[RelocResult]:
+        """The verified ``results`` (of ``estimates``) with the one that answers first, or a
+        failure saying the query is ambiguous."""
+        start = time.perf_counter()
+        feature_conf = FeatureConf(kind=self.conf.kind)
+        radius = GuidedConf().window_factor * self.pnp_conf.max_reproj_error_px
+        chosen = uniqueness.decide(
+            estimates, query.camera,
+            lambda est: query_support(query, est.world_from_cam, state, feature_conf,
+                                      radius_px=radius),
+            lambda a, b: False, alpha=self.verify_conf.max_false_alarms)
+        timings["unique"] = time.perf_counter() - start
+        verified = [r for r in results if r.ok]
+        if chosen.index is None:
+            return [RelocResult.failure(self.method, chosen.reason, timings=timings,
+                                        map_version=state.version,
+                                        matched_keyframe_ids=verified[0].matched_keyframe_ids)]
+        best = verified[chosen.index]
+        return [best, *(r for r in verified if r is not best)]
 
     def _estimate(self, query: Frame, px: Array, kp: IntArray, lm: IntArray, points: Array,
                   state: MapState) -> tuple[PoseEstimate, IntArray] | None:

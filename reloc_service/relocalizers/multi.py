@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import ConfigError, NotTrainedError
 from ..features import FeatureConf
@@ -20,6 +21,7 @@ from ..map import KeyframeMap, MapState
 from ..place.base import PlaceCandidate, PlaceFinder, create_place_finder
 from ..plugins import make_conf
 from ..pose.base import POSE_FINDERS, PoseEstimate, PoseFinder, create_pose_finder
+from . import uniqueness
 from .base import Prior, Relocalizer, RelocResult, VerifyConf, doubt, register, result_from_estimate
 from .overlap import run_beside
 
@@ -52,6 +54,12 @@ class MultiRelocalizer(Relocalizer):
         #: features extracted or under way. Answers are the same either way; work done
         #: ahead for nothing (a later group verifies) only ever uses an idle core.
         look_ahead: bool = True
+        #: Hear every candidate group (up to ``max_groups``) even after one verified, and
+        #: answer only a pose that explains the query significantly better than every other
+        #: verified pose (:mod:`.uniqueness`): a repeated picture, a periodic wall or an
+        #: identical object elsewhere verifies as well as the true pose does. Off: the first
+        #: verified group answers (faster, and wrong wherever the scene repeats).
+        unique: bool = True
 
         def __post_init__(self) -> None:
             if self.num_candidates < 1 or self.max_groups < 1:
@@ -153,9 +161,9 @@ class MultiRelocalizer(Relocalizer):
         if not groups:
             return RelocResult.failure(self.method, _no_candidate_reason(state, allowed),
                                        timings=timings, map_version=state.version)
-        results, weak_first = self._answer_groups(query, groups, state, timings,
-                                                  max(1, hypotheses))
-        return self._combine(results, weak_first, timings, state.version, max(1, hypotheses))
+        results, estimates = self._answer_groups(query, groups, state, timings,
+                                                 max(1, hypotheses))
+        return self._combine(query, state, results, estimates, timings, max(1, hypotheses))
 
     def _overlaps(self, query: Frame) -> bool:
         """Whether the place finder runs beside the pose finder's feature extraction: with
@@ -216,13 +224,13 @@ class MultiRelocalizer(Relocalizer):
 
     def _answer_groups(self, query: Frame, groups: list[list[PlaceCandidate]], state: MapState,
                        timings: dict[str, float], hypotheses: int
-                       ) -> tuple[list[RelocResult], bool]:
-        """Pose and verify group after group until enough have verified; every result, and
-        whether the first verified one was weak (:func:`_weak`: then the next group is heard
-        too)."""
+                       ) -> tuple[list[RelocResult], list[PoseEstimate | None]]:
+        """Pose and verify group after group, until enough have verified (every group with
+        ``conf.unique``); every result, and the estimate of each verified one (None for the
+        others)."""
         wanted = max(hypotheses, 2 if self.require_agreement else 1)
         results: list[RelocResult] = []
-        weak_first = False
+        estimates: list[PoseEstimate | None] = []
         for group in groups:
             estimate = self.pose.find_pose(query, group, state)
             if estimate is not None:
@@ -232,35 +240,73 @@ class MultiRelocalizer(Relocalizer):
                                           map_version=state.version, timings={})
             _add_timings(timings, {"verify": time.perf_counter() - start})
             results.append(result)
+            estimates.append(estimate if result.ok else None)
             if (self.conf.look_ahead and not result.ok and len(results) < len(groups)
                     and not any(r.ok for r in results)):
                 doubt(query)
-            if result.ok and sum(r.ok for r in results) == 1 and _weak(estimate):
-                weak_first = True
-                wanted = max(wanted, 2)
-            if sum(r.ok for r in results) >= wanted:
+            if sum(r.ok for r in results) >= wanted and not self.conf.unique:
                 break
-        return results, weak_first
+        return results, estimates
 
-    def _combine(self, results: list[RelocResult], weak_first: bool, timings: dict[str, float],
-                 map_version: int, hypotheses: int) -> RelocResult:
-        """The first verified result (with up to ``hypotheses - 1`` other verified ones,
-        most confident first), or a failure naming every group's reason; applies the
-        agreement check, and refuses a weak first answer that another group contradicts."""
+    def _combine(self, query: Frame, state: MapState, results: list[RelocResult],
+                 estimates: list[PoseEstimate | None], timings: dict[str, float],
+                 hypotheses: int) -> RelocResult:
+        """The verified result that answers (the first, or with ``conf.unique`` the one that
+        explains the query best, see :meth:`_unique`), with up to ``hypotheses - 1`` other
+        verified ones, most confident first; or a failure naming every group's reason, the
+        agreement check's or the ambiguity."""
         verified = [r for r in results if r.ok]
         if not verified:
-            return _failure(self.method, results, timings, map_version)
-        if self.require_agreement or (weak_first and len(verified) > 1):
+            return _failure(self.method, results, timings, state.version)
+        if self.require_agreement:
             refusal = self._disagreement(verified)
             if refusal:
-                prefix = "" if self.require_agreement else "ambiguous places: "
-                return RelocResult.failure(self.method, prefix + refusal, timings=timings,
-                                           map_version=map_version,
+                return RelocResult.failure(self.method, refusal, timings=timings,
+                                           map_version=state.version,
                                            matched_keyframe_ids=verified[0].matched_keyframe_ids)
-        best, *others = verified
+        best = verified[0]
+        if self.conf.unique:
+            start = time.perf_counter()
+            verified, found = self._with_alternatives(query, state, verified,
+                                                      [e for e in estimates if e is not None])
+            chosen = self._unique(query, state, found) if len(found) > 1 else None
+            timings["unique"] = time.perf_counter() - start
+            if chosen is not None and chosen.index is None:
+                return RelocResult.failure(self.method, chosen.reason, timings=timings,
+                                           map_version=state.version,
+                                           matched_keyframe_ids=best.matched_keyframe_ids)
+            best = verified[0 if chosen is None else chosen.index]
         best.timings = timings
+        others = [r for r in verified if r is not best]
         best.hypotheses = sorted(others, key=lambda r: -r.confidence)[:hypotheses - 1]
         return best
+
+    def _with_alternatives(self, query: Frame, state: MapState, verified: list[RelocResult],
+                           estimates: list[PoseEstimate]
+                           ) -> tuple[list[RelocResult], list[PoseEstimate]]:
+        """``verified`` and their ``estimates`` followed by the alternatives a repetition of
+        the map around the first offers (:meth:`PoseFinder.alternatives`) that verify."""
+        verified, estimates = list(verified), list(estimates)
+        for alternative in self.pose.alternatives(query, estimates[0], state):
+            result = result_from_estimate(alternative, self.verify_conf, method=self.method,
+                                          map_version=state.version, timings={})
+            if result.ok:
+                verified.append(result)
+                estimates.append(alternative)
+        return verified, estimates
+
+    def _unique(self, query: Frame, state: MapState, estimates: list[PoseEstimate]
+                ) -> uniqueness.Choice:
+        """Which of the verified ``estimates`` answers (:func:`.uniqueness.decide`, by the
+        query keypoints the pose finder's features show each explains)."""
+        return uniqueness.decide(
+            estimates, query.camera,
+            lambda est: self.pose.support(query, est.world_from_cam, state), self._agree,
+            alpha=self.verify_conf.max_false_alarms)
+
+    def _agree(self, first: PoseEstimate, second: PoseEstimate) -> bool:
+        """Whether two poses agree within the agreement thresholds."""
+        return not self._disagreement_of(first.world_from_cam, second.world_from_cam)
 
     def _disagreement(self, verified: list[RelocResult]) -> str:
         """Why two independent groups do not agree, or "" when they do."""
@@ -268,9 +314,15 @@ class MultiRelocalizer(Relocalizer):
             return "agreement check: fewer than two candidate groups verified"
         first, second = verified[0].world_from_cam, verified[1].world_from_cam
         assert first is not None and second is not None
+        refusal = self._disagreement_of(first, second)
+        return f"agreement check: {refusal}" if refusal else ""
+
+    def _disagreement_of(self, first: npt.NDArray[np.float64], second: npt.NDArray[np.float64]
+                         ) -> str:
+        """How two poses disagree beyond the agreement thresholds, or "" when they agree."""
         dist, angle = pose_error(first, second)
         if dist > self.conf.agreement_max_distance_m or angle > self.conf.agreement_max_angle_rad:
-            return (f"agreement check: independent hypotheses disagree by {dist:.2f} m and "
+            return (f"independent hypotheses disagree by {dist:.2f} m and "
                     f"{np.degrees(angle):.1f} deg")
         return ""
 
@@ -319,13 +371,6 @@ def pose_options(pose_label: str, options: Mapping[str, Mapping[str, Any]]) -> d
                           f"{pose_label!r} means nothing; expected e.g. 'p3p:orb'")
     return {**options.get(name, {}), **preset, **options.get(f"{name}:{kind}", {}),
             "name": name}
-
-
-def _weak(estimate: PoseEstimate | None) -> bool:
-    """An answer that needed guided matching to verify (its first pose had few inliers): the
-    kind a repeated texture elsewhere in the map can produce, so the next candidate group is
-    heard too, and a verified answer there that disagrees makes the query ambiguous."""
-    return estimate is not None and estimate.unguided_evidence is not None
 
 
 def _allowed_ids(state: MapState, prior: Prior | None) -> set[int] | None:

@@ -98,12 +98,15 @@ def keyframe_grid(nx: int = 4, ny: int = 3, *, extent: tuple[float, float] = (1.
 def planar_scene(keyframe_poses: Sequence[Array] | None = None, *,
                  kinds: Sequence[str] = ("sift",), camera: Camera = DEFAULT_CAMERA,
                  metres_per_texel: float = 1.0 / 512, max_features: int = 2000,
-                 merge_radius_texels: float = 2.0) -> PlanarScene:
+                 merge_radius_texels: float = 2.0,
+                 texture: npt.NDArray[np.uint8] | None = None) -> PlanarScene:
     """A map of the textured plane: keyframes rendered at ``keyframe_poses`` (default
     :func:`keyframe_grid`), features of each kind lifted onto the plane as landmarks. Keypoints
     of different keyframes within ``merge_radius_texels`` on the plane share a landmark, as a
-    SLAM map's points are observed by several keyframes."""
-    scene = PlanarScene(texture_mosaic(), metres_per_texel, camera, KeyframeMap())
+    SLAM map's points are observed by several keyframes. ``texture``: the (H, W) grey
+    texture on the plane (default :func:`texture_mosaic`)."""
+    scene = PlanarScene(texture_mosaic() if texture is None else texture, metres_per_texel,
+                        camera, KeyframeMap())
     poses = keyframe_grid() if keyframe_poses is None else list(keyframe_poses)
     registry = {kind: _LandmarkRegistry(merge_radius_texels * metres_per_texel) for kind in kinds}
     for kf_id, world_from_cam in enumerate(poses):

@@ -1,0 +1,160 @@
+"""A verified pose must be the only good explanation of the query: hypotheses compared by the
+query keypoints each explains (McNemar), repeated textures answered where the rest of the image
+decides and refused as ambiguous where nothing does."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from reloc_service.cameras import PinholeCamera
+from reloc_service.frame import Frame
+from reloc_service.geometry import pose_error
+from reloc_service.pose.base import PoseEstimate, Support
+from reloc_service.pose.guided import project_into
+from reloc_service.pose.support import explained_keypoints
+from reloc_service.relocalizers.factory import create_relocalizer
+from reloc_service.relocalizers.uniqueness import (
+    choose,
+    compare,
+    fits_consensus,
+    same_solution,
+    solutions,
+)
+from reloc_service.tools.synth.planar import (
+    downward_pose,
+    keyframe_grid,
+    planar_scene,
+    texture_mosaic,
+)
+
+CAMERA = PinholeCamera(width=320, height=240, fx=250.0, fy=250.0, cx=159.5, cy=119.5)
+
+
+def support(keypoints: list[int] | range) -> Support:
+    kp = np.array(sorted(keypoints), np.int64)
+    return Support(kp, kp + 1000, len(kp))
+
+
+def test_only_the_keypoints_one_hypothesis_explains_decide() -> None:
+    shared = range(500)
+    c = compare(support([*shared, *range(1000, 1040)]), support([*shared, *range(2000, 2010)]))
+    assert (c.only_first, c.only_second) == (40, 10)
+    assert c.p_first < 1e-4 < 0.5 < c.p_second    # 40 of 50: the first explains more
+    even = compare(support([*shared, *range(1000, 1012)]), support([*shared, *range(2000, 2010)]))
+    assert even.p_first > 0.1 and even.p_second > 0.1
+    same = compare(support(shared), support(shared))
+    assert (same.only_first, same.only_second, same.p_first) == (0, 0, 1.0)
+
+
+def estimate(world_from_cam: np.ndarray, points: np.ndarray) -> PoseEstimate:
+    px, _ = project_into(CAMERA, world_from_cam, points)
+    return PoseEstimate(world_from_cam=world_from_cam, keyframe_ids=[], num_matches=len(px),
+                        inliers=len(px), inlier_px=px, inlier_points_world=points,
+                        inlier_threshold_px=5.0, image_size=CAMERA.size)
+
+
+def test_a_pose_millimetres_away_is_the_same_solution_a_shifted_copy_is_not() -> None:
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(-0.4, 0.4, 200), rng.uniform(-0.3, 0.3, 200),
+                              np.zeros(200)])
+    a = estimate(downward_pose(0.0, 0.0, 1.0), points)
+    near = estimate(downward_pose(0.002, 0.0, 1.0), points)
+    shifted = estimate(downward_pose(0.6, 0.0, 1.0), points + [0.6, 0.0, 0.0])  # a copy
+    assert fits_consensus(a, near.world_from_cam, CAMERA) == 1.0
+    assert same_solution(a, near, CAMERA)
+    assert fits_consensus(a, shifted.world_from_cam, CAMERA) < 0.1
+    assert not same_solution(a, shifted, CAMERA)
+    assert solutions([a, shifted, near], CAMERA, lambda x, y: False) == [[0, 2], [1]]
+    bare = PoseEstimate(world_from_cam=a.world_from_cam, keyframe_ids=[])  # no inliers known
+    assert same_solution(a, bare, CAMERA) is None and fits_consensus(bare, a.world_from_cam,
+                                                                      CAMERA) is None
+    assert solutions([a, bare], CAMERA, lambda x, y: True) == [[0, 1]]
+    assert solutions([a, bare], CAMERA, lambda x, y: False) == [[0], [1]]
+
+
+def test_the_hypothesis_that_beats_every_other_wins_else_ambiguous() -> None:
+    points = np.zeros((4, 3)) + [0.0, 0.0, 0.0]
+    ests = [estimate(downward_pose(x, 0.0, 1.0), points) for x in (0.0, 1.2, 2.4)]
+    base = range(300)
+    strong = support([*base, *range(1000, 1100)])
+    weak1, weak2 = support([*base, *range(2000, 2010)]), support([*base, *range(3000, 3005)])
+    assert choose(ests, [weak1, strong, weak2], alpha=0.01).index == 1
+    tie = choose(ests, [support([*base, *range(1000, 1010)]), support([*base, *range(2000, 2012)]),
+                        weak2], alpha=0.01)
+    assert tie.index is None
+    assert tie.reason.startswith("ambiguous: 3 different poses") and "1.20 m" in tie.reason
+
+
+def repeated_texture() -> np.ndarray:
+    """The mosaic with its top-right photograph replaced by the top-left one: one picture in
+    two places, 2 m apart (as two copies of a poster)."""
+    tex = texture_mosaic().copy()
+    tex[:512, 1024:] = tex[:512, :512]
+    return tex
+
+
+@pytest.fixture(scope="module")
+def repeated_scene():
+    poses = keyframe_grid(5, 3, extent=(2.0, 1.0), height=0.8)
+    return planar_scene(poses, camera=CAMERA, max_features=800, texture=repeated_texture())
+
+
+def relocalizer(scene):
+    # One keyframe per group and every keyframe heard: both copies' groups verify.
+    return create_relocalizer("sbi+p3p", scene.map,
+                              options={"multi": {"num_candidates": 1, "max_groups": 15}})
+
+
+def test_a_copy_elsewhere_verifies_too_but_the_rest_of_the_image_picks_the_true_pose(
+        repeated_scene) -> None:
+    gt = downward_pose(-0.75, -0.5, 0.8)  # the left copy and the photograph right of it
+    result = relocalizer(repeated_scene).relocalize(Frame(repeated_scene.render(gt), CAMERA),
+                                                    hypotheses=15)
+    assert result.ok, result.reason
+    assert pose_error(result.world_from_cam, gt)[0] < 0.02
+    far = [h for h in result.hypotheses if pose_error(h.world_from_cam, gt)[0] > 1.0]
+    assert far, "the copy's group should verify on its own"
+
+
+def test_a_view_of_one_copy_only_is_ambiguous(repeated_scene) -> None:
+    gt = downward_pose(-1.0, -0.5, 0.45)  # nothing but the repeated photograph
+    result = relocalizer(repeated_scene).relocalize(Frame(repeated_scene.render(gt), CAMERA))
+    assert not result.ok
+    assert result.reason.startswith("ambiguous"), result.reason
+    off = create_relocalizer("sbi+p3p", repeated_scene.map,
+                             options={"multi": {"num_candidates": 1, "max_groups": 15,
+                                                "unique": False}})
+    assert off.relocalize(Frame(repeated_scene.render(gt), CAMERA)).ok  # the old behaviour
+
+
+def test_support_counts_the_keypoints_the_local_map_explains(repeated_scene) -> None:
+    from reloc_service import features as feature_lib
+
+    gt = downward_pose(-0.75, -0.5, 0.8)
+    image = repeated_scene.render(gt)
+    feats = feature_lib.extract(image, feature_lib.FeatureConf(kind="sift", max_features=800))
+    state = repeated_scene.map.snapshot()
+    right = explained_keypoints(feats, CAMERA, gt, state, "sift", radius_px=10.0)
+    copy = explained_keypoints(feats, CAMERA, downward_pose(1.25, -0.5, 0.8), state, "sift",
+                               radius_px=10.0)
+    assert len(right) > 0.3 * len(feats) and right.predicted > len(right)
+    assert np.all(np.diff(right.keypoints) > 0)
+    assert compare(right, copy).p_first < 1e-3
+
+
+def test_ferns_refuse_a_view_of_one_copy_and_answer_the_view_beside_it(repeated_scene) -> None:
+    fast = dict(num_ferns=40, num_tests=10, num_warps=25, workers=2, partition="select")
+    ferns = create_relocalizer("ferns", repeated_scene.map, options={"ferns": fast})
+    ferns.train()
+    copy_only = Frame(repeated_scene.render(downward_pose(-1.0, -0.5, 0.6)), CAMERA)
+    refused = ferns.relocalize(copy_only)
+    assert not refused.ok and refused.reason.startswith("ambiguous"), refused.reason
+    gt = downward_pose(-0.75, -0.5, 0.8)
+    answered = ferns.relocalize(Frame(repeated_scene.render(gt), CAMERA))
+    assert answered.ok, answered.reason
+    assert pose_error(answered.world_from_cam, gt)[0] < 0.02
+    first_only = create_relocalizer("ferns", repeated_scene.map,
+                                    options={"ferns": {**fast, "competitors": 0}})
+    first_only.train()
+    assert first_only.relocalize(copy_only).ok   # the first verified pose, as before
