@@ -99,14 +99,28 @@ def match_ratio(desc_query: npt.NDArray, desc_train: npt.NDArray, *, ratio: floa
     if len(desc_query) == 0 or len(desc_train) < 2:
         empty = np.zeros(0, np.int64)
         return empty, empty, np.zeros(0, np.float32)
-    if is_binary_descriptor(desc_query):  # ORB's packed bits: Hamming distance
-        dist, nidx = hamming.knn2(desc_query, desc_train)
-    else:
-        d2, nidx = _knn2_squared(desc_query.astype(np.float32), desc_train.astype(np.float32))
-        dist = np.sqrt(d2)
+    dist, nidx = nearest_two(desc_query, desc_train)
     keep = dist[:, 0] < ratio * dist[:, 1]
     q = np.flatnonzero(keep)
     return q.astype(np.int64), nidx[keep, 0].astype(np.int64), dist[keep, 0].astype(np.float32)
+
+
+def nearest_two(desc_query: npt.NDArray, desc_train: npt.NDArray
+                ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
+    """(N, 2) distances and (N, 2) indices of the two nearest train descriptors (at least
+    two) of each query descriptor: Hamming for binary (uint8) descriptors, L2 for SIFT."""
+    if is_binary_descriptor(desc_query):  # ORB's packed bits: Hamming distance
+        return hamming.knn2(desc_query, desc_train)
+    d2, nidx = _knn2_squared(desc_query.astype(np.float32), desc_train.astype(np.float32))
+    return np.sqrt(d2), nidx
+
+
+def descriptor_distance(a: npt.NDArray, b: npt.NDArray) -> npt.NDArray[np.float64]:
+    """(N,) distances between rows ``a[i]`` and ``b[i]``, as :func:`nearest_two` measures."""
+    if is_binary_descriptor(a):
+        return np.unpackbits(a ^ b, axis=1).sum(1).astype(np.float64)
+    diff = a.astype(np.float32) - b.astype(np.float32)
+    return np.sqrt((diff * diff).sum(1)).astype(np.float64)
 
 
 def _knn2_squared(a: npt.NDArray[np.float32], b: npt.NDArray[np.float32], *,

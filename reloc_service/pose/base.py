@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import abc
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from math import lgamma
 from typing import Any, ClassVar
@@ -138,10 +139,12 @@ class PoseFinder(abc.ABC):
         ``query``: it reads the features that extracted."""
         return None
 
-    def alternatives(self, query: Frame, estimate: PoseEstimate, state: MapState
+    def alternatives(self, query: Frame, estimate: PoseEstimate, state: MapState, *,
+                     plausible: Callable[[PoseEstimate], bool] = lambda _: True
                      ) -> list[PoseEstimate]:
         """Other poses the map around ``estimate`` offers for the same query keypoints
-        (:mod:`.repetition`: twins of its landmarks nearby), unverified; default: none."""
+        (:mod:`.repetition`: twins of its landmarks nearby), unverified; ``plausible``
+        says which first consensus is worth growing. Default: none."""
         return []
 
     def prepare_candidates(self, query: Frame, candidates: list[PlaceCandidate],

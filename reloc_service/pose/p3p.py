@@ -6,6 +6,7 @@ verification)."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -180,12 +181,13 @@ class P3PPoseFinder(PoseFinder):
                                    radius_px=conf.window_factor * self.conf.max_reproj_error_px,
                                    conf=conf)
 
-    def alternatives(self, query: Frame, estimate: PoseEstimate, state: MapState
+    def alternatives(self, query: Frame, estimate: PoseEstimate, state: MapState, *,
+                     plausible: Callable[[PoseEstimate], bool] = lambda _: True
                      ) -> list[PoseEstimate]:
         """Poses the twins of ``estimate``'s landmarks in the local map support
         (:mod:`.repetition`): the landmarks of the keyframes near the pose (those guided
         matching projects), matched to the inliers' query keypoints as closely as Lowe's
-        ratio allows; each grown by guided matching."""
+        ratio allows; each that is ``plausible`` as a first pose, grown by guided matching."""
         feats = query.features.get(self.conf.kind)
         if feats is None or estimate.inlier_keypoints is None or estimate.inlier_landmark_ids is None:
             return []
@@ -200,6 +202,8 @@ class P3PPoseFinder(PoseFinder):
                                      state.landmark_sigmas(pool.landmark_ids, 0.0), conf)
         grown = []
         for alt in alternative_poses(feats, query.camera, twins, pool, self.conf, conf):
+            if not plausible(alt):
+                continue
             assert alt.inlier_landmark_ids is not None
             alt.keyframe_ids = pool.keyframes_of(pool.rows_of(alt.inlier_landmark_ids), near)
             # Twins are the few repeated keypoints: the alternative is grown over its own

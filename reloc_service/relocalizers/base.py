@@ -167,6 +167,15 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
     return True, "", float(np.clip(c_inl * c_ratio * c_rms, 0.0, 1.0))
 
 
+def plausible_first_pose(estimate: PoseEstimate, conf: VerifyConf) -> bool:
+    """Whether ``estimate``, taken as a first pose before guided matching grows it, passes
+    the tests :func:`verify` applies to that first consensus: enough inliers and a
+    consensus chance would not produce."""
+    inliers = int(estimate.inliers or 0)
+    return (inliers >= conf.min_unguided_inliers
+            and _log10_nfa(estimate) <= np.log10(conf.max_false_alarms))
+
+
 def _log10_nfa(est: PoseEstimate) -> float:
     """:func:`log10_false_alarms` of ``est``; -inf (no evidence against) when it does not say
     its threshold or image size (estimates from other sources)."""

@@ -4,6 +4,7 @@ keyframes, a pose finder turns them into a pose, the shared verification judges 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -22,7 +23,16 @@ from ..place.base import PlaceCandidate, PlaceFinder, create_place_finder
 from ..plugins import make_conf
 from ..pose.base import POSE_FINDERS, PoseEstimate, PoseFinder, create_pose_finder
 from . import uniqueness
-from .base import Prior, Relocalizer, RelocResult, VerifyConf, doubt, register, result_from_estimate
+from .base import (
+    Prior,
+    Relocalizer,
+    RelocResult,
+    VerifyConf,
+    doubt,
+    plausible_first_pose,
+    register,
+    result_from_estimate,
+)
 from .overlap import run_beside
 
 
@@ -287,7 +297,9 @@ class MultiRelocalizer(Relocalizer):
         """``verified`` and their ``estimates`` followed by the alternatives a repetition of
         the map around the first offers (:meth:`PoseFinder.alternatives`) that verify."""
         verified, estimates = list(verified), list(estimates)
-        for alternative in self.pose.alternatives(query, estimates[0], state):
+        plausible = functools.partial(plausible_first_pose, conf=self.verify_conf)
+        for alternative in self.pose.alternatives(query, estimates[0], state,
+                                                  plausible=plausible):
             result = result_from_estimate(alternative, self.verify_conf, method=self.method,
                                           map_version=state.version, timings={})
             if result.ok:
