@@ -20,7 +20,7 @@ from reloc_service.tools.bench.cli import add_arguments
 from reloc_service.tools.bench.peers import PlainResult
 
 TINY_SCALE = 0.25
-CELL = re.compile(r"^\d+% / \d+% / \d+% / [\d.]+ ms$")
+CELL = re.compile(r"^\d+% / \d+% / \d+% / \d+% / (?:[\d.]+|-) / [\d.]+ ms$")
 
 
 def expected_columns() -> list[str]:
@@ -234,8 +234,11 @@ def test_plain_result_scored_as_reloc_eval_scores_it():
 
 def test_cell_format():
     r = {"recall": {"5cm_5deg": 0.5, "25cm_10deg": 0.75}, "wrong_rate": 0.0, "p50_ms": 123.4}
-    assert accuracy.cell(r) == "50% / 75% / 0% / 123 ms"
-    assert accuracy.cell({**r, "p50_ms": 7.25, "wrong_rate": None}) == "50% / 75% / - / 7.2 ms"
+    assert accuracy.cell(r) == "50% / 75% / - / 0% / - / 123 ms"
+    assert accuracy.cell({**r, "p50_ms": 7.25, "wrong_rate": None}) \
+        == "50% / 75% / - / - / - / 7.2 ms"
+    assert accuracy.cell({**r, "off_rate": 0.25, "covariance_scale": 1.26}) \
+        == "50% / 75% / 25% / 0% / 1.3 / 123 ms"
 
 
 def test_cli_accepts_accuracy_and_rejects_unknown_sections(capsys):

@@ -88,6 +88,7 @@ def test_summarize_by_hand():
     assert s.recall == {"5cm_5deg": pytest.approx(0.2), "25cm_10deg": pytest.approx(0.4),
                         "50cm_15deg": pytest.approx(0.6)}
     assert s.wrong_rate == pytest.approx(0.2)
+    assert s.off_rate == pytest.approx(0.4)  # 30 cm and 1 m of the four returned
     assert s.not_relocalized_rate == pytest.approx(0.2)
     assert s.median_t_err_m == pytest.approx(0.20)
     assert s.median_t_err_over_sigma == pytest.approx(2.0)  # of 0.2, 2 and 6 sigmas
@@ -146,7 +147,8 @@ def test_machine_info():
 def test_table_rows_and_markdown():
     result = _result()
     (row,) = report.table_rows(result)
-    assert row == ["fake", "20.0", "40.0", "60.0", "20.00", "0.00", "2.0", "1.3", "20.0", "20.0",
+    assert row == ["fake", "20.0", "40.0", "60.0", "20.00", "0.00", "2.0", "1.3", "40.0", "20.0",
+                   "20.0",
                    "30.0", "49.6"]
     table = report.format_table(result)
     assert table.splitlines()[0].split()[:2] == ["method", "@5cm/5deg"]
@@ -327,6 +329,8 @@ def _check_consistent(method: dict) -> None:
     for key, value in metrics.recalls(t, r, ok).items():
         assert s["recall"][key] == pytest.approx(value)
     assert s["wrong_rate"] == pytest.approx(metrics.wrong_rate(t, r, ok))
+    assert s["recall"]["25cm_10deg"] + s["off_rate"] + s["not_relocalized_rate"] \
+        == pytest.approx(1.0)
     assert s["not_relocalized_rate"] == pytest.approx(1 - sum(ok) / len(ok))
     assert s["relocalized"] == sum(ok)
     assert s["recall"]["50cm_15deg"] + s["wrong_rate"] + s["not_relocalized_rate"] \

@@ -58,7 +58,8 @@ SCHEMA = "reloc-bench-accuracy/1"
 NOT_APPLICABLE = "not applicable"
 #: Keys of every column's summary (the JSON schema of one cell).
 SUMMARY_KEYS: tuple[str, ...] = (
-    "queries", "returned", "recall", "wrong_rate", "returned_rate", "not_relocalized_rate",
+    "queries", "returned", "recall", "wrong_rate", "off_rate", "covariance_scale",
+    "returned_rate", "not_relocalized_rate",
     "median_t_err_m",
     "median_r_err_deg", "p50_ms", "p99_ms")
 
@@ -388,7 +389,8 @@ def plain_as_reloc(method: str, plain: Any) -> RelocResult:
 def summary_dict(s: Any) -> dict[str, Any]:
     """The figures of one column from ``reloc eval``'s :class:`MethodSummary`."""
     return {"queries": s.queries, "returned": s.relocalized, "recall": dict(s.recall),
-            "wrong_rate": s.wrong_rate, "returned_rate": 1.0 - s.not_relocalized_rate,
+            "wrong_rate": s.wrong_rate, "off_rate": s.off_rate,
+            "covariance_scale": s.covariance_scale, "returned_rate": 1.0 - s.not_relocalized_rate,
             "not_relocalized_rate": s.not_relocalized_rate,
             "median_t_err_m": s.median_t_err_m, "median_r_err_deg": s.median_r_err_deg,
             "p50_ms": s.latency_p50_ms, "p99_ms": s.latency_p99_ms}
@@ -444,12 +446,20 @@ def _ms(value: Any) -> str:
     return f"{value:.0f} ms" if value >= 10 else f"{value:.1f} ms"
 
 
+def _scale(value: Any) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return f"{value:.1f}"
+
+
 def cell(r: Mapping[str, Any]) -> str:
-    """``recall@5cm/5deg / recall@25cm/10deg / wrong% / p50 ms`` of one column."""
+    """``recall@5cm/5deg / recall@25cm/10deg / off% / wrong% / cov scale / p50 ms`` of one
+    column."""
     if "error" in r:
         return "n/a" if str(r["error"]).startswith(NOT_APPLICABLE) else "error"
     rec = r["recall"]
-    return " / ".join([*(_pct(rec.get(k)) for k in TABLE_RECALLS), _pct(r["wrong_rate"]),
+    return " / ".join([*(_pct(rec.get(k)) for k in TABLE_RECALLS), _pct(r.get("off_rate")),
+                       _pct(r["wrong_rate"]), _scale(r.get("covariance_scale")),
                        _ms(r["p50_ms"])])
 
 
@@ -488,8 +498,8 @@ def recall_gap_points(d: Mapping[str, Any], method: str, reference: str = "sbi+p
 def detail_lines(section: Mapping[str, Any]) -> list[str]:
     """One row per dataset and column: recalls, wrong and not-relocalized rates, p50 and
     p99, the default's recall gap to ``sbi+p3p`` and the share its first step answered."""
-    header = ["dataset", "method", "recall 5cm/5deg", "recall 25cm/10deg", "wrong",
-              "not relocalized", "p50 ms", "p99 ms", "recall - `sbi+p3p`", "first step"]
+    header = ["dataset", "method", "recall 5cm/5deg", "recall 25cm/10deg", "off", "wrong",
+              "cov scale", "not relocalized", "p50 ms", "p99 ms", "recall - `sbi+p3p`", "first step"]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     for name, d in section["datasets"].items():
         if "error" in d:
@@ -505,7 +515,9 @@ def detail_lines(section: Mapping[str, Any]) -> list[str]:
             lines.append("| " + " | ".join([
                 f"{name} ({d['keyframes']} / {d['queries']})", column_label(section, c),
                 _pct(r["recall"].get("5cm_5deg")), _pct(r["recall"].get("25cm_10deg")),
-                _pct(r["wrong_rate"]), _pct(r.get("not_relocalized_rate")), _ms(r["p50_ms"]),
+                _pct(r.get("off_rate")), _pct(r["wrong_rate"]),
+                _scale(r.get("covariance_scale")), _pct(r.get("not_relocalized_rate")),
+                _ms(r["p50_ms"]),
                 _ms(r["p99_ms"]), "-" if gap is None else f"{gap:+.0f} points",
                 "-" if share is None else f"{_pct(share)} by `{first['step']}`"]) + " |")
     return lines
@@ -527,8 +539,9 @@ def note_lines(section: Mapping[str, Any]) -> list[str]:
 def markdown_lines(section: Mapping[str, Any]) -> list[str]:
     """The section of ``docs/performance.md``."""
     return (["## Accuracy on datasets", "",
-             "Each cell: recall at 5 cm / 5 deg / recall at 25 cm / 10 deg / wrong (returned "
-             "but beyond 50 cm or 15 deg) / p50 latency, all as `reloc eval` computes them "
+             "Each cell: recall at 5 cm / 5 deg / recall at 25 cm / 10 deg / off (returned "
+             "but beyond 25 cm or 10 deg) / wrong (returned but beyond 50 cm or 15 deg) / cov "
+             "scale (1 when the stated covariance fits the errors) / p50 latency, all as `reloc eval` computes them "
              "(rates over all queries; latency from the decoded image to the answer, OpenCV "
              f"on one thread). How: {section['how']}. The default method is the service "
              "config's `service.default_method`. Plain OpenCV: SIFT, `BFMatcher` knn ratio "

@@ -108,6 +108,8 @@ class MethodSummary:
     #: (:func:`.metrics.covariance_scale`): 1 when the covariance is honest, 2 when its
     #: sigmas are half what the errors show.
     covariance_scale: float = math.nan
+    #: Fraction of all queries answered beyond 25 cm / 10 deg (:func:`.metrics.off_rate`).
+    off_rate: float = math.nan
 
 
 @dataclass
@@ -384,7 +386,7 @@ def summarize(records: Sequence[QueryRecord]) -> MethodSummary:
         queries=len(records), relocalized=int(ok.sum()), recall=metrics.recalls(t, rot, ok),
         median_t_err_m=med_t, median_r_err_deg=med_r,
         mean_t_err_m=float(t[ok].mean()) if ok.any() else math.nan,
-        wrong_rate=metrics.wrong_rate(t, rot, ok),
+        wrong_rate=metrics.wrong_rate(t, rot, ok), off_rate=metrics.off_rate(t, rot, ok),
         not_relocalized_rate=metrics.not_relocalized_rate(ok),
         latency_p50_ms=metrics.percentile(latency, 50),
         latency_p99_ms=metrics.percentile(latency, 99),

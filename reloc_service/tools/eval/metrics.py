@@ -18,6 +18,9 @@ Array = npt.NDArray[np.float64]
 RECALL_THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.25, 10.0), (0.50, 15.0))
 #: A returned pose worse than this (translation metres, rotation degrees) is *wrong*.
 WRONG_THRESHOLD: tuple[float, float] = (0.50, 15.0)
+#: A returned pose worse than this is *off*: no longer usable to re-anchor odometry, though
+#: not yet wrong. The rate of off poses is the second headline figure next to the wrong rate.
+OFF_THRESHOLD: tuple[float, float] = (0.25, 10.0)
 
 
 def threshold_key(t_max_m: float, r_max_deg: float) -> str:
@@ -133,6 +136,13 @@ def wrong_rate(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.A
     """Fraction of all queries with a wrong pose (see :func:`wrong_mask`); NaN if no query."""
     mask = wrong_mask(t_err_m, r_err_deg, returned, t_max_m, r_max_deg)
     return float(mask.mean()) if len(mask) else math.nan
+
+
+def off_rate(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.ArrayLike
+             ) -> float:
+    """Fraction of all queries with a returned pose beyond :data:`OFF_THRESHOLD`; NaN if no
+    query."""
+    return wrong_rate(t_err_m, r_err_deg, returned, *OFF_THRESHOLD)
 
 
 def not_relocalized_rate(returned: npt.ArrayLike) -> float:

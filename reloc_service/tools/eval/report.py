@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .metrics import RECALL_THRESHOLDS, WRONG_THRESHOLD, threshold_key
+from .metrics import OFF_THRESHOLD, RECALL_THRESHOLDS, WRONG_THRESHOLD, threshold_key
 
 if TYPE_CHECKING:
     from .evaluate import EvalResult, MethodResult
@@ -18,7 +18,7 @@ _NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
 
 _COLUMNS = (["method"]
             + [f"@{t * 100:g}cm/{r:g}deg" for t, r in RECALL_THRESHOLDS]
-            + ["med t cm", "med r deg", "t err/sigma", "cov scale", "wrong %", "not reloc %",
+            + ["med t cm", "med r deg", "t err/sigma", "cov scale", "off %", "wrong %", "not reloc %",
                "p50 ms", "p99 ms"])
 
 
@@ -39,7 +39,7 @@ def table_rows(result: EvalResult) -> list[list[str]]:
                     + [_pct(s.recall[threshold_key(t, r)]) for t, r in RECALL_THRESHOLDS]
                     + [_num(s.median_t_err_m, 100, 2), _num(s.median_r_err_deg, 1, 2),
                        _num(s.median_t_err_over_sigma, 1, 1), _num(s.covariance_scale, 1, 1),
-                       _pct(s.wrong_rate),
+                       _pct(s.off_rate), _pct(s.wrong_rate),
                        _pct(s.not_relocalized_rate), _num(s.latency_p50_ms),
                        _num(s.latency_p99_ms)])
     return rows
@@ -81,8 +81,11 @@ def format_header(result: EvalResult) -> str:
         f"{d['query_frames']} queries; backend {result.backend}",
         f"map: {mp.keyframes} keyframes, {mp.landmarks} landmarks ({mp.landmark_source}"
         f"{lm_err}); built in {mp.build_time_s:.2f} s, trained in {mp.train_time_s:.2f} s",
-        f"recall: queries with a pose within the thresholds; wrong: pose returned but beyond "
-        f"{WRONG_THRESHOLD[0] * 100:g} cm / {WRONG_THRESHOLD[1]:g} deg (% of all queries)"])
+        f"recall: queries with a pose within the thresholds; off / wrong: pose returned but "
+        f"beyond {OFF_THRESHOLD[0] * 100:g} cm / {OFF_THRESHOLD[1]:g} deg / "
+        f"{WRONG_THRESHOLD[0] * 100:g} cm / {WRONG_THRESHOLD[1]:g} deg (% of all queries); "
+        f"cov scale: 1 when the stated covariance fits the errors, 2 when it is twice too "
+        f"confident"])
 
 
 def format_report(result: EvalResult) -> str:
