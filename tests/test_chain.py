@@ -310,3 +310,80 @@ def test_a_later_step_reuses_the_orb_features_of_the_first(two_kind_scene):
 def test_save_dirs_of_a_chain_with_feature_suffixes(two_kind_scene, tmp_path):
     create_relocalizer("sbi+p3p:orb,sbi+p3p", two_kind_scene.map).save(tmp_path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["0_sbi_p3p_orb", "1_sbi_p3p"]
+
+
+def _shifted(offset_m: np.ndarray) -> Callable[[Features], np.ndarray]:
+    """ORB landmarks moved rigidly by ``offset_m``: the ORB step then verifies a consistent
+    pose that is wrong by that offset, as a repeated texture elsewhere would give."""
+    return lambda orb: orb.points_world + offset_m
+
+
+@pytest.fixture()
+def every_answer_narrow(monkeypatch):
+    """Every step's answer counts as resting on a small part of the image (the planar scene
+    cannot give a narrow support that the planar-patch test lets through)."""
+    from reloc_service.relocalizers import chain as chain_module
+
+    monkeypatch.setattr(chain_module, "narrow_support", lambda estimate, conf: True)
+
+
+def test_narrow_support_is_the_inliers_hull_against_the_patch_share():
+    from reloc_service.pose.base import PoseEstimate
+    from reloc_service.relocalizers.base import VerifyConf, narrow_support
+
+    corners = np.array([[0, 0], [80, 0], [80, 60], [0, 60], [40, 30]], np.float64)
+    est = PoseEstimate(np.eye(4), [0], inlier_px=corners, image_size=(320, 240))
+    assert narrow_support(est, VerifyConf())  # 1/16 of the image < 4 of 16 cells
+    est.inlier_px = corners * 3.0  # 9/16 of it
+    assert not narrow_support(est, VerifyConf())
+    est.inlier_px = None
+    assert not narrow_support(est, VerifyConf())
+
+
+def test_a_later_step_overrules_a_narrow_answer_that_explains_less(two_kind_scene,
+                                                                  every_answer_narrow):
+    """The ORB step verifies a pose 15 cm off (its landmarks moved); asked for a second
+    opinion, the SIFT step finds its own pose explains clearly more SIFT keypoints and
+    answers that. Without the second opinion the chain would answer ORB's."""
+    kmap = _map_with_orb(two_kind_scene, _shifted(np.array([0.15, 0.0, 0.0])))
+    gt = query_pose(1)
+    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", kmap)
+    orb_alone = chain.steps[0].relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+    assert orb_alone.ok and pose_error(orb_alone.world_from_cam, gt)[0] > 0.1
+    result = chain.relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+    assert result.ok and result.method == "sbi+p3p"
+    assert pose_error(result.world_from_cam, gt)[0] < 0.01
+
+
+def test_a_later_step_that_explains_a_narrow_answer_answers_more_precisely(
+        two_kind_scene, every_answer_narrow):
+    """A right ORB answer is explained by the SIFT step's own pose: the SIFT pose answers."""
+    gt = query_pose(1)
+    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", two_kind_scene.map)
+    result = chain.relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+    assert result.ok and result.method == "sbi+p3p"
+    assert pose_error(result.world_from_cam, gt)[0] < 0.01
+
+
+def test_a_narrow_answer_stands_when_no_later_step_verifies(two_kind_scene,
+                                                            every_answer_narrow):
+    """The SIFT step verifies nothing (its landmarks scrambled): the ORB answer stands."""
+    kmap = KeyframeMap()
+    rng = np.random.default_rng(1)
+    for kf in two_kind_scene.map.snapshot().keyframes.values():
+        sift = kf.features["sift"]
+        points = sift.points_world.copy()
+        points[sift.landmark_ids >= 0] = rng.uniform(-2, 2, (int((sift.landmark_ids >= 0)
+                                                                 .sum()), 3))
+        kmap.add_keyframe(Keyframe(image=kf.image, camera=CAMERA, id=kf.id,
+                                   world_from_cam=kf.world_from_cam,
+                                   features={"sift": dataclasses.replace(sift,
+                                                                         points_world=points),
+                                             "orb": kf.features["orb"]}))
+    gt = query_pose(1)
+    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", kmap)
+    query = Frame(two_kind_scene.render(gt), CAMERA)
+    result = chain.relocalize(query)
+    assert result.ok and result.method == "sbi+p3p:orb"
+    assert pose_error(result.world_from_cam, gt)[0] < 0.05
+    assert "sift" in query.features  # the SIFT step was asked

@@ -317,6 +317,35 @@ def result_from_estimate(estimate: PoseEstimate | None, conf: VerifyConf, *, met
 ON_DOUBT = "relocalizer:on-doubt"
 
 
+#: Key of ``query.cache`` where a relocalizer that verified a pose leaves that pose's
+#: :class:`PoseEstimate` for the chain that asked (:data:`CONTENDER`).
+ANSWERED = "relocalizer:answered"
+#: Key of ``query.cache`` where a fallback chain leaves an earlier step's answer, as
+#: ``Contender``, for a later step to weigh against its own poses. A step that weighs it
+#: sets ``Contender.weighed``.
+CONTENDER = "relocalizer:contender"
+
+
+@dataclass
+class Contender:
+    """An earlier step's verified answer that a later step should compare with its own:
+    the answer, its estimate, and whether a step has weighed it yet."""
+
+    result: RelocResult
+    estimate: PoseEstimate
+    weighed: bool = False
+
+
+def narrow_support(estimate: PoseEstimate, conf: VerifyConf) -> bool:
+    """Whether ``estimate``'s inliers span less of the image than the coverage test asks of
+    a planar patch (``min_inlier_cells / coverage_grid**2``): a pose fixed by one small area
+    is weakly conditioned (a rotation about that area trades against a translation), so a
+    few wrong matches from a repeated texture can move it far, and a step that sees more of
+    the image should be heard too."""
+    spread = inlier_spread(estimate)
+    return spread is not None and spread < conf.min_inlier_cells / conf.coverage_grid**2
+
+
 def doubt(query: Frame) -> None:
     """Call the hook a chain left on ``query`` (:data:`ON_DOUBT`), if any, and drop it."""
     hook = query.cache.pop(ON_DOUBT, None)

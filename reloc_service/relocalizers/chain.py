@@ -11,7 +11,17 @@ from ..errors import ConfigError, NotTrainedError
 from ..features import FeatureConf
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap
-from .base import ON_DOUBT, Prior, Relocalizer, RelocResult
+from ..pose.base import PoseEstimate
+from .base import (
+    ANSWERED,
+    CONTENDER,
+    ON_DOUBT,
+    Contender,
+    Prior,
+    Relocalizer,
+    RelocResult,
+    narrow_support,
+)
 from .overlap import Ahead, run_ahead
 
 
@@ -56,30 +66,65 @@ class ChainRelocalizer(Relocalizer):
     def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
                    ) -> RelocResult:
         """The first step's verified result, or NOT_RELOCALIZED with every step's reason.
-        A step that is not trained yet is skipped (its reason says so)."""
+        A step that is not trained yet is skipped (its reason says so).
+
+        A second opinion for weakly conditioned answers: when a step's pose rests on inliers
+        spanning a small part of the image (:func:`.base.narrow_support`), the later steps
+        are asked too, with that answer left on the query as a :class:`.base.Contender`. The
+        first later step that verifies a pose weighs the contender against its own by the
+        query keypoints each explains, with its own (richer) features, and its answer is the
+        chain's: the contender, its own pose, or "ambiguous". When no later step weighs it
+        (none verifies anything, or one that cannot compare poses answers), the contender
+        answers."""
         timings: dict[str, float] = {}
         reasons: list[str] = []
         map_version = self.map.version
-        for i, step in enumerate(self.steps):
-            if i + 1 < len(self.steps):
-                query.cache[ON_DOUBT] = functools.partial(extract_ahead, query,
-                                                          self.steps[i + 1])
-            try:
-                result = step.relocalize(query, prior=prior, hypotheses=hypotheses)
-            except NotTrainedError as exc:
-                reasons.append(f"{step.method}: not trained ({exc})")
-                continue
-            finally:
-                query.cache.pop(ON_DOUBT, None)
-            for stage, seconds in result.timings.items():
-                timings[stage] = timings.get(stage, 0.0) + seconds
-            map_version = result.map_version
-            if result.ok:
-                result.timings = timings
-                return result
-            reasons.append(f"{step.method}: {result.reason}")
+        contender: Contender | None = None
+        try:
+            for i, step in enumerate(self.steps):
+                result = self._ask(query, i, prior, hypotheses, reasons)
+                if result is None:
+                    continue
+                for stage, seconds in result.timings.items():
+                    timings[stage] = timings.get(stage, 0.0) + seconds
+                map_version = result.map_version
+                answered = query.cache.pop(ANSWERED, None)
+                if contender is not None and contender.weighed:
+                    result.timings = timings
+                    return result  # the contender weighed: the winner, or "ambiguous"
+                if contender is not None and result.ok:
+                    break  # a step that cannot weigh it does not overrule it
+                if result.ok and contender is None and i + 1 < len(self.steps) \
+                        and _narrow(step, answered):
+                    contender = Contender(result, answered)
+                    query.cache[CONTENDER] = contender
+                    continue
+                if result.ok:
+                    result.timings = timings
+                    return result
+                reasons.append(f"{step.method}: {result.reason}")
+        finally:
+            query.cache.pop(CONTENDER, None)
+        if contender is not None:
+            contender.result.timings = timings
+            return contender.result
         return RelocResult.failure(self.method, "; ".join(reasons), timings=timings,
                                    map_version=map_version)
+
+    def _ask(self, query: Frame, i: int, prior: Prior | None, hypotheses: int,
+             reasons: list[str]) -> RelocResult | None:
+        """Step ``i``'s result, with the next step's features extracted ahead on doubt;
+        None (its reason noted) when the step is not trained."""
+        step = self.steps[i]
+        if i + 1 < len(self.steps):
+            query.cache[ON_DOUBT] = functools.partial(extract_ahead, query, self.steps[i + 1])
+        try:
+            return step.relocalize(query, prior=prior, hypotheses=hypotheses)
+        except NotTrainedError as exc:
+            reasons.append(f"{step.method}: not trained ({exc})")
+            return None
+        finally:
+            query.cache.pop(ON_DOUBT, None)
 
     def save(self, directory: Path) -> None:
         """Each step saves into its own sub-directory (``0_bow_p3p``, ...)."""
@@ -116,6 +161,13 @@ def extract_ahead(query: Frame, step: Relocalizer) -> Ahead[None] | None:
         for kind in confs:
             query.expect_features(kind, ahead)
     return ahead
+
+
+def _narrow(step: Relocalizer, estimate: PoseEstimate | None) -> bool:
+    """Whether ``step``'s answer, given by ``estimate``, rests on a small part of the image
+    by ``step``'s own verification settings (False when the step does not say)."""
+    conf = getattr(step, "verify_conf", None)
+    return estimate is not None and conf is not None and narrow_support(estimate, conf)
 
 
 def _step_dir(index: int, method: str) -> str:

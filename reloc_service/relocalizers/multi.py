@@ -24,6 +24,8 @@ from ..plugins import make_conf
 from ..pose.base import POSE_FINDERS, PoseEstimate, PoseFinder, create_pose_finder
 from . import uniqueness
 from .base import (
+    ANSWERED,
+    CONTENDER,
     Prior,
     Relocalizer,
     RelocResult,
@@ -268,6 +270,7 @@ class MultiRelocalizer(Relocalizer):
         verified = [r for r in results if r.ok]
         if not verified:
             return _failure(self.method, results, timings, state.version)
+        contender = query.cache.get(CONTENDER) if self.conf.unique else None
         if self.require_agreement:
             refusal = self._disagreement(verified)
             if refusal:
@@ -279,6 +282,11 @@ class MultiRelocalizer(Relocalizer):
             start = time.perf_counter()
             verified, found = self._with_alternatives(query, state, verified,
                                                       [e for e in estimates if e is not None])
+            if contender is not None:  # an earlier step's answer, weighed by these features
+                contender.weighed = True
+                if not _explains(found[0], contender.estimate, query):
+                    verified.append(contender.result)
+                    found.append(contender.estimate)
             chosen = self._unique(query, state, found) if len(found) > 1 else None
             timings["unique"] = time.perf_counter() - start
             if chosen is not None and chosen.index is None:
@@ -286,6 +294,7 @@ class MultiRelocalizer(Relocalizer):
                                            map_version=state.version,
                                            matched_keyframe_ids=best.matched_keyframe_ids)
             best = verified[0 if chosen is None else chosen.index]
+            query.cache[ANSWERED] = found[0 if chosen is None else chosen.index]
         best.timings = timings
         others = [r for r in verified if r is not best]
         best.hypotheses = sorted(others, key=lambda r: -r.confidence)[:hypotheses - 1]
@@ -408,6 +417,14 @@ def _add_timings(total: dict[str, float], more: Mapping[str, float]) -> None:
     """Sum ``more`` into ``total`` stage by stage (in place)."""
     for stage, seconds in more.items():
         total[stage] = total.get(stage, 0.0) + seconds
+
+
+def _explains(own: PoseEstimate, contender: PoseEstimate, query: Frame) -> bool:
+    """Whether ``own`` pose reprojects most of ``contender``'s consensus within its inlier
+    threshold: then the contender's evidence is explained by ``own`` too (the same solution,
+    seen on less of the image), and ``own`` stands without a comparison."""
+    share = uniqueness.fits_consensus(contender, own.world_from_cam, query.camera)
+    return share is not None and share > 0.5
 
 
 def _failure(method: str, results: list[RelocResult], timings: dict[str, float],
