@@ -541,8 +541,8 @@ def markdown_lines(section: Mapping[str, Any]) -> list[str]:
     return (["## Accuracy on datasets", "",
              "Each cell: recall at 5 cm / 5 deg / recall at 25 cm / 10 deg / off (returned "
              "but beyond 25 cm or 10 deg) / wrong (returned but beyond 50 cm or 15 deg) / cov "
-             "scale (1 when the stated covariance fits the errors) / p50 latency, all as `reloc eval` computes them "
-             "(rates over all queries; latency from the decoded image to the answer, OpenCV "
+             "scale (1 when the stated covariance fits the errors) / p50 latency, all as "
+             "`reloc eval` computes them (rates over all queries; latency from the decoded image to the answer, OpenCV "
              f"on one thread). How: {section['how']}. The default method is the service "
              "config's `service.default_method`. Plain OpenCV: SIFT, `BFMatcher` knn ratio "
              "0.8 against the landmarks of every keyframe, `cv2.solvePnPRansac`, accepted at "

@@ -153,7 +153,8 @@ def main(args: argparse.Namespace) -> int:
     if acc and "error" not in acc:
         from .accuracy import note_lines, table_lines
 
-        print("\n".join(["", "Accuracy (recall@5cm/5deg / recall@25cm/10deg / off / wrong / cov scale / p50):",
+        print("\n".join(["", "Accuracy (recall@5cm/5deg / recall@25cm/10deg / off / wrong / "
+                                 "cov scale / p50):",
                          *table_lines(acc), *note_lines(acc)]))
     sk = result.get("soak")
     if sk and "error" not in sk:
