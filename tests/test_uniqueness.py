@@ -158,3 +158,36 @@ def test_ferns_refuse_a_view_of_one_copy_and_answer_the_view_beside_it(repeated_
                                     options={"ferns": {**fast, "competitors": 0}})
     first_only.train()
     assert first_only.relocalize(copy_only).ok   # the first verified pose, as before
+
+
+def test_what_a_copys_pose_leaves_unexplained_points_to_the_true_place(repeated_scene) -> None:
+    """Posed on the keyframe above the right copy only, the query of the left copy and the
+    photograph beside it gets the copy's pose; the keypoints that pose does not explain
+    (the photograph beside the left copy) match the landmarks of the keyframes above the
+    true place, and the pose found there is an alternative within 2 cm of the truth."""
+    from reloc_service.place.base import PlaceCandidate
+    from reloc_service.pose.repetition import RepetitionConf, unexplained_matches
+
+    gt = downward_pose(-0.75, -0.5, 0.8)
+    copy_pose = downward_pose(1.25, -0.5, 0.8)
+    query = Frame(repeated_scene.render(gt), CAMERA)
+    finder = relocalizer(repeated_scene).pose
+    state = repeated_scene.map.snapshot()
+    above_copy = state.nearest_keyframes(copy_pose, 1, 60.0)
+    wrong = finder.find_pose(query, [PlaceCandidate(k, 1.0) for k in above_copy], state)
+    assert wrong is not None and pose_error(wrong.world_from_cam, copy_pose)[0] < 0.1
+
+    feats = query.features["sift"]
+    pool = finder._map_pool(state)[0]
+    explained = finder.support(query, wrong.world_from_cam, state)
+    rows = unexplained_matches(feats, explained.keypoints, pool, RepetitionConf())
+    kf_ids, votes = state.landmarks.observing_keyframes(pool.landmark_ids[rows])
+    near_truth = set(state.nearest_keyframes(gt, 3, 60.0))
+    assert near_truth & set(kf_ids[votes == votes.max()].tolist())
+    everything = unexplained_matches(feats, np.zeros(0, np.int64), pool, RepetitionConf())
+    assert len(everything) > len(rows)  # explained keypoints are left out
+
+    (there,) = finder._elsewhere(query, wrong, state, pool.landmark_ids[rows], lambda _: True)
+    assert pose_error(there.world_from_cam, gt)[0] < 0.02
+    alternatives = finder.alternatives(query, wrong, state)
+    assert any(pose_error(a.world_from_cam, gt)[0] < 0.02 for a in alternatives)

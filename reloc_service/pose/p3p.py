@@ -23,7 +23,12 @@ from .guided import GuidedConf, search_by_projection
 from .kernels import compiled
 from .landmark_pool import LandmarkPool
 from .pnp import PnPConf, PointUncertainty, level_scales, solve_pnp_indexed
-from .repetition import RepetitionConf, alternative_poses, twin_correspondences
+from .repetition import (
+    RepetitionConf,
+    alternative_poses,
+    twin_correspondences,
+    unexplained_matches,
+)
 from .support import explained_keypoints
 
 Array = npt.NDArray[np.float64]
@@ -73,6 +78,9 @@ class P3PPoseFinder(PoseFinder):
     def __init__(self, conf: P3PPoseFinder.Conf) -> None:
         super().__init__(conf)
         self.required_features = frozenset({conf.kind})
+        #: The map state the landmark pool of every keyframe was gathered for, that pool and
+        #: its landmarks' depth sigmas (:meth:`_map_pool`).
+        self._pooled: tuple[MapState, LandmarkPool, Array, list[int]] | None = None
 
     def find_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
                   ) -> PoseEstimate | None:
@@ -184,33 +192,64 @@ class P3PPoseFinder(PoseFinder):
     def alternatives(self, query: Frame, estimate: PoseEstimate, state: MapState, *,
                      plausible: Callable[[PoseEstimate], bool] = lambda _: True
                      ) -> list[PoseEstimate]:
-        """Poses the twins of ``estimate``'s landmarks in the local map support
-        (:mod:`.repetition`): the landmarks of the keyframes near the pose (those guided
-        matching projects), matched to the inliers' query keypoints as closely as Lowe's
-        ratio allows; each that is ``plausible`` as a first pose, grown by guided matching."""
+        """Poses a repetition of the map offers instead of ``estimate`` (:mod:`.repetition`):
+        the pose on the keyframes that what ``estimate`` leaves unexplained points to, and
+        those the twins of its landmarks support (landmarks anywhere in the map matched to
+        the inliers' query keypoints as closely as Lowe's ratio allows), each grown by guided
+        matching over the keyframes its twins came from and those near it; only those
+        ``plausible`` as a first pose."""
         feats = query.features.get(self.conf.kind)
         if feats is None or estimate.inlier_keypoints is None or estimate.inlier_landmark_ids is None:
             return []
-        guided = GuidedConf(local_keyframes=self.conf.guided_keyframes)
-        near = state.nearest_keyframes(estimate.world_from_cam, guided.local_keyframes,
-                                       guided.max_view_angle_deg)
-        local = [state.keyframes[k] for k in near]
-        pool = LandmarkPool.gather(local, self.conf.kind)
+        pool, sigmas, ids = self._map_pool(state)
         conf = RepetitionConf(ratio=self.conf.ratio)
         twins = twin_correspondences(feats, estimate.inlier_keypoints,
-                                     estimate.inlier_landmark_ids, pool,
-                                     state.landmark_sigmas(pool.landmark_ids, 0.0), conf)
-        grown = []
+                                     estimate.inlier_landmark_ids, pool, sigmas, conf)
+        explained = self.support(query, estimate.world_from_cam, state)
+        matched = unexplained_matches(feats, np.zeros(0, np.int64) if explained is None
+                                      else explained.keypoints, pool, conf)
+        grown = self._elsewhere(query, estimate, state, pool.landmark_ids[matched], plausible)
         for alt in alternative_poses(feats, query.camera, twins, pool, self.conf, conf):
             if not plausible(alt):
                 continue
             assert alt.inlier_landmark_ids is not None
-            alt.keyframe_ids = pool.keyframes_of(pool.rows_of(alt.inlier_landmark_ids), near)
+            alt.keyframe_ids = pool.keyframes_of(pool.rows_of(alt.inlier_landmark_ids), ids)
             # Twins are the few repeated keypoints: the alternative is grown over its own
             # local map, as a first pose with few inliers is (judged on its twin consensus).
-            grown.append(self._grow(query, feats, alt, local, state, twins[0],
-                                    pool.landmark_ids[twins[1]]))
+            grown.append(self._grow(query, feats, alt,
+                                    [state.keyframes[k] for k in alt.keyframe_ids], state,
+                                    twins[0], pool.landmark_ids[twins[1]]))
         return grown
+
+    def _elsewhere(self, query: Frame, estimate: PoseEstimate, state: MapState,
+                   landmark_ids: npt.NDArray[np.int64],
+                   plausible: Callable[[PoseEstimate], bool]) -> list[PoseEstimate]:
+        """The pose found (:meth:`find_pose`) on the keyframes that observe most of
+        ``landmark_ids`` (what the keypoints ``estimate`` leaves unexplained match) and none
+        of ``estimate``'s inlier landmarks, as many as gave it its inliers. Empty when those
+        keyframes hold fewer of them than a verified pose needs (a minimal sample and one
+        more), or the pose found is not ``plausible``."""
+        assert estimate.inlier_landmark_ids is not None
+        if len(landmark_ids) == 0:
+            return []
+        kf_ids, votes = state.landmarks.observing_keyframes(landmark_ids)
+        original, _ = state.landmarks.observing_keyframes(estimate.inlier_landmark_ids)
+        away = ~np.isin(kf_ids, original)
+        order = np.argsort(-votes[away], kind="stable")[:max(1, len(estimate.keyframe_ids))]
+        if votes[away][order].sum() < estimate.sample_size + 1:
+            return []
+        far = kf_ids[away][order].tolist()
+        found = self.find_pose(query, [PlaceCandidate(int(k), 0.0) for k in far], state)
+        return [] if found is None or not plausible(found) else [found]
+
+    def _map_pool(self, state: MapState) -> tuple[LandmarkPool, Array, list[int]]:
+        """The landmarks of every keyframe of ``state`` (:meth:`LandmarkPool.gather`), their
+        depth sigmas and the keyframe ids in pool order; gathered once per map version."""
+        if self._pooled is None or self._pooled[0] is not state:
+            ids = list(state.keyframes)
+            pool = LandmarkPool.gather([state.keyframes[k] for k in ids], self.conf.kind)
+            self._pooled = (state, pool, state.landmark_sigmas(pool.landmark_ids, 0.0), ids)
+        return self._pooled[1], self._pooled[2], self._pooled[3]
 
     def _scales(self, feats: Features, q_idx: npt.NDArray[np.int64]) -> Array | None:
         """(M,) pyramid-level scales of query keypoints ``q_idx`` with ``level_sigmas``."""

@@ -1,14 +1,18 @@
 """Where the map repeats around a pose: a periodic wall, a row of identical windows or a second
-copy of a picture nearby gives the landmarks of a pose hypothesis twins, other landmarks of the
-local map whose descriptors the same query keypoints match about as well. The poses those
+copy of a picture anywhere gives the landmarks of a pose hypothesis twins, other landmarks of the
+map whose descriptors the same query keypoints match about as well. The poses those
 twins support are the hypotheses a repetition offers instead; the caller compares them with
 the original by what each explains of the whole image (:mod:`.support`).
 
-A twin of inlier ``(keypoint q, landmark L)`` is a landmark ``L'`` of the local map, not within
+A twin of inlier ``(keypoint q, landmark L)`` is a landmark ``L'`` of the map, not within
 three depth sigmas of ``L``, whose descriptor is as close to ``q``'s as Lowe's ratio test
 allows: ``d(q, L') < d(q, L) / ratio``. Had ``L'`` been in the pool the pose was solved from,
-the match to ``L`` would have failed the ratio test: the pose rests on a choice the local map
+the match to ``L`` would have failed the ratio test: the pose rests on a choice the map
 does not make.
+
+A copy elsewhere also shows in what the pose leaves unexplained: the query keypoints it does
+not explain, matched against the whole map, point at the keyframes of the place the query
+was really taken (:func:`unexplained_matches`).
 """
 
 from __future__ import annotations
@@ -41,6 +45,9 @@ class RepetitionConf:
     #: Inliers whose twins are looked for, evenly chosen among all (a fixed cost: a
     #: repetition gives twins to most inliers on it, so a sample shows it).
     max_inliers: int = 100
+    #: Query keypoints a pose leaves unexplained that are matched against the whole map,
+    #: evenly chosen among all (a fixed cost; see :func:`unexplained_matches`).
+    max_unexplained: int = 200
 
 
 def twin_correspondences(features: Features, inlier_keypoints: IntArray,
@@ -71,6 +78,24 @@ def twin_correspondences(features: Features, inlier_keypoints: IntArray,
     apart = gap > 3.0 * (pool_sigmas_m[twin] + pool_sigmas_m[own])
     found = close & apart
     return q[found].astype(np.int64), twin[found].astype(np.int64)
+
+
+def unexplained_matches(features: Features, explained: IntArray, pool: LandmarkPool,
+                        conf: RepetitionConf) -> IntArray:
+    """(M,) ``pool`` rows that the query keypoints a pose does not explain (all but
+    ``explained``) match under Lowe's ratio test (at most ``conf.max_unexplained`` of them,
+    evenly chosen). Where a repeated picture explains the pose, the rest of the image (the
+    wall around it, the furniture) is the original place's and matches its landmarks; under
+    the right pose what is left is texture without landmarks, whose matches are scattered."""
+    left = np.setdiff1d(np.arange(len(features)), explained)
+    if len(left) > conf.max_unexplained:
+        left = left[np.unique(np.linspace(0, len(left) - 1, conf.max_unexplained)
+                              .astype(np.int64))]
+    if len(left) == 0:
+        return np.zeros(0, np.int64)
+    _, rows, _ = feature_lib.match_ratio(features.descriptors[left], pool.descriptors,
+                                         ratio=conf.ratio)
+    return rows.astype(np.int64)
 
 
 def alternative_poses(features: Features, camera: Camera, twins: tuple[IntArray, IntArray],
