@@ -73,6 +73,25 @@ def test_a_pose_millimetres_away_is_the_same_solution_a_shifted_copy_is_not() ->
     assert solutions([a, bare], CAMERA, lambda x, y: False) == [[0], [1]]
 
 
+def test_poses_apart_by_less_than_their_covariances_allow_are_one_solution() -> None:
+    """Two estimates of one place 4 cm apart (from different keyframes of a real map) fit
+    few of each other's inliers, yet with 3 cm position sigmas they are one solution; with
+    3 mm sigmas they are two, and a copy 60 cm away is two under either."""
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(-0.4, 0.4, 200), rng.uniform(-0.3, 0.3, 200),
+                              np.zeros(200)])
+    a = estimate(downward_pose(0.0, 0.0, 1.0), points)
+    b = estimate(downward_pose(0.04, 0.0, 1.0), points)
+    copy = estimate(downward_pose(0.6, 0.0, 1.0), points + [0.6, 0.0, 0.0])
+    assert fits_consensus(a, b.world_from_cam, CAMERA) < 0.5
+    for est in (a, b, copy):
+        est.covariance = np.diag([0.03**2] * 3 + [np.radians(1.0)**2] * 3)
+    assert same_solution(a, b, CAMERA) and not same_solution(a, copy, CAMERA)
+    for est in (a, b, copy):
+        est.covariance = np.diag([0.003**2] * 3 + [np.radians(0.1)**2] * 3)
+    assert not same_solution(a, b, CAMERA) and not same_solution(a, copy, CAMERA)
+
+
 def test_the_hypothesis_that_beats_every_other_wins_else_ambiguous() -> None:
     points = np.zeros((4, 3)) + [0.0, 0.0, 0.0]
     ests = [estimate(downward_pose(x, 0.0, 1.0), points) for x in (0.0, 1.2, 2.4)]

@@ -225,8 +225,9 @@ class P3PPoseFinder(PoseFinder):
                    landmark_ids: npt.NDArray[np.int64],
                    plausible: Callable[[PoseEstimate], bool]) -> list[PoseEstimate]:
         """The pose found (:meth:`find_pose`) on the keyframes that observe most of
-        ``landmark_ids`` (what the keypoints ``estimate`` leaves unexplained match) and none
-        of ``estimate``'s inlier landmarks, as many as gave it its inliers. Empty when those
+        ``landmark_ids`` (what the keypoints ``estimate`` leaves unexplained match), none of
+        ``estimate``'s inlier landmarks and are not in its local map (those see the same
+        place), as many as gave it its inliers. Empty when those
         keyframes hold fewer of them than a verified pose needs (a minimal sample and one
         more), or the pose found is not ``plausible``."""
         assert estimate.inlier_landmark_ids is not None
@@ -234,7 +235,10 @@ class P3PPoseFinder(PoseFinder):
             return []
         kf_ids, votes = state.landmarks.observing_keyframes(landmark_ids)
         original, _ = state.landmarks.observing_keyframes(estimate.inlier_landmark_ids)
-        away = ~np.isin(kf_ids, original)
+        guided = GuidedConf(local_keyframes=self.conf.guided_keyframes)
+        local = state.nearest_keyframes(estimate.world_from_cam, guided.local_keyframes,
+                                        guided.max_view_angle_deg)
+        away = ~np.isin(kf_ids, original) & ~np.isin(kf_ids, local)
         order = np.argsort(-votes[away], kind="stable")[:max(1, len(estimate.keyframe_ids))]
         if votes[away][order].sum() < estimate.sample_size + 1:
             return []

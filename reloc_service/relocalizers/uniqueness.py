@@ -24,7 +24,7 @@ import numpy.typing as npt
 from scipy import stats
 
 from ..cameras import Camera
-from ..geometry import pose_error
+from ..geometry import pose_error, se3_log
 from ..pose.base import PoseEstimate, Support
 from ..pose.guided import project_into
 
@@ -44,12 +44,35 @@ def fits_consensus(estimate: PoseEstimate, world_from_cam: Array, camera: Camera
     return float(np.count_nonzero(near & visible)) / len(px)
 
 
-def same_solution(first: PoseEstimate, second: PoseEstimate, camera: Camera) -> bool | None:
+def same_solution(first: PoseEstimate, second: PoseEstimate, camera: Camera, *,
+                  alpha: float = 0.01) -> bool | None:
     """Whether two estimates are one solution: each pose fits the majority of the other's
-    consensus; None when either does not say what its inliers are."""
+    consensus, or they differ by less than their covariances allow (:func:`within_covariances`
+    at level ``alpha``: two estimates of one place from different keyframes, a degree apart
+    where their keypoints are a few pixels off); None when either does not say what its
+    inliers are."""
     a = fits_consensus(first, second.world_from_cam, camera)
     b = fits_consensus(second, first.world_from_cam, camera)
-    return None if a is None or b is None else a > 0.5 and b > 0.5
+    if a is None or b is None:
+        return None
+    return (a > 0.5 and b > 0.5) or within_covariances(first, second, alpha=alpha)
+
+
+def within_covariances(first: PoseEstimate, second: PoseEstimate, *, alpha: float) -> bool:
+    """Whether the two poses differ by less than chance would make them differ at level
+    ``alpha`` under their stated covariances: the squared Mahalanobis length of the twist
+    between them under the sum of the two covariances (both right perturbations; for poses
+    this close the second's frame is the first's to first order) below chi-square(6)'s
+    ``1 - alpha`` quantile. False when either has no covariance."""
+    if first.covariance is None or second.covariance is None:
+        return False
+    xi = se3_log(np.linalg.inv(first.world_from_cam) @ second.world_from_cam)
+    joint = np.asarray(first.covariance) + np.asarray(second.covariance)
+    try:
+        m2 = float(xi @ np.linalg.solve(joint, xi))
+    except np.linalg.LinAlgError:
+        return False
+    return bool(np.isfinite(m2) and m2 < stats.chi2.ppf(1.0 - alpha, 6))
 
 
 @dataclass(frozen=True)
@@ -108,14 +131,15 @@ def choose(estimates: Sequence[PoseEstimate], supports: Sequence[Support], *, al
 
 
 def solutions(estimates: Sequence[PoseEstimate], camera: Camera,
-              close: Callable[[PoseEstimate, PoseEstimate], bool]) -> list[list[int]]:
+              close: Callable[[PoseEstimate, PoseEstimate], bool], *, alpha: float = 0.01
+              ) -> list[list[int]]:
     """Indices of ``estimates`` grouped into distinct solutions (:func:`same_solution` with
     each group's first member, or ``close`` where that cannot tell), in order of first
     appearance."""
     groups: list[list[int]] = []
     for i, est in enumerate(estimates):
         for group in groups:
-            same = same_solution(estimates[group[0]], est, camera)
+            same = same_solution(estimates[group[0]], est, camera, alpha=alpha)
             if close(estimates[group[0]], est) if same is None else same:
                 group.append(i)
                 break
@@ -131,7 +155,7 @@ def decide(estimates: Sequence[PoseEstimate], camera: Camera,
     solution they form (:func:`solutions`), or the first of the solution whose ``support``
     beats every other's (:func:`choose`). Different solutions that cannot be compared (no
     support) leave the query ambiguous."""
-    groups = solutions(estimates, camera, close)
+    groups = solutions(estimates, camera, close, alpha=alpha)
     if len(groups) == 1:
         return Choice(0)
     firsts = [estimates[g[0]] for g in groups]
