@@ -154,3 +154,22 @@ def test_answer_covariance_adds_the_map_part(sigma):
     total = total_covariance(est)
     assert total is not None
     np.testing.assert_allclose(total, measured + np.eye(6) * sigma**2)
+
+
+def test_a_pose_on_keyframe_rays_takes_their_covariances_by_share():
+    """The five-point finder's pose rests on the keyframes directly: one keyframe with all
+    the inliers gives its covariance moved by the adjoint; a keyframe without inliers none."""
+    from reloc_service.geometry import se3_adjoint
+    from reloc_service.pose.map_uncertainty import keyframes_covariance
+
+    rng = np.random.default_rng(4)
+    world_from_query, _, _, _, state = _scene(rng, 2)
+    only_first = keyframes_covariance(world_from_query, state, [0, 1], [12, 0])
+    adjoint = se3_adjoint(invert(world_from_query) @ state.keyframes[0].world_from_cam)
+    np.testing.assert_allclose(only_first,
+                               adjoint @ state.keyframes[0].pose_covariance @ adjoint.T,
+                               rtol=1e-12, atol=1e-15)
+    both = keyframes_covariance(world_from_query, state, [0, 1], [1, 3])
+    second = keyframes_covariance(world_from_query, state, [1], [1])
+    np.testing.assert_allclose(both, 0.25 * only_first + 0.75 * second, rtol=1e-12, atol=1e-15)
+    assert keyframes_covariance(world_from_query, state, [7], [1]) is None

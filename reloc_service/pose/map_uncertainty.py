@@ -82,14 +82,17 @@ def map_covariance(world_from_cam: Array, state: MapState, landmark_ids: npt.Arr
                                   shares)
 
 
-def keyframes_covariance(world_from_cam: Array, state: MapState, keyframe_ids: list[int]
-                         ) -> Array | None:
+def keyframes_covariance(world_from_cam: Array, state: MapState, keyframe_ids: list[int],
+                         weights: npt.ArrayLike) -> Array | None:
     """(6, 6) covariance that the poses of ``keyframe_ids`` give ``world_from_cam`` when the
-    pose rests on them in equal shares (a pose solved against keyframes, not landmarks);
-    None when none of them is in ``state``."""
-    ids = [k for k in keyframe_ids if k in state.keyframes]
-    if not ids:
+    pose rests on them directly (solved against their rays, as the five-point finder does),
+    each by its share of ``weights`` (K,) (e.g. inliers per keyframe); None when no keyframe
+    with a positive weight is in ``state``."""
+    w = np.asarray(weights, np.float64)
+    keep = [i for i, k in enumerate(keyframe_ids) if k in state.keyframes and w[i] > 0]
+    if not keep:
         return None
+    ids = [keyframe_ids[i] for i in keep]
     poses = np.stack([state.keyframes[k].world_from_cam for k in ids])
     return transported_covariance(world_from_cam, poses, state.pose_covariances(ids),
-                                  np.full(len(ids), 1.0 / len(ids)))
+                                  w[keep] / w[keep].sum())
