@@ -181,7 +181,7 @@ class Engine:
         self.conf = conf or EngineConf()
         #: The map the builder writes (may be ahead of what relocalizers see: :meth:`status`);
         #: written only under ``_writer``, read by anyone through ``snapshot()``.
-        self.map = KeyframeMap()
+        self.map = KeyframeMap(default_pose_covariance=self.conf.mapping.default_pose_covariance())
         self._rw = ReadWriteLock()                # relocalizers, their views, _live
         self._writer = threading.Lock()           # serialises map changes
         self._save_lock = threading.Lock()        # one save at a time
@@ -204,15 +204,18 @@ class Engine:
                      *, depth: npt.ArrayLike | None = None, timestamp: float | None = None,
                      given_keypoints_px: npt.ArrayLike | None = None,
                      given_landmark_ids: npt.ArrayLike | None = None,
-                     given_points_world: npt.ArrayLike | None = None) -> Keyframe:
+                     given_points_world: npt.ArrayLike | None = None,
+                     pose_covariance: npt.ArrayLike | None = None) -> Keyframe:
         """Add (or replace) a posed keyframe: features and landmarks (see
-        :meth:`MapBuilder.add_keyframe`), then every live relocalizer learns it."""
+        :meth:`MapBuilder.add_keyframe`), then every live relocalizer learns it.
+        ``pose_covariance`` (6, 6): how well ``world_from_cam`` is known (None: the map's
+        default, ``mapping.keyframe_position_sigma_m`` and ``..._rotation_sigma_deg``)."""
         with self._writer:
             old = self.map.snapshot().keyframes.get(kf_id)
             keyframe = self.builder.add_keyframe(
                 kf_id, image, camera, world_from_cam, depth=depth, timestamp=timestamp,
                 given_keypoints_px=given_keypoints_px, given_landmark_ids=given_landmark_ids,
-                given_points_world=given_points_world)
+                given_points_world=given_points_world, pose_covariance=pose_covariance)
             with self._rw.write():
                 self._publish([kf_id])
                 for live in self._live.values():

@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 from .cameras import Camera
 from .errors import ConfigError, GeometryError, MapError
-from .geometry import check_pose
+from .geometry import check_pose, check_pose_covariance
 from .numeric import numba_or_none
 
 Array = npt.NDArray[np.float64]
@@ -411,6 +411,10 @@ class Keyframe(Frame):
     the file a snapshot holds), kept to be saved as it is: set from an encoded ``image``,
     or given with decoded pixels. A keyframe with one holds its image encoded only (its
     pixels are decoded when read, shared through :data:`RECENT_PIXELS` while read in a row).
+    ``pose_covariance`` is the optional (6, 6) covariance of ``world_from_cam`` (twist
+    (rho, omega), right perturbation ``world_from_cam @ exp(xi)``, metres and radians): how
+    far the pose it was put with may be from the truth. None: not given (the map's default,
+    :meth:`~.map.MapState.pose_covariances`, applies).
     """
 
     id: int = -1
@@ -418,6 +422,7 @@ class Keyframe(Frame):
     timestamp: float | None = None
     depth: npt.NDArray[np.float32] | None = None
     encoded: EncodedImage | None = field(default=None, repr=False)
+    pose_covariance: Array | None = field(default=None, repr=False)
     keeps_pixels: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
@@ -437,6 +442,9 @@ class Keyframe(Frame):
             raise MapError(f"keyframe id must be a non-negative integer, got {self.id!r}")
         self.id = int(self.id)
         self.world_from_cam = check_pose(self.world_from_cam, name=f"keyframe {self.id} world_from_cam")
+        if self.pose_covariance is not None:
+            self.pose_covariance = check_pose_covariance(
+                self.pose_covariance, name=f"keyframe {self.id} pose_covariance")
         if self.depth is not None and self.depth.shape != self.image_shape:
             raise GeometryError(f"keyframe {self.id}: depth shape {self.depth.shape} != image "
                                 f"shape {self.image_shape}")

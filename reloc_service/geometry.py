@@ -10,7 +10,11 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from reloc_client.protocol.geometry import quat_xyzw_to_rotation, rotation_to_quat_xyzw_array
+from reloc_client.protocol.geometry import (
+    pose_covariance_problem,
+    quat_xyzw_to_rotation,
+    rotation_to_quat_xyzw_array,
+)
 from scipy.spatial.transform import Rotation
 
 from .errors import GeometryError
@@ -58,6 +62,25 @@ def check_pose(pose: npt.ArrayLike, *, name: str = "world_from_cam", tol: float 
         raise GeometryError(f"{name}: last row must be [0 0 0 1], got {t[3].tolist()}")
     check_rotation(t[:3, :3], name=name, tol=tol)
     return t
+
+
+def check_pose_covariance(covariance: npt.ArrayLike, *, name: str = "pose_covariance") -> Array:
+    """Return ``covariance`` as a float64 (6, 6) symmetric matrix (mirrored to exact symmetry)
+    after checking it is a pose covariance: finite, symmetric and positive semi-definite
+    (:func:`reloc_client.protocol.pose_covariance_problem`); :class:`GeometryError` naming
+    ``name`` and the problem otherwise."""
+    problem = pose_covariance_problem(covariance)
+    if problem is not None:
+        raise GeometryError(f"{name}: expected a 6x6 pose covariance (symmetric, positive "
+                            f"semi-definite; twist (rho, omega), m and rad): {problem}")
+    c = np.asarray(covariance, dtype=np.float64)
+    return 0.5 * (c + c.T)
+
+
+def pose_covariance_from_sigmas(position_sigma_m: float, rotation_sigma_rad: float) -> Array:
+    """(6, 6) diagonal pose covariance: ``position_sigma_m`` on each translation axis,
+    ``rotation_sigma_rad`` about each rotation axis (twist (rho, omega))."""
+    return np.diag([position_sigma_m**2] * 3 + [rotation_sigma_rad**2] * 3).astype(np.float64)
 
 
 def check_points(points: npt.ArrayLike, *, name: str = "points", dim: int = 3) -> Array:
@@ -208,6 +231,35 @@ def se3_log(pose: npt.ArrayLike) -> Array:
     omega = so3_log(p[:3, :3])
     rho = np.linalg.solve(_left_jacobian(omega), p[:3, 3])
     return np.concatenate([rho, omega])
+
+
+def se3_adjoint(a_from_b: npt.ArrayLike) -> Array:
+    """(6, 6) adjoint of a pose for twists ``(rho, omega)``: ``a_from_b @ exp(xi) @ b_from_a
+    = exp(Ad xi)``, ``Ad = [[R, [t]x R], [0, R]]``. A right perturbation ``xi`` of
+    ``world_from_b`` seen as a right perturbation of ``world_from_a`` (with
+    ``a_from_b = inv(world_from_a) @ world_from_b``) is ``Ad(a_from_b) xi``."""
+    p = np.asarray(a_from_b, dtype=np.float64)
+    r, t = p[:3, :3], p[:3, 3]
+    out = np.zeros((6, 6))
+    out[:3, :3] = r
+    out[:3, 3:] = skew(t) @ r
+    out[3:, 3:] = r
+    return out
+
+
+def se3_adjoints(a_from_b: npt.ArrayLike) -> Array:
+    """(K, 6, 6) :func:`se3_adjoint` of (K, 4, 4) poses at once."""
+    p = np.asarray(a_from_b, dtype=np.float64).reshape(-1, 4, 4)
+    r, t = p[:, :3, :3], p[:, :3, 3]
+    x, y, z = t[:, 0], t[:, 1], t[:, 2]
+    zero = np.zeros_like(x)
+    t_skew = np.stack([np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1),
+                       np.stack([-y, x, zero], -1)], -2)
+    out = np.zeros((len(p), 6, 6))
+    out[:, :3, :3] = r
+    out[:, :3, 3:] = t_skew @ r
+    out[:, 3:, 3:] = r
+    return out
 
 
 def rotation_angle(rotation: npt.ArrayLike) -> float:

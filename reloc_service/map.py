@@ -22,6 +22,7 @@ import numpy.typing as npt
 
 from .errors import MapError
 from .frame import Features, Keyframe
+from .geometry import check_pose_covariance
 from .landmark_table import Landmark, LandmarkEditor, LandmarkTable
 
 Array = npt.NDArray[np.float64]
@@ -29,12 +30,15 @@ Array = npt.NDArray[np.float64]
 @dataclass(frozen=True)
 class MapState:
     """An immutable view of the map at one version. ``landmarks`` is a
-    :class:`LandmarkTable` (a plain mapping given here is converted)."""
+    :class:`LandmarkTable` (a plain mapping given here is converted).
+    ``default_pose_covariance`` (6, 6) is the covariance of a keyframe put without one (the
+    map's configuration); None: such keyframes are taken as exact."""
 
     keyframes: Mapping[int, Keyframe] = field(default_factory=lambda: MappingProxyType({}))
     landmarks: LandmarkTable = field(default_factory=LandmarkTable)
     version: int = 0
     next_landmark_id: int = 0
+    default_pose_covariance: Array | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.landmarks, LandmarkTable):
@@ -50,6 +54,14 @@ class MapState:
     def keyframe_ids(self) -> list[int]:
         """Keyframe ids in ascending order."""
         return sorted(self.keyframes)
+
+    def pose_covariances(self, kf_ids: Iterable[int]) -> Array:
+        """(K, 6, 6) covariances of the poses of keyframes ``kf_ids``: each keyframe's own,
+        else :attr:`default_pose_covariance`, else zeros (exact)."""
+        default = (np.zeros((6, 6)) if self.default_pose_covariance is None
+                   else self.default_pose_covariance)
+        covs = [self.keyframes[k].pose_covariance for k in kf_ids]
+        return np.array([default if c is None else c for c in covs]).reshape(-1, 6, 6)
 
     def positions_world(self, kf_ids: Iterable[int] | None = None) -> Array:
         """(K, 3) camera centres of ``kf_ids`` (default: all, ascending id)."""
@@ -100,8 +112,11 @@ class KeyframeMap:
     the current state, copies and publishes it, so two concurrent writers would lose one's
     change. Only one thread may write at a time (the engine's writer mutex guarantees it)."""
 
-    def __init__(self) -> None:
-        self._state = MapState()
+    def __init__(self, *, default_pose_covariance: npt.ArrayLike | None = None) -> None:
+        self._default_pose_covariance = (
+            None if default_pose_covariance is None
+            else check_pose_covariance(default_pose_covariance, name="default_pose_covariance"))
+        self._state = MapState(default_pose_covariance=self._default_pose_covariance)
 
     # -- readers -------------------------------------------------------------------------------
     def snapshot(self) -> MapState:
@@ -230,13 +245,15 @@ class KeyframeMap:
         return self._publish(keyframes, landmarks, self._state.next_landmark_id)
 
     def replace_state(self, state: MapState) -> None:
-        """Install a whole state (used when loading a saved map)."""
-        self._state = state
+        """Install a whole state (used when loading a saved map), under this map's default
+        pose covariance (a configuration, not part of what was saved)."""
+        self._state = replace(state, default_pose_covariance=self._default_pose_covariance)
 
     def _publish(self, keyframes: dict[int, Keyframe], landmarks: LandmarkEditor,
                  next_landmark_id: int) -> MapState:
         self._state = MapState(MappingProxyType(keyframes), landmarks.commit(),
-                               self._state.version + 1, next_landmark_id)
+                               self._state.version + 1, next_landmark_id,
+                               self._default_pose_covariance)
         return self._state
 
 

@@ -7,6 +7,7 @@ Also :func:`landmark_errors`, the accuracy of a built map against a dataset's de
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -20,6 +21,7 @@ from .cameras import Camera
 from .errors import ConfigError, GeometryError
 from .features import FEATURE_KINDS, FeatureConf, compute_at, extract
 from .frame import EncodedImage, Features, Keyframe, check_grey_image
+from .geometry import pose_covariance_from_sigmas
 from .landmarks import lift_pixels, sample_depth, triangulate_keyframe
 from .map import KeyframeMap, MapState
 from .plugins import make_conf
@@ -48,6 +50,15 @@ class MappingConf:
     neighbours: int = 5
     max_view_angle_deg: float = 60.0
     triangulation: TriangulationConf = field(default_factory=TriangulationConf)
+    #: 1-sigma error of a keyframe pose put without a covariance, per axis: position
+    #: (metres) and rotation (degrees). The poses a drone puts come from its visual-inertial
+    #: odometry, whose per-frame noise against its own smoothed trajectory is a few
+    #: centimetres and a few tenths of a degree (the ground-truth systems of the real sets
+    #: are no better: TUM's motion capture 1-3 cm and 0.3-0.7 deg, KinectFusion 2-6 px); a
+    #: relocalized pose cannot be more accurate than the poses its landmarks were placed
+    #: with. 0 takes such keyframes as exact.
+    keyframe_position_sigma_m: float = 0.02
+    keyframe_rotation_sigma_deg: float = 0.5
 
     def __post_init__(self) -> None:
         if isinstance(self.triangulation, Mapping):   # a nested config table
@@ -66,11 +77,24 @@ class MappingConf:
         if not 0 < self.max_view_angle_deg <= 180:
             raise ConfigError(f"mapping.max_view_angle_deg must be in (0, 180], got "
                               f"{self.max_view_angle_deg}")
+        for name in ("keyframe_position_sigma_m", "keyframe_rotation_sigma_deg"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not (
+                    math.isfinite(value) and value >= 0):
+                raise ConfigError(f"mapping.{name}: expected a finite number >= 0, got "
+                                  f"{value!r}")
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any] | None) -> MappingConf:
         """From a config table; a nested ``triangulation`` table sets :class:`TriangulationConf`."""
         return make_conf(cls, options, owner="mapping")
+
+    def default_pose_covariance(self) -> Array:
+        """(6, 6) covariance of a keyframe pose put without one (twist (rho, omega)):
+        ``keyframe_position_sigma_m`` and ``keyframe_rotation_sigma_deg`` on each axis,
+        independent."""
+        return pose_covariance_from_sigmas(self.keyframe_position_sigma_m,
+                                           math.radians(self.keyframe_rotation_sigma_deg))
 
     def features_for(self, kind: str) -> int:
         """Strongest keypoints of ``kind`` kept per keyframe."""
@@ -189,11 +213,13 @@ class MapBuilder:
                      *, depth: npt.ArrayLike | None = None, timestamp: float | None = None,
                      given_keypoints_px: npt.ArrayLike | None = None,
                      given_landmark_ids: npt.ArrayLike | None = None,
-                     given_points_world: npt.ArrayLike | None = None) -> Keyframe:
+                     given_points_world: npt.ArrayLike | None = None,
+                     pose_covariance: npt.ArrayLike | None = None) -> Keyframe:
         """Extract features, add the keyframe (replacing one with the same id), triangulate
         against its neighbours; returns the keyframe as the map now holds it. An
         :class:`EncodedImage` ``image`` (the JPEG or PNG a client sent) is decoded here and
-        kept as it is, to be saved without re-encoding."""
+        kept as it is, to be saved without re-encoding. ``pose_covariance``: see
+        :class:`~.frame.Keyframe` (None: the map's default applies)."""
         encoded = image if isinstance(image, EncodedImage) else None
         grey = check_grey_image(image.decode() if isinstance(image, EncodedImage) else image,
                                 camera)
@@ -202,7 +228,9 @@ class MapBuilder:
         features = {kind: self._features(grey, kind, given) for kind in self.conf.feature_kinds}
         keyframe = Keyframe(image=grey, camera=camera, features=features, id=kf_id,
                             world_from_cam=world_from_cam, timestamp=timestamp, depth=depth_m,
-                            encoded=encoded)
+                            encoded=encoded,
+                            pose_covariance=None if pose_covariance is None
+                            else np.asarray(pose_covariance, np.float64))
         self.map.add_keyframe(keyframe)
         self._triangulate(keyframe, self.conf.feature_kinds)
         return self.map.snapshot().keyframe(keyframe.id)

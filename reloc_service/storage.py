@@ -55,6 +55,7 @@ from typing import Any
 import cv2
 import numpy as np
 import numpy.typing as npt
+from reloc_client.protocol import pose_covariance_problem
 
 from .cameras import Camera, camera_from_dict
 from .errors import CameraError, GeometryError, MapError, StorageError
@@ -118,6 +119,8 @@ LANDMARK_INTEGERS = ("ids", "obs_offsets", "obs_keyframe", "obs_kind", "obs_keyp
 #: key prefix), so a place finder indexing a loaded map need not read every image.
 THUMBNAIL_PREFIX = "sbi:"
 
+Array = npt.NDArray[np.float64]
+
 ModelWriter = Callable[[Path], None]
 
 
@@ -159,6 +162,8 @@ def _write_keyframe(writer: SnapshotWriter, kf: Keyframe,
         "timestamp": None if kf.timestamp is None else float(kf.timestamp),
         "image": writer.write(f"images/{kf.id}.{ext}", data),
         "depth": None, "features": {k: list(r) for k, r in sorted(rows.items())}}
+    if kf.pose_covariance is not None:   # absent: none was put (older snapshots neither)
+        entry["pose_covariance"] = kf.pose_covariance.tolist()
     if kf.depth is not None:
         entry["depth"] = writer.write(f"depth/{kf.id}.npy", _npy_bytes(kf.depth.astype(np.float32)))
     return entry
@@ -285,7 +290,27 @@ def _read_manifest(snapshot: Path) -> dict[str, Any]:
                       ("landmarks", landmarks_type)):
         if not isinstance(manifest.get(key), kind):
             raise StorageError(f"{path}: field {key!r} missing or not a {kind.__name__}")
+    for entry in manifest["keyframes"]:
+        _check_entry_covariance(path, entry)
     return manifest
+
+
+def _check_entry_covariance(path: Path, entry: Any) -> None:
+    """A keyframe entry's ``pose_covariance``, when present, must be a pose covariance
+    (6x6, finite, symmetric, positive semi-definite); StorageError naming the keyframe."""
+    if not isinstance(entry, dict) or entry.get("pose_covariance") is None:
+        return
+    problem = pose_covariance_problem(entry["pose_covariance"])
+    if problem is not None:
+        raise StorageError(f"{path}: keyframe {entry.get('id')!r}: pose_covariance: expected a "
+                           f"6x6 pose covariance (symmetric, positive semi-definite): {problem}")
+
+
+def _entry_covariance(entry: Mapping[str, Any]) -> Array | None:
+    """The (6, 6) pose covariance of a keyframe entry (checked by :func:`_read_manifest`), or
+    None when the entry has none."""
+    value = entry.get("pose_covariance")
+    return None if value is None else np.array(value, np.float64)
 
 
 def _read_image(reader: SnapshotReader, relpath: str) -> npt.NDArray[np.uint8]:
@@ -312,7 +337,8 @@ def _read_keyframe(reader: SnapshotReader, entry: Mapping[str, Any]) -> Keyframe
                         camera=camera_from_dict(entry["camera"]), features=features,
                         id=entry["id"],
                         world_from_cam=np.array(entry["world_from_cam"], np.float64),
-                        timestamp=None if timestamp is None else float(timestamp), depth=depth)
+                        timestamp=None if timestamp is None else float(timestamp), depth=depth,
+                        pose_covariance=_entry_covariance(entry))
     except StorageError:
         raise
     except (KeyError, TypeError, ValueError, GeometryError, CameraError, MapError) as exc:
@@ -453,7 +479,7 @@ class _FeatureColumns:
                             features=features, id=entry["id"],
                             world_from_cam=np.array(entry["world_from_cam"], np.float64),
                             timestamp=None if timestamp is None else float(timestamp),
-                            depth=depth)
+                            depth=depth, pose_covariance=_entry_covariance(entry))
         except StorageError:
             raise
         except (KeyError, TypeError, ValueError, GeometryError, CameraError, MapError) as exc:

@@ -141,10 +141,13 @@ def camera_info(stamp: tuple[int, int], camera: dict[str, Any]) -> bytes:
     return w.u32(0).u32(0).u32(0).u32(0).u32(0).u32(0).u8(0).done()   # binning, roi
 
 
-def odometry(stamp: tuple[int, int], odom_from_body: np.ndarray) -> bytes:
+def odometry(stamp: tuple[int, int], odom_from_body: np.ndarray,
+             covariance: np.ndarray | None = None) -> bytes:
+    """nav_msgs/Odometry; ``covariance`` (6, 6) of the pose in ROS's order (zeros: unknown)."""
     q = Rotation.from_matrix(odom_from_body[:3, :3]).as_quat()   # x y z w
     w = Writer().header(stamp, "odom").string("base_link")
-    w.f64s(odom_from_body[:3, 3]).f64s(q).f64s(np.zeros(36))     # pose with covariance
+    cov = np.zeros(36) if covariance is None else np.asarray(covariance, np.float64).ravel()
+    w.f64s(odom_from_body[:3, 3]).f64s(q).f64s(cov)             # pose with covariance
     return w.f64s(np.zeros(6)).f64s(np.zeros(36)).done()          # twist with covariance
 
 

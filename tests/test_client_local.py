@@ -2,6 +2,7 @@
 loopback (free port, multicast scouting off). The real service is tested elsewhere."""
 
 import json
+import re
 import socket
 import sys
 import threading
@@ -246,8 +247,10 @@ def test_puts_and_deletes(client):
     c.set_camera("cam0", CAMERA)
     rng = np.random.default_rng(0)
     feats = {"keypoints_px": rng.uniform(0, 6, (4, 2)), "landmark_ids": [1, 2, -1, 3]}
+    cov = np.diag([1e-4, 4e-4, 9e-4, 1e-5, 2e-5, 3e-5])
     c.add_keyframe(11, np.zeros((6, 8), np.uint8), (np.zeros(3), [0, 0, 0, 1]), camera_id="cam0",
-                   timestamp=3.0, features=feats, depth=np.full((6, 8), 1.5))
+                   timestamp=3.0, features=feats, depth=np.full((6, 8), 1.5),
+                   pose_covariance=cov)
     c.remove_keyframe(11)
     deadline = time.monotonic() + 2
     while len(service.puts) < before + 3 and time.monotonic() < deadline:
@@ -260,7 +263,20 @@ def test_puts_and_deletes(client):
     assert kf_key == "reloc/lab/keyframes/11" and put.id == 11 and put.timestamp == 3.0
     np.testing.assert_array_equal(put.features.landmark_ids, [1, 2, -1, 3])
     np.testing.assert_allclose(put.depth.to_metres(), 1.5)
+    np.testing.assert_array_equal(np.reshape(put.pose_covariance, (6, 6)), cov)
     assert del_key == kf_key and gone is None
+
+
+def test_a_bad_pose_covariance_raises_before_anything_is_sent(client):
+    c, service = client
+    before = len(service.puts)
+    for bad, says in ((np.diag([1.0, 1, 1, 1, 1, -1]), "positive semi-definite"),
+                      (np.eye(5), "(6, 6)")):
+        with pytest.raises(ValueError, match=re.escape(says)):
+            c.add_keyframe(12, np.zeros((6, 8), np.uint8), (np.zeros(3), [0, 0, 0, 1]),
+                           camera_id="cam0", pose_covariance=bad)
+    time.sleep(0.1)
+    assert len(service.puts) == before
 
 
 def test_train_wait(client):

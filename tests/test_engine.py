@@ -357,6 +357,27 @@ def test_sbi_p3p_smoke(synthetic_scene):
         assert dist < 0.02 and np.degrees(angle) < 0.5
 
 
+def test_answers_carry_the_keyframes_pose_covariance(synthetic_scene):
+    """Keyframes put without a covariance take the map's default (5 cm, 1 deg here): every
+    answer's position sigma is then at least about 5 cm, and the verification, which judges
+    the pose against the map, accepts the same answers as with exact keyframes."""
+    pytest.importorskip("reloc_service.pose.p3p")
+    from reloc_service.relocalizers.base import position_sigma_m
+
+    exact = Engine(EngineConf(methods=("sbi+p3p",), mapping={
+        "keyframe_position_sigma_m": 0.0, "keyframe_rotation_sigma_deg": 0.0}))
+    loose = Engine(EngineConf(methods=("sbi+p3p",), mapping={
+        "keyframe_position_sigma_m": 0.05, "keyframe_rotation_sigma_deg": 1.0}))
+    for engine in (exact, loose):
+        _add(engine, synthetic_scene, range(6))
+        engine.train()
+    for image in synthetic_scene.query_images:
+        a = exact.relocalize(Frame(image, synthetic_scene.camera))
+        b = loose.relocalize(Frame(image, synthetic_scene.camera))
+        assert a.ok and b.ok and np.allclose(a.world_from_cam, b.world_from_cam)
+        assert position_sigma_m(a.covariance) < 0.01 < 0.045 < position_sigma_m(b.covariance)
+
+
 # -- the lock discipline with the real methods -------------------------------------------------
 REAL_METHODS = ("sbi+p3p", "bow+p3p", "ferns")
 REAL_OPTIONS = {"bow": {"branching": 6, "depth": 3},

@@ -219,13 +219,15 @@ class FakeBackend:
 
     def __init__(self) -> None:
         self.keyframes: dict[int, np.ndarray] = {}
+        self.pose_covariances: dict[int, np.ndarray | None] = {}
         self.trained = False
         self.closed = False
         self.calls: list[str] = []
 
-    def add_keyframe(self, kf_id, image, camera, world_from_cam, *, depth):
+    def add_keyframe(self, kf_id, image, camera, world_from_cam, *, depth, pose_covariance=None):
         assert image.shape == (camera.height, camera.width) and depth is None
         self.keyframes[kf_id] = world_from_cam
+        self.pose_covariances[kf_id] = pose_covariance
 
     def train(self, *, progress):
         self.trained = True
@@ -238,7 +240,9 @@ class FakeBackend:
         ids = sorted(self.keyframes)
         dist = [np.linalg.norm(self.keyframes[i][:3, 3] - gt_world_from_cam[:3, 3]) for i in ids]
         best = ids[int(np.argmin(dist))]
-        return _ok(self.keyframes[best], method=method, matched_keyframe_ids=[best])
+        # a covariance of 10 cm per axis: the 0.2 m errors are 2 sigma
+        return _ok(self.keyframes[best], method=method, matched_keyframe_ids=[best],
+                   covariance=np.eye(6) * 0.01)
 
     def map_counts(self):
         return len(self.keyframes), 0
@@ -275,6 +279,41 @@ def test_evaluate_orchestrates_a_backend(tmp_path, fake_remote):
     assert a.summary.recall["25cm_10deg"] == pytest.approx(2 / 3)
     assert a.summary.rank_histogram == {1: 2, 4: 1}
     assert result.map.keyframe_positions_world[1] == pytest.approx([0.5, 0.0, 1.0])
+
+
+def test_keyframe_sigma_puts_the_keyframes_with_it_and_weighs_the_truth_by_it(tmp_path,
+                                                                              fake_remote):
+    """``--keyframe-sigma 0.1,2``: every keyframe is put with a 10 cm / 2 deg covariance, and
+    each query's ground truth is as uncertain, so the 0.2 m errors weigh less."""
+    root = _tiny_dataset(tmp_path / "toy")
+    spec = ev.RemoteSpec("tcp/127.0.0.1:1", "toy")
+    exact = ev.evaluate(root, "a", progress=False, remote=spec)
+    assert all(np.array_equal(c, np.zeros((6, 6))) for c in fake_remote.pose_covariances.values())
+    uncertain = ev.evaluate(root, "a", progress=False, remote=spec, keyframe_sigma=(0.1, 2.0))
+    expected = np.diag([0.01] * 3 + [np.radians(2.0) ** 2] * 3)
+    assert all(np.allclose(c, expected) for c in fake_remote.pose_covariances.values())
+    assert exact.ground_truth_sigma == (0.0, 0.0) and uncertain.ground_truth_sigma == (0.1, 2.0)
+    before = exact.method("a").queries[0].t_err_mahalanobis
+    after = uncertain.method("a").queries[0].t_err_mahalanobis
+    assert before == pytest.approx(2.0) and after == pytest.approx(0.2 / np.sqrt(0.02))
+    back = ev.EvalResult.from_dict(json.loads(json.dumps(uncertain.to_dict())))
+    assert back.ground_truth_sigma == (0.1, 2.0)
+    with pytest.raises(ConfigError, match="keyframe sigma"):
+        ev.evaluate(root, "a", progress=False, remote=spec, keyframe_sigma=(-0.1, 1.0))
+
+
+def test_keyframe_sigma_argument():
+    import argparse
+
+    from reloc_service.cli import eval as eval_cli
+
+    parser = argparse.ArgumentParser()
+    eval_cli.add_arguments(parser)
+    assert parser.parse_args(["d", "--keyframe-sigma", "0.02,0.5"]).keyframe_sigma == (0.02, 0.5)
+    assert parser.parse_args(["d"]).keyframe_sigma == (0.0, 0.0)
+    for bad in ("0.02", "a,b", "-1,0", "nan,1"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["d", "--keyframe-sigma", bad])
 
 
 def test_evaluate_errors(tmp_path, fake_remote):

@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pytest
 
@@ -119,3 +121,31 @@ def test_so3_exp_is_scipys_rotation_to_the_bit():
             assert np.array_equal(geometry.so3_exp(v), Rotation.from_rotvec(v).as_matrix())
     batch = geometry.so3_exp(np.array([[0.1, 0.2, 0.3]]))
     assert batch.shape == (1, 3, 3)
+
+
+def test_se3_adjoint_moves_a_twist_across_a_pose():
+    """``a_from_b @ exp(xi) @ b_from_a == exp(Ad(a_from_b) xi)``, for one pose and a stack."""
+    rng = np.random.default_rng(5)
+    poses = [g.se3_exp(rng.normal(size=6)) for _ in range(4)]
+    for a_from_b in poses:
+        xi = rng.normal(size=6) * 0.3
+        np.testing.assert_allclose(a_from_b @ g.se3_exp(xi) @ g.invert(a_from_b),
+                                   g.se3_exp(g.se3_adjoint(a_from_b) @ xi), atol=1e-12)
+    stacked = g.se3_adjoints(np.stack(poses))
+    for a_from_b, adjoint in zip(poses, stacked, strict=True):
+        np.testing.assert_array_equal(adjoint, g.se3_adjoint(a_from_b))
+
+
+def test_check_pose_covariance_says_what_is_wrong():
+    good = np.diag([1e-4, 1e-4, 1e-4, 1e-6, 1e-6, 1e-6])
+    good[0, 3] = good[3, 0] = 5e-6
+    np.testing.assert_array_equal(g.check_pose_covariance(good), good)
+    g.check_pose_covariance(np.zeros((6, 6)))     # exact: allowed
+    nearly = good.copy()
+    nearly[0, 3] *= 1 + 1e-12                   # float noise of a product is not asymmetry
+    assert np.array_equal(g.check_pose_covariance(nearly), g.check_pose_covariance(nearly).T)
+    for bad, says in ((np.eye(3), "shape (3, 3)"), (np.full((6, 6), np.nan), "NaN"),
+                      (good + np.triu(np.full((6, 6), 1e-5), 1), "not symmetric"),
+                      (np.diag([1.0, 1, 1, 1, 1, -1e-3]), "positive semi-definite")):
+        with pytest.raises(GeometryError, match=re.escape(says)):
+            g.check_pose_covariance(bad, name="kf 3")

@@ -244,3 +244,28 @@ def test_keyframes_keep_images_encoded_and_share_recent_pixels():
     assert not np.shares_memory(again, pixels) and np.array_equal(again, img)
     with pytest.raises(GeometryError, match=r"pixels of \(4, 4\) uint8, expected \(48, 64\)"):
         encoded.remember(np.zeros((4, 4), np.uint8))
+
+
+def test_keyframe_pose_covariance_is_checked_and_the_map_default_fills_in():
+    cov = np.diag([1e-4, 1e-4, 1e-4, 1e-6, 1e-6, 1e-6])
+    kf = make_keyframe(0)
+    with_cov = Keyframe(image=kf.image, camera=kf.camera, id=1, world_from_cam=np.eye(4),
+                        pose_covariance=cov)
+    np.testing.assert_array_equal(with_cov.pose_covariance, cov)
+    with pytest.raises(GeometryError, match="keyframe 2 pose_covariance: .*not symmetric"):
+        bad = cov.copy()
+        bad[0, 1] = 1e-5
+        Keyframe(image=kf.image, camera=kf.camera, id=2, world_from_cam=np.eye(4),
+                 pose_covariance=bad)
+    default = np.eye(6) * 4e-4
+    kmap = KeyframeMap(default_pose_covariance=default)
+    kmap.add_keyframe(kf)
+    kmap.add_keyframe(with_cov)
+    covs = kmap.snapshot().pose_covariances([0, 1])
+    np.testing.assert_array_equal(covs[0], default)      # put without one: the default
+    np.testing.assert_array_equal(covs[1], cov)
+    other = KeyframeMap()                                 # no default: exact
+    other.add_keyframe(kf)
+    np.testing.assert_array_equal(other.snapshot().pose_covariances([0])[0], np.zeros((6, 6)))
+    kmap.replace_state(other.snapshot())                  # a loaded state takes this map's
+    np.testing.assert_array_equal(kmap.snapshot().pose_covariances([0])[0], default)

@@ -53,6 +53,16 @@ def features(rng: np.random.Generator, n: int = 5) -> P.WireFeatures:
     return P.WireFeatures(rng.uniform(0, 8, size=(n, 2)), ids, pts)
 
 
+def _pose_covariance(rng: np.random.Generator) -> tuple[float, ...]:
+    """A full-rank 6x6 pose covariance, 36 row-major floats (cm and tenths of a degree)."""
+    a = rng.normal(size=(6, 6)) * np.array([0.01, 0.02, 0.01, 0.003, 0.002, 0.004])[:, None]
+    c = a @ a.T
+    return tuple(float(v) for v in (0.5 * (c + c.T)).ravel())
+
+
+POSE_COVARIANCE = _pose_covariance(np.random.default_rng(3))
+
+
 def all_messages() -> list[P.Message]:
     rng = np.random.default_rng(RNG_SEED)
     pose = random_pose(rng)
@@ -70,6 +80,8 @@ def all_messages() -> list[P.Message]:
         P.KeyframeInfo(3, CAMERA, pose),
         P.KeyframeInfo(4, CAMERA, pose, camera_id="cam0", timestamp=1.0, num_landmarks=9,
                        image=IMAGE),
+        P.KeyframePut(9, IMAGE, pose, camera_id="cam0", pose_covariance=POSE_COVARIANCE),
+        P.KeyframeInfo(9, CAMERA, pose, camera_id="cam0", pose_covariance=POSE_COVARIANCE),
         P.CameraPut("cam0", CAMERA),
         P.CameraPut("pin", P.WireCamera("pinhole", 640, 480, 500.0, 500.0, 319.5, 239.5)),
         P.RelocalizeRequest(IMAGE, camera_id="cam0"),
@@ -341,6 +353,45 @@ def test_too_many_features():
     err = decode_error(data, P.KeyframePut, P.Limits(max_features=4))
     assert err.code is E.PAYLOAD_TOO_LARGE
     P.KeyframePut.decode(data, P.Limits(max_features=5))
+
+
+def test_a_keyframe_pose_covariance_round_trips_exactly():
+    rng = np.random.default_rng(RNG_SEED)
+    for cls, msg in ((P.KeyframePut, P.KeyframePut(1, IMAGE, random_pose(rng), camera_id="c",
+                                                     pose_covariance=POSE_COVARIANCE)),
+                     (P.KeyframeInfo, P.KeyframeInfo(1, CAMERA, random_pose(rng),
+                                                     pose_covariance=POSE_COVARIANCE))):
+        back = cls.decode(msg.encode())
+        assert back.pose_covariance == POSE_COVARIANCE
+    without = P.KeyframePut.decode(P.KeyframePut(2, IMAGE, random_pose(rng),
+                                                 camera_id="c").encode())
+    assert without.pose_covariance is None
+    assert "pose_covariance" not in msgpack.unpackb(
+        P.KeyframePut(2, IMAGE, random_pose(rng), camera_id="c").encode(), raw=False)
+
+
+def _bad_covariances() -> list[tuple[object, str]]:
+    asymmetric = np.diag(np.full(6, 1e-4))
+    asymmetric[0, 1] = 1e-5
+    indefinite = np.diag([1e-4, 1e-4, 1e-4, 1e-6, 1e-6, -1e-6])
+    return [(asymmetric.ravel().tolist(), "not symmetric"),
+            (indefinite.ravel().tolist(), "not positive semi-definite"),
+            ([1e-4] * 35, "an array of 36 numbers"),
+            ([float("nan")] + [0.0] * 35, "a finite number"),
+            ("not numbers", "an array of 36 numbers")]
+
+
+@pytest.mark.parametrize("value, says", _bad_covariances(),
+                         ids=["asymmetric", "indefinite", "35", "nan", "str"])
+def test_bad_pose_covariances_are_refused_saying_why(value, says):
+    obj = kf_dict()
+    obj["pose_covariance"] = value
+    err = decode_error(pack(obj), P.KeyframePut)
+    assert err.code in (E.BAD_VALUE, E.WRONG_TYPE)
+    assert err.message.startswith("keyframe.pose_covariance") and says in err.message, err
+    with pytest.raises(P.ProtocolError, match="pose_covariance"):   # nor does encode make one
+        P.KeyframePut(1, IMAGE, P.WirePose.from_matrix(np.eye(4)), camera_id="c",
+                      pose_covariance=tuple(np.ravel(np.asarray(value, dtype=object)))).encode()
 
 
 def test_depth_errors():

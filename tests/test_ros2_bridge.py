@@ -31,6 +31,7 @@ from service_support import ROOT, endpoint, free_port, wait_until
 
 from reloc_service.service.app import Service
 from reloc_service.service.config import parse_config
+from reloc_service.service.ros2 import convert
 
 CIMG = "sensor_msgs/msg/CompressedImage"
 # FLU body, camera optical frame looking forward, 10 cm ahead and 5 cm above the body origin.
@@ -74,10 +75,17 @@ def pose_error(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(a[:3, 3] - b[:3, 3])), float(np.degrees(angle))
 
 
+#: The pose covariance the map's odometry says it has (ROS's order: x y z, then rotations about
+#: the parent's x y z): 1, 2, 3 cm and 0.2, 0.3, 0.4 deg, x correlated with rotZ.
+ODOMETRY_COVARIANCE = np.diag(np.square([0.01, 0.02, 0.03, 0.0035, 0.0052, 0.007]))
+ODOMETRY_COVARIANCE[0, 5] = ODOMETRY_COVARIANCE[5, 0] = 0.5 * 0.01 * 0.007
+
+
 def feed_map(drone: StandIn, camera: dict, frames: list[tuple[bytes, np.ndarray]], *,
              repeat_nearby: bool) -> None:
-    """CameraInfo, then each frame's odometry and image (stamps 100 + i / 10 s); with
-    ``repeat_nearby`` each frame again 2 cm further, which the keyframe rule must skip."""
+    """CameraInfo, then each frame's odometry (with :data:`ODOMETRY_COVARIANCE`) and image
+    (stamps 100 + i / 10 s); with ``repeat_nearby`` each frame again 2 cm further, which the
+    keyframe rule must skip."""
     drone.publish("/camera/camera_info", "sensor_msgs/msg/CameraInfo",
                   rosbags_hash("sensor_msgs/msg/CameraInfo"), camera_info(stamp(99.0), camera))
     odom_hash = rosbags_hash("nav_msgs/msg/Odometry")
@@ -90,7 +98,8 @@ def feed_map(drone: StandIn, camera: dict, frames: list[tuple[bytes, np.ndarray]
         for dt, pose in shots:
             t = stamp(100.0 + 0.1 * i + dt)
             drone.publish("/odom", "nav_msgs/msg/Odometry", odom_hash,
-                          odometry(t, pose @ np.linalg.inv(body_from_cam())))
+                          odometry(t, pose @ np.linalg.inv(body_from_cam()),
+                                   ODOMETRY_COVARIANCE))
             drone.publish("/camera/image_raw/compressed", CIMG, HASH[CIMG],
                           compressed_image(t, "camera", "png", png))
 
@@ -173,6 +182,13 @@ def test_map_from_odometry_then_relocalize_each_query(world, synthetic_scene):
     kf_poses = [rt.map_state().keyframes[k].world_from_cam for k in range(6)]
     for got, want in zip(kf_poses, scene.keyframe_poses, strict=True):
         assert np.allclose(got, want, atol=1e-6)        # odometry @ body_from_cam
+    for k, world_from_cam in enumerate(kf_poses):      # the odometry's covariance, ours
+        world_from_body = world_from_cam @ np.linalg.inv(body_from_cam())
+        kf_cov = rt.map_state().keyframes[k].pose_covariance
+        assert kf_cov is not None
+        np.testing.assert_allclose(
+            convert.ros_covariance(world_from_cam, kf_cov, world_from_body),
+            ODOMETRY_COVARIANCE, rtol=1e-6, atol=1e-12)
     for i, (png, world_from_cam) in enumerate(zip(pngs(scene.query_images), scene.query_poses,
                                                   strict=True)):
         success, message, pose = relocalize(drone, service, png, stamp(200.0 + i), i + 1,
@@ -231,6 +247,28 @@ def test_bad_messages_are_counted_and_the_node_keeps_working(world):
     wait_until(lambda: service.ros2.counters["bad_samples"] == bad + 3)
     [(payload, _att)] = drone.call_trigger("/reloc/room/relocalize", seq=25)
     assert read_trigger_response(payload)[0]   # the last good image and camera still serve
+
+
+def test_odometry_with_a_bad_covariance_still_makes_a_keyframe_with_the_default(
+        world, synthetic_scene):
+    """A covariance that is not one (not positive semi-definite) is counted and left out:
+    the keyframe is made and takes the map's default."""
+    service, drone = world
+    scene = synthetic_scene
+    rt = service.maps["room"]
+    before = len(rt.map_state().keyframes)
+    bad_cov = np.diag([1e-4, 1e-4, 1e-4, -1e-4, 1e-6, 1e-6])
+    far = scene.keyframe_poses[0].copy()
+    far[:3, 3] += (3.0, 0.0, 0.0)   # away from every keyframe: the rule makes it one
+    t = stamp(500.0)
+    drone.publish("/odom", "nav_msgs/msg/Odometry", rosbags_hash("nav_msgs/msg/Odometry"),
+                  odometry(t, far @ np.linalg.inv(body_from_cam()), bad_cov))
+    drone.publish("/camera/image_raw/compressed", CIMG, HASH[CIMG],
+                  compressed_image(t, "camera", "png", pngs(scene.keyframe_images[:1])[0]))
+    wait_until(lambda: len(rt.map_state().keyframes) == before + 1, timeout=60)
+    assert service.ros2.counters["bad_odometry_covariance"] == 1
+    newest = rt.map_state().keyframes[max(rt.map_state().keyframes)]
+    assert newest.pose_covariance is None   # the map's default applies
 
 
 def test_a_request_without_attachment_gets_no_reply(world):

@@ -41,6 +41,48 @@ def test_covariance_in_ros_convention_matches_sampled_body_poses():
     assert not np.allclose(expected, cov_cam, atol=1e-6)   # the conversion does something
 
 
+def test_covariance_from_ros_undoes_ros_covariance():
+    """Ours -> ROS -> ours and ROS -> ours -> ROS give back what went in."""
+    rng = np.random.default_rng(1)
+    world_from_cam = look_at((1.0, -2.0, 1.5), (0.0, 1.0, 1.0))
+    body_from_cam = pose_from_tq((0.8, 0.5, -0.6), (0.5, -0.5, 0.5, -0.5))
+    world_from_body = compose(world_from_cam, invert(body_from_cam))
+    a = rng.normal(size=(6, 6)) * np.array([0.02, 0.03, 0.01, 0.02, 0.03, 0.01])[:, None]
+    ours = a @ a.T
+    ros = convert.ros_covariance(world_from_cam, ours, world_from_body)
+    np.testing.assert_allclose(convert.covariance_from_ros(world_from_cam, ros, world_from_body),
+                               ours, rtol=1e-9, atol=1e-15)
+    b = rng.normal(size=(6, 6)) * 0.01
+    ros2 = b @ b.T
+    back = convert.ros_covariance(
+        world_from_cam, convert.covariance_from_ros(world_from_cam, ros2, world_from_body),
+        world_from_body)
+    np.testing.assert_allclose(back, ros2, rtol=1e-9, atol=1e-15)
+
+
+def test_odometry_covariance_unknown_and_invalid():
+    """ROS's "unknown" (all zeros, or -1 first) is None; a matrix that is no covariance is a
+    ValueError naming why; a valid one is converted."""
+    world_from_cam = look_at((0.0, 0.0, 1.0), (1.0, 0.0, 1.0))
+    world_from_body = world_from_cam
+    assert convert.odometry_covariance(np.zeros(36), world_from_cam, world_from_body) is None
+    unknown = np.zeros(36)
+    unknown[0] = -1.0
+    assert convert.odometry_covariance(unknown, world_from_cam, world_from_body) is None
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        convert.odometry_covariance(np.diag([1.0, 1, 1, 1, 1, -0.5]).ravel(), world_from_cam,
+                                    world_from_body)
+    with pytest.raises(ValueError, match="symmetric"):
+        asym = np.eye(6)
+        asym[0, 1] = 0.5
+        convert.odometry_covariance(asym.ravel(), world_from_cam, world_from_body)
+    cov = np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5])
+    ours = convert.odometry_covariance(cov.ravel(), world_from_cam, world_from_body)
+    assert ours is not None
+    np.testing.assert_allclose(convert.ros_covariance(world_from_cam, ours, world_from_body),
+                               cov, atol=1e-15)
+
+
 def test_body_pose_undoes_the_extrinsics():
     world_from_body = pose_from_tq((1.0, 2.0, 0.5), (0.0, 0.0, 0.3826834, 0.9238795))
     body_from_cam = pose_from_tq((0.1, 0.0, 0.0), (-0.5, 0.5, -0.5, 0.5))

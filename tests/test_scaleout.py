@@ -18,6 +18,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import zenoh
 from reloc_client.client import NoReplyError, RelocClient, ServiceError
@@ -73,12 +74,26 @@ def test_shards_serve_their_own_maps_and_clients_are_unaware(synthetic_scene, tm
         ev2.close()
 
 
+def _pose_covariance(kf_id: int) -> np.ndarray | None:
+    """Even keyframes are put with a pose covariance of their own, odd ones without."""
+    return None if kf_id % 2 else np.diag([1e-4, 4e-4, 9e-4, 1e-5, 2e-5, 3e-5]) * (1 + kf_id)
+
+
 def _stream(client: RelocClient, scene, ids: range, pause: float) -> None:
     for kf_id in ids:
         i = kf_id % len(scene.keyframe_images)
         client.add_keyframe(kf_id, scene.keyframe_images[i], scene.keyframe_poses[i],
-                            camera_id="cam0", timestamp=float(kf_id))
+                            camera_id="cam0", timestamp=float(kf_id),
+                            pose_covariance=_pose_covariance(kf_id))
         time.sleep(pause)
+
+
+def _same_pose_covariances(state, ids) -> bool:
+    for kf_id in ids:
+        got, put = state.keyframes[kf_id].pose_covariance, _pose_covariance(kf_id)
+        if (got is None) != (put is None) or (put is not None and not np.array_equal(got, put)):
+            return False
+    return True
 
 
 def test_late_replica_bootstraps_then_follows_the_stream(synthetic_scene, tmp_path):
@@ -258,6 +273,7 @@ def test_bootstrapped_replica_keeps_the_intrinsics_keyframes_were_built_with(syn
             assert rt2.map_state().keyframe_ids() == list(range(5))
             for kf_id in range(5):     # the keyframes kept the intrinsics they were built with
                 assert rt2.map_state().keyframes[kf_id].camera.to_dict() == true_cam
+            assert _same_pose_covariances(rt2.map_state(), range(5))   # and their covariances
             assert rt2.camera("cam0").to_dict() == rt1.camera("cam0").to_dict()
             assert rt1.status().map_version == rt2.status().map_version
             for q in range(len(scene.query_images)):
@@ -274,6 +290,7 @@ def test_bootstrapped_replica_keeps_the_intrinsics_keyframes_were_built_with(syn
             assert rt2.status().counters.get("bootstrap_already_held") == 5
             assert all(rt2.map_state().keyframes[k].camera.to_dict() == true_cam
                        for k in range(5))
+            assert _same_pose_covariances(rt2.map_state(), range(5))
         finally:
             second.stop()
         events.close()

@@ -3,6 +3,7 @@ or newer maps."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import mmap
 import os
@@ -126,6 +127,27 @@ def test_round_trip_is_exact(tmp_path, rich_state):
     kmap = KeyframeMap()
     kmap.replace_state(state)
     kmap.remove_keyframe(0)
+
+
+def test_pose_covariances_round_trip_and_a_bad_one_is_named(tmp_path, synthetic_map):
+    """A keyframe's pose covariance is saved as given (none stays none); a manifest whose
+    covariance is not one (not positive semi-definite) fails the load naming the keyframe."""
+    kmap = KeyframeMap()
+    kmap.replace_state(_tiny_state(synthetic_map, 2))
+    first = kmap.snapshot().keyframes[0]
+    cov = np.diag([1e-4, 2e-4, 3e-4, 1e-5, 2e-5, 3e-5])
+    cov[1, 4] = cov[4, 1] = 1e-5
+    kmap.add_keyframe(dataclasses.replace(first, image=first.image_source, pose_covariance=cov))
+    snap = save_map(kmap.snapshot(), tmp_path)
+    state, _ = load_map(tmp_path)
+    np.testing.assert_array_equal(state.keyframes[0].pose_covariance, cov)
+    assert state.keyframes[1].pose_covariance is None
+    manifest = json.loads((snap / "manifest.json").read_text())
+    entry = next(e for e in manifest["keyframes"] if e["id"] == 0)
+    entry["pose_covariance"] = np.diag([1e-4] * 5 + [-1e-4]).tolist()
+    (snap / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(StorageError, match=r"keyframe 0: pose_covariance: .*positive semi-def"):
+        load_map(tmp_path)
 
 
 def test_empty_map_round_trip(tmp_path):
@@ -622,6 +644,8 @@ def test_format_3_snapshots_are_read(tmp_path):
     _assert_states_equal(v2, state)
     assert np.array_equal(state.landmark_points(sorted(v2.landmarks)),
                           v2.landmark_points(sorted(v2.landmarks)))
+    # written before keyframes had a pose covariance: none, the map's default applies
+    assert all(kf.pose_covariance is None for kf in state.keyframes.values())
     snap = save_map(state, tmp_path)
     assert json.loads((snap / "manifest.json").read_text())["format_version"] == 4
     _assert_states_equal(state, load_map(tmp_path)[0])

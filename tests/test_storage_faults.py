@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import msgpack
+import numpy as np
 import pytest
 from reloc_client import protocol as wire
 from reloc_client.client import (
@@ -43,10 +44,20 @@ def conf(port: int, storage: Path, **service):
                         snapshot_every=0, **service)
 
 
+def pose_covariance(kf_id: int) -> np.ndarray | None:
+    """The pose covariance keyframe ``kf_id`` is put with: one of its own for even ids
+    (1-3 cm, 0.2-0.6 deg, x and yaw correlated), none (the map's default) for odd ids."""
+    if kf_id % 2:
+        return None
+    cov = np.diag(np.square([0.01, 0.02, 0.03, 0.0035, 0.007, 0.0105]) * (1 + kf_id))
+    cov[0, 5] = cov[5, 0] = 0.3 * np.sqrt(cov[0, 0] * cov[5, 5])
+    return cov
+
+
 def upload(client: RelocClient, scene, events: Events, ids) -> None:
     for kf_id in ids:
         client.add_keyframe(kf_id, scene.keyframe_images[kf_id], scene.keyframe_poses[kf_id],
-                            camera_id="cam0")
+                            camera_id="cam0", pose_covariance=pose_covariance(kf_id))
     for kf_id in ids:
         events.wait("keyframe_added", id=kf_id)
 
@@ -438,6 +449,74 @@ def test_map_check_reports_skipped_records_torn_tails_and_quarantine(storage, ca
     assert main(["map", "check", "--json", str(storage / BAD)]) == 1
     [report] = json.loads(capsys.readouterr().out)
     assert report["damaged"] and len(report["quarantine"]) == 2    # the skipped and the torn
+
+
+def test_keyframe_pose_covariances_survive_snapshot_and_journal(storage):
+    """Keyframes 0-2 come back from the snapshot, 3-5 from the journal: each with the pose
+    covariance it was put with (bit for bit), or none; a get of the keyframes says so."""
+    port = free_port()
+    with Service(conf(port, storage)) as service, \
+            RelocClient(endpoint(port), map=GOOD, timeout=30) as client:
+        state = service.maps[GOOD].map_state()
+        for kf_id in (*SNAPSHOT_IDS, *JOURNAL_IDS):
+            got, put = state.keyframes[kf_id].pose_covariance, pose_covariance(kf_id)
+            assert (got is None) == (put is None), kf_id
+            if put is not None:
+                np.testing.assert_array_equal(got, put)
+        infos = {info.id: info for info in client.keyframes()}
+        assert infos[2].pose_covariance == tuple(pose_covariance(2).ravel())
+        assert infos[3].pose_covariance is None
+
+
+def _bad_covariance_put(kf_id: int, scene) -> bytes:
+    """A KeyframePut whose pose covariance is not one (written past the encoder's check, as
+    a damaged or foreign writer could)."""
+    good = wire.KeyframePut(kf_id, wire.WireImage.from_array(scene.keyframe_images[0]),
+                            wire.WirePose.from_matrix(scene.keyframe_poses[0]),
+                            camera_id="cam0").encode()
+    fields = msgpack.unpackb(good, raw=False)
+    fields["pose_covariance"] = np.diag([1e-4, 1e-4, 1e-4, 1e-6, 1e-6, -1e-6]).ravel().tolist()
+    return msgpack.packb(fields, use_bin_type=True)
+
+
+def test_map_check_names_a_journaled_pose_covariance_that_is_not_one(storage, synthetic_scene,
+                                                                     capsys):
+    """A journal record carrying a keyframe whose pose covariance is not positive
+    semi-definite: map check says which and why; the service skips it and serves the rest."""
+    from reloc_service.cli.main import main
+
+    map_dir = storage / BAD
+    journal = Journal(map_dir / "journal")
+    journal.open()
+    journal.append(msgpack.packb({"op": "kf", "id": 9, "payload": _bad_covariance_put(
+        9, synthetic_scene)}, use_bin_type=True))
+    journal.close()
+    assert main(["map", "check", str(map_dir)]) == 1
+    out = capsys.readouterr().out
+    assert "invalid record 3: kf 9: keyframe.pose_covariance" in out, out
+    assert "not positive semi-definite" in out and "(a replay skips it)" in out
+    port = free_port()
+    with Service(conf(port, storage)) as service:
+        state = service.maps[BAD].map_state()
+        assert sorted(state.keyframes) == [*SNAPSHOT_IDS, *JOURNAL_IDS]   # 9 skipped, rest served
+
+
+def test_map_check_names_a_snapshot_pose_covariance_that_is_not_one(storage, capsys):
+    """A snapshot whose manifest gives a keyframe a covariance that is not symmetric: map
+    check reports the current snapshot damaged, naming the keyframe and why."""
+    from reloc_service.cli.main import main
+
+    map_dir = storage / BAD
+    snap = map_dir / "map" / (map_dir / "map" / "CURRENT").read_text().strip()
+    manifest = json.loads((snap / "manifest.json").read_text())
+    cov = np.eye(6) * 1e-4
+    cov[0, 1] = 5e-5
+    manifest["keyframes"][1]["pose_covariance"] = cov.tolist()
+    (snap / "manifest.json").write_text(json.dumps(manifest))
+    assert main(["map", "check", str(map_dir)]) == 1
+    out = capsys.readouterr().out
+    assert "the current snapshot is damaged" in out and "keyframe 1: pose_covariance" in out
+    assert "not symmetric" in out
 
 
 def test_map_check_reports_a_missing_current(storage, capsys):

@@ -150,7 +150,8 @@ def keyframe_put_bytes(kf_id: int, image: ImageLike, world_from_cam: PoseLike, *
                        camera_id: str | None = None, camera: CameraLike | None = None,
                        timestamp: float | None = None,
                        features: wire.WireFeatures | Mapping[str, Any] | None = None,
-                       depth: Any = None, image_format: str | None = None) -> bytes:
+                       depth: Any = None, image_format: str | None = None,
+                       pose_covariance: Any = None) -> bytes:
     """An encoded KeyframePut (see :meth:`RelocClient.add_keyframe` for the arguments)."""
     return wire.KeyframePut(
         id=kf_id, image=to_wire_image(image, image_format=image_format),
@@ -158,7 +159,26 @@ def keyframe_put_bytes(kf_id: int, image: ImageLike, world_from_cam: PoseLike, *
         camera=None if camera is None else to_wire_camera(camera),
         timestamp=None if timestamp is None else float(timestamp),
         features=None if features is None else to_wire_features(features),
-        depth=None if depth is None else to_wire_depth(depth)).encode()
+        depth=None if depth is None else to_wire_depth(depth),
+        pose_covariance=to_wire_covariance(pose_covariance)).encode()
+
+
+def to_wire_covariance(covariance: Any) -> tuple[float, ...] | None:
+    """A (6, 6) pose covariance (or its 36 row-major values) as the wire's 36 floats; None
+    stays None. ValueError naming the problem unless it is a pose covariance (finite,
+    symmetric, positive semi-definite)."""
+    if covariance is None:
+        return None
+    try:
+        c = np.asarray(covariance, dtype=np.float64).reshape(6, 6)
+    except (TypeError, ValueError):
+        raise ValueError(f"pose_covariance: expected a (6, 6) array or 36 numbers, got "
+                         f"shape {np.shape(covariance)}") from None
+    problem = wire.pose_covariance_problem(c)
+    if problem is not None:
+        raise ValueError(f"pose_covariance: expected a pose covariance (symmetric, positive "
+                         f"semi-definite): {problem}")
+    return tuple(float(v) for v in c.ravel())
 
 
 # -- the client -------------------------------------------------------------------------------
@@ -239,9 +259,13 @@ class RelocClient:
                      timestamp: float | None = None,
                      features: wire.WireFeatures | Mapping[str, Any] | None = None,
                      depth: Any = None, image_format: str | None = None,
+                     pose_covariance: Any = None,
                      wait: bool = False, timeout: float | None = None) -> None:
         """Put keyframe ``kf_id`` (added, or replaced if it exists) with its image,
         ``world_from_cam`` ((4, 4) or (t, q)), and exactly one of ``camera_id`` / ``camera``.
+        ``pose_covariance`` (6, 6): how well ``world_from_cam`` is known (twist (rho, omega),
+        right perturbation ``world_from_cam @ exp(xi)``, m and rad); the relocalized poses
+        the keyframe supports carry it. None: the map's configured default applies.
 
         A put has no reply. Without ``wait`` it returns at once, even if no service is
         there; a refused keyframe is then only reported as a ``keyframe_rejected`` event (see
@@ -253,7 +277,8 @@ class RelocClient:
         :class:`Outbox`)."""
         payload = keyframe_put_bytes(kf_id, image, world_from_cam, camera_id=camera_id,
                                      camera=camera, timestamp=timestamp, features=features,
-                                     depth=depth, image_format=image_format)
+                                     depth=depth, image_format=image_format,
+                                     pose_covariance=pose_covariance)
         key = wire.keys.keyframe(self.prefix, self.map, kf_id)
         self._send(("kf", kf_id), lambda: self._put(key, payload), wait=wait,
                    timeout=timeout, what=f"keyframe {kf_id}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -43,6 +44,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "service at this Zenoh endpoint (e.g. tcp/127.0.0.1:7447)")
     parser.add_argument("--map", dest="map_name", metavar="NAME",
                         help="map name on the service (with --remote)")
+    parser.add_argument("--keyframe-sigma", metavar="T_M,R_DEG", type=_keyframe_sigma,
+                        default=(0.0, 0.0),
+                        help="1-sigma accuracy per axis of the dataset's poses, metres and "
+                        "degrees (e.g. 0.02,0.5): the keyframes are put with that pose "
+                        "covariance, and each query's ground truth is taken as that uncertain "
+                        "where its error is weighed by the stated covariance ('cov scale'); "
+                        "default 0,0: exact")
     parser.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
@@ -65,6 +73,19 @@ def run(args: argparse.Namespace) -> int:
     except (RelocError, OSError) as exc:
         print(f"reloc eval: error: {exc}", file=sys.stderr)
         return 1
+
+
+def _keyframe_sigma(text: str) -> tuple[float, float]:
+    """``"T_M,R_DEG"`` -> (metres, degrees), both finite and >= 0."""
+    parts = text.split(",")
+    try:
+        t_m, r_deg = (float(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected T_M,R_DEG (e.g. 0.02,0.5), got {text!r}") from None
+    if not (math.isfinite(t_m) and math.isfinite(r_deg) and t_m >= 0 and r_deg >= 0):
+        raise argparse.ArgumentTypeError(f"expected finite metres and degrees >= 0, got {text!r}")
+    return t_m, r_deg
 
 
 def _usage_problem(args: argparse.Namespace) -> str | None:
@@ -121,7 +142,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     options = load_options(args.options) if args.options else None
     remote = RemoteSpec(args.remote, args.map_name) if args.remote else None
     result = evaluate(args.dataset, args.method, options=options, landmarks=args.landmarks,
-                      progress=not args.no_progress, remote=remote)
+                      progress=not args.no_progress, remote=remote,
+                      keyframe_sigma=args.keyframe_sigma)
     print(report.format_header(result))
     print()
     print(report.format_markdown(result) if args.markdown else report.format_table(result))

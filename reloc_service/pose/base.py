@@ -31,9 +31,13 @@ class PoseEstimate:
 
     Geometric evidence (from 2D-3D correspondences) is ``num_matches``, ``inliers``,
     ``reprojection_rms_px`` and ``covariance`` (6x6, twist order (rho, omega), right
-    perturbation ``world_from_cam @ exp(xi)``, metres and radians). Photometric evidence (from
-    image alignment) is ``ncc``: zero-mean normalised cross-correlation of aligned thumbnails.
-    Unknown evidence stays None.
+    perturbation ``world_from_cam @ exp(xi)``, metres and radians): how well the
+    correspondences fix the pose relative to the map (query keypoint noise, landmark depth
+    noise), what the verification judges. ``map_covariance`` (same convention) is what the
+    errors of the keyframe poses the map was put with add (:mod:`.map_uncertainty`); the
+    answer's covariance is the sum of both. Photometric evidence (from image alignment) is
+    ``ncc``: zero-mean normalised cross-correlation of aligned thumbnails. Unknown evidence
+    stays None.
     """
 
     world_from_cam: Array
@@ -42,6 +46,7 @@ class PoseEstimate:
     inliers: int | None = None
     reprojection_rms_px: float | None = None
     covariance: Array | None = None
+    map_covariance: Array | None = None
     ncc: float | None = None
     timings: dict[str, float] = field(default_factory=dict)
     #: (N, 2) query pixels and (N, 3) world points of the inliers, kept for diagnostics/agreement.
@@ -91,6 +96,17 @@ class Support:
     @classmethod
     def empty(cls) -> Support:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), 0)
+
+
+def total_covariance(estimate: PoseEstimate) -> Array | None:
+    """The covariance of ``estimate`` relative to the world: its ``covariance`` (relative to
+    the map) plus its ``map_covariance`` (the keyframe poses' errors, independent of the
+    measurements); None without a ``covariance``."""
+    if estimate.covariance is None:
+        return None
+    if estimate.map_covariance is None:
+        return estimate.covariance
+    return np.asarray(estimate.covariance + estimate.map_covariance, np.float64)
 
 
 def log10_false_alarms(num_matches: int, inliers: int, sample_size: int, p: float) -> float:

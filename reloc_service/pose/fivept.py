@@ -34,6 +34,7 @@ from ..geometry import invert, se3_exp
 from ..map import MapState
 from ..place.base import PlaceCandidate
 from .base import PoseEstimate, PoseFinder, log10_false_alarms, register
+from .map_uncertainty import keyframes_covariance
 
 Array = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
@@ -153,7 +154,7 @@ class FivePointPoseFinder(PoseFinder):
                                 keyframe_ids=[kf.id for kf in keyframes], num_matches=num_matches,
                                 inliers=0, timings=timings)
         start = time.perf_counter()
-        est = self._solve(pairs)
+        est = self._solve(pairs, state)
         timings["solve"] += time.perf_counter() - start
         est.num_matches, est.timings = num_matches, timings
         return est
@@ -237,8 +238,10 @@ class FivePointPoseFinder(PoseFinder):
         capped = [np.minimum(e, g) for e, g in zip(errs, gates, strict=True)]
         return sum(float(e @ e) for e in capped), pose, masks, errs
 
-    def _solve(self, pairs: list[_Pair]) -> PoseEstimate:
-        """The best hypothesis refined (MSAC score), its covariance and evidence."""
+    def _solve(self, pairs: list[_Pair], state: MapState) -> PoseEstimate:
+        """The best hypothesis refined (MSAC score), its covariance and evidence; the pose
+        rests on the keyframes' poses (their rays), each by its share of the inliers, so
+        their covariances move to it (:func:`.map_uncertainty.keyframes_covariance`)."""
         c = self.conf
         # Landmarks carry triangulation errors, not keypoint noise: they take part only
         # where the rays leave the scale free, and only enough of them. Then the three-point
@@ -262,6 +265,8 @@ class FivePointPoseFinder(PoseFinder):
             inliers=len(errors),
             reprojection_rms_px=float(np.sqrt(np.mean(errors**2))) if len(errors) else None,
             covariance=_covariance(blocks, pose) * _shared_noise_factor(pairs, masks),
+            map_covariance=keyframes_covariance(pose, state, [p.keyframe.id for p in pairs],
+                                                counts),
             inlier_px=np.concatenate([p.q_raw[m] for p, m in zip(pairs, masks, strict=True)]),
             image_size=pairs[0].q_cam.size,
             # For the a-contrario test: the gate, every pair's minimal sample (the joint pose

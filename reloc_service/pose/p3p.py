@@ -22,6 +22,7 @@ from .base import PoseEstimate, PoseFinder, Support, register
 from .guided import GuidedConf, search_by_projection
 from .kernels import compiled
 from .landmark_pool import LandmarkPool
+from .map_uncertainty import map_covariance
 from .pnp import PnPConf, PointUncertainty, level_scales, solve_pnp_indexed
 from .repetition import (
     RepetitionConf,
@@ -114,7 +115,7 @@ class P3PPoseFinder(PoseFinder):
             est = self._grow(query, feats, est, keyframes, state, q_idx,
                              pool.landmark_ids[rows])
         est.timings = {**est.timings, **timings}  # every match and solve, guided's own
-        return est
+        return _with_map_covariance(est, state)
 
     def _match_and_solve(self, query: Frame, feats: Features, keyframes: list[Keyframe],
                          state: MapState, timings: dict[str, float]
@@ -216,9 +217,9 @@ class P3PPoseFinder(PoseFinder):
             alt.keyframe_ids = pool.keyframes_of(pool.rows_of(alt.inlier_landmark_ids), ids)
             # Twins are the few repeated keypoints: the alternative is grown over its own
             # local map, as a first pose with few inliers is (judged on its twin consensus).
-            grown.append(self._grow(query, feats, alt,
-                                    [state.keyframes[k] for k in alt.keyframe_ids], state,
-                                    twins[0], pool.landmark_ids[twins[1]]))
+            grown.append(_with_map_covariance(
+                self._grow(query, feats, alt, [state.keyframes[k] for k in alt.keyframe_ids],
+                           state, twins[0], pool.landmark_ids[twins[1]]), state))
         return grown
 
     def _elsewhere(self, query: Frame, estimate: PoseEstimate, state: MapState,
@@ -306,6 +307,14 @@ class P3PPoseFinder(PoseFinder):
                                                     ratio=self.conf.ratio)
         keep = _best_per_landmark(pool.landmark_ids[rows], dist, rows, len(pool.landmark_ids))
         return q_idx[keep], rows[keep], pool
+
+
+def _with_map_covariance(est: PoseEstimate, state: MapState) -> PoseEstimate:
+    """``est`` with the covariance the poses of the keyframes behind its inliers' landmarks
+    add (:func:`.map_uncertainty.map_covariance`)."""
+    if est.inlier_landmark_ids is not None and est.covariance is not None:
+        est.map_covariance = map_covariance(est.world_from_cam, state, est.inlier_landmark_ids)
+    return est
 
 
 def _keyframes_in(candidates: list[PlaceCandidate], state: MapState) -> list[Keyframe]:

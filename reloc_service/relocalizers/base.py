@@ -28,7 +28,7 @@ from ..features import FeatureConf
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap
 from ..plugins import Registry
-from ..pose.base import PoseEstimate, log10_false_alarms
+from ..pose.base import PoseEstimate, log10_false_alarms, total_covariance
 
 Array = npt.NDArray[np.float64]
 
@@ -307,8 +307,10 @@ def result_from_estimate(estimate: PoseEstimate | None, conf: VerifyConf, *, met
     if not ok:
         return RelocResult.failure(reason=reason, **common)
     assert estimate is not None
+    # The verification judged the pose against the map (``estimate.covariance``); the answer
+    # says how well it is known in the world, the keyframe poses' errors included.
     return RelocResult(status=RelocStatus.OK, world_from_cam=estimate.world_from_cam,
-                       confidence=confidence, covariance=estimate.covariance, **common)
+                       confidence=confidence, covariance=total_covariance(estimate), **common)
 
 
 #: ``query.cache`` key of a callable a fallback chain leaves to the step it runs: the step

@@ -61,6 +61,7 @@ from ..place.sbi import SmallBlurryImageFinder
 from ..plugins import make_conf
 from ..pose.base import PoseEstimate
 from ..pose.guided import GuidedConf
+from ..pose.map_uncertainty import map_covariance
 from ..pose.pnp import PnPConf, solve_pnp_indexed
 from ..pose.support import query_support
 from . import uniqueness
@@ -532,6 +533,7 @@ class FernsRelocalizer(Relocalizer):
         est.chance_probability = _per_keypoint_chance(est.chance_probability, len(kp),
                                                       est.num_matches)
         est.keyframe_ids = _keyframes_seeing(state, lm[inliers])
+        est.map_covariance = map_covariance(est.world_from_cam, state, lm[inliers])
         return est, inliers
 
     # -- persistence -------------------------------------------------------------------------

@@ -25,7 +25,7 @@ from scipy import stats
 
 from ..cameras import Camera
 from ..geometry import pose_error, se3_log
-from ..pose.base import PoseEstimate, Support
+from ..pose.base import PoseEstimate, Support, total_covariance
 from ..pose.guided import project_into
 
 Array = npt.NDArray[np.float64]
@@ -60,14 +60,16 @@ def same_solution(first: PoseEstimate, second: PoseEstimate, camera: Camera, *,
 
 def within_covariances(first: PoseEstimate, second: PoseEstimate, *, alpha: float) -> bool:
     """Whether the two poses differ by less than chance would make them differ at level
-    ``alpha`` under their stated covariances: the squared Mahalanobis length of the twist
+    ``alpha`` under their stated covariances (the map's keyframe uncertainty included: two
+    estimates from different keyframes differ by those keyframes' errors too): the squared Mahalanobis length of the twist
     between them under the sum of the two covariances (both right perturbations; for poses
     this close the second's frame is the first's to first order) below chi-square(6)'s
     ``1 - alpha`` quantile. False when either has no covariance."""
-    if first.covariance is None or second.covariance is None:
+    a, b = total_covariance(first), total_covariance(second)
+    if a is None or b is None:
         return False
     xi = se3_log(np.linalg.inv(first.world_from_cam) @ second.world_from_cam)
-    joint = np.asarray(first.covariance) + np.asarray(second.covariance)
+    joint = a + b
     try:
         m2 = float(xi @ np.linalg.solve(joint, xi))
     except np.linalg.LinAlgError:

@@ -195,10 +195,13 @@ class KeyframeInput:
     keypoints_px: Array | None
     landmark_ids: npt.NDArray[np.int64] | None
     points_world: Array | None
+    #: (6, 6) covariance of ``world_from_cam`` as put; None: the map's default applies
+    pose_covariance: Array | None = None
 
     def engine_kwargs(self) -> dict[str, Any]:
         """Keyword arguments of the engine's ``add_keyframe`` beyond the positional ones."""
-        kw: dict[str, Any] = {"depth": self.depth, "timestamp": self.timestamp}
+        kw: dict[str, Any] = {"depth": self.depth, "timestamp": self.timestamp,
+                              "pose_covariance": self.pose_covariance}
         if self.keypoints_px is not None:
             kw.update(given_keypoints_px=self.keypoints_px,
                       given_landmark_ids=self.landmark_ids, given_points_world=self.points_world)
@@ -218,7 +221,20 @@ def decode_keyframe_put(rt: CameraRegistry, kf_id: int, payload: bytes) -> Keyfr
     if put.features is not None:
         kp, ids, pts = _given_features(put.features, camera)
     return KeyframeInput(kf_id, image, camera, put.camera_id, put.world_from_cam.matrix(),
-                         put.timestamp, depth, kp, ids, pts)
+                         put.timestamp, depth, kp, ids, pts, pose_covariance_of(put))
+
+
+def pose_covariance_of(message: wire.KeyframePut | wire.KeyframeInfo) -> Array | None:
+    """The (6, 6) pose covariance a keyframe message carries (validated by its decoder), or
+    None."""
+    if message.pose_covariance is None:
+        return None
+    return np.reshape(np.asarray(message.pose_covariance, np.float64), (6, 6))
+
+
+def pose_covariance_to_wire(covariance: Array | None) -> tuple[float, ...] | None:
+    """A keyframe's (6, 6) pose covariance as the 36 row-major floats of the wire, or None."""
+    return None if covariance is None else tuple(float(v) for v in np.ravel(covariance))
 
 
 def _given_features(features: wire.WireFeatures, camera: Camera

@@ -23,7 +23,7 @@ from ..cameras import Camera
 from ..frame import Frame
 from ..map import MapState
 from ..relocalizers.base import Prior, RelocResult
-from .codec import CameraRegistry, decode_image, resolve_camera
+from .codec import CameraRegistry, decode_image, pose_covariance_to_wire, resolve_camera
 
 if TYPE_CHECKING:
     from .runtime import MapRuntime
@@ -146,7 +146,7 @@ def keyframe_infos(rt: MapRuntime, *, images: bool) -> list[tuple[int, bytes]]:
             world_from_cam=wire.WirePose.from_matrix(kf.world_from_cam),
             camera_id=rt.keyframe_camera_id(kf_id), timestamp=kf.timestamp,
             num_landmarks=int(sum(int(f.has_landmark.sum()) for f in kf.features.values())),
-            image=image)
+            image=image, pose_covariance=pose_covariance_to_wire(kf.pose_covariance))
         out.append((kf_id, info.encode()))
     return out
 

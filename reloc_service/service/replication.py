@@ -16,10 +16,11 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import zenoh
 from reloc_client import protocol as wire
 
-from .codec import to_camera
+from .codec import pose_covariance_of, to_camera
 from .runtime import MapRuntime
 from .workers import WorkerPool
 
@@ -106,9 +107,9 @@ class Bootstrap:
         self.fetched: list[tuple[MapRuntime, str, Any, bytes]] = []
         #: While True, live keyframe puts go through :meth:`put_unless_copied`.
         self.active = True
-        #: (map, keyframe id) -> (pose, timestamp) copied from a peer (or already held): a
-        #: buffered live put identical to its copy is not applied twice.
-        self.copied: dict[tuple[str, int], tuple[Any, Any]] = {}
+        #: (map, keyframe id) -> (pose, timestamp, pose covariance) copied from a peer (or
+        #: already held): a buffered live put identical to its copy is not applied twice.
+        self.copied: dict[tuple[str, int], tuple[Any, Any, Any]] = {}
         self._ready = threading.Event()
         self._done = threading.Event()
 
@@ -198,16 +199,16 @@ class Bootstrap:
             return 0     # a second replica's copy of the same keyframe
         if _holds(rt, info):   # restored from this replica's own storage: not applied twice
             rt.stats.count("bootstrap_already_held")
-            self.copied[(rt.name, info.id)] = (info.world_from_cam.matrix(), info.timestamp)
+            self.copied[(rt.name, info.id)] = _copy_key(info)
             return 0
         if info.camera_id is not None:
             self._ensure_camera(rt, info.camera_id, info.camera)
         message = wire.KeyframePut(
             id=info.id, image=info.image, world_from_cam=info.world_from_cam,
             camera_id=info.camera_id, camera=None if info.camera_id else info.camera,
-            timestamp=info.timestamp)
+            timestamp=info.timestamp, pose_covariance=info.pose_covariance)
         rt.put_keyframe(info.id, message.encode())
-        self.copied[(rt.name, info.id)] = (info.world_from_cam.matrix(), info.timestamp)
+        self.copied[(rt.name, info.id)] = _copy_key(info)
         return 1
 
     def put_unless_copied(self, rt: MapRuntime, kf_id: int, payload: bytes) -> None:
@@ -219,7 +220,8 @@ class Bootstrap:
             except wire.ProtocolError:
                 put = None
             if (put is not None and put.timestamp == copied[1]
-                    and np.allclose(put.world_from_cam.matrix(), copied[0], atol=1e-9)):
+                    and np.allclose(put.world_from_cam.matrix(), copied[0], atol=1e-9)
+                    and _same_covariance(pose_covariance_of(put), copied[2])):
                 rt.stats.count("bootstrap_duplicates")
                 return
         rt.put_keyframe(kf_id, payload)
@@ -232,9 +234,24 @@ class Bootstrap:
             rt.put_camera(camera_id, wire.CameraPut(camera_id, camera).encode())
 
 
+def _copy_key(info: wire.KeyframeInfo) -> tuple[Any, Any, Any]:
+    """What a buffered live put is compared with: the copy's pose, timestamp, covariance."""
+    return info.world_from_cam.matrix(), info.timestamp, pose_covariance_of(info)
+
+
 def _holds(rt: MapRuntime, info: wire.KeyframeInfo) -> bool:
-    """Whether ``rt`` already holds keyframe ``info`` as the peer does (pose, time, camera)."""
+    """Whether ``rt`` already holds keyframe ``info`` as the peer does (pose, its covariance,
+    time, camera)."""
     kf = rt.map_state().keyframes.get(info.id)
     return (kf is not None and kf.timestamp == info.timestamp
             and np.allclose(kf.world_from_cam, info.world_from_cam.matrix(), atol=1e-9)
+            and _same_covariance(kf.pose_covariance, pose_covariance_of(info))
             and kf.camera.to_dict() == to_camera(info.camera).to_dict())
+
+
+def _same_covariance(a: npt.NDArray[np.float64] | None, b: npt.NDArray[np.float64] | None
+                     ) -> bool:
+    """Both None, or both given and equal (to rounding)."""
+    if a is None or b is None:
+        return a is None and b is None
+    return bool(np.allclose(a, b, rtol=1e-12, atol=0.0))

@@ -1,6 +1,7 @@
 """What a map directory (or a whole storage) holds, read only: snapshots verified against their
-manifests, ``CURRENT`` and ``service.json``, journal records (good, skipped, torn tail) and
-quarantined bytes. Backs ``reloc map check``; never writes anything."""
+manifests, ``CURRENT`` and ``service.json``, journal records (good, skipped, torn tail, and
+intact ones a replay would refuse) and quarantined bytes. Backs ``reloc map check``; never
+writes anything."""
 
 from __future__ import annotations
 
@@ -9,10 +10,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import msgpack
+from reloc_client import protocol as wire
+
 from ..errors import StorageError
 from ..snapshot_files import CURRENT_FILE, current_snapshot, snapshot_dirs
 from ..storage import verify_snapshot
-from .durability import SERVICE_FILE, read_service_file
+from .durability import REPLAY_LIMITS, SERVICE_FILE, read_service_file
 from .journal import QUARANTINE_DIR, Journal, scan_segment, segment_name
 
 
@@ -34,6 +38,9 @@ class SegmentCheck:
     torn_bytes: int = 0
     replayed: bool = True        # at or after the segment service.json says to replay from
     problem: str | None = None
+    #: Intact records whose content a replay would refuse (e.g. a keyframe put whose pose
+    #: covariance is not one): "record <i>: <why>".
+    invalid: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -140,7 +147,33 @@ def _check_journal(directory: Path, out: MapCheck) -> None:
         if seg.skipped and seg.replayed:
             out.problems.append(f"{path}: {len(seg.skipped)} damaged range(s) skipped "
                                 f"({sum(n for _, n in seg.skipped)} bytes)")
+        seg.invalid = [f"record {i}: {why}" for i, record in enumerate(scan.records)
+                       if (why := record_problem(record)) is not None]
+        if seg.invalid and seg.replayed:
+            out.problems += [f"{path}: {why} (a replay skips it)" for why in seg.invalid]
         out.segments.append(seg)
+
+
+def record_problem(record: bytes) -> str | None:
+    """Why an intact journal record would not replay, as far as its content tells (a
+    keyframe or camera put that does not decode: a pose covariance that is not one, a bad
+    pose, ...); None when it would. The cameras a keyframe names are not checked here."""
+    try:
+        entry = msgpack.unpackb(record, raw=False)
+        op = entry["op"]
+        if op == "kf":
+            put = wire.KeyframePut.decode(entry["payload"], REPLAY_LIMITS)
+            if put.id != entry["id"]:
+                return f"keyframe {entry['id']}: the put names keyframe {put.id}"
+        elif op == "cam":
+            wire.CameraPut.decode(entry["payload"], REPLAY_LIMITS)
+        elif op != "del":
+            return f"unknown op {op!r}"
+    except wire.ProtocolError as exc:
+        return f"{entry.get('op')} {entry.get('id')!r}: {exc.message}"
+    except (ValueError, TypeError, KeyError, msgpack.UnpackException) as exc:
+        return f"not a journal record ({type(exc).__name__}: {exc})"
+    return None
 
 
 def format_check(check: MapCheck) -> str:
@@ -160,6 +193,7 @@ def format_check(check: MapCheck) -> str:
         note = "" if g.replayed else " (covered by the snapshot)"
         lines.append(f"    {segment_name(g.number)} v{g.version}: {g.records} good records, "
                      f"{len(g.skipped)} skipped, torn tail {g.torn_bytes} bytes{note}")
+        lines += [f"      invalid {why}" for why in g.invalid]
     lines.append(f"  quarantine: {len(check.quarantine)} file(s)")
     lines += [f"    {name} ({size} bytes)" for name, size in check.quarantine]
     lines += [f"  problem: {p}" for p in check.problems]

@@ -18,6 +18,13 @@ CAMERA_MODELS: dict[str, tuple[int, ...]] = {
 
 QUAT_NORM_TOL = 1e-3
 ROTATION_TOL = 1e-5
+#: A pose covariance is symmetric when no entry differs from its mirror by more than this
+#: share of the largest entry (float64 products such as ``G C G^T`` leave ~1e-16), and
+#: positive semi-definite when no eigenvalue is below minus this share of the largest one
+#: (the rounding of an eigendecomposition); :data:`COVARIANCE_ABS_TOL` (a nanometre, a
+#: nanoradian squared) where every entry is about zero.
+COVARIANCE_REL_TOL = 1e-9
+COVARIANCE_ABS_TOL = 1e-18
 
 
 def quat_xyzw_to_rotation(q: npt.ArrayLike) -> Array:
@@ -65,6 +72,30 @@ def rotation_to_quat_xyzw(r: npt.ArrayLike) -> tuple[float, float, float, float]
     """(3, 3) rotation matrix to a unit quaternion (x, y, z, w) with w >= 0."""
     x, y, z, w = rotation_to_quat_xyzw_array(r).tolist()
     return (x, y, z, w)
+
+
+def pose_covariance_problem(covariance: npt.ArrayLike) -> str | None:
+    """Why ``covariance`` is not a pose covariance, or None when it is one: a (6, 6) finite,
+    symmetric, positive semi-definite matrix (twist (rho, omega), right perturbation, metres
+    and radians; tolerances :data:`COVARIANCE_REL_TOL`). The one definition the wire decoder,
+    the keyframe and the snapshot check share."""
+    try:
+        c = np.asarray(covariance, dtype=np.float64)
+    except (TypeError, ValueError):
+        return "not an array of numbers"
+    if c.shape != (6, 6):
+        return f"shape {c.shape}; expected (6, 6)"
+    if not np.all(np.isfinite(c)):
+        return "NaN or infinite entries"
+    scale = float(np.abs(c).max())
+    asymmetry = float(np.abs(c - c.T).max())
+    if asymmetry > COVARIANCE_REL_TOL * scale + COVARIANCE_ABS_TOL:
+        return f"not symmetric (|C - C^T| = {asymmetry:.3g}, largest entry {scale:.3g})"
+    eigenvalues = np.linalg.eigvalsh(0.5 * (c + c.T))
+    if eigenvalues[0] < -(COVARIANCE_REL_TOL * max(eigenvalues[-1], 0.0) + COVARIANCE_ABS_TOL):
+        return (f"not positive semi-definite (smallest eigenvalue {eigenvalues[0]:.3g}, "
+                f"largest {eigenvalues[-1]:.3g})")
+    return None
 
 
 @dataclass(frozen=True)

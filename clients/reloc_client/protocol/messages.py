@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self
 
 import msgpack
+import numpy as np
 
 from .checks import (
     _SHORT,
@@ -28,7 +29,7 @@ from .checks import (
     _str,
     _str_map,
 )
-from .geometry import WireCamera, WirePose
+from .geometry import WireCamera, WirePose, pose_covariance_problem
 from .images import WireDepth, WireFeatures, WireImage
 from .keys import _check_kf_id, check_name
 
@@ -118,6 +119,22 @@ def _opt_wire(x: Any) -> Any:
     return None if x is None else x.to_wire()
 
 
+def _opt_list(x: tuple[float, ...] | None) -> list[float] | None:
+    return None if x is None else list(x)
+
+
+def _pose_covariance(value: Any, path: str) -> tuple[float, ...]:
+    """36 numbers, row-major, that make a pose covariance (see
+    :func:`.geometry.pose_covariance_problem`); BAD_VALUE naming what is wrong otherwise."""
+    numbers = _numbers(value, path, 36, ErrorCode.BAD_VALUE)
+    problem = pose_covariance_problem(np.reshape(numbers, (6, 6)))
+    if problem is not None:
+        raise ProtocolError(ErrorCode.BAD_VALUE,
+                            f"{path}: expected a 6x6 row-major pose covariance (symmetric, "
+                            f"positive semi-definite; twist (rho, omega), m and rad): {problem}")
+    return numbers
+
+
 def _camera_choice(f: _Fields, path: str, image: WireImage | None
                    ) -> tuple[str | None, WireCamera | None]:
     """Exactly one of ``camera_id`` / ``camera``; an inline camera must match the image."""
@@ -148,12 +165,16 @@ class KeyframePut(Message):
     timestamp: float | None = None
     features: WireFeatures | None = None
     depth: WireDepth | None = None
+    #: 6x6 row-major covariance of ``world_from_cam`` (36 floats; twist (rho, omega), right
+    #: perturbation, metres and radians); None: the map's default applies.
+    pose_covariance: tuple[float, ...] | None = None
 
     def to_wire(self) -> dict[str, Any]:
         return {"id": self.id, "image": self.image.to_wire(), "camera_id": self.camera_id,
                 "camera": _opt_wire(self.camera), "world_from_cam": self.world_from_cam.to_wire(),
                 "timestamp": self.timestamp, "features": _opt_wire(self.features),
-                "depth": _opt_wire(self.depth)}
+                "depth": _opt_wire(self.depth),
+                "pose_covariance": _opt_list(self.pose_covariance)}
 
     @classmethod
     def from_wire(cls, value: Any, path: str, limits: Limits) -> KeyframePut:
@@ -166,12 +187,14 @@ class KeyframePut(Message):
         timestamp = f.opt("timestamp", _float)
         features = f.opt("features", lambda v, p: WireFeatures.from_wire(v, p, limits))
         depth = f.opt("depth", lambda v, p: WireDepth.from_wire(v, p, limits))
+        pose_covariance = f.opt("pose_covariance", _pose_covariance)
         f.done()
         if depth is not None and (depth.width, depth.height) != (image.width, image.height):
             raise ProtocolError(ErrorCode.BAD_IMAGE,
                                 f"{path}.depth: size {depth.width}x{depth.height} does not "
                                 f"match the image's {image.width}x{image.height}")
-        return cls(kf_id, image, pose, camera_id, camera, timestamp, features, depth)
+        return cls(kf_id, image, pose, camera_id, camera, timestamp, features, depth,
+                   pose_covariance)
 
 
 @dataclass(frozen=True)
@@ -187,11 +210,15 @@ class KeyframeInfo(Message):
     timestamp: float | None = None
     num_landmarks: int = 0
     image: WireImage | None = None
+    #: As in :class:`KeyframePut`: the covariance the keyframe was put with (None: none was,
+    #: the map's default applies).
+    pose_covariance: tuple[float, ...] | None = None
 
     def to_wire(self) -> dict[str, Any]:
         return {"id": self.id, "camera": self.camera.to_wire(), "camera_id": self.camera_id,
                 "world_from_cam": self.world_from_cam.to_wire(), "timestamp": self.timestamp,
-                "num_landmarks": self.num_landmarks, "image": _opt_wire(self.image)}
+                "num_landmarks": self.num_landmarks, "image": _opt_wire(self.image),
+                "pose_covariance": _opt_list(self.pose_covariance)}
 
     @classmethod
     def from_wire(cls, value: Any, path: str, limits: Limits) -> KeyframeInfo:
@@ -204,7 +231,8 @@ class KeyframeInfo(Message):
             camera_id=f.opt("camera_id", lambda v, p: check_name(v, p)),
             timestamp=f.opt("timestamp", _float),
             num_landmarks=f.opt("num_landmarks", lambda v, p: _int(v, p, lo=0), 0),
-            image=f.opt("image", lambda v, p: WireImage.from_wire(v, p, limits)))
+            image=f.opt("image", lambda v, p: WireImage.from_wire(v, p, limits)),
+            pose_covariance=f.opt("pose_covariance", _pose_covariance))
         f.done()
         return out
 

@@ -261,8 +261,13 @@ class MapNode:
         self.lost = bool(flag.data)
 
     def _on_odometry(self, msg: Any) -> None:
-        pose = msg.pose.pose if self.conf.odometry_type == "odometry" else msg.pose
-        self.odometry.add(convert.stamp_seconds(msg.header.stamp), convert.pose_of(pose))
+        odometry = self.conf.odometry_type == "odometry"
+        pose = msg.pose.pose if odometry else msg.pose
+        # nav_msgs/Odometry carries the pose's covariance (PoseStamped has none): kept with
+        # the pose, it becomes the covariance of the keyframes made from it.
+        covariance = np.array(msg.pose.covariance, np.float64) if odometry else None
+        self.odometry.add(convert.stamp_seconds(msg.header.stamp), convert.pose_of(pose),
+                          covariance)
         self.bridge.count("odometry")
         self._retry_pending()
 
@@ -292,13 +297,14 @@ class MapNode:
         """Add ``latest`` as a keyframe if its odometry is known and the rule selects it
         (kept waiting while the camera or the odometry of its stamp is unknown)."""
         stamp = convert.stamp_seconds(latest.stamp)
-        world_from_body = self.odometry.nearest(stamp, self.conf.max_stamp_difference_s)
-        if self.camera is None or world_from_body is None:
+        paired = self.odometry.nearest_with_covariance(stamp, self.conf.max_stamp_difference_s)
+        if self.camera is None or paired is None:
             if self.odometry.newest() > stamp + self.conf.max_stamp_difference_s:
                 self.bridge.count("unpaired_images")   # its odometry will never come
             else:
                 self._pending.append(latest)
             return
+        world_from_body, ros_covariance = paired
         world_from_cam = world_from_body @ self.body_from_cam
         if not self.selector.is_new(world_from_cam, self.keyframe_poses):
             return
@@ -307,10 +313,28 @@ class MapNode:
         put = wire.KeyframePut(id=kf_id, image=latest.image,
                                world_from_cam=wire.WirePose.from_matrix(world_from_cam),
                                camera_id=CAMERA_ID,
-                               timestamp=convert.stamp_seconds(latest.stamp))
+                               timestamp=convert.stamp_seconds(latest.stamp),
+                               pose_covariance=self._keyframe_covariance(
+                                   ros_covariance, world_from_cam, world_from_body))
         self.bridge.host.on_keyframe_sample(self.map_name, kf_id, put.encode())
         self.keyframe_poses.append(world_from_cam)
         self.bridge.count("keyframes")
+
+    def _keyframe_covariance(self, ros_covariance: np.ndarray | None,
+                             world_from_cam: np.ndarray, world_from_body: np.ndarray
+                             ) -> tuple[float, ...] | None:
+        """The odometry's pose covariance as the keyframe's (36 row-major values), or None
+        (the map's default applies) where the odometry gives none or one that is not a
+        covariance (counted: the keyframe is still made, the bridge goes on)."""
+        if ros_covariance is None:
+            return None
+        try:
+            ours = convert.odometry_covariance(ros_covariance, world_from_cam, world_from_body)
+        except ValueError as exc:
+            self.bridge.count("bad_odometry_covariance")
+            log.warning("map %s: %s; the keyframe takes the map's default", self.map_name, exc)
+            return None
+        return None if ours is None else tuple(float(v) for v in ours.ravel())
 
     def _restore_keyframes(self) -> int:
         """Poses of the map's keyframes (the rule applies to them too); the next free id."""

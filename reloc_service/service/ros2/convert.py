@@ -12,8 +12,16 @@ from typing import Any
 import cv2
 import numpy as np
 import numpy.typing as npt
+from reloc_client.protocol import pose_covariance_problem
 
-from ...geometry import invert, matrix_to_quat_xyzw, pose_from_tq, rotation_angle, skew
+from ...geometry import (
+    invert,
+    matrix_to_quat_xyzw,
+    pose_from_tq,
+    rotation_angle,
+    se3_adjoint,
+    skew,
+)
 
 Array = npt.NDArray[np.float64]
 
@@ -45,16 +53,44 @@ def ros_covariance(world_from_cam: Array, covariance_cam: Array, world_from_body
     A right perturbation of the camera is the left one ``exp(Ad(world_from_cam) xi)``
     shared by every frame rigidly attached to it; the body's position then moves by
     ``rho_w + omega_w x p_body``."""
-    r, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
-    adjoint = np.zeros((6, 6))
-    adjoint[:3, :3] = r
-    adjoint[:3, 3:] = skew(t) @ r
-    adjoint[3:, 3:] = r
-    lever = np.eye(6)
-    lever[:3, 3:] = -skew(world_from_body[:3, 3])
-    g = lever @ adjoint
+    g = _ros_from_ours(world_from_cam, world_from_body)
     out = g @ np.asarray(covariance_cam, dtype=np.float64) @ g.T
     return 0.5 * (out + out.T)
+
+
+def covariance_from_ros(world_from_cam: Array, covariance_ros: Array, world_from_body: Array
+                        ) -> Array:
+    """The inverse of :func:`ros_covariance`: ROS's 6x6 covariance of a body pose ((x, y, z,
+    rotX, rotY, rotZ) in the parent frame, e.g. a nav_msgs/Odometry's ``pose.covariance``)
+    as ours of ``world_from_cam`` for the camera rigidly attached to that body (twist
+    (rho, omega), right perturbation)."""
+    g_inv = np.linalg.inv(_ros_from_ours(world_from_cam, world_from_body))
+    out = g_inv @ np.asarray(covariance_ros, dtype=np.float64) @ g_inv.T
+    return 0.5 * (out + out.T)
+
+
+def _ros_from_ours(world_from_cam: Array, world_from_body: Array) -> Array:
+    """(6, 6) first-order map from our twist of ``world_from_cam`` to ROS's (position of the
+    body, rotation about the world axes): the adjoint to a world twist, then the lever arm to
+    the body's centre."""
+    lever = np.eye(6)
+    lever[:3, 3:] = -skew(world_from_body[:3, 3])
+    return lever @ se3_adjoint(world_from_cam)
+
+
+def odometry_covariance(values: Any, world_from_cam: Array, world_from_body: Array
+                        ) -> Array | None:
+    """Our pose covariance of the camera from a ROS pose covariance (36 row-major values) of
+    its body; None where ROS says it is unknown (all zeros, or -1 first, REP 103's and
+    geometry_msgs' conventions for a covariance not filled in). ValueError when the values
+    are not a covariance (not finite, not symmetric, not positive semi-definite)."""
+    c = np.asarray(values, dtype=np.float64).reshape(6, 6)
+    if not np.any(c) or c[0, 0] == -1.0:
+        return None
+    problem = pose_covariance_problem(c)
+    if problem is not None:
+        raise ValueError(f"odometry pose covariance: {problem}")
+    return covariance_from_ros(world_from_cam, c, world_from_body)
 
 
 @dataclass(frozen=True)
@@ -146,18 +182,23 @@ class KeyframeSelector:
 
 
 class StampedPoses:
-    """The last ``size`` odometry poses by stamp; the one nearest an image's stamp."""
+    """The last ``size`` odometry poses by stamp (each with its ROS pose covariance, 36
+    values, or None); the one nearest an image's stamp."""
 
     def __init__(self, size: int = 400) -> None:
         self._stamps: deque[float] = deque(maxlen=size)
         self._poses: deque[Array] = deque(maxlen=size)
+        self._covariances: deque[Array | None] = deque(maxlen=size)
 
-    def add(self, stamp: float, world_from_body: Array) -> None:
+    def add(self, stamp: float, world_from_body: Array, covariance: Array | None = None
+            ) -> None:
         if self._stamps and stamp < self._stamps[-1]:
             self._stamps.clear()   # time went back (a bag restarted): start again
             self._poses.clear()
+            self._covariances.clear()
         self._stamps.append(stamp)
         self._poses.append(world_from_body)
+        self._covariances.append(covariance)
 
     def newest(self) -> float:
         """The newest stamp (-inf when empty)."""
@@ -165,6 +206,17 @@ class StampedPoses:
 
     def nearest(self, stamp: float, tolerance_s: float) -> Array | None:
         """The pose stamped within ``tolerance_s`` of ``stamp`` (nearest), else None."""
+        best = self._nearest_index(stamp, tolerance_s)
+        return None if best is None else self._poses[best]
+
+    def nearest_with_covariance(self, stamp: float, tolerance_s: float
+                                ) -> tuple[Array, Array | None] | None:
+        """(pose, its ROS covariance or None) stamped nearest ``stamp`` within
+        ``tolerance_s``, else None."""
+        best = self._nearest_index(stamp, tolerance_s)
+        return None if best is None else (self._poses[best], self._covariances[best])
+
+    def _nearest_index(self, stamp: float, tolerance_s: float) -> int | None:
         stamps = list(self._stamps)
         i = bisect.bisect_left(stamps, stamp)
         best = None
@@ -172,4 +224,4 @@ class StampedPoses:
             if 0 <= j < len(stamps) and abs(stamps[j] - stamp) <= tolerance_s and (
                     best is None or abs(stamps[j] - stamp) < abs(stamps[best] - stamp)):
                 best = j
-        return None if best is None else self._poses[best]
+        return best

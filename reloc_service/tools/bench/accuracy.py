@@ -259,7 +259,9 @@ def score_dataset(root: Path, methods: Sequence[str], *, show_progress: bool = T
     backend = ev.InProcessBackend(list(methods), {k: dict(v) for k, v in (options or {}).items()},
                                   source)
     try:
-        build_s = ev._build_map(backend, dataset, source, show_progress)
+        # exact ground truth, as `reloc eval` without --keyframe-sigma takes it
+        build_s = ev._build_map(backend, dataset, source, show_progress,
+                                ev.ground_truth_covariance((0.0, 0.0)))
         start = time.perf_counter()
         backend.train(progress=show_progress)
         train_s = time.perf_counter() - start

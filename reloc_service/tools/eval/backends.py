@@ -58,8 +58,10 @@ class Backend(Protocol):
     description: str
 
     def add_keyframe(self, kf_id: int, image: npt.NDArray[np.uint8], camera: Camera,
-                     world_from_cam: Array, *, depth: npt.NDArray[np.float32] | None) -> None:
-        """Add one posed keyframe (and its landmarks) to the map."""
+                     world_from_cam: Array, *, depth: npt.NDArray[np.float32] | None,
+                     pose_covariance: Array | None = None) -> None:
+        """Add one posed keyframe (and its landmarks) to the map; ``pose_covariance`` (6, 6)
+        says how well ``world_from_cam`` is known (None: the map's default)."""
 
     def train(self, *, progress: bool) -> None:
         """Train every method's models on the whole map; return when done."""

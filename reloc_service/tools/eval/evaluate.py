@@ -26,7 +26,7 @@ import numpy.typing as npt
 
 from ... import __version__
 from ...errors import ConfigError, DatasetError
-from ...geometry import pose_error, pose_to_tum
+from ...geometry import pose_covariance_from_sigmas, pose_error, pose_to_tum
 from ...progress import progress as progress_bar
 from ...relocalizers.base import RelocResult, position_sigma_m
 from ..data.dataset import Dataset, DatasetEntry, read_dataset
@@ -150,6 +150,10 @@ class EvalResult:
     options: dict[str, Any]
     created_utc: str
     schema_version: int = SCHEMA_VERSION
+    #: (metres, degrees): the 1-sigma accuracy per axis of the dataset's poses
+    #: (``--keyframe-sigma``): the map's keyframes were put with that pose covariance and
+    #: every query's ground truth was taken as that uncertain (0, 0: both exact).
+    ground_truth_sigma: tuple[float, float] = (0.0, 0.0)
 
     def method(self, name: str) -> MethodResult:
         """The result of method ``name``; KeyError naming the evaluated ones otherwise."""
@@ -185,9 +189,11 @@ class EvalResult:
                               f"version {SCHEMA_VERSION}")
         methods = [MethodResult(m["method"], _summary_from_dict(m["summary"]),
                                 [QueryRecord(**q) for q in m["queries"]]) for m in d["methods"]]
+        sigma = d.get("ground_truth_sigma") or (0.0, 0.0)
         return cls(dataset=dict(d["dataset"]), map=MapInfo(**d["map"]), methods=methods,
                    machine=dict(d["machine"]), backend=d["backend"], options=dict(d["options"]),
-                   created_utc=d["created_utc"], schema_version=version)
+                   created_utc=d["created_utc"], schema_version=version,
+                   ground_truth_sigma=(float(sigma[0]), float(sigma[1])))
 
 
 def _summary_from_dict(s: Mapping[str, Any]) -> MethodSummary:
@@ -214,7 +220,8 @@ def _json_safe(value: Any) -> Any:
 def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
              options: Mapping[str, Any] | None = None,
              landmarks: LandmarkSource | str = LandmarkSource.AUTO,
-             progress: bool = True, remote: RemoteSpec | None = None) -> EvalResult:
+             progress: bool = True, remote: RemoteSpec | None = None,
+             keyframe_sigma: tuple[float, float] = (0.0, 0.0)) -> EvalResult:
     """Build the map of ``dataset_root``, train, and score every query with each method.
 
     Args:
@@ -227,24 +234,42 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
             elsewhere), ``triangulate`` or ``depth`` (see :class:`LandmarkSource`).
         progress: draw progress bars on stderr.
         remote: run through a service instead of in-process.
+        keyframe_sigma: (metres, degrees), the 1-sigma accuracy per axis of the dataset's
+            ground-truth poses: every keyframe is put with that pose covariance (what a
+            relocalized pose inherits from the map) and every query's ground truth is
+            taken as that uncertain when its error is weighed by the stated covariance
+            (:func:`.metrics.translation_mahalanobis`). (0, 0): exact poses.
     """
     methods = _method_list(method)
     source = LandmarkSource(landmarks)
+    truth_covariance = ground_truth_covariance(keyframe_sigma)
     dataset = read_dataset(dataset_root)
     _check_dataset(dataset, source)
     backend = _make_backend(methods, dict(options or {}), source, remote)
     try:
-        build_s = _build_map(backend, dataset, source, progress)
+        build_s = _build_map(backend, dataset, source, progress, truth_covariance)
         train_s = _timed(lambda: backend.train(progress=progress))
         with as_a_service_worker() if isinstance(backend, InProcessBackend) else nullcontext():
-            results = [_evaluate_method(backend, dataset, m, progress) for m in methods]
+            results = [_evaluate_method(backend, dataset, m, progress, truth_covariance)
+                       for m in methods]
         map_info = _map_info(backend, dataset, source, build_s, train_s)
     finally:
         backend.close()
     return EvalResult(dataset=_dataset_info(dataset), map=map_info, methods=results,
                       machine=machine_info(), backend=backend.description,
                       options=_json_safe(dict(options or {})),
-                      created_utc=datetime.now(UTC).isoformat(timespec="seconds"))
+                      created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
+                      ground_truth_sigma=(float(keyframe_sigma[0]), float(keyframe_sigma[1])))
+
+
+def ground_truth_covariance(keyframe_sigma: tuple[float, float]) -> Array:
+    """(6, 6) covariance of a dataset pose accurate to ``keyframe_sigma`` = (metres, degrees)
+    per axis; ConfigError unless both are finite and >= 0."""
+    t_m, r_deg = (float(v) for v in keyframe_sigma)
+    if not (math.isfinite(t_m) and math.isfinite(r_deg) and t_m >= 0 and r_deg >= 0):
+        raise ConfigError(f"keyframe sigma: expected finite metres and degrees >= 0, got "
+                          f"{keyframe_sigma!r}")
+    return pose_covariance_from_sigmas(t_m, math.radians(r_deg))
 
 
 def _method_list(method: str | Sequence[str]) -> list[str]:
@@ -296,8 +321,9 @@ def _timed(fn: Any) -> float:
 
 
 def _build_map(backend: Backend, dataset: Dataset, source: LandmarkSource,
-               progress: bool) -> float:
-    """Add every map.txt keyframe (id = its row); returns the time spent in the backend."""
+               progress: bool, pose_covariance: Array) -> float:
+    """Add every map.txt keyframe (id = its row) with ``pose_covariance``; returns the time
+    spent in the backend."""
     spent = 0.0
     entries: Iterable[tuple[int, DatasetEntry]] = enumerate(dataset.map_entries)
     if progress:
@@ -307,35 +333,39 @@ def _build_map(backend: Backend, dataset: Dataset, source: LandmarkSource,
         depth = dataset.load_depth(entry) if source.uses_depth() else None
         start = time.perf_counter()
         backend.add_keyframe(kf_id, image, dataset.camera(entry), entry.world_from_cam,
-                             depth=depth)
+                             depth=depth, pose_covariance=pose_covariance)
         spent += time.perf_counter() - start
     return spent
 
 
 def _evaluate_method(backend: Backend, dataset: Dataset, method: str,
-                     progress: bool) -> MethodResult:
+                     progress: bool, truth_covariance: Array | None = None) -> MethodResult:
     entries: Iterable[DatasetEntry] = dataset.query_entries
     if progress:
         entries = progress_bar(entries, total=len(dataset.query_entries), desc=method)
-    raw = [_query(backend, dataset, entry, method) for entry in entries]
+    raw = [_query(backend, dataset, entry, method, truth_covariance) for entry in entries]
     records = _with_ranks(raw, dataset)
     return MethodResult(method, summarize(records), records)
 
 
-def _query(backend: Backend, dataset: Dataset, entry: DatasetEntry, method: str
-           ) -> QueryRecord:
+def _query(backend: Backend, dataset: Dataset, entry: DatasetEntry, method: str,
+           truth_covariance: Array | None = None) -> QueryRecord:
     image = dataset.load_image(entry)
     gt = np.array(entry.world_from_cam)
     start = time.perf_counter()
     result = backend.relocalize(image, dataset.camera(entry), method=method,
                                 gt_world_from_cam=gt)
     latency_ms = (time.perf_counter() - start) * 1e3
-    return record_from_result(entry.image_path, result, gt, latency_ms)
+    return record_from_result(entry.image_path, result, gt, latency_ms,
+                              truth_covariance=truth_covariance)
 
 
 def record_from_result(image_path: str, result: RelocResult, gt_world_from_cam: Array,
-                       latency_ms: float) -> QueryRecord:
-    """Score one :class:`RelocResult` against the ground truth (rank left None)."""
+                       latency_ms: float, *, truth_covariance: Array | None = None
+                       ) -> QueryRecord:
+    """Score one :class:`RelocResult` against the ground truth (rank left None);
+    ``truth_covariance`` (6, 6): how uncertain that ground truth is (see
+    :func:`.metrics.translation_mahalanobis`)."""
     est_pose = result.world_from_cam if result.ok else None
     returned = est_pose is not None
     t_err = r_err = sigma = mahalanobis = None
@@ -347,7 +377,7 @@ def record_from_result(image_path: str, result: RelocResult, gt_world_from_cam: 
         if result.covariance is not None:
             sigma = position_sigma_m(result.covariance)
             mahalanobis = metrics.translation_mahalanobis(est_pose, gt_world_from_cam,
-                                                          result.covariance)
+                                                          result.covariance, truth_covariance)
     return QueryRecord(
         image_path=image_path, returned=returned, status=result.status.value,
         reason=result.reason, method_used=result.method, t_err_m=t_err, r_err_deg=r_err,

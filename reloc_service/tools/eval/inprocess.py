@@ -50,8 +50,10 @@ class InProcessBackend:
         self.engine = Engine(engine_conf(methods, options, landmark_source))
 
     def add_keyframe(self, kf_id: int, image: npt.NDArray[np.uint8], camera: Camera,
-                     world_from_cam: Array, *, depth: npt.NDArray[np.float32] | None) -> None:
-        self.engine.add_keyframe(kf_id, image, camera, world_from_cam, depth=depth)
+                     world_from_cam: Array, *, depth: npt.NDArray[np.float32] | None,
+                     pose_covariance: Array | None = None) -> None:
+        self.engine.add_keyframe(kf_id, image, camera, world_from_cam, depth=depth,
+                                 pose_covariance=pose_covariance)
 
     def train(self, *, progress: bool) -> None:
         self.engine.train(progress=progress)

@@ -84,13 +84,21 @@ CHI3_MEDIAN = 1.5381722544550522
 
 
 def translation_mahalanobis(est_world_from_cam: npt.ArrayLike, gt_world_from_cam: npt.ArrayLike,
-                            covariance: npt.ArrayLike) -> float:
+                            covariance: npt.ArrayLike,
+                            truth_covariance: npt.ArrayLike | None = None) -> float:
     """Length of the translation error under the pose's stated covariance (6x6, twist
     (rho, omega), right perturbation ``world_from_cam @ exp(xi)``): the error is taken into
     the estimate's camera frame (``rho ~ R^T (t_gt - t_est)``) and weighed by the inverse of
-    the translation block. inf when that block is singular or not finite."""
+    the translation block. ``truth_covariance`` (6x6, the same convention for the ground
+    truth pose) is how far the ground truth itself may be from the true pose: independent of
+    the estimate's error, its translation block (a right perturbation of the ground truth
+    moves its centre by ``R_gt rho``, seen from the estimate as ``R_est^T R_gt rho``) adds to
+    the estimate's. inf when the block is singular or not finite."""
     est, gt = np.asarray(est_world_from_cam, np.float64), np.asarray(gt_world_from_cam, np.float64)
     block = np.asarray(covariance, np.float64)[:3, :3]
+    if truth_covariance is not None:
+        turn = est[:3, :3].T @ gt[:3, :3]
+        block = block + turn @ np.asarray(truth_covariance, np.float64)[:3, :3] @ turn.T
     rho = est[:3, :3].T @ (gt[:3, 3] - est[:3, 3])
     if not np.all(np.isfinite(block)):
         return math.inf

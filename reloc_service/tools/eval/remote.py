@@ -106,11 +106,13 @@ class RemoteBackend:
 
     # -- Backend ---------------------------------------------------------------------------------
     def add_keyframe(self, kf_id: int, image: npt.NDArray[np.uint8], camera: Camera,
-                     world_from_cam: Array, *, depth: npt.NDArray[np.float32] | None) -> None:
+                     world_from_cam: Array, *, depth: npt.NDArray[np.float32] | None,
+                     pose_covariance: Array | None = None) -> None:
         """Put the keyframe and wait until the service has applied it."""
         camera_id = self._camera_id(camera)
         self.client.add_keyframe(kf_id, image, world_from_cam, camera_id=camera_id,
-                                 depth=None if depth is None else np.asarray(depth))
+                                 depth=None if depth is None else np.asarray(depth),
+                                 pose_covariance=pose_covariance)
         self._wait_for(wire.EventKind.KEYFRAME_ADDED, kf_id)
 
     def _camera_id(self, camera: Camera) -> str:
