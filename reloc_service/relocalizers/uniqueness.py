@@ -136,13 +136,14 @@ def solutions(estimates: Sequence[PoseEstimate], camera: Camera,
               close: Callable[[PoseEstimate, PoseEstimate], bool], *, alpha: float = 0.01
               ) -> list[list[int]]:
     """Indices of ``estimates`` grouped into distinct solutions (:func:`same_solution` with
-    each group's first member, or ``close`` where that cannot tell), in order of first
-    appearance."""
+    each group's first member, or ``close``: poses within the caller's agreement tolerance
+    are one place, however their inliers differ, as two keyframes of an imperfect map give
+    the same place a few centimetres and degrees apart), in order of first appearance."""
     groups: list[list[int]] = []
     for i, est in enumerate(estimates):
         for group in groups:
             same = same_solution(estimates[group[0]], est, camera, alpha=alpha)
-            if close(estimates[group[0]], est) if same is None else same:
+            if same or close(estimates[group[0]], est):
                 group.append(i)
                 break
         else:
