@@ -61,10 +61,10 @@ def same_solution(first: PoseEstimate, second: PoseEstimate, camera: Camera, *,
 def within_covariances(first: PoseEstimate, second: PoseEstimate, *, alpha: float) -> bool:
     """Whether the two poses differ by less than chance would make them differ at level
     ``alpha`` under their stated covariances (the map's keyframe uncertainty included: two
-    estimates from different keyframes differ by those keyframes' errors too): the squared Mahalanobis length of the twist
-    between them under the sum of the two covariances (both right perturbations; for poses
-    this close the second's frame is the first's to first order) below chi-square(6)'s
-    ``1 - alpha`` quantile. False when either has no covariance."""
+    estimates from different keyframes differ by those keyframes' errors too): the squared
+    Mahalanobis length of the twist between them under the sum of the two covariances (both
+    right perturbations; for poses this close the second's frame is the first's to first
+    order) below chi-square(6)'s ``1 - alpha`` quantile. False when either has no covariance."""
     a, b = total_covariance(first), total_covariance(second)
     if a is None or b is None:
         return False
