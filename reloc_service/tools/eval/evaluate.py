@@ -34,6 +34,7 @@ from . import gt as _gt  # noqa: F401 (importing it registers the ground-truth p
 from . import metrics
 from .backends import Backend, LandmarkSource, RemoteSpec
 from .inprocess import InProcessBackend, as_a_service_worker
+from .query_camera import QueryCamera
 
 Array = npt.NDArray[np.float64]
 
@@ -212,7 +213,8 @@ def _json_safe(value: Any) -> Any:
 def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
              options: Mapping[str, Any] | None = None,
              landmarks: LandmarkSource | str = LandmarkSource.AUTO,
-             progress: bool = True, remote: RemoteSpec | None = None) -> EvalResult:
+             progress: bool = True, remote: RemoteSpec | None = None,
+             query_camera: QueryCamera | None = None) -> EvalResult:
     """Build the map of ``dataset_root``, train, and score every query with each method.
 
     Args:
@@ -225,8 +227,11 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
             elsewhere), ``triangulate`` or ``depth`` (see :class:`LandmarkSource`).
         progress: draw progress bars on stderr.
         remote: run through a service instead of in-process.
+        query_camera: what the queries claim about their camera (default: the dataset's);
+            the map is built with the dataset's.
     """
     methods = _method_list(method)
+    claimed = query_camera or QueryCamera()
     source = LandmarkSource(landmarks)
     dataset = read_dataset(dataset_root)
     _check_dataset(dataset, source)
@@ -235,11 +240,12 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
         build_s = _build_map(backend, dataset, source, progress)
         train_s = _timed(lambda: backend.train(progress=progress))
         with as_a_service_worker() if isinstance(backend, InProcessBackend) else nullcontext():
-            results = [_evaluate_method(backend, dataset, m, progress) for m in methods]
+            results = [_evaluate_method(backend, dataset, m, progress, claimed)
+                       for m in methods]
         map_info = _map_info(backend, dataset, source, build_s, train_s)
     finally:
         backend.close()
-    return EvalResult(dataset=_dataset_info(dataset), map=map_info, methods=results,
+    return EvalResult(dataset=_dataset_info(dataset, claimed), map=map_info, methods=results,
                       machine=machine_info(), backend=backend.description,
                       options=_json_safe(dict(options or {})),
                       created_utc=datetime.now(UTC).isoformat(timespec="seconds"))
@@ -311,21 +317,22 @@ def _build_map(backend: Backend, dataset: Dataset, source: LandmarkSource,
 
 
 def _evaluate_method(backend: Backend, dataset: Dataset, method: str,
-                     progress: bool) -> MethodResult:
+                     progress: bool, query_camera: QueryCamera) -> MethodResult:
     entries: Iterable[DatasetEntry] = dataset.query_entries
     if progress:
         entries = progress_bar(entries, total=len(dataset.query_entries), desc=method)
-    raw = [_query(backend, dataset, entry, method) for entry in entries]
+    raw = [_query(backend, dataset, entry, method, query_camera) for entry in entries]
     records = _with_ranks(raw, dataset)
     return MethodResult(method, summarize(records), records)
 
 
-def _query(backend: Backend, dataset: Dataset, entry: DatasetEntry, method: str
-           ) -> QueryRecord:
+def _query(backend: Backend, dataset: Dataset, entry: DatasetEntry, method: str,
+           query_camera: QueryCamera) -> QueryRecord:
     image = dataset.load_image(entry)
     gt = np.array(entry.world_from_cam)
+    camera = query_camera.claimed(dataset.camera(entry))
     start = time.perf_counter()
-    result = backend.relocalize(image, dataset.camera(entry), method=method,
+    result = backend.relocalize(image, camera, method=method,
                                 gt_world_from_cam=gt)
     latency_ms = (time.perf_counter() - start) * 1e3
     return record_from_result(entry.image_path, result, gt, latency_ms)
@@ -414,12 +421,13 @@ def _map_info(backend: Backend, dataset: Dataset, source: LandmarkSource, build_
                    landmarks_per_keyframe=None if per_keyframe is None else per_keyframe())
 
 
-def _dataset_info(dataset: Dataset) -> dict[str, Any]:
+def _dataset_info(dataset: Dataset, query_camera: QueryCamera) -> dict[str, Any]:
     root = Path(dataset.root).resolve()
     return {"root": str(root), "name": root.name, "map_frames": len(dataset.map_entries),
             "query_frames": len(dataset.query_entries),
             "depth_frames": len(dataset.depth),
-            "cameras": {cid: cam.to_dict() for cid, cam in dataset.cameras.items()}}
+            "cameras": {cid: cam.to_dict() for cid, cam in dataset.cameras.items()},
+            "query_camera": query_camera.to_dict()}
 
 
 def machine_info() -> dict[str, Any]:
