@@ -15,6 +15,7 @@ from reloc_service.errors import ConfigError, NotTrainedError
 from reloc_service.frame import Features, Frame, Keyframe
 from reloc_service.geometry import pose_error
 from reloc_service.map import KeyframeMap
+from reloc_service.mapping import MapBuilder, MappingConf
 from reloc_service.relocalizers import overlap
 from reloc_service.relocalizers.base import Prior, Relocalizer, RelocResult
 from reloc_service.relocalizers.chain import ChainRelocalizer
@@ -203,16 +204,41 @@ def test_method_string_names_each_steps_features(two_kind_scene):
     assert "sbi+esm:orb" not in listed
 
 
-def test_default_answers_with_orb_when_it_verifies(two_kind_scene):
-    gt = query_pose(1)
-    query = Frame(two_kind_scene.render(gt), CAMERA)
-    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", two_kind_scene.map)
+@pytest.fixture(scope="module")
+def room_two_kinds(synthetic_scene) -> KeyframeMap:
+    """The synthetic room (a scene with depth) mapped with SIFT and ORB landmarks."""
+    kmap = KeyframeMap()
+    builder = MapBuilder(kmap, MappingConf(feature_kinds=("sift", "orb")))
+    for i, (image, pose) in enumerate(zip(synthetic_scene.keyframe_images,
+                                          synthetic_scene.keyframe_poses, strict=True)):
+        builder.add_keyframe(i, image, synthetic_scene.camera, pose, timestamp=float(i))
+    return kmap
+
+
+def test_default_answers_with_orb_when_it_verifies(synthetic_scene, room_two_kinds):
+    query = Frame(synthetic_scene.query_images[1], synthetic_scene.camera)
+    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", room_two_kinds)
     result = chain.relocalize(query)
     assert result.ok and result.method == "sbi+p3p:orb"
     # within the evaluation's 5 cm: ORB's coarser keypoints (8 pyramid levels, no sub-pixel
     # refinement) give about 1 cm here where SIFT gives a few millimetres
-    assert pose_error(result.world_from_cam, gt)[0] < 0.05
+    assert pose_error(result.world_from_cam, synthetic_scene.query_poses[1])[0] < 0.05
     assert set(query.features) == {"orb"}  # SIFT never extracted: the fast path answered
+
+
+def test_orb_leaves_a_plane_seen_face_on_to_the_last_step(two_kind_scene):
+    """On one plane seen from above the focal and the height trade off: ORB's check of the
+    query's intrinsics is inconclusive, so the ORB step leaves the query to the SIFT step,
+    which, being the last, answers trusting the calibration."""
+    gt = query_pose(1)
+    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", two_kind_scene.map)
+    orb_alone = chain.steps[0].relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+    assert not orb_alone.ok and "intrinsics unchecked" in orb_alone.reason
+    result = chain.relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+    assert result.ok and result.method == "sbi+p3p"
+    assert pose_error(result.world_from_cam, gt)[0] < 0.01
+    alone = create_relocalizer("sbi+p3p:orb", two_kind_scene.map)  # the last step trusts
+    assert alone.relocalize(Frame(two_kind_scene.render(gt), CAMERA)).ok
 
 
 def test_sift_step_answers_when_orb_cannot_verify(two_kind_scene):
@@ -226,7 +252,8 @@ def test_sift_step_answers_when_orb_cannot_verify(two_kind_scene):
     assert pose_error(result.world_from_cam, gt)[0] < 0.01
 
 
-def test_a_failed_group_starts_the_next_steps_extraction_ahead(two_kind_scene, monkeypatch):
+def test_a_failed_group_starts_the_next_steps_extraction_ahead(two_kind_scene, synthetic_scene,
+                                                               room_two_kinds, monkeypatch):
     """The ORB step (no ORB landmark here) fails its first group with another to go: with
     ``look_ahead`` the SIFT step's features are extracted then, once, on a helper thread,
     and the answer is the same as without; a first group that verifies starts nothing."""
@@ -261,8 +288,8 @@ def test_a_failed_group_starts_the_next_steps_extraction_ahead(two_kind_scene, m
     assert (on.inliers, on.num_matches, on.matched_keyframe_ids) == (
         off.inliers, off.num_matches, off.matched_keyframe_ids)
     calls.clear()
-    query = Frame(two_kind_scene.render(query_pose(1)), CAMERA)
-    verified = create_relocalizer("sbi+p3p:orb,sbi+p3p", two_kind_scene.map).relocalize(query)
+    query = Frame(synthetic_scene.query_images[1], synthetic_scene.camera)
+    verified = create_relocalizer("sbi+p3p:orb,sbi+p3p", room_two_kinds).relocalize(query)
     assert verified.ok and verified.method == "sbi+p3p:orb"
     assert [kind for kind, _ in calls] == ["orb"] and set(query.features) == {"orb"}
 

@@ -22,6 +22,7 @@ from .base import PoseEstimate, PoseFinder, Support, register
 from .guided import GuidedConf, search_by_projection
 from .kernels import compiled
 from .landmark_pool import LandmarkPool
+from .map_consistency import prepare_map, settle_intrinsics
 from .pnp import PnPConf, PointUncertainty, level_scales, solve_pnp_indexed
 from .repetition import RepetitionConf, alternative_poses, twin_correspondences
 from .support import explained_keypoints
@@ -106,6 +107,7 @@ class P3PPoseFinder(PoseFinder):
             est = self._grow(query, feats, est, keyframes, state, q_idx,
                              pool.landmark_ids[rows])
         est.timings = {**est.timings, **timings}  # every match and solve, guided's own
+        settle_intrinsics(est, state, self.conf.kind, self.conf)
         return est
 
     def _match_and_solve(self, query: Frame, feats: Features, keyframes: list[Keyframe],
@@ -208,8 +210,10 @@ class P3PPoseFinder(PoseFinder):
             alt.keyframe_ids = pool.keyframes_of(pool.rows_of(alt.inlier_landmark_ids), near)
             # Twins are the few repeated keypoints: the alternative is grown over its own
             # local map, as a first pose with few inliers is (judged on its twin consensus).
-            grown.append(self._grow(query, feats, alt, local, state, twins[0],
-                                    pool.landmark_ids[twins[1]]))
+            alt = self._grow(query, feats, alt, local, state, twins[0],
+                             pool.landmark_ids[twins[1]])
+            settle_intrinsics(alt, state, self.conf.kind, self.conf)
+            grown.append(alt)
         return grown
 
     def _scales(self, feats: Features, q_idx: npt.NDArray[np.int64]) -> Array | None:
@@ -223,6 +227,12 @@ class P3PPoseFinder(PoseFinder):
         ``conf.first_pool_keyframes`` (all of them when None)."""
         first = self.conf.first_pool_keyframes
         return keyframes if first is None else keyframes[:first]
+
+    def prepare_map(self, state: MapState) -> None:
+        """Each keyframe's agreement with the map's camera (:mod:`.map_consistency`), which
+        the intrinsics test of a query near it reads."""
+        if self.conf.intrinsics_false_refusal > 0:
+            prepare_map(state, self.conf.kind, self.conf)
 
     def query_kinds(self, query: Frame) -> frozenset[str]:
         return frozenset() if self.conf.kind in query.features else self.required_features

@@ -11,20 +11,27 @@ from ..errors import ConfigError, NotTrainedError
 from ..features import FeatureConf
 from ..frame import Frame, Keyframe
 from ..map import KeyframeMap
-from .base import ON_DOUBT, Prior, Relocalizer, RelocResult
+from .base import ON_DOUBT, Prior, Relocalizer, RelocResult, refuses_the_query
 from .overlap import Ahead, run_ahead
 
 
 class ChainRelocalizer(Relocalizer):
     """Asks each step in turn; the first verified answer wins (its ``method`` names the step),
-    with the timings of every step tried summed. Features a step extracts are cached on the
-    query frame, so a later step of the same kind does not extract them again."""
+    with the timings of every step tried summed; a step's refusal of the query itself
+    (:func:`.base.refuses_the_query`: its intrinsics disagree) ends the chain. Features a
+    step extracts are cached on the query frame, so a later step of the same kind does not
+    extract them again."""
 
     def __init__(self, kmap: KeyframeMap, steps: list[Relocalizer]) -> None:
         super().__init__(kmap)
         if not steps:
             raise ConfigError("chain: expected at least one relocalizer")
         self.steps = steps
+        # A view that cannot check the query's intrinsics (few, coarse keypoints) leaves the
+        # query to the next step, whose finer features may; only the last trusts the
+        # calibration there.
+        for step in steps[:-1]:
+            step.defer_unchecked_intrinsics()
 
     @property
     def method(self) -> str:
@@ -74,7 +81,9 @@ class ChainRelocalizer(Relocalizer):
             for stage, seconds in result.timings.items():
                 timings[stage] = timings.get(stage, 0.0) + seconds
             map_version = result.map_version
-            if result.ok:
+            if result.ok or refuses_the_query(result):
+                # A camera whose intrinsics disagree is the query's: every later step would
+                # see the same camera, so the chain answers the refusal as it stands.
                 result.timings = timings
                 return result
             reasons.append(f"{step.method}: {result.reason}")
