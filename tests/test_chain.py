@@ -15,6 +15,7 @@ from reloc_service.errors import ConfigError, NotTrainedError
 from reloc_service.frame import Features, Frame, Keyframe
 from reloc_service.geometry import pose_error
 from reloc_service.map import KeyframeMap
+from reloc_service.mapping import MapBuilder, MappingConf
 from reloc_service.relocalizers import overlap
 from reloc_service.relocalizers.base import Prior, Relocalizer, RelocResult
 from reloc_service.relocalizers.chain import ChainRelocalizer
@@ -203,16 +204,41 @@ def test_method_string_names_each_steps_features(two_kind_scene):
     assert "sbi+esm:orb" not in listed
 
 
-def test_default_answers_with_orb_when_it_verifies(two_kind_scene):
-    gt = query_pose(1)
-    query = Frame(two_kind_scene.render(gt), CAMERA)
-    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", two_kind_scene.map)
+@pytest.fixture(scope="module")
+def room_two_kinds(synthetic_scene) -> KeyframeMap:
+    """The synthetic room (a scene with depth) mapped with SIFT and ORB landmarks."""
+    kmap = KeyframeMap()
+    builder = MapBuilder(kmap, MappingConf(feature_kinds=("sift", "orb")))
+    for i, (image, pose) in enumerate(zip(synthetic_scene.keyframe_images,
+                                          synthetic_scene.keyframe_poses, strict=True)):
+        builder.add_keyframe(i, image, synthetic_scene.camera, pose, timestamp=float(i))
+    return kmap
+
+
+def test_default_answers_with_orb_when_it_verifies(synthetic_scene, room_two_kinds):
+    query = Frame(synthetic_scene.query_images[1], synthetic_scene.camera)
+    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", room_two_kinds)
     result = chain.relocalize(query)
     assert result.ok and result.method == "sbi+p3p:orb"
     # within the evaluation's 5 cm: ORB's coarser keypoints (8 pyramid levels, no sub-pixel
     # refinement) give about 1 cm here where SIFT gives a few millimetres
-    assert pose_error(result.world_from_cam, gt)[0] < 0.05
+    assert pose_error(result.world_from_cam, synthetic_scene.query_poses[1])[0] < 0.05
     assert set(query.features) == {"orb"}  # SIFT never extracted: the fast path answered
+
+
+def test_orb_leaves_a_plane_seen_face_on_to_the_last_step(two_kind_scene):
+    """On one plane seen from above the focal and the height trade off: ORB's check of the
+    query's intrinsics is inconclusive, so the ORB step leaves the query to the SIFT step,
+    which, being the last, answers trusting the calibration."""
+    gt = query_pose(1)
+    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", two_kind_scene.map)
+    orb_alone = chain.steps[0].relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+    assert not orb_alone.ok and "intrinsics unchecked" in orb_alone.reason
+    result = chain.relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+    assert result.ok and result.method == "sbi+p3p"
+    assert pose_error(result.world_from_cam, gt)[0] < 0.01
+    alone = create_relocalizer("sbi+p3p:orb", two_kind_scene.map)  # the last step trusts
+    assert alone.relocalize(Frame(two_kind_scene.render(gt), CAMERA)).ok
 
 
 def test_sift_step_answers_when_orb_cannot_verify(two_kind_scene):
@@ -226,7 +252,8 @@ def test_sift_step_answers_when_orb_cannot_verify(two_kind_scene):
     assert pose_error(result.world_from_cam, gt)[0] < 0.01
 
 
-def test_a_failed_group_starts_the_next_steps_extraction_ahead(two_kind_scene, monkeypatch):
+def test_a_failed_group_starts_the_next_steps_extraction_ahead(two_kind_scene, synthetic_scene,
+                                                               room_two_kinds, monkeypatch):
     """The ORB step (no ORB landmark here) fails its first group with another to go: with
     ``look_ahead`` the SIFT step's features are extracted then, once, on a helper thread,
     and the answer is the same as without; a first group that verifies starts nothing."""
@@ -261,8 +288,8 @@ def test_a_failed_group_starts_the_next_steps_extraction_ahead(two_kind_scene, m
     assert (on.inliers, on.num_matches, on.matched_keyframe_ids) == (
         off.inliers, off.num_matches, off.matched_keyframe_ids)
     calls.clear()
-    query = Frame(two_kind_scene.render(query_pose(1)), CAMERA)
-    verified = create_relocalizer("sbi+p3p:orb,sbi+p3p", two_kind_scene.map).relocalize(query)
+    query = Frame(synthetic_scene.query_images[1], synthetic_scene.camera)
+    verified = create_relocalizer("sbi+p3p:orb,sbi+p3p", room_two_kinds).relocalize(query)
     assert verified.ok and verified.method == "sbi+p3p:orb"
     assert [kind for kind, _ in calls] == ["orb"] and set(query.features) == {"orb"}
 
@@ -320,8 +347,8 @@ def _shifted(offset_m: np.ndarray) -> Callable[[Features], np.ndarray]:
 
 @pytest.fixture()
 def every_answer_narrow(monkeypatch):
-    """Every step's answer counts as resting on a small part of the image (the planar scene
-    cannot give a narrow support that the planar-patch test lets through)."""
+    """Every step's answer counts as resting on a small part of the image (the synthetic
+    scenes cannot give a narrow support that the planar-patch test lets through)."""
     from reloc_service.relocalizers import chain as chain_module
 
     monkeypatch.setattr(chain_module, "narrow_support", lambda estimate, conf: True)
@@ -340,50 +367,69 @@ def test_narrow_support_is_the_inliers_hull_against_the_patch_share():
     assert not narrow_support(est, VerifyConf())
 
 
-def test_a_later_step_overrules_a_narrow_answer_that_explains_less(two_kind_scene,
-                                                                  every_answer_narrow):
+def test_a_later_step_overrules_a_narrow_answer_that_explains_less(
+        synthetic_scene, room_two_kinds, every_answer_narrow):
     """The ORB step verifies a pose 15 cm off (its landmarks moved); asked for a second
     opinion, the SIFT step finds its own pose explains clearly more SIFT keypoints and
-    answers that. Without the second opinion the chain would answer ORB's."""
-    kmap = _map_with_orb(two_kind_scene, _shifted(np.array([0.15, 0.0, 0.0])))
-    gt = query_pose(1)
+    answers that. Without the second opinion the chain would answer ORB's. (The room: a
+    scene with depth lets the ORB step check the query's intrinsics, so it answers rather
+    than deferring as on a plane seen face on.)"""
+    kmap = _room_with(room_two_kinds, "orb", lambda f, _: f.points_world + [0.15, 0.0, 0.0])
+    query, gt = _room_query(synthetic_scene, 1)
     chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", kmap)
-    orb_alone = chain.steps[0].relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+    orb_alone = chain.steps[0].relocalize(query())
     assert orb_alone.ok and pose_error(orb_alone.world_from_cam, gt)[0] > 0.1
-    result = chain.relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+    result = chain.relocalize(query())
     assert result.ok and result.method == "sbi+p3p"
     assert pose_error(result.world_from_cam, gt)[0] < 0.01
 
 
 def test_a_later_step_that_explains_a_narrow_answer_answers_more_precisely(
-        two_kind_scene, every_answer_narrow):
+        synthetic_scene, room_two_kinds, every_answer_narrow):
     """A right ORB answer is explained by the SIFT step's own pose: the SIFT pose answers."""
-    gt = query_pose(1)
-    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", two_kind_scene.map)
-    result = chain.relocalize(Frame(two_kind_scene.render(gt), CAMERA))
+    query, gt = _room_query(synthetic_scene, 1)
+    chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", room_two_kinds)
+    result = chain.relocalize(query())
     assert result.ok and result.method == "sbi+p3p"
     assert pose_error(result.world_from_cam, gt)[0] < 0.01
 
 
-def test_a_narrow_answer_stands_when_no_later_step_verifies(two_kind_scene,
+def test_a_narrow_answer_stands_when_no_later_step_verifies(synthetic_scene, room_two_kinds,
                                                             every_answer_narrow):
     """The SIFT step verifies nothing (its landmarks scrambled): the ORB answer stands."""
-    kmap = KeyframeMap()
     rng = np.random.default_rng(1)
-    for kf in two_kind_scene.map.snapshot().keyframes.values():
-        sift = kf.features["sift"]
+
+    def scrambled(sift: Features, kf: Keyframe) -> np.ndarray:
         points = sift.points_world.copy()
-        points[sift.landmark_ids >= 0] = rng.uniform(-2, 2, (int((sift.landmark_ids >= 0)
-                                                                 .sum()), 3))
-        kmap.add_keyframe(Keyframe(image=kf.image, camera=CAMERA, id=kf.id,
-                                   world_from_cam=kf.world_from_cam,
-                                   features={"sift": dataclasses.replace(sift,
-                                                                         points_world=points),
-                                             "orb": kf.features["orb"]}))
-    gt = query_pose(1)
+        mapped = sift.landmark_ids >= 0
+        points[mapped] = kf.world_from_cam[:3, 3] + rng.uniform(-2, 2, (int(mapped.sum()), 3))
+        return points
+
+    kmap = _room_with(room_two_kinds, "sift", scrambled)
+    query, gt = _room_query(synthetic_scene, 1)
     chain = create_relocalizer("sbi+p3p:orb,sbi+p3p", kmap)
-    query = Frame(two_kind_scene.render(gt), CAMERA)
-    result = chain.relocalize(query)
+    frame = query()
+    result = chain.relocalize(frame)
     assert result.ok and result.method == "sbi+p3p:orb"
     assert pose_error(result.world_from_cam, gt)[0] < 0.05
-    assert "sift" in query.features  # the SIFT step was asked
+    assert "sift" in frame.features  # the SIFT step was asked
+
+
+def _room_with(kmap: KeyframeMap, kind: str,
+               points: Callable[[Features, Keyframe], np.ndarray]) -> KeyframeMap:
+    """A copy of ``kmap`` whose ``kind`` landmarks are put at ``points(features, keyframe)``,
+    the other kind's kept as they are."""
+    copy = KeyframeMap()
+    for kf in kmap.snapshot().keyframes.values():
+        features = dict(kf.features)
+        features[kind] = dataclasses.replace(features[kind],
+                                             points_world=points(features[kind], kf))
+        copy.add_keyframe(Keyframe(image=kf.image, camera=kf.camera, id=kf.id,
+                                   world_from_cam=kf.world_from_cam, features=features))
+    return copy
+
+
+def _room_query(scene, index: int) -> tuple[Callable[[], Frame], np.ndarray]:
+    """A fresh query frame of the room's ``index``-th query (features are cached on a
+    frame, so each relocalization gets its own), and its ground truth."""
+    return (lambda: Frame(scene.query_images[index], scene.camera)), scene.query_poses[index]

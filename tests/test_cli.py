@@ -73,6 +73,15 @@ def test_eval_arguments_parse():
         parser.parse_args(["eval", "DS", "--landmarks", "lidar"])
 
 
+def test_eval_query_camera_arguments_parse():
+    parser = cli_main.build_parser("eval")
+    args = parser.parse_args(["eval", "DS", "-m", "default", "--query-focal-scale", "1.05",
+                              "--query-k1", "2"])
+    assert (args.query_focal_scale, args.query_k1) == (1.05, 2.0)
+    defaults = parser.parse_args(["eval", "DS"])
+    assert (defaults.query_focal_scale, defaults.query_k1) == (1.0, None)
+
+
 def test_eval_usage_errors(capsys):
     assert cli_main.main(["eval", "--method", "gt+none"]) == 2
     assert "DATASET" in capsys.readouterr().err

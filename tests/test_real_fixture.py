@@ -30,3 +30,15 @@ def test_every_query_relocalized_and_none_wrong(result, method):
     # sequence (interpolated to the image timestamps): score at 25 cm / 10 deg.
     assert summary.recall["25cm_10deg"] == 1.0, [q.reason for q in result.method(method).queries]
     assert summary.wrong_rate == 0.0
+
+
+def test_queries_claiming_a_focal_30_percent_long_are_not_answered():
+    from reloc_service.pose.intrinsics import REFUSAL
+    from reloc_service.tools.eval.query_camera import QueryCamera
+
+    stale = evaluate(FIXTURE, [DEFAULT_METHOD], progress=False,
+                     query_camera=QueryCamera(focal_scale=1.3))
+    assert stale.dataset["query_camera"] == {"focal_scale": 1.3, "k1": None}
+    queries = stale.method(DEFAULT_METHOD).queries
+    assert not any(q.returned for q in queries)
+    assert sum(q.reason.startswith(REFUSAL) for q in queries) >= 2, [q.reason for q in queries]

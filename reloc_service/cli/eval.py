@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", nargs="?", help="reloc dataset v1 folder")
     parser.add_argument("--method", "-m", action="append", default=None, metavar="NAME",
                         help="method to evaluate (repeat to compare several on one map; "
-                        "default: the service's default method); see --list-methods")
+                        "default, or 'default': the service's default method); see --list-methods")
     parser.add_argument("--list-methods", action="store_true",
                         help="list the selectable methods and exit")
     parser.add_argument("--json", metavar="OUT", help="write every number to OUT "
@@ -51,6 +51,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "covariance, and each query's ground truth is taken as that uncertain "
                         "where its error is weighed by the stated covariance ('cov scale'); "
                         "default 0,0: exact")
+    parser.add_argument("--query-focal-scale", type=float, default=1.0, metavar="S",
+                        help="the queries claim a focal S times their camera's (images "
+                        "unchanged, like a stale calibration; the map keeps the dataset's)")
+    parser.add_argument("--query-k1", type=float, default=None, metavar="V",
+                        help="the queries claim radial k1 = V (radtan; a pinhole camera "
+                        "claims radtan with this k1 alone), images unchanged")
     parser.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
@@ -64,10 +70,11 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         print(f"reloc eval: error: {problem}", file=sys.stderr)
         return 2
-    if not args.method:
-        from ..relocalizers.factory import DEFAULT_METHOD
+    from ..relocalizers.factory import DEFAULT_METHOD
 
-        args.method = [DEFAULT_METHOD]
+    # "default" names the service's default method (a chain whose string is long to type).
+    args.method = [DEFAULT_METHOD if m.strip() == "default" else m
+                   for m in args.method or ["default"]]
     try:
         return _evaluate(args)
     except (RelocError, OSError) as exc:
@@ -138,12 +145,14 @@ def load_options(path: str | Path) -> dict[str, Any]:
 def _evaluate(args: argparse.Namespace) -> int:
     from ..tools.eval import report
     from ..tools.eval.evaluate import RemoteSpec, evaluate
+    from ..tools.eval.query_camera import QueryCamera
 
     options = load_options(args.options) if args.options else None
     remote = RemoteSpec(args.remote, args.map_name) if args.remote else None
+    claimed = QueryCamera(focal_scale=args.query_focal_scale, k1=args.query_k1)
     result = evaluate(args.dataset, args.method, options=options, landmarks=args.landmarks,
                       progress=not args.no_progress, remote=remote,
-                      keyframe_sigma=args.keyframe_sigma)
+                      keyframe_sigma=args.keyframe_sigma, query_camera=claimed)
     print(report.format_header(result))
     print()
     print(report.format_markdown(result) if args.markdown else report.format_table(result))

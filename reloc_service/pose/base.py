@@ -18,6 +18,7 @@ from ..frame import Features, Frame
 from ..map import MapState
 from ..place.base import PlaceCandidate
 from ..plugins import Registry, make_conf
+from .intrinsics import IntrinsicsCheck
 
 Array = npt.NDArray[np.float64]
 
@@ -78,6 +79,21 @@ class PoseEstimate:
     #: around the pose is looked for with (:mod:`.repetition`).
     inlier_keypoints: npt.NDArray[np.int64] | None = None
     inlier_landmark_ids: npt.NDArray[np.int64] | None = None
+    #: The test of the query's intrinsics on the pose's correspondences
+    #: (:mod:`.intrinsics`, judged by :func:`.map_consistency.settle_intrinsics`); None
+    #: where not tested (too few inliers, or no correspondences). Where it passes,
+    #: ``covariance`` includes what the intrinsics the data cannot exclude do to the pose.
+    intrinsics: IntrinsicsCheck | None = None
+    #: Where the intrinsics test passed: the covariance with the given intrinsics trusted
+    #: within their calibration prior alone (``covariance`` also marginalises what the data
+    #: cannot exclude); the one answered where the view cannot bound them
+    #: (:func:`~reloc_service.relocalizers.base.stated_covariance`).
+    covariance_given_intrinsics: Array | None = None
+    #: How the solver tests the intrinsics on its correspondences, run when the estimate is
+    #: judged (the few estimates verification sees, not every RANSAC solve); None where the
+    #: solver cannot.
+    intrinsics_test: Callable[[], IntrinsicsCheck | None] | None = field(default=None,
+                                                                          repr=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -162,6 +178,10 @@ class PoseFinder(abc.ABC):
         (:mod:`.repetition`: twins of its landmarks nearby), unverified; ``plausible``
         says which first consensus is worth growing. Default: none."""
         return []
+
+    def prepare_map(self, state: MapState) -> None:  # noqa: B027 (optional hook)
+        """Work on the whole map done ahead of queries (when the relocalizer trains);
+        default: none."""
 
     def prepare_candidates(self, query: Frame, candidates: list[PlaceCandidate],
                            state: MapState) -> dict[str, float]:

@@ -22,6 +22,7 @@ from .base import PoseEstimate, PoseFinder, Support, register
 from .guided import GuidedConf, search_by_projection
 from .kernels import compiled
 from .landmark_pool import LandmarkPool
+from .map_consistency import prepare_map, settle_intrinsics
 from .map_uncertainty import map_covariance
 from .pnp import PnPConf, PointUncertainty, level_scales, solve_pnp_indexed
 from .repetition import (
@@ -115,6 +116,7 @@ class P3PPoseFinder(PoseFinder):
             est = self._grow(query, feats, est, keyframes, state, q_idx,
                              pool.landmark_ids[rows])
         est.timings = {**est.timings, **timings}  # every match and solve, guided's own
+        settle_intrinsics(est, state, self.conf.kind, self.conf)
         return _with_map_covariance(est, state)
 
     def _match_and_solve(self, query: Frame, feats: Features, keyframes: list[Keyframe],
@@ -217,9 +219,10 @@ class P3PPoseFinder(PoseFinder):
             alt.keyframe_ids = pool.keyframes_of(pool.rows_of(alt.inlier_landmark_ids), ids)
             # Twins are the few repeated keypoints: the alternative is grown over its own
             # local map, as a first pose with few inliers is (judged on its twin consensus).
-            grown.append(_with_map_covariance(
-                self._grow(query, feats, alt, [state.keyframes[k] for k in alt.keyframe_ids],
-                           state, twins[0], pool.landmark_ids[twins[1]]), state))
+            alt = self._grow(query, feats, alt, [state.keyframes[k] for k in alt.keyframe_ids],
+                             state, twins[0], pool.landmark_ids[twins[1]])
+            settle_intrinsics(alt, state, self.conf.kind, self.conf)
+            grown.append(_with_map_covariance(alt, state))
         return grown
 
     def _elsewhere(self, query: Frame, estimate: PoseEstimate, state: MapState,
@@ -267,6 +270,12 @@ class P3PPoseFinder(PoseFinder):
         ``conf.first_pool_keyframes`` (all of them when None)."""
         first = self.conf.first_pool_keyframes
         return keyframes if first is None else keyframes[:first]
+
+    def prepare_map(self, state: MapState) -> None:
+        """Each keyframe's agreement with the map's camera (:mod:`.map_consistency`), which
+        the intrinsics test of a query near it reads."""
+        if self.conf.intrinsics_false_refusal > 0:
+            prepare_map(state, self.conf.kind, self.conf)
 
     def query_kinds(self, query: Frame) -> frozenset[str]:
         return frozenset() if self.conf.kind in query.features else self.required_features

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +25,7 @@ from ..errors import ConfigError, GeometryError
 from ..geometry import invert, se3_exp, transform_points
 from .base import PoseEstimate
 from .chance import chance_agreement
+from .intrinsics import IntrinsicsCheck, IntrinsicsPrior, check_intrinsics
 from .kernels import camera_params, compiled
 
 Array = npt.NDArray[np.float64]
@@ -57,6 +59,16 @@ class PnPConf:
     #: projected into the query (``s`` pixels), its residual weighs ``1 / (1 + (s / this)^2)``
     #: in the refinement and the covariance.
     keypoint_sigma_px: float = 1.0
+    #: Test the query's intrinsics on the pose's correspondences (:mod:`.intrinsics`): a
+    #: focal scale and a radial distortion term estimated with the pose, the given camera
+    #: refused at this false-refusal rate (the share of correctly calibrated queries refused).
+    #: 0: no test.
+    intrinsics_false_refusal: float = 1e-3
+    #: A correct calibration's 1-sigma uncertainty: of the focal, relative, and of the
+    #: distortion, as the pixels it moves the image's farthest corner. The test allows it; a
+    #: pose that passes carries it in its covariance.
+    focal_sigma_rel: float = 0.005
+    radial_sigma_px: float = 2.0
 
     def __post_init__(self) -> None:
         if self.max_reproj_error_px <= 0:
@@ -71,6 +83,18 @@ class PnPConf:
             raise ConfigError(f"keypoint_sigma_px must be positive, got {self.keypoint_sigma_px}")
         if self.refine_iterations < 0 or self.min_sigma_px < 0:
             raise ConfigError("refine_iterations and min_sigma_px must be >= 0")
+        if not 0 <= self.intrinsics_false_refusal < 1:
+            raise ConfigError(f"intrinsics_false_refusal must be in [0, 1), got "
+                              f"{self.intrinsics_false_refusal}")
+        if self.focal_sigma_rel <= 0 or self.radial_sigma_px <= 0:
+            raise ConfigError(f"focal_sigma_rel and radial_sigma_px must be positive, got "
+                              f"{self.focal_sigma_rel}, {self.radial_sigma_px}")
+
+    @property
+    def intrinsics_prior(self) -> IntrinsicsPrior:
+        """The calibration uncertainty and false-refusal rate :mod:`.intrinsics` tests with."""
+        return IntrinsicsPrior(self.focal_sigma_rel, self.radial_sigma_px,
+                               self.intrinsics_false_refusal)
 
 
 def solve_pnp(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Camera,
@@ -204,7 +228,39 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
                                         None if uncertainty is None
                                         else uncertainty.depth_sigmas_m[inliers],
                                         None if scales is None else scales[inliers])
+    if conf.intrinsics_false_refusal > 0:
+        est.intrinsics_test = functools.partial(_check_intrinsics, fit, px, pts, camera, conf,
+                                                uncertainty, scales)
     return est, inliers
+
+
+def _check_intrinsics(fit: _Fit, px: Array, points_world: Array, camera: Camera,
+                      conf: PnPConf, uncertainty: PointUncertainty | None,
+                      keypoint_scales: Array | None) -> IntrinsicsCheck | None:
+    """:func:`.intrinsics.check_intrinsics` of ``camera`` on every correspondence of ``fit``,
+    with the refinement's weights."""
+    rows = np.arange(len(points_world))
+    weights = _weights(fit.world_from_cam, points_world, rows, camera, conf, uncertainty,
+                       keypoint_scales)
+    depths = transform_points(invert(fit.world_from_cam), points_world[fit.inliers])[:, 2]
+    return check_intrinsics(fit.world_from_cam, px, fit.inliers, weights, camera,
+                            pose_projector(points_world, camera),
+                            depth_m=float(np.median(depths)),
+                            threshold_px=conf.max_reproj_error_px,
+                            min_sigma_px=conf.min_sigma_px, prior=conf.intrinsics_prior)
+
+
+def pose_projector(points_world: Array, camera: Camera
+                   ) -> Callable[[Array], tuple[Array, Array]]:
+    """The projection of (N, 3) ``points_world`` through ``camera`` at a ``world_from_cam``:
+    (N, 2) pixels and their (N, 2, 6) Jacobian w.r.t. a right perturbation of the pose (what
+    :func:`.intrinsics.check_intrinsics` differentiates)."""
+
+    def project(world_from_cam: Array) -> tuple[Array, Array]:
+        view = _View.at(world_from_cam, points_world, camera)
+        return view.px, _pose_jacobian(camera, view.points_cam).reshape(-1, 2, 6)
+
+    return project
 
 
 def level_scales(levels: npt.NDArray[np.integer], scale_factor: float) -> Array:

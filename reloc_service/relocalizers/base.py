@@ -10,6 +10,7 @@ A wrong pose is worse than no pose for a drone: every relocalizer passes its est
 from __future__ import annotations
 
 import abc
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ from ..frame import Frame, Keyframe
 from ..map import KeyframeMap
 from ..plugins import Registry
 from ..pose.base import PoseEstimate, log10_false_alarms, total_covariance
+from ..pose.intrinsics import REFUSAL as INTRINSICS_REFUSAL
 
 Array = npt.NDArray[np.float64]
 
@@ -84,6 +86,11 @@ class VerifyConf:
     #: Smallest normalised cross-correlation accepted for photometric (ESM, none) estimates:
     #: aligned thumbnails of unrelated photographs reach up to ~0.8, correct alignments >= 0.95.
     min_ncc: float = 0.85
+    #: Where the view cannot check the query's intrinsics (:func:`intrinsics_unchecked`):
+    #: answer trusting the calibration (True: a relocalizer's last resort; a plane seen face
+    #: on must still be answered), or refuse so that a later step of a chain, with finer
+    #: features, checks them (a chain sets False on its steps but the last).
+    trust_unchecked_intrinsics: bool = True
 
     def __post_init__(self) -> None:
         if not 0 < self.max_false_alarms <= 1:
@@ -157,7 +164,13 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
     if patch is not None and patch < min_patch:
         return False, (f"inliers lie on one small planar patch ({patch:.0%} of the image < "
                        f"{min_patch:.0%}): a copy of it elsewhere would fit as well"), 0.0
-    sigma = position_sigma_m(est.covariance)
+    if est.intrinsics is not None and not est.intrinsics.passed:
+        return False, est.intrinsics.reason, 0.0
+    if (not conf.trust_unchecked_intrinsics
+            and intrinsics_unchecked(est, conf.max_position_sigma_m)):
+        return False, ("intrinsics unchecked: the view cannot bound the focal and the "
+                       "distortion"), 0.0
+    sigma = position_sigma_m(stated_covariance(est, conf.max_position_sigma_m))
     if sigma > conf.max_position_sigma_m:
         return False, f"position too uncertain ({sigma:.3f} m > {conf.max_position_sigma_m})", 0.0
     # Each factor saturates: many inliers, a clear majority, a small RMS.
@@ -276,6 +289,36 @@ def position_sigma_m(covariance: Array | None) -> float:
     return math.sqrt(max(largest_eigenvalue_sym3(block.tolist()), 0.0))
 
 
+def intrinsics_unchecked(estimate: PoseEstimate, max_position_sigma_m: float) -> bool:
+    """Whether ``estimate``'s view cannot check the query's intrinsics: with them right, the
+    covariance marginalising them would still be too wide to answer (``max_position_sigma_m``)
+    because the geometry cannot bound them (a plane seen face on: the focal and the distance
+    trade off; few, coarse keypoints), whatever the data happen to show. With
+    ``theta ~ N(0, P)`` estimated with noise ``V``, the data's shift ``theta_hat
+    theta_hat^T`` averages ``V + P``, so the marginalised ``B (theta_hat theta_hat^T + V +
+    P) B^T`` averages ``B (2 V + 2 P) B^T``. ``V`` includes the map's dispersion: a map that
+    bends as much cannot check the camera either. (A far solution the data cannot exclude
+    is what the data show, not what the geometry allows: it widens the stated covariance.)"""
+    check, trusted = estimate.intrinsics, estimate.covariance_given_intrinsics
+    if check is None or trusted is None or not check.passed:
+        return False
+    shift = check.pose_shift
+    expected = trusted + shift @ (2.0 * check.covariance + check.prior.covariance) @ shift.T
+    return position_sigma_m(expected) > max_position_sigma_m
+
+
+def stated_covariance(estimate: PoseEstimate, max_position_sigma_m: float) -> Array | None:
+    """The covariance ``estimate`` answers with, relative to the world: its own (the
+    intrinsics marginalised, :func:`..pose.map_consistency.covariance_with_intrinsics`),
+    except where its view cannot check them (:func:`intrinsics_unchecked`): the
+    calibration's then (its prior alone); plus the keyframe poses' errors
+    (:func:`..pose.base.total_covariance`). A weakness: where the intrinsics go unchecked a
+    stale calibration passes, with the calibration's covariance."""
+    if intrinsics_unchecked(estimate, max_position_sigma_m):
+        estimate = dataclasses.replace(estimate, covariance=estimate.covariance_given_intrinsics)
+    return total_covariance(estimate)
+
+
 def largest_eigenvalue_sym3(a: list[list[float]]) -> float:
     """Largest eigenvalue of the symmetric 3x3 matrix ``a`` (its upper triangle is read), in
     closed form: the trigonometric solution of the characteristic cubic (Smith 1961), equal
@@ -310,7 +353,17 @@ def result_from_estimate(estimate: PoseEstimate | None, conf: VerifyConf, *, met
     # The verification judged the pose against the map (``estimate.covariance``); the answer
     # says how well it is known in the world, the keyframe poses' errors included.
     return RelocResult(status=RelocStatus.OK, world_from_cam=estimate.world_from_cam,
-                       confidence=confidence, covariance=total_covariance(estimate), **common)
+                       confidence=confidence,
+                       covariance=stated_covariance(estimate, conf.max_position_sigma_m),
+                       **common)
+
+
+def refuses_the_query(result: RelocResult) -> bool:
+    """Whether ``result`` refuses the query for what it is rather than for where it was
+    looked for: its intrinsics disagree with its correspondences (:mod:`..pose.intrinsics`),
+    which any other candidate, region or method would meet with the same camera. A
+    relocalizer stops at such a refusal and answers it."""
+    return not result.ok and result.reason.startswith(INTRINSICS_REFUSAL)
 
 
 #: ``query.cache`` key of a callable a fallback chain leaves to the step it runs: the step
@@ -406,6 +459,11 @@ class Relocalizer(abc.ABC):
 
     def save(self, directory: Path) -> None:  # noqa: B027 (optional hook)
         """Write trained models into ``directory`` (created by the caller); default: none."""
+
+    def defer_unchecked_intrinsics(self) -> None:  # noqa: B027 (optional hook)
+        """Refuse, rather than trust the calibration, where a view cannot check the query's
+        intrinsics (``VerifyConf.trust_unchecked_intrinsics``): a chain's steps but the last
+        leave such queries to the next. Default: nothing to change."""
 
     def load(self, directory: Path) -> bool:
         """Restore models saved by :meth:`save`; False if there is nothing to restore.

@@ -21,20 +21,30 @@ from .base import (
     Relocalizer,
     RelocResult,
     narrow_support,
+    refuses_the_query,
 )
 from .overlap import Ahead, run_ahead
 
 
 class ChainRelocalizer(Relocalizer):
     """Asks each step in turn; the first verified answer wins (its ``method`` names the step),
-    with the timings of every step tried summed. Features a step extracts are cached on the
-    query frame, so a later step of the same kind does not extract them again."""
+    with the timings of every step tried summed; a step's refusal of the query itself
+    (:func:`.base.refuses_the_query`: its intrinsics disagree) ends the chain, unless a later
+    step matches other features: then that step's verified pose overrules it, and the
+    refusal stands where none verifies. Features a
+    step extracts are cached on the query frame, so a later step of the same kind does not
+    extract them again."""
 
     def __init__(self, kmap: KeyframeMap, steps: list[Relocalizer]) -> None:
         super().__init__(kmap)
         if not steps:
             raise ConfigError("chain: expected at least one relocalizer")
         self.steps = steps
+        # A view that cannot check the query's intrinsics (few, coarse keypoints) leaves the
+        # query to the next step, whose finer features may; only the last trusts the
+        # calibration there.
+        for step in steps[:-1]:
+            step.defer_unchecked_intrinsics()
 
     @property
     def method(self) -> str:
@@ -66,7 +76,8 @@ class ChainRelocalizer(Relocalizer):
     def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
                    ) -> RelocResult:
         """The first step's verified result, or NOT_RELOCALIZED with every step's reason.
-        A step that is not trained yet is skipped (its reason says so).
+        A step that is not trained yet is skipped (its reason says so). An intrinsics
+        refusal answers as the class docstring says.
 
         A second opinion for weakly conditioned answers: when a step's pose rests on inliers
         spanning a small part of the image (:func:`.base.narrow_support`), the later steps
@@ -80,6 +91,7 @@ class ChainRelocalizer(Relocalizer):
         reasons: list[str] = []
         map_version = self.map.version
         contender: Contender | None = None
+        refusal: RelocResult | None = None
         try:
             for i, step in enumerate(self.steps):
                 result = self._ask(query, i, prior, hypotheses, reasons)
@@ -89,6 +101,13 @@ class ChainRelocalizer(Relocalizer):
                     timings[stage] = timings.get(stage, 0.0) + seconds
                 map_version = result.map_version
                 answered = query.cache.pop(ANSWERED, None)
+                if refuses_the_query(result):
+                    if not self._other_features_after(i):
+                        result.timings = timings
+                        return result
+                    refusal = refusal or result
+                    reasons.append(f"{step.method}: {result.reason}")
+                    continue
                 if contender is not None and contender.weighed:
                     result.timings = timings
                     return result  # the contender weighed: the winner, or "ambiguous"
@@ -108,8 +127,20 @@ class ChainRelocalizer(Relocalizer):
         if contender is not None:
             contender.result.timings = timings
             return contender.result
+        if refusal is not None:  # no later step found a pose to overrule it
+            refusal.timings = timings
+            return refusal
         return RelocResult.failure(self.method, "; ".join(reasons), timings=timings,
                                    map_version=map_version)
+
+    def _other_features_after(self, i: int) -> bool:
+        """Whether a step after ``i`` matches other features than step ``i``: a refusal of
+        the query's intrinsics (:func:`.base.refuses_the_query`) is then left to it, since
+        other keypoints carry other localisation errors (ORB's pyramid-quantised corners
+        bias a focal estimate that SIFT's sub-pixel ones do not); the same features would
+        meet the same correspondences, and the chain answers the refusal."""
+        own = self.steps[i].required_features
+        return any(step.required_features - own for step in self.steps[i + 1:])
 
     def _ask(self, query: Frame, i: int, prior: Prior | None, hypotheses: int,
              reasons: list[str]) -> RelocResult | None:

@@ -61,11 +61,20 @@ from ..place.sbi import SmallBlurryImageFinder
 from ..plugins import make_conf
 from ..pose.base import PoseEstimate
 from ..pose.guided import GuidedConf
+from ..pose.map_consistency import prepare_map, settle_intrinsics
 from ..pose.map_uncertainty import map_covariance
 from ..pose.pnp import PnPConf, solve_pnp_indexed
 from ..pose.support import query_support
 from . import uniqueness
-from .base import Prior, Relocalizer, RelocResult, VerifyConf, register, result_from_estimate
+from .base import (
+    Prior,
+    Relocalizer,
+    RelocResult,
+    VerifyConf,
+    refuses_the_query,
+    register,
+    result_from_estimate,
+)
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -255,6 +264,8 @@ class FernsRelocalizer(Relocalizer):
         models.train(self.map.snapshot(), show_progress=progress)
         self._models = models
         self._ever_trained = True
+        if self.pnp_conf.intrinsics_false_refusal > 0:
+            prepare_map(self.map.snapshot(), self.conf.kind, self.pnp_conf)
 
     def update(self, *, show_progress: bool = False) -> None:
         """Bring the models in line with the current map (adds and removes exactly)."""
@@ -311,8 +322,8 @@ class FernsRelocalizer(Relocalizer):
             result = self._relocalize_in(query, attempt, pub, work, prior, hypotheses)
             for key, seconds in result.timings.items():  # the query paid every attempt
                 spent[key] = spent.get(key, 0.0) + seconds
-            if result.ok:
-                break
+            if result.ok or refuses_the_query(result):
+                break  # (the query's camera would meet every other region too)
         result.timings.update(spent)
         result.timings["place"] = place_seconds
         return result
@@ -533,10 +544,15 @@ class FernsRelocalizer(Relocalizer):
         est.chance_probability = _per_keypoint_chance(est.chance_probability, len(kp),
                                                       est.num_matches)
         est.keyframe_ids = _keyframes_seeing(state, lm[inliers])
+        settle_intrinsics(est, state, self.conf.kind, self.pnp_conf)
         est.map_covariance = map_covariance(est.world_from_cam, state, lm[inliers])
         return est, inliers
 
     # -- persistence -------------------------------------------------------------------------
+    def defer_unchecked_intrinsics(self) -> None:
+        self.verify_conf = dataclasses.replace(self.verify_conf,
+                                               trust_unchecked_intrinsics=False)
+
     def save(self, directory: Path) -> None:
         """Write ``ferns.npz`` (counts, records) and ``ferns.json`` (format, conf, regions)."""
         directory = Path(directory)

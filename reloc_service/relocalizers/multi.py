@@ -32,6 +32,7 @@ from .base import (
     VerifyConf,
     doubt,
     plausible_first_pose,
+    refuses_the_query,
     register,
     result_from_estimate,
 )
@@ -147,6 +148,7 @@ class MultiRelocalizer(Relocalizer):
 
     def train(self, *, progress: bool = False) -> None:
         self.place.train()
+        self.pose.prepare_map(self.map.snapshot())
 
     @property
     def trained(self) -> bool:
@@ -238,8 +240,10 @@ class MultiRelocalizer(Relocalizer):
                        timings: dict[str, float], hypotheses: int
                        ) -> tuple[list[RelocResult], list[PoseEstimate | None]]:
         """Pose and verify group after group, until enough have verified (every group with
-        ``conf.unique``); every result, and the estimate of each verified one (None for the
-        others)."""
+        ``conf.unique``) or, before any has, one refuses the query itself
+        (:func:`.base.refuses_the_query`: after a verified pose whose intrinsics passed, a
+        later group's disagreeing ones are more likely a wrong pose's); every result, and
+        the estimate of each verified one (None for the others)."""
         wanted = max(hypotheses, 2 if self.require_agreement else 1)
         results: list[RelocResult] = []
         estimates: list[PoseEstimate | None] = []
@@ -253,6 +257,8 @@ class MultiRelocalizer(Relocalizer):
             _add_timings(timings, {"verify": time.perf_counter() - start})
             results.append(result)
             estimates.append(estimate if result.ok else None)
+            if refuses_the_query(result) and not any(r.ok for r in results):
+                break  # the query's camera: every other group would meet it too
             if (self.conf.look_ahead and not result.ok and len(results) < len(groups)
                     and not any(r.ok for r in results)):
                 doubt(query)
@@ -268,6 +274,8 @@ class MultiRelocalizer(Relocalizer):
         verified ones, most confident first; or a failure naming every group's reason, the
         agreement check's or the ambiguity."""
         verified = [r for r in results if r.ok]
+        if not verified and refuses_the_query(results[-1]):
+            return _failure(self.method, results[-1:], timings, state.version)
         if not verified:
             return _failure(self.method, results, timings, state.version)
         contender = query.cache.get(CONTENDER) if self.conf.unique else None
@@ -346,6 +354,10 @@ class MultiRelocalizer(Relocalizer):
             return (f"independent hypotheses disagree by {dist:.2f} m and "
                     f"{np.degrees(angle):.1f} deg")
         return ""
+
+    def defer_unchecked_intrinsics(self) -> None:
+        self.verify_conf = dataclasses.replace(self.verify_conf,
+                                               trust_unchecked_intrinsics=False)
 
     def save(self, directory: Path) -> None:
         """Write the place finder's trained model (if any) as ``place_<name>.msgpack``."""

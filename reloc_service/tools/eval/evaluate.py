@@ -34,6 +34,7 @@ from . import gt as _gt  # noqa: F401 (importing it registers the ground-truth p
 from . import metrics
 from .backends import Backend, LandmarkSource, RemoteSpec
 from .inprocess import InProcessBackend, as_a_service_worker
+from .query_camera import QueryCamera
 
 Array = npt.NDArray[np.float64]
 
@@ -221,7 +222,8 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
              options: Mapping[str, Any] | None = None,
              landmarks: LandmarkSource | str = LandmarkSource.AUTO,
              progress: bool = True, remote: RemoteSpec | None = None,
-             keyframe_sigma: tuple[float, float] = (0.0, 0.0)) -> EvalResult:
+             keyframe_sigma: tuple[float, float] = (0.0, 0.0),
+             query_camera: QueryCamera | None = None) -> EvalResult:
     """Build the map of ``dataset_root``, train, and score every query with each method.
 
     Args:
@@ -239,8 +241,11 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
             relocalized pose inherits from the map) and every query's ground truth is
             taken as that uncertain when its error is weighed by the stated covariance
             (:func:`.metrics.translation_mahalanobis`). (0, 0): exact poses.
+        query_camera: what the queries claim about their camera (default: the dataset's);
+            the map is built with the dataset's.
     """
     methods = _method_list(method)
+    claimed = query_camera or QueryCamera()
     source = LandmarkSource(landmarks)
     truth_covariance = ground_truth_covariance(keyframe_sigma)
     dataset = read_dataset(dataset_root)
@@ -250,12 +255,13 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
         build_s = _build_map(backend, dataset, source, progress, truth_covariance)
         train_s = _timed(lambda: backend.train(progress=progress))
         with as_a_service_worker() if isinstance(backend, InProcessBackend) else nullcontext():
-            results = [_evaluate_method(backend, dataset, m, progress, truth_covariance)
+            results = [_evaluate_method(backend, dataset, m, progress, claimed,
+                                        truth_covariance)
                        for m in methods]
         map_info = _map_info(backend, dataset, source, build_s, train_s)
     finally:
         backend.close()
-    return EvalResult(dataset=_dataset_info(dataset), map=map_info, methods=results,
+    return EvalResult(dataset=_dataset_info(dataset, claimed), map=map_info, methods=results,
                       machine=machine_info(), backend=backend.description,
                       options=_json_safe(dict(options or {})),
                       created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
@@ -339,21 +345,24 @@ def _build_map(backend: Backend, dataset: Dataset, source: LandmarkSource,
 
 
 def _evaluate_method(backend: Backend, dataset: Dataset, method: str,
-                     progress: bool, truth_covariance: Array | None = None) -> MethodResult:
+                     progress: bool, query_camera: QueryCamera,
+                     truth_covariance: Array | None = None) -> MethodResult:
     entries: Iterable[DatasetEntry] = dataset.query_entries
     if progress:
         entries = progress_bar(entries, total=len(dataset.query_entries), desc=method)
-    raw = [_query(backend, dataset, entry, method, truth_covariance) for entry in entries]
+    raw = [_query(backend, dataset, entry, method, query_camera, truth_covariance)
+           for entry in entries]
     records = _with_ranks(raw, dataset)
     return MethodResult(method, summarize(records), records)
 
 
 def _query(backend: Backend, dataset: Dataset, entry: DatasetEntry, method: str,
-           truth_covariance: Array | None = None) -> QueryRecord:
+           query_camera: QueryCamera, truth_covariance: Array | None = None) -> QueryRecord:
     image = dataset.load_image(entry)
     gt = np.array(entry.world_from_cam)
+    camera = query_camera.claimed(dataset.camera(entry))
     start = time.perf_counter()
-    result = backend.relocalize(image, dataset.camera(entry), method=method,
+    result = backend.relocalize(image, camera, method=method,
                                 gt_world_from_cam=gt)
     latency_ms = (time.perf_counter() - start) * 1e3
     return record_from_result(entry.image_path, result, gt, latency_ms,
@@ -446,12 +455,13 @@ def _map_info(backend: Backend, dataset: Dataset, source: LandmarkSource, build_
                    landmarks_per_keyframe=None if per_keyframe is None else per_keyframe())
 
 
-def _dataset_info(dataset: Dataset) -> dict[str, Any]:
+def _dataset_info(dataset: Dataset, query_camera: QueryCamera) -> dict[str, Any]:
     root = Path(dataset.root).resolve()
     return {"root": str(root), "name": root.name, "map_frames": len(dataset.map_entries),
             "query_frames": len(dataset.query_entries),
             "depth_frames": len(dataset.depth),
-            "cameras": {cid: cam.to_dict() for cid, cam in dataset.cameras.items()}}
+            "cameras": {cid: cam.to_dict() for cid, cam in dataset.cameras.items()},
+            "query_camera": query_camera.to_dict()}
 
 
 def machine_info() -> dict[str, Any]:
