@@ -49,16 +49,16 @@ from typing import Any
 
 import numpy.typing as npt
 
-from .cameras import Camera
-from .errors import ConfigError, MapError
-from .frame import EncodedImage, Frame, Keyframe
-from .map import KeyframeMap, MapState
-from .mapping import MapBuilder, MappingConf
-from .progress import progress as progress_bar
-from .relocalizers.base import Prior, Relocalizer, RelocResult
-from .relocalizers.factory import DEFAULT_METHOD, create_relocalizer
-from .storage import load_map, model_dir_name, save_map
-from .triangulation import TriangulationConf
+from .algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
+from .algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer
+from .core.cameras import Camera
+from .core.errors import ConfigError, MapError
+from .core.frame import EncodedImage, Frame, Keyframe
+from .core.map import KeyframeMap, MapState
+from .core.mapping import MapBuilder, MappingConf
+from .core.progress import progress as progress_bar
+from .core.triangulation import TriangulationConf
+from .storage.snapshot import load_map, model_dir_name, save_map
 
 __all__ = ["Engine", "EngineConf", "MappingConf", "MapView", "ReadWriteLock", "TriangulationConf"]
 

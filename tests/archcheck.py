@@ -15,13 +15,12 @@ from pathlib import Path
 #: Top-level first-party packages and the folder (relative to the repo) each one lives in.
 SOURCES = {"reloc_service": Path("."), "reloc_client": Path("clients")}
 
-#: The library core (below the service, the tools and the CLI): reloc_service.<name>.
-CORE = {"geometry", "cameras", "frame", "map", "landmark_table", "features", "hamming",
-        "triangulation", "landmarks", "storage", "snapshot_files", "feature_columns",
-        "landmark_codec", "mapping", "plugins", "progress", "errors", "fileio", "numeric",
-        "engine", "place", "pose", "ferns", "relocalizers"}
+#: The layers of reloc_service, lowest first: each one is a folder of the package (``engine``
+#: a module), and a module may import its own layer and those below it. docs/architecture.md
+#: draws the same tree; tests/test_architecture.py checks that these are the package's folders.
+LAYERS = ("core", "storage", "algorithms", "engine", "service", "tools", "cli")
 
-#: What the core and the service may import from the client package: its numpy-only parts,
+#: What the layers below the tools may import from the client package: its numpy-only parts,
 #: the wire format (with the quaternion and camera table both ends share) and the result type;
 #: never the Zenoh client.
 FROM_CLIENT = ("reloc_client.protocol", "reloc_client.result")
@@ -255,15 +254,25 @@ def _pop_component(root: str, stack: list[str], on_stack: set[str]) -> list[str]
 
 
 def layer_of(name: str) -> str | None:
-    """``core``, ``service``, ``tools``, ``cli`` or ``client``; None for a module of no layer."""
+    """The layer of module ``name``: the folder of reloc_service it lives in (a name of
+    :data:`LAYERS`; the package's own ``__init__`` is ``core``), ``client`` for reloc_client;
+    None for a module of no layer."""
     parts = name.split(".")
     if parts[0] == "reloc_client":
         return "client"
     if parts[0] != "reloc_service":
         return None
-    if len(parts) == 1 or parts[1] in CORE:
+    if len(parts) == 1:
         return "core"
-    return parts[1] if parts[1] in ("service", "tools", "cli") else None
+    return parts[1] if parts[1] in LAYERS else None
+
+
+def layer_folders(root: Path) -> set[str]:
+    """The top-level folders (packages) and modules of reloc_service under ``root``, but its
+    ``__init__``: what :data:`LAYERS` must name."""
+    package = root / "reloc_service"
+    return ({p.name for p in package.iterdir() if (p / "__init__.py").is_file()}
+            | {p.stem for p in package.glob("*.py") if p.stem != "__init__"})
 
 
 def _under(name: str, prefixes: Iterable[str]) -> bool:
@@ -271,22 +280,22 @@ def _under(name: str, prefixes: Iterable[str]) -> bool:
 
 
 def may_import(importer: str, imported: str) -> bool:
-    """The layer rule for one first-party edge (docs/architecture.md, "Import rules")."""
+    """The layer rule for one first-party edge (docs/architecture.md, "Import rules"): a
+    layer imports its own and those below it; the client only itself; below the tools, of
+    the client only its numpy-only parts (:data:`FROM_CLIENT`)."""
     layer, target = layer_of(importer), layer_of(imported)
-    if layer == "core":
-        return target == "core" or _under(imported, FROM_CLIENT)
-    if layer == "service":
-        return target in ("core", "service") or _under(imported, FROM_CLIENT)
+    if layer is None or target is None:
+        return False
     if layer == "client":
         return target == "client"
-    if layer == "tools":
-        return target != "cli"
-    return layer == "cli"
+    if target == "client":
+        return layer in ("tools", "cli") or _under(imported, FROM_CLIENT)
+    return LAYERS.index(target) <= LAYERS.index(layer)
 
 
 def breaches(modules: dict[str, Module], graph: dict[str, set[str]]) -> list[str]:
     """Every import that breaks a layer rule, as "importer imports imported (file:line)"."""
-    found = [f"{name} belongs to no layer (add it to CORE or a layer)" for name in sorted(graph)
+    found = [f"{name} belongs to no layer (move it into a layer folder)" for name in sorted(graph)
              if layer_of(name) is None]
     for name in sorted(graph):
         module = modules[name]

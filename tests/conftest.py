@@ -23,8 +23,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from reloc_service.cameras import Camera, PinholeCamera, RadTanCamera
-from reloc_service.geometry import look_at
+from reloc_service.core.cameras import Camera, PinholeCamera, RadTanCamera
+from reloc_service.core.geometry import look_at
 
 Array = npt.NDArray[np.float64]
 
@@ -231,8 +231,8 @@ def synthetic_scene_radtan() -> SyntheticScene:
 def synthetic_map(synthetic_scene):
     """The ``synthetic_scene`` keyframes mapped with SIFT landmarks (an immutable MapState;
     ``KeyframeMap().replace_state(state)`` gives a map to change)."""
-    from reloc_service.map import KeyframeMap
-    from reloc_service.mapping import MapBuilder
+    from reloc_service.core.map import KeyframeMap
+    from reloc_service.core.mapping import MapBuilder
 
     kmap = KeyframeMap()
     builder = MapBuilder(kmap)

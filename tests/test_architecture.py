@@ -4,19 +4,22 @@ every first-party module (imports inside functions and ``importlib`` strings inc
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
-from archcheck import breaches, cycles, layer_of, load, unfollowed_dynamic_imports
+from archcheck import (
+    LAYERS,
+    breaches,
+    cycles,
+    layer_folders,
+    layer_of,
+    load,
+    unfollowed_dynamic_imports,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIENT = ROOT / "clients" / "reloc_client"
-
-#: The core's lower half: data types and I/O, below the algorithms and the engine.
-BASE = {"errors", "geometry", "cameras", "frame", "map", "landmark_table", "triangulation",
-        "landmarks", "features", "hamming", "storage", "snapshot_files", "feature_columns",
-        "landmark_codec", "plugins", "progress", "mapping", "fileio", "numeric"}
-
 
 @pytest.fixture(scope="module")
 def repo():
@@ -50,14 +53,20 @@ def test_the_graph_sees_function_level_and_dynamic_imports(repo):
     assert "reloc_service.tools.data.tum" in graph["reloc_service.tools.data"]  # import_module
 
 
-def test_core_base_imports_no_algorithm_or_engine(repo):
-    _, graph = repo
-    for name, imported in graph.items():
-        parts = name.split(".")
-        if layer_of(name) == "core" and len(parts) > 1 and parts[1] in BASE:
-            above = {m for m in imported if layer_of(m) == "core" and len(m.split(".")) > 1
-                     and m.split(".")[1] not in BASE}
-            assert not above, f"{name} imports {sorted(above)} (algorithms sit above it)"
+def test_the_layers_are_the_package_folders():
+    """Every folder (and module) of reloc_service is a layer of LAYERS, and every layer a
+    folder: the layer rule is a prefix rule read from the tree."""
+    assert layer_folders(ROOT) == set(LAYERS)
+
+
+def test_the_architecture_document_draws_the_layers_in_order():
+    """docs/architecture.md's layer table names the layers top-down, each with its folder."""
+    rows = re.findall(r"^\| \*\*(\w+)\*\* \| `(reloc_service/[\w./]+|clients/[\w/]+)`",
+                      (ROOT / "docs" / "architecture.md").read_text(), re.M)
+    package = [(name, path) for name, path in rows if path.startswith("reloc_service/")]
+    assert [name for name, _ in package] == list(reversed(LAYERS))
+    for name, path in package:
+        assert path.rstrip("/") in (f"reloc_service/{name}", f"reloc_service/{name}.py"), path
 
 
 def test_protocol_imports_only_msgpack_and_numpy():
@@ -84,9 +93,15 @@ def _absolute_tops(node: ast.AST) -> list[str]:
 
 PLANTED = {
     "reloc_service/__init__.py": "",
-    "reloc_service/geometry.py": "def f():\n    from .tools import a\n    import zenoh\n",
-    "reloc_service/place/__init__.py": "",
-    "reloc_service/place/sbi.py": "from ..geometry import f\nfrom reloc_client.client import C\n",
+    "reloc_service/core/__init__.py": "",
+    "reloc_service/core/geometry.py": "def f():\n    from ..tools import a\n    import zenoh\n",
+    "reloc_service/storage/__init__.py": "",
+    "reloc_service/storage/snapshot.py": "from ..algorithms.place import sbi\n",
+    "reloc_service/algorithms/__init__.py": "",
+    "reloc_service/algorithms/place/__init__.py": "",
+    "reloc_service/algorithms/place/sbi.py": "from ...core.geometry import f\n"
+                                             "from reloc_client.client import C\n",
+    "reloc_service/engine.py": "from .algorithms.place import sbi\n",
     "reloc_service/service/__init__.py": "from ..cli import main\n",
     "reloc_service/cli/__init__.py": "",
     "reloc_service/cli/main.py": "import reloc_service.service\n",
@@ -100,7 +115,7 @@ PLANTED = {
                                    "MODS = ('reloc_service.tools.b',)\n\ndef k():\n"
                                    "    for m in MODS:\n        importlib.import_module(m)\n",
     "reloc_service/unknown.py": "import skimage.data\n",
-    "clients/reloc_client/__init__.py": "from reloc_service.place import sbi\n",
+    "clients/reloc_client/__init__.py": "from reloc_service.algorithms.place import sbi\n",
     "clients/reloc_client/client.py": "import zenoh\n",
 }
 
@@ -123,12 +138,14 @@ def test_a_planted_cycle_inside_functions_and_importlib_is_reported(planted):
 def test_planted_layer_breaches_are_reported(planted):
     modules, graph = planted
     found = breaches(modules, graph)
-    expected = ["reloc_service.geometry imports reloc_service.tools.a (geometry.py:2)",
-                "reloc_service.geometry imports zenoh (geometry.py:3)",
+    expected = ["reloc_service.core.geometry imports reloc_service.tools.a (geometry.py:2)",
+                "reloc_service.core.geometry imports zenoh (geometry.py:3)",
+                "reloc_service.storage.snapshot imports reloc_service.algorithms.place.sbi "
+                "(snapshot.py:1)",
                 "reloc_service.service imports reloc_service.cli.main (__init__.py:1)",
-                "reloc_service.place.sbi imports reloc_client.client (sbi.py:2)",
-                "reloc_client imports reloc_service.place.sbi (__init__.py:1)",
-                "reloc_service.unknown belongs to no layer (add it to CORE or a layer)",
+                "reloc_service.algorithms.place.sbi imports reloc_client.client (sbi.py:2)",
+                "reloc_client imports reloc_service.algorithms.place.sbi (__init__.py:1)",
+                "reloc_service.unknown belongs to no layer (move it into a layer folder)",
                 "reloc_service.unknown imports skimage (the tools extra) (unknown.py:1)"]
     assert sorted(found) == sorted(expected)
     assert unfollowed_dynamic_imports(modules) == ["reloc_service.tools.lazy (lazy.py:7)"]
@@ -138,12 +155,15 @@ def test_a_planted_clean_tree_passes(planted, tmp_path):
     """Remove the planted faults: nothing is reported (the checks are not always-fail)."""
     for rel in ("reloc_service/unknown.py", "reloc_service/tools/lazy.py"):
         (tmp_path / rel).unlink()
-    (tmp_path / "reloc_service/geometry.py").write_text("def f():\n    import numpy\n")
-    (tmp_path / "reloc_service/service/__init__.py").write_text("from ..place import sbi\n")
+    (tmp_path / "reloc_service/core/geometry.py").write_text("def f():\n    import numpy\n")
+    (tmp_path / "reloc_service/service/__init__.py").write_text(
+        "from ..algorithms.place import sbi\n")
+    (tmp_path / "reloc_service/storage/snapshot.py").write_text("from ..core import geometry\n")
     (tmp_path / "reloc_service/tools/b.py").write_text("from . import a\n")
     (tmp_path / "reloc_service/tools/a.py").write_text("import zenoh\nimport matplotlib\n")
     (tmp_path / "clients/reloc_client/__init__.py").write_text("import zenoh\n")
-    (tmp_path / "reloc_service/place/sbi.py").write_text("from reloc_client.protocol import P\n")
+    (tmp_path / "reloc_service/algorithms/place/sbi.py").write_text(
+        "from reloc_client.protocol import P\n")
     (tmp_path / "clients/reloc_client/protocol.py").write_text("import numpy\n")
     modules, graph = load(tmp_path)
     assert cycles(graph) == [] and breaches(modules, graph) == []

@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from reloc_service import frame
-from reloc_service.frame import area_downscale
+from reloc_service.core import frame
+from reloc_service.core.frame import area_downscale
 
 pytest.importorskip("numba")
 

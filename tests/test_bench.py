@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reloc_service.geometry import pose_error
-from reloc_service.relocalizers.factory import DEFAULT_METHOD
+from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
+from reloc_service.core.geometry import pose_error
 from reloc_service.tools.bench import scaling
 from reloc_service.tools.bench.cli import add_arguments, headline_lines
 from reloc_service.tools.bench.peers import PlainMap, PlainOpenCVPipeline
@@ -91,7 +91,7 @@ def test_distractors_arrive_as_jpeg_as_a_client_sends_them(small_scene):
     features of its decoded pixels; without a quality, raw pixels (saved as PNG)."""
     import cv2
 
-    from reloc_service.frame import EncodedImage
+    from reloc_service.core.frame import EncodedImage
     from reloc_service.tools.bench.samples import JPEG_QUALITY
 
     (d,) = scaling.make_distractors(1, small_scene.camera, 10, seed=0)

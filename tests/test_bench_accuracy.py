@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reloc_service.cameras import FovCamera
-from reloc_service.map import KeyframeMap
+from reloc_service.core.cameras import FovCamera
+from reloc_service.core.map import KeyframeMap
 from reloc_service.tools.bench import accuracy
 from reloc_service.tools.bench.cli import add_arguments
 from reloc_service.tools.bench.peers import PlainResult
@@ -259,7 +259,7 @@ def test_cli_accepts_accuracy_and_rejects_unknown_sections(capsys):
 def test_peer_matches_right_when_a_keyframe_has_one_descriptor():
     """OpenCV's knnMatch over a collection with a one-row train set returns garbage indices
     (seen on tum_fr1_rpy): such keyframes share the next set, and every match stays exact."""
-    from reloc_service.cameras import PinholeCamera
+    from reloc_service.core.cameras import PinholeCamera
     from reloc_service.tools.bench.peers import PlainMap, PlainOpenCVPipeline
 
     rng = np.random.default_rng(0)

@@ -8,7 +8,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from reloc_service.cameras import camera_from_dict
+from reloc_service.core.cameras import camera_from_dict
 from reloc_service.service.config import load_config
 from reloc_service.tools.bench.loopback import camera_client, loopback_service, toml_text
 

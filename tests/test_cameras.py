@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from reloc_service.cameras import CAMERA_MODELS, camera_from_dict
-from reloc_service.errors import CameraError
+from reloc_service.core.cameras import CAMERA_MODELS, camera_from_dict
+from reloc_service.core.errors import CameraError
 
 BASE = dict(width=640, height=480, fx=458.0, fy=457.0, cx=321.5, cy=238.2)
 MODELS = {

@@ -9,18 +9,18 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from reloc_service import features as feature_lib
-from reloc_service.cameras import PinholeCamera
-from reloc_service.errors import ConfigError, NotTrainedError
-from reloc_service.frame import Features, Frame, Keyframe
-from reloc_service.geometry import pose_error
-from reloc_service.map import KeyframeMap
-from reloc_service.mapping import MapBuilder, MappingConf
-from reloc_service.relocalizers import overlap
-from reloc_service.relocalizers.base import Prior, Relocalizer, RelocResult
-from reloc_service.relocalizers.chain import ChainRelocalizer
-from reloc_service.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, list_methods
-from reloc_service.relocalizers.multi import MultiRelocalizer
+from reloc_service.algorithms.relocalizers import overlap
+from reloc_service.algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
+from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
+from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, list_methods
+from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
+from reloc_service.core import features as feature_lib
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.errors import ConfigError, NotTrainedError
+from reloc_service.core.frame import Features, Frame, Keyframe
+from reloc_service.core.geometry import pose_error
+from reloc_service.core.map import KeyframeMap
+from reloc_service.core.mapping import MapBuilder, MappingConf
 from reloc_service.tools.synth.planar import PlanarScene, keyframe_grid, planar_scene, query_pose
 
 CAMERA = PinholeCamera(width=320, height=240, fx=250.0, fy=250.0, cx=159.5, cy=119.5)
@@ -349,14 +349,14 @@ def _shifted(offset_m: np.ndarray) -> Callable[[Features], np.ndarray]:
 def every_answer_narrow(monkeypatch):
     """Every step's answer counts as resting on a small part of the image (the synthetic
     scenes cannot give a narrow support that the planar-patch test lets through)."""
-    from reloc_service.relocalizers import chain as chain_module
+    from reloc_service.algorithms.relocalizers import chain as chain_module
 
     monkeypatch.setattr(chain_module, "narrow_support", lambda estimate, conf: True)
 
 
 def test_narrow_support_is_the_inliers_hull_against_the_patch_share():
-    from reloc_service.pose.base import PoseEstimate
-    from reloc_service.relocalizers.base import VerifyConf, narrow_support
+    from reloc_service.algorithms.pose.base import PoseEstimate
+    from reloc_service.algorithms.relocalizers.base import VerifyConf, narrow_support
 
     corners = np.array([[0, 0], [80, 0], [80, 60], [0, 60], [40, 30]], np.float64)
     est = PoseEstimate(np.eye(4), [0], inlier_px=corners, image_size=(320, 240))

@@ -9,7 +9,7 @@ import pytest
 
 from reloc_service.cli import main as cli_main
 from reloc_service.cli.eval import load_options
-from reloc_service.errors import ConfigError
+from reloc_service.core.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 HEAVY = ("numpy", "cv2", "scipy", "zenoh", "matplotlib", "poselib", "skimage")
@@ -95,8 +95,8 @@ def test_eval_missing_dataset_is_a_clear_error(tmp_path, capsys):
 
 
 def test_eval_without_method_evaluates_the_default_method(tmp_path, capsys, monkeypatch):
+    from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
     from reloc_service.cli import eval as cli_eval
-    from reloc_service.relocalizers.factory import DEFAULT_METHOD
 
     seen = {}
     monkeypatch.setattr(cli_eval, "_evaluate", lambda args: seen.setdefault("m", args.method) and 0)
@@ -107,7 +107,7 @@ def test_eval_without_method_evaluates_the_default_method(tmp_path, capsys, monk
 def test_eval_list_methods(capsys):
     assert cli_main.main(["eval", "--list-methods"]) == 0
     out = capsys.readouterr().out
-    from reloc_service.relocalizers.factory import list_methods
+    from reloc_service.algorithms.relocalizers.factory import list_methods
 
     for m in list_methods():
         assert m["method"] in out

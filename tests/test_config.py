@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from reloc_service.errors import ConfigError
+from reloc_service.core.errors import ConfigError
 from reloc_service.service.config import (
     DEFAULT_CONFIG_FILE,
     ServiceConf,

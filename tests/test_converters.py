@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from reloc_service.cameras import EquidistantCamera, PinholeCamera, RadTanCamera
-from reloc_service.errors import DatasetError
-from reloc_service.geometry import matrix_to_quat_xyzw, so3_exp
+from reloc_service.core.cameras import EquidistantCamera, PinholeCamera, RadTanCamera
+from reloc_service.core.errors import DatasetError
+from reloc_service.core.geometry import matrix_to_quat_xyzw, so3_exp
 from reloc_service.tools.data.cli import add_dataset_arguments
 from reloc_service.tools.data.conversion import (
     associate_nearest,

@@ -12,15 +12,15 @@ import cv2
 import numpy as np
 import pytest
 
-from reloc_service.cameras import (
+from reloc_service.core.cameras import (
     EquidistantCamera,
     FovCamera,
     PinholeCamera,
     RadTanCamera,
     camera_from_dict,
 )
-from reloc_service.errors import DatasetError
-from reloc_service.geometry import se3_exp
+from reloc_service.core.errors import DatasetError
+from reloc_service.core.geometry import se3_exp
 from reloc_service.tools.data.cli import add_dataset_arguments, main_dataset
 from reloc_service.tools.data.dataset import (
     Dataset,

@@ -16,7 +16,7 @@ import zenoh
 from reloc_client.client import RelocClient
 from service_support import ROOT, Events, endpoint, free_port, wait_until
 
-from reloc_service.cameras import PinholeCamera
+from reloc_service.core.cameras import PinholeCamera
 from reloc_service.service.app import Service
 from reloc_service.service.config import load_config, with_overrides
 from reloc_service.service.zenoh_io import zenoh_config

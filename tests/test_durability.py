@@ -4,9 +4,9 @@ import json
 
 import pytest
 
-from reloc_service.cameras import PinholeCamera
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.errors import StorageError
 from reloc_service.engine import Engine, EngineConf
-from reloc_service.errors import StorageError
 from reloc_service.service.durability import (
     SERVICE_FILE,
     MapStore,

@@ -17,18 +17,18 @@ import numpy as np
 import pytest
 
 import reloc_service
-from reloc_service.engine import Engine, EngineConf, MapView, ReadWriteLock
-from reloc_service.errors import ConfigError, MapError, NotTrainedError
-from reloc_service.frame import Frame, Keyframe
-from reloc_service.map import KeyframeMap, MapState
-from reloc_service.mapping import MappingConf
-from reloc_service.relocalizers.base import (
+from reloc_service.algorithms.relocalizers.base import (
     RELOCALIZERS,
     Prior,
     Relocalizer,
     RelocResult,
     RelocStatus,
 )
+from reloc_service.core.errors import ConfigError, MapError, NotTrainedError
+from reloc_service.core.frame import Frame, Keyframe
+from reloc_service.core.map import KeyframeMap, MapState
+from reloc_service.core.mapping import MappingConf
+from reloc_service.engine import Engine, EngineConf, MapView, ReadWriteLock
 
 
 class Probe(Relocalizer):
@@ -342,10 +342,10 @@ def test_map_view_is_pinned():
 
 def test_sbi_p3p_smoke(synthetic_scene):
     """The real default method, if its plugins are present: queries relocalize to mm."""
-    pytest.importorskip("reloc_service.relocalizers.multi")
-    pytest.importorskip("reloc_service.place.sbi")
-    pytest.importorskip("reloc_service.pose.p3p")
-    from reloc_service.geometry import pose_error
+    pytest.importorskip("reloc_service.algorithms.relocalizers.multi")
+    pytest.importorskip("reloc_service.algorithms.place.sbi")
+    pytest.importorskip("reloc_service.algorithms.pose.p3p")
+    from reloc_service.core.geometry import pose_error
 
     engine = Engine(EngineConf(methods=("sbi+p3p",)))
     _add(engine, synthetic_scene, range(6))
@@ -361,8 +361,8 @@ def test_answers_carry_the_keyframes_pose_covariance(synthetic_scene):
     """Keyframes put without a covariance take the map's default (5 cm, 1 deg here): every
     answer's position sigma is then at least about 5 cm, and the verification, which judges
     the pose against the map, accepts the same answers as with exact keyframes."""
-    pytest.importorskip("reloc_service.pose.p3p")
-    from reloc_service.relocalizers.base import position_sigma_m
+    pytest.importorskip("reloc_service.algorithms.pose.p3p")
+    from reloc_service.algorithms.relocalizers.base import position_sigma_m
 
     exact = Engine(EngineConf(methods=("sbi+p3p",), mapping={
         "keyframe_position_sigma_m": 0.0, "keyframe_rotation_sigma_deg": 0.0}))
@@ -430,7 +430,7 @@ def test_concurrent_queries_on_real_methods_while_mapping_and_training(synthetic
     (The engine's exclusion itself is proven by the probe of
     ``test_concurrent_queries_see_consistent_map_versions``: the real methods pin a map
     snapshot per query and would hide a missing read lock most of the time.)"""
-    from reloc_service.geometry import pose_error
+    from reloc_service.core.geometry import pose_error
 
     scene = synthetic_scene
     engine = _real_engine(scene, range(4))

@@ -11,10 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
-from reloc_service.cameras import PinholeCamera
-from reloc_service.errors import ConfigError, DatasetError
-from reloc_service.geometry import look_at, pose_to_tum, se3_exp
-from reloc_service.relocalizers.base import RelocResult, RelocStatus
+from reloc_service.algorithms.relocalizers.base import RelocResult, RelocStatus
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.errors import ConfigError, DatasetError
+from reloc_service.core.geometry import look_at, pose_to_tum, se3_exp
 from reloc_service.tools.data.dataset import DatasetEntry, write_dataset
 from reloc_service.tools.eval import evaluate as ev
 from reloc_service.tools.eval import metrics, plots, report

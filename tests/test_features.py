@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 import skimage.data
 
-from reloc_service.errors import ConfigError
-from reloc_service.features import FeatureConf, compute_at, extract, match_ratio
+from reloc_service.core.errors import ConfigError
+from reloc_service.core.features import FeatureConf, compute_at, extract, match_ratio
 
 
 @pytest.fixture(scope="module")
@@ -107,8 +107,8 @@ def test_orb_keypoints_are_level_pixels_times_the_level_scale(synthetic_scene):
     """OpenCV's ORB returns integer pixels of pyramid level l times float32(1.2f ** l): every
     keypoint of a real extraction rebuilds bit-exactly from int16 pixels (what a snapshot
     stores), and one moved by a float32 ulp does not."""
-    from reloc_service.feature_columns import level_pixels, pixels_from_levels
-    from reloc_service.features import ORB_SCALE_FACTOR
+    from reloc_service.core.features import ORB_SCALE_FACTOR
+    from reloc_service.storage.feature_columns import level_pixels, pixels_from_levels
 
     feats = extract(synthetic_scene.keyframe_images[0], FeatureConf("orb", 2000))
     keypoints = feats.keypoints_px.astype(np.float32)

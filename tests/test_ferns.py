@@ -7,15 +7,15 @@ import numpy as np
 import pytest
 import skimage.data
 
-from reloc_service.errors import ConfigError
-from reloc_service.ferns.classifier import FernClassifier, FernConf
-from reloc_service.ferns.training import (
+from reloc_service.algorithms.ferns.classifier import FernClassifier, FernConf
+from reloc_service.algorithms.ferns.training import (
     WarpConf,
     draw_warps,
     extract_patches,
     prepare_image,
     sample_leaves,
 )
+from reloc_service.core.errors import ConfigError
 
 WARPS = WarpConf(num_warps=40, max_rotation_rad=0.5, min_scale=0.8, max_scale=1.25, seed=3)
 
@@ -115,8 +115,8 @@ def test_fast_scoring_equals_the_dense_reference(compiled: bool,
     """Both scoring paths (numpy in blocks of patches; the compiled one-pass kernel) give the
     dense reference's top classes and posteriors, with and without a class mask; the numpy
     path's output does not depend on its block size."""
-    from reloc_service.ferns import classifier as module
-    from reloc_service.ferns import kernels
+    from reloc_service.algorithms.ferns import classifier as module
+    from reloc_service.algorithms.ferns import kernels
 
     if compiled and kernels.compiled_classify_rows() is None:
         pytest.skip("numba is not installed")
@@ -278,7 +278,7 @@ def test_subset_and_first_tests_are_consistent_with_training() -> None:
 def test_compiled_leaves_equal_numpy_leaves(photo: np.ndarray) -> None:
     """The compiled leaves (clamped coordinates) equal numpy's (gathers from a padded copy),
     for patches inside the image, sticking out of it, and centred outside it (clamped)."""
-    from reloc_service.ferns import kernels
+    from reloc_service.algorithms.ferns import kernels
 
     if kernels.compiled_leaves_at() is None:
         pytest.skip("numba is not installed")
@@ -302,7 +302,7 @@ def test_compiled_leaves_equal_numpy_leaves(photo: np.ndarray) -> None:
 def test_skipped_exponentials_cannot_change_a_float32_posterior() -> None:
     """Every class the kernel leaves out of the normaliser (score below the best minus
     ``negligible_log_ratio``) adds, all together, less than half a float32 step to it."""
-    from reloc_service.ferns.kernels import negligible_log_ratio
+    from reloc_service.algorithms.ferns.kernels import negligible_log_ratio
 
     for classes in (2, 150, 2000, 100_000):
         t = negligible_log_ratio(classes)

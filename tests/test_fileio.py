@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from reloc_service.fileio import atomic_write
+from reloc_service.core.fileio import atomic_write
 
 
 def test_atomic_write_replaces_text_bytes_and_writer_output(tmp_path):

@@ -3,8 +3,8 @@ import re
 import numpy as np
 import pytest
 
-from reloc_service import geometry as g
-from reloc_service.errors import GeometryError
+from reloc_service.core import geometry as g
+from reloc_service.core.errors import GeometryError
 
 
 def random_pose(rng):
@@ -112,7 +112,7 @@ def test_so3_exp_is_scipys_rotation_to_the_bit():
     small-angle series included), and a (1, 3) vector still goes through Rotation."""
     from scipy.spatial.transform import Rotation
 
-    from reloc_service import geometry
+    from reloc_service.core import geometry
 
     assert geometry._rotation_kernels is not None  # the SciPy the project installs has them
     rng = np.random.default_rng(11)

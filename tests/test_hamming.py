@@ -4,8 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from reloc_service import hamming
-from reloc_service.features import FeatureConf, extract
+from reloc_service.core import hamming
+from reloc_service.core.features import FeatureConf, extract
 
 MINI = Path(__file__).parent / "data" / "tum_fr1_rpy_mini" / "images"
 

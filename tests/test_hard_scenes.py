@@ -4,7 +4,7 @@ the recall and wrong-pose targets of the real-imagery issue. Slow: renders ~150 
 
 import pytest
 
-from reloc_service.relocalizers.factory import DEFAULT_METHOD
+from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.tools.eval.evaluate import evaluate
 
 

@@ -6,9 +6,9 @@ import os
 import numpy as np
 import pytest
 
-from reloc_service.errors import StorageError
-from reloc_service.service import journal as J
-from reloc_service.service.journal import Journal, scan_segment, segment_name
+from reloc_service.core.errors import StorageError
+from reloc_service.storage import journal as J
+from reloc_service.storage.journal import Journal, scan_segment, segment_name
 
 
 def records(n: int, seed: int = 0) -> list[bytes]:

@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from reloc_service.landmark_codec import (
+from reloc_service.storage.landmark_codec import (
     ANCHORED_POINTS,
     ROUNDING_SHARE,
     WidenedColumn,

@@ -29,7 +29,7 @@ from service_support import (
     wait_until,
 )
 
-from reloc_service.cameras import PinholeCamera
+from reloc_service.core.cameras import PinholeCamera
 from reloc_service.service import codec
 from reloc_service.service.app import Service
 from reloc_service.service.config import ServiceConf, load_config
@@ -113,7 +113,7 @@ def test_decoder_checks_the_header_against_the_camera_before_allocating():
 def test_a_keyframe_keeps_the_jpeg_or_grey_png_it_was_sent_as(synthetic_scene):
     """The map saves a keyframe's image as the client sent it (a JPEG a third of a PNG of its
     pixels, never re-encoded); raw or colour images are kept as pixels (saved as grey PNG)."""
-    from reloc_service.frame import EncodedImage
+    from reloc_service.core.frame import EncodedImage
 
     camera, grey = synthetic_scene.camera, synthetic_scene.keyframe_images[0]
     for fmt, ext in (("jpeg", ".jpg"), ("png", ".png")):

@@ -3,11 +3,11 @@ import threading
 import numpy as np
 import pytest
 
-from reloc_service.cameras import PinholeCamera
-from reloc_service.errors import GeometryError, MapError
-from reloc_service.frame import Features, Frame, Keyframe
-from reloc_service.geometry import se3_exp
-from reloc_service.map import KeyframeMap
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.errors import GeometryError, MapError
+from reloc_service.core.frame import Features, Frame, Keyframe
+from reloc_service.core.geometry import se3_exp
+from reloc_service.core.map import KeyframeMap
 
 CAM = PinholeCamera(width=64, height=48, fx=50.0, fy=50.0, cx=31.5, cy=23.5)
 
@@ -136,8 +136,8 @@ def test_depth_sigmas_follow_landmarks_through_updates():
 def test_landmark_table_copy_on_write_matches_a_dict(monkeypatch):
     """The columnar table behaves like the dict of Landmark objects it replaces, through
     overlay changes and compactions (forced often here), and old tables never change."""
-    from reloc_service import landmark_table
-    from reloc_service.landmark_table import Landmark, LandmarkTable
+    from reloc_service.core import landmark_table
+    from reloc_service.core.landmark_table import Landmark, LandmarkTable
 
     monkeypatch.setattr(landmark_table, "COMPACT_MIN_OVERLAY", 5)
     rng = np.random.default_rng(0)
@@ -187,7 +187,7 @@ def test_encoded_image_decodes_on_first_use_and_checks_its_size():
     stays encoded through with_features, and a PNG of the wrong size or not a PNG is refused."""
     import cv2
 
-    from reloc_service.frame import EncodedImage
+    from reloc_service.core.frame import EncodedImage
 
     img = np.random.default_rng(3).integers(0, 256, (48, 64)).astype(np.uint8)
     png = cv2.imencode(".png", img)[1].tobytes()
@@ -212,7 +212,7 @@ def test_keyframes_keep_images_encoded_and_share_recent_pixels():
     cache of recently decoded images drops them, then decode the same pixels again."""
     import cv2
 
-    from reloc_service.frame import RECENT_PIXELS, EncodedImage, RecentPixels
+    from reloc_service.core.frame import RECENT_PIXELS, EncodedImage, RecentPixels
 
     img = np.random.default_rng(4).integers(0, 256, (48, 64)).astype(np.uint8)
     png = cv2.imencode(".png", img)[1].tobytes()

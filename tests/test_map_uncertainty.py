@@ -1,4 +1,4 @@
-"""pose/map_uncertainty.py: the keyframes' pose covariances carried into a relocalized pose,
+"""algorithms/pose/map_uncertainty.py: the keyframes' pose covariances carried into a relocalized pose,
 checked against Monte-Carlo: keyframe poses drawn from their covariance move their
 landmarks rigidly, the query pose is solved again on exact pixels, and the spread of the
 solved poses is compared with the propagated covariance."""
@@ -10,13 +10,13 @@ from types import MappingProxyType
 import numpy as np
 import pytest
 
-from reloc_service.cameras import PinholeCamera
-from reloc_service.frame import Keyframe
-from reloc_service.geometry import invert, look_at, se3_exp, se3_log, transform_points
-from reloc_service.landmark_table import Landmark, LandmarkTable
-from reloc_service.map import MapState
-from reloc_service.pose.map_uncertainty import keyframe_shares, map_covariance
-from reloc_service.pose.pnp import PnPConf, solve_pnp
+from reloc_service.algorithms.pose.map_uncertainty import keyframe_shares, map_covariance
+from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.frame import Keyframe
+from reloc_service.core.geometry import invert, look_at, se3_exp, se3_log, transform_points
+from reloc_service.core.landmark_table import Landmark, LandmarkTable
+from reloc_service.core.map import MapState
 
 CAMERA = PinholeCamera(width=640, height=480, fx=500.0, fy=500.0, cx=319.5, cy=239.5)
 DRAWS = 1500
@@ -146,7 +146,7 @@ def test_shares_and_defaults():
 def test_answer_covariance_adds_the_map_part(sigma):
     """A relocalization result's covariance is the measurement part plus the map part (the
     verification keeps judging the first)."""
-    from reloc_service.pose.base import PoseEstimate, total_covariance
+    from reloc_service.algorithms.pose.base import PoseEstimate, total_covariance
 
     measured = np.diag([1e-6] * 3 + [1e-7] * 3)
     est = PoseEstimate(world_from_cam=np.eye(4), keyframe_ids=[], covariance=measured,
@@ -159,8 +159,8 @@ def test_answer_covariance_adds_the_map_part(sigma):
 def test_a_pose_on_keyframe_rays_takes_their_covariances_by_share():
     """The five-point finder's pose rests on the keyframes directly: one keyframe with all
     the inliers gives its covariance moved by the adjoint; a keyframe without inliers none."""
-    from reloc_service.geometry import se3_adjoint
-    from reloc_service.pose.map_uncertainty import keyframes_covariance
+    from reloc_service.algorithms.pose.map_uncertainty import keyframes_covariance
+    from reloc_service.core.geometry import se3_adjoint
 
     rng = np.random.default_rng(4)
     world_from_query, _, _, _, state = _scene(rng, 2)

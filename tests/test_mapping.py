@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from conftest import SyntheticScene
 
-from reloc_service.errors import ConfigError, GeometryError, MapError
-from reloc_service.geometry import invert, look_at, transform_points
-from reloc_service.map import KeyframeMap
-from reloc_service.mapping import (
+from reloc_service.core.errors import ConfigError, GeometryError, MapError
+from reloc_service.core.geometry import invert, look_at, transform_points
+from reloc_service.core.map import KeyframeMap
+from reloc_service.core.mapping import (
     DEFAULT_MAX_FEATURES,
     MapBuilder,
     MappingConf,
@@ -20,8 +20,8 @@ from reloc_service.mapping import (
     landmark_errors,
     select_neighbours,
 )
+from reloc_service.core.triangulation import TriangulationConf
 from reloc_service.service.config import parse_config
-from reloc_service.triangulation import TriangulationConf
 
 
 class FakeDataset:
@@ -305,7 +305,7 @@ def test_a_jpeg_keyframe_is_decoded_once_and_kept_encoded(synthetic_scene):
     import cv2
     from reloc_client.protocol import WireImage
 
-    from reloc_service.frame import RECENT_PIXELS, EncodedImage
+    from reloc_service.core.frame import RECENT_PIXELS, EncodedImage
     from reloc_service.service.codec import keyframe_image
 
     scene = synthetic_scene

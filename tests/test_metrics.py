@@ -110,7 +110,7 @@ def test_covariance_scale_recovers_how_far_the_stated_sigmas_are_off(inflation):
     """Errors drawn from an anisotropic, rotated covariance, scored against that covariance
     scaled: the scale says how many times the stated sigmas must grow to fit the errors."""
     rng = np.random.default_rng(7)
-    from reloc_service.geometry import se3_exp
+    from reloc_service.core.geometry import se3_exp
 
     est = se3_exp([0.3, -0.2, 1.0, 0.4, -0.7, 0.2])
     a = rng.normal(size=(3, 3))

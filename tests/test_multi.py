@@ -12,17 +12,17 @@ import cv2
 import numpy as np
 import pytest
 
-from reloc_service.cameras import PinholeCamera
-from reloc_service.errors import ConfigError, NotTrainedError
-from reloc_service.frame import Frame, Keyframe
-from reloc_service.geometry import pose_error
-from reloc_service.map import KeyframeMap, MapState
-from reloc_service.place.base import PlaceCandidate, create_place_finder
-from reloc_service.place.sbi import SmallBlurryImageFinder
-from reloc_service.pose.base import PoseEstimate, PoseFinder, create_pose_finder
-from reloc_service.relocalizers.base import Prior, RelocStatus
-from reloc_service.relocalizers.factory import create_relocalizer
-from reloc_service.relocalizers.multi import MultiRelocalizer
+from reloc_service.algorithms.place.base import PlaceCandidate, create_place_finder
+from reloc_service.algorithms.place.sbi import SmallBlurryImageFinder
+from reloc_service.algorithms.pose.base import PoseEstimate, PoseFinder, create_pose_finder
+from reloc_service.algorithms.relocalizers.base import Prior, RelocStatus
+from reloc_service.algorithms.relocalizers.factory import create_relocalizer
+from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.errors import ConfigError, NotTrainedError
+from reloc_service.core.frame import Frame, Keyframe
+from reloc_service.core.geometry import pose_error
+from reloc_service.core.map import KeyframeMap, MapState
 from reloc_service.tools.synth.planar import (
     PlanarScene,
     downward_pose,
@@ -264,8 +264,8 @@ def test_photometric_pose_needs_two_agreeing_keyframes(scene):
 
 
 def test_gt_place_finder_exists_only_where_the_evaluation_tools_are_loaded():
-    code = ("from reloc_service.map import KeyframeMap\n"
-            "from reloc_service.relocalizers import create_relocalizer\n"
+    code = ("from reloc_service.core.map import KeyframeMap\n"
+            "from reloc_service.algorithms.relocalizers import create_relocalizer\n"
             "try:\n    create_relocalizer('gt+p3p', KeyframeMap())\n"
             "except Exception as exc:\n    print(type(exc).__name__, exc)\n"
             "import reloc_service.tools.eval.evaluate\n"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reloc_service.numeric import limit_blas_threads, top_k, zncc
+from reloc_service.core.numeric import limit_blas_threads, top_k, zncc
 
 
 def test_zncc_of_related_and_unrelated_images():

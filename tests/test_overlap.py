@@ -1,4 +1,4 @@
-"""The helper threads of relocalizers/overlap.py and the multi relocalizer's overlap option:
+"""The helper threads of algorithms/relocalizers/overlap.py and the multi relocalizer's overlap option:
 the place finder beside the query's feature extraction gives the same answers as without,
 and the errors of either side reach the caller as without."""
 
@@ -10,15 +10,15 @@ import cv2
 import numpy as np
 import pytest
 
-from reloc_service import features as feature_lib
+from reloc_service.algorithms.relocalizers import overlap
+from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
+from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer
+from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
+from reloc_service.core import features as feature_lib
+from reloc_service.core.errors import ConfigError, GeometryError, MapError
+from reloc_service.core.features import FeatureConf
+from reloc_service.core.frame import Frame
 from reloc_service.engine import Engine, EngineConf
-from reloc_service.errors import ConfigError, GeometryError, MapError
-from reloc_service.features import FeatureConf
-from reloc_service.frame import Frame
-from reloc_service.relocalizers import overlap
-from reloc_service.relocalizers.chain import ChainRelocalizer
-from reloc_service.relocalizers.factory import DEFAULT_METHOD, create_relocalizer
-from reloc_service.relocalizers.multi import MultiRelocalizer
 from reloc_service.service.config import parse_config
 
 OFF = {"multi": {"overlap": False}}
@@ -110,7 +110,7 @@ def test_a_place_finder_error_reaches_the_caller(engines, synthetic_scene, monke
 @pytest.mark.parametrize("mode", ["on", "off"])
 def test_a_feature_error_reaches_the_caller(engines, synthetic_scene, monkeypatch, mode, idle):
     """An extraction that fails beside the place finder fails the query with its error."""
-    from reloc_service.pose import p3p
+    from reloc_service.algorithms.pose import p3p
 
     def broken(*_, **__):
         raise GeometryError("the detector refused the image")

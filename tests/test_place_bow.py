@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import skimage.data
 
-from reloc_service.cameras import PinholeCamera
-from reloc_service.errors import ConfigError, NotTrainedError, StorageError
-from reloc_service.features import FeatureConf, extract
-from reloc_service.frame import Frame, Keyframe
-from reloc_service.map import KeyframeMap
-from reloc_service.place.base import create_place_finder
-from reloc_service.place.bow import BagOfWords
-from reloc_service.place.vocabulary import VocabularyTree
+from reloc_service.algorithms.place.base import create_place_finder
+from reloc_service.algorithms.place.bow import BagOfWords
+from reloc_service.algorithms.place.vocabulary import VocabularyTree
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.errors import ConfigError, NotTrainedError, StorageError
+from reloc_service.core.features import FeatureConf, extract
+from reloc_service.core.frame import Frame, Keyframe
+from reloc_service.core.map import KeyframeMap
 
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 319.5, 239.5)
 PHOTOS = ("camera", "astronaut", "coffee", "chelsea", "brick", "grass", "gravel", "rocket",

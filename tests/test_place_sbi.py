@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reloc_service.cameras import PinholeCamera
-from reloc_service.errors import ConfigError
-from reloc_service.frame import Frame, Keyframe
-from reloc_service.map import KeyframeMap
-from reloc_service.place.base import create_place_finder
-from reloc_service.place.sbi import SmallBlurryImageFinder
+from reloc_service.algorithms.place.base import create_place_finder
+from reloc_service.algorithms.place.sbi import SmallBlurryImageFinder
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.errors import ConfigError
+from reloc_service.core.frame import Frame, Keyframe
+from reloc_service.core.map import KeyframeMap
 from reloc_service.tools.synth.planar import PlanarScene, downward_pose, texture_mosaic
 
 CAMERA = PinholeCamera(width=160, height=120, fx=125.0, fy=125.0, cx=79.5, cy=59.5)

@@ -2,8 +2,8 @@ from dataclasses import dataclass
 
 import pytest
 
-from reloc_service.errors import ConfigError
-from reloc_service.plugins import Registry, make_conf
+from reloc_service.core.errors import ConfigError
+from reloc_service.core.plugins import Registry, make_conf
 
 
 @dataclass(frozen=True)

@@ -11,17 +11,17 @@ import numpy as np
 import pytest
 from conftest import PINHOLE, render_view, room_planes
 
-from reloc_service.cameras import PinholeCamera
+from reloc_service.algorithms.place.base import PlaceCandidate
+from reloc_service.algorithms.pose.base import create_pose_finder
+from reloc_service.algorithms.relocalizers.base import VerifyConf, position_sigma_m, verify
+from reloc_service.algorithms.relocalizers.factory import create_relocalizer, list_methods
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.errors import ConfigError
+from reloc_service.core.features import extract
+from reloc_service.core.frame import Features, Frame, Keyframe
+from reloc_service.core.geometry import invert, look_at, pose_error, se3_log, so3_exp, transform_points
+from reloc_service.core.map import KeyframeMap
 from reloc_service.engine import Engine, EngineConf
-from reloc_service.errors import ConfigError
-from reloc_service.features import extract
-from reloc_service.frame import Features, Frame, Keyframe
-from reloc_service.geometry import invert, look_at, pose_error, se3_log, so3_exp, transform_points
-from reloc_service.map import KeyframeMap
-from reloc_service.place.base import PlaceCandidate
-from reloc_service.pose.base import create_pose_finder
-from reloc_service.relocalizers.base import VerifyConf, position_sigma_m, verify
-from reloc_service.relocalizers.factory import create_relocalizer, list_methods
 
 CENTRE = np.array([0.0, 0.3, 1.2])
 #: Distance from CENTRE to the farthest corner of the room (x +-1.8, y -1..2.5, z 0..2.6): a

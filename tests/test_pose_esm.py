@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 import skimage.data
 
-from reloc_service.cameras import FovCamera, PinholeCamera
-from reloc_service.errors import ConfigError
-from reloc_service.frame import Frame, Keyframe
-from reloc_service.geometry import look_at, pose_error, so3_exp, so3_log
-from reloc_service.map import KeyframeMap
-from reloc_service.numeric import zncc
-from reloc_service.place.base import PlaceCandidate
-from reloc_service.pose import esm
-from reloc_service.pose.base import create_pose_finder
-from reloc_service.relocalizers.base import VerifyConf, verify
+from reloc_service.algorithms.place.base import PlaceCandidate
+from reloc_service.algorithms.pose import esm
+from reloc_service.algorithms.pose.base import create_pose_finder
+from reloc_service.algorithms.relocalizers.base import VerifyConf, verify
+from reloc_service.core.cameras import FovCamera, PinholeCamera
+from reloc_service.core.errors import ConfigError
+from reloc_service.core.frame import Frame, Keyframe
+from reloc_service.core.geometry import look_at, pose_error, so3_exp, so3_log
+from reloc_service.core.map import KeyframeMap
+from reloc_service.core.numeric import zncc
 
 CAMERA = PinholeCamera(640, 480, 500.0, 500.0, 319.5, 239.5)
 WORLD_FROM_KF = look_at([1.0, 2.0, 1.5], [3.0, 2.0, 1.0])

@@ -4,10 +4,10 @@ tests inside them, and the P3P pose finder growing a weak first pose with it."""
 import numpy as np
 import pytest
 
-from reloc_service.cameras import PinholeCamera
-from reloc_service.frame import Features
-from reloc_service.geometry import look_at, se3_exp, transform_points
-from reloc_service.pose.guided import GuidedConf, background_distance, search_by_projection
+from reloc_service.algorithms.pose.guided import GuidedConf, background_distance, search_by_projection
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.frame import Features
+from reloc_service.core.geometry import look_at, se3_exp, transform_points
 
 CAMERA = PinholeCamera(640, 480, fx=500.0, fy=500.0, cx=319.5, cy=239.5)
 WORLD_FROM_CAM = look_at([0.0, 0.0, -3.0], [0.0, 0.0, 0.0], up=[0, -1, 0])
@@ -55,7 +55,7 @@ def test_background_distance_is_a_low_quantile_of_unrelated_pairs():
 
 
 def test_window_distances_of_binary_descriptors_are_hamming():
-    from reloc_service.pose.guided import _window_distances
+    from reloc_service.algorithms.pose.guided import _window_distances
 
     rng = np.random.default_rng(3)
     query = rng.integers(0, 256, (40, 32), dtype=np.uint8)
@@ -71,7 +71,7 @@ def test_window_distances_of_uint8_sift_are_l2_not_hamming():
     """SIFT descriptors are kept as uint8 (lossless): the guided window must compare them by
     L2 like their float32 originals, not as packed bits (a merge once sent them to the
     Hamming path, which moved bow+p3p's poses on 7scenes)."""
-    from reloc_service.pose.guided import _window_distances
+    from reloc_service.algorithms.pose.guided import _window_distances
 
     rng = np.random.default_rng(3)
     query = rng.integers(0, 256, (40, 128), dtype=np.uint8)
@@ -102,7 +102,7 @@ def test_compiled_window_test_is_the_numpy_choice(width, k, monkeypatch):
     dtype and values) and the same slot, the first of equal ones, for ORB's Hamming and
     uint8 SIFT's L2, with empty slots, repeated keypoints and empty windows."""
     pytest.importorskip("numba")
-    from reloc_service.pose import guided
+    from reloc_service.algorithms.pose import guided
 
     rng = np.random.default_rng(width + k)
     query = rng.integers(0, 256, (300, width), dtype=np.uint8)
@@ -121,7 +121,7 @@ def test_a_map_of_float_sift_against_uint8_queries_takes_the_numpy_path(monkeypa
     """Client-given float descriptors in the map (not integers) are not truncated to the
     query's uint8: the compiled pass is only for two sides of one dtype."""
     pytest.importorskip("numba")
-    from reloc_service.pose import guided
+    from reloc_service.algorithms.pose import guided
 
     rng = np.random.default_rng(4)
     query = rng.integers(0, 256, (50, 128), dtype=np.uint8)
@@ -138,7 +138,7 @@ def test_compiled_background_distance_is_the_numpy_quantile(monkeypatch):
     """ORB's background distance from the compiled histogram equals numpy's quantile of the
     same pairs (to rounding), so every window verdict is the same."""
     pytest.importorskip("numba")
-    from reloc_service.pose import guided
+    from reloc_service.algorithms.pose import guided
 
     rng = np.random.default_rng(11)
     for n_query, n_map in [(500, 4000), (3, 5), (1, 1)]:
@@ -153,7 +153,7 @@ def test_compiled_background_distance_is_the_numpy_quantile(monkeypatch):
 
 
 def test_histogram_quantile_is_numpys_quantile():
-    from reloc_service.pose.guided import _histogram_quantile
+    from reloc_service.algorithms.pose.guided import _histogram_quantile
 
     rng = np.random.default_rng(2)
     for n in (1, 2, 7, 65536):

@@ -12,21 +12,21 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from reloc_service.cameras import Camera, PinholeCamera, RadTanCamera
-from reloc_service.frame import EncodedImage, Frame
-from reloc_service.geometry import look_at, pose_error, transform_points
-from reloc_service.map import KeyframeMap
-from reloc_service.mapping import MapBuilder, MappingConf
-from reloc_service.pose.intrinsics import REFUSAL, IntrinsicsCheck
-from reloc_service.pose.map_consistency import (
+from reloc_service.algorithms.pose.intrinsics import REFUSAL, IntrinsicsCheck
+from reloc_service.algorithms.pose.map_consistency import (
     covariance_with_intrinsics,
     keyframe_statistic,
     map_dispersion,
 )
-from reloc_service.pose.pnp import PnPConf, solve_pnp_indexed
-from reloc_service.relocalizers.base import Relocalizer, RelocResult, refuses_the_query
-from reloc_service.relocalizers.chain import ChainRelocalizer
-from reloc_service.relocalizers.factory import create_relocalizer
+from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp_indexed
+from reloc_service.algorithms.relocalizers.base import Relocalizer, RelocResult, refuses_the_query
+from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
+from reloc_service.algorithms.relocalizers.factory import create_relocalizer
+from reloc_service.core.cameras import Camera, PinholeCamera, RadTanCamera
+from reloc_service.core.frame import EncodedImage, Frame
+from reloc_service.core.geometry import look_at, pose_error, transform_points
+from reloc_service.core.map import KeyframeMap
+from reloc_service.core.mapping import MapBuilder, MappingConf
 from reloc_service.tools.eval import metrics
 from reloc_service.tools.eval.query_camera import QueryCamera
 

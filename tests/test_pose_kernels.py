@@ -1,4 +1,4 @@
-"""The compiled projection, pose Jacobian and undistortion (reloc_service.pose.kernels) give
+"""The compiled projection, pose Jacobian and undistortion (reloc_service.algorithms.pose.kernels) give
 the numpy path's values to the bit; the fused fit (inliers and normal equations of a pose),
 the Gauss-Newton update and the covariance's inverse give them to rounding (sums in another
 order): on their own, and through whole relocalizations of the real TUM fixture (the same
@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reloc_service.cameras import Camera, camera_from_dict
+from reloc_service.algorithms.pose import chance, guided, guided_kernels, kernels, p3p, pnp
+from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
+from reloc_service.core.cameras import Camera, camera_from_dict
+from reloc_service.core.frame import Frame
 from reloc_service.engine import Engine, EngineConf
-from reloc_service.frame import Frame
-from reloc_service.pose import chance, guided, guided_kernels, kernels, p3p, pnp
-from reloc_service.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.tools.data.dataset import read_dataset
 
 pytest.importorskip("numba")

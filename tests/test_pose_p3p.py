@@ -5,22 +5,22 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reloc_service import features as feature_lib
-from reloc_service.cameras import Camera, camera_from_dict
-from reloc_service.errors import ConfigError
-from reloc_service.frame import Features, Frame, Keyframe
-from reloc_service.geometry import invert, look_at, pose_error, se3_log, transform_points
-from reloc_service.map import KeyframeMap
-from reloc_service.place.base import PlaceCandidate
-from reloc_service.pose.base import create_pose_finder
-from reloc_service.pose.landmark_pool import LandmarkPool
-from reloc_service.pose.pnp import (
+from reloc_service.algorithms.place.base import PlaceCandidate
+from reloc_service.algorithms.pose.base import create_pose_finder
+from reloc_service.algorithms.pose.landmark_pool import LandmarkPool
+from reloc_service.algorithms.pose.pnp import (
     PnPConf,
     PointUncertainty,
     solve_pnp,
     solve_pnp_indexed,
 )
-from reloc_service.relocalizers.base import VerifyConf, position_sigma_m, result_from_estimate
+from reloc_service.algorithms.relocalizers.base import VerifyConf, position_sigma_m, result_from_estimate
+from reloc_service.core import features as feature_lib
+from reloc_service.core.cameras import Camera, camera_from_dict
+from reloc_service.core.errors import ConfigError
+from reloc_service.core.frame import Features, Frame, Keyframe
+from reloc_service.core.geometry import invert, look_at, pose_error, se3_log, transform_points
+from reloc_service.core.map import KeyframeMap
 from reloc_service.tools.synth.planar import PlanarScene, planar_scene, query_pose
 
 DISTORTIONS = {"pinhole": [], "radtan": [-0.28, 0.07, 1e-4, -2e-4],
@@ -66,8 +66,8 @@ def test_recovers_pose_exactly_with_half_outliers(model):
 
 @pytest.mark.parametrize("model", sorted(DISTORTIONS))
 def test_jacobian_matches_finite_differences(model):
-    from reloc_service.geometry import se3_exp
-    from reloc_service.pose.pnp import _View
+    from reloc_service.algorithms.pose.pnp import _View
+    from reloc_service.core.geometry import se3_exp
 
     def _residuals_and_jacobian(world_from_cam, px, points, camera):
         return _View.at(world_from_cam, points, camera).residuals_and_jacobian(
@@ -92,7 +92,7 @@ def test_jacobian_matches_finite_differences(model):
 def test_poselib_camera_projects_exactly_as_ours(model):
     """The refinement's Jacobian comes from PoseLib's camera model: it must be our model,
     parameter for parameter, over the whole image."""
-    from reloc_service.pose.pnp import poselib_camera
+    from reloc_service.algorithms.pose.pnp import poselib_camera
 
     camera = make_camera(model.split("-")[0])
     if model == "radtan-k3":
@@ -110,7 +110,7 @@ def test_poselib_camera_projects_exactly_as_ours(model):
 def test_numpy_pixel_jacobian_equals_poselibs(model):
     """Pinhole and radtan Jacobians are written out in numpy (faster than converting
     PoseLib's list of 2x2 arrays): the same values as PoseLib's analytic ones."""
-    from reloc_service.pose.pnp import _pixel_jacobian, poselib_camera
+    from reloc_service.algorithms.pose.pnp import _pixel_jacobian, poselib_camera
 
     camera = make_camera(model.split("-")[0])
     if model == "radtan-k3":
@@ -122,7 +122,7 @@ def test_numpy_pixel_jacobian_equals_poselibs(model):
 
 
 def test_fov_has_no_poselib_camera():
-    from reloc_service.pose.pnp import poselib_camera
+    from reloc_service.algorithms.pose.pnp import poselib_camera
 
     assert poselib_camera(make_camera("fov")) is None
 
@@ -211,7 +211,7 @@ def test_landmark_pool_of_one_keyframe_is_the_general_pool_and_its_rows_are_kept
     """One keyframe alone (the fast path's first pool) gives the rows the general path gives
     (its first keypoint of each landmark), from rows computed once per features object; a
     copy with other landmarks gets its own."""
-    from reloc_service.pose.landmark_pool import _landmark_rows
+    from reloc_service.algorithms.pose.landmark_pool import _landmark_rows
 
     camera = make_camera("pinhole", 64, 48)
     image = np.zeros((48, 64), np.uint8)
@@ -298,7 +298,7 @@ def test_find_pose_with_keyframes_lacking_features_is_refused():
 
 
 def test_chance_agreement_is_higher_for_bunched_correspondences():
-    from reloc_service.pose.chance import chance_agreement
+    from reloc_service.algorithms.pose.chance import chance_agreement
 
     rng = np.random.default_rng(0)
     spread = np.column_stack([rng.uniform(0, 640, 200), rng.uniform(0, 480, 200)])
@@ -313,7 +313,7 @@ def test_chance_agreement_is_higher_for_bunched_correspondences():
 def test_chance_agreement_counts_the_pairs_of_the_full_table(spread_px):
     """Only pairs near in x are measured; the count is the full (m, m) table's, also with
     points on the threshold's edge, duplicates and a NaN projection."""
-    from reloc_service.pose.chance import _pairs_within
+    from reloc_service.algorithms.pose.chance import _pairs_within
 
     rng = np.random.default_rng(int(spread_px))
     px = np.round(rng.normal((320.0, 240.0), spread_px, (200, 2)))  # integer: exact ties
@@ -332,7 +332,7 @@ def test_chance_agreement_counts_the_pairs_of_the_full_table(spread_px):
 
 def test_chance_agreement_pairs_every_correspondence_up_to_max_points():
     """Up to ``max_points`` correspondences all are paired; beyond, an even choice of them."""
-    from reloc_service.pose.chance import _pairs_within, chance_agreement
+    from reloc_service.algorithms.pose.chance import _pairs_within, chance_agreement
 
     rng = np.random.default_rng(4)
     px = rng.normal((320.0, 240.0), 30.0, (450, 2))
@@ -350,7 +350,7 @@ def test_chance_agreement_pairs_every_correspondence_up_to_max_points():
 def test_refined_estimate_is_the_one_recomputed_from_scratch():
     """The pose, inliers, normal equations and covariance come from one pass per pose: the
     same values as projecting anew for the residuals, the Jacobian and the weights."""
-    from reloc_service.pose.pnp import _estimate, _refine, _View, _weights
+    from reloc_service.algorithms.pose.pnp import _estimate, _refine, _View, _weights
 
     camera = make_camera("radtan")
     rng = np.random.default_rng(3)
@@ -385,7 +385,7 @@ def test_refined_estimate_is_the_one_recomputed_from_scratch():
 
 
 def se3_exp_small(rng: np.random.Generator) -> np.ndarray:
-    from reloc_service.geometry import se3_exp
+    from reloc_service.core.geometry import se3_exp
 
     return se3_exp(rng.normal(0.0, 0.01, 6))
 
@@ -438,7 +438,7 @@ def test_level_scales_weigh_coarse_keypoints_less():
     """A keypoint found at pyramid level l is located to ``1.2^l`` pixels: weighted so, the
     pose from keypoints whose noise grows with their level is closer to the truth than with
     every keypoint weighed alike (the same correspondences, 30 draws)."""
-    from reloc_service.pose.pnp import _weights, level_scales
+    from reloc_service.algorithms.pose.pnp import _weights, level_scales
 
     camera = make_camera("radtan")
     np.testing.assert_allclose(level_scales(np.array([0, 1, 7]), 1.2), [1.0, 1.2, 1.2**7])

@@ -150,7 +150,7 @@ def test_pose_matrix_round_trip(t, q):
 
 
 def test_quaternion_matches_reloc_service_geometry():
-    from reloc_service.geometry import quat_xyzw_to_matrix
+    from reloc_service.core.geometry import quat_xyzw_to_matrix
 
     rng = np.random.default_rng(RNG_SEED)
     for _ in range(20):
@@ -525,7 +525,7 @@ def test_quaternion_is_normalised():
 
 
 def test_camera_models_match_the_service():
-    from reloc_service.cameras import CAMERA_MODELS
+    from reloc_service.core.cameras import CAMERA_MODELS
 
     assert {n: tuple(c.n_distortion) for n, c in CAMERA_MODELS.items()} == P.CAMERA_MODELS
 

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reloc_service.relocalizers.factory import DEFAULT_METHOD
+from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.tools.eval.evaluate import evaluate
 
 FIXTURE = Path(__file__).parent / "data" / "tum_fr1_rpy_mini"
@@ -33,7 +33,7 @@ def test_every_query_relocalized_and_none_wrong(result, method):
 
 
 def test_queries_claiming_a_focal_30_percent_long_are_not_answered():
-    from reloc_service.pose.intrinsics import REFUSAL
+    from reloc_service.algorithms.pose.intrinsics import REFUSAL
     from reloc_service.tools.eval.query_camera import QueryCamera
 
     stale = evaluate(FIXTURE, [DEFAULT_METHOD], progress=False,

@@ -40,9 +40,10 @@ from service_support import (
     wait_until,
 )
 
-from reloc_service.errors import StorageError
-from reloc_service.service import codec, handlers, journal
+from reloc_service.core.errors import StorageError
+from reloc_service.service import codec, handlers
 from reloc_service.service.app import Service
+from reloc_service.storage import journal
 
 MAP = "lab"
 FUZZ = settings(max_examples=150, deadline=None, derandomize=True,

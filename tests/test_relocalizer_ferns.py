@@ -18,14 +18,14 @@ import pytest
 import skimage.data
 from scipy.spatial import cKDTree
 
-from reloc_service.cameras import PinholeCamera
-from reloc_service.errors import ConfigError, NotTrainedError, StorageError
-from reloc_service.frame import Features, Frame, Keyframe
-from reloc_service.geometry import pose_error, so3_exp
-from reloc_service.map import KeyframeMap
-from reloc_service.relocalizers.base import Prior
-from reloc_service.relocalizers.factory import create_relocalizer
-from reloc_service.relocalizers.ferns import FernsConf, FernsRelocalizer
+from reloc_service.algorithms.relocalizers.base import Prior
+from reloc_service.algorithms.relocalizers.factory import create_relocalizer
+from reloc_service.algorithms.relocalizers.ferns import FernsConf, FernsRelocalizer
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.errors import ConfigError, NotTrainedError, StorageError
+from reloc_service.core.frame import Features, Frame, Keyframe
+from reloc_service.core.geometry import pose_error, so3_exp
+from reloc_service.core.map import KeyframeMap
 
 CAMERA = PinholeCamera(width=320, height=240, fx=280.0, fy=280.0, cx=159.5, cy=119.5)
 METRES_PER_TEXEL = 0.004
@@ -321,8 +321,8 @@ def test_keypoints_proposing_several_landmarks_agree_by_chance_more_often():
     """A keypoint proposes its top_k landmarks and RANSAC may use any: its chance of agreeing
     with a wrong pose is 1 - (1 - p)^k. Counted per keypoint, a consensus of 15 among 1000
     two-candidate keypoints (a wrong pose on room-hard) is then no longer out of chance's reach."""
-    from reloc_service.pose.base import log10_false_alarms
-    from reloc_service.relocalizers.ferns import _per_keypoint_chance
+    from reloc_service.algorithms.pose.base import log10_false_alarms
+    from reloc_service.algorithms.relocalizers.ferns import _per_keypoint_chance
 
     p = 2.56e-4  # pi 5^2 / (640 x 480)
     assert _per_keypoint_chance(p, 1000, 1000) == pytest.approx(p)
@@ -429,7 +429,7 @@ def test_a_fallback_classifies_each_region_once(
     """A query the prior sends to the wrong region falls back to every region: its leaves
     are read once and each region classifies it once (the wrong region's classes are
     reused), and the pose is the one classifying every region at once gives."""
-    from reloc_service.ferns.classifier import FernScorer, FernTests
+    from reloc_service.algorithms.ferns.classifier import FernScorer, FernTests
 
     reloc, place_b, texture_b = two_places
     query_image = render(texture_b, place_b.queries[0])

@@ -15,9 +15,9 @@ from reloc_client.result import (
     result_from_reply,
 )
 
-from reloc_service import relocalizers
-from reloc_service.geometry import look_at, se3_exp
-from reloc_service.relocalizers import base
+from reloc_service.algorithms import relocalizers
+from reloc_service.algorithms.relocalizers import base
+from reloc_service.core.geometry import look_at, se3_exp
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reloc_service.errors import ConfigError
-from reloc_service.geometry import (
+from reloc_service.core.errors import ConfigError
+from reloc_service.core.geometry import (
     compose,
     invert,
     look_at,

@@ -20,9 +20,9 @@ from reloc_client import protocol as wire
 from reloc_client.client import RelocClient, ServiceBusy, ServiceError
 from service_support import Events, endpoint, free_port, raw_session, service_conf, wait_until
 
-from reloc_service.geometry import pose_error
-from reloc_service.service import journal as journal_module
+from reloc_service.core.geometry import pose_error
 from reloc_service.service.app import Service
+from reloc_service.storage import journal as journal_module
 
 MAP = "lab"
 METHOD = "sbi+p3p"

@@ -19,8 +19,8 @@ import msgpack
 from reloc_client.client import NoReplyError, RelocClient
 from service_support import ROOT, Events, endpoint, free_port, wait_until
 
-from reloc_service.geometry import pose_error
-from reloc_service.service.journal import Journal
+from reloc_service.core.geometry import pose_error
+from reloc_service.storage.journal import Journal
 
 MAP = "lab"
 

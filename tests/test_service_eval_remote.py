@@ -73,7 +73,7 @@ def test_reloc_eval_remote_command(scene_dataset, service, capsys):
 
 
 def test_remote_eval_refuses_unserved_methods_and_options(scene_dataset, service):
-    from reloc_service.errors import ConfigError
+    from reloc_service.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="does not serve"):
         evaluate(scene_dataset, "sbi+esm", progress=False, remote=RemoteSpec(service, "fresh"))

@@ -12,19 +12,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reloc_service import snapshot_files, storage
-from reloc_service.errors import StorageError
-from reloc_service.feature_columns import ANGLELESS_KINDS, NO_ANGLE, LazyFeatures
-from reloc_service.frame import EncodedImage, Keyframe
-from reloc_service.landmark_codec import (
+from reloc_service.core.errors import StorageError
+from reloc_service.core.frame import EncodedImage, Keyframe
+from reloc_service.core.map import KeyframeMap, MapState
+from reloc_service.storage import snapshot as storage
+from reloc_service.storage import snapshot_files
+from reloc_service.storage.feature_columns import ANGLELESS_KINDS, NO_ANGLE, LazyFeatures
+from reloc_service.storage.landmark_codec import (
     ROUNDING_SHARE,
     AnchoredPoints,
     WidenedColumn,
     anchors,
     position_sigmas,
 )
-from reloc_service.map import KeyframeMap, MapState
-from reloc_service.storage import (
+from reloc_service.storage.snapshot import (
     FEATURE_FIELDS,
     current_snapshot,
     load_map,
@@ -36,7 +37,7 @@ from reloc_service.storage import (
 
 def _assert_states_equal(a: MapState, b: MapState) -> None:
     """``b`` is ``a`` exactly, but for landmark points and sigmas: exact, or (stored as
-    anchored float32) within the rounding :mod:`reloc_service.landmark_codec` allows."""
+    anchored float32) within the rounding :mod:`reloc_service.storage.landmark_codec` allows."""
     assert (a.version, a.next_landmark_id) == (b.version, b.next_landmark_id)
     assert a.keyframe_ids() == b.keyframe_ids()
     for k in a.keyframe_ids():
@@ -91,8 +92,8 @@ def _assert_landmark_geometry_close(a: MapState, b: MapState) -> None:
 @pytest.fixture(scope="module")
 def rich_state(synthetic_scene, synthetic_map) -> MapState:
     """The synthetic map with a depth map, a timestamp-less keyframe and ORB features too."""
-    from reloc_service.features import FeatureConf, extract
-    from reloc_service.mapping import MapBuilder
+    from reloc_service.core.features import FeatureConf, extract
+    from reloc_service.core.mapping import MapBuilder
 
     kmap = KeyframeMap()
     kmap.replace_state(synthetic_map)
@@ -444,7 +445,7 @@ def test_changing_a_loaded_map_copies_and_leaves_the_snapshot(tmp_path, rich_sta
                                                                synthetic_scene):
     """Copy on write over memory-mapped arrays: adding and removing keyframes works, and the
     snapshot's files are byte-for-byte what was saved."""
-    from reloc_service.mapping import MapBuilder
+    from reloc_service.core.mapping import MapBuilder
 
     snap = save_map(rich_state, tmp_path)
     before = {p: p.read_bytes() for p in snap.rglob("*") if p.is_file()}
@@ -565,7 +566,7 @@ def test_points_that_are_not_the_landmarks_are_stored(tmp_path, synthetic_map):
 def test_orb_keypoints_off_their_level_grid_stay_float32(tmp_path, rich_state):
     """A client's keypoints (described where given) are not level pixels times a scale: that
     map keeps the float32 column, exactly."""
-    from reloc_service.features import compute_at
+    from reloc_service.core.features import compute_at
 
     kmap = KeyframeMap()
     kmap.replace_state(rich_state)
@@ -579,7 +580,7 @@ def test_orb_keypoints_off_their_level_grid_stay_float32(tmp_path, rich_state):
 
 
 def test_keypoints_that_are_not_float32_values_stay_float64(tmp_path, synthetic_map):
-    from reloc_service.frame import Features
+    from reloc_service.core.frame import Features
 
     kmap = KeyframeMap()
     kmap.replace_state(synthetic_map)
@@ -671,7 +672,7 @@ def test_a_keyframe_sent_as_jpeg_is_saved_as_those_bytes(tmp_path, synthetic_sce
     is those bytes, and its pixels and features load back exactly."""
     import cv2
 
-    from reloc_service.mapping import MapBuilder
+    from reloc_service.core.mapping import MapBuilder
 
     image = synthetic_scene.keyframe_images[0]
     ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 90])
@@ -693,7 +694,7 @@ def test_a_keyframe_sent_as_jpeg_is_saved_as_those_bytes(tmp_path, synthetic_sce
 def test_an_encoded_image_must_match_its_pixels(synthetic_scene):
     import cv2
 
-    from reloc_service.errors import GeometryError
+    from reloc_service.core.errors import GeometryError
 
     image = synthetic_scene.keyframe_images[0]
     ok, buf = cv2.imencode(".jpg", image[:100])

@@ -31,9 +31,9 @@ from reloc_client.client import (
 )
 from service_support import ROOT, Events, endpoint, free_port, service_conf, wait_until
 
-from reloc_service.service import journal as J
 from reloc_service.service.app import Service
-from reloc_service.service.journal import Journal, scan_segment
+from reloc_service.storage import journal as J
+from reloc_service.storage.journal import Journal, scan_segment
 
 GOOD, BAD = "good", "bad"
 SNAPSHOT_IDS, JOURNAL_IDS = (0, 1, 2), (3, 4, 5)

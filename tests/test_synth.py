@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from reloc_service.cameras import Camera, PinholeCamera
-from reloc_service.errors import ConfigError, DatasetError
-from reloc_service.geometry import check_pose, invert, transform_points
+from reloc_service.core.cameras import Camera, PinholeCamera
+from reloc_service.core.errors import ConfigError, DatasetError
+from reloc_service.core.geometry import check_pose, invert, transform_points
 from reloc_service.tools.data.dataset import DatasetEntry, read_dataset
 from reloc_service.tools.synth import PRESETS, render_dataset
 from reloc_service.tools.synth.cli import add_synth_arguments, main_synth

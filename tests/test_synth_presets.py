@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from reloc_service.cameras import Camera
-from reloc_service.geometry import invert, rotation_angle, transform_points
+from reloc_service.core.cameras import Camera
+from reloc_service.core.geometry import invert, rotation_angle, transform_points
 from reloc_service.tools.data.dataset import DatasetEntry, read_dataset
 from reloc_service.tools.synth import PRESETS, render_dataset
 from reloc_service.tools.synth.depth_sensor import sensor_depth

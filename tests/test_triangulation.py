@@ -7,18 +7,18 @@ import numpy as np
 import pytest
 from conftest import PINHOLE, RADTAN
 
-from reloc_service.errors import ConfigError
-from reloc_service.features import FeatureConf, extract
-from reloc_service.frame import Keyframe
-from reloc_service.geometry import invert, look_at, transform_points
-from reloc_service.landmarks import (
+from reloc_service.core.errors import ConfigError
+from reloc_service.core.features import FeatureConf, extract
+from reloc_service.core.frame import Keyframe
+from reloc_service.core.geometry import invert, look_at, transform_points
+from reloc_service.core.landmarks import (
     landmarks_from_depth,
     lift_pixels,
     sample_depth,
     triangulate_keyframe,
 )
-from reloc_service.map import KeyframeMap
-from reloc_service.triangulation import (
+from reloc_service.core.map import KeyframeMap
+from reloc_service.core.triangulation import (
     TrackStatus,
     TriangulationConf,
     ViewObservations,

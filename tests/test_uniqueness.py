@@ -7,20 +7,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reloc_service.cameras import PinholeCamera
-from reloc_service.frame import Frame
-from reloc_service.geometry import pose_error
-from reloc_service.pose.base import PoseEstimate, Support
-from reloc_service.pose.guided import project_into
-from reloc_service.pose.support import explained_keypoints
-from reloc_service.relocalizers.factory import create_relocalizer
-from reloc_service.relocalizers.uniqueness import (
+from reloc_service.algorithms.pose.base import PoseEstimate, Support
+from reloc_service.algorithms.pose.guided import project_into
+from reloc_service.algorithms.pose.support import explained_keypoints
+from reloc_service.algorithms.relocalizers.factory import create_relocalizer
+from reloc_service.algorithms.relocalizers.uniqueness import (
     choose,
     compare,
     fits_consensus,
     same_solution,
     solutions,
 )
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.frame import Frame
+from reloc_service.core.geometry import pose_error
 from reloc_service.tools.synth.planar import (
     downward_pose,
     keyframe_grid,
@@ -148,7 +148,7 @@ def test_a_view_of_one_copy_only_is_ambiguous(repeated_scene) -> None:
 
 
 def test_support_counts_the_keypoints_the_local_map_explains(repeated_scene) -> None:
-    from reloc_service import features as feature_lib
+    from reloc_service.core import features as feature_lib
 
     gt = downward_pose(-0.75, -0.5, 0.8)
     image = repeated_scene.render(gt)
@@ -184,8 +184,8 @@ def test_what_a_copys_pose_leaves_unexplained_points_to_the_true_place(repeated_
     photograph beside it gets the copy's pose; the keypoints that pose does not explain
     (the photograph beside the left copy) match the landmarks of the keyframes above the
     true place, and the pose found there is an alternative within 2 cm of the truth."""
-    from reloc_service.place.base import PlaceCandidate
-    from reloc_service.pose.repetition import RepetitionConf, unexplained_matches
+    from reloc_service.algorithms.place.base import PlaceCandidate
+    from reloc_service.algorithms.pose.repetition import RepetitionConf, unexplained_matches
 
     gt = downward_pose(-0.75, -0.5, 0.8)
     copy_pose = downward_pose(1.25, -0.5, 0.8)

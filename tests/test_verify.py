@@ -3,9 +3,8 @@
 import numpy as np
 import pytest
 
-from reloc_service.errors import ConfigError
-from reloc_service.pose.base import PoseEstimate
-from reloc_service.relocalizers.base import (
+from reloc_service.algorithms.pose.base import PoseEstimate
+from reloc_service.algorithms.relocalizers.base import (
     RelocStatus,
     VerifyConf,
     log10_false_alarms_px,
@@ -13,6 +12,7 @@ from reloc_service.relocalizers.base import (
     result_from_estimate,
     verify,
 )
+from reloc_service.core.errors import ConfigError
 
 
 def estimate(n=100, matches=150, rms=0.8, spread=1.0, cov_sigma=0.01, ncc=None, geometric=True):
@@ -148,7 +148,7 @@ def test_small_support_in_depth_or_planar_support_over_the_image_is_accepted():
 
 
 def test_noisy_plane_is_one_plane_and_a_bump_is_not():
-    from reloc_service.relocalizers.base import on_one_plane
+    from reloc_service.algorithms.relocalizers.base import on_one_plane
 
     rng = np.random.default_rng(2)
     sig = np.full(300, 0.01)
@@ -164,7 +164,7 @@ def test_noisy_plane_is_one_plane_and_a_bump_is_not():
 def test_plane_fit_stops_when_the_kept_points_repeat():
     """Refitting on the same points gives the same plane, so stopping there decides as the
     three fixed refits did (that procedure written out here), on planes with outliers."""
-    from reloc_service.relocalizers.base import _max_outside_3_sigma, on_one_plane
+    from reloc_service.algorithms.relocalizers.base import _max_outside_3_sigma, on_one_plane
 
     def three_refits(pts, sig):
         keep = np.ones(len(pts), bool)
@@ -193,7 +193,7 @@ def test_inlier_spread_is_the_hull_and_skips_only_passing_planes():
     beyond the patch share (with a margin) passes the patch test as the plane fit would."""
     from scipy.spatial import ConvexHull
 
-    from reloc_service.relocalizers.base import inlier_spread
+    from reloc_service.algorithms.relocalizers.base import inlier_spread
 
     rng = np.random.default_rng(9)
     for _ in range(300):
@@ -211,7 +211,7 @@ def test_largest_eigenvalue_in_closed_form_is_lapacks():
     """The position sigma's closed-form eigenvalue equals ``eigvalsh``'s on covariances of
     every shape: random, badly conditioned, tiny and large, diagonal, isotropic with a
     perturbation (a near-triple root), rank-deficient, negative definite."""
-    from reloc_service.relocalizers.base import largest_eigenvalue_sym3
+    from reloc_service.algorithms.relocalizers.base import largest_eigenvalue_sym3
 
     rng = np.random.default_rng(4)
     cases = [np.diag([3e-4, 1e-4, 2e-4]), np.eye(3) * 2e-5,

@@ -62,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..errors import RelocError
+    from ..core.errors import RelocError
 
     if args.list_methods:
         return _list_methods()
@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         print(f"reloc eval: error: {problem}", file=sys.stderr)
         return 2
-    from ..relocalizers.factory import DEFAULT_METHOD
+    from ..algorithms.relocalizers.factory import DEFAULT_METHOD
 
     # "default" names the service's default method (a chain whose string is long to type).
     args.method = [DEFAULT_METHOD if m.strip() == "default" else m
@@ -104,7 +104,7 @@ def _usage_problem(args: argparse.Namespace) -> str | None:
 
 
 def _list_methods() -> int:
-    from ..relocalizers.factory import list_methods
+    from ..algorithms.relocalizers.factory import list_methods
 
     methods = list_methods()
     width = max((len(m["method"]) for m in methods), default=6)
@@ -118,7 +118,7 @@ def _list_methods() -> int:
 
 def load_options(path: str | Path) -> dict[str, Any]:
     """Plugin options from a TOML or JSON file: a table of tables (plugin name -> options)."""
-    from ..errors import ConfigError
+    from ..core.errors import ConfigError
 
     path = Path(path)
     try:

@@ -19,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..errors import StorageError
+    from ..core.errors import StorageError
     from ..service.storage_check import check_path, format_check, to_json
 
     try:

@@ -29,9 +29,9 @@ from typing import Any
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode, EventKind, ProtocolError
 
+from ..core.errors import ConfigError, StorageError
+from ..core.numeric import limit_blas_threads
 from ..engine import EngineConf, MappingConf
-from ..errors import ConfigError, StorageError
-from ..numeric import limit_blas_threads
 from . import handlers
 from .codec import decode_camera_put, decode_keyframe_put, error_of, error_reply
 from .config import ServiceConf

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..errors import RelocError
+from ..core.errors import RelocError
 
 SERVE_EPILOG = """\
 examples:

@@ -20,16 +20,9 @@ import numpy.typing as npt
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode, ProtocolError
 
-from ..cameras import Camera, camera_from_dict
-from ..errors import (
-    CameraError,
-    ConfigError,
-    GeometryError,
-    MapError,
-    NotTrainedError,
-    StorageError,
-)
-from ..frame import EncodedImage
+from ..core.cameras import Camera, camera_from_dict
+from ..core.errors import CameraError, ConfigError, GeometryError, MapError, NotTrainedError, StorageError
+from ..core.frame import EncodedImage
 
 log = logging.getLogger(__name__)
 

@@ -26,9 +26,9 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from ..errors import ConfigError
-from ..plugins import make_conf
-from ..relocalizers.factory import DEFAULT_METHOD
+from ..algorithms.relocalizers.factory import DEFAULT_METHOD
+from ..core.errors import ConfigError
+from ..core.plugins import make_conf
 from .ros2.conf import Ros2Conf
 
 ZENOH_MODES = ("peer", "client", "router")
@@ -179,7 +179,7 @@ class ServiceSection:
 def _check_servable(method: str) -> None:
     """A method whose place finder needs ground truth (``gt``, registered by the evaluation
     tools when they are loaded in the same process) is never served."""
-    from ..place.base import PLACE_FINDERS
+    from ..algorithms.place.base import PLACE_FINDERS
 
     for step in method.split(","):
         place = step.split("+")[0].strip() if "+" in step else ""

@@ -3,7 +3,7 @@
 Per map directory ``<storage>/<map>/``::
 
     journal/NNNNNNNNNNNN.journal   every accepted put/delete, fsynced before it is applied
-    map/                           engine snapshots (``reloc_service.storage``: map + models)
+    map/                           engine snapshots (``reloc_service.storage.snapshot``: map + models)
     service.json                   cameras, keyframe camera ids, first journal segment to replay
 
 A snapshot rotates the journal, saves the engine, writes ``service.json`` atomically and only
@@ -31,13 +31,13 @@ from typing import Any
 import msgpack
 from reloc_client import protocol as wire
 
-from ..cameras import Camera, camera_from_dict
+from ..core.cameras import Camera, camera_from_dict
+from ..core.errors import CameraError, StorageError
+from ..core.fileio import atomic_write
 from ..engine import Engine, EngineConf
-from ..errors import CameraError, StorageError
-from ..fileio import atomic_write
-from ..snapshot_files import CURRENT_FILE, snapshot_dirs
-from ..storage import restore_current
-from .journal import Journal, JournalReport
+from ..storage.journal import Journal, JournalReport
+from ..storage.snapshot import restore_current
+from ..storage.snapshot_files import CURRENT_FILE, snapshot_dirs
 
 log = logging.getLogger(__name__)
 

@@ -19,10 +19,10 @@ from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode, ProtocolError
 from reloc_client.result import reply_from_result
 
-from ..cameras import Camera
-from ..frame import Frame
-from ..map import MapState
-from ..relocalizers.base import Prior, RelocResult
+from ..algorithms.relocalizers.base import Prior, RelocResult
+from ..core.cameras import Camera
+from ..core.frame import Frame
+from ..core.map import MapState
 from .codec import CameraRegistry, decode_image, pose_covariance_to_wire, resolve_camera
 
 if TYPE_CHECKING:

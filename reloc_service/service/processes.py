@@ -55,14 +55,14 @@ import numpy as np
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode
 
-from .. import hamming
-from ..cameras import Camera
+from ..algorithms.pose import kernels as pose_kernels
+from ..algorithms.relocalizers.base import Prior, RelocResult
+from ..core import hamming
+from ..core.cameras import Camera
+from ..core.frame import Frame, area_downscale
+from ..core.map import MapState
+from ..core.numeric import limit_blas_threads
 from ..engine import Engine, EngineConf, MappingConf
-from ..frame import Frame, area_downscale
-from ..map import MapState
-from ..numeric import limit_blas_threads
-from ..pose import kernels as pose_kernels
-from ..relocalizers.base import Prior, RelocResult
 from . import handlers
 from .codec import KeyframeInput, error_reply, served_method
 

@@ -24,12 +24,12 @@ import numpy as np
 from reloc_client import protocol as wire
 from reloc_client.protocol import EventKind
 
-from ..cameras import Camera
+from ..algorithms.relocalizers.base import Prior, RelocResult
+from ..core.cameras import Camera
+from ..core.errors import MapError, StorageError
+from ..core.frame import Frame
+from ..core.map import MapState
 from ..engine import Engine
-from ..errors import MapError, StorageError
-from ..frame import Frame
-from ..map import MapState
-from ..relocalizers.base import Prior, RelocResult
 from .codec import (
     KeyframeInput,
     WithLimits,

@@ -13,11 +13,11 @@ from typing import Any
 import msgpack
 from reloc_client import protocol as wire
 
-from ..errors import StorageError
-from ..snapshot_files import CURRENT_FILE, current_snapshot, snapshot_dirs
-from ..storage import verify_snapshot
+from ..core.errors import StorageError
+from ..storage.journal import QUARANTINE_DIR, Journal, scan_segment, segment_name
+from ..storage.snapshot import verify_snapshot
+from ..storage.snapshot_files import CURRENT_FILE, current_snapshot, snapshot_dirs
 from .durability import REPLAY_LIMITS, SERVICE_FILE, read_service_file
-from .journal import QUARANTINE_DIR, Journal, scan_segment, segment_name
 
 
 @dataclass

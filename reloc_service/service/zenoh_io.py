@@ -23,7 +23,7 @@ import zenoh
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode
 
-from ..errors import ConfigError
+from ..core.errors import ConfigError
 from .config import ZenohConf
 
 log = logging.getLogger(__name__)

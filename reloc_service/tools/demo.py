@@ -15,8 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..errors import RelocError
-from ..relocalizers.factory import DEFAULT_METHOD
+from ..algorithms.relocalizers.factory import DEFAULT_METHOD
+from ..core.errors import RelocError
 
 DATASET = "desk"
 MAP_NAME = "desk"

@@ -12,7 +12,7 @@ import numpy.typing as npt
 
 from .checks import _UNLIMITED, Array, ErrorCode, _fail, _Fields, _float, _int, _list, _numbers, _str
 
-#: Camera models and their accepted numbers of distortion values (reloc_service.cameras).
+#: Camera models and their accepted numbers of distortion values (reloc_service.core.cameras).
 CAMERA_MODELS: dict[str, tuple[int, ...]] = {
     "pinhole": (0,), "radtan": (4, 5), "equidistant": (4,), "fov": (1,)}
 
@@ -30,7 +30,7 @@ COVARIANCE_ABS_TOL = 1e-18
 def quat_xyzw_to_rotation(q: npt.ArrayLike) -> Array:
     """Unit quaternions (..., 4) (x, y, z, w), Hamilton, to (..., 3, 3) rotation matrices.
 
-    The one quaternion implementation of reloc (``reloc_service.geometry`` validates and calls
+    The one quaternion implementation of reloc (``reloc_service.core.geometry`` validates and calls
     it); NumPy only, so the client can use it too. ``q`` must already have unit norm."""
     x, y, z, w = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
     rows = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

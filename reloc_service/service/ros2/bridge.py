@@ -35,7 +35,7 @@ import numpy as np
 import zenoh
 from reloc_client import protocol as wire
 
-from ...geometry import pose_from_tq
+from ...core.geometry import pose_from_tq
 from .. import codec
 from ..workers import WorkerPool
 from . import convert, graph

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
-from ...errors import ConfigError
+from ...core.errors import ConfigError
 
 #: Distros whose rmw_zenoh puts RIHS01 type hashes in keys; Humble writes
 #: ``TypeHashNotSupported``.

@@ -14,14 +14,7 @@ import numpy as np
 import numpy.typing as npt
 from reloc_client.protocol import pose_covariance_problem
 
-from ...geometry import (
-    invert,
-    matrix_to_quat_xyzw,
-    pose_from_tq,
-    rotation_angle,
-    se3_adjoint,
-    skew,
-)
+from ...core.geometry import invert, matrix_to_quat_xyzw, pose_from_tq, rotation_angle, se3_adjoint, skew
 
 Array = npt.NDArray[np.float64]
 

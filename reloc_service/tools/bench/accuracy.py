@@ -34,9 +34,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ...numeric import limit_blas_threads
-from ...progress import progress
-from ...relocalizers.base import RelocResult, RelocStatus
+from ...algorithms.relocalizers.base import RelocResult, RelocStatus
+from ...core.numeric import limit_blas_threads
+from ...core.progress import progress
 from .samples import json_safe
 from .workspace import say
 
@@ -311,7 +311,7 @@ def eval_default_landmarks() -> Any:
 
 def first_step_share(chain: str, records: Sequence[Any]) -> dict[str, Any]:
     """Of a fallback chain's answers, how many its first step gave (a chain's result names
-    the step that answered, :class:`~reloc_service.relocalizers.chain.ChainRelocalizer`)."""
+    the step that answered, :class:`~reloc_service.algorithms.relocalizers.chain.ChainRelocalizer`)."""
     step = chain.split(",")[0].strip()
     returned = [r for r in records if r.returned]
     by_first = sum(r.method_used == step for r in returned)

@@ -175,7 +175,7 @@ def main(args: argparse.Namespace) -> int:
 
 def write_json(path: Path, result: Mapping[str, Any]) -> None:
     """``result`` as JSON at ``path`` (written whole, then renamed into place)."""
-    from ...fileio import atomic_write
+    from ...core.fileio import atomic_write
 
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, json.dumps(result, indent=1, allow_nan=False) + "\n", fsync=False)

@@ -18,11 +18,11 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ...cameras import PinholeCamera
-from ...ferns.training import prepare_image
-from ...frame import Features, Keyframe
-from ...map import KeyframeMap
-from ...relocalizers.ferns import FernsConf, FernsRelocalizer, detect_keypoints
+from ...algorithms.ferns.training import prepare_image
+from ...algorithms.relocalizers.ferns import FernsConf, FernsRelocalizer, detect_keypoints
+from ...core.cameras import PinholeCamera
+from ...core.frame import Features, Keyframe
+from ...core.map import KeyframeMap
 
 #: Photographs of ``skimage.data`` used as keyframes, in this order.
 PHOTOS = ("astronaut", "camera", "coffee", "chelsea", "rocket", "brick", "grass", "gravel",

@@ -19,7 +19,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from ...cameras import Camera
+from ...core.cameras import Camera
 
 
 def free_port() -> int:

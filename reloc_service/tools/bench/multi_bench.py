@@ -19,14 +19,14 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ... import features as feature_lib
-from ...cameras import Camera
-from ...frame import Frame, Keyframe
-from ...geometry import invert, pose_error
-from ...map import KeyframeMap
-from ...pose.p3p import P3PPoseFinder
-from ...pose.pnp import ransac_pinhole, solve_pnp
-from ...relocalizers.factory import create_relocalizer
+from ...algorithms.pose.p3p import P3PPoseFinder
+from ...algorithms.pose.pnp import ransac_pinhole, solve_pnp
+from ...algorithms.relocalizers.factory import create_relocalizer
+from ...core import features as feature_lib
+from ...core.cameras import Camera
+from ...core.frame import Frame, Keyframe
+from ...core.geometry import invert, pose_error
+from ...core.map import KeyframeMap
 from ..synth.planar import (
     DEFAULT_CAMERA,
     PlanarScene,
@@ -170,7 +170,7 @@ def bench_orb_path(repeats: int = 20, scene: PlanarScene | None = None, *,
 def bench_sbi(num_keyframes: int = 1000, repeats: int = 50) -> dict[str, Any]:
     """``find_places`` over ``num_keyframes`` keyframes for a new 640x480 query each time
     (thumbnail included; target < 2 ms), and the cost of adding/removing a keyframe."""
-    from ...place.base import create_place_finder
+    from ...algorithms.place.base import create_place_finder
 
     with one_cv_thread():
         rng = np.random.default_rng(0)

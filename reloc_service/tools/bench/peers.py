@@ -25,9 +25,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ...cameras import Camera
-from ...geometry import invert
-from ...map import MapState
+from ...core.cameras import Camera
+from ...core.geometry import invert
+from ...core.map import MapState
 
 Array = npt.NDArray[np.float64]
 

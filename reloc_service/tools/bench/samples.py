@@ -15,11 +15,11 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ...cameras import Camera, camera_from_dict
+from ...algorithms.relocalizers.base import RelocResult
+from ...core.cameras import Camera, camera_from_dict
+from ...core.frame import Frame
+from ...core.geometry import pose_error
 from ...engine import Engine
-from ...frame import Frame
-from ...geometry import pose_error
-from ...relocalizers.base import RelocResult
 from ..eval import metrics
 
 Array = npt.NDArray[np.float64]

@@ -35,13 +35,13 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ...cameras import Camera
-from ...features import FeatureConf, extract
-from ...frame import EncodedImage, Features, Keyframe
-from ...geometry import look_at
-from ...landmark_table import Landmark
-from ...map import MapState
-from ...numeric import limit_blas_threads
+from ...core.cameras import Camera
+from ...core.features import FeatureConf, extract
+from ...core.frame import EncodedImage, Features, Keyframe
+from ...core.geometry import look_at
+from ...core.landmark_table import Landmark
+from ...core.map import MapState
+from ...core.numeric import limit_blas_threads
 from .samples import JPEG_QUALITY
 
 Array = npt.NDArray[np.float64]
@@ -170,7 +170,7 @@ def prepare_size(state: MapState, conf: Any, directory: Path) -> dict[str, Any]:
     method), save it again with the trained models under ``directory / "map"``; returns
     the times (seconds) and the counts."""
     from ...engine import Engine
-    from ...storage import save_map
+    from ...storage.snapshot import save_map
 
     raw = directory / "raw"
     start = time.perf_counter()
@@ -213,7 +213,7 @@ def probe_map(map_dir: Path, queries_dir: Path, methods: Sequence[str],
     ``map_dir``, the load times, then every query of ``queries_dir`` by each method (latency,
     place-finder time, recall) and by the plain OpenCV pipeline."""
     from ...engine import Engine, EngineConf
-    from ...storage import load_map
+    from ...storage.snapshot import load_map
     from .machine import rss_mb
     from .samples import QuerySet
 
@@ -266,7 +266,7 @@ def _place_finder_times(engine: Any, queries: Any, methods: Sequence[str], repea
                         ) -> dict[str, float]:
     """Median ms of ``find_places(query, 5)`` alone, per place finder of ``methods``, on
     frames whose SIFT features are already extracted (BoW needs them; SBI does not)."""
-    from ...frame import Frame
+    from ...core.frame import Frame
     from .samples import decode_jpeg
 
     out: dict[str, float] = {}

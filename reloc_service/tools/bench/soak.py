@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ...cameras import Camera
+from ...core.cameras import Camera
 from .loopback import free_port, service_doc, toml_text
 from .machine import load_average
 from .samples import JPEG_QUALITY, QuerySet, json_safe, pct_ms

@@ -44,13 +44,13 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ...algorithms.relocalizers.base import RelocResult
+from ...algorithms.relocalizers.factory import DEFAULT_METHOD
+from ...core.features import FeatureConf, extract
+from ...core.frame import Frame
+from ...core.numeric import limit_blas_threads
+from ...core.progress import progress
 from ...engine import EngineConf
-from ...features import FeatureConf, extract
-from ...frame import Frame
-from ...numeric import limit_blas_threads
-from ...progress import progress
-from ...relocalizers.base import RelocResult
-from ...relocalizers.factory import DEFAULT_METHOD
 from .machine import code_record, load_average, machine_record
 from .samples import (
     JPEG_QUALITY,
@@ -202,8 +202,8 @@ def bench_peers(ws: Workspace) -> dict[str, Any]:
 def _pnp_on_our_matches(ws: Workspace) -> dict[str, Any]:
     """For each query: the SIFT matches ``sbi+p3p`` finds (its top candidates, its ratio
     test), then PoseLib and OpenCV RANSAC on them (:func:`multi_bench.compare_pnp`)."""
-    from ...pose.p3p import P3PPoseFinder
-    from ...relocalizers.multi import MultiRelocalizer
+    from ...algorithms.pose.p3p import P3PPoseFinder
+    from ...algorithms.relocalizers.multi import MultiRelocalizer
     from .multi_bench import compare_pnp, one_cv_thread
 
     q = ws.queries

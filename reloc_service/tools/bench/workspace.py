@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from ...cameras import Camera
+from ...algorithms.relocalizers.factory import DEFAULT_METHOD
+from ...core.cameras import Camera
+from ...core.progress import progress
 from ...engine import Engine, EngineConf, MappingConf
-from ...progress import progress
-from ...relocalizers.factory import DEFAULT_METHOD
 from .samples import JPEG_QUALITY, QuerySet
 
 SECTIONS = ("latency", "peers", "throughput", "scaling", "ferns", "planar")

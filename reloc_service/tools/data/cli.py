@@ -8,7 +8,7 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from ...cameras import Camera
+    from ...core.cameras import Camera
     from .dataset import Dataset
 
 
@@ -70,7 +70,7 @@ def _add_conversion_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main_dataset(args: argparse.Namespace) -> int:
     """Run ``reloc dataset ...``; 0 on success, 1 (message on stderr) if a dataset is bad."""
-    from ...errors import RelocError
+    from ...core.errors import RelocError
 
     try:
         if args.dataset_command == "check":
@@ -119,7 +119,7 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _load_everything(dataset: Dataset) -> None:
-    from ...progress import progress
+    from ...core.progress import progress
 
     for entry in progress(dataset.map_entries + dataset.query_entries, desc="images"):
         dataset.load_image(entry)

@@ -11,9 +11,9 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from ...cameras import Camera
-from ...errors import DatasetError
-from ...progress import progress
+from ...core.cameras import Camera
+from ...core.errors import DatasetError
+from ...core.progress import progress
 from .dataset import Dataset, DatasetEntry, read_dataset, write_dataset
 
 Array = npt.NDArray[np.float64]

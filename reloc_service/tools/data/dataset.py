@@ -33,10 +33,10 @@ import numpy as np
 import numpy.typing as npt
 from reloc_client.protocol.geometry import quat_xyzw_to_rotation, rotation_to_quat_xyzw_array
 
-from ...cameras import Camera, camera_from_dict
-from ...errors import CameraError, DatasetError, GeometryError
-from ...fileio import atomic_write
-from ...geometry import check_pose
+from ...core.cameras import Camera, camera_from_dict
+from ...core.errors import CameraError, DatasetError, GeometryError
+from ...core.fileio import atomic_write
+from ...core.geometry import check_pose
 
 Array = npt.NDArray[np.float64]
 

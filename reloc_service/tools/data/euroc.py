@@ -21,8 +21,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from ...cameras import CAMERA_MODELS, Camera
-from ...errors import CameraError, DatasetError
+from ...core.cameras import CAMERA_MODELS, Camera
+from ...core.errors import CameraError, DatasetError
 from .conversion import (
     PosedFrames,
     check_increasing,

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from ...cameras import Camera, PinholeCamera, RadTanCamera
-from ...errors import DatasetError
+from ...core.cameras import Camera, PinholeCamera, RadTanCamera
+from ...core.errors import DatasetError
 from .conversion import (
     PosedFrames,
     associate_nearest,

@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from ...cameras import Camera
-from ...relocalizers.base import RelocResult
+from ...algorithms.relocalizers.base import RelocResult
+from ...core.cameras import Camera
 
 if TYPE_CHECKING:
     from ..data.dataset import Dataset

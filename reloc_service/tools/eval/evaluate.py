@@ -25,10 +25,10 @@ import numpy as np
 import numpy.typing as npt
 
 from ... import __version__
-from ...errors import ConfigError, DatasetError
-from ...geometry import pose_covariance_from_sigmas, pose_error, pose_to_tum
-from ...progress import progress as progress_bar
-from ...relocalizers.base import RelocResult, position_sigma_m
+from ...algorithms.relocalizers.base import RelocResult, position_sigma_m
+from ...core.errors import ConfigError, DatasetError
+from ...core.geometry import pose_covariance_from_sigmas, pose_error, pose_to_tum
+from ...core.progress import progress as progress_bar
 from ..data.dataset import Dataset, DatasetEntry, read_dataset
 from . import gt as _gt  # noqa: F401 (importing it registers the ground-truth place finder)
 from . import metrics

@@ -28,10 +28,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ...errors import ConfigError
-from ...ferns.classifier import FernClassifier, FernConf
-from ...ferns.training import WarpConf, draw_warps, sample_leaves
-from ...progress import progress
+from ...algorithms.ferns.classifier import FernClassifier, FernConf
+from ...algorithms.ferns.training import WarpConf, draw_warps, sample_leaves
+from ...core.errors import ConfigError
+from ...core.progress import progress
 
 
 @dataclass(frozen=True)

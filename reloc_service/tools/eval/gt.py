@@ -8,11 +8,11 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from ...errors import ConfigError
-from ...frame import Frame, Keyframe
-from ...map import KeyframeMap
-from ...numeric import top_k
-from ...place.base import PlaceCandidate, PlaceFinder, register
+from ...algorithms.place.base import PlaceCandidate, PlaceFinder, register
+from ...core.errors import ConfigError
+from ...core.frame import Frame, Keyframe
+from ...core.map import KeyframeMap
+from ...core.numeric import top_k
 
 
 @register("gt")

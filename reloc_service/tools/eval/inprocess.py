@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ...cameras import Camera
-from ...frame import Frame
-from ...relocalizers.base import RelocResult
+from ...algorithms.relocalizers.base import RelocResult
+from ...core.cameras import Camera
+from ...core.frame import Frame
 from ..data.dataset import Dataset
 from .backends import LandmarkSource
 
@@ -23,7 +23,7 @@ Array = npt.NDArray[np.float64]
 def as_a_service_worker() -> Iterator[None]:
     """Queries answered in this process run as a service worker runs them: one OpenCV
     thread and one BLAS thread (restored after). So the latencies are the service's, and a
-    query's helper thread (:mod:`~reloc_service.relocalizers.overlap`) finds the idle core
+    query's helper thread (:mod:`~reloc_service.algorithms.relocalizers.overlap`) finds the idle core
     it would find there, not one taken by a BLAS thread spinning after a product."""
     import cv2
     from threadpoolctl import threadpool_limits
@@ -77,7 +77,7 @@ class InProcessBackend:
 
     def landmark_errors_m(self, dataset: Dataset) -> Array | None:
         try:
-            from ...mapping import landmark_errors
+            from ...core.mapping import landmark_errors
         except ImportError:
             return None
         errors = landmark_errors(self.engine.map.snapshot(), dataset)  # type: ignore[arg-type]

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ...errors import ConfigError
+from ...core.errors import ConfigError
 
 if TYPE_CHECKING:
     from .evaluate import EvalResult, MapInfo, MethodResult

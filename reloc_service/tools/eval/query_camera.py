@@ -1,6 +1,6 @@
 """The camera each query claims: the dataset's, or one made deliberately wrong (its focal
 scaled, its radial ``k1`` replaced) while the images stay as taken, as a stale calibration
-would send them: what the relocalizers' intrinsics test (:mod:`reloc_service.pose.intrinsics`)
+would send them: what the relocalizers' intrinsics test (:mod:`reloc_service.algorithms.pose.intrinsics`)
 is measured against."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-from ...cameras import Camera, RadTanCamera
-from ...errors import ConfigError
+from ...core.cameras import Camera, RadTanCamera
+from ...core.errors import ConfigError
 
 
 @dataclass(frozen=True)

@@ -19,9 +19,9 @@ import numpy.typing as npt
 from reloc_client import protocol as wire
 from reloc_client.client import NoReplyError, RelocClient, ServiceBusy, ServiceError
 
-from ...cameras import Camera
-from ...errors import ConfigError, RelocError
-from ...relocalizers.base import RelocResult
+from ...algorithms.relocalizers.base import RelocResult
+from ...core.cameras import Camera
+from ...core.errors import ConfigError, RelocError
 from .backends import LandmarkSource, RemoteSpec
 
 Array = npt.NDArray[np.float64]

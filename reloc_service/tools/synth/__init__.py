@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
-from ...errors import ConfigError, DatasetError
+from ...core.errors import ConfigError, DatasetError
 from .presets import CAMERA_ID, PRESETS, Degradation, Preset, get_preset
 
 if TYPE_CHECKING:
@@ -122,7 +122,7 @@ def _make_jobs(preset: Preset, map_poses: list[npt.NDArray[np.float64]],
                nuisances: list[Nuisance | None]) -> list[_Job]:
     """Map jobs pose by pose (cam0, then each rig camera: a stereo pair is two consecutive
     rows), then the cam0 query jobs."""
-    from ...geometry import compose
+    from ...core.geometry import compose
 
     folder = f"{CAMERA_ID}/" if preset.rig else ""
     jobs = []
@@ -209,7 +209,7 @@ def _run_jobs(jobs: list[_Job], state: tuple[Any, ...], *, workers: int, show: b
 
 def _drain(done: Iterator[str], total: int, desc: str, show: bool) -> None:
     """Wait for every frame, with a progress bar if ``show``."""
-    from ...progress import progress
+    from ...core.progress import progress
 
     for _ in progress(done, total=total, desc=desc) if show else done:
         pass

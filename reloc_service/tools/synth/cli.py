@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from ...errors import RelocError
+from ...core.errors import RelocError
 from .presets import PRESETS
 
 

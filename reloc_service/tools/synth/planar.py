@@ -14,11 +14,11 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from ... import features as feature_lib
-from ...cameras import Camera, PinholeCamera
-from ...frame import Features, Keyframe
-from ...geometry import invert, look_at
-from ...map import KeyframeMap
+from ...core import features as feature_lib
+from ...core.cameras import Camera, PinholeCamera
+from ...core.frame import Features, Keyframe
+from ...core.geometry import invert, look_at
+from ...core.map import KeyframeMap
 
 Array = npt.NDArray[np.float64]
 

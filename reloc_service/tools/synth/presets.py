@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ...cameras import Camera, FovCamera, PinholeCamera, RadTanCamera
-from ...errors import ConfigError
+from ...core.cameras import Camera, FovCamera, PinholeCamera, RadTanCamera
+from ...core.errors import ConfigError
 
 CAMERA_ID = "cam0"  # the preset's main camera; queries are always taken by it
 

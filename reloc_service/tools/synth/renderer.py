@@ -17,9 +17,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ...cameras import Camera
-from ...errors import CameraError
-from ...geometry import invert
+from ...core.cameras import Camera
+from ...core.errors import CameraError
+from ...core.geometry import invert
 from .presets import Degradation
 from .scene import Quad, Scene
 

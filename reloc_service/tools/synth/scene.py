@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ...errors import ConfigError
+from ...core.errors import ConfigError
 
 Array = npt.NDArray[np.float64]
 Image = npt.NDArray[np.float32]

@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ...errors import ConfigError
+from ...core.errors import ConfigError
 from .repeated import build_repeated
 from .scene import Scene, build_desk, build_room
 

@@ -14,8 +14,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
-from ...errors import ConfigError
-from ...geometry import look_at, so3_exp
+from ...core.errors import ConfigError
+from ...core.geometry import look_at, so3_exp
 from .scene import DESK_TARGET, ROOM_SIZE
 
 Array = npt.NDArray[np.float64]

@@ -1,0 +1,439 @@
+"""Whether the query's camera is the one it claims: a focal scale and a radial distortion term
+estimated with the pose on the PnP correspondences, and the hypothesis "the given intrinsics,
+within their calibration uncertainty" tested at a chosen false-refusal rate.
+
+The given camera projects a point to ``p``; the camera that took the image, with its focal
+``(1 + a)`` times the given one and a radial error, to ``c + (1 + a) (p - c) + b g(p - c)``,
+with ``c`` the principal point and ``g(v) = |v|^2 v / R^3`` (``R``: the principal point's
+distance to the farthest image corner), so ``b`` is the error in pixels at that corner: a
+wrong ``k1`` bends pixels with the cube of their radius. Gauss-Newton on the pose and
+``theta = (a, b)`` together, its steps halved until the truncated error falls and the inliers
+re-gated under each new ``theta`` (a wrong focal leaves the image's outer part outside the
+first consensus), gives ``theta`` and, by the Schur complement of the pose block, its
+covariance ``V``. The pose absorbs much of a wrong focal (moved along its axis, it explains
+the image's centre), so the estimate starts from the given camera and from focal scales
+0.66 to 1.52 too; another start replaces the given one only where it fits significantly
+better (likelihood ratio at the test's level), and the farthest pose among the solutions the
+data cannot exclude is kept for the covariance.
+
+Under the hypothesis, ``theta`` is drawn from the calibration prior ``N(0, P)`` and estimated
+with noise ``V``: ``T^2 = theta^T (V + P)^-1 theta`` is chi-square with 2 degrees of freedom
+(Hotelling's, with ``V`` from the residuals: ``T^2 / 2 ~ F(2, dof)``). Two things make ``V``
+too small. Residuals in one image region share the errors of the landmarks there: the test
+also needs the cluster-robust covariance (the sandwich over the cells of a 4x4 grid, Cameron
+& Miller 2015, with Hotelling's small-sample reference over the cells) to reject. And a map
+built from imprecise keyframe poses bends everywhere a little, which no cell sees: ``V`` is
+scaled by the dispersion such estimates show on the map's own keyframes
+(:mod:`.map_consistency`). The test refuses only where both reject.
+
+A test that passes has not shown the intrinsics right: a focal 5 % off moves the pose by
+several of its sigmas yet passes when the keypoints are as coarse as ORB's. So the stated
+covariance of the pose (estimated at the given intrinsics) becomes its expected squared error
+with the intrinsics marginalised: :func:`.map_consistency.covariance_with_intrinsics`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats
+
+from ...core.cameras import Camera
+from ...core.geometry import invert, se3_exp, se3_log
+
+Array = npt.NDArray[np.float64]
+
+#: Projection of every correspondence's point at a pose: (N, 2) pixels through the given
+#: camera and their (N, 2, 6) Jacobian w.r.t. a right perturbation of ``world_from_cam``.
+Projector = Callable[[Array], tuple[Array, Array]]
+
+#: How every refusal of this test begins: relocalizers stop at it (the same camera would meet
+#: any other place or method), and callers may recognise it.
+REFUSAL = "intrinsics disagree"
+
+#: Focal scales (times the given focal) the estimate also starts from: a geometric series of
+#: ratio 1.15 from 0.66 to 1.52, so that any focal in between is within 7.5 % of a start
+#: (Gauss-Newton converges from there on a scene with depth).
+FOCAL_STARTS = tuple(float(1.15**k) for k in (-3, -2, -1, 1, 2, 3))
+
+#: Halvings of a Gauss-Newton step before the estimate is taken as converged.
+_MAX_HALVINGS = 8
+
+#: Cells per side of the grid whose cells are the clusters of the robust covariance (the
+#: verification's coverage grid: inliers in one cell share the landmarks' local errors).
+CLUSTER_GRID = 4
+
+
+@dataclass(frozen=True)
+class IntrinsicsPrior:
+    """How well a correct calibration knows the camera, 1 sigma: the focal's relative error
+    and the radial error at the farthest image corner, pixels; and the false-refusal rate of
+    the test (the share of queries with correct intrinsics it refuses)."""
+
+    focal_sigma_rel: float = 0.005
+    radial_sigma_px: float = 2.0
+    false_refusal: float = 1e-3
+
+    @property
+    def covariance(self) -> Array:
+        return np.diag([self.focal_sigma_rel**2, self.radial_sigma_px**2])
+
+
+@dataclass(frozen=True, eq=False)
+class Solution:
+    """One joint estimate of the pose and ``theta = (a, b)``: the focal ``1 + a`` times the
+    given one and ``b`` pixels of radial error at the farthest image corner.
+    ``model_covariance`` (2, 2) is the covariance of ``theta`` from the residuals' variance
+    ``sigma2`` (px^2; the Schur complement of the pose in the weighted normal equations),
+    ``robust_covariance`` the cluster-robust one over ``clusters`` occupied grid cells (None
+    below 3), ``dof`` the residual degrees of freedom, ``inliers`` the correspondences it
+    re-gated, ``cost`` their weighted truncated squared error (px^2) and ``twist`` (6,) its
+    pose relative to the pose at the given intrinsics (right perturbation)."""
+
+    theta: Array
+    model_covariance: Array
+    robust_covariance: Array | None
+    clusters: int
+    dof: int
+    sigma2: float
+    inliers: int
+    cost: float
+    twist: Array
+
+
+@dataclass(frozen=True, eq=False)
+class IntrinsicsCheck:
+    """The verdict on a query's intrinsics from one pose's correspondences.
+
+    ``solutions``: the joint estimates from the given camera (first) and from the other
+    focal starts; the one tested (:attr:`solution`) is the first unless another explains the
+    correspondences significantly better. ``dispersion`` scales the model covariance by how
+    much more such estimates vary on this map than the model says (:mod:`.map_consistency`;
+    1 until known). ``pose_shift`` (6, 2) is ``B``: the pose at the given intrinsics moves by
+    ``B theta`` (twist of a right perturbation) when the camera is ``theta`` off."""
+
+    solutions: tuple[Solution, ...]
+    prior: IntrinsicsPrior
+    focal_given_px: float
+    pose_shift: Array
+    dispersion: float = 1.0
+
+    def _likelihood_ratio(self, worse: Solution, better: Solution) -> float:
+        """The likelihood-ratio statistic of ``better`` against ``worse``: their cost
+        difference over the residual variance (times the dispersion), chi-square with 2
+        degrees of freedom where ``worse`` is right."""
+        return (worse.cost - better.cost) / (self.solutions[0].sigma2 * self.dispersion)
+
+    @property
+    def _limit(self) -> float:
+        return float(stats.chi2.isf(self.prior.false_refusal, 2))
+
+    @property
+    def solution(self) -> Solution:
+        """The solution tested: the one from the given camera, unless another explains the
+        correspondences better beyond the likelihood-ratio limit (the test's level): a
+        start that merely ties does not replace it (the best of several ties would be
+        chosen for its noise)."""
+        given = self.solutions[0]
+        best = min(self.solutions, key=lambda s: s.cost)
+        return best if self._likelihood_ratio(given, best) > self._limit else given
+
+    @property
+    def unexcluded_twist(self) -> Array:
+        """(6,) the pose shift, relative to the pose at the given intrinsics, of the solution
+        farthest from it (in position) that the data cannot exclude: whose cost exceeds the
+        best's by less than the likelihood-ratio limit. A wrong focal seen on a scene with
+        little depth may fit as well as the right one, from a pose far away; where the test
+        lets it pass, the stated covariance must reach it."""
+        best = min(self.solutions, key=lambda s: s.cost)
+        near = [s for s in self.solutions if self._likelihood_ratio(s, best) <= self._limit]
+        return max(near, key=lambda s: float(np.linalg.norm(s.twist[:3]))).twist
+
+    @property
+    def theta(self) -> Array:
+        return self.solution.theta
+
+    @property
+    def model_covariance(self) -> Array:
+        return self.solution.model_covariance
+
+    @property
+    def inliers(self) -> int:
+        return self.solution.inliers
+
+    @property
+    def focal_scale(self) -> float:
+        return 1.0 + float(self.theta[0])
+
+    @property
+    def radial_px(self) -> float:
+        return float(self.theta[1])
+
+    @property
+    def covariance(self) -> Array:
+        """(2, 2) the data's covariance of ``theta``: the model's times the dispersion."""
+        return self.dispersion * self.model_covariance
+
+    @property
+    def data_statistic(self) -> float:
+        """``theta^T V^-1 theta`` under the model covariance alone (no prior, no dispersion):
+        chi-square with 2 degrees of freedom where the model's noise is the whole story."""
+        return _t2(self.theta, self.model_covariance)
+
+    @property
+    def p_value(self) -> float:
+        """P-value of "the given intrinsics" (``theta ~ N(0, P)``, estimated with noise):
+        the larger of the model-based test's (covariance ``dispersion V + P``, Hotelling's
+        ``T^2 / 2 ~ F(2, dof)``) and the cluster-robust one's (``V_c + P`` over ``G``
+        cells: ``T^2 (G - 2) / (2 (G - 1)) ~ F(2, G - 2)``): each allows for what the other
+        misses (a map bent everywhere, noise shared by one region)."""
+        chosen = self.solution
+        p_model = _p_value_f(_t2(chosen.theta, self.covariance + self.prior.covariance),
+                             chosen.dof)
+        if chosen.robust_covariance is None:
+            return p_model
+        g = chosen.clusters
+        t2 = _t2(chosen.theta, chosen.robust_covariance + self.prior.covariance)
+        return max(p_model, _p_value_f(t2 * (g - 2) / (g - 1), g - 2))
+
+    @property
+    def passed(self) -> bool:
+        return not self.p_value < self.prior.false_refusal
+
+    def with_dispersion(self, dispersion: float) -> IntrinsicsCheck:
+        return dataclasses.replace(self, dispersion=max(1.0, float(dispersion)))
+
+    @property
+    def reason(self) -> str:
+        """Why the check refuses (the component that disagrees most, in units of its own
+        sigma), or "" when it passes."""
+        if self.passed:
+            return ""
+        sigma = np.sqrt(np.maximum(np.diag(self.covariance + self.prior.covariance), 1e-300))
+        z_focal, z_radial = np.abs(self.theta) / sigma
+        if z_focal >= z_radial:
+            what = (f"focal {self.focal_scale * self.focal_given_px:.1f} px estimated, "
+                    f"{self.focal_given_px:.1f} given")
+        else:
+            what = (f"distortion {self.radial_px:+.1f} px at the image corner estimated, "
+                    f"0 given")
+        return f"{REFUSAL}: {what} (p = {self.p_value:.1e})"
+
+
+def check_intrinsics(world_from_cam: Array, px: Array, inliers: npt.NDArray[np.int64],
+                     weights: Array, camera: Camera, project: Projector, *, depth_m: float,
+                     threshold_px: float, min_sigma_px: float, prior: IntrinsicsPrior,
+                     iterations: int = 5, focal_starts: tuple[float, ...] = FOCAL_STARTS
+                     ) -> IntrinsicsCheck | None:
+    """Test the intrinsics ``camera`` claims on N correspondences: ``px`` (N, 2) query pixels
+    whose points ``project`` maps through ``camera``, ``weights`` (N,) their residuals'
+    inverse variances (units of the keypoint noise), ``inliers`` those of the
+    fixed-intrinsics ``world_from_cam`` within ``threshold_px``, ``depth_m`` their median
+    depth. None with fewer than 8 inliers (no test: the pose alone has 6 unknowns).
+
+    A wrong focal is partly absorbed by the pose (the camera moved along its axis explains
+    the centre of the image), so the inliers at the given camera may all agree with it, and
+    Gauss-Newton from there would find the given focal again. So the estimate also starts at
+    each focal of ``focal_starts``, the camera moved along its axis by as much as that focal
+    needs at ``depth_m``, each re-gated (:attr:`IntrinsicsCheck.solution` says which is
+    tested)."""
+    if len(inliers) < 8:
+        return None
+    model = _Model(camera)
+    given = _normal_equations(world_from_cam, np.zeros(2), px, weights, model, project,
+                              threshold_px, rows=inliers)
+    found = [_estimate_from(world_from_cam, np.zeros(2), given, px, weights, model, project,
+                            threshold_px, iterations)]
+    for factor in focal_starts:
+        start = world_from_cam @ _along_axis(-(factor - 1.0) * depth_m)
+        theta = np.array([factor - 1.0, 0.0])
+        eq = _normal_equations(start, theta, px, weights, model, project, threshold_px)
+        if len(eq.rows) >= 8:
+            found.append(_estimate_from(start, theta, eq, px, weights, model, project,
+                                        threshold_px, iterations))
+    cam_from_world = invert(world_from_cam)
+    solutions = tuple(_solution(eq, theta, se3_log(cam_from_world @ pose), camera,
+                                min_sigma_px) for pose, theta, eq in found)
+    return IntrinsicsCheck(solutions=solutions, prior=prior, focal_given_px=float(camera.fx),
+                           pose_shift=_pose_shift(given.normal))
+
+
+def _estimate_from(world_from_cam: Array, theta: Array, eq: _Equations, px: Array,
+                   weights: Array, model: _Model, project: Projector, threshold_px: float,
+                   iterations: int) -> tuple[Array, Array, _Equations]:
+    """Gauss-Newton on the pose and ``theta`` from ``world_from_cam``, ``theta`` (whose
+    equations are ``eq``), the inliers re-gated at each step: (pose, theta, equations)."""
+    pose = world_from_cam
+    for _ in range(iterations):
+        step = _solve(eq.normal, eq.rhs)
+        if step is None:
+            break
+        # Gauss-Newton from the given camera may overshoot a large error (the first inliers
+        # lie near the centre): halve the step until the truncated (MSAC) cost falls.
+        for _ in range(_MAX_HALVINGS):
+            trial_pose, trial_theta = pose @ se3_exp(step[:6]), theta + step[6:]
+            trial = _normal_equations(trial_pose, trial_theta, px, weights, model, project,
+                                      threshold_px)
+            if trial.cost < eq.cost and len(trial.rows) >= 8:
+                break
+            step = step / 2.0
+        else:
+            break
+        pose, theta, eq = trial_pose, trial_theta, trial
+        if np.abs(step[6:] / [1e-4, 1e-2]).max() < 1.0 and np.abs(step[:6]).max() < 1e-6:
+            break
+    return pose, theta, eq
+
+
+def _along_axis(distance_m: float) -> Array:
+    """(4, 4) ``cam_from_moved``: the camera moved ``distance_m`` along its optical axis."""
+    out = np.eye(4)
+    out[2, 3] = distance_m
+    return out
+
+
+@dataclass(frozen=True)
+class _Model:
+    """The intrinsics error model of a camera: its principal point and reference radius."""
+
+    centre: Array
+    radius_px: float
+
+    def __init__(self, camera: Camera) -> None:
+        corners = np.array([[-0.5, -0.5], [camera.width - 0.5, -0.5],
+                            [-0.5, camera.height - 0.5], [camera.width - 0.5, camera.height - 0.5]])
+        centre = np.array([camera.cx, camera.cy])
+        object.__setattr__(self, "centre", centre)
+        object.__setattr__(self, "radius_px", float(np.linalg.norm(corners - centre, axis=1).max()))
+
+    def apply(self, projected_px: Array, jac: Array, theta: Array) -> tuple[Array, Array, Array]:
+        """Pixels (M, 2) under ``theta`` of points the given camera projects to
+        ``projected_px``, their (M, 2, 6) pose Jacobian (from the given camera's ``jac``)
+        and (M, 2, 2) Jacobian w.r.t. ``theta``."""
+        a, b = theta
+        v = projected_px - self.centre
+        u = v / self.radius_px
+        r2 = (u * u).sum(axis=1)
+        g = u * r2[:, None]  # |g| = 1 at the farthest corner
+        pixels = self.centre + (1.0 + a) * v + b * g
+        # d pixels / d v = (1 + a) I + b (|u|^2 I + 2 u u^T) / R
+        dv = (2.0 * b / self.radius_px) * u[:, :, None] * u[:, None, :]
+        diagonal = 1.0 + a + b * r2 / self.radius_px
+        dv[:, 0, 0] += diagonal
+        dv[:, 1, 1] += diagonal
+        d_pose = np.einsum("mij,mjk->mik", dv, jac)
+        d_theta = np.stack([v, g], axis=2)
+        return pixels, d_pose, d_theta
+
+
+@dataclass(frozen=True, eq=False)
+class _Equations:
+    """The weighted normal equations of the pose and ``theta`` (8 unknowns, order pose
+    twist then ``a``, ``b``) on ``rows``, with what the covariances need: the (M, 2) residuals,
+    the (M, 2, 8) Jacobian and the (M,) weights of the rows, and their pixels; ``cost``, the
+    weighted truncated squared error of every correspondence (MSAC: ``w min(|r|^2, t^2)``,
+    whose descent direction on the inliers is the weighted Gauss-Newton step's)."""
+
+    rows: npt.NDArray[np.int64]
+    normal: Array
+    rhs: Array
+    residuals: Array
+    jac: Array
+    weights: Array
+    px: Array
+    cost: float
+
+
+def _normal_equations(world_from_cam: Array, theta: Array, px: Array, weights: Array,
+                      model: _Model, project: Projector, threshold_px: float, *,
+                      rows: npt.NDArray[np.int64] | None = None) -> _Equations:
+    """:class:`_Equations` at ``world_from_cam`` and ``theta`` on ``rows`` or (None) on the
+    correspondences within ``threshold_px`` of their modelled pixels."""
+    projected, jac = project(world_from_cam)
+    modelled, d_pose, d_theta = model.apply(projected, jac, theta)
+    residuals = px - modelled
+    squared = (residuals**2).sum(axis=1)
+    squared = np.where(np.isfinite(squared), squared, np.inf)
+    if rows is None:
+        rows = np.flatnonzero(squared < threshold_px**2)
+    cost = float((weights * np.minimum(squared, threshold_px**2)).sum())
+    full = np.concatenate([d_pose[rows], d_theta[rows]], axis=2)  # (M, 2, 8)
+    w = weights[rows]
+    flat = full.reshape(-1, 8)
+    weighted = flat * np.repeat(w, 2)[:, None]
+    return _Equations(rows, weighted.T @ flat, weighted.T @ residuals[rows].ravel(),
+                      residuals[rows], full, w, px[rows], cost)
+
+
+def _solve(normal: Array, rhs: Array) -> Array | None:
+    try:
+        step = np.asarray(np.linalg.solve(normal, rhs), np.float64)
+    except np.linalg.LinAlgError:
+        return None
+    return step if np.all(np.isfinite(step)) else None
+
+
+def _pose_shift(normal: Array) -> Array:
+    """(6, 2) ``B = N_pp^-1 N_p theta``: how the fixed-intrinsics pose moves per unit of
+    ``theta`` (the pose that best explains pixels bent by ``theta`` with the given camera)."""
+    try:
+        return np.asarray(np.linalg.solve(normal[:6, :6], normal[:6, 6:]), np.float64)
+    except np.linalg.LinAlgError:
+        return np.full((6, 2), np.inf)
+
+
+def _solution(eq: _Equations, theta: Array, twist: Array, camera: Camera,
+              min_sigma_px: float) -> Solution:
+    """The :class:`Solution` of the normal equations ``eq`` at a joint estimate: the model
+    covariance ``sigma^2 [N^-1]_theta`` (the Schur complement of the pose; sigma from the
+    weighted residuals, at least ``min_sigma_px``) and the cluster-robust one."""
+    dof = max(2 * len(eq.rows) - 8, 1)
+    sigma2 = max(float((eq.weights[:, None] * eq.residuals**2).sum()) / dof, min_sigma_px**2)
+    try:
+        inverse = np.asarray(np.linalg.inv(eq.normal), np.float64)
+    except np.linalg.LinAlgError:
+        inverse = np.full((8, 8), np.inf)
+    robust, clusters = _cluster_robust(eq, inverse, camera)
+    return Solution(theta=theta, model_covariance=sigma2 * inverse[6:, 6:],
+                    robust_covariance=robust, clusters=clusters, dof=dof, sigma2=sigma2,
+                    inliers=len(eq.rows), cost=eq.cost, twist=twist)
+
+
+def _cluster_robust(eq: _Equations, inverse: Array, camera: Camera) -> tuple[Array | None, int]:
+    """The (2, 2) cluster-robust covariance of ``theta`` (sandwich ``N^-1 M N^-1`` with
+    ``M`` the sum over grid cells of each cell's outer product of its score ``J^T W r``,
+    times ``G / (G - 1)``) and the number ``G`` of occupied cells; None when ``G < 3``."""
+    width, height = camera.size
+    col = np.clip(((eq.px[:, 0] + 0.5) * CLUSTER_GRID // width).astype(int), 0, CLUSTER_GRID - 1)
+    row = np.clip(((eq.px[:, 1] + 0.5) * CLUSTER_GRID // height).astype(int), 0,
+                  CLUSTER_GRID - 1)
+    cell = row * CLUSTER_GRID + col
+    scores_per_point = np.einsum("mik,mi->mk", eq.jac, eq.residuals) * eq.weights[:, None]
+    scores = np.zeros((CLUSTER_GRID**2, 8))
+    np.add.at(scores, cell, scores_per_point)
+    occupied = np.unique(cell)
+    g = len(occupied)
+    if g < 3 or not np.all(np.isfinite(inverse)):
+        return None, g
+    s = scores[occupied]
+    meat = s.T @ s * (g / (g - 1))
+    sandwich = inverse @ meat @ inverse
+    return sandwich[6:, 6:], g
+
+
+def _p_value_f(t2_over_one: float, dof: int) -> float:
+    """``P(F(2, dof) > t2 / 2)``; 1 where the statistic is not finite (no evidence)."""
+    if not np.isfinite(t2_over_one) or dof < 1:
+        return 1.0
+    return float(stats.f.sf(t2_over_one / 2.0, 2, dof))
+
+
+def _t2(theta: Array, covariance: Array) -> float:
+    try:
+        return float(theta @ np.linalg.solve(covariance, theta))
+    except np.linalg.LinAlgError:
+        return float("inf")

@@ -1,0 +1,99 @@
+"""The landmarks seen by some keyframes, pooled one row per landmark: what the P3P pose finder
+matches a query against and what guided matching projects into it."""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ...core.frame import Features, Keyframe
+from ...core.map import MapState
+from .pnp import PointUncertainty
+
+Array = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class LandmarkPool:
+    """The landmarks seen by some keyframes, one row per landmark (L rows): the descriptor of
+    its observation in the best-ranked keyframe, its id, world point and that keyframe."""
+
+    descriptors: npt.NDArray[Any]
+    landmark_ids: npt.NDArray[np.int64]
+    points_world: Array
+    keyframe_rows: npt.NDArray[np.int64]
+
+    @classmethod
+    def gather(cls, keyframes: list[Keyframe], kind: str) -> LandmarkPool:
+        """Pool ``kind`` landmarks of ``keyframes`` (best first). A landmark seen by several
+        keyframes keeps one row: duplicates would fail Lowe's ratio test against themselves."""
+        feats = [kf.features.get(kind) for kf in keyframes]
+        if len(feats) == 1 and feats[0] is not None and len(feats[0]):
+            f = feats[0]
+            idx = _landmark_rows(f)
+            return cls(f.descriptors[idx], f.landmark_ids[idx], f.points_world[idx],
+                       np.zeros(len(idx), np.int64))
+        local = [np.zeros(0, np.int64) if f is None else np.flatnonzero(f.landmark_ids >= 0)
+                 for f in feats]
+        if not sum(len(i) for i in local):
+            width = 128 if kind == "sift" else 32     # both kinds are uint8 descriptors
+            return cls(np.zeros((0, width), np.uint8), np.zeros(0, np.int64), np.zeros((0, 3)),
+                       np.zeros(0, np.int64))
+        ids = np.concatenate([f.landmark_ids[i] for f, i in zip(feats, local, strict=True)
+                              if f is not None])
+        kf_rows = np.repeat(np.arange(len(feats)), [len(i) for i in local])
+        # The first occurrence is in the best-ranked keyframe; sorted, rows stay grouped by
+        # keyframe, so only the kept descriptors are copied (not every observation's).
+        first = np.sort(np.unique(ids, return_index=True)[1])
+        rows, idx = kf_rows[first], np.concatenate(local)[first]
+        picks = [(feats[r], idx[rows == r]) for r in np.unique(rows)]
+        return cls(np.concatenate([f.descriptors[i] for f, i in picks if f is not None]),
+                   ids[first], np.concatenate([f.points_world[i] for f, i in picks
+                                               if f is not None]), rows)
+
+    def uncertainty(self, state: MapState, keyframes: list[Keyframe],
+                    rows: npt.NDArray[np.int64]) -> PointUncertainty:
+        """The depth uncertainty of the landmarks of pool ``rows`` (``keyframes`` as given to
+        :meth:`gather`), along the rays from the keyframe each row came from."""
+        sigmas = state.landmark_sigmas(self.landmark_ids[rows], 0.0)
+        centres = np.array([kf.position_world for kf in keyframes]).reshape(-1, 3)
+        return PointUncertainty(sigmas, centres[self.keyframe_rows[rows]])
+
+    def rows_of(self, landmark_ids: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+        """(M,) pool row of each landmark id; -1 where the pool does not hold it."""
+        if len(self.landmark_ids) == 0:
+            return np.full(len(landmark_ids), -1, np.int64)
+        order = np.argsort(self.landmark_ids, kind="stable")
+        pos = np.clip(np.searchsorted(self.landmark_ids[order], landmark_ids), 0, len(order) - 1)
+        return np.where(self.landmark_ids[order][pos] == landmark_ids, order[pos], -1
+                        ).astype(np.int64)
+
+    def keyframes_of(self, rows: npt.NDArray[np.int64], keyframe_ids: list[int]) -> list[int]:
+        """Ids of the keyframes whose landmarks (pool ``rows``) gave inliers, most first."""
+        counts = np.bincount(self.keyframe_rows[rows], minlength=len(keyframe_ids))
+        order = np.argsort(-counts, kind="stable")
+        return [keyframe_ids[i] for i in order if counts[i] > 0]
+
+
+#: Per keyframe features: the rows :meth:`LandmarkPool.gather` keeps of it alone (a few
+#: kB each, weakly held: gone with the features). Features are never changed in place
+#: (:meth:`Features.with_landmarks` copies), so the rows stay right while they live.
+_LANDMARK_ROWS: weakref.WeakKeyDictionary[Features, npt.NDArray[np.int64]] = (
+    weakref.WeakKeyDictionary())
+
+
+def _landmark_rows(features: Features) -> npt.NDArray[np.int64]:
+    """Rows of ``features`` with a landmark, the first row of each landmark id (ascending):
+    the rows a pool of this keyframe alone holds. Computed once per features object (the
+    fast path pools the best keyframe alone for every query)."""
+    rows = _LANDMARK_ROWS.get(features)
+    if rows is None:
+        local = np.flatnonzero(features.landmark_ids >= 0)
+        rows = local[np.sort(np.unique(features.landmark_ids[local], return_index=True)[1])]
+        rows.flags.writeable = False
+        _LANDMARK_ROWS[features] = rows
+    return rows

@@ -1,0 +1,213 @@
+"""How well a map agrees with its own camera: each keyframe tested like a query
+(:func:`.intrinsics.check_intrinsics`) on its landmarks re-triangulated without it, and how
+much more those tests' intrinsics estimates vary than their covariances say.
+
+A map built from imprecise keyframe poses (a motion-capture or KinectFusion ground truth a
+few centimetres off) bends its landmarks slightly differently in each region: seen from a
+query, that bend looks like a focal or distortion error the query's own correspondences
+cannot tell from a real one. The keyframes measure it: held out of its landmarks (each
+re-triangulated from its other observations, as a query's landmarks never saw the query), a
+keyframe whose camera is the map's by definition estimates ``theta`` as a query would, and
+the spread of those estimates beyond their model covariance is the map's. The statistic is
+the quasi-likelihood dispersion (McCullagh & Nelder 1989, 9.2): the median over keyframes of
+``T^2 = theta^T V^-1 theta`` over the median of chi-square with 2 degrees of freedom (the
+median, so that a keyframe with a gross error does not set it), at least 1.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats
+
+from ...core.frame import Features
+from ...core.geometry import invert, transform_points
+from ...core.landmark_table import LandmarkColumns
+from ...core.map import MapState
+from ...core.triangulation import ViewObservations, keypoint_sigmas, refine_points, triangulate_midpoint
+from .base import PoseEstimate
+from .guided import GuidedConf
+from .intrinsics import IntrinsicsCheck, check_intrinsics
+from .pnp import PnPConf, pose_projector
+
+Array = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+#: Median of chi-square with 2 degrees of freedom: ``2 ln 2``.
+CHI2_2_MEDIAN = float(stats.chi2.median(2))
+
+#: Held-out landmarks a keyframe needs for its statistic (the test's own floor is 8 inliers;
+#: the dispersion needs estimates as good as a query's), and the most it uses (a query's
+#: inliers number a few hundred).
+MIN_HELD_OUT = 30
+MAX_HELD_OUT = 300
+
+#: Per keyframe features, the statistic of that keyframe (None: too few held-out landmarks):
+#: features are replaced, not changed in place, when their landmarks change, so an entry lives
+#: as long as the landmarks it was computed on (other keyframes' later observations of them
+#: refine it a little; the median over keyframes does not hang on one).
+_STATISTICS: weakref.WeakKeyDictionary[Features, tuple[float | None]] = (
+    weakref.WeakKeyDictionary())
+
+
+def map_dispersion(state: MapState, kind: str, keyframe_ids: list[int], conf: PnPConf) -> float:
+    """The dispersion of ``kind`` intrinsics estimates over ``keyframe_ids`` (module
+    docstring): at least 1, and 1 where fewer than 3 keyframes give a statistic."""
+    columns = _Columns(state)
+    values = [t2 for k in keyframe_ids if k in state.keyframes
+              and (t2 := keyframe_statistic(state, k, kind, conf, columns)) is not None]
+    if len(values) < 3:
+        return 1.0
+    return max(1.0, float(np.median(values)) / CHI2_2_MEDIAN)
+
+
+class _Columns:
+    """The landmark columns of a map state, merged once when first needed (a state whose
+    landmarks changed since its last compaction merges them on every request)."""
+
+    def __init__(self, state: MapState) -> None:
+        self._state = state
+        self._columns: LandmarkColumns | None = None
+
+    def get(self) -> LandmarkColumns:
+        if self._columns is None:
+            self._columns = self._state.landmarks.columns()
+        return self._columns
+
+
+def keyframe_statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf,
+                       columns: _Columns | None = None) -> float | None:
+    """``T^2`` of keyframe ``kf_id``'s intrinsics estimate on its ``kind`` landmarks
+    re-triangulated without it (cached with its features); None where fewer than
+    :data:`MIN_HELD_OUT` of them are observed by two other keyframes."""
+    feats = state.keyframes[kf_id].features.get(kind)
+    if feats is None:
+        return None
+    cached = _STATISTICS.get(feats)
+    if cached is None:
+        cached = (_statistic(state, kf_id, kind, conf, columns or _Columns(state)),)
+        _STATISTICS[feats] = cached
+    return cached[0]
+
+
+def _statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: _Columns
+               ) -> float | None:
+    keyframe = state.keyframes[kf_id]
+    feats = keyframe.features[kind]
+    cols = columns.get()
+    if kind not in cols.kinds:
+        return None
+    observed = np.flatnonzero(feats.landmark_ids >= 0)
+    rows = cols.rows(feats.landmark_ids[observed])
+    observed, rows = observed[rows >= 0], rows[rows >= 0]
+    # Two other observations make a held-out point; a few hundred of them, evenly spread
+    # over the keyframe's keypoints, make an estimate as good as a query's at a fraction
+    # of the triangulations.
+    enough = np.flatnonzero(np.diff(cols.obs_offsets)[rows] >= 3)
+    keep = enough[np.unique(np.linspace(0, len(enough) - 1, min(len(enough), MAX_HELD_OUT))
+                            .astype(np.int64))] if len(enough) else enough
+    observed, rows = observed[keep], rows[keep]
+    points, held = _held_out_points(state, cols, rows, kf_id, kind)
+    if held.sum() < MIN_HELD_OUT:
+        return None
+    px = feats.keypoints_px[observed[held]].astype(np.float64)
+    points = points[held]
+    project = pose_projector(points, keyframe.camera)
+    projected, _ = project(keyframe.world_from_cam)
+    with np.errstate(invalid="ignore"):
+        inliers = np.flatnonzero(np.linalg.norm(px - projected, axis=1) < conf.max_reproj_error_px)
+    weights = 1.0 / keypoint_sigmas(feats)[observed[held]] ** 2
+    depths = transform_points(invert(keyframe.world_from_cam), points[inliers])[:, 2]
+    check = check_intrinsics(keyframe.world_from_cam, px, inliers, weights, keyframe.camera,
+                             project, depth_m=float(np.median(depths)) if len(depths) else 1.0,
+                             focal_starts=(),  # a keyframe's camera is the map's: no search
+                             threshold_px=conf.max_reproj_error_px,
+                             min_sigma_px=conf.min_sigma_px, prior=conf.intrinsics_prior)
+    if check is None or check.inliers < MIN_HELD_OUT:
+        return None
+    return check.data_statistic
+
+
+def _held_out_points(state: MapState, cols: LandmarkColumns, rows: IntArray, kf_id: int,
+                     kind: str) -> tuple[Array, npt.NDArray[np.bool_]]:
+    """(R, 3) the landmarks of columns ``rows`` triangulated from their ``kind`` observations
+    in keyframes other than ``kf_id`` (midpoint, then the reprojection error refined), and the
+    (R,) mask of those at least two other keyframes observe."""
+    kind_index = cols.kinds.index(kind)
+    starts, counts = cols.obs_offsets[rows], np.diff(cols.obs_offsets)[rows]
+    owner = np.repeat(np.arange(len(rows)), counts)
+    run = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
+    other_kf, obs_kind, keypoint = cols.obs_keyframe[run], cols.obs_kind[run], cols.obs_keypoint[run]
+    use = (obs_kind == kind_index) & (other_kf != kf_id) & np.isin(other_kf, state.keyframe_ids())
+    owner, other_kf, keypoint = owner[use], other_kf[use], keypoint[use]
+    views = []
+    for k in np.unique(other_kf).tolist():
+        sel = other_kf == k
+        kf = state.keyframes[k]
+        f = kf.features[kind]
+        views.append(ViewObservations(kf.camera, invert(kf.world_from_cam), owner[sel],
+                                      f.keypoints_px[keypoint[sel]].astype(np.float64),
+                                      keypoint_sigmas(f)[keypoint[sel]]))
+    seen = np.bincount(owner, minlength=len(rows))
+    points = triangulate_midpoint(views, len(rows))
+    held = (seen >= 2) & np.isfinite(points).all(axis=1)
+    points = refine_points(np.where(held[:, None], points, 1.0), views)
+    return points, held & np.isfinite(points).all(axis=1)
+
+
+def settle_intrinsics(estimate: PoseEstimate, state: MapState, kind: str, conf: PnPConf) -> None:
+    """Run ``estimate``'s intrinsics test (once) and judge it with the dispersion of the map
+    around the pose (the keyframes guided matching would project there: the landmarks the
+    query sees); where it passes, the estimate's covariance becomes
+    :func:`covariance_with_intrinsics`'s."""
+    if estimate.intrinsics is not None or estimate.intrinsics_test is None:
+        return  # judged already, or nothing to judge
+    check = estimate.intrinsics_test()
+    if check is None or estimate.covariance is None:
+        return
+    guided = GuidedConf()
+    near = state.nearest_keyframes(estimate.world_from_cam, guided.local_keyframes,
+                                   guided.max_view_angle_deg)
+    check = check.with_dispersion(map_dispersion(state, kind, near, conf))
+    estimate.intrinsics = check
+    if check.passed:
+        estimate.covariance_given_intrinsics = covariance_with_intrinsics(
+            estimate.covariance, check, trusted=True)
+        estimate.covariance = covariance_with_intrinsics(estimate.covariance, check)
+
+
+def covariance_with_intrinsics(covariance: Array, check: IntrinsicsCheck, *,
+                               trusted: bool = False) -> Array:
+    """(6, 6) the expected squared error of the pose estimated at the given intrinsics, whose
+    ``covariance`` assumed them exact: the pose is off by ``B theta`` for the intrinsics'
+    error ``theta``, which the data put at ``N(theta_hat, V)`` (``V`` the model covariance
+    times the map's dispersion) and a correct calibration within the prior ``P``, so
+    ``d C + B (theta_hat theta_hat^T + V + P) B^T``, with ``d`` the dispersion (the map's
+    errors reach the pose as they reach ``theta``). ``B V B^T`` makes the focal and the
+    distortion free unknowns (the joint normal equations' pose block, by the Schur
+    complement), marginalised over what the data cannot exclude; ``B theta_hat`` is the shift
+    they say the pose has, where the test is too weak to refuse it (keypoints as coarse as
+    ORB's let a 5 % focal error pass). Beyond what the local covariance sees, the farthest
+    solution the data cannot exclude (:attr:`IntrinsicsCheck.unexcluded_twist`: a scene
+    with little depth fits a wrong focal from a pose far away about as well) adds its shift
+    ``s s^T``. ``trusted``: the given intrinsics trusted within the prior,
+    ``d C + B P B^T``."""
+    shift, theta = check.pose_shift, check.theta
+    intrinsics = check.prior.covariance
+    if not trusted:
+        intrinsics = intrinsics + check.covariance
+    stated = check.dispersion * covariance + shift @ intrinsics @ shift.T
+    if trusted:
+        return stated
+    far = check.unexcluded_twist
+    return stated + shift @ np.outer(theta, theta) @ shift.T + np.outer(far, far)
+
+
+def prepare_map(state: MapState, kind: str, conf: PnPConf) -> None:
+    """Compute every keyframe's statistic ahead of the queries that would otherwise pay for
+    it (a tenth of a second per keyframe; cached with the keyframe's features)."""
+    columns = _Columns(state)
+    for kf_id in state.keyframe_ids():
+        keyframe_statistic(state, kf_id, kind, conf, columns)

@@ -1,0 +1,378 @@
+"""P3P pose finder (thesis 3.1.3, improved): query features matched to the landmarks of the
+top candidate keyframes, then the pose by :mod:`.pnp` (P3P in LO-RANSAC, refined through the
+real camera model, with the reprojection RMS and a 6x6 covariance as evidence for
+verification)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import numpy.typing as npt
+
+from ...core import features as feature_lib
+from ...core.errors import ConfigError
+from ...core.frame import Features, Frame, Keyframe
+from ...core.map import MapState
+from ..place.base import PlaceCandidate
+from .base import PoseEstimate, PoseFinder, Support, register
+from .guided import GuidedConf, search_by_projection
+from .kernels import compiled
+from .landmark_pool import LandmarkPool
+from .map_consistency import prepare_map, settle_intrinsics
+from .map_uncertainty import map_covariance
+from .pnp import PnPConf, PointUncertainty, level_scales, solve_pnp_indexed
+from .repetition import (
+    RepetitionConf,
+    alternative_poses,
+    twin_correspondences,
+    unexplained_matches,
+)
+from .support import explained_keypoints
+
+Array = npt.NDArray[np.float64]
+
+
+@register("p3p")
+class P3PPoseFinder(PoseFinder):
+    """Matches query features (SIFT, or ORB as the fast path) to the landmarks seen by all the
+    candidate keyframes at once, then :func:`.pnp.solve_pnp`."""
+
+    #: The multi relocalizer gives this pose finder a whole group of candidates (pooled).
+    pools_candidates: ClassVar[bool] = True
+
+    @dataclass(frozen=True)
+    class Conf(PnPConf):
+        kind: str = "sift"
+        max_features: int = 2000
+        #: Lowe's ratio (thesis 3.1.3).
+        ratio: float = 0.8
+        #: Grow a first pose by guided matching (search by projection, :mod:`.guided`) over
+        #: the landmarks of the candidates and of the keyframes near that pose, then re-solve.
+        guided: bool = True
+        #: ... when the first pose has fewer inliers than this (ORB-SLAM's relocalization
+        #: searches by projection below 50 inliers; above, the pose stands on its own).
+        guided_below_inliers: int = 50
+        #: Keyframes near the first pose whose landmarks guided matching projects.
+        guided_keyframes: int = 10
+        #: Match first against the landmarks of only this many best candidates (None: all of
+        #: the group at once); when that pose has fewer than ``guided_below_inliers``
+        #: inliers, or none, the whole group's landmarks are matched as without this. A query
+        #: that resembles its best keyframe then pays for one keyframe's landmarks, not five.
+        first_pool_keyframes: int | None = None
+        #: Weigh each keypoint by its pyramid level: its localisation noise is
+        #: ``keypoint_sigma_px * factor^level`` (``factor`` the detector's scale step between
+        #: levels). Off keeps every keypoint at ``keypoint_sigma_px``.
+        level_sigmas: bool = False
+
+        def __post_init__(self) -> None:
+            super().__post_init__()
+            feature_lib.FeatureConf(kind=self.kind, max_features=self.max_features)
+            if not 0 < self.ratio <= 1:
+                raise ConfigError(f"p3p: ratio must be in (0, 1], got {self.ratio}")
+            if self.first_pool_keyframes is not None and self.first_pool_keyframes < 1:
+                raise ConfigError(f"p3p: first_pool_keyframes must be >= 1 or None, got "
+                                  f"{self.first_pool_keyframes}")
+
+    def __init__(self, conf: P3PPoseFinder.Conf) -> None:
+        super().__init__(conf)
+        self.required_features = frozenset({conf.kind})
+        #: The map state the landmark pool of every keyframe was gathered for, that pool and
+        #: its landmarks' depth sigmas (:meth:`_map_pool`).
+        self._pooled: tuple[MapState, LandmarkPool, Array, list[int]] | None = None
+
+    def find_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
+                  ) -> PoseEstimate | None:
+        """Pose from the landmarks of all ``candidates`` still in ``state``; None if none is.
+
+        When too few matches survive for a pose, the estimate is the best keyframe's pose with
+        zero inliers, so the verification refuses it with the counts as the reason."""
+        keyframes = _keyframes_in(candidates, state)
+        if not keyframes:
+            return None
+        timings: dict[str, float] = {}
+        feats = self.query_features(query, timings)
+        first = self._first_pool(keyframes)
+        if len(first) < len(keyframes):
+            matched = self._match_and_solve(query, feats, first, state, timings)
+            solved = matched[3]
+            if solved is None or (solved[0].inliers or 0) < self.conf.guided_below_inliers:
+                matched = self._match_and_solve(query, feats, keyframes, state, timings)
+        else:
+            matched = self._match_and_solve(query, feats, keyframes, state, timings)
+        q_idx, rows, pool, solved = matched
+        if solved is None:
+            return PoseEstimate(world_from_cam=keyframes[0].world_from_cam.copy(),
+                                keyframe_ids=[kf.id for kf in keyframes], num_matches=len(q_idx),
+                                inliers=0, timings=timings)
+        est, inliers = solved
+        est.keyframe_ids = pool.keyframes_of(rows[inliers], [kf.id for kf in keyframes])
+        est.inlier_keypoints = q_idx[inliers]
+        est.inlier_landmark_ids = pool.landmark_ids[rows[inliers]]
+        if self.conf.guided and (est.inliers or 0) < self.conf.guided_below_inliers:
+            est = self._grow(query, feats, est, keyframes, state, q_idx,
+                             pool.landmark_ids[rows])
+        est.timings = {**est.timings, **timings}  # every match and solve, guided's own
+        settle_intrinsics(est, state, self.conf.kind, self.conf)
+        return _with_map_covariance(est, state)
+
+    def _match_and_solve(self, query: Frame, feats: Features, keyframes: list[Keyframe],
+                         state: MapState, timings: dict[str, float]
+                         ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], LandmarkPool,
+                                    tuple[PoseEstimate, npt.NDArray[np.int64]] | None]:
+        """Ratio-test matches to the landmarks of ``keyframes`` and the pose they give
+        (:func:`solve_pnp_indexed`, or None); ``timings["match"]`` accumulates."""
+        start = time.perf_counter()
+        prepared = query.cache.get(_pool_key(self.conf.kind, keyframes, state))
+        if prepared is not None and prepared.state is not state:
+            prepared = None  # gathered in another map state (a frame asked again)
+        q_idx, rows, pool = self.match_landmarks(
+            feats, keyframes, pool=None if prepared is None else prepared.pool)
+        matched = time.perf_counter()
+        uncertainty = (pool.uncertainty(state, keyframes, rows) if prepared is None
+                       else prepared.uncertainty.take(rows))
+        solved = solve_pnp_indexed(feats.keypoints_px[q_idx], pool.points_world[rows],
+                                   query.camera, self.conf, uncertainty=uncertainty,
+                                   keypoint_scales=self._scales(feats, q_idx))
+        timings["match"] = timings.get("match", 0.0) + matched - start
+        timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - matched
+        return q_idx, rows, pool, solved
+
+    def _grow(self, query: Frame, feats: Features, est: PoseEstimate, keyframes: list[Keyframe],
+              state: MapState, q_idx: npt.NDArray[np.int64],
+              landmark_ids: npt.NDArray[np.int64]) -> PoseEstimate:
+        """``est`` re-solved on its matches plus those found by projecting the landmarks of
+        ``keyframes`` and of the keyframes near ``est`` into the query; ``est`` itself when
+        that does not add inliers. The estimate keeps the unguided evidence for the
+        false-alarm test."""
+        start = time.perf_counter()
+        conf = GuidedConf(local_keyframes=self.conf.guided_keyframes)
+        ids = [kf.id for kf in keyframes]
+        near = state.nearest_keyframes(est.world_from_cam, conf.local_keyframes,
+                                       conf.max_view_angle_deg)
+        local = keyframes + [state.keyframes[k] for k in near if k not in ids]
+        pool = LandmarkPool.gather(local, self.conf.kind)
+        radius = conf.window_factor * self.conf.max_reproj_error_px
+        g_idx, g_rows = search_by_projection(feats, query.camera, est.world_from_cam,
+                                             pool.descriptors, pool.points_world, radius, conf)
+        q_all, rows_all = _union(g_idx, g_rows, q_idx, pool.rows_of(landmark_ids))
+        solved = solve_pnp_indexed(feats.keypoints_px[q_all], pool.points_world[rows_all],
+                                   query.camera, self.conf,
+                                   uncertainty=pool.uncertainty(state, local, rows_all),
+                                   keypoint_scales=self._scales(feats, q_all))
+        elapsed = time.perf_counter() - start
+        seed = (est.num_matches, int(est.inliers or 0))
+        if solved is None or solved[0].inliers is None or solved[0].inliers <= seed[1]:
+            est.unguided_evidence = seed
+            est.timings["guided"] = elapsed
+            return est
+        grown, inliers = solved
+        # Name the candidates that support the pose (the place finder's answer, as without
+        # guided matching); keyframes pulled in around the pose only lent their landmarks.
+        supporting = pool.keyframes_of(rows_all[inliers], [kf.id for kf in local])
+        grown.keyframe_ids = [k for k in supporting if k in ids] or est.keyframe_ids
+        grown.unguided_evidence = seed
+        grown.inlier_keypoints = q_all[inliers]
+        grown.inlier_landmark_ids = pool.landmark_ids[rows_all[inliers]]
+        grown.timings = {"solve": est.timings.get("solve", 0.0), "guided": elapsed}
+        return grown
+
+    def support(self, query: Frame, world_from_cam: Array, state: MapState) -> Support | None:
+        """The query's features of this finder's kind explained by the landmarks of the
+        keyframes near ``world_from_cam`` (the local map guided matching projects), in
+        windows as guided matching's; None before the features are extracted."""
+        feats = query.features.get(self.conf.kind)
+        if feats is None:
+            return None
+        conf = GuidedConf(local_keyframes=self.conf.guided_keyframes)
+        return explained_keypoints(feats, query.camera, world_from_cam, state, self.conf.kind,
+                                   radius_px=conf.window_factor * self.conf.max_reproj_error_px,
+                                   conf=conf)
+
+    def alternatives(self, query: Frame, estimate: PoseEstimate, state: MapState, *,
+                     plausible: Callable[[PoseEstimate], bool] = lambda _: True
+                     ) -> list[PoseEstimate]:
+        """Poses a repetition of the map offers instead of ``estimate`` (:mod:`.repetition`):
+        the pose on the keyframes that what ``estimate`` leaves unexplained points to, and
+        those the twins of its landmarks support (landmarks anywhere in the map matched to
+        the inliers' query keypoints as closely as Lowe's ratio allows), each grown by guided
+        matching over the keyframes its twins came from and those near it; only those
+        ``plausible`` as a first pose."""
+        feats = query.features.get(self.conf.kind)
+        if feats is None or estimate.inlier_keypoints is None or estimate.inlier_landmark_ids is None:
+            return []
+        pool, sigmas, ids = self._map_pool(state)
+        conf = RepetitionConf(ratio=self.conf.ratio)
+        twins = twin_correspondences(feats, estimate.inlier_keypoints,
+                                     estimate.inlier_landmark_ids, pool, sigmas, conf)
+        explained = self.support(query, estimate.world_from_cam, state)
+        matched = unexplained_matches(feats, np.zeros(0, np.int64) if explained is None
+                                      else explained.keypoints, pool, conf)
+        grown = self._elsewhere(query, estimate, state, pool.landmark_ids[matched], plausible)
+        for alt in alternative_poses(feats, query.camera, twins, pool, self.conf, conf):
+            if not plausible(alt):
+                continue
+            assert alt.inlier_landmark_ids is not None
+            alt.keyframe_ids = pool.keyframes_of(pool.rows_of(alt.inlier_landmark_ids), ids)
+            # Twins are the few repeated keypoints: the alternative is grown over its own
+            # local map, as a first pose with few inliers is (judged on its twin consensus).
+            alt = self._grow(query, feats, alt, [state.keyframes[k] for k in alt.keyframe_ids],
+                             state, twins[0], pool.landmark_ids[twins[1]])
+            settle_intrinsics(alt, state, self.conf.kind, self.conf)
+            grown.append(_with_map_covariance(alt, state))
+        return grown
+
+    def _elsewhere(self, query: Frame, estimate: PoseEstimate, state: MapState,
+                   landmark_ids: npt.NDArray[np.int64],
+                   plausible: Callable[[PoseEstimate], bool]) -> list[PoseEstimate]:
+        """The pose found (:meth:`find_pose`) on the keyframes that observe most of
+        ``landmark_ids`` (what the keypoints ``estimate`` leaves unexplained match), none of
+        ``estimate``'s inlier landmarks and are not in its local map (those see the same
+        place), as many as gave it its inliers. Empty when those
+        keyframes hold fewer of them than a verified pose needs (a minimal sample and one
+        more), or the pose found is not ``plausible``."""
+        assert estimate.inlier_landmark_ids is not None
+        if len(landmark_ids) == 0:
+            return []
+        kf_ids, votes = state.landmarks.observing_keyframes(landmark_ids)
+        original, _ = state.landmarks.observing_keyframes(estimate.inlier_landmark_ids)
+        guided = GuidedConf(local_keyframes=self.conf.guided_keyframes)
+        local = state.nearest_keyframes(estimate.world_from_cam, guided.local_keyframes,
+                                        guided.max_view_angle_deg)
+        away = ~np.isin(kf_ids, original) & ~np.isin(kf_ids, local)
+        order = np.argsort(-votes[away], kind="stable")[:max(1, len(estimate.keyframe_ids))]
+        if votes[away][order].sum() < estimate.sample_size + 1:
+            return []
+        far = kf_ids[away][order].tolist()
+        found = self.find_pose(query, [PlaceCandidate(int(k), 0.0) for k in far], state)
+        return [] if found is None or not plausible(found) else [found]
+
+    def _map_pool(self, state: MapState) -> tuple[LandmarkPool, Array, list[int]]:
+        """The landmarks of every keyframe of ``state`` (:meth:`LandmarkPool.gather`), their
+        depth sigmas and the keyframe ids in pool order; gathered once per map version."""
+        if self._pooled is None or self._pooled[0] is not state:
+            ids = list(state.keyframes)
+            pool = LandmarkPool.gather([state.keyframes[k] for k in ids], self.conf.kind)
+            self._pooled = (state, pool, state.landmark_sigmas(pool.landmark_ids, 0.0), ids)
+        return self._pooled[1], self._pooled[2], self._pooled[3]
+
+    def _scales(self, feats: Features, q_idx: npt.NDArray[np.int64]) -> Array | None:
+        """(M,) pyramid-level scales of query keypoints ``q_idx`` with ``level_sigmas``."""
+        if not self.conf.level_sigmas:
+            return None
+        return level_scales(feats.levels[q_idx], feature_lib.level_scale_factor(self.conf.kind))
+
+    def _first_pool(self, keyframes: list[Keyframe]) -> list[Keyframe]:
+        """The keyframes whose landmarks are matched first: the best
+        ``conf.first_pool_keyframes`` (all of them when None)."""
+        first = self.conf.first_pool_keyframes
+        return keyframes if first is None else keyframes[:first]
+
+    def prepare_map(self, state: MapState) -> None:
+        """Each keyframe's agreement with the map's camera (:mod:`.map_consistency`), which
+        the intrinsics test of a query near it reads."""
+        if self.conf.intrinsics_false_refusal > 0:
+            prepare_map(state, self.conf.kind, self.conf)
+
+    def query_kinds(self, query: Frame) -> frozenset[str]:
+        return frozenset() if self.conf.kind in query.features else self.required_features
+
+    def prepare_query(self, query: Frame) -> dict[str, float]:
+        timings: dict[str, float] = {}
+        self.query_features(query, timings)
+        return timings
+
+    def feature_confs(self) -> dict[str, feature_lib.FeatureConf]:
+        return {self.conf.kind: feature_lib.FeatureConf(kind=self.conf.kind,
+                                                        max_features=self.conf.max_features)}
+
+    def prepare_candidates(self, query: Frame, candidates: list[PlaceCandidate],
+                           state: MapState) -> dict[str, float]:
+        """The landmark pool :meth:`find_pose` matches first (the best
+        ``first_pool_keyframes`` candidates', or the whole group's) and its landmarks' depth
+        uncertainty, gathered ahead into ``query.cache``: what the multi relocalizer does on
+        its helper thread while this thread extracts the query's features."""
+        start = time.perf_counter()
+        keyframes = self._first_pool(_keyframes_in(candidates, state))
+        if keyframes:
+            pool = LandmarkPool.gather(keyframes, self.conf.kind)
+            rows = np.arange(len(pool.landmark_ids))
+            query.cache[_pool_key(self.conf.kind, keyframes, state)] = _PreparedPool(
+                pool, pool.uncertainty(state, keyframes, rows), state)
+        return {"pool": time.perf_counter() - start}
+
+    def match_landmarks(self, feats: Features, keyframes: list[Keyframe], *,
+                        pool: LandmarkPool | None = None
+                        ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], LandmarkPool]:
+        """Ratio-test matches of the query ``feats`` to the pooled landmarks of ``keyframes``
+        (``pool``: :meth:`LandmarkPool.gather` of them, when already gathered): (M,) query
+        indices, (M,) pool rows (one query keypoint per landmark) and the pool."""
+        if pool is None:
+            pool = LandmarkPool.gather(keyframes, self.conf.kind)
+        q_idx, rows, dist = feature_lib.match_ratio(feats.descriptors, pool.descriptors,
+                                                    ratio=self.conf.ratio)
+        keep = _best_per_landmark(pool.landmark_ids[rows], dist, rows, len(pool.landmark_ids))
+        return q_idx[keep], rows[keep], pool
+
+
+def _with_map_covariance(est: PoseEstimate, state: MapState) -> PoseEstimate:
+    """``est`` with the covariance the poses of the keyframes behind its inliers' landmarks
+    add (:func:`.map_uncertainty.map_covariance`)."""
+    if est.inlier_landmark_ids is not None and est.covariance is not None:
+        est.map_covariance = map_covariance(est.world_from_cam, state, est.inlier_landmark_ids)
+    return est
+
+
+def _keyframes_in(candidates: list[PlaceCandidate], state: MapState) -> list[Keyframe]:
+    """The keyframes of ``candidates`` still in ``state``, in the candidates' order."""
+    return [state.keyframes[c.keyframe_id] for c in candidates
+            if c.keyframe_id in state.keyframes]
+
+
+@dataclass(frozen=True)
+class _PreparedPool:
+    """A pool gathered ahead (:meth:`P3PPoseFinder.prepare_candidates`), the depth
+    uncertainty of all its rows and the map state they come from."""
+
+    pool: LandmarkPool
+    uncertainty: PointUncertainty
+    state: MapState
+
+
+def _pool_key(kind: str, keyframes: list[Keyframe], state: MapState) -> str:
+    """The ``query.cache`` key of the prepared pool of ``keyframes`` in map ``state``."""
+    return f"p3p:pool:{kind}:{state.version}:{','.join(str(kf.id) for kf in keyframes)}"
+
+
+def _union(first_q: npt.NDArray[np.int64], first_rows: npt.NDArray[np.int64],
+           second_q: npt.NDArray[np.int64], second_rows: npt.NDArray[np.int64]
+           ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """Correspondences (query index, pool row) of both lists, the first list winning where a
+    query keypoint or a pool row appears in both; rows of -1 are dropped."""
+    q = np.concatenate([first_q, second_q])
+    rows = np.concatenate([first_rows, second_rows])
+    valid = np.flatnonzero(rows >= 0)
+    keep = np.sort(valid[np.unique(q[valid], return_index=True)[1]])
+    keep = np.sort(keep[np.unique(rows[keep], return_index=True)[1]])
+    return q[keep], rows[keep]
+
+
+def _best_per_landmark(landmark_ids: npt.NDArray[np.int64], dist: npt.NDArray[np.float32],
+                       rows: npt.NDArray[np.int64] | None = None, pool_size: int = 0
+                       ) -> npt.NDArray[np.int64]:
+    """Indices of the matches to keep: for each landmark, the query keypoint nearest to it
+    (the first of equally near ones). With the matches' pool ``rows`` (one row per landmark,
+    ``pool_size`` rows), one compiled pass where numba is installed (:mod:`.kernels`)."""
+    kernels = compiled()
+    if kernels is not None and rows is not None:
+        keep = np.empty(len(rows), np.int64)
+        count = kernels.best_per_row(np.ascontiguousarray(rows, np.int64),
+                                     np.ascontiguousarray(dist, np.float32),
+                                     np.full(pool_size, -1, np.int64), keep)
+        return keep[:count]
+    order = np.lexsort((dist, landmark_ids))
+    _, first = np.unique(landmark_ids[order], return_index=True)
+    return np.sort(order[first])

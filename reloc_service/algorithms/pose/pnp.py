@@ -1,0 +1,545 @@
+"""PnP solve (thesis 3.1.3, improved): P3P in LO-RANSAC (PoseLib) on ideal pinhole pixels,
+refined by weighted Gauss-Newton through the real camera model, with the inliers'
+reprojection RMS, a 6x6 covariance and the chance that a wrong pose gathers as many inliers
+(:func:`.chance.chance_agreement`) as evidence for verification. Where numba is installed (the
+``[jit]`` extra) projection, Jacobian and undistortion run as :mod:`.kernels`, the same values,
+and each pose's inliers and normal equations come from one compiled pass (:func:`_fit_at`),
+the same to rounding.
+
+Used by the P3P pose finder (:mod:`.p3p`, query features matched to landmarks) and by the
+ferns relocalizer (classified keypoints)."""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+import poselib
+
+from ...core.cameras import CV_UNDISTORT_CRITERIA, UNDISTORT_NEWTON_ITERS, Camera, RadTanCamera
+from ...core.errors import ConfigError, GeometryError
+from ...core.geometry import invert, se3_exp, transform_points
+from .base import PoseEstimate
+from .chance import chance_agreement
+from .intrinsics import IntrinsicsCheck, IntrinsicsPrior, check_intrinsics
+from .kernels import camera_params, compiled
+
+Array = npt.NDArray[np.float64]
+
+#: PoseLib's camera model with the same projection as each of ours (parameters fx fy cx cy,
+#: then our distortion values in the same order; tests/test_pose_p3p.py projects through both).
+#: A 5-value radtan (k3) is PoseLib's FULL_OPENCV with k4 = k5 = k6 = 0.
+_POSELIB_MODELS = {"pinhole": "PINHOLE", "radtan": "OPENCV", "equidistant": "OPENCV_FISHEYE"}
+
+#: Step of the central differences of the fov distortion's Jacobian (normalised coordinates):
+#: PoseLib 2.0.5 has no FOV model (``poselib.Camera("FOV", ...)`` is its NULL model).
+_DISTORT_STEP = 1e-6
+
+
+@dataclass(frozen=True)
+class PnPConf:
+    """Robust absolute-pose settings shared by every P3P user (this module, ferns)."""
+
+    #: RANSAC inlier threshold and final inlier gate, pixels.
+    max_reproj_error_px: float = 5.0
+    min_iterations: int = 50
+    max_iterations: int = 10000
+    success_prob: float = 0.9999
+    seed: int = 0
+    #: Gauss-Newton steps through the real (distorted) camera model after PoseLib.
+    refine_iterations: int = 1
+    #: Floor of the residual standard deviation used for the covariance, pixels (keypoints
+    #: are not more precise than this, however well a few of them happen to fit).
+    min_sigma_px: float = 0.25
+    #: Localisation noise of a query keypoint, pixels: with a landmark's depth uncertainty
+    #: projected into the query (``s`` pixels), its residual weighs ``1 / (1 + (s / this)^2)``
+    #: in the refinement and the covariance.
+    keypoint_sigma_px: float = 1.0
+    #: Test the query's intrinsics on the pose's correspondences (:mod:`.intrinsics`): a
+    #: focal scale and a radial distortion term estimated with the pose, the given camera
+    #: refused at this false-refusal rate (the share of correctly calibrated queries refused).
+    #: 0: no test.
+    intrinsics_false_refusal: float = 1e-3
+    #: A correct calibration's 1-sigma uncertainty: of the focal, relative, and of the
+    #: distortion, as the pixels it moves the image's farthest corner. The test allows it; a
+    #: pose that passes carries it in its covariance.
+    focal_sigma_rel: float = 0.005
+    radial_sigma_px: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.max_reproj_error_px <= 0:
+            raise ConfigError(f"max_reproj_error_px must be positive, "
+                              f"got {self.max_reproj_error_px}")
+        if not 0 < self.min_iterations <= self.max_iterations:
+            raise ConfigError(f"expected 0 < min_iterations <= max_iterations, got "
+                              f"{self.min_iterations}, {self.max_iterations}")
+        if not 0 < self.success_prob < 1:
+            raise ConfigError(f"success_prob must be in (0, 1), got {self.success_prob}")
+        if self.keypoint_sigma_px <= 0:
+            raise ConfigError(f"keypoint_sigma_px must be positive, got {self.keypoint_sigma_px}")
+        if self.refine_iterations < 0 or self.min_sigma_px < 0:
+            raise ConfigError("refine_iterations and min_sigma_px must be >= 0")
+        if not 0 <= self.intrinsics_false_refusal < 1:
+            raise ConfigError(f"intrinsics_false_refusal must be in [0, 1), got "
+                              f"{self.intrinsics_false_refusal}")
+        if self.focal_sigma_rel <= 0 or self.radial_sigma_px <= 0:
+            raise ConfigError(f"focal_sigma_rel and radial_sigma_px must be positive, got "
+                              f"{self.focal_sigma_rel}, {self.radial_sigma_px}")
+
+    @property
+    def intrinsics_prior(self) -> IntrinsicsPrior:
+        """The calibration uncertainty and false-refusal rate :mod:`.intrinsics` tests with."""
+        return IntrinsicsPrior(self.focal_sigma_rel, self.radial_sigma_px,
+                               self.intrinsics_false_refusal)
+
+
+def solve_pnp(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Camera,
+              conf: PnPConf | None = None) -> PoseEstimate | None:
+    """Robust ``world_from_cam`` from (N, 2) distorted query pixels and their (N, 3) world
+    points; None with fewer than 4 usable correspondences or no RANSAC consensus.
+
+    The pixels are undistorted to the ideal pinhole camera with the same K, so PoseLib sees a
+    PINHOLE camera whatever the model; the result is then refined and judged through the real
+    model. ``keyframe_ids`` of the estimate is empty (the caller knows them).
+    """
+    solved = solve_pnp_indexed(query_px, points_world, camera, conf)
+    return None if solved is None else solved[0]
+
+
+@dataclass(frozen=True, eq=False)
+class PointUncertainty:
+    """How well N world points are known: 1-sigma ``depth_sigmas_m`` (N,) along the rays from
+    ``ray_origins_world`` (N, 3) (the centre of a keyframe that observes each)."""
+
+    depth_sigmas_m: Array
+    ray_origins_world: Array
+
+    def take(self, rows: npt.NDArray[np.int64]) -> PointUncertainty:
+        """The uncertainty of points ``rows`` alone."""
+        return PointUncertainty(self.depth_sigmas_m[rows], self.ray_origins_world[rows])
+
+    def pixel_sigmas(self, world_from_cam: Array, points_world: Array, camera: Camera,
+                     rows: npt.NDArray[np.int64] | slice = slice(None), *,
+                     projected_px: Array | None = None) -> Array:
+        """(M,) the depth uncertainty of points ``rows`` as seen from ``world_from_cam``:
+        pixels between a point and the point moved one sigma along its ray.
+        ``projected_px`` (M, 2): the points' pixels at that pose when already known."""
+        pts = points_world
+        kernels = compiled()
+        if kernels is None:
+            ray = pts - self.ray_origins_world[rows]
+            ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
+            moved = pts + self.depth_sigmas_m[rows, None] * ray
+        else:
+            moved = np.empty_like(pts, np.float64)
+            kernels.moved_points(np.ascontiguousarray(pts, np.float64),
+                                 np.ascontiguousarray(self.ray_origins_world[rows], np.float64),
+                                 np.ascontiguousarray(self.depth_sigmas_m[rows], np.float64),
+                                 moved)
+        cam_from_world = invert(world_from_cam)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            # Per-point arithmetic: projecting a point alone or among others gives its values.
+            if projected_px is None:
+                both = project_cam(camera, transform_points(cam_from_world,
+                                                            np.concatenate([moved, pts])))
+                moved_px, projected_px = both[:len(pts)], both[len(pts):]
+            else:
+                moved_px = project_cam(camera, transform_points(cam_from_world, moved))
+            if kernels is not None:
+                sigma = np.empty(len(pts))
+                kernels.pixel_distances(moved_px, np.ascontiguousarray(projected_px), sigma)
+                return sigma
+            sigma = np.linalg.norm(moved_px - projected_px, axis=1)
+        return np.where(np.isfinite(sigma), sigma, np.inf)
+
+
+@dataclass(frozen=True, eq=False)
+class _View:
+    """N world points seen from one ``world_from_cam``: (N, 3) camera-frame points and their
+    (N, 2) pixels, computed once per pose for the inlier test, the Gauss-Newton residuals,
+    the weights and the covariance (each used to project the points anew)."""
+
+    world_from_cam: Array
+    points_cam: Array
+    px: Array
+
+    @classmethod
+    def at(cls, world_from_cam: Array, points_world: Array, camera: Camera) -> _View:
+        points_cam = transform_points(invert(world_from_cam), points_world)
+        return cls(world_from_cam, points_cam, project_cam(camera, points_cam))
+
+    def inliers(self, px: Array, conf: PnPConf) -> npt.NDArray[np.int64]:
+        """Indices whose reprojection error (real camera model) is below the threshold."""
+        kernels = compiled()
+        if kernels is not None:  # the same distances (inf where not finite: never below)
+            err = np.empty(len(px))
+            kernels.pixel_distances(np.ascontiguousarray(px, np.float64),
+                                    np.ascontiguousarray(self.px), err)
+            return np.flatnonzero(err < conf.max_reproj_error_px)
+        with np.errstate(invalid="ignore"):
+            err = np.linalg.norm(px - self.px, axis=1)
+            return np.flatnonzero(err < conf.max_reproj_error_px)
+
+    def residuals_and_jacobian(self, px: Array, rows: npt.NDArray[np.int64], camera: Camera
+                               ) -> tuple[Array, Array]:
+        """(M, 2) residuals ``px - projection`` of points ``rows`` (``px`` their pixels) and
+        their (2M, 6) Jacobian w.r.t. a right perturbation ``world_from_cam @ exp(xi)``,
+        ``xi = (rho, omega)``."""
+        return px - self.px[rows], _pose_jacobian(camera, self.points_cam[rows])
+
+
+def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Camera,
+                      conf: PnPConf | None = None, *,
+                      uncertainty: PointUncertainty | None = None,
+                      keypoint_scales: Array | None = None
+                      ) -> tuple[PoseEstimate, npt.NDArray[np.int64]] | None:
+    """:func:`solve_pnp`, also returning the (I,) indices of the inlier correspondences. With
+    ``uncertainty`` (of the N points), each residual is weighted by how precisely its point is
+    known as seen from the pose: an uncertain point still constrains the rotation. With
+    ``keypoint_scales`` (N,), keypoint i's localisation noise is ``keypoint_sigma_px`` times
+    its scale (the pyramid level's, see :func:`level_scales`); without, every keypoint's is
+    ``keypoint_sigma_px``."""
+    conf = conf or PnPConf()
+    start = time.perf_counter()
+    px = np.asarray(query_px, dtype=np.float64).reshape(-1, 2)
+    pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    if len(px) != len(pts):
+        raise GeometryError(f"solve_pnp: expected as many points as pixels, "
+                            f"got {len(pts)} and {len(px)}")
+    ideal_px = _undistort_pixels(camera, px)
+    usable = np.flatnonzero(np.isfinite(ideal_px).all(1) & np.isfinite(pts).all(1))
+    if len(usable) < 4:
+        return None
+    world_from_cam = ransac_pinhole(ideal_px[usable], pts[usable], camera, conf)
+    if world_from_cam is None:
+        return None
+    scales = None if keypoint_scales is None else np.asarray(keypoint_scales, np.float64)
+    fit = _refine(world_from_cam, px, pts, camera, conf, uncertainty, scales)
+    if len(fit.inliers) < 4:
+        return None
+    inliers = fit.inliers
+    est = _estimate(fit, px[inliers], pts[inliers], camera, conf, len(px),
+                    time.perf_counter() - start)
+    est.inlier_sigmas_m = _point_sigmas(fit.world_from_cam, pts[inliers], camera, conf,
+                                        None if uncertainty is None
+                                        else uncertainty.depth_sigmas_m[inliers],
+                                        None if scales is None else scales[inliers])
+    if conf.intrinsics_false_refusal > 0:
+        est.intrinsics_test = functools.partial(_check_intrinsics, fit, px, pts, camera, conf,
+                                                uncertainty, scales)
+    return est, inliers
+
+
+def _check_intrinsics(fit: _Fit, px: Array, points_world: Array, camera: Camera,
+                      conf: PnPConf, uncertainty: PointUncertainty | None,
+                      keypoint_scales: Array | None) -> IntrinsicsCheck | None:
+    """:func:`.intrinsics.check_intrinsics` of ``camera`` on every correspondence of ``fit``,
+    with the refinement's weights."""
+    rows = np.arange(len(points_world))
+    weights = _weights(fit.world_from_cam, points_world, rows, camera, conf, uncertainty,
+                       keypoint_scales)
+    depths = transform_points(invert(fit.world_from_cam), points_world[fit.inliers])[:, 2]
+    return check_intrinsics(fit.world_from_cam, px, fit.inliers, weights, camera,
+                            pose_projector(points_world, camera),
+                            depth_m=float(np.median(depths)),
+                            threshold_px=conf.max_reproj_error_px,
+                            min_sigma_px=conf.min_sigma_px, prior=conf.intrinsics_prior)
+
+
+def pose_projector(points_world: Array, camera: Camera
+                   ) -> Callable[[Array], tuple[Array, Array]]:
+    """The projection of (N, 3) ``points_world`` through ``camera`` at a ``world_from_cam``:
+    (N, 2) pixels and their (N, 2, 6) Jacobian w.r.t. a right perturbation of the pose (what
+    :func:`.intrinsics.check_intrinsics` differentiates)."""
+
+    def project(world_from_cam: Array) -> tuple[Array, Array]:
+        view = _View.at(world_from_cam, points_world, camera)
+        return view.px, _pose_jacobian(camera, view.points_cam).reshape(-1, 2, 6)
+
+    return project
+
+
+def level_scales(levels: npt.NDArray[np.integer], scale_factor: float) -> Array:
+    """(N,) scale of keypoints found at pyramid ``levels`` with ``scale_factor`` between
+    levels: a level-l keypoint is located to a pixel of the level-l image, ``factor^l``
+    pixels of the full image (ORB-SLAM's ``sigma^2 = factor^(2 l)``)."""
+    return np.power(float(scale_factor), np.asarray(levels, np.float64))
+
+
+def _point_sigmas(world_from_cam: Array, points_world: Array, camera: Camera, conf: PnPConf,
+                  depth_sigmas_m: Array | None, keypoint_scales: Array | None = None) -> Array:
+    """(N,) 1-sigma position uncertainty of world points, metres: their depth uncertainty,
+    at least the ``keypoint_sigma_px`` (times the keypoint's scale) of a keypoint at their
+    range from ``world_from_cam``."""
+    ranges = np.linalg.norm(points_world - world_from_cam[:3, 3], axis=1)
+    floor = ranges * conf.keypoint_sigma_px / max(camera.fx, camera.fy)
+    if keypoint_scales is not None:
+        floor = floor * keypoint_scales
+    return floor if depth_sigmas_m is None else np.maximum(depth_sigmas_m, floor)
+
+
+def _weights(world_from_cam: Array, points_world: Array, rows: npt.NDArray[np.int64],
+             camera: Camera, conf: PnPConf, uncertainty: PointUncertainty | None,
+             keypoint_scales: Array | None = None, *, view: _View | None = None) -> Array:
+    """(M,) residual weights of points ``rows``: ``1 / (1 + (s / keypoint_sigma)^2)`` with
+    ``s`` their depth uncertainty in the query's pixels (ones without ``uncertainty``); with
+    ``keypoint_scales`` ``c``, ``1 / (c^2 + (s / keypoint_sigma)^2)``: the inverse variance
+    in units of a level-0 keypoint's. ``view``: the points seen from ``world_from_cam``,
+    when already projected."""
+    if uncertainty is None:
+        if keypoint_scales is None:
+            return np.ones(len(rows))
+        return 1.0 / keypoint_scales[rows] ** 2
+    s = uncertainty.pixel_sigmas(world_from_cam, points_world[rows], camera, rows,
+                                 projected_px=None if view is None else view.px[rows])
+    own = 1.0 if keypoint_scales is None else keypoint_scales[rows] ** 2
+    return 1.0 / (own + (s / conf.keypoint_sigma_px) ** 2)
+
+
+def ransac_pinhole(ideal_px: Array, points_world: Array, camera: Camera, conf: PnPConf
+                   ) -> Array | None:
+    """PoseLib P3P LO-RANSAC (with its own refinement) on (N, 2) pixels of the ideal pinhole
+    camera with ``camera``'s K and (N, 3) world points; ``world_from_cam`` or None."""
+    camera_dict = {"model": "PINHOLE", "width": camera.width, "height": camera.height,
+                   "params": [camera.fx, camera.fy, camera.cx, camera.cy]}
+    ransac_opt = {"max_reproj_error": conf.max_reproj_error_px,
+                  "min_iterations": conf.min_iterations, "max_iterations": conf.max_iterations,
+                  "success_prob": conf.success_prob, "seed": conf.seed}
+    pose, info = poselib.estimate_absolute_pose(ideal_px, points_world, camera_dict, ransac_opt, {})
+    if info["num_inliers"] < 4:
+        return None
+    cam_from_world = np.eye(4)
+    cam_from_world[:3, :] = pose.Rt  # PoseLib's pose maps world points into the camera
+    if not np.all(np.isfinite(cam_from_world)):
+        return None
+    return invert(cam_from_world)
+
+
+@dataclass(frozen=True, eq=False)
+class _Fit:
+    """The inliers of one ``world_from_cam`` (reprojection error through the real camera model
+    below the threshold) and their weighted normal equations: ``normal = J^T W J`` (6, 6)
+    and ``rhs = J^T W r`` (6,) of the residuals ``r = px - projected``, the weights of
+    :func:`_weights`; ``weighted_sq = sum w r^2`` and ``sq = sum r^2``. One pass over the
+    points gives the Gauss-Newton step, the covariance and the RMS of a pose."""
+
+    world_from_cam: Array
+    inliers: npt.NDArray[np.int64]
+    projected_px: Array  # (I, 2) the inliers' points at world_from_cam
+    normal: Array
+    rhs: Array
+    weighted_sq: float
+    sq: float
+
+
+def _fit_at(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
+            conf: PnPConf, uncertainty: PointUncertainty | None = None,
+            keypoint_scales: Array | None = None) -> _Fit:
+    """:class:`_Fit` of ``world_from_cam``: compiled in one pass for pinhole and radtan
+    cameras where numba is installed (:func:`.kernels._fit`, the same values to rounding),
+    else :func:`_fit_numpy`."""
+    kernels, params = compiled(), _kernel_camera(camera)
+    if kernels is None or params is None:
+        return _fit_numpy(world_from_cam, px, points_world, camera, conf, uncertainty,
+                          keypoint_scales)
+    n = len(points_world)
+    projected, inliers = np.empty((n, 2)), np.empty(n, np.int64)
+    normal, rhs, sums = np.empty((6, 6)), np.empty(6), np.empty(2)
+    empty = np.empty((0, 3))
+    count = kernels.fit(
+        invert(world_from_cam), np.ascontiguousarray(px, np.float64),
+        np.ascontiguousarray(points_world, np.float64), params[0], params[1],
+        float(conf.max_reproj_error_px),
+        empty if uncertainty is None else np.ascontiguousarray(uncertainty.ray_origins_world,
+                                                               np.float64),
+        empty[:, 0] if uncertainty is None else np.ascontiguousarray(uncertainty.depth_sigmas_m,
+                                                                     np.float64),
+        empty[:, 0] if keypoint_scales is None else np.ascontiguousarray(keypoint_scales,
+                                                                         np.float64),
+        float(conf.keypoint_sigma_px), projected, inliers, normal, rhs, sums)
+    inliers = inliers[:count]
+    return _Fit(world_from_cam, inliers, projected[inliers], normal, rhs, float(sums[0]),
+                float(sums[1]))
+
+
+def _fit_numpy(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
+               conf: PnPConf, uncertainty: PointUncertainty | None = None,
+               keypoint_scales: Array | None = None) -> _Fit:
+    """:class:`_Fit` of ``world_from_cam`` from array operations: the points projected
+    once (:class:`_View`), the inliers, their residuals, Jacobian and weights."""
+    view = _View.at(world_from_cam, points_world, camera)
+    inliers = view.inliers(px, conf)
+    residual, jac = view.residuals_and_jacobian(px[inliers], inliers, camera)
+    w = _weights(world_from_cam, points_world, inliers, camera, conf, uncertainty,
+                 keypoint_scales, view=view)
+    weighted = jac * np.repeat(w, 2)[:, None]
+    return _Fit(world_from_cam, inliers, view.px[inliers], weighted.T @ jac,
+                weighted.T @ residual.ravel(), float((w[:, None] * residual**2).sum()),
+                float((residual**2).sum()))
+
+
+def _refine(world_from_cam: Array, px: Array, points_world: Array, camera: Camera,
+            conf: PnPConf, uncertainty: PointUncertainty | None = None,
+            keypoint_scales: Array | None = None) -> _Fit:
+    """Gauss-Newton on the inliers' reprojection error (weighted, see :func:`_weights`)
+    through the real camera model; returns the :class:`_Fit` of the refined pose.
+
+    Not ``poselib.refine_absolute_pose``: with a TRIVIAL loss it reaches the same pose
+    unweighted, but PoseLib 2.0.5 takes no per-residual weights, and the landmarks' depth
+    uncertainty needs them. The Jacobian is PoseLib's camera model's (:func:`_pixel_jacobian`)."""
+    fit = _fit_at(world_from_cam, px, points_world, camera, conf, uncertainty, keypoint_scales)
+    for _ in range(conf.refine_iterations):
+        if len(fit.inliers) < 4:
+            break
+        step, updated = _gauss_newton_update(fit)
+        fit = _fit_at(updated, px, points_world, camera, conf, uncertainty, keypoint_scales)
+        if np.linalg.norm(step) < 1e-12:
+            break
+    return fit
+
+
+def _gauss_newton_update(fit: _Fit) -> tuple[Array, Array]:
+    """The (6,) solution ``step`` of ``fit``'s normal equations ``J^T W J x = J^T W r`` and
+    ``world_from_cam @ se3_exp(step)``: compiled where numba is installed
+    (:func:`.kernels._gauss_newton_update`, Cholesky); else, or where they are not positive
+    definite, LAPACK's solve, and where they are singular the minimum-norm least-squares
+    step (the pseudo-inverse's: that of the weighted Jacobian's least squares)."""
+    kernels = compiled()
+    if kernels is not None:
+        step, updated = np.empty(6), np.empty((4, 4))
+        if kernels.gauss_newton_update(np.ascontiguousarray(fit.world_from_cam, np.float64),
+                                       fit.normal, fit.rhs, step, updated):
+            return step, updated
+    try:
+        solved = np.linalg.solve(fit.normal, fit.rhs)
+    except np.linalg.LinAlgError:
+        solved = np.linalg.lstsq(fit.normal, fit.rhs, rcond=None)[0]
+    return np.asarray(solved, np.float64), fit.world_from_cam @ se3_exp(solved)
+
+
+@functools.lru_cache(maxsize=64)
+def _kernel_camera(camera: Camera) -> tuple[Array, bool] | None:
+    """:func:`.kernels.camera_params` of ``camera`` (made once per camera)."""
+    return camera_params(camera)
+
+
+def project_cam(camera: Camera, points_cam: Array) -> Array:
+    """``camera.project`` of (N, 3) camera-frame points: compiled for pinhole and radtan
+    cameras where numba is installed (:mod:`.kernels`, the same values)."""
+    kernels, params = compiled(), _kernel_camera(camera)
+    if kernels is None or params is None:
+        return camera.project(points_cam)
+    out = np.empty((len(points_cam), 2))
+    kernels.project(np.ascontiguousarray(points_cam, np.float64), params[0], params[1], out)
+    return out
+
+
+def _undistort_pixels(camera: Camera, px: Array) -> Array:
+    """``camera.undistort_pixels`` of (N, 2) pixels: for radtan compiled where numba is
+    installed (:mod:`.kernels`: OpenCV's start and the Newton iterations, the same values)."""
+    kernels, params = compiled(), _kernel_camera(camera)
+    if kernels is None or params is None or not params[1] or not isinstance(camera, RadTanCamera):
+        return camera.undistort_pixels(px)
+    out = np.empty((len(px), 2))
+    kernels.undistort_pixels(np.ascontiguousarray(px, np.float64), params[0],
+                             CV_UNDISTORT_CRITERIA[1], UNDISTORT_NEWTON_ITERS, out)
+    return out
+
+
+def _pose_jacobian(camera: Camera, points_cam: Array) -> Array:
+    """(2N, 6) Jacobian of the pixels of (N, 3) camera-frame points w.r.t. a right
+    perturbation of ``world_from_cam`` (see :meth:`_View.residuals_and_jacobian`); compiled
+    like :func:`project_cam`."""
+    kernels, params = compiled(), _kernel_camera(camera)
+    if kernels is not None and params is not None:
+        out = np.empty((2 * len(points_cam), 6))
+        kernels.pose_jacobian(np.ascontiguousarray(points_cam, np.float64), params[0],
+                              params[1], out)
+        return out
+    d_px = _projection_jacobian(camera, points_cam)  # (N, 2, 3)
+    # cam_from_world becomes exp(-xi) @ cam_from_world, so p_cam moves by -rho + [p_cam]x omega:
+    # d px / d rho = -d_px, d px / d omega = d_px @ [p_cam]x (columns written out).
+    x, y, z = (points_cam[:, None, i] for i in range(3))
+    a0, a1, a2 = d_px[:, :, 0], d_px[:, :, 1], d_px[:, :, 2]
+    jac = np.stack([-a0, -a1, -a2, a1 * z - a2 * y, a2 * x - a0 * z, a0 * y - a1 * x], axis=2)
+    return jac.reshape(-1, 6)
+
+
+def _projection_jacobian(camera: Camera, points_cam: Array) -> Array:
+    """(N, 2, 3) derivative of pixels w.r.t. camera-frame points: K * distortion * pinhole."""
+    inv_z = 1.0 / points_cam[:, 2]
+    xy = points_cam[:, :2] * inv_z[:, None]
+    d_xy = _pixel_jacobian(camera, xy)  # (N, 2, 2) d px / d xy
+    # d xy / d p = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
+    d_dz = -np.einsum("nij,nj->ni", d_xy, xy)
+    return np.concatenate([d_xy, d_dz[:, :, None]], axis=2) * inv_z[:, None, None]
+
+
+def _pixel_jacobian(camera: Camera, xy: Array) -> Array:
+    """(N, 2, 2) derivative of pixels w.r.t. normalised coordinates ``xy`` (N, 2): PoseLib's
+    analytic Jacobian of the same camera model (written out in numpy for pinhole and radtan:
+    PoseLib returns a list of 2x2 arrays whose conversion costs more than the maths), or
+    central differences for fov."""
+    if isinstance(camera, RadTanCamera):
+        dxx, dxy, dyx, dyy = camera._jacobian(xy[:, 0], xy[:, 1])
+        jac = np.empty((len(xy), 2, 2))
+        jac[:, 0, 0], jac[:, 0, 1] = camera.fx * dxx, camera.fx * dxy
+        jac[:, 1, 0], jac[:, 1, 1] = camera.fy * dyx, camera.fy * dyy
+        return jac
+    if camera.model == "pinhole":
+        return np.broadcast_to(np.diag([camera.fx, camera.fy]), (len(xy), 2, 2)).copy()
+    model = poselib_camera(camera)
+    if model is not None:
+        return np.asarray(model.project_with_jac(np.ascontiguousarray(xy))[1]).reshape(-1, 2, 2)
+    h = _DISTORT_STEP
+    d_dx = (camera.distort(xy + [h, 0.0]) - camera.distort(xy - [h, 0.0])) / (2 * h)  # (N, 2)
+    d_dy = (camera.distort(xy + [0.0, h]) - camera.distort(xy - [0.0, h])) / (2 * h)
+    return np.stack([d_dx, d_dy], axis=2) * np.array([camera.fx, camera.fy])[None, :, None]
+
+
+@functools.lru_cache(maxsize=64)
+def poselib_camera(camera: Camera) -> poselib.Camera | None:
+    """PoseLib's camera with the same projection as ``camera``; None for fov (not in
+    PoseLib 2.0.5)."""
+    params = [camera.fx, camera.fy, camera.cx, camera.cy, *camera.distortion]
+    name = _POSELIB_MODELS.get(camera.model)
+    if camera.model == "radtan" and len(camera.distortion) == 5:
+        name, params = "FULL_OPENCV", [*params, 0.0, 0.0, 0.0]
+    return None if name is None else poselib.Camera(name, params, camera.width, camera.height)
+
+
+def _estimate(fit: _Fit, px: Array, points_world: Array, camera: Camera, conf: PnPConf,
+              num_matches: int, elapsed: float) -> PoseEstimate:
+    """The estimate of ``fit`` (``px`` and ``points_world``: its inliers') with their RMS and
+    the weighted Gauss-Newton covariance ``sigma^2 (J^T W J)^-1`` (sigma from the weighted
+    residuals, floored at ``min_sigma_px``)."""
+    chance = chance_agreement(fit.projected_px, px, conf.max_reproj_error_px, camera.size)
+    dof = max(2 * len(px) - 6, 1)
+    sigma2 = max(fit.weighted_sq / dof, conf.min_sigma_px**2)
+    return PoseEstimate(world_from_cam=fit.world_from_cam, keyframe_ids=[],
+                        num_matches=num_matches, inliers=len(px),
+                        reprojection_rms_px=float(np.sqrt(fit.sq / len(px))),
+                        covariance=sigma2 * _normal_inverse(fit.normal),
+                        timings={"solve": elapsed},
+                        inlier_px=px.copy(), inlier_points_world=points_world.copy(),
+                        image_size=camera.size, inlier_threshold_px=conf.max_reproj_error_px,
+                        chance_probability=chance)
+
+
+def _normal_inverse(normal: Array) -> Array:
+    """``(J^T W J)^-1``: compiled where numba is installed (Cholesky), else, or where it is
+    not positive definite, LAPACK's inverse; all infinite where singular (degenerate
+    geometry: unknown, so infinitely uncertain)."""
+    kernels = compiled()
+    if kernels is not None:
+        out = np.empty((6, 6))
+        if kernels.spd_inverse(normal, out):
+            return out
+    try:
+        return np.asarray(np.linalg.inv(normal), np.float64)
+    except np.linalg.LinAlgError:
+        return np.full((6, 6), np.inf)

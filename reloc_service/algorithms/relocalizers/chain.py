@@ -1,0 +1,205 @@
+"""Fallback chains (``"bow+p3p,sbi+esm"``): relocalizers tried in order until one verifies."""
+
+from __future__ import annotations
+
+import functools
+import re
+from pathlib import Path
+
+from ...core import features as feature_lib
+from ...core.errors import ConfigError, NotTrainedError
+from ...core.features import FeatureConf
+from ...core.frame import Frame, Keyframe
+from ...core.map import KeyframeMap
+from ..pose.base import PoseEstimate
+from .base import (
+    ANSWERED,
+    CONTENDER,
+    ON_DOUBT,
+    Contender,
+    Prior,
+    Relocalizer,
+    RelocResult,
+    narrow_support,
+    refuses_the_query,
+)
+from .overlap import Ahead, run_ahead
+
+
+class ChainRelocalizer(Relocalizer):
+    """Asks each step in turn; the first verified answer wins (its ``method`` names the step),
+    with the timings of every step tried summed; a step's refusal of the query itself
+    (:func:`.base.refuses_the_query`: its intrinsics disagree) ends the chain, unless a later
+    step matches other features: then that step's verified pose overrules it, and the
+    refusal stands where none verifies. Features a
+    step extracts are cached on the query frame, so a later step of the same kind does not
+    extract them again."""
+
+    def __init__(self, kmap: KeyframeMap, steps: list[Relocalizer]) -> None:
+        super().__init__(kmap)
+        if not steps:
+            raise ConfigError("chain: expected at least one relocalizer")
+        self.steps = steps
+        # A view that cannot check the query's intrinsics (few, coarse keypoints) leaves the
+        # query to the next step, whose finer features may; only the last trusts the
+        # calibration there.
+        for step in steps[:-1]:
+            step.defer_unchecked_intrinsics()
+
+    @property
+    def method(self) -> str:
+        return ",".join(step.method for step in self.steps)
+
+    @property
+    def required_features(self) -> frozenset[str]:
+        return frozenset().union(*(step.required_features for step in self.steps))
+
+    def feature_confs(self) -> dict[str, FeatureConf]:
+        return self.steps[0].feature_confs()
+
+    def add_keyframe(self, keyframe: Keyframe) -> None:
+        for step in self.steps:
+            step.add_keyframe(keyframe)
+
+    def remove_keyframe(self, keyframe: Keyframe) -> None:
+        for step in self.steps:
+            step.remove_keyframe(keyframe)
+
+    def train(self, *, progress: bool = False) -> None:
+        for step in self.steps:
+            step.train(progress=progress)
+
+    @property
+    def trained(self) -> bool:
+        return all(step.trained for step in self.steps)
+
+    def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
+                   ) -> RelocResult:
+        """The first step's verified result, or NOT_RELOCALIZED with every step's reason.
+        A step that is not trained yet is skipped (its reason says so). An intrinsics
+        refusal answers as the class docstring says.
+
+        A second opinion for weakly conditioned answers: when a step's pose rests on inliers
+        spanning a small part of the image (:func:`.base.narrow_support`), the later steps
+        are asked too, with that answer left on the query as a :class:`.base.Contender`. The
+        first later step that verifies a pose weighs the contender against its own by the
+        query keypoints each explains, with its own (richer) features, and its answer is the
+        chain's: the contender, its own pose, or "ambiguous". When no later step weighs it
+        (none verifies anything, or one that cannot compare poses answers), the contender
+        answers."""
+        timings: dict[str, float] = {}
+        reasons: list[str] = []
+        map_version = self.map.version
+        contender: Contender | None = None
+        refusal: RelocResult | None = None
+        try:
+            for i, step in enumerate(self.steps):
+                result = self._ask(query, i, prior, hypotheses, reasons)
+                if result is None:
+                    continue
+                for stage, seconds in result.timings.items():
+                    timings[stage] = timings.get(stage, 0.0) + seconds
+                map_version = result.map_version
+                answered = query.cache.pop(ANSWERED, None)
+                if refuses_the_query(result):
+                    if not self._other_features_after(i):
+                        result.timings = timings
+                        return result
+                    refusal = refusal or result
+                    reasons.append(f"{step.method}: {result.reason}")
+                    continue
+                if contender is not None and contender.weighed:
+                    result.timings = timings
+                    return result  # the contender weighed: the winner, or "ambiguous"
+                if contender is not None and result.ok:
+                    break  # a step that cannot weigh it does not overrule it
+                if result.ok and contender is None and i + 1 < len(self.steps) \
+                        and _narrow(step, answered):
+                    contender = Contender(result, answered)
+                    query.cache[CONTENDER] = contender
+                    continue
+                if result.ok:
+                    result.timings = timings
+                    return result
+                reasons.append(f"{step.method}: {result.reason}")
+        finally:
+            query.cache.pop(CONTENDER, None)
+        if contender is not None:
+            contender.result.timings = timings
+            return contender.result
+        if refusal is not None:  # no later step found a pose to overrule it
+            refusal.timings = timings
+            return refusal
+        return RelocResult.failure(self.method, "; ".join(reasons), timings=timings,
+                                   map_version=map_version)
+
+    def _other_features_after(self, i: int) -> bool:
+        """Whether a step after ``i`` matches other features than step ``i``: a refusal of
+        the query's intrinsics (:func:`.base.refuses_the_query`) is then left to it, since
+        other keypoints carry other localisation errors (ORB's pyramid-quantised corners
+        bias a focal estimate that SIFT's sub-pixel ones do not); the same features would
+        meet the same correspondences, and the chain answers the refusal."""
+        own = self.steps[i].required_features
+        return any(step.required_features - own for step in self.steps[i + 1:])
+
+    def _ask(self, query: Frame, i: int, prior: Prior | None, hypotheses: int,
+             reasons: list[str]) -> RelocResult | None:
+        """Step ``i``'s result, with the next step's features extracted ahead on doubt;
+        None (its reason noted) when the step is not trained."""
+        step = self.steps[i]
+        if i + 1 < len(self.steps):
+            query.cache[ON_DOUBT] = functools.partial(extract_ahead, query, self.steps[i + 1])
+        try:
+            return step.relocalize(query, prior=prior, hypotheses=hypotheses)
+        except NotTrainedError as exc:
+            reasons.append(f"{step.method}: not trained ({exc})")
+            return None
+        finally:
+            query.cache.pop(ON_DOUBT, None)
+
+    def save(self, directory: Path) -> None:
+        """Each step saves into its own sub-directory (``0_bow_p3p``, ...)."""
+        for i, step in enumerate(self.steps):
+            sub = directory / _step_dir(i, step.method)
+            sub.mkdir(parents=True, exist_ok=True)
+            step.save(sub)
+
+    def load(self, directory: Path) -> bool:
+        """Restore every step that has something saved; True if any did."""
+        loaded = [step.load(directory / _step_dir(i, step.method))
+                  for i, step in enumerate(self.steps)
+                  if (directory / _step_dir(i, step.method)).is_dir()]
+        return any(loaded)
+
+
+def extract_ahead(query: Frame, step: Relocalizer) -> Ahead[None] | None:
+    """Start extracting the query features ``step`` will extract (those not on ``query``
+    yet, nor under way) on an idle helper thread (:func:`.overlap.run_ahead`), noting them
+    on ``query`` so ``step`` waits for them rather than extracting them again. None when
+    there is nothing to extract or no idle core."""
+    confs = {kind: conf for kind, conf in step.feature_confs().items()
+             if kind not in query.features and not query.pending_features(kind)}
+    if not confs:
+        return None
+    image = query.image
+
+    def extract_all() -> None:
+        for kind, conf in confs.items():
+            query.features[kind] = feature_lib.extract(image, conf)
+
+    ahead = run_ahead(extract_all)
+    if ahead is not None:
+        for kind in confs:
+            query.expect_features(kind, ahead)
+    return ahead
+
+
+def _narrow(step: Relocalizer, estimate: PoseEstimate | None) -> bool:
+    """Whether ``step``'s answer, given by ``estimate``, rests on a small part of the image
+    by ``step``'s own verification settings (False when the step does not say)."""
+    conf = getattr(step, "verify_conf", None)
+    return estimate is not None and conf is not None and narrow_support(estimate, conf)
+
+
+def _step_dir(index: int, method: str) -> str:
+    return f"{index}_{re.sub(r'[^A-Za-z0-9]+', '_', method)}"

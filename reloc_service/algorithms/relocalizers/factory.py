@@ -1,0 +1,92 @@
+"""Build a relocalizer from a method string: ``"ferns"``, ``"<place>+<pose>"`` (the multi
+relocalizer, e.g. ``"sbi+p3p"``), ``"<place>+<pose>:<features>"`` (the same on the named
+features, e.g. ``"sbi+p3p:orb"``: 500 ORB features per query, whatever ``options["p3p"]`` says
+about features) or a comma-separated fallback chain of those (``"sbi+p3p:orb,bow+p3p"``).
+
+Method strings without a ``:`` mean what they always meant (``"sbi+p3p"`` is SIFT unless
+``options["p3p"]["kind"]`` says otherwise); ``options["p3p:orb"]`` configures the ORB variant
+over ``options["p3p"]``. The same strings name methods in ``reloc eval -m``, the service's
+``service.methods`` and the engine's saved models (``models/sbi+p3p_orb,bow+p3p,sbi+p3p``:
+``storage.model_dir_name`` turns the ``:`` into ``_``; a chain's steps save into
+``0_sbi_p3p_orb``, ``1_bow_p3p``, ...)."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+from ...core.errors import ConfigError
+from ...core.map import KeyframeMap
+
+# Importing a plugin module runs its ``@register``: the explicit list of what the core offers
+# (no scanning, no entry points). Tools add their own (``tools.eval.gt``) by importing them.
+from ..place import bow, sbi  # noqa: F401
+from ..pose import esm, fivept, none, p3p  # noqa: F401
+from . import ferns, multi  # noqa: F401
+from .base import RELOCALIZERS, Relocalizer
+from .chain import ChainRelocalizer
+from .multi import STEP_FEATURES
+
+Options = Mapping[str, Mapping[str, Any]]
+
+#: The method the engine and the service use when none is named: the fast path first (the
+#: small blurry image, P3P on 500 ORB features), and only
+#: where it cannot verify, the SIFT steps: bag-of-words retrieval (rotation and exposure
+#: invariant) with P3P, then the small blurry image (which still ranks heavily blurred
+#: queries) with P3P. Maps built for it carry ORB and SIFT landmarks. One set of defaults for
+#: every data set: see the README's results table.
+DEFAULT_METHOD = "sbi+p3p:orb,bow+p3p,sbi+p3p"
+
+
+def create_relocalizer(spec: str, kmap: KeyframeMap, *, options: Options | None = None
+                       ) -> Relocalizer:
+    """A relocalizer for ``spec`` over ``kmap``; ``options`` maps plugin names (``"sbi"``,
+    ``"p3p"``, ``"ferns"``, ``"multi"``, ``"verify"``, ...) to their option dicts. A comma
+    makes a fallback chain of the steps it separates."""
+    spec = spec.strip()
+    if not spec:
+        raise ConfigError("empty method; expected e.g. 'sbi+p3p', 'ferns' or 'bow+p3p,sbi+esm'")
+    if "," in spec:
+        steps = [step.strip() for step in spec.split(",")]
+        if not all(steps):
+            raise ConfigError(f"chain: empty step in {spec!r}; expected e.g. 'bow+p3p,sbi+esm'")
+        return ChainRelocalizer(kmap, [create_relocalizer(s, kmap, options=options) for s in steps])
+    kind = "multi" if "+" in spec else spec
+    return RELOCALIZERS.lookup(kind).from_options(spec, kmap, options or {})
+
+
+def list_methods() -> list[dict[str, Any]]:
+    """Every selectable method with a one-line description and whether it is evaluation-only."""
+    from ..place.base import PLACE_FINDERS
+    from ..pose.base import POSE_FINDERS
+
+    methods = []
+    for place_name, place_cls in sorted(PLACE_FINDERS.items()):
+        for pose_name, pose_cls in sorted(POSE_FINDERS.items()):
+            for suffix, kind in _feature_variants(pose_cls):
+                methods.append({"method": f"{place_name}+{pose_name}{suffix}",
+                                "evaluation_only": bool(place_cls.evaluation_only),
+                                "description": f"multi relocalizer: {place_name} place finder, "
+                                               f"{pose_name} pose finder{kind}"})
+    methods.append({"method": DEFAULT_METHOD, "evaluation_only": False,
+                    "description": "the default (engine and service): a fallback chain, "
+                                   "each step only where the ones before cannot verify"})
+    for name, cls in sorted(RELOCALIZERS.items()):
+        if name in ("multi", "chain"):
+            continue
+        doc = (cls.__doc__ or "").strip().splitlines()
+        methods.append({"method": name, "evaluation_only": False,
+                        "description": doc[0] if doc else name})
+    return methods
+
+
+def _feature_variants(pose_cls: type) -> list[tuple[str, str]]:
+    """(method suffix, description suffix) of a pose finder: the plain name, plus one
+    ``:<kind>`` variant per feature kind when its configuration has a ``kind``."""
+    fields = {f.name for f in dataclasses.fields(pose_cls.Conf)}
+    variants = [("", "")]
+    if "kind" in fields:
+        variants += [(f":{kind}", f" on {conf['max_features']} {kind.upper()} features")
+                     for kind, conf in sorted(STEP_FEATURES.items())]
+    return variants

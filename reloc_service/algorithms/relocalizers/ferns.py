@@ -1,0 +1,632 @@
+"""Ferns relocalizer (thesis 3.2, 5.1.2, 5.2.2): map landmarks are the classes of a random-ferns
+classifier trained on warped views of their observations; query keypoints are classified into
+2D-3D correspondences and the pose comes from P3P LO-RANSAC, then the shared verification.
+
+Training is exact and incremental (:mod:`reloc_service.algorithms.ferns.models`): every trained
+observation ``(keyframe, keypoint, landmark)`` is recorded, its samples are a function of the
+keyframe image and ``(seed, keyframe id, warp)`` only, so a keyframe (or a landmark) leaving the
+map subtracts exactly what it added.
+
+Scale (thesis 5.2.2: 1730 classes already strain one model): at most ``max_classes`` classes
+per model, either the most observed landmarks in one model (``partition = "select"``) or one
+model per region of the map (``"regions"``: k-means of keyframe positions). Classifying a query
+against every model would multiply its cost by the number of regions, so a place prior picks
+the regions first (``region_prior = "sbi"``): PTAM's small blurry images (the fast place finder,
+one matrix-vector product over every keyframe) rank the keyframes, the landmarks trained from
+the ``place_keyframes`` best-ranked ones vote for the regions whose models learned them (one
+vote per keyframe, split in proportion, so a keyframe rich in landmarks does not outvote the
+others), and the query is classified only against the ``max_regions`` regions with most votes
+(a landmark is learned by one region, not always its keyframe's). The regions are tried in
+the prior's order: the best region's correspondences alone, then pooled with the second's, ...
+each attempt one RANSAC and the shared verification: most queries are verified by their best
+region and never pay the others' classification. A region picked wrongly gives
+correspondences that do not agree on a pose, hence no verified pose; then, with
+``region_fallback``, the query is classified against every other region too (the cost of the
+old exhaustive search, paid only by the queries the prior failed). A query's leaves and each
+region's classes are computed once, whatever the number of attempts.
+
+Threads. No lock: training, updates and load run behind the engine (under its write lock, or
+on a fresh relocalizer built off-line and swapped in), never during a query; save runs beside
+queries and, like them, only reads. Queries may run concurrently; they read the published
+models (:class:`~reloc_service.algorithms.ferns.models.Published`, replaced whole after each update) and
+write only the landmark lookup table of :meth:`FernsRelocalizer._landmark_points`: one tuple,
+read and replaced whole, and every concurrent query pins the same map version, so racing
+queries at most build the same table twice.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ...core.errors import ConfigError, NotTrainedError, StorageError
+from ...core.features import FEATURE_KINDS, FeatureConf
+from ...core.fileio import atomic_write
+from ...core.frame import Frame, Keyframe
+from ...core.map import KeyframeMap, MapState
+from ...core.numeric import top_k
+from ...core.plugins import make_conf
+from ..ferns.classifier import FernClassifier, FernConf, FernScorer, FernTests
+from ..ferns.models import FernModels, ModelsConf, Published
+from ..ferns.training import WarpConf, prepare_image
+from ..place.sbi import SmallBlurryImageFinder
+from ..pose.base import PoseEstimate
+from ..pose.guided import GuidedConf
+from ..pose.map_consistency import prepare_map, settle_intrinsics
+from ..pose.map_uncertainty import map_covariance
+from ..pose.pnp import PnPConf, solve_pnp_indexed
+from ..pose.support import query_support
+from . import uniqueness
+from .base import (
+    Prior,
+    Relocalizer,
+    RelocResult,
+    VerifyConf,
+    refuses_the_query,
+    register,
+    result_from_estimate,
+)
+
+Array = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+QUERY_DETECTORS = ("sift", "fast")
+PARTITIONS = ("select", "regions")
+REGION_PRIORS = ("sbi", "none")
+FORMAT_VERSION = 1
+_MODEL_FILE = "ferns.npz"
+_META_FILE = "ferns.json"
+
+
+@dataclass(frozen=True)
+class FernsConf:
+    """Options of the ferns relocalizer (``options["ferns"]``).
+
+    Classifier: ``num_ferns`` x ``num_tests`` tests in a ``patch_size`` patch (thesis: 100 x 12).
+    Training: ``num_warps`` samples per observation (thesis: 100), warps as in
+    :class:`~reloc_service.algorithms.ferns.training.WarpConf`; ``online`` trains each new keyframe as it
+    arrives (else only :meth:`train` does); ``workers`` threads warp keyframes in parallel.
+    Scale: ``max_classes`` per model, ``partition`` "select" or "regions" (module docstring);
+    with regions, ``region_prior`` "sbi" classifies a query against the ``max_regions`` regions
+    whose keyframes its small blurry image resembles most (tried best first, one more each
+    time until a pose is verified; then every region with ``region_fallback``), "none"
+    against every region.
+    Query: ``detector`` "sift" (DoG, like the landmarks' keypoints) or "fast", at most
+    ``max_query_keypoints``; each keypoint gives its ``top_k`` classes with posterior at least
+    ``min_posterior``. ``kind`` is the feature kind whose landmarks are learned.
+
+    ``max_rotation_rad`` is +-0.6 rad (34 deg) by default, enough for the roll of a forward
+    camera; a downward-looking camera that yaws needs pi. Full rotations cost recognition and
+    memory: on the 2000-landmark benchmark the top-1 rate of a 15-degree rotated photo falls
+    from 98% to 51% and the model grows from 85 to 116 MB. The "fast" detector finds corners
+    a few pixels off the landmarks' DoG keypoints: many inliers but a reprojection RMS above
+    the verification's 2.5 px on the test scene, so "sift" is the default.
+    """
+
+    num_ferns: int = 100
+    num_tests: int = 12
+    patch_size: int = 32
+    regularization: float = 1.0
+    num_warps: int = 100
+    max_rotation_rad: float = 0.6
+    min_scale: float = 0.6
+    max_scale: float = 1.5
+    affine: bool = True
+    max_noise_sigma: float = 5.0
+    max_blur_sigma: float = 1.0
+    smoothing_sigma: float = 1.0
+    online: bool = True
+    workers: int = 2
+    max_classes: int = 2000
+    partition: str = "regions"
+    region_prior: str = "sbi"
+    max_regions: int = 2
+    place_keyframes: int = 5
+    region_fallback: bool = True
+    kind: str = "sift"
+    detector: str = "sift"
+    max_query_keypoints: int = 1000
+    top_k: int = 2
+    min_posterior: float = 0.01
+    seed: int = 0
+    #: Solve again on the correspondences a verified pose leaves, up to this many times, and
+    #: answer only the pose that explains the query significantly better than every other
+    #: verified one (:mod:`.uniqueness`; a keypoint's second class is often a repeated
+    #: landmark's twin). 0: the first verified pose answers.
+    competitors: int = 2
+
+    def __post_init__(self) -> None:
+        self.fern_conf()
+        self.warp_conf()
+        if self.detector not in QUERY_DETECTORS:
+            raise ConfigError(f"ferns: detector {self.detector!r} unknown; expected one of "
+                              f"{QUERY_DETECTORS}")
+        if self.kind not in FEATURE_KINDS:
+            raise ConfigError(f"ferns: kind {self.kind!r} unknown; expected one of {FEATURE_KINDS}")
+        if self.partition not in PARTITIONS:
+            raise ConfigError(f"ferns: partition {self.partition!r} unknown; expected one of "
+                              f"{PARTITIONS}")
+        if self.region_prior not in REGION_PRIORS:
+            raise ConfigError(f"ferns: region_prior {self.region_prior!r} unknown; expected one "
+                              f"of {REGION_PRIORS}")
+        if min(self.workers, self.max_classes, self.max_query_keypoints, self.top_k,
+               self.max_regions, self.place_keyframes) < 1:
+            raise ConfigError("ferns: workers, max_classes, max_query_keypoints, top_k, "
+                              "max_regions and place_keyframes must be >= 1")
+        if self.competitors < 0:
+            raise ConfigError(f"ferns: competitors must be >= 0, got {self.competitors}")
+        if not 0 <= self.min_posterior < 1:
+            raise ConfigError(f"ferns: min_posterior must be in [0, 1), got {self.min_posterior}")
+
+    def fern_conf(self) -> FernConf:
+        return FernConf(self.num_ferns, self.num_tests, self.patch_size, self.regularization,
+                        self.seed)
+
+    def models_conf(self) -> ModelsConf:
+        """What :class:`~reloc_service.algorithms.ferns.models.FernModels` needs of these options."""
+        return ModelsConf(kind=self.kind, partition=self.partition, max_classes=self.max_classes,
+                          num_warps=self.num_warps, workers=self.workers, fern=self.fern_conf(),
+                          warp=self.warp_conf(), seed=self.seed)
+
+    def warp_conf(self) -> WarpConf:
+        return WarpConf(num_warps=self.num_warps, include_identity=True,
+                        max_rotation_rad=self.max_rotation_rad, min_scale=self.min_scale,
+                        max_scale=self.max_scale, affine=self.affine,
+                        max_noise_sigma=self.max_noise_sigma, max_blur_sigma=self.max_blur_sigma,
+                        smoothing_sigma=self.smoothing_sigma, seed=self.seed)
+
+
+@dataclass(eq=False)
+class _QueryWork:
+    """What one query computed (for one published model set) that a second attempt on
+    more regions reuses: its (N, M) leaves and, per region, its keypoints' top classes and
+    posteriors (with the same class mask: the prior is the query's)."""
+
+    leaves: npt.NDArray[np.uint16] | None = None
+    classified: dict[int, tuple[IntArray, npt.NDArray[np.float32]]] = dataclasses.field(
+        default_factory=dict)
+
+
+@register("ferns")
+class FernsRelocalizer(Relocalizer):
+    """Global relocalizer: random ferns recognise map landmarks, P3P finds the pose (thesis 3.2)."""
+
+    Conf = FernsConf
+
+    def __init__(self, kmap: KeyframeMap, conf: FernsConf | None = None, *,
+                 verify_conf: VerifyConf | None = None, pnp_conf: PnPConf | None = None) -> None:
+        super().__init__(kmap)
+        self.conf = conf or FernsConf()
+        self.verify_conf = verify_conf or VerifyConf()
+        self.pnp_conf = pnp_conf or PnPConf()
+        self._tests = FernTests(self.conf.fern_conf())
+        self._points_cache: tuple[int, IntArray, Array] = (-1, np.zeros(0, np.int64),
+                                                           np.zeros((0, 3)))
+        # The place prior's own index of the keyframes (cheap: 40x30 floats per keyframe),
+        # kept in step with the map by add_keyframe / remove_keyframe / train / load.
+        self._places = SmallBlurryImageFinder(kmap, SmallBlurryImageFinder.Conf())
+        self._models = FernModels(self.conf.models_conf(), self._tests)
+        self._ever_trained = False
+
+    @classmethod
+    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]]
+                     ) -> FernsRelocalizer:
+        """``options["ferns"]`` -> :class:`FernsConf`, ``options["verify"]`` ->
+        :class:`VerifyConf`; the RANSAC settings of ``options["p3p"]`` (those of
+        :class:`PnPConf`) are shared with the P3P pose finder."""
+        if spec.strip() != "ferns":
+            raise ConfigError(f"ferns relocalizer: expected method 'ferns', got {spec!r}")
+        pnp_fields = {f.name for f in dataclasses.fields(PnPConf)}
+        pnp_opts = {k: v for k, v in dict(options.get("p3p") or {}).items() if k in pnp_fields}
+        return cls(kmap, make_conf(FernsConf, options.get("ferns"), owner="ferns"),
+                   verify_conf=make_conf(VerifyConf, options.get("verify"), owner="verify"),
+                   pnp_conf=make_conf(PnPConf, pnp_opts, owner="p3p"))
+
+    # -- interface ---------------------------------------------------------------------------
+    @property
+    def method(self) -> str:
+        return "ferns"
+
+    @property
+    def required_features(self) -> frozenset[str]:
+        return frozenset({self.conf.kind})
+
+    @property
+    def trained(self) -> bool:
+        return self.conf.online or self._ever_trained
+
+    def add_keyframe(self, keyframe: Keyframe) -> None:
+        """Train the observations the map gained (those of ``keyframe`` and any new ones on
+        older keyframes) when ``online``; otherwise wait for :meth:`train`."""
+        self._places.add_keyframe(keyframe)
+        if self.conf.online:
+            self.update()
+
+    def remove_keyframe(self, keyframe: Keyframe) -> None:
+        """Subtract the samples of observations no longer in the map (when ``online``)."""
+        self._places.remove_keyframe(keyframe)
+        if self.conf.online:
+            self.update()
+
+    def train(self, *, progress: bool = False) -> None:
+        """Rebuild every model from the current map: partition, then train all observations."""
+        models = FernModels(self.conf.models_conf(), self._tests)
+        self._places.train()
+        models.train(self.map.snapshot(), show_progress=progress)
+        self._models = models
+        self._ever_trained = True
+        if self.pnp_conf.intrinsics_false_refusal > 0:
+            prepare_map(self.map.snapshot(), self.conf.kind, self.pnp_conf)
+
+    def update(self, *, show_progress: bool = False) -> None:
+        """Bring the models in line with the current map (adds and removes exactly)."""
+        self._models.update(self.map.snapshot(), show_progress=show_progress)
+
+    @property
+    def tests(self) -> FernTests:
+        """The fern tests shared by every model."""
+        return self._tests
+
+    @property
+    def scorers(self) -> tuple[FernScorer, ...]:
+        """The published models (one per region), as queries see them."""
+        return self._models.published.scorers
+
+    @property
+    def regions(self) -> tuple[frozenset[int], ...]:
+        """The keyframe ids of each model's region (one region in "select" mode)."""
+        return self._models.published.region_keyframes
+
+    @property
+    def classifiers(self) -> tuple[FernClassifier, ...]:
+        """The trainable models, one per region (do not modify them directly)."""
+        return self._models.classifiers
+
+    @property
+    def num_classes(self) -> int:
+        """Landmarks trained, over all models."""
+        return sum(s.num_classes for s in self._models.published.scorers)
+
+    def model_nbytes(self) -> int:
+        """Bytes held by the classifiers (sparse counts, classes, tests)."""
+        return self._models.nbytes()
+
+    def trained_observations(self) -> set[tuple[int, int, int]]:
+        """Every trained ``(landmark id, keyframe id, keypoint index)``."""
+        return self._models.trained_observations()
+
+    # -- query -------------------------------------------------------------------------------
+    def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
+                   ) -> RelocResult:
+        """Pick the regions (place prior), classify the query's keypoints against their
+        models, P3P LO-RANSAC on the correspondences, verify. Regions the prior ranked are
+        tried in its order, each attempt pooling one more region's correspondences (the best
+        region alone, then with the second, ...), until a pose is verified; with
+        ``region_fallback``, a query verified in none of them is classified against every
+        region. Each region classifies a query once (:class:`_QueryWork`)."""
+        pub, work = self._models.published, _QueryWork()
+        start = time.perf_counter()
+        regions = self.choose_regions(query, prior=prior)
+        place_seconds = time.perf_counter() - start
+        spent: dict[str, float] = {}
+        for attempt in self._attempts(regions, len(pub.scorers)):
+            result = self._relocalize_in(query, attempt, pub, work, prior, hypotheses)
+            for key, seconds in result.timings.items():  # the query paid every attempt
+                spent[key] = spent.get(key, 0.0) + seconds
+            if result.ok or refuses_the_query(result):
+                break  # (the query's camera would meet every other region too)
+        result.timings.update(spent)
+        result.timings["place"] = place_seconds
+        return result
+
+    def _attempts(self, regions: tuple[int, ...], num_regions: int) -> list[tuple[int, ...]]:
+        """The region sets :meth:`relocalize` tries in turn: growing prefixes of the prior's
+        ranking ``regions``, then every region (``region_fallback``); just every region when
+        the prior ranked none (``regions`` is all of them)."""
+        every = tuple(range(num_regions))
+        if len(regions) >= num_regions:
+            return [every]
+        attempts = [regions[:i] for i in range(1, len(regions) + 1)]
+        return attempts + [every] if self.conf.region_fallback else attempts
+
+    def choose_regions(self, query: Frame, *, prior: Prior | None = None) -> tuple[int, ...]:
+        """Indices of the regions to classify ``query`` against, most voted first: every
+        region when there are at most ``max_regions`` (or ``region_prior = "none"``), else the
+        ``max_regions`` regions most voted for by the ``place_keyframes`` keyframes whose
+        small blurry images are nearest the query's (only keyframes within the prior's radius
+        count; module docstring); ties go to the lower region."""
+        pub = self._models.published
+        every = tuple(range(len(pub.scorers)))
+        if self.conf.region_prior == "none" or len(every) <= self.conf.max_regions:
+            return every
+        near = None if prior is None else set(self._near_keyframes(self.map.snapshot(), prior))
+        if near is not None and not near:
+            return every  # relocalize_in says "no keyframe within the prior's radius"
+        ranked = self._places.find_places(query, self.conf.place_keyframes, allowed=near)
+        votes = np.zeros(len(every))
+        for cand in ranked:
+            votes += pub.landmark_regions.get(cand.keyframe_id, 0.0)
+        if not votes.any():
+            return every
+        order = top_k(votes, self.conf.max_regions, keep=votes > 0)
+        return tuple(int(r) for r in order)
+
+    def relocalize_in(self, query: Frame, regions: Iterable[int], *, prior: Prior | None = None,
+                      hypotheses: int = 1) -> RelocResult:
+        """:meth:`relocalize` against the models of ``regions`` only (indices into
+        :attr:`regions`)."""
+        return self._relocalize_in(query, regions, self._models.published, _QueryWork(), prior,
+                                   max(1, hypotheses))
+
+    def _relocalize_in(self, query: Frame, regions: Iterable[int], pub: Published,
+                       work: _QueryWork, prior: Prior | None, hypotheses: int) -> RelocResult:
+        """:meth:`relocalize_in` on the published models ``pub``, reusing (and adding to) what
+        ``work`` holds of this query: its leaves and the classes each region gave it."""
+        if not self.trained:
+            raise NotTrainedError("ferns relocalizer: call train() first (online training is off)")
+        state = self.map.snapshot()
+        timings: dict[str, float] = {}
+        fail: dict[str, Any] = dict(method=self.method, map_version=state.version, timings=timings)
+        picked = sorted({int(r) for r in regions})
+        if any(not 0 <= r < len(pub.scorers) for r in picked):
+            raise ValueError(f"ferns: regions must be in [0, {len(pub.scorers)}), got {picked}")
+        if sum(pub.scorers[r].num_classes for r in picked) == 0:
+            return RelocResult.failure(reason="no trained landmarks", **fail)
+        allowed = self._allowed(state, [pub.scorers[r] for r in picked], prior)
+        if allowed is None:
+            return RelocResult.failure(reason="no keyframe within the prior's radius", **fail)
+        start = time.perf_counter()
+        px = self._detect(query)
+        timings["features"] = time.perf_counter() - start
+        start = time.perf_counter()
+        kp, lm, _ = self._classify(query, px, pub, picked, allowed, work)
+        points, live = self._landmark_points(state, lm)
+        kp, lm, points = kp[live], lm[live], points[live]
+        timings["classify"] = time.perf_counter() - start
+        results = self._solve(query, px, kp, lm, points, state, max(1, hypotheses), timings)
+        best = results[0]
+        best.hypotheses = [r for r in results[1:] if r.ok]
+        return best
+
+    def _near_keyframes(self, state: MapState, prior: Prior) -> list[int]:
+        """Keyframe ids within the prior's radius of its position."""
+        ids = state.keyframe_ids()
+        if not ids:
+            return []
+        dist = np.linalg.norm(state.positions_world(ids) - prior.world_from_cam[:3, 3], axis=1)
+        return [k for k, d in zip(ids, dist, strict=True) if d <= prior.radius_m]
+
+    def _allowed(self, state: MapState, scorers: list[FernScorer], prior: Prior | None
+                 ) -> list[npt.NDArray[np.bool_] | None] | None:
+        """Per model, the mask of classes the prior allows (None: all); None if the prior
+        leaves no keyframe."""
+        if prior is None:
+            return [None] * len(scorers)
+        near = self._near_keyframes(state, prior)
+        if not near:
+            return None
+        lms = [state.keyframes[k].features[self.conf.kind].landmark_ids for k in near
+               if self.conf.kind in state.keyframes[k].features]
+        seen = np.unique(np.concatenate(lms)) if lms else np.zeros(0, np.int64)
+        return [np.isin(s.class_ids, seen) for s in scorers]
+
+    def _detect(self, query: Frame) -> Array:
+        """(N, 2) query keypoints (distinct pixels), cached on the frame."""
+        key = f"ferns:keypoints:{self.conf.detector}:{self.conf.max_query_keypoints}"
+        if key not in query.cache:
+            query.cache[key] = detect_keypoints(query.image, self.conf.detector,
+                                                self.conf.max_query_keypoints)
+        return query.cache[key]
+
+    def _classify(self, query: Frame, px: Array, pub: Published, regions: list[int],
+                  allowed: list[npt.NDArray[np.bool_] | None], work: _QueryWork
+                  ) -> tuple[IntArray, IntArray, npt.NDArray[np.float32]]:
+        """Correspondences (keypoint index, landmark id, posterior), each keypoint's
+        ``top_k`` classes over the models of ``regions`` with posterior >= ``min_posterior``.
+        The leaves (they depend on the image only) and each region's classes are computed
+        once per query: a fallback to every region classifies only the regions not yet
+        tried."""
+        empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
+        if len(px) == 0:
+            return empty
+        labels, posts = [], []
+        for r, mask in zip(regions, allowed, strict=True):
+            scorer = pub.scorers[r]
+            if scorer.num_classes == 0 or (mask is not None and not mask.any()):
+                continue
+            if r not in work.classified:
+                work.classified[r] = scorer.classify(self._leaves(query, px, work),
+                                                     top_k=self.conf.top_k, allowed=mask)
+            labels.append(work.classified[r][0])
+            posts.append(work.classified[r][1])
+        if not labels:
+            return empty
+        lab, post = np.hstack(labels), np.hstack(posts)
+        k = min(self.conf.top_k, lab.shape[1])
+        order = top_k(post, k)
+        lab, post = np.take_along_axis(lab, order, 1), np.take_along_axis(post, order, 1)
+        kp = np.repeat(np.arange(len(px)), k)
+        keep = post.ravel() >= max(self.conf.min_posterior, 1e-12)
+        return kp[keep], lab.ravel()[keep], post.ravel()[keep]
+
+    def _leaves(self, query: Frame, px: Array, work: _QueryWork) -> npt.NDArray[np.uint16]:
+        """(N, M) leaves of the query keypoints ``px`` (once per query)."""
+        if work.leaves is None:
+            image = prepare_image(query.image, self.conf.smoothing_sigma)
+            work.leaves = self._tests.leaves_at(image, px)
+        return work.leaves
+
+    def _landmark_points(self, state: MapState, landmark_ids: IntArray
+                         ) -> tuple[Array, npt.NDArray[np.bool_]]:
+        """(N, 3) world points of ``landmark_ids`` in ``state`` and the (N,) mask of those
+        still in the map (a lookup table rebuilt once per map version)."""
+        # One read and one store of a whole tuple: a racing query sees an old or a new table,
+        # never half of one (module docstring).
+        version, ids, points = self._points_cache
+        if version != state.version:
+            ids = state.landmarks.id_array()
+            points = state.landmark_points(ids)
+            self._points_cache = (state.version, ids, points)
+        if len(ids) == 0:
+            return np.zeros((len(landmark_ids), 3)), np.zeros(len(landmark_ids), bool)
+        pos = np.clip(np.searchsorted(ids, landmark_ids), 0, len(ids) - 1)
+        return points[pos], ids[pos] == landmark_ids
+
+    def _solve(self, query: Frame, px: Array, kp: IntArray, lm: IntArray, points: Array,
+               state: MapState, hypotheses: int, timings: dict[str, float]) -> list[RelocResult]:
+        """Verified results, the answer first: RANSAC, then again on the correspondences
+        each verified pose leaves (``hypotheses`` in all, at least ``1 + competitors``), the
+        answer chosen among them by :func:`.uniqueness.decide`."""
+        results: list[RelocResult] = []
+        estimates: list[PoseEstimate] = []
+        remaining = np.arange(len(kp))
+        for _ in range(max(hypotheses, 1 + self.conf.competitors)):
+            start = time.perf_counter()
+            est = self._estimate(query, px, kp[remaining], lm[remaining], points[remaining], state)
+            timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - start
+            start = time.perf_counter()
+            result = result_from_estimate(est[0] if est else None, self.verify_conf,
+                                          method=self.method, map_version=state.version,
+                                          timings=timings)
+            timings["verify"] = timings.get("verify", 0.0) + time.perf_counter() - start
+            if est is None or not result.ok:
+                results.append(result)
+                break
+            results.append(result)
+            estimates.append(est[0])
+            # The next solve keeps these keypoints' other classes: a repeated landmark's twin
+            # is the second class of the keypoints the first pose explained.
+            remaining = np.delete(remaining, est[1])
+        if len(estimates) < 2:
+            return results[:max(hypotheses, 1)]
+        return self._unique(query, state, results, estimates, timings)[:max(hypotheses, 1)]
+
+    def _unique(self, query: Frame, state: MapState, results: list[RelocResult],
+                estimates: list[PoseEstimate], timings: dict[str, float]) -> list[RelocResult]:
+        """The verified ``results`` (of ``estimates``) with the one that answers first, or a
+        failure saying the query is ambiguous."""
+        start = time.perf_counter()
+        feature_conf = FeatureConf(kind=self.conf.kind)
+        radius = GuidedConf().window_factor * self.pnp_conf.max_reproj_error_px
+        chosen = uniqueness.decide(
+            estimates, query.camera,
+            lambda est: query_support(query, est.world_from_cam, state, feature_conf,
+                                      radius_px=radius),
+            lambda a, b: False, alpha=self.verify_conf.max_false_alarms)
+        timings["unique"] = time.perf_counter() - start
+        verified = [r for r in results if r.ok]
+        if chosen.index is None:
+            return [RelocResult.failure(self.method, chosen.reason, timings=timings,
+                                        map_version=state.version,
+                                        matched_keyframe_ids=verified[0].matched_keyframe_ids)]
+        best = verified[chosen.index]
+        return [best, *(r for r in verified if r is not best)]
+
+    def _estimate(self, query: Frame, px: Array, kp: IntArray, lm: IntArray, points: Array,
+                  state: MapState) -> tuple[PoseEstimate, IntArray] | None:
+        """P3P LO-RANSAC on the correspondences; counts are per query keypoint (a keypoint
+        with two candidate landmarks is one match), keyframes are those seeing the inliers."""
+        solved = solve_pnp_indexed(px[kp], points, query.camera, self.pnp_conf)
+        if solved is None:
+            return None
+        est, inliers = solved
+        est.num_matches = len(np.unique(kp))
+        est.inliers = len(np.unique(kp[inliers]))
+        est.chance_probability = _per_keypoint_chance(est.chance_probability, len(kp),
+                                                      est.num_matches)
+        est.keyframe_ids = _keyframes_seeing(state, lm[inliers])
+        settle_intrinsics(est, state, self.conf.kind, self.pnp_conf)
+        est.map_covariance = map_covariance(est.world_from_cam, state, lm[inliers])
+        return est, inliers
+
+    # -- persistence -------------------------------------------------------------------------
+    def defer_unchecked_intrinsics(self) -> None:
+        self.verify_conf = dataclasses.replace(self.verify_conf,
+                                               trust_unchecked_intrinsics=False)
+
+    def save(self, directory: Path) -> None:
+        """Write ``ferns.npz`` (counts, records) and ``ferns.json`` (format, conf, regions)."""
+        directory = Path(directory)
+        arrays, models = self._models.to_files()
+        meta = {"format_version": FORMAT_VERSION, "conf": dataclasses.asdict(self.conf),
+                "ever_trained": self._ever_trained, **models}
+        # Uncompressed: zlib takes seconds on ~10^7 counts and gains little on the indices.
+        atomic_write(directory / _MODEL_FILE, lambda f: np.savez(f, **arrays))
+        atomic_write(directory / _META_FILE, json.dumps(meta))
+
+    def load(self, directory: Path) -> bool:
+        """Restore what :meth:`save` wrote; False (nothing changed) if there is none, if it was
+        made with other options, or if its keyframes are not those of the map."""
+        directory = Path(directory)
+        if not (directory / _META_FILE).exists() or not (directory / _MODEL_FILE).exists():
+            return False
+        try:
+            meta = json.loads((directory / _META_FILE).read_text())
+            version = int(meta["format_version"])
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise StorageError(f"{directory / _META_FILE}: not a ferns model ({exc})") from exc
+        if version > FORMAT_VERSION:
+            raise StorageError(f"{directory / _META_FILE}: format version {version} is newer than "
+                               f"this reader's {FORMAT_VERSION}")
+        if meta.get("conf") != json.loads(json.dumps(dataclasses.asdict(self.conf))):
+            return False
+        state = self.map.snapshot()
+        with np.load(directory / _MODEL_FILE) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+        models = FernModels.from_files(self.conf.models_conf(), self._tests, state, arrays,
+                                       meta, where=str(directory / _MODEL_FILE))
+        if models is None:
+            return False
+        self._places.train()
+        self._models = models
+        self._ever_trained = bool(meta.get("ever_trained", True))
+        return True
+
+
+# -- helpers -----------------------------------------------------------------------------------
+def detect_keypoints(image: npt.NDArray[np.uint8], detector: str, max_keypoints: int) -> Array:
+    """(N, 2) distinct keypoint pixels of a query: SIFT (DoG extrema, no descriptor) or FAST,
+    the strongest ``max_keypoints``."""
+    if detector == "sift":
+        kps = cv2.SIFT.create().detect(image, None)  # all, then the strongest distinct ones
+    else:
+        fast = cv2.FastFeatureDetector.create(threshold=15, nonmaxSuppression=True)
+        kps = fast.detect(image, None)
+    if not kps:
+        return np.zeros((0, 2))
+    pts = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2)  # type: ignore[attr-defined]
+    response = np.fromiter((k.response for k in kps), np.float64, len(kps))
+    order = np.argsort(-response, kind="stable")
+    pts = pts[order]
+    # SIFT repeats a location for each dominant orientation: keep the first (strongest).
+    _, first = np.unique(np.rint(pts).astype(np.int64), axis=0, return_index=True)
+    return pts[np.sort(first)][:max_keypoints]
+
+
+def _per_keypoint_chance(p: float | None, correspondences: int, keypoints: int
+                         ) -> float | None:
+    """Chance that a query keypoint agrees with a wrong pose when it proposes
+    ``correspondences / keypoints`` landmarks on average (its ``top_k`` classes) and RANSAC
+    may use any of them: ``1 - (1 - p)^c`` for a single correspondence's chance ``p``. The
+    false-alarm test counts keypoints, so it must use this, not ``p``."""
+    if p is None or keypoints == 0:
+        return p
+    return float(1.0 - (1.0 - p) ** (correspondences / keypoints))
+
+
+def _keyframes_seeing(state: MapState, landmark_ids: IntArray) -> list[int]:
+    """Keyframes observing the most of ``landmark_ids``, most first (ties: lower id)."""
+    kf_ids, votes = state.landmarks.observing_keyframes(landmark_ids)
+    return kf_ids[np.lexsort((kf_ids, -votes))].tolist()
+
+
+

@@ -1,0 +1,453 @@
+"""The multi relocalizer (thesis chapter 4, MultipleRelocalizer): a place finder proposes
+keyframes, a pose finder turns them into a pose, the shared verification judges it."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ...core.errors import ConfigError, NotTrainedError
+from ...core.features import FeatureConf
+from ...core.frame import Frame, Keyframe
+from ...core.geometry import pose_error
+from ...core.map import KeyframeMap, MapState
+from ...core.plugins import make_conf
+from ..place.base import PlaceCandidate, PlaceFinder, create_place_finder
+from ..pose.base import POSE_FINDERS, PoseEstimate, PoseFinder, create_pose_finder
+from . import uniqueness
+from .base import (
+    ANSWERED,
+    CONTENDER,
+    Prior,
+    Relocalizer,
+    RelocResult,
+    VerifyConf,
+    doubt,
+    plausible_first_pose,
+    refuses_the_query,
+    register,
+    result_from_estimate,
+)
+from .overlap import run_beside
+
+
+@register("multi")
+class MultiRelocalizer(Relocalizer):
+    """``"<place>+<pose>"``: candidates from the place finder, split into groups (one keyframe
+    per group, or ``num_candidates`` pooled keyframes for pose finders that pool, like p3p),
+    each group answered by the pose finder and verified, best group first."""
+
+    @dataclass(frozen=True)
+    class Conf:
+        #: Keyframes pooled into one group for pose finders that pool candidates (p3p).
+        num_candidates: int = 5
+        #: Groups tried, in place-finder order, until one verifies (1 = thesis behaviour).
+        max_groups: int = 3
+        #: Accept only when two independent candidate groups verify and agree; None: only for
+        #: pose finders whose evidence is photometric (``PoseFinder.needs_agreement``).
+        require_agreement: bool | None = None
+        agreement_max_distance_m: float = 0.25
+        agreement_max_angle_rad: float = 0.087
+        #: Extract the query's features for the pose finder on an idle helper thread while
+        #: the place finder ranks keyframes (OpenCV releases the GIL, so a query uses a second
+        #: core when one is free: :mod:`.overlap`). Answers are the same either way; off, the
+        #: pose finder extracts them after the place finder, on the query's thread.
+        overlap: bool = True
+        #: When a candidate group fails to verify and more remain, let a fallback chain
+        #: start its next step's feature extraction on an idle helper thread
+        #: (:func:`.base.doubt`): where this step fails altogether, the next one finds its
+        #: features extracted or under way. Answers are the same either way; work done
+        #: ahead for nothing (a later group verifies) only ever uses an idle core.
+        look_ahead: bool = True
+        #: Hear every candidate group (up to ``max_groups``) even after one verified, and
+        #: answer only a pose that explains the query significantly better than every other
+        #: verified pose (:mod:`.uniqueness`): a repeated picture, a periodic wall or an
+        #: identical object elsewhere verifies as well as the true pose does. Off: the first
+        #: verified group answers (faster, and wrong wherever the scene repeats).
+        unique: bool = True
+
+        def __post_init__(self) -> None:
+            if self.num_candidates < 1 or self.max_groups < 1:
+                raise ConfigError(f"multi: num_candidates and max_groups must be >= 1, got "
+                                  f"{self.num_candidates}, {self.max_groups}")
+            if self.agreement_max_distance_m <= 0 or self.agreement_max_angle_rad <= 0:
+                raise ConfigError("multi: agreement thresholds must be positive")
+
+    def __init__(self, kmap: KeyframeMap, place: PlaceFinder, pose: PoseFinder, *,
+                 conf: MultiRelocalizer.Conf | None = None, verify_conf: VerifyConf | None = None,
+                 pose_label: str | None = None) -> None:
+        super().__init__(kmap)
+        self.place = place
+        self.pose = pose
+        self.conf = conf or MultiRelocalizer.Conf()
+        self.verify_conf = verify_conf or VerifyConf()
+        #: The pose part of the method string (``"p3p"`` or ``"p3p:orb"``).
+        self.pose_label = pose_label or pose.name
+
+    @classmethod
+    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]]
+                     ) -> MultiRelocalizer:
+        """Build ``"<place>+<pose>"`` or ``"<place>+<pose>:<features>"``; ``options[name]``
+        configures each part, ``"multi"`` this class and ``"verify"`` the verification.
+
+        The ``:<features>`` suffix (``"sbi+p3p:orb"``) runs the pose finder on that feature
+        kind with the kind's own default count (:data:`STEP_FEATURES`), whatever
+        ``options[pose]`` says about ``kind`` and ``max_features``: so one chain can hold an
+        ORB step and a SIFT step. ``options["<pose>:<features>"]`` (e.g. ``"p3p:orb"``)
+        configures that variant further, over ``options[pose]``."""
+        parts = [p.strip() for p in spec.split("+")]
+        if len(parts) != 2 or not all(parts):
+            raise ConfigError(f"multi relocalizer: expected '<place>+<pose>' or "
+                              f"'<place>+<pose>:<features>' (e.g. 'sbi+p3p', 'sbi+p3p:orb'), "
+                              f"got {spec!r}")
+        place_name, pose_label = parts
+        place = create_place_finder({**options.get(place_name, {}), "name": place_name}, kmap)
+        pose = create_pose_finder(pose_options(pose_label, options))
+        conf = make_conf(cls.Conf, options.get("multi"), owner="relocalizer multi")
+        verify_conf = make_conf(VerifyConf, options.get("verify"), owner="verify")
+        return cls(kmap, place, pose, conf=conf, verify_conf=verify_conf, pose_label=pose_label)
+
+    @property
+    def method(self) -> str:
+        return f"{self.place.name}+{self.pose_label}"
+
+    @property
+    def required_features(self) -> frozenset[str]:
+        return frozenset(self.place.required_features) | frozenset(self.pose.required_features)
+
+    def feature_confs(self) -> dict[str, FeatureConf]:
+        """The pose finder's, and the place finder's (which extracts first where both
+        extract one kind: bow+p3p)."""
+        return {**self.pose.feature_confs(), **self.place.feature_confs()}
+
+    @property
+    def group_size(self) -> int:
+        """Keyframes per candidate group handed to the pose finder."""
+        return self.conf.num_candidates if self.pose.pools_candidates else 1
+
+    @property
+    def require_agreement(self) -> bool:
+        """Configured, or implied by a photometric pose finder (see ``needs_agreement``)."""
+        if self.conf.require_agreement is None:
+            return self.pose.needs_agreement
+        return self.conf.require_agreement
+
+    def add_keyframe(self, keyframe: Keyframe) -> None:
+        self.place.add_keyframe(keyframe)
+
+    def remove_keyframe(self, keyframe: Keyframe) -> None:
+        self.place.remove_keyframe(keyframe)
+
+    def train(self, *, progress: bool = False) -> None:
+        self.place.train()
+        self.pose.prepare_map(self.map.snapshot())
+
+    @property
+    def trained(self) -> bool:
+        return self.place.trained
+
+    def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
+                   ) -> RelocResult:
+        """Place candidates -> groups -> pose -> verification; the first verified group
+        answers, with up to ``hypotheses - 1`` further verified groups in ``hypotheses``."""
+        if not self.place.trained:
+            raise NotTrainedError(f"{self.method}: the {self.place.name} place finder needs "
+                                  "train()")
+        state = self.map.snapshot()
+        timings: dict[str, float] = {}
+        allowed = _allowed_ids(state, prior)
+        groups = None
+        if self._overlaps(query):
+            groups = self._groups_beside_features(query, state, allowed, max(1, hypotheses),
+                                                  timings)
+        if groups is None:  # the place finder, then the pose finder, on this thread
+            start = time.perf_counter()
+            groups = self._candidate_groups(query, state, allowed, max(1, hypotheses))
+            timings["place"] = time.perf_counter() - start
+        if not groups:
+            return RelocResult.failure(self.method, _no_candidate_reason(state, allowed),
+                                       timings=timings, map_version=state.version)
+        results, estimates = self._answer_groups(query, groups, state, timings,
+                                                 max(1, hypotheses))
+        return self._combine(query, state, results, estimates, timings, max(1, hypotheses))
+
+    def _overlaps(self, query: Frame) -> bool:
+        """Whether the place finder runs beside the pose finder's feature extraction: with
+        ``conf.overlap``, when the pose finder has features to extract that the place finder
+        does not extract itself (two threads would each extract them)."""
+        if not self.conf.overlap:
+            return False
+        kinds = self.pose.query_kinds(query)
+        return bool(kinds) and not kinds & self.place.required_features
+
+    def _groups_beside_features(self, query: Frame, state: MapState, allowed: set[int] | None,
+                                hypotheses: int, timings: dict[str, float]
+                                ) -> list[list[PlaceCandidate]] | None:
+        """:meth:`_candidate_groups`, then :meth:`PoseFinder.prepare_candidates` of the first
+        group, on a helper thread (:mod:`.overlap`) while this thread extracts the query's
+        features (:meth:`PoseFinder.prepare_query`, cached on the query). The place
+        finder's error is raised here; work done ahead that fails is left to
+        :meth:`PoseFinder.find_pose`, which meets the same error where it needs that work,
+        as it would without the overlap. None, having done nothing, when no helper runs
+        (no idle core: see :func:`.overlap.run_beside`)."""
+        query.image  # noqa: B018 (decoded here, once, before two threads read the pixels)
+
+        def place() -> tuple[list[list[PlaceCandidate]], dict[str, float]]:
+            start = time.perf_counter()
+            groups = self._candidate_groups(query, state, allowed, hypotheses)
+            spent = {"place": time.perf_counter() - start}
+            if groups:
+                try:
+                    spent.update(self.pose.prepare_candidates(query, groups[0], state))
+                except Exception:  # noqa: BLE001, S110 (met again by find_pose, see above)
+                    pass
+            return groups, spent
+
+        beside = run_beside(place)
+        if not beside.overlapped:
+            return None
+        try:
+            _add_timings(timings, self.pose.prepare_query(query))
+        except Exception:  # noqa: BLE001, S110 (met again by find_pose, see above)
+            pass
+        finally:
+            waited = time.perf_counter()
+            groups, spent = beside.result()
+        timings["overlap_wait"] = time.perf_counter() - waited  # beyond the extraction
+        _add_timings(timings, spent)
+        return groups
+
+    def _candidate_groups(self, query: Frame, state: MapState, allowed: set[int] | None,
+                          hypotheses: int) -> list[list[PlaceCandidate]]:
+        """Candidates (still in ``state``) split into consecutive groups, best first."""
+        if allowed is not None and not allowed:
+            return []
+        n_groups = max(self.conf.max_groups, hypotheses, 2 if self.require_agreement else 1)
+        size = self.group_size
+        found = self.place.find_places(query, size * n_groups, allowed=allowed)
+        found = [c for c in found if c.keyframe_id in state.keyframes]
+        return [found[i:i + size] for i in range(0, len(found), size)]
+
+    def _answer_groups(self, query: Frame, groups: list[list[PlaceCandidate]], state: MapState,
+                       timings: dict[str, float], hypotheses: int
+                       ) -> tuple[list[RelocResult], list[PoseEstimate | None]]:
+        """Pose and verify group after group, until enough have verified (every group with
+        ``conf.unique``) or, before any has, one refuses the query itself
+        (:func:`.base.refuses_the_query`: after a verified pose whose intrinsics passed, a
+        later group's disagreeing ones are more likely a wrong pose's); every result, and
+        the estimate of each verified one (None for the others)."""
+        wanted = max(hypotheses, 2 if self.require_agreement else 1)
+        results: list[RelocResult] = []
+        estimates: list[PoseEstimate | None] = []
+        for group in groups:
+            estimate = self.pose.find_pose(query, group, state)
+            if estimate is not None:
+                _add_timings(timings, estimate.timings)
+            start = time.perf_counter()
+            result = result_from_estimate(estimate, self.verify_conf, method=self.method,
+                                          map_version=state.version, timings={})
+            _add_timings(timings, {"verify": time.perf_counter() - start})
+            results.append(result)
+            estimates.append(estimate if result.ok else None)
+            if refuses_the_query(result) and not any(r.ok for r in results):
+                break  # the query's camera: every other group would meet it too
+            if (self.conf.look_ahead and not result.ok and len(results) < len(groups)
+                    and not any(r.ok for r in results)):
+                doubt(query)
+            if sum(r.ok for r in results) >= wanted and not self.conf.unique:
+                break
+        return results, estimates
+
+    def _combine(self, query: Frame, state: MapState, results: list[RelocResult],
+                 estimates: list[PoseEstimate | None], timings: dict[str, float],
+                 hypotheses: int) -> RelocResult:
+        """The verified result that answers (the first, or with ``conf.unique`` the one that
+        explains the query best, see :meth:`_unique`), with up to ``hypotheses - 1`` other
+        verified ones, most confident first; or a failure naming every group's reason, the
+        agreement check's or the ambiguity."""
+        verified = [r for r in results if r.ok]
+        if not verified and refuses_the_query(results[-1]):
+            return _failure(self.method, results[-1:], timings, state.version)
+        if not verified:
+            return _failure(self.method, results, timings, state.version)
+        contender = query.cache.get(CONTENDER) if self.conf.unique else None
+        if self.require_agreement:
+            refusal = self._disagreement(verified)
+            if refusal:
+                return RelocResult.failure(self.method, refusal, timings=timings,
+                                           map_version=state.version,
+                                           matched_keyframe_ids=verified[0].matched_keyframe_ids)
+        best = verified[0]
+        if self.conf.unique:
+            start = time.perf_counter()
+            verified, found = self._with_alternatives(query, state, verified,
+                                                      [e for e in estimates if e is not None])
+            if contender is not None:  # an earlier step's answer, weighed by these features
+                contender.weighed = True
+                if not _explains(found[0], contender.estimate, query):
+                    verified.append(contender.result)
+                    found.append(contender.estimate)
+            chosen = self._unique(query, state, found) if len(found) > 1 else None
+            timings["unique"] = time.perf_counter() - start
+            if chosen is not None and chosen.index is None:
+                return RelocResult.failure(self.method, chosen.reason, timings=timings,
+                                           map_version=state.version,
+                                           matched_keyframe_ids=best.matched_keyframe_ids)
+            best = verified[0 if chosen is None else chosen.index]
+            query.cache[ANSWERED] = found[0 if chosen is None else chosen.index]
+        best.timings = timings
+        others = [r for r in verified if r is not best]
+        best.hypotheses = sorted(others, key=lambda r: -r.confidence)[:hypotheses - 1]
+        return best
+
+    def _with_alternatives(self, query: Frame, state: MapState, verified: list[RelocResult],
+                           estimates: list[PoseEstimate]
+                           ) -> tuple[list[RelocResult], list[PoseEstimate]]:
+        """``verified`` and their ``estimates`` followed by the alternatives a repetition of
+        the map around the first offers (:meth:`PoseFinder.alternatives`) that verify."""
+        verified, estimates = list(verified), list(estimates)
+        plausible = functools.partial(plausible_first_pose, conf=self.verify_conf)
+        for alternative in self.pose.alternatives(query, estimates[0], state,
+                                                  plausible=plausible):
+            result = result_from_estimate(alternative, self.verify_conf, method=self.method,
+                                          map_version=state.version, timings={})
+            if result.ok:
+                verified.append(result)
+                estimates.append(alternative)
+        return verified, estimates
+
+    def _unique(self, query: Frame, state: MapState, estimates: list[PoseEstimate]
+                ) -> uniqueness.Choice:
+        """Which of the verified ``estimates`` answers (:func:`.uniqueness.decide`, by the
+        query keypoints the pose finder's features show each explains)."""
+        return uniqueness.decide(
+            estimates, query.camera,
+            lambda est: self.pose.support(query, est.world_from_cam, state), self._agree,
+            alpha=self.verify_conf.max_false_alarms)
+
+    def _agree(self, first: PoseEstimate, second: PoseEstimate) -> bool:
+        """Whether two poses agree within the agreement thresholds."""
+        return not self._disagreement_of(first.world_from_cam, second.world_from_cam)
+
+    def _disagreement(self, verified: list[RelocResult]) -> str:
+        """Why two independent groups do not agree, or "" when they do."""
+        if len(verified) < 2:
+            return "agreement check: fewer than two candidate groups verified"
+        first, second = verified[0].world_from_cam, verified[1].world_from_cam
+        assert first is not None and second is not None
+        refusal = self._disagreement_of(first, second)
+        return f"agreement check: {refusal}" if refusal else ""
+
+    def _disagreement_of(self, first: npt.NDArray[np.float64], second: npt.NDArray[np.float64]
+                         ) -> str:
+        """How two poses disagree beyond the agreement thresholds, or "" when they agree."""
+        dist, angle = pose_error(first, second)
+        if dist > self.conf.agreement_max_distance_m or angle > self.conf.agreement_max_angle_rad:
+            return (f"independent hypotheses disagree by {dist:.2f} m and "
+                    f"{np.degrees(angle):.1f} deg")
+        return ""
+
+    def defer_unchecked_intrinsics(self) -> None:
+        self.verify_conf = dataclasses.replace(self.verify_conf,
+                                               trust_unchecked_intrinsics=False)
+
+    def save(self, directory: Path) -> None:
+        """Write the place finder's trained model (if any) as ``place_<name>.msgpack``."""
+        state = self.place.state()
+        if state is not None:
+            import msgpack  # only needed when a place finder has a model to persist
+
+            (directory / f"place_{self.place.name}.msgpack").write_bytes(
+                msgpack.packb(state, use_bin_type=True))
+
+    def load(self, directory: Path) -> bool:
+        """Restore what :meth:`save` wrote; False if there is nothing for this place finder."""
+        path = directory / f"place_{self.place.name}.msgpack"
+        if not path.is_file():
+            return False
+        import msgpack
+
+        self.place.load_state(msgpack.unpackb(path.read_bytes(), raw=False, strict_map_key=False))
+        return True
+
+
+#: What a ``:<kind>`` suffix sets in the pose finder's options (the keys its ``Conf`` has):
+#: the feature kind and its count per query (ORB's 500 are the fast path, ORB-SLAM's budget
+#: at 640x480; SIFT's 2000 the pose finder's default) and, for ORB, matching the best
+#: candidate's landmarks before the whole group's (``first_pool_keyframes``), as the fast
+#: path spends its time in matching otherwise.
+STEP_FEATURES: dict[str, dict[str, Any]] = {
+    "orb": {"kind": "orb", "max_features": 500, "first_pool_keyframes": 1},
+    "sift": {"kind": "sift", "max_features": 2000}}
+
+
+def pose_options(pose_label: str, options: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """The options dict (``name`` included) of the pose part ``"p3p"`` or ``"p3p:orb"``."""
+    name, sep, kind = (s.strip() for s in pose_label.partition(":"))
+    if not sep:
+        return {**options.get(name, {}), "name": name}
+    if not name or kind not in STEP_FEATURES:
+        raise ConfigError(f"multi relocalizer: expected '<pose>:<features>' with features one "
+                          f"of {sorted(STEP_FEATURES)} (e.g. 'p3p:orb'), got {pose_label!r}")
+    fields = {f.name for f in dataclasses.fields(POSE_FINDERS.lookup(name).Conf)}
+    preset = {k: v for k, v in STEP_FEATURES[kind].items() if k in fields}
+    if "kind" not in preset:
+        raise ConfigError(f"multi relocalizer: pose finder {name!r} takes no features, so "
+                          f"{pose_label!r} means nothing; expected e.g. 'p3p:orb'")
+    return {**options.get(name, {}), **preset, **options.get(f"{name}:{kind}", {}),
+            "name": name}
+
+
+def _allowed_ids(state: MapState, prior: Prior | None) -> set[int] | None:
+    """Keyframe ids whose centre lies within the prior's radius; None without a prior."""
+    if prior is None:
+        return None
+    ids = np.array(state.keyframe_ids(), np.int64)
+    if len(ids) == 0:
+        return set()
+    dist = np.linalg.norm(state.positions_world(ids.tolist()) - prior.world_from_cam[:3, 3], axis=1)
+    return set(ids[dist <= prior.radius_m].tolist())
+
+
+def _no_candidate_reason(state: MapState, allowed: set[int] | None) -> str:
+    if not state.keyframes:
+        return "the map has no keyframe"
+    if allowed is not None and not allowed:
+        return "no keyframe within the prior's radius"
+    return "the place finder proposed no keyframe"
+
+
+def _add_timings(total: dict[str, float], more: Mapping[str, float]) -> None:
+    """Sum ``more`` into ``total`` stage by stage (in place)."""
+    for stage, seconds in more.items():
+        total[stage] = total.get(stage, 0.0) + seconds
+
+
+def _explains(own: PoseEstimate, contender: PoseEstimate, query: Frame) -> bool:
+    """Whether ``own`` pose reprojects most of ``contender``'s consensus within its inlier
+    threshold: then the contender's evidence is explained by ``own`` too (the same solution,
+    seen on less of the image), and ``own`` stands without a comparison."""
+    share = uniqueness.fits_consensus(contender, own.world_from_cam, query.camera)
+    return share is not None and share > 0.5
+
+
+def _failure(method: str, results: list[RelocResult], timings: dict[str, float],
+             map_version: int) -> RelocResult:
+    """NOT_RELOCALIZED carrying the first group's evidence and every group's reason."""
+    first = results[0]
+    reasons = [r.reason for r in results]
+    reason = reasons[0] if len(reasons) == 1 else "; ".join(
+        f"group {i + 1}: {r}" for i, r in enumerate(reasons))
+    return RelocResult.failure(method, reason, inliers=first.inliers,
+                               num_matches=first.num_matches,
+                               reprojection_rms_px=first.reprojection_rms_px,
+                               matched_keyframe_ids=first.matched_keyframe_ids, timings=timings,
+                               map_version=map_version)

@@ -1,0 +1,648 @@
+"""Map persistence: a whole map saved as an immutable snapshot directory, switched atomically.
+
+Layout of a map directory ``MAP`` (format version 4)::
+
+    MAP/CURRENT                     names the current snapshot: ``snapshots/000012``
+    MAP/snapshots/000012/
+        manifest.json               format, versions, keyframes, and a SHA-256 of every file
+        images/<id>.jpg|png         keyframe images: the JPEG (or grey PNG) a client sent, as
+                                    sent; else the pixels as PNG (decoded when first used)
+        depth/<id>.npy              float32 Z-depth maps (keyframes that have one)
+        features/<kind>.<field>.npy every keyframe's features of one kind, concatenated in
+                                    manifest order (each keyframe names its row range); narrow
+                                    where lossless, no field load can derive exactly (points
+                                    and ids from the landmarks, ORB sizes from the levels, ORB
+                                    keypoints from int16 pixels of their level; ORB angles,
+                                    read by nothing, not at all): see :mod:`.feature_columns`
+        thumbnails/<key>.npy        small blurry images already computed (one row a keyframe)
+        landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR):
+                                    integers in the narrowest exact type, points as float32
+                                    offsets from an observing keyframe where the rounding is
+                                    far below each landmark's uncertainty (see
+                                    :mod:`.landmark_codec`), else float64
+        models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote
+
+Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the images too,
+decoded by the keyframe on first use): loading rebuilds nothing but each kind's landmark ids
+(one scatter of the observations) and the landmark integer columns stored narrower than they
+are held (one vectorised copy each; float32 points and sigmas stay mapped, their float64 rows
+decoded on read), the arrays stay on disk until a query touches them (each keyframe's features
+are built from the shared columns on first use), and a change after loading copies what it
+changes (copy on write; the snapshot files are never written again). Each file's SHA-256 is
+checked at load (streamed, so a check does not hold the file in memory). Snapshots of format
+version 3 (float64 landmark points, float32 ORB keypoints and angles), 2 (every feature field
+in full, PNG images) and 1 (PNG images, one ``.npz`` per keyframe and kind) are still read.
+
+A save writes a new snapshot (every file fsynced, the manifest last), then replaces
+``CURRENT`` with :func:`os.replace` and prunes the snapshots it was built from (keeping the
+one it replaced), so a crash at any moment leaves the previous snapshot loadable. A save made
+while ``CURRENT`` is missing removes nothing: the snapshots present are not its ancestors.
+One process writes a map directory at a time.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+from reloc_client.protocol import pose_covariance_problem
+
+from ..core.cameras import Camera, camera_from_dict
+from ..core.errors import CameraError, GeometryError, MapError, StorageError
+from ..core.fileio import fsync_path
+from ..core.frame import SIFT_DIM, EncodedImage, Features, Keyframe
+from ..core.landmark_table import Landmark, LandmarkColumns, LandmarkTable
+from ..core.map import MapState
+from .feature_columns import (
+    ANGLELESS_KINDS,
+    DERIVABLE_FIELDS,
+    LEVEL_PIXELS,
+    SCALE_TABLE,
+    SIZE_TABLE,
+    STORED_FIELDS,
+    FeatureColumns,
+    LazyFeatures,
+    feature_count,
+    kind_columns,
+    narrowest,
+)
+from .landmark_codec import ANCHORED_POINTS, WidenedColumn, anchored_points, encode_geometry
+from .snapshot_files import (
+    CURRENT_FILE,
+    MANIFEST_FILE,
+    SNAPSHOTS_DIR,
+    SnapshotReader,
+    SnapshotWriter,
+    current_or_none,
+    current_snapshot,
+    fsync_tree,
+    new_snapshot_dir,
+    prune_snapshots,
+    switch_current,
+)
+
+FORMAT = "reloc map"
+FORMAT_VERSION = 4
+#: Older format versions this reloc still reads.
+READABLE_VERSIONS = (1, 2, 3, 4)
+MODELS_DIR = "models"
+
+FEATURE_FIELDS = ("keypoints_px", "levels", "sizes", "angles", "descriptors", "landmark_ids",
+                  "points_world")
+LANDMARK_FIELDS = ("ids", "points_world", "obs_offsets", "obs_keyframe", "obs_kind",
+                   "obs_keypoint", "kinds")
+#: Arrays added since the first snapshot format; older snapshots read without them.
+OPTIONAL_LANDMARK_FIELDS = ("depth_sigmas_m",)
+#: Landmark columns of format 2 (``kinds`` lives in the manifest).
+LANDMARK_COLUMNS = ("ids", "points_world", "depth_sigmas_m", "obs_offsets", "obs_keyframe",
+                    "obs_kind", "obs_keypoint")
+#: Narrower dtypes tried for landmark integer columns at save (narrowest first; formats 3 and
+#: 4), and the dtypes every landmark column is read back in (a copy when stored narrower).
+LANDMARK_NARROWER: dict[str, tuple[type, ...]] = {
+    "ids": (np.int32,), "obs_offsets": (np.int32,), "obs_keyframe": (np.int16, np.int32),
+    "obs_kind": (np.int8,), "obs_keypoint": (np.int16, np.int32)}
+LANDMARK_DTYPES = {"ids": np.int64, "obs_offsets": np.int64, "obs_keyframe": np.int64,
+                   "obs_kind": np.int16, "obs_keypoint": np.int64}
+#: Landmark columns stored as they are or narrowed (points and sigmas: :func:`encode_geometry`).
+LANDMARK_INTEGERS = ("ids", "obs_offsets", "obs_keyframe", "obs_kind", "obs_keypoint")
+#: Keyframe cache entries saved with the map: PTAM's small blurry images (``Frame.cache``
+#: key prefix), so a place finder indexing a loaded map need not read every image.
+THUMBNAIL_PREFIX = "sbi:"
+
+Array = npt.NDArray[np.float64]
+
+ModelWriter = Callable[[Path], None]
+
+
+def model_dir_name(method: str) -> str:
+    """Directory name under ``models/`` for a method string (safe characters only)."""
+    return re.sub(r"[^A-Za-z0-9._+,=-]", "_", method) or "_"
+
+
+# -- writing ----------------------------------------------------------------------------------
+
+def _npy_bytes(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=False)
+    return buf.getvalue()
+
+
+def _image_file(kf: Keyframe) -> tuple[str, bytes]:
+    """``kf``'s image file (extension, bytes): the compressed image it was given (a client's
+    JPEG, a loaded snapshot's file: never re-encoded, and a lossy one not made lossier), else
+    its pixels as PNG."""
+    if kf.encoded is not None:
+        return kf.encoded.format, kf.encoded.tobytes()
+    return "png", _png_bytes(kf.image)
+
+
+def _png_bytes(image: npt.NDArray[np.uint8]) -> bytes:
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise StorageError("could not encode a keyframe image as PNG")
+    return buf.tobytes()
+
+
+def _write_keyframe(writer: SnapshotWriter, kf: Keyframe,
+                    rows: Mapping[str, tuple[int, int]]) -> dict[str, Any]:
+    """The manifest entry of ``kf`` (its image and depth written; features by row range)."""
+    ext, data = _image_file(kf)
+    entry: dict[str, Any] = {
+        "id": kf.id, "camera": kf.camera.to_dict(), "world_from_cam": kf.world_from_cam.tolist(),
+        "timestamp": None if kf.timestamp is None else float(kf.timestamp),
+        "image": writer.write(f"images/{kf.id}.{ext}", data),
+        "depth": None, "features": {k: list(r) for k, r in sorted(rows.items())}}
+    if kf.pose_covariance is not None:   # absent: none was put (older snapshots neither)
+        entry["pose_covariance"] = kf.pose_covariance.tolist()
+    if kf.depth is not None:
+        entry["depth"] = writer.write(f"depth/{kf.id}.npy", _npy_bytes(kf.depth.astype(np.float32)))
+    return entry
+
+
+def _feature_rows(keyframes: list[Keyframe]) -> dict[int, dict[str, tuple[int, int]]]:
+    """Per keyframe id, per kind, its row range in the concatenated feature columns."""
+    ends: dict[str, int] = {}
+    out: dict[int, dict[str, tuple[int, int]]] = {}
+    for kf in keyframes:
+        out[kf.id] = {}
+        for kind in sorted(kf.features):
+            start = ends.get(kind, 0)
+            ends[kind] = start + feature_count(kf.features, kind)
+            out[kf.id][kind] = (start, ends[kind])
+    return out
+
+
+def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: MapState,
+                    landmarks: LandmarkColumns,
+                    rows: Mapping[int, Mapping[str, tuple[int, int]]]) -> None:
+    """One ``.npy`` per kind and stored column (:func:`.feature_columns.kind_columns`)."""
+    for kind in sorted({k for kf in keyframes for k in kf.features}):
+        owners = [(kf.id, rows[kf.id][kind][0], kf.features)
+                  for kf in keyframes if kind in kf.features]
+        for name, column in kind_columns(kind, owners, state.landmarks, landmarks).items():
+            writer.write(f"features/{kind}.{name}.npy", _npy_bytes(column))
+
+
+def _write_thumbnails(writer: SnapshotWriter, keyframes: list[Keyframe]) -> list[str]:
+    """Small blurry images every keyframe already has (same cache key), one file per key."""
+    if not keyframes:
+        return []
+    keys = set.intersection(*({k for k in kf.cache if k.startswith(THUMBNAIL_PREFIX)}
+                              for kf in keyframes))
+    for key in sorted(keys):
+        stack = np.stack([np.asarray(kf.cache[key], np.float32) for kf in keyframes])
+        writer.write(_thumbnail_path(key), _npy_bytes(stack))
+    return sorted(keys)
+
+
+def _thumbnail_path(key: str) -> str:
+    return f"thumbnails/{re.sub(r'[^A-Za-z0-9._-]', '_', key)}.npy"
+
+
+def _write_landmarks(writer: SnapshotWriter, columns: LandmarkColumns,
+                     keyframes: Mapping[int, Keyframe], *, exact: bool) -> dict[str, Any]:
+    """The landmark columns: ids and observation indices in the narrowest exact integer
+    type, points and sigmas float32 where :func:`encode_geometry` allows (never if ``exact``)."""
+    for name in LANDMARK_INTEGERS:
+        column = narrowest(np.asarray(getattr(columns, name)), LANDMARK_NARROWER[name])
+        writer.write(f"landmarks/{name}.npy", _npy_bytes(column))
+    for name, column in encode_geometry(columns, keyframes, exact=exact).items():
+        writer.write(f"landmarks/{name}.npy", _npy_bytes(column))
+    return {"dir": "landmarks", "kinds": list(columns.kinds)}
+
+
+def save_map(state: MapState, directory: str | Path, *,
+             models: Mapping[str, ModelWriter] | None = None,
+             exact_geometry: bool = False) -> Path:
+    """Save ``state`` (and models: method -> writer called with its own empty directory) as a
+    new snapshot of map directory ``directory``; returns the snapshot path. With
+    ``exact_geometry`` landmark points and sigmas are stored float64 as held (a replica that
+    must answer bit for bit as this map does), else float32 where far below their
+    uncertainty (:func:`.landmark_codec.encode_geometry`)."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    previous = current_or_none(directory)
+    snapshot = new_snapshot_dir(directory)
+    writer = SnapshotWriter(snapshot)
+    # insertion order, kept by load_map: a replica copies the map in the order it was built
+    kfs = list(state.keyframes.values())
+    rows = _feature_rows(kfs)
+    keyframes = [_write_keyframe(writer, kf, rows[kf.id]) for kf in kfs]
+    columns = state.landmarks.columns()
+    _write_features(writer, kfs, state, columns, rows)
+    thumbnails = _write_thumbnails(writer, kfs)
+    landmarks = _write_landmarks(writer, columns, state.keyframes, exact=exact_geometry)
+    model_dirs: dict[str, str] = {}
+    for method, write_model in (models or {}).items():
+        rel = f"{MODELS_DIR}/{model_dir_name(method)}"
+        (snapshot / rel).mkdir(parents=True, exist_ok=True)
+        write_model(snapshot / rel)
+        writer.record_tree(rel)
+        model_dirs[method] = rel
+    manifest = {"format": FORMAT, "format_version": FORMAT_VERSION,
+                "map_version": int(state.version), "next_landmark_id": int(state.next_landmark_id),
+                "keyframes": keyframes, "landmarks": landmarks, "thumbnails": thumbnails,
+                "models": model_dirs,
+                "files": writer.files}
+    writer.write(MANIFEST_FILE, json.dumps(manifest, indent=1).encode("utf-8"))
+    fsync_tree(snapshot)
+    fsync_path(snapshot.parent)
+    switch_current(directory, snapshot)
+    prune_snapshots(directory, snapshot, previous)
+    return snapshot
+
+
+# -- reading ----------------------------------------------------------------------------------
+
+def _read_manifest(snapshot: Path) -> dict[str, Any]:
+    path = snapshot / MANIFEST_FILE
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise StorageError(f"{path}: missing; the snapshot is incomplete") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise StorageError(f"{path}: not valid JSON ({exc}); expected the map manifest") from exc
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        got = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
+        raise StorageError(f"{path}: format {got!r}, expected {FORMAT!r}")
+    version = manifest.get("format_version")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise StorageError(f"{path}: format_version {version!r}, expected a positive integer")
+    if version > FORMAT_VERSION:
+        raise StorageError(f"{path}: written by a newer reloc (format version {version}; this "
+                           f"version reads up to {FORMAT_VERSION}); upgrade reloc to load it")
+    if version not in READABLE_VERSIONS:
+        raise StorageError(f"{path}: format version {version} is not readable by this reloc "
+                           f"(it reads {', '.join(map(str, READABLE_VERSIONS))})")
+    landmarks_type = str if version == 1 else dict
+    for key, kind in (("keyframes", list), ("files", dict), ("models", dict),
+                      ("map_version", int), ("next_landmark_id", int),
+                      ("landmarks", landmarks_type)):
+        if not isinstance(manifest.get(key), kind):
+            raise StorageError(f"{path}: field {key!r} missing or not a {kind.__name__}")
+    for entry in manifest["keyframes"]:
+        _check_entry_covariance(path, entry)
+    return manifest
+
+
+def _check_entry_covariance(path: Path, entry: Any) -> None:
+    """A keyframe entry's ``pose_covariance``, when present, must be a pose covariance
+    (6x6, finite, symmetric, positive semi-definite); StorageError naming the keyframe."""
+    if not isinstance(entry, dict) or entry.get("pose_covariance") is None:
+        return
+    problem = pose_covariance_problem(entry["pose_covariance"])
+    if problem is not None:
+        raise StorageError(f"{path}: keyframe {entry.get('id')!r}: pose_covariance: expected a "
+                           f"6x6 pose covariance (symmetric, positive semi-definite): {problem}")
+
+
+def _entry_covariance(entry: Mapping[str, Any]) -> Array | None:
+    """The (6, 6) pose covariance of a keyframe entry (checked by :func:`_read_manifest`), or
+    None when the entry has none."""
+    value = entry.get("pose_covariance")
+    return None if value is None else np.array(value, np.float64)
+
+
+def _read_image(reader: SnapshotReader, relpath: str) -> npt.NDArray[np.uint8]:
+    data = np.frombuffer(reader.read(relpath), np.uint8)
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if image is None or image.ndim != 2 or image.dtype != np.uint8:
+        raise StorageError(f"{reader.root / relpath}: expected a grey 8-bit PNG")
+    return np.asarray(image, dtype=np.uint8)
+
+
+def _read_keyframe(reader: SnapshotReader, entry: Mapping[str, Any]) -> Keyframe:
+    where = f"{reader.root / MANIFEST_FILE}: keyframe {entry.get('id')!r}"
+    try:
+        features = {}
+        for kind, rel in dict(entry["features"]).items():
+            arrays = reader.npz(rel, FEATURE_FIELDS)
+            arrays["descriptors"] = _compact_descriptors(arrays["descriptors"])
+            features[kind] = Features(kind=kind, **arrays)
+        depth = None
+        if entry.get("depth") is not None:
+            depth = np.load(io.BytesIO(reader.read(entry["depth"])), allow_pickle=False)
+        timestamp = entry.get("timestamp")
+        return Keyframe(image=_read_image(reader, entry["image"]),
+                        camera=camera_from_dict(entry["camera"]), features=features,
+                        id=entry["id"],
+                        world_from_cam=np.array(entry["world_from_cam"], np.float64),
+                        timestamp=None if timestamp is None else float(timestamp), depth=depth,
+                        pose_covariance=_entry_covariance(entry))
+    except StorageError:
+        raise
+    except (KeyError, TypeError, ValueError, GeometryError, CameraError, MapError) as exc:
+        raise StorageError(f"{where}: {exc}") from exc
+
+
+def _compact_descriptors(descriptors: np.ndarray) -> np.ndarray:
+    """Format-1 SIFT descriptors (float32 holding integers 0-255) as the uint8 kept now;
+    anything else (not integral, out of range) unchanged."""
+    d = descriptors
+    if (d.dtype == np.float32 and d.ndim == 2 and d.shape[1] == SIFT_DIM
+            and np.all((d >= 0) & (d <= 255) & (d == np.rint(d)))):
+        return d.astype(np.uint8)
+    return d
+
+
+def _read_landmarks(reader: SnapshotReader, relpath: str,
+                    keyframes: Mapping[int, Keyframe]) -> dict[int, Landmark]:
+    a = reader.npz(relpath, LANDMARK_FIELDS, optional=OPTIONAL_LANDMARK_FIELDS)
+    where = reader.root / relpath
+    n, n_obs = len(a["ids"]), len(a["obs_keyframe"])
+    sigmas = a.get("depth_sigmas_m", np.zeros(n))
+    if sigmas.shape != (n,) or not np.all(np.isfinite(sigmas) & (sigmas >= 0)):
+        raise StorageError(f"{where}: depth_sigmas_m: expected {n} finite values >= 0")
+    offsets = a["obs_offsets"]
+    if (a["points_world"].shape != (n, 3) or offsets.shape != (n + 1,) or offsets[0] != 0
+            or offsets[-1] != n_obs or np.any(np.diff(offsets) < 0)
+            or len(a["obs_kind"]) != n_obs or len(a["obs_keypoint"]) != n_obs):
+        raise StorageError(f"{where}: inconsistent landmark arrays (ids {n}, points "
+                           f"{a['points_world'].shape}, {n_obs} observations)")
+    kinds = [str(k) for k in a["kinds"]]
+    _check_observations(where, a, kinds, keyframes)
+    obs = list(zip(a["obs_keyframe"].tolist(), [kinds[k] for k in a["obs_kind"].tolist()],
+                   a["obs_keypoint"].tolist(), strict=True))
+    bounds = offsets.tolist()
+    return {lm_id: Landmark(lm_id, a["points_world"][i].copy(),
+                            frozenset(obs[bounds[i]:bounds[i + 1]]), float(sigmas[i]))
+            for i, lm_id in enumerate(a["ids"].tolist())}
+
+
+def _check_observations(where: Path, a: Mapping[str, np.ndarray], kinds: list[str],
+                        keyframes: Mapping[int, Keyframe]) -> None:
+    """Every observation names a saved keyframe, a saved feature kind and a keypoint index."""
+    if len(a["obs_kind"]) == 0:
+        return
+    if a["obs_kind"].min() < 0 or a["obs_kind"].max() >= len(kinds):
+        raise StorageError(f"{where}: observation kind index outside {kinds}")
+    kf_ids = np.array(sorted(keyframes), dtype=np.int64)
+    pos = np.searchsorted(kf_ids, a["obs_keyframe"])
+    known = (kf_ids[np.minimum(pos, len(kf_ids) - 1)] == a["obs_keyframe"] if len(kf_ids)
+             else np.zeros(len(pos), bool))
+    if not known.all():
+        unknown = np.unique(a["obs_keyframe"][~known])[:5].tolist()
+        raise StorageError(f"{where}: observations of unknown keyframe(s) {unknown}")
+    sizes = np.array([[feature_count(keyframes[k].features, kind)
+                       if kind in keyframes[k].features else 0
+                       for kind in kinds] for k in kf_ids.tolist()], dtype=np.int64)
+    size = sizes[pos, a["obs_kind"].astype(np.int64)]
+    bad = (a["obs_keypoint"] < 0) | (a["obs_keypoint"] >= size)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise StorageError(f"{where}: observation of keyframe {int(a['obs_keyframe'][i])} "
+                           f"{kinds[int(a['obs_kind'][i])]} keypoint {int(a['obs_keypoint'][i])} "
+                           f"outside [0, {int(size[i])})")
+
+
+def _read_keyframes(reader: SnapshotReader, manifest: Mapping[str, Any],
+                    read: Callable[[SnapshotReader, Mapping[str, Any]], Keyframe]
+                    ) -> dict[int, Keyframe]:
+    keyframes: dict[int, Keyframe] = {}
+    for entry in manifest["keyframes"]:
+        kf = read(reader, entry)
+        if kf.id in keyframes:
+            raise StorageError(f"{reader.root / MANIFEST_FILE}: keyframe {kf.id} listed twice")
+        keyframes[kf.id] = kf
+    return keyframes
+
+
+class _FeatureColumns:
+    """The memory-mapped feature columns of a format-2 or 3 snapshot, cut into keyframes
+    (format 3: narrow columns without derived points, built per keyframe on first use;
+    :mod:`.feature_columns`)."""
+
+    def __init__(self, reader: SnapshotReader, manifest: Mapping[str, Any]) -> None:
+        kinds = sorted({k for e in manifest["keyframes"] for k in dict(e.get("features", {}))})
+        self.lazy = manifest["format_version"] >= 3
+        self.columns: dict[str, dict[str, np.ndarray]] = {}
+        self._cameras: dict[str, Camera] = {}
+        tables: dict[str, np.ndarray] = {}
+        scales: dict[str, np.ndarray] = {}
+        for kind in kinds:
+            listed = {f for f in (*DERIVABLE_FIELDS, LEVEL_PIXELS)
+                      if f"features/{kind}.{f}.npy" in manifest["files"]}
+            stored = [f for f in STORED_FIELDS
+                      if not (f == "keypoints_px" and LEVEL_PIXELS in listed)
+                      and not (f == "angles" and manifest["format_version"] >= 4
+                               and kind in ANGLELESS_KINDS)]
+            fields = [*stored, *sorted(listed)]
+            cols = {f: reader.npy(f"features/{kind}.{f}.npy")
+                    for f in (fields if self.lazy else FEATURE_FIELDS)}
+            if self.lazy and "sizes" not in cols:
+                tables[kind] = _size_table(reader, f"features/{kind}.{SIZE_TABLE}.npy")
+            if self.lazy and LEVEL_PIXELS in cols:
+                scales[kind] = _size_table(reader, f"features/{kind}.{SCALE_TABLE}.npy")
+                if cols[LEVEL_PIXELS].dtype != np.int16 or cols[LEVEL_PIXELS].ndim != 2:
+                    raise StorageError(f"{reader.root}/features/{kind}.{LEVEL_PIXELS}.npy: "
+                                       f"expected (N, 2) int16, got {cols[LEVEL_PIXELS].shape} "
+                                       f"{cols[LEVEL_PIXELS].dtype}")
+            lengths = {f: len(c) for f, c in cols.items()}
+            if len(set(lengths.values())) != 1:
+                raise StorageError(f"{reader.root}/features/{kind}.*.npy: columns of different "
+                                   f"lengths {lengths}; expected one row per keypoint")
+            # plain ndarray views of the maps: slicing an np.memmap 8000 times (1000 keyframes
+            # x 8 columns) paid its __array_finalize__ each time; the views still read the map
+            self.columns[kind] = {f: c.view(np.ndarray) for f, c in cols.items()}
+        self.shared = FeatureColumns(self.columns, tables, scales)
+        self.starts: dict[str, list[tuple[int, int]]] = {}
+
+    def attach_landmarks(self, landmarks: LandmarkColumns) -> None:
+        """Give the lazily built features the landmark columns (ids and points derived)."""
+        starts = {kind: (np.array([p[0] for p in sorted(pairs)], np.int64).reshape(-1),
+                         np.array([p[1] for p in sorted(pairs)], np.int64).reshape(-1))
+                  for kind, pairs in self.starts.items()}
+        try:
+            self.shared.attach_landmarks(landmarks, starts)
+        except MapError as exc:
+            raise StorageError(f"features: {exc}") from exc
+
+    def keyframe(self, reader: SnapshotReader, entry: Mapping[str, Any]) -> Keyframe:
+        where = f"{reader.root / MANIFEST_FILE}: keyframe {entry.get('id')!r}"
+        try:
+            features = self._keyframe_features(int(entry["id"]), dict(entry["features"]))
+            camera = self._camera(entry["camera"])
+            image = EncodedImage(reader.map(entry["image"]), (camera.height, camera.width))
+            depth = None if entry.get("depth") is None else reader.npy(entry["depth"])
+            timestamp = entry.get("timestamp")
+            return Keyframe(image=image, camera=camera,
+                            features=features, id=entry["id"],
+                            world_from_cam=np.array(entry["world_from_cam"], np.float64),
+                            timestamp=None if timestamp is None else float(timestamp),
+                            depth=depth, pose_covariance=_entry_covariance(entry))
+        except StorageError:
+            raise
+        except (KeyError, TypeError, ValueError, GeometryError, CameraError, MapError) as exc:
+            raise StorageError(f"{where}: {exc}") from exc
+
+    def _camera(self, d: Any) -> Camera:
+        """``camera_from_dict(d)``, built once per distinct dict: keyframes of one camera
+        share a (frozen) Camera instead of rebuilding and revalidating it 1000 times."""
+        if not isinstance(d, dict):
+            return camera_from_dict(d)
+        key = repr(sorted(d.items(), key=lambda kv: str(kv[0])))
+        camera = self._cameras.get(key)
+        if camera is None:
+            camera = self._cameras[key] = camera_from_dict(d)
+        return camera
+
+    def _keyframe_features(self, kf_id: int, entry: Mapping[str, Any]
+                           ) -> dict[str, Features] | LazyFeatures:
+        rows = {kind: self._rows(kind, r) for kind, r in entry.items()}
+        for kind, (start, _) in rows.items():
+            self.starts.setdefault(kind, []).append((kf_id, start))
+        if self.lazy:
+            return LazyFeatures(self.shared, rows)
+        return {kind: Features(kind=kind, **self.shared.raw(kind, *r)) for kind, r in rows.items()}
+
+    def _rows(self, kind: str, rows: Any) -> tuple[int, int]:
+        start, stop = (int(r) for r in rows)
+        if kind not in self.columns:
+            raise ValueError(f"{kind} features listed but not saved")
+        n = len(self.columns[kind]["levels"])
+        if not 0 <= start <= stop <= n:
+            raise ValueError(f"{kind} rows [{start}, {stop}) outside the {n} saved")
+        return start, stop
+
+
+def _size_table(reader: SnapshotReader, relpath: str) -> np.ndarray:
+    """A (K, 2) float32 table of (level ascending, value): sizes or scales by level."""
+    table = np.asarray(reader.npy(relpath))
+    if table.ndim != 2 or table.shape[1] != 2 or table.dtype != np.float32 or np.any(
+            np.diff(table[:, 0]) <= 0):
+        raise StorageError(f"{reader.root / relpath}: expected a (K, 2) float32 table of "
+                           f"(level ascending, value), got {table.shape} {table.dtype}")
+    return table
+
+
+def _attach_thumbnails(reader: SnapshotReader, manifest: Mapping[str, Any],
+                       keyframes: list[Keyframe]) -> None:
+    """Put the saved small blurry images back into the keyframes' caches."""
+    for key in manifest.get("thumbnails", []):
+        stack = reader.npy(_thumbnail_path(str(key)))
+        if len(stack) != len(keyframes) or stack.ndim != 3:
+            raise StorageError(f"{reader.root / _thumbnail_path(str(key))}: expected "
+                               f"({len(keyframes)}, h, w) thumbnails, got {stack.shape}")
+        for kf, thumb in zip(keyframes, stack, strict=True):
+            kf.cache[str(key)] = thumb
+
+
+def _widened(column: np.ndarray, dtype: Any) -> np.ndarray:
+    """``column`` in ``dtype`` (a read-only copy when stored narrower), else as it is."""
+    if dtype is None or column.dtype == dtype:
+        return column
+    wide = column.view(np.ndarray).astype(dtype)
+    wide.flags.writeable = False
+    return wide
+
+
+def _read_landmark_columns(reader: SnapshotReader, manifest: Mapping[str, Any],
+                           keyframes: Mapping[int, Keyframe]) -> LandmarkColumns:
+    meta = manifest["landmarks"]
+    where = reader.root / "landmarks"
+    anchored = f"landmarks/{ANCHORED_POINTS}.npy" in manifest["files"]
+    a = {name: _widened(reader.npy(f"landmarks/{name}.npy"), LANDMARK_DTYPES.get(name))
+         for name in LANDMARK_COLUMNS if not (anchored and name == "points_world")}
+    if anchored:
+        a["points_world"] = reader.npy(f"landmarks/{ANCHORED_POINTS}.npy")
+        if a["points_world"].dtype != np.float32:
+            raise StorageError(f"{where}/{ANCHORED_POINTS}.npy: expected float32, got "
+                               f"{a['points_world'].dtype}")
+    n, n_obs = len(a["ids"]), len(a["obs_keyframe"])
+    offsets = a["obs_offsets"]
+    if (a["points_world"].shape != (n, 3) or a["depth_sigmas_m"].shape != (n,)
+            or offsets.shape != (n + 1,) or offsets[0] != 0 or offsets[-1] != n_obs
+            or len(a["obs_kind"]) != n_obs or len(a["obs_keypoint"]) != n_obs
+            or np.any(np.diff(offsets) < 0) or np.any(np.diff(a["ids"]) <= 0)):
+        raise StorageError(f"{where}: inconsistent landmark columns (ids {n}, ascending; points "
+                           f"{a['points_world'].shape}, {n_obs} observations)")
+    kinds = [str(k) for k in meta.get("kinds", [])]
+    _check_observations(where, a, kinds, keyframes)
+    if anchored:   # float32 on disk, float64 rows decoded on read (memory-mapped until then)
+        try:
+            a["points_world"] = anchored_points(a["points_world"], offsets, a["obs_keyframe"],
+                                                keyframes)  # type: ignore[assignment]
+        except ValueError as exc:
+            raise StorageError(f"{where}/{ANCHORED_POINTS}.npy: {exc}") from exc
+    if a["depth_sigmas_m"].dtype == np.float32:
+        a["depth_sigmas_m"] = WidenedColumn(a["depth_sigmas_m"])  # type: ignore[assignment]
+    return LandmarkColumns(a["ids"], a["points_world"], a["depth_sigmas_m"], offsets,
+                           a["obs_keyframe"], a["obs_kind"], a["obs_keypoint"], tuple(kinds))
+
+
+def load_map(directory: str | Path) -> tuple[MapState, Path | None]:
+    """The map saved in ``directory`` and its models directory (None if no model was saved);
+    StorageError naming the file if the map is missing, damaged or from a newer version."""
+    snapshot = current_snapshot(directory)
+    manifest = _read_manifest(snapshot)
+    reader = SnapshotReader(snapshot, manifest["files"])
+    if manifest["format_version"] == 1:
+        keyframes = _read_keyframes(reader, manifest, _read_keyframe)
+        landmarks = LandmarkTable.from_mapping(
+            _read_landmarks(reader, manifest["landmarks"], keyframes))
+    else:
+        with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+            try:
+                # the columns first (needed before any keyframe), the images behind them
+                reader.prefetch(pool, sorted((rel for rel in manifest["files"]
+                                              if not rel.startswith(MODELS_DIR + "/")),
+                                             key=lambda rel: rel.startswith("images/")))
+                columns = _FeatureColumns(reader, manifest)
+                keyframes = _read_keyframes(reader, manifest, columns.keyframe)
+                _attach_thumbnails(reader, manifest, list(keyframes.values()))
+                landmark_columns = _read_landmark_columns(reader, manifest, keyframes)
+                columns.attach_landmarks(landmark_columns)
+                landmarks = LandmarkTable(landmark_columns)
+                reader.wait_all()
+            finally:
+                pool.shutdown(cancel_futures=True)   # a damaged file: do not hash the rest
+    state = MapState(MappingProxyType(keyframes), landmarks,
+                     manifest["map_version"], manifest["next_landmark_id"])
+    models = snapshot / MODELS_DIR
+    if not manifest["models"]:
+        return state, None
+    reader.verify_tree(MODELS_DIR)
+    return state, models
+
+
+def verify_snapshot(snapshot: str | Path) -> int:
+    """Check ``snapshot``'s manifest and the size and SHA-256 of every file it lists; the
+    number of files checked. StorageError naming the first damaged or missing file."""
+    snapshot = Path(snapshot)
+    manifest = _read_manifest(snapshot)
+    reader = SnapshotReader(snapshot, manifest["files"])
+    for rel in manifest["files"]:
+        reader.read(rel)
+    return len(manifest["files"])
+
+
+def restore_current(directory: str | Path, snapshot: str | Path) -> Path:
+    """Point a missing ``CURRENT`` of ``directory`` at ``snapshot`` (a name under
+    ``snapshots/``) after verifying every file of it; returns the snapshot path.
+    StorageError if ``CURRENT`` exists or the snapshot does not verify."""
+    directory = Path(directory)
+    path = directory / SNAPSHOTS_DIR / Path(snapshot).name
+    if (directory / CURRENT_FILE).exists():
+        raise StorageError(f"{directory / CURRENT_FILE}: exists; not replaced")
+    if not path.is_dir():
+        raise StorageError(f"{path}: does not exist")
+    verify_snapshot(path)
+    switch_current(directory, path)
+    return path
+
+
+def saved_models(directory: str | Path) -> dict[str, Path]:
+    """Method string -> model directory of the current snapshot (empty if none)."""
+    snapshot = current_snapshot(directory)
+    manifest = _read_manifest(snapshot)
+    return {method: snapshot / rel for method, rel in manifest["models"].items()}
