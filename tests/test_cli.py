@@ -1,6 +1,7 @@
 """The ``reloc`` command line: instant help (no heavy imports), subcommand parsing, errors."""
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -9,6 +10,7 @@ import pytest
 
 from reloc_service.cli import main as cli_main
 from reloc_service.cli.eval import load_options
+from reloc_service.cli.tools_extra import TOOL_COMMANDS
 from reloc_service.core.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,6 +42,23 @@ print('RESULT', elapsed, ','.join(heavy), file=sys.stderr)
     assert heavy == "", f"reloc {' '.join(argv)} imported {heavy}"
     assert elapsed < 0.3, f"reloc {' '.join(argv)} took {elapsed:.3f} s beyond interpreter start"
     assert "usage: reloc" in proc.stdout or "reloc 0." in proc.stdout
+
+
+def test_help_imports_no_subcommand_implementation():
+    """The subcommand modules give their help without importing what implements them."""
+    code = """
+import sys
+from reloc_service.cli.main import main
+try:
+    main(["--help"])
+except SystemExit:
+    pass
+print("LOADED", *sorted(m for m in sys.modules if m.startswith("reloc")), file=sys.stderr)
+"""
+    line = [x for x in _python(code).stderr.splitlines() if x.startswith("LOADED")][0]
+    loaded = line.split()[1:]
+    assert loaded and all(m in ("reloc_service", "reloc_service.cli")
+                          or m.startswith("reloc_service.cli.") for m in loaded), loaded
 
 
 def test_every_subcommand_is_listed(capsys):
@@ -113,22 +132,46 @@ def test_eval_list_methods(capsys):
         assert m["method"] in out
 
 
-@pytest.mark.parametrize("command,module", [("serve", "reloc_service.service.cli"),
-                                            ("bench", "reloc_service.tools.bench.cli"),
-                                            ("demo", "reloc_service.tools.demo"),
-                                            ("router", "reloc_service.service.router")])
-def test_delegated_commands_parse_or_say_they_are_missing(command, module, capsys, monkeypatch):
-    from reloc_service.cli._delegate import import_optional
+@pytest.mark.parametrize("command", cli_main.COMMANDS)
+def test_every_subcommand_module_has_the_one_interface(command):
+    module = cli_main.command_module(command)
+    assert isinstance(module.HELP, str) and module.HELP and "\n" not in module.HELP
+    assert callable(module.add_arguments) and callable(module.run)
 
-    if import_optional(module) is not None:
-        parser = cli_main.build_parser(command)
-        with pytest.raises(SystemExit) as exc:
-            parser.parse_args([command, "--help"])
-        assert exc.value.code == 0
-        return
-    assert cli_main.main([command, "--anything", "x"]) == 2
-    err = capsys.readouterr().err
-    assert f"reloc {command}: not available" in err and module in err
+
+@pytest.mark.parametrize("command", cli_main.COMMANDS)
+def test_every_subcommand_has_its_help(command, capsys):
+    parser = cli_main.build_parser(command)
+    with pytest.raises(SystemExit) as exc:
+        parser.parse_args([command, "--help"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.startswith(f"usage: reloc {command} ")
+
+
+def test_the_tool_commands_are_subcommands():
+    assert TOOL_COMMANDS <= set(cli_main.COMMANDS)
+
+
+def _readme_commands() -> list[tuple[str, str]]:
+    """(name, one-line help) of each row ``| `reloc NAME` | HELP |`` of the README's table."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    return re.findall(r"^\| `reloc (\w+)` \| (.+?) \|$", text, re.M)
+
+
+def _help_commands(text: str) -> list[tuple[str, str]]:
+    """(name, one-line help) of each subcommand listed by ``reloc --help`` (printed wide
+    enough that no help line wraps)."""
+    listing = text.split("  COMMAND\n", 1)[1].split("\n\n", 1)[0]
+    return [tuple(line.split(None, 1)) for line in listing.splitlines()]
+
+
+def test_the_readme_lists_the_commands_as_reloc_help_does(capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "200")
+    with pytest.raises(SystemExit):
+        cli_main.main(["--help"])
+    listed = _help_commands(capsys.readouterr().out)
+    assert [name for name, _ in listed] == list(cli_main.COMMANDS)
+    assert _readme_commands() == listed
 
 
 def test_synth_and_dataset_subcommands_are_wired():

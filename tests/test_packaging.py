@@ -16,8 +16,7 @@ from pathlib import Path
 import pytest
 from service_support import endpoint, free_port, stop_process, wait_until
 
-from reloc_service.cli._delegate import TOOLS_EXTRA_HINT, TOOLS_EXTRA_MODULES
-from reloc_service.cli.main import TOOL_COMMANDS
+from reloc_service.cli.tools_extra import TOOL_COMMANDS, TOOLS_EXTRA_HINT, TOOLS_EXTRA_MODULES
 
 ROOT = Path(__file__).resolve().parents[1]
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]

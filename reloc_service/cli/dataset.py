@@ -1,7 +1,5 @@
-"""``reloc dataset``: convert (TUM RGB-D, EuRoC) and check datasets.
-
-The glue is :mod:`reloc_service.tools.data.cli`, imported only when the subcommand is chosen.
-"""
+"""``reloc dataset``: implemented in :mod:`reloc_service.tools.data.cli`, imported only when the
+subcommand is chosen."""
 
 from __future__ import annotations
 

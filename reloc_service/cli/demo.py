@@ -1,14 +1,20 @@
-"""``reloc demo``: render desk, serve it over Zenoh and relocalize every query.
-
-Implemented in ``reloc_service.tools.demo``, imported only when the subcommand is chosen.
-"""
+"""``reloc demo``: implemented in :mod:`reloc_service.tools.demo`, imported only when the
+subcommand is chosen."""
 
 from __future__ import annotations
 
-from ._delegate import Delegate
+import argparse
 
 HELP = "render desk, serve it over Zenoh and relocalize every query"
 
-_delegate = Delegate("demo", "reloc_service.tools.demo")
-add_arguments = _delegate.add_arguments
-run = _delegate.run
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..tools.demo import add_arguments as add_demo_arguments
+
+    add_demo_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..tools.demo import run as run_demo
+
+    return run_demo(args)

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-HELP = "evaluate relocalization methods on a dataset (recall, errors, wrong poses, latency)"
+HELP = "evaluate relocalization methods on a dataset"
 
 DESCRIPTION = """\
 Build the map from DATASET/map.txt, train, relocalize every query of DATASET/queries.txt and

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-HELP = "inspect map storage (reloc map check DIR)"
+HELP = "inspect map storage: `reloc map check DIR` (exit 1 if damaged)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,14 +1,20 @@
-"""``reloc router``: run a Zenoh router (ground-station set-up).
-
-Implemented in ``reloc_service.service.router``, imported only when the subcommand is chosen.
-"""
+"""``reloc router``: implemented in :mod:`reloc_service.service.cli` (beside ``reloc serve``,
+with which it shares the Zenoh flags), imported only when the subcommand is chosen."""
 
 from __future__ import annotations
 
-from ._delegate import Delegate
+import argparse
 
 HELP = "run a Zenoh router (ground-station set-up)"
 
-_delegate = Delegate("router", "reloc_service.service.router")
-add_arguments = _delegate.add_arguments
-run = _delegate.run
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..service.cli import add_router_arguments
+
+    add_router_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..service.cli import run_router
+
+    return run_router(args)

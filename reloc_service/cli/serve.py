@@ -1,14 +1,20 @@
-"""``reloc serve``: run the Zenoh relocalization service.
-
-Implemented in ``reloc_service.service.cli``, imported only when the subcommand is chosen.
-"""
+"""``reloc serve``: implemented in :mod:`reloc_service.service.cli`, imported only when the
+subcommand is chosen."""
 
 from __future__ import annotations
 
-from ._delegate import Delegate
+import argparse
 
 HELP = "run the Zenoh relocalization service"
 
-_delegate = Delegate("serve", "reloc_service.service.cli")
-add_arguments = _delegate.add_arguments
-run = _delegate.run
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..service.cli import add_arguments as add_serve_arguments
+
+    add_serve_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..service.cli import run as run_serve
+
+    return run_serve(args)

@@ -84,9 +84,6 @@ def run(args: argparse.Namespace) -> int:
         return 1
 
 
-main = run
-
-
 # -- router -----------------------------------------------------------------------------------
 
 ROUTER_DEFAULT_LISTEN = "tcp/0.0.0.0:7447"

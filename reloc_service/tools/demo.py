@@ -58,9 +58,6 @@ def run(args: argparse.Namespace) -> int:
         return 1
 
 
-main = run
-
-
 def _demo(args: argparse.Namespace, work: Path) -> int:
     from ..service.app import Service
     from ..service.config import parse_config
