@@ -28,6 +28,7 @@ from reloc_service.core.errors import ConfigError, MapError, NotTrainedError
 from reloc_service.core.frame import Frame, Keyframe
 from reloc_service.core.map import KeyframeMap, MapState
 from reloc_service.core.mapping import MappingConf
+from reloc_service.core.methods import MethodStep
 from reloc_service.engine import Engine, EngineConf, MapView, ReadWriteLock
 
 
@@ -48,9 +49,9 @@ class Probe(Relocalizer):
         self.loaded: list[int] | None = None
 
     @classmethod
-    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]]
-                     ) -> Probe:
-        return cls(kmap, spec, options.get(spec, {}))
+    def from_options(cls, step: MethodStep, kmap: KeyframeMap,
+                     options: Mapping[str, Mapping[str, Any]]) -> Probe:
+        return cls(kmap, str(step), options.get(str(step), {}))
 
     @property
     def method(self) -> str:

@@ -23,6 +23,7 @@ from reloc_client.protocol import ErrorCode, ProtocolError
 from ..core.cameras import Camera, camera_from_dict
 from ..core.errors import CameraError, ConfigError, GeometryError, MapError, NotTrainedError, StorageError
 from ..core.frame import EncodedImage
+from ..core.methods import parse_method
 
 log = logging.getLogger(__name__)
 
@@ -158,11 +159,15 @@ def resolve_camera(rt: CameraRegistry, camera_id: str | None, camera: wire.WireC
 
 def served_method(map_name: str, methods: tuple[str, ...], default_method: str,
                   method: str | None) -> str:
-    """``method`` (default: ``default_method``) if it is one of ``methods``; UNKNOWN_METHOD
-    naming the served ones otherwise."""
+    """``method`` (default: ``default_method``) in its canonical form if that is one of
+    ``methods``; UNKNOWN_METHOD naming the served ones otherwise (a method that does not
+    parse is served by no name)."""
     if method is None:
         return default_method
-    method = ",".join(p.strip() for p in method.split(","))
+    try:
+        method = str(parse_method(method))
+    except ConfigError:
+        method = method.strip()
     if method not in methods:
         raise ProtocolError(ErrorCode.UNKNOWN_METHOD,
                             f"method {method!r} is not served on map {map_name!r}; "

@@ -28,6 +28,7 @@ from typing import Any
 
 from ..algorithms.relocalizers.factory import DEFAULT_METHOD
 from ..core.errors import ConfigError
+from ..core.methods import parse_method
 from ..core.plugins import make_conf
 from .ros2.conf import Ros2Conf
 
@@ -181,8 +182,11 @@ def _check_servable(method: str) -> None:
     tools when they are loaded in the same process) is never served."""
     from ..algorithms.place.base import PLACE_FINDERS
 
-    for step in method.split(","):
-        place = step.split("+")[0].strip() if "+" in step else ""
+    try:
+        steps = parse_method(method).steps
+    except ConfigError:
+        return  # reported, with the options, when the service builds its methods at start
+    for place in (step.place for step in steps if step.place is not None):
         if place in PLACE_FINDERS and PLACE_FINDERS[place].evaluation_only:
             raise ConfigError(f"service.methods: {method!r} uses the place finder {place!r}, "
                               f"which needs ground truth and is for evaluation only")

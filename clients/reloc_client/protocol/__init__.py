@@ -57,6 +57,7 @@ from .messages import (
     encode_error,
     unpack_message,
 )
+from .methods import MethodSpec, MethodStep, split_chain
 
 __all__ = [
     "PROTOCOL_VERSION", "DEFAULT_PREFIX", "CAMERA_MODELS", "ErrorCode", "ProtocolError", "Limits",
@@ -70,4 +71,4 @@ __all__ = [
     "ROTATION_TOL", "MAX_NAME_LEN", "decode_camera_put", "decode_error_reply", "decode_event",
     "decode_keyframe_info", "decode_keyframe_put", "decode_relocalize_reply",
     "decode_relocalize_request", "decode_status_reply", "decode_train_reply",
-    "decode_train_request"]
+    "decode_train_request", "MethodSpec", "MethodStep", "split_chain"]

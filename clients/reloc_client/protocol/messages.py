@@ -32,6 +32,7 @@ from .checks import (
 from .geometry import WireCamera, WirePose, pose_covariance_problem
 from .images import WireDepth, WireFeatures, WireImage
 from .keys import _check_kf_id, check_name
+from .methods import split_chain
 
 
 class ReplyStatus(enum.StrEnum):
@@ -278,10 +279,16 @@ class Prior:
 
 
 def _method(value: Any, path: str) -> str:
-    """A method name or comma-separated fallback chain, e.g. ``"bow+p3p,sbi+esm"``."""
+    """A method name or comma-separated fallback chain, e.g. ``"bow+p3p,sbi+esm"``: steps
+    that are not empty and hold no space. The steps' own form (:class:`.MethodSpec`) is left
+    to the service, which answers any method it does not serve with ``UNKNOWN_METHOD`` and
+    the list of those it does."""
     s = _str(value, path, _SHORT)
-    parts = [p.strip() for p in s.split(",")]
-    if not all(parts) or any(c.isspace() for p in parts for c in p):
+    try:
+        steps = split_chain(s)
+    except ValueError:
+        steps = ()
+    if not steps or any(c.isspace() for step in steps for c in step):
         raise _fail(ErrorCode.BAD_VALUE, path,
                     "a method such as 'sbi+p3p' or a comma-separated chain such as "
                     "'bow+p3p,sbi+esm'", value)

@@ -1,4 +1,5 @@
-"""Build a relocalizer from a method string: ``"ferns"``, ``"<place>+<pose>"`` (the multi
+"""Build a relocalizer from a method (a string, parsed once into a
+:class:`~reloc_service.core.methods.MethodSpec`): ``"ferns"``, ``"<place>+<pose>"`` (the multi
 relocalizer, e.g. ``"sbi+p3p"``), ``"<place>+<pose>:<features>"`` (the same on the named
 features, e.g. ``"sbi+p3p:orb"``: 500 ORB features per query, whatever ``options["p3p"]`` says
 about features) or a comma-separated fallback chain of those (``"sbi+p3p:orb,bow+p3p"``).
@@ -16,8 +17,8 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
-from ...core.errors import ConfigError
 from ...core.map import KeyframeMap
+from ...core.methods import MethodSpec, MethodStep, parse_method
 
 # Importing a plugin module runs its ``@register``: the explicit list of what the core offers
 # (no scanning, no entry points). Tools add their own (``tools.eval.gt``) by importing them.
@@ -39,21 +40,23 @@ Options = Mapping[str, Mapping[str, Any]]
 DEFAULT_METHOD = "sbi+p3p:orb,bow+p3p,sbi+p3p"
 
 
-def create_relocalizer(spec: str, kmap: KeyframeMap, *, options: Options | None = None
-                       ) -> Relocalizer:
-    """A relocalizer for ``spec`` over ``kmap``; ``options`` maps plugin names (``"sbi"``,
-    ``"p3p"``, ``"ferns"``, ``"multi"``, ``"verify"``, ...) to their option dicts. A comma
-    makes a fallback chain of the steps it separates."""
-    spec = spec.strip()
-    if not spec:
-        raise ConfigError("empty method; expected e.g. 'sbi+p3p', 'ferns' or 'bow+p3p,sbi+esm'")
-    if "," in spec:
-        steps = [step.strip() for step in spec.split(",")]
-        if not all(steps):
-            raise ConfigError(f"chain: empty step in {spec!r}; expected e.g. 'bow+p3p,sbi+esm'")
-        return ChainRelocalizer(kmap, [create_relocalizer(s, kmap, options=options) for s in steps])
-    kind = "multi" if "+" in spec else spec
-    return RELOCALIZERS.lookup(kind).from_options(spec, kmap, options or {})
+def create_relocalizer(spec: str | MethodSpec, kmap: KeyframeMap, *,
+                       options: Options | None = None) -> Relocalizer:
+    """A relocalizer for ``spec`` (a method string, parsed here, or a parsed
+    :class:`MethodSpec`) over ``kmap``; ``options`` maps plugin names (``"sbi"``, ``"p3p"``,
+    ``"ferns"``, ``"multi"``, ``"verify"``, ...) to their option dicts. A method of several
+    steps (comma-separated) makes a fallback chain of them."""
+    steps = parse_method(spec).steps
+    if len(steps) > 1:
+        return ChainRelocalizer(kmap, [_create_step(step, kmap, options or {}) for step in steps])
+    return _create_step(steps[0], kmap, options or {})
+
+
+def _create_step(step: MethodStep, kmap: KeyframeMap, options: Options) -> Relocalizer:
+    """The relocalizer of one step: the multi relocalizer for ``<place>+<pose>``, else the
+    relocalizer the step names."""
+    kind = "multi" if step.relocalizer is None else step.relocalizer
+    return RELOCALIZERS.lookup(kind).from_options(step, kmap, options)
 
 
 def list_methods() -> list[dict[str, Any]]:
@@ -64,8 +67,9 @@ def list_methods() -> list[dict[str, Any]]:
     methods = []
     for place_name, place_cls in sorted(PLACE_FINDERS.items()):
         for pose_name, pose_cls in sorted(POSE_FINDERS.items()):
-            for suffix, kind in _feature_variants(pose_cls):
-                methods.append({"method": f"{place_name}+{pose_name}{suffix}",
+            for features, kind in _feature_variants(pose_cls):
+                step = MethodStep(place=place_name, pose=pose_name, features=features)
+                methods.append({"method": str(step),
                                 "evaluation_only": bool(place_cls.evaluation_only),
                                 "description": f"multi relocalizer: {place_name} place finder, "
                                                f"{pose_name} pose finder{kind}"})
@@ -81,12 +85,12 @@ def list_methods() -> list[dict[str, Any]]:
     return methods
 
 
-def _feature_variants(pose_cls: type) -> list[tuple[str, str]]:
-    """(method suffix, description suffix) of a pose finder: the plain name, plus one
-    ``:<kind>`` variant per feature kind when its configuration has a ``kind``."""
+def _feature_variants(pose_cls: type) -> list[tuple[str | None, str]]:
+    """(feature kind of the method step, description suffix) of a pose finder: None for the
+    plain name, plus one per feature kind when its configuration has a ``kind``."""
     fields = {f.name for f in dataclasses.fields(pose_cls.Conf)}
-    variants = [("", "")]
+    variants: list[tuple[str | None, str]] = [(None, "")]
     if "kind" in fields:
-        variants += [(f":{kind}", f" on {conf['max_features']} {kind.upper()} features")
+        variants += [(kind, f" on {conf['max_features']} {kind.upper()} features")
                      for kind, conf in sorted(STEP_FEATURES.items())]
     return variants

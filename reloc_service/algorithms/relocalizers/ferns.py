@@ -53,6 +53,7 @@ from ...core.features import FEATURE_KINDS, FeatureConf
 from ...core.fileio import atomic_write
 from ...core.frame import Frame, Keyframe
 from ...core.map import KeyframeMap, MapState
+from ...core.methods import MethodStep
 from ...core.numeric import top_k
 from ...core.plugins import make_conf
 from ..ferns.classifier import FernClassifier, FernConf, FernScorer, FernTests
@@ -218,13 +219,13 @@ class FernsRelocalizer(Relocalizer):
         self._ever_trained = False
 
     @classmethod
-    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]]
-                     ) -> FernsRelocalizer:
+    def from_options(cls, step: MethodStep, kmap: KeyframeMap,
+                     options: Mapping[str, Mapping[str, Any]]) -> FernsRelocalizer:
         """``options["ferns"]`` -> :class:`FernsConf`, ``options["verify"]`` ->
         :class:`VerifyConf`; the RANSAC settings of ``options["p3p"]`` (those of
         :class:`PnPConf`) are shared with the P3P pose finder."""
-        if spec.strip() != "ferns":
-            raise ConfigError(f"ferns relocalizer: expected method 'ferns', got {spec!r}")
+        if step.relocalizer != "ferns":
+            raise ConfigError(f"ferns relocalizer: expected method 'ferns', got {str(step)!r}")
         pnp_fields = {f.name for f in dataclasses.fields(PnPConf)}
         pnp_opts = {k: v for k, v in dict(options.get("p3p") or {}).items() if k in pnp_fields}
         return cls(kmap, make_conf(FernsConf, options.get("ferns"), owner="ferns"),

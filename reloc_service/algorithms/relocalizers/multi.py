@@ -19,6 +19,7 @@ from ...core.features import FeatureConf
 from ...core.frame import Frame, Keyframe
 from ...core.geometry import pose_error
 from ...core.map import KeyframeMap, MapState
+from ...core.methods import MethodStep
 from ...core.plugins import make_conf
 from ..place.base import PlaceCandidate, PlaceFinder, create_place_finder
 from ..pose.base import POSE_FINDERS, PoseEstimate, PoseFinder, create_pose_finder
@@ -93,27 +94,27 @@ class MultiRelocalizer(Relocalizer):
         self.pose_label = pose_label or pose.name
 
     @classmethod
-    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]]
-                     ) -> MultiRelocalizer:
-        """Build ``"<place>+<pose>"`` or ``"<place>+<pose>:<features>"``; ``options[name]``
-        configures each part, ``"multi"`` this class and ``"verify"`` the verification.
+    def from_options(cls, step: MethodStep, kmap: KeyframeMap,
+                     options: Mapping[str, Mapping[str, Any]]) -> MultiRelocalizer:
+        """Build the step ``"<place>+<pose>"`` or ``"<place>+<pose>:<features>"``;
+        ``options[name]`` configures each part, ``"multi"`` this class and ``"verify"`` the
+        verification.
 
         The ``:<features>`` suffix (``"sbi+p3p:orb"``) runs the pose finder on that feature
         kind with the kind's own default count (:data:`STEP_FEATURES`), whatever
         ``options[pose]`` says about ``kind`` and ``max_features``: so one chain can hold an
         ORB step and a SIFT step. ``options["<pose>:<features>"]`` (e.g. ``"p3p:orb"``)
         configures that variant further, over ``options[pose]``."""
-        parts = [p.strip() for p in spec.split("+")]
-        if len(parts) != 2 or not all(parts):
+        if step.place is None:  # a relocalizer named alone: 'multi'
             raise ConfigError(f"multi relocalizer: expected '<place>+<pose>' or "
                               f"'<place>+<pose>:<features>' (e.g. 'sbi+p3p', 'sbi+p3p:orb'), "
-                              f"got {spec!r}")
-        place_name, pose_label = parts
-        place = create_place_finder({**options.get(place_name, {}), "name": place_name}, kmap)
-        pose = create_pose_finder(pose_options(pose_label, options))
+                              f"got {str(step)!r}")
+        place = create_place_finder({**options.get(step.place, {}), "name": step.place}, kmap)
+        pose = create_pose_finder(pose_options(step, options))
         conf = make_conf(cls.Conf, options.get("multi"), owner="relocalizer multi")
         verify_conf = make_conf(VerifyConf, options.get("verify"), owner="verify")
-        return cls(kmap, place, pose, conf=conf, verify_conf=verify_conf, pose_label=pose_label)
+        return cls(kmap, place, pose, conf=conf, verify_conf=verify_conf,
+                   pose_label=step.pose_label)
 
     @property
     def method(self) -> str:
@@ -389,19 +390,21 @@ STEP_FEATURES: dict[str, dict[str, Any]] = {
     "sift": {"kind": "sift", "max_features": 2000}}
 
 
-def pose_options(pose_label: str, options: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
-    """The options dict (``name`` included) of the pose part ``"p3p"`` or ``"p3p:orb"``."""
-    name, sep, kind = (s.strip() for s in pose_label.partition(":"))
-    if not sep:
+def pose_options(step: MethodStep, options: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """The options dict (``name`` included) of the step's pose finder, ``"p3p"`` or, with a
+    feature kind, ``"p3p:orb"``."""
+    name, kind = step.pose, step.features
+    assert name is not None, "a place+pose step"
+    if kind is None:
         return {**options.get(name, {}), "name": name}
-    if not name or kind not in STEP_FEATURES:
+    if kind not in STEP_FEATURES:
         raise ConfigError(f"multi relocalizer: expected '<pose>:<features>' with features one "
-                          f"of {sorted(STEP_FEATURES)} (e.g. 'p3p:orb'), got {pose_label!r}")
+                          f"of {sorted(STEP_FEATURES)} (e.g. 'p3p:orb'), got {step.pose_label!r}")
     fields = {f.name for f in dataclasses.fields(POSE_FINDERS.lookup(name).Conf)}
     preset = {k: v for k, v in STEP_FEATURES[kind].items() if k in fields}
     if "kind" not in preset:
         raise ConfigError(f"multi relocalizer: pose finder {name!r} takes no features, so "
-                          f"{pose_label!r} means nothing; expected e.g. 'p3p:orb'")
+                          f"{step.pose_label!r} means nothing; expected e.g. 'p3p:orb'")
     return {**options.get(name, {}), **preset, **options.get(f"{name}:{kind}", {}),
             "name": name}
 

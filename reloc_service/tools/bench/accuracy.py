@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from ...algorithms.relocalizers.base import RelocResult, RelocStatus
+from ...core.methods import MethodSpec, parse_method
 from ...core.numeric import limit_blas_threads
 from ...core.progress import progress
 from .samples import json_safe
@@ -287,8 +288,8 @@ def score_dataset(root: Path, methods: Sequence[str], *, show_progress: bool = T
             results[column] = summary_dict(ev.summarize(recs))
             if column in PEERS:
                 results[column]["map_descriptors"] = peer_cols[column]["descriptors"]
-            elif "," in column:
-                results[column]["first_step"] = first_step_share(column, recs)
+            elif len((spec := parse_method(column)).steps) > 1:
+                results[column]["first_step"] = first_step_share(spec, recs)
     cams = sorted({dataset.camera(e).model for e in dataset.query_entries})
     return {"root": str(Path(root).resolve()), "landmark_source": source.value,
             "keyframes": len(state.keyframes),
@@ -309,10 +310,10 @@ def eval_default_landmarks() -> Any:
     return ev.LandmarkSource(default)
 
 
-def first_step_share(chain: str, records: Sequence[Any]) -> dict[str, Any]:
+def first_step_share(chain: MethodSpec, records: Sequence[Any]) -> dict[str, Any]:
     """Of a fallback chain's answers, how many its first step gave (a chain's result names
     the step that answered, :class:`~reloc_service.algorithms.relocalizers.chain.ChainRelocalizer`)."""
-    step = chain.split(",")[0].strip()
+    step = str(chain.steps[0])
     returned = [r for r in records if r.returned]
     by_first = sum(r.method_used == step for r in returned)
     return {"step": step, "answered": by_first, "returned": len(returned),
