@@ -80,7 +80,7 @@ def make_views(texture: np.ndarray, poses: list[np.ndarray]) -> list[View]:
     for world_from_cam in poses:
         image = render(texture, world_from_cam)
         kps, desc = cv2.SIFT.create(nfeatures=600).detectAndCompute(image, None)
-        px = cv2.KeyPoint_convert(kps).astype(np.float64)
+        px = cv2.KeyPoint.convert(kps).astype(np.float64)
         views.append(View(image, world_from_cam, px, desc, lift(px, world_from_cam)))
     return views
 

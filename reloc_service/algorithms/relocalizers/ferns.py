@@ -603,7 +603,7 @@ def detect_keypoints(image: npt.NDArray[np.uint8], detector: str, max_keypoints:
         kps = fast.detect(image, None)
     if not kps:
         return np.zeros((0, 2))
-    pts = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2)  # type: ignore[attr-defined]
+    pts = np.asarray(cv2.KeyPoint.convert(kps), np.float64).reshape(-1, 2)
     response = np.fromiter((k.response for k in kps), np.float64, len(kps))
     order = np.argsort(-response, kind="stable")
     pts = pts[order]

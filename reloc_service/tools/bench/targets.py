@@ -181,14 +181,14 @@ def ferns(r: Result) -> list[dict[str, Any]]:
     ms = _num(hit[0]["total_ms"]) if hit else None
     room = _get(r, "accuracy", "datasets", "room", "results") or {}
     f, s = room.get("ferns"), room.get("sbi+p3p")
-    ratio = None
+    ratio, times = None, ""
     if f and s and "error" not in f and "error" not in s and s["p50_ms"]:
         ratio = f["p50_ms"] / s["p50_ms"]
+        times = f"{f['p50_ms']:.0f} ms vs {s['p50_ms']:.0f} ms"
     return [row("ferns: 500 keypoints x 2000 classes p50", "<= 20 ms", ms, "ms",
                 _at_most(ms, 20.0), "" if hit else "2000 classes not in this run's sweep"),
             row("ferns: room p50 / `sbi+p3p` room p50", "<= 1.5x", ratio, "x",
-                _at_most(ratio, 1.5),
-                "" if ratio is None else f"{f['p50_ms']:.0f} ms vs {s['p50_ms']:.0f} ms")]
+                _at_most(ratio, 1.5), times)]
 
 
 def recall_changes(r: Result, baseline: Result) -> list[dict[str, Any]]:
