@@ -1,23 +1,39 @@
 """Helpers shared by the service integration tests (not a test module): free ports, service
-configurations on loopback with multicast scouting off, event collection, raw Zenoh sessions."""
+configurations on loopback with multicast scouting off, event collection, raw Zenoh sessions,
+a router of config/router.json5, a ``reloc serve`` process and its durable keyframes, and the
+ground station of deploy/ground with its authenticated clients."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import os
 import queue
 import signal
 import socket
 import subprocess
+import sys
 import time
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import zenoh
 from reloc_client import protocol as wire
+from reloc_client.client import NoReplyError, RelocClient
 
-from reloc_service.service.config import ServiceConf, parse_config
+from reloc_service.service.app import Service
+from reloc_service.service.config import ServiceConf, load_config, parse_config, with_overrides
+from reloc_service.storage.journal import Journal
 
 ROOT = Path(__file__).resolve().parents[1]
+GROUND = ROOT / "deploy" / "ground"
+CREDENTIALS = {line.split(":")[0]: line.split(":", 1)[1]
+               for line in (GROUND / "credentials.example.txt").read_text().split()}
+#: The map a :func:`write_config` service serves.
+MAP = "lab"
 
 
 def free_port() -> int:
@@ -111,3 +127,153 @@ def wait_until(predicate: Any, timeout: float = 20.0, interval: float = 0.05) ->
         if time.monotonic() > deadline:
             raise AssertionError(f"condition not met within {timeout} s")
         time.sleep(interval)
+
+
+# -- a router, a service process --------------------------------------------------------------
+
+def open_router(port: int) -> zenoh.Session:
+    conf = zenoh.Config.from_file(str(ROOT / "config" / "router.json5"))
+    conf.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
+    return zenoh.open(conf)
+
+
+def write_config(tmp: Path, port: int, *, instance: str = "durable",
+                 options: dict[str, dict[str, object]] | None = None,
+                 **service: object) -> Path:
+    """A ``reloc serve`` config: a peer on ``port``, storage under ``tmp``, map ``lab``,
+    ``[service]`` keys from ``service`` and ``[options.<name>]`` tables from ``options``."""
+    lines = ["[zenoh]", 'mode = "peer"', f'listen = ["{endpoint(port)}"]',
+             "multicast_scouting = false", "[service]", f'instance = "{instance}"',
+             f'storage = "{tmp / "storage"}"']
+    lines += [f"{k} = {json.dumps(v)}" for k, v in service.items()]
+    for name, values in (options or {}).items():
+        lines += [f"[options.{name}]", *[f"{k} = {json.dumps(v)}" for k, v in values.items()]]
+    lines += [f"[maps.{MAP}]"]
+    path = tmp / "service.toml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def durable_keyframe_ids(map_dir: Path) -> set[int]:
+    """Keyframe ids on disk after a crash: the snapshot's, then the journal's puts and deletes
+    from the segment the snapshot's service.json names."""
+    ids: set[int] = set()
+    first_segment = 0
+    if (map_dir / "service.json").is_file():
+        meta = json.loads((map_dir / "service.json").read_text())
+        first_segment = meta["next_segment"]
+        manifest = map_dir / "map" / "snapshots" / meta["snapshot"] / "manifest.json"
+        ids = {kf["id"] for kf in json.loads(manifest.read_text())["keyframes"]}
+    for raw in Journal(map_dir / "journal").replay(first_segment):
+        record = msgpack.unpackb(raw)
+        if record["op"] == "kf":
+            ids.add(record["id"])
+        elif record["op"] == "del":
+            ids.discard(record["id"])
+    return ids
+
+
+class ServiceProcess:
+    """``reloc serve --config FILE`` in a subprocess, ready once its map answers (within
+    ``ready_s``: a restart replaying hundreds of journal records needs minutes under load)."""
+
+    def __init__(self, config: Path, port: int, log: Path, ready_s: float = 60.0) -> None:
+        self.log_path = log
+        self.log = open(log, "ab")
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "reloc_service.cli.main", "serve", "--config", str(config)],
+            cwd=ROOT, stdout=self.log, stderr=self.log, env=env)
+        self.port = port
+        self.client: RelocClient | None = None
+        wait_until(self._ready, timeout=ready_s, interval=0.2)
+
+    def _ready(self) -> bool:
+        if self.proc.poll() is not None:
+            raise AssertionError(f"service exited with {self.proc.returncode}: "
+                                 f"{self.log_path.read_text()[-2000:]}")
+        try:
+            if self.client is None:  # a client-mode session needs the service listening
+                self.client = RelocClient(endpoint(self.port), map=MAP, timeout=30)
+            self.client.status(timeout=1)
+            return True
+        except (ConnectionError, NoReplyError):
+            return False
+
+    def kill9(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(10)
+        self.close()
+
+    def terminate(self) -> int:
+        self.proc.send_signal(signal.SIGTERM)
+        code = self.proc.wait(30)
+        self.close()
+        return code
+
+    def close(self) -> None:
+        """Kill the process if it still runs; close the client and the log."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+        if self.client is not None:
+            self.client.close()
+        self.log.close()
+
+
+# -- the ground station of deploy/ground ------------------------------------------------------
+
+def _json5_copy(src: Path, dst: Path, replace: dict[str, str]) -> Path:
+    """``src`` with its absolute /etc/reloc paths pointed at the test's files."""
+    text = src.read_text()
+    for old, new in replace.items():
+        assert old in text, f"{src.name} no longer mentions {old}"
+        text = text.replace(old, new)
+    dst.write_text(text)
+    return dst
+
+
+def _listen_on(conf: zenoh.Config, endpoint: str) -> zenoh.Config:
+    conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    return conf
+
+
+@contextmanager
+def ground_station(tmp: Path, *, tls: Path | None = None) -> Iterator[str]:
+    """deploy/ground's router (router.json5, or router-tls.json5 with ``tls`` certificates)
+    and services service-a (maps drone1, lab) and service-b (map drone2); the endpoint."""
+    port = free_port()
+    if tls is None:
+        creds = tmp / "credentials.txt"
+        creds.write_text((GROUND / "credentials.example.txt").read_text())
+        router_file = _json5_copy(GROUND / "router.json5", tmp / "router.json5",
+                                  {"/etc/reloc/credentials.txt": str(creds)})
+        endpoint, service_zenoh = f"tcp/127.0.0.1:{port}", GROUND / "service-zenoh.json5"
+    else:
+        paths = {"/etc/reloc/certs": str(tls)}
+        router_file = _json5_copy(GROUND / "router-tls.json5", tmp / "router.json5", paths)
+        service_zenoh = _json5_copy(GROUND / "service-zenoh-tls.json5",
+                                    tmp / "service-zenoh.json5", paths)
+        endpoint = f"tls/localhost:{port}"
+    router_conf = _listen_on(zenoh.Config.from_file(str(router_file)), endpoint)
+    with ExitStack() as stack:
+        router = zenoh.open(router_conf)
+        stack.callback(router.close)
+        for name in ("service-a", "service-b"):
+            conf = with_overrides(load_config(GROUND / f"{name}.toml"), connect=[endpoint],
+                                  storage=str(tmp / name))
+            conf = dataclasses.replace(conf, zenoh=dataclasses.replace(
+                conf.zenoh, config_file=str(service_zenoh)))
+            stack.enter_context(Service(conf))
+        yield endpoint
+
+
+def user_client(endpoint: str, map_name: str, user: str | None, password: str | None = None,
+                **kw) -> RelocClient:
+    """A client in mode client, authenticated as ``user`` (None: no credentials)."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    if user is not None:
+        conf.insert_json5("transport/auth/usrpwd",
+                          json.dumps({"user": user, "password": password}))
+    return RelocClient(endpoint, map=map_name, config=conf, **kw)

@@ -1,4 +1,4 @@
-"""The "Targets" table of ``docs/performance.md`` (issue 14's "Done when" list), computed from
+"""The "Targets" table of ``docs/performance.md`` (each performance goal), computed from
 given figures: each row's measured value comes from the result, and met / not met / not
 measured follow the target."""
 

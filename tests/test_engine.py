@@ -395,7 +395,7 @@ def _real_engine(scene, ids) -> Engine:
 def test_only_the_engine_creates_locks(synthetic_scene, monkeypatch):
     """The engine is the one place that locks: building, mapping, training and querying the
     real methods creates no lock in the map, the indexes or the relocalizers, and a query
-    creates none at all (the count the issue asked to bring down)."""
+    creates none at all."""
     root = str(Path(reloc_service.__file__).parent)
     sites: list[str] = []
 

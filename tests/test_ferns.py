@@ -28,7 +28,7 @@ def photo() -> np.ndarray:
 @pytest.fixture(scope="module")
 def centres(photo: np.ndarray) -> np.ndarray:
     """40 distinct SIFT keypoints away from the border."""
-    pts = cv2.KeyPoint_convert(cv2.SIFT.create().detect(photo, None)).astype(np.float64)
+    pts = cv2.KeyPoint.convert(cv2.SIFT.create().detect(photo, None)).astype(np.float64)
     pts = np.unique(np.rint(pts), axis=0)
     pts = pts[(pts > 40).all(1) & (pts < 470).all(1)]
     return pts[np.random.default_rng(0).choice(len(pts), 40, replace=False)]

@@ -122,7 +122,7 @@ def test_unwritable_directory_is_a_storage_error(tmp_path):
         Journal(blocker / "journal").open()
 
 
-# -- damage: skip one record, resynchronise, quarantine its bytes (issue 15, case 3) ----------
+# -- damage: skip one record, resynchronise, quarantine its bytes (docs/reliability.md, fault case 3)
 
 def _offsets(path) -> list[int]:
     """Byte offset of every record of a clean segment (from its own framing)."""

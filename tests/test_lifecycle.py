@@ -1,8 +1,8 @@
-"""Life cycle of the service and its clients (issue 15, cases 1, 5, 8, 9): SIGTERM with a
-backlog of puts stops within its budget and loses none, one map's snapshot or training never
-holds up another map's puts, ``add_keyframe(wait=True)`` is acknowledged once journaled (and
-raises when refused or when no service answers; an Outbox resends until acknowledged),
-``train(wait=True)`` notices the service dying."""
+"""Life cycle of the service and its clients (fault cases 1, 5, 8 and 9 of docs/reliability.md):
+SIGTERM with a backlog of puts stops within its budget and loses none, one map's snapshot or
+training never holds up another map's puts, ``add_keyframe(wait=True)`` is acknowledged once
+journaled (and raises when refused or when no service answers; an Outbox resends until
+acknowledged), ``train(wait=True)`` notices the service dying."""
 # ruff: noqa: E402
 
 from __future__ import annotations
@@ -19,9 +19,18 @@ from reloc_client import protocol as wire
 from reloc_client.client import NoReplyError, RelocClient, ServiceError, ServiceGone
 from reloc_client.outbox import Outbox
 from reloc_client.protocol import ErrorCode
-from service_support import Events, endpoint, free_port, raw_session, service_conf, wait_until
-from test_scaleout import open_router
-from test_service_durability import ServiceProcess, durable_keyframe_ids, write_config
+from service_support import (
+    Events,
+    ServiceProcess,
+    durable_keyframe_ids,
+    endpoint,
+    free_port,
+    open_router,
+    raw_session,
+    service_conf,
+    wait_until,
+    write_config,
+)
 
 from reloc_service.service.app import Service
 

@@ -1,8 +1,8 @@
-"""Bounded cost per request and clear errors (issue 15, cases 10-13 and "unclear errors"), on
-real Zenoh sessions over loopback: crafted images that declare a huge size, payloads above the
-limit, a writer queue bounded in bytes, maps created only by a valid put, no training from an
-empty get, malformed keys, protocol version types, client timeouts and two shards behind the
-ground-station router."""
+"""Bounded cost per request and clear errors (fault cases 10-13 and "errors" of
+docs/reliability.md), on real Zenoh sessions over loopback: crafted images that declare a huge
+size, payloads above the limit, a writer queue bounded in bytes, maps created only by a valid
+put, no training from an empty get, malformed keys, protocol version types, client timeouts and
+two shards behind the ground-station router."""
 # ruff: noqa: E402
 
 from __future__ import annotations
@@ -20,13 +20,18 @@ from reloc_client import cli
 from reloc_client import protocol as wire
 from reloc_client.client import RelocClient, ServiceError
 from service_support import (
+    CREDENTIALS,
     ROOT,
     Events,
+    ServiceProcess,
     endpoint,
     free_port,
+    ground_station,
     raw_session,
     service_conf,
+    user_client,
     wait_until,
+    write_config,
 )
 
 from reloc_service.core.cameras import PinholeCamera
@@ -145,11 +150,9 @@ def _rss_kb(pid: int, field: str) -> int:
 
 @pytest.mark.slow
 def test_crafted_png_and_jpeg_queries_cost_under_300_mb(synthetic_scene, tmp_path):
-    """The issue's attack on a service process with the default limits and a trained VGA-less
+    """Crafted images against a service process with the default limits and a trained VGA-less
     (320x240) map: a 16 KB PNG and a small JPEG declaring 4096x4096 with an inline 4096x4096
     camera get IMAGE_TOO_LARGE, and the service's peak resident memory rises < 300 MB."""
-    from test_service_durability import ServiceProcess, write_config
-
     port = free_port()
     config = write_config(tmp_path, port, methods=[METHOD], default_method=METHOD)
     service = ServiceProcess(config, port, tmp_path / "log.txt")
@@ -239,8 +242,6 @@ def test_an_oversized_put_is_not_copied_by_the_service(tmp_path):
     """A 256 MiB put (limit 32 MiB) on a service process: Zenoh itself reassembles the message
     (+256 MiB, unavoidable at this end), the service refuses it from its length without a
     Python copy, so the peak stays under 1.5 x the payload (it was 2 x and more)."""
-    from test_service_durability import ServiceProcess, write_config
-
     port = free_port()
     service = ServiceProcess(write_config(tmp_path, port), port, tmp_path / "log.txt")
     try:
@@ -398,8 +399,6 @@ def test_a_shard_behind_the_router_does_not_reject_another_shards_map(synthetic_
     """deploy/ground: shard B (map drone2) must not answer drone1's puts on map drone1 with
     UNKNOWN_MAP, though the router's deny-by-default rules hide liveliness from it; a put on a
     map nobody serves is still rejected (by both shards)."""
-    from test_security import CREDENTIALS, ground_station, user_client
-
     with ground_station(tmp_path) as ep:
         with user_client(ep, "drone1", "drone1", CREDENTIALS["drone1"], timeout=10) as drone1, \
                 user_client(ep, "nobody", "ground", CREDENTIALS["ground"],

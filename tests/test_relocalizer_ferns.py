@@ -18,6 +18,8 @@ import pytest
 import skimage.data
 from scipy.spatial import cKDTree
 
+from reloc_service.algorithms.ferns.classifier import FernConf
+from reloc_service.algorithms.ferns.training import WarpConf
 from reloc_service.algorithms.relocalizers.base import Prior
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer
 from reloc_service.algorithms.relocalizers.ferns import FernsConf, FernsRelocalizer
@@ -80,7 +82,7 @@ def make_views(texture: np.ndarray, poses: list[np.ndarray]) -> list[View]:
     for world_from_cam in poses:
         image = render(texture, world_from_cam)
         kps, desc = cv2.SIFT.create(nfeatures=600).detectAndCompute(image, None)
-        px = cv2.KeyPoint_convert(kps).astype(np.float64)
+        px = cv2.KeyPoint.convert(kps).astype(np.float64)
         views.append(View(image, world_from_cam, px, desc, lift(px, world_from_cam)))
     return views
 
@@ -315,6 +317,19 @@ def test_factory_builds_it_from_options(scene: Scene) -> None:
         create_relocalizer("ferns", scene.map([0]), options={"ferns": {"num_fern": 10}})
     with pytest.raises(ConfigError):
         FernsConf(partition="everywhere")
+
+
+def test_ferns_options_carry_every_classifier_and_warp_option():
+    """FernsConf hands its options to FernConf and WarpConf by name: each of theirs (but
+    ``include_identity``, always on) is a ferns option, with the relocalizer's default."""
+    ferns = {f.name for f in dataclasses.fields(FernsConf)}
+    assert {f.name for f in dataclasses.fields(FernConf)} <= ferns
+    assert {f.name for f in dataclasses.fields(WarpConf)} - {"include_identity"} <= ferns
+    conf = FernsConf(max_rotation_rad=3.0, num_tests=9, seed=4)
+    assert conf.warp_conf() == WarpConf(max_rotation_rad=3.0, seed=4, num_warps=100,
+                                        include_identity=True)
+    assert conf.fern_conf() == FernConf(num_tests=9, seed=4)
+    assert FernsConf().warp_conf().max_rotation_rad == 0.6
 
 
 def test_keypoints_proposing_several_landmarks_agree_by_chance_more_often():

@@ -7,13 +7,10 @@ attachment and samples on another type hash are never used; requests without it 
 
 from __future__ import annotations
 
-import json
 import logging
 
-import cv2
 import numpy as np
 import pytest
-import zenoh
 from ros2_standin import (
     HASH,
     StandIn,
@@ -26,82 +23,20 @@ from ros2_standin import (
     read_trigger_response,
     rosbags_hash,
 )
-from scipy.spatial.transform import Rotation
-from service_support import ROOT, endpoint, free_port, wait_until
+from ros2_support import (
+    CIMG,
+    ODOMETRY_COVARIANCE,
+    body_from_cam,
+    feed_map,
+    pngs,
+    pose_error,
+    stamp,
+    start_service,
+)
+from service_support import endpoint, free_port, open_router, wait_until
 
 from reloc_service.service.app import Service
-from reloc_service.service.config import parse_config
 from reloc_service.service.ros2 import convert
-
-CIMG = "sensor_msgs/msg/CompressedImage"
-# FLU body, camera optical frame looking forward, 10 cm ahead and 5 cm above the body origin.
-BODY_FROM_CAM_R = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-BODY_FROM_CAM_T = np.array([0.1, 0.0, 0.05])
-
-
-def body_from_cam() -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3], out[:3, 3] = BODY_FROM_CAM_R, BODY_FROM_CAM_T
-    return out
-
-
-def ros2_section(**extra) -> dict:
-    q = Rotation.from_matrix(BODY_FROM_CAM_R).as_quat()
-    return {"enabled": True, "body_from_cam": [*BODY_FROM_CAM_T, *q], **extra}
-
-
-def open_router(port: int) -> zenoh.Session:
-    conf = zenoh.Config.from_file(str(ROOT / "config" / "router.json5"))
-    conf.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
-    return zenoh.open(conf)
-
-
-def start_service(router_port: int, map_name: str, **ros2) -> Service:
-    conf = parse_config({
-        "zenoh": {"mode": "peer", "listen": [endpoint(free_port())],
-                  "connect": [endpoint(router_port)], "multicast_scouting": False},
-        "service": {"instance": "ros2test", "storage": "", "workers": 1},
-        "maps": {map_name: {}}, "ros2": ros2_section(**ros2)})
-    return Service(conf).start()
-
-
-def stamp(t: float) -> tuple[int, int]:
-    return int(t), int(round((t - int(t)) * 1e9))
-
-
-def pose_error(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """(metres, degrees) between two poses."""
-    angle = Rotation.from_matrix(a[:3, :3].T @ b[:3, :3]).magnitude()
-    return float(np.linalg.norm(a[:3, 3] - b[:3, 3])), float(np.degrees(angle))
-
-
-#: The pose covariance the map's odometry says it has (ROS's order: x y z, then rotations about
-#: the parent's x y z): 1, 2, 3 cm and 0.2, 0.3, 0.4 deg, x correlated with rotZ.
-ODOMETRY_COVARIANCE = np.diag(np.square([0.01, 0.02, 0.03, 0.0035, 0.0052, 0.007]))
-ODOMETRY_COVARIANCE[0, 5] = ODOMETRY_COVARIANCE[5, 0] = 0.5 * 0.01 * 0.007
-
-
-def feed_map(drone: StandIn, camera: dict, frames: list[tuple[bytes, np.ndarray]], *,
-             repeat_nearby: bool) -> None:
-    """CameraInfo, then each frame's odometry (with :data:`ODOMETRY_COVARIANCE`) and image
-    (stamps 100 + i / 10 s); with ``repeat_nearby`` each frame again 2 cm further, which the
-    keyframe rule must skip."""
-    drone.publish("/camera/camera_info", "sensor_msgs/msg/CameraInfo",
-                  rosbags_hash("sensor_msgs/msg/CameraInfo"), camera_info(stamp(99.0), camera))
-    odom_hash = rosbags_hash("nav_msgs/msg/Odometry")
-    for i, (png, world_from_cam) in enumerate(frames):
-        shots = [(0.0, world_from_cam)]
-        if repeat_nearby:
-            nudged = world_from_cam.copy()
-            nudged[:3, 3] += (0.02, 0.0, 0.0)
-            shots.append((0.05, nudged))
-        for dt, pose in shots:
-            t = stamp(100.0 + 0.1 * i + dt)
-            drone.publish("/odom", "nav_msgs/msg/Odometry", odom_hash,
-                          odometry(t, pose @ np.linalg.inv(body_from_cam()),
-                                   ODOMETRY_COVARIANCE))
-            drone.publish("/camera/image_raw/compressed", CIMG, HASH[CIMG],
-                          compressed_image(t, "camera", "png", png))
 
 
 def relocalize(drone: StandIn, service: Service, png: bytes, t: tuple[int, int], seq: int,
@@ -136,10 +71,6 @@ def world():
         finally:
             drone.close()
             service.stop()
-
-
-def pngs(images) -> list[bytes]:
-    return [cv2.imencode(".png", im)[1].tobytes() for im in images]
 
 
 def test_the_graph_shows_the_node_its_topics_and_service(world):
@@ -323,9 +254,9 @@ def test_humble_writes_type_hash_not_supported_and_lost_relocalizes_every_nth(sy
 
 
 def test_desk_scene_over_ros2(tmp_path_factory):
-    """The issue's acceptance run: the ``desk`` preset's map frames with odometry build the map,
-    each query image is relocalized through the Trigger service and comes back as
-    PoseWithCovarianceStamped within 5 cm / 5 deg of the ground truth (about 15 s, 8 of them
+    """The bridge end to end on a rendered scene: the ``desk`` preset's map frames with odometry
+    build the map, each query image is relocalized through the Trigger service and comes back
+    as PoseWithCovarianceStamped within 5 cm / 5 deg of the ground truth (about 15 s, 8 of them
     rendering the 640x480 scene)."""
     from reloc_service.tools.synth import render_dataset
 

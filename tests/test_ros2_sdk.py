@@ -10,18 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from ros2_standin import HASH, StandIn, compressed_image
+from ros2_support import CIMG, body_from_cam, feed_map, pngs, pose_error, stamp, start_service
 from scipy.spatial.transform import Rotation
-from service_support import ROOT, endpoint, free_port, wait_until
-from test_ros2_bridge import (
-    CIMG,
-    body_from_cam,
-    feed_map,
-    open_router,
-    pngs,
-    pose_error,
-    stamp,
-    start_service,
-)
+from service_support import ROOT, endpoint, free_port, open_router, wait_until
 
 sdk = pytest.importorskip("zenoh_ros2_sdk")
 

@@ -20,20 +20,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 from reloc_client.client import NoReplyError, RelocClient, ServiceError
-from service_support import ROOT, Events, endpoint, free_port, stop_process, wait_until
+from service_support import (
+    GROUND,
+    ROOT,
+    Events,
+    endpoint,
+    free_port,
+    open_router,
+    stop_process,
+    wait_until,
+)
 
 from reloc_service.service.app import Service
 from reloc_service.service.config import ServiceConf, load_config, with_overrides
-
-GROUND = ROOT / "deploy" / "ground"
-
-
-def open_router(port: int) -> zenoh.Session:
-    conf = zenoh.Config.from_file(str(ROOT / "config" / "router.json5"))
-    conf.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
-    return zenoh.open(conf)
 
 
 def ground_conf(name: str, port: int, storage: Path, **service) -> ServiceConf:
@@ -247,10 +247,10 @@ def _answer(rt, scene, q: int, camera_id: str):
 
 def test_bootstrapped_replica_keeps_the_intrinsics_keyframes_were_built_with(synthetic_scene,
                                                                               tmp_path):
-    """Issue 15 case 2: camera cam0 re-put with other intrinsics after keyframes 0-4 were
-    built with the first ones. A replica that copies the map must replay the same history
-    (each keyframe with the intrinsics it was built with, the camera change after them), end at
-    the same map version and answer like the original (here within 1 mm)."""
+    """Camera cam0 re-put with other intrinsics after keyframes 0-4 were built with the first
+    ones (fault case 2 of docs/reliability.md). A replica that copies the map must replay the
+    same history (each keyframe with the intrinsics it was built with, the camera change after
+    them), end at the same map version and answer like the original (here within 1 mm)."""
     scene = synthetic_scene
     true_cam = scene.camera.to_dict()
     port = free_port()

@@ -7,25 +7,24 @@ refusal cannot be an accident of a broken set-up."""
 
 from __future__ import annotations
 
-import dataclasses
 import importlib.util
 import json
 import time
-from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack
 from pathlib import Path
 
 import pytest
 import zenoh
 from reloc_client.client import NoReplyError, RelocClient, ServiceError
-from service_support import ROOT, Events, free_port, wait_until
-
-from reloc_service.service.app import Service
-from reloc_service.service.config import load_config, with_overrides
-
-GROUND = ROOT / "deploy" / "ground"
-CREDENTIALS = {line.split(":")[0]: line.split(":", 1)[1]
-               for line in (GROUND / "credentials.example.txt").read_text().split()}
+from service_support import (
+    CREDENTIALS,
+    GROUND,
+    ROOT,
+    Events,
+    ground_station,
+    user_client,
+    wait_until,
+)
 
 
 def _gen_certs():
@@ -41,62 +40,6 @@ def certs(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("certs")
     _gen_certs().generate(out, clients=("reloc-service", "ground", "drone1", "drone2"))
     return out
-
-
-def _json5_copy(src: Path, dst: Path, replace: dict[str, str]) -> Path:
-    """``src`` with its absolute /etc/reloc paths pointed at the test's files."""
-    text = src.read_text()
-    for old, new in replace.items():
-        assert old in text, f"{src.name} no longer mentions {old}"
-        text = text.replace(old, new)
-    dst.write_text(text)
-    return dst
-
-
-def _listen_on(conf: zenoh.Config, endpoint: str) -> zenoh.Config:
-    conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    return conf
-
-
-@contextmanager
-def ground_station(tmp: Path, *, tls: Path | None = None) -> Iterator[str]:
-    """deploy/ground's router (router.json5, or router-tls.json5 with ``tls`` certificates)
-    and services service-a (maps drone1, lab) and service-b (map drone2); the endpoint."""
-    port = free_port()
-    if tls is None:
-        creds = tmp / "credentials.txt"
-        creds.write_text((GROUND / "credentials.example.txt").read_text())
-        router_file = _json5_copy(GROUND / "router.json5", tmp / "router.json5",
-                                  {"/etc/reloc/credentials.txt": str(creds)})
-        endpoint, service_zenoh = f"tcp/127.0.0.1:{port}", GROUND / "service-zenoh.json5"
-    else:
-        paths = {"/etc/reloc/certs": str(tls)}
-        router_file = _json5_copy(GROUND / "router-tls.json5", tmp / "router.json5", paths)
-        service_zenoh = _json5_copy(GROUND / "service-zenoh-tls.json5",
-                                    tmp / "service-zenoh.json5", paths)
-        endpoint = f"tls/localhost:{port}"
-    router_conf = _listen_on(zenoh.Config.from_file(str(router_file)), endpoint)
-    with ExitStack() as stack:
-        router = zenoh.open(router_conf)
-        stack.callback(router.close)
-        for name in ("service-a", "service-b"):
-            conf = with_overrides(load_config(GROUND / f"{name}.toml"), connect=[endpoint],
-                                  storage=str(tmp / name))
-            conf = dataclasses.replace(conf, zenoh=dataclasses.replace(
-                conf.zenoh, config_file=str(service_zenoh)))
-            stack.enter_context(Service(conf))
-        yield endpoint
-
-
-def user_client(endpoint: str, map_name: str, user: str | None, password: str | None = None,
-                **kw) -> RelocClient:
-    """A client in mode client, authenticated as ``user`` (None: no credentials)."""
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    if user is not None:
-        conf.insert_json5("transport/auth/usrpwd",
-                          json.dumps({"user": user, "password": password}))
-    return RelocClient(endpoint, map=map_name, config=conf, **kw)
 
 
 def tls_client(endpoint: str, map_name: str, certs: Path, name: str | None, **kw

@@ -5,108 +5,22 @@ crash, and SIGTERM shuts down cleanly with a final snapshot and a compacted jour
 
 from __future__ import annotations
 
-# reloc_client lives in clients/ (importable once the distribution is installed).
 import json
 import math
-import os
-import signal
-import subprocess
-import sys
 import time
-from pathlib import Path
 
-import msgpack
-from reloc_client.client import NoReplyError, RelocClient
-from service_support import ROOT, Events, endpoint, free_port, wait_until
+from service_support import (
+    MAP,
+    Events,
+    ServiceProcess,
+    durable_keyframe_ids,
+    free_port,
+    wait_until,
+    write_config,
+)
 
 from reloc_service.core.geometry import pose_error
 from reloc_service.storage.journal import Journal
-
-MAP = "lab"
-
-
-def write_config(tmp: Path, port: int, *, instance: str = "durable",
-                 options: dict[str, dict[str, object]] | None = None,
-                 **service: object) -> Path:
-    """A ``reloc serve`` config: a peer on ``port``, storage under ``tmp``, map ``lab``,
-    ``[service]`` keys from ``service`` and ``[options.<name>]`` tables from ``options``."""
-    lines = ["[zenoh]", 'mode = "peer"', f'listen = ["{endpoint(port)}"]',
-             "multicast_scouting = false", "[service]", f'instance = "{instance}"',
-             f'storage = "{tmp / "storage"}"']
-    lines += [f"{k} = {json.dumps(v)}" for k, v in service.items()]
-    for name, values in (options or {}).items():
-        lines += [f"[options.{name}]", *[f"{k} = {json.dumps(v)}" for k, v in values.items()]]
-    lines += [f"[maps.{MAP}]"]
-    path = tmp / "service.toml"
-    path.write_text("\n".join(lines) + "\n")
-    return path
-
-
-def durable_keyframe_ids(map_dir: Path) -> set[int]:
-    """Keyframe ids on disk after a crash: the snapshot's, then the journal's puts and deletes
-    from the segment the snapshot's service.json names."""
-    ids: set[int] = set()
-    first_segment = 0
-    if (map_dir / "service.json").is_file():
-        meta = json.loads((map_dir / "service.json").read_text())
-        first_segment = meta["next_segment"]
-        manifest = map_dir / "map" / "snapshots" / meta["snapshot"] / "manifest.json"
-        ids = {kf["id"] for kf in json.loads(manifest.read_text())["keyframes"]}
-    for raw in Journal(map_dir / "journal").replay(first_segment):
-        record = msgpack.unpackb(raw)
-        if record["op"] == "kf":
-            ids.add(record["id"])
-        elif record["op"] == "del":
-            ids.discard(record["id"])
-    return ids
-
-
-class ServiceProcess:
-    """``reloc serve --config FILE`` in a subprocess, ready once its map answers (within
-    ``ready_s``: a restart replaying hundreds of journal records needs minutes under load)."""
-
-    def __init__(self, config: Path, port: int, log: Path, ready_s: float = 60.0) -> None:
-        self.log_path = log
-        self.log = open(log, "ab")
-        env = {**os.environ, "PYTHONPATH": str(ROOT)}
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "reloc_service.cli.main", "serve", "--config", str(config)],
-            cwd=ROOT, stdout=self.log, stderr=self.log, env=env)
-        self.port = port
-        self.client: RelocClient | None = None
-        wait_until(self._ready, timeout=ready_s, interval=0.2)
-
-    def _ready(self) -> bool:
-        if self.proc.poll() is not None:
-            raise AssertionError(f"service exited with {self.proc.returncode}: "
-                                 f"{self.log_path.read_text()[-2000:]}")
-        try:
-            if self.client is None:  # a client-mode session needs the service listening
-                self.client = RelocClient(endpoint(self.port), map=MAP, timeout=30)
-            self.client.status(timeout=1)
-            return True
-        except (ConnectionError, NoReplyError):
-            return False
-
-    def kill9(self) -> None:
-        self.proc.send_signal(signal.SIGKILL)
-        self.proc.wait(10)
-        self.close()
-
-    def terminate(self) -> int:
-        self.proc.send_signal(signal.SIGTERM)
-        code = self.proc.wait(30)
-        self.close()
-        return code
-
-    def close(self) -> None:
-        """Kill the process if it still runs; close the client and the log."""
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(10)
-        if self.client is not None:
-            self.client.close()
-        self.log.close()
 
 
 def test_kill_9_mid_upload_loses_no_journaled_keyframe(synthetic_scene, tmp_path):

@@ -465,8 +465,8 @@ def test_changing_a_loaded_map_copies_and_leaves_the_snapshot(tmp_path, rich_sta
 
 
 def test_a_save_without_current_deletes_no_snapshot(tmp_path, synthetic_map):
-    """Issue 15, case 4: ``CURRENT`` deleted, then a save of an (empty) map must not remove the
-    snapshot holding the keyframes."""
+    """``CURRENT`` deleted, then a save of an (empty) map must not remove the snapshot holding
+    the keyframes (docs/reliability.md, fault case 4)."""
     old = _saved(tmp_path, synthetic_map)
     (tmp_path / "CURRENT").unlink()
     new = save_map(_tiny_state(synthetic_map, 0), tmp_path)

@@ -1,6 +1,7 @@
-"""Storage faults (issue 15, cases 3, 4, 6, 7): a damaged journal record costs that record only,
-a deleted ``map/CURRENT`` is reported and deletes nothing, one damaged file fails its map and
-leaves the others served, and maps come up one by one after the Zenoh session opens.
+"""Storage faults (fault cases 3, 4, 6 and 7 of docs/reliability.md): a damaged journal record
+costs that record only, a deleted ``map/CURRENT`` is reported and deletes nothing, one damaged
+file fails its map and leaves the others served, and maps come up one by one after the Zenoh
+session opens.
 
 Real services on loopback (multicast scouting off), real keyframes of the synthetic room, real
 files damaged on disk, and ``reloc serve`` in a subprocess where the process must survive."""

@@ -59,8 +59,8 @@ def _features_from_cv(kind: str, keypoints: list[cv2.KeyPoint],
             else descriptors.astype(np.uint8))
     if n == 0:
         return Features.create(kind, np.zeros((0, 2)), desc)
-    # cv2.KeyPoint_convert is the vectorised path from keypoint objects to coordinates.
-    pts = cv2.KeyPoint_convert(keypoints).astype(np.float64).reshape(-1, 2)
+    # cv2.KeyPoint.convert is the vectorised path from keypoint objects to coordinates.
+    pts = np.asarray(cv2.KeyPoint.convert(keypoints), np.float64).reshape(-1, 2)
     sizes = np.fromiter((k.size for k in keypoints), np.float32, n)
     angles = np.fromiter((k.angle for k in keypoints), np.float32, n)
     octaves = np.fromiter((k.octave for k in keypoints), np.int64, n)
@@ -84,9 +84,9 @@ def compute_at(image: npt.NDArray[np.uint8], kind: str, keypoints_px: npt.ArrayL
     border)."""
     pts = np.asarray(keypoints_px, dtype=np.float64).reshape(-1, 2)
     kps = [cv2.KeyPoint(float(x), float(y), size, -1.0, 0.0, 0, i) for i, (x, y) in enumerate(pts)]
-    kps, desc = _create(FeatureConf(kind=kind)).compute(image, kps)
-    origin = np.fromiter((k.class_id for k in kps), np.int64, len(kps))
-    return _features_from_cv(kind, list(kps), desc), origin
+    kept, desc = _create(FeatureConf(kind=kind)).compute(image, kps)
+    origin = np.fromiter((k.class_id for k in kept), np.int64, len(kept))
+    return _features_from_cv(kind, list(kept), desc), origin
 
 
 def match_ratio(desc_query: npt.NDArray, desc_train: npt.NDArray, *, ratio: float = 0.8

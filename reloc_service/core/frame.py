@@ -8,7 +8,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable, MutableMapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import cv2
 import numpy as np
@@ -166,11 +166,12 @@ class EncodedImage:
         recently decoded (:data:`RECENT_PIXELS`), else decoded now (and remembered)."""
         image = RECENT_PIXELS.get(self)
         if image is None:
-            image = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_GRAYSCALE)
-            if image is None or image.shape != self.shape or image.dtype != np.uint8:
+            decoded = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+            if decoded is None or decoded.shape != self.shape or decoded.dtype != np.uint8:
                 raise GeometryError(f"encoded image: expected a {self.format.upper()} that "
                                     f"decodes to {self.shape} grey pixels")
-            image = self.remember(image)
+            # checked uint8 just above (OpenCV's stubs type every image as any numeric array)
+            image = self.remember(cast(npt.NDArray[np.uint8], decoded))
         return image
 
     def remember(self, pixels: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
@@ -330,7 +331,8 @@ class Frame:
         if key not in self.cache:
             pyr = [self.image]
             for _ in range(levels - 1):
-                pyr.append(cv2.pyrDown(pyr[-1]))
+                # pyrDown keeps the uint8 dtype (OpenCV's stubs type every image as any numeric array)
+                pyr.append(cast(npt.NDArray[np.uint8], cv2.pyrDown(pyr[-1])))
             self.cache[key] = pyr
         return self.cache[key]
 
@@ -361,7 +363,9 @@ def area_downscale(image: npt.NDArray[np.uint8], width: int, height: int
     kernel = _compiled_block_means() if image.ndim == 2 and image.dtype == np.uint8 else None
     if (kernel is None or factor not in (4, 8, 16, 32) or w != factor * width
             or h != factor * height):
-        return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+        # resize keeps the uint8 dtype (OpenCV's stubs type every image as any numeric array)
+        return cast(npt.NDArray[np.uint8], cv2.resize(image, (width, height),
+                                                      interpolation=cv2.INTER_AREA))
     out = np.empty((height, width), np.uint8)
     kernel(np.ascontiguousarray(image), factor, 2 * factor.bit_length() - 2, out)
     return out
@@ -457,7 +461,9 @@ class Keyframe(Frame):
     def with_features(self, kind: str, features: Features) -> Keyframe:
         """A shallow copy whose ``features[kind]`` is replaced (image and cache are shared;
         an encoded image stays encoded)."""
-        new = dataclasses.replace(self, image=self.image_source,
+        # ``image`` is typed as the pixels it reads as; its setter (the property below) also
+        # takes an EncodedImage, which a dataclass field's type cannot say.
+        new = dataclasses.replace(self, image=self.image_source,  # type: ignore[arg-type]
                                   features={**self.features, kind: features})
         new.cache = self.cache
         return new

@@ -10,30 +10,40 @@ import dataclasses
 import types
 import typing
 from collections.abc import Callable, Mapping
-from typing import Any, TypeVar
+from typing import Any, ClassVar, Generic, Protocol, TypeVar
 
 from .errors import ConfigError
 
+
+class Plugin(Protocol):
+    """What a registered class carries: the name it was registered under (set by
+    :meth:`Registry.register`)."""
+
+    name: ClassVar[str]
+
+
+P = TypeVar("P", bound=Plugin)
 T = TypeVar("T")
 
 
-class Registry(dict[str, type]):
-    """A name -> class table filled by the :meth:`register` decorator."""
+class Registry(dict[str, type[P]], Generic[P]):
+    """A name -> class table filled by the :meth:`register` decorator; ``Registry[PlaceFinder]``
+    holds subclasses of ``PlaceFinder``."""
 
     def __init__(self, what: str) -> None:
         super().__init__()
         self.what = what
 
-    def register(self, name: str) -> Callable[[type[T]], type[T]]:
-        def deco(cls: type[T]) -> type[T]:
+    def register(self, name: str) -> Callable[[type[P]], type[P]]:
+        def deco(cls: type[P]) -> type[P]:
             if name in self:
                 raise ValueError(f"duplicate {self.what} {name!r}")
-            cls.name = name  # type: ignore[attr-defined]
+            cls.name = name
             self[name] = cls
             return cls
         return deco
 
-    def lookup(self, name: str) -> type:
+    def lookup(self, name: str) -> type[P]:
         if name not in self:
             raise ConfigError(f"unknown {self.what} {name!r}; expected one of {sorted(self)}")
         return self[name]

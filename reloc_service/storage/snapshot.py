@@ -475,7 +475,8 @@ class _FeatureColumns:
             image = EncodedImage(reader.map(entry["image"]), (camera.height, camera.width))
             depth = None if entry.get("depth") is None else reader.npy(entry["depth"])
             timestamp = entry.get("timestamp")
-            return Keyframe(image=image, camera=camera,
+            # held encoded (Frame.image's setter takes an EncodedImage; its type is the pixels)
+            return Keyframe(image=image, camera=camera,  # type: ignore[arg-type]
                             features=features, id=entry["id"],
                             world_from_cam=np.array(entry["world_from_cam"], np.float64),
                             timestamp=None if timestamp is None else float(timestamp),

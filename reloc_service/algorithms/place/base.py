@@ -11,7 +11,7 @@ from ...core.frame import Frame, Keyframe
 from ...core.map import KeyframeMap
 from ...core.plugins import Registry, make_conf
 
-PLACE_FINDERS = Registry("place finder")
+PLACE_FINDERS: Registry[PlaceFinder] = Registry("place finder")
 register = PLACE_FINDERS.register
 
 

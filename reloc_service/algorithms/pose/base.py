@@ -22,7 +22,7 @@ from .intrinsics import IntrinsicsCheck
 
 Array = npt.NDArray[np.float64]
 
-POSE_FINDERS = Registry("pose finder")
+POSE_FINDERS: Registry[PoseFinder] = Registry("pose finder")
 register = POSE_FINDERS.register
 
 

@@ -41,7 +41,7 @@ def _squared_l2_bytes(a: npt.NDArray[np.uint8], i: int, b: npt.NDArray[np.uint8]
     """Squared L2 distance of row ``i`` of ``a`` and row ``j`` of ``b`` (uint8 SIFT), exact."""
     d2 = 0
     for t in range(a.shape[1]):
-        diff = np.int64(a[i, t]) - np.int64(b[j, t])
+        diff = int(a[i, t]) - int(b[j, t])
         d2 += diff * diff
     return d2
 

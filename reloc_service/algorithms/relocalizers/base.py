@@ -13,6 +13,7 @@ import abc
 import dataclasses
 import functools
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -34,7 +35,7 @@ from ..pose.intrinsics import REFUSAL as INTRINSICS_REFUSAL
 
 Array = npt.NDArray[np.float64]
 
-RELOCALIZERS = Registry("relocalizer")
+RELOCALIZERS: Registry[Relocalizer] = Registry("relocalizer")
 register = RELOCALIZERS.register
 
 
@@ -420,6 +421,15 @@ class Relocalizer(abc.ABC):
 
     def __init__(self, kmap: KeyframeMap) -> None:
         self.map = kmap
+
+    @classmethod
+    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]]
+                     ) -> Relocalizer:
+        """The relocalizer the method string ``spec`` names, over ``kmap``; ``options`` maps
+        plugin names to their option dicts. What :func:`~.factory.create_relocalizer` calls on
+        a registered class, so every registered relocalizer defines it (a chain is built by
+        the factory from its steps instead)."""
+        raise NotImplementedError(f"{cls.__name__} is not built from a method string")
 
     @property
     @abc.abstractmethod

@@ -24,6 +24,7 @@ from ...core.methods import MethodSpec, MethodStep, parse_method
 # (no scanning, no entry points). Tools add their own (``tools.eval.gt``) by importing them.
 from ..place import bow, sbi  # noqa: F401
 from ..pose import esm, fivept, none, p3p  # noqa: F401
+from ..pose.base import PoseFinder
 from . import ferns, multi  # noqa: F401
 from .base import RELOCALIZERS, Relocalizer
 from .chain import ChainRelocalizer
@@ -85,7 +86,7 @@ def list_methods() -> list[dict[str, Any]]:
     return methods
 
 
-def _feature_variants(pose_cls: type) -> list[tuple[str | None, str]]:
+def _feature_variants(pose_cls: type[PoseFinder]) -> list[tuple[str | None, str]]:
     """(feature kind of the method step, description suffix) of a pose finder: None for the
     plain name, plus one per feature kind when its configuration has a ``kind``."""
     fields = {f.name for f in dataclasses.fields(pose_cls.Conf)}

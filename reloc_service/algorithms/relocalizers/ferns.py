@@ -169,8 +169,8 @@ class FernsConf:
             raise ConfigError(f"ferns: min_posterior must be in [0, 1), got {self.min_posterior}")
 
     def fern_conf(self) -> FernConf:
-        return FernConf(self.num_ferns, self.num_tests, self.patch_size, self.regularization,
-                        self.seed)
+        """The classifier's shape: the :class:`FernConf` options of the same names."""
+        return FernConf(**_shared_fields(self, FernConf))
 
     def models_conf(self) -> ModelsConf:
         """What :class:`~reloc_service.algorithms.ferns.models.FernModels` needs of these options."""
@@ -179,11 +179,17 @@ class FernsConf:
                           warp=self.warp_conf(), seed=self.seed)
 
     def warp_conf(self) -> WarpConf:
-        return WarpConf(num_warps=self.num_warps, include_identity=True,
-                        max_rotation_rad=self.max_rotation_rad, min_scale=self.min_scale,
-                        max_scale=self.max_scale, affine=self.affine,
-                        max_noise_sigma=self.max_noise_sigma, max_blur_sigma=self.max_blur_sigma,
-                        smoothing_sigma=self.smoothing_sigma, seed=self.seed)
+        """The training warps: the :class:`WarpConf` options of the same names (these
+        options repeat them flat, with a relocalizer's defaults), the real view always among
+        the samples."""
+        return WarpConf(include_identity=True, **_shared_fields(self, WarpConf))
+
+
+def _shared_fields(conf: Any, target: Any) -> dict[str, Any]:
+    """The values of the dataclass ``conf``'s fields that the dataclass ``target`` has too, by
+    name: what ``target(**...)`` takes from ``conf``."""
+    names = {f.name for f in dataclasses.fields(target)}
+    return {f.name: getattr(conf, f.name) for f in dataclasses.fields(conf) if f.name in names}
 
 
 @dataclass(eq=False)
@@ -604,7 +610,7 @@ def detect_keypoints(image: npt.NDArray[np.uint8], detector: str, max_keypoints:
         kps = fast.detect(image, None)
     if not kps:
         return np.zeros((0, 2))
-    pts = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2)  # type: ignore[attr-defined]
+    pts = np.asarray(cv2.KeyPoint.convert(kps), np.float64).reshape(-1, 2)
     response = np.fromiter((k.response for k in kps), np.float64, len(kps))
     order = np.argsort(-response, kind="stable")
     pts = pts[order]

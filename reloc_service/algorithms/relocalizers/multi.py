@@ -296,14 +296,15 @@ class MultiRelocalizer(Relocalizer):
                 if not _explains(found[0], contender.estimate, query):
                     verified.append(contender.result)
                     found.append(contender.estimate)
-            chosen = self._unique(query, state, found) if len(found) > 1 else None
+            chosen = (self._unique(query, state, found) if len(found) > 1
+                      else uniqueness.Choice(0))
             timings["unique"] = time.perf_counter() - start
-            if chosen is not None and chosen.index is None:
+            if chosen.index is None:
                 return RelocResult.failure(self.method, chosen.reason, timings=timings,
                                            map_version=state.version,
                                            matched_keyframe_ids=best.matched_keyframe_ids)
-            best = verified[0 if chosen is None else chosen.index]
-            query.cache[ANSWERED] = found[0 if chosen is None else chosen.index]
+            best = verified[chosen.index]
+            query.cache[ANSWERED] = found[chosen.index]
         best.timings = timings
         others = [r for r in verified if r is not best]
         best.hypotheses = sorted(others, key=lambda r: -r.confidence)[:hypotheses - 1]

@@ -310,7 +310,7 @@ def render_markdown(result: Mapping[str, Any], *, plots_dir: Path | None = None)
         from .targets import markdown_lines as target_lines
 
         out += ["## Targets", "",
-                "Each \"Done when\" item of issue 14, computed from this run's figures "
+                "Each performance goal with its target, computed from this run's figures "
                 "below.", ""] + target_lines(result["targets"])
     out += _machine(result["machine"])
     out += ["## Headline", ""] + headline_lines(result) + [""]

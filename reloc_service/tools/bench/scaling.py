@@ -39,7 +39,7 @@ from ...core.cameras import Camera
 from ...core.features import FeatureConf, extract
 from ...core.frame import EncodedImage, Features, Keyframe
 from ...core.geometry import look_at
-from ...core.landmark_table import Landmark
+from ...core.landmark_table import Landmark, LandmarkTable
 from ...core.map import MapState
 from ...core.numeric import limit_blas_threads
 from .samples import JPEG_QUALITY
@@ -152,7 +152,7 @@ def grow_state(base: MapState, size: int, distractors: Sequence[Distractor],
         for lm_id, idx, point in zip(ids.tolist(), d.landmark_idx.tolist(), points,
                                      strict=True):
             landmarks[lm_id] = Landmark(lm_id, point, frozenset({(kf_id, "sift", idx)}))
-    return MapState(MappingProxyType(keyframes), MappingProxyType(landmarks),
+    return MapState(MappingProxyType(keyframes), LandmarkTable.from_mapping(landmarks),
                     base.version + 1, next_lm)
 
 

@@ -1,4 +1,5 @@
-"""``reloc bench --only soak``: the reliability soak run of issue 15 (a benchmark, not CI).
+"""``reloc bench --only soak``: the reliability soak run of docs/reliability.md (a benchmark,
+not CI).
 
 A ``reloc serve`` child process with storage in a temporary folder serves one map built from a
 synthetic scene, while, for ``SoakConf.seconds``:
@@ -54,7 +55,8 @@ STOP_KINDS = ("kill9", "sigterm")
 
 @dataclass(frozen=True)
 class SoakConf:
-    """Sizes and rhythm of one soak run (the issue's run: 600 s, a stop every 60 s)."""
+    """Sizes and rhythm of one soak run (the default is the run of docs/reliability.md: 600 s,
+    a stop every 60 s)."""
 
     seconds: float = 600.0
     restart_every_s: float = 60.0

@@ -46,7 +46,7 @@ ORB_OPTIONS: dict[str, dict[str, Any]] = {"p3p": {"kind": "orb", "max_features":
                                           "multi": {"num_candidates": 3}}
 
 #: The default method's limit is decode + ORB extraction: it is meant to answer most queries
-#: at ORB cost (issue 14), whatever its steps are named.
+#: at ORB cost (its fast ORB step first), whatever its steps are named.
 VARIANTS: tuple[Variant, ...] = (
     Variant(DEFAULT_LABEL, DEFAULT_METHOD, "default", "orb"),
     Variant("sbi+esm", "sbi+esm", "default", "sift"),

@@ -72,7 +72,7 @@ def random_patch_centres(image: npt.NDArray[np.uint8], count: int, patch_size: i
                          rng: np.random.Generator) -> npt.NDArray[np.float64]:
     """(count, 2) distinct random SIFT keypoint positions at least half a patch from the border."""
     kps = cv2.SIFT.create().detect(image, None)
-    px = cv2.KeyPoint_convert(kps)  # type: ignore[attr-defined]
+    px = cv2.KeyPoint.convert(kps)
     pts = np.unique(np.rint(px).astype(np.int64), axis=0).astype(np.float64)
     h, w = image.shape
     half = patch_size / 2
