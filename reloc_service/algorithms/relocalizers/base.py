@@ -29,6 +29,7 @@ from ...core.errors import ConfigError
 from ...core.features import FeatureConf
 from ...core.frame import Frame, Keyframe
 from ...core.map import KeyframeMap
+from ...core.methods import MethodStep
 from ...core.plugins import Registry
 from ..pose.base import PoseEstimate, log10_false_alarms, total_covariance
 from ..pose.intrinsics import REFUSAL as INTRINSICS_REFUSAL
@@ -423,9 +424,9 @@ class Relocalizer(abc.ABC):
         self.map = kmap
 
     @classmethod
-    def from_options(cls, spec: str, kmap: KeyframeMap, options: Mapping[str, Mapping[str, Any]]
-                     ) -> Relocalizer:
-        """The relocalizer the method string ``spec`` names, over ``kmap``; ``options`` maps
+    def from_options(cls, step: MethodStep, kmap: KeyframeMap,
+                     options: Mapping[str, Mapping[str, Any]]) -> Relocalizer:
+        """The relocalizer the method step ``step`` names, over ``kmap``; ``options`` maps
         plugin names to their option dicts. What :func:`~.factory.create_relocalizer` calls on
         a registered class, so every registered relocalizer defines it (a chain is built by
         the factory from its steps instead)."""
