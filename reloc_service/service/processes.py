@@ -56,15 +56,14 @@ from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode
 
 from ..algorithms.pose import kernels as pose_kernels
-from ..algorithms.relocalizers.base import Prior, RelocResult
 from ..core import hamming
 from ..core.cameras import Camera
-from ..core.frame import Frame, area_downscale
-from ..core.map import MapState
+from ..core.frame import area_downscale
 from ..core.numeric import limit_blas_threads
 from ..engine import Engine, EngineConf, MappingConf
 from . import handlers
-from .codec import KeyframeInput, error_reply, served_method
+from .codec import error_reply
+from .served import ServedMap, WriteOp
 
 if TYPE_CHECKING:
     from .runtime import MapRuntime
@@ -97,50 +96,15 @@ class EngineSpec:
 
 # -- the worker process -----------------------------------------------------------------------
 
-class ReplicaMap:
+class ReplicaMap(ServedMap):
     """A map as a worker sees it: what :func:`handlers.relocalize_reply` needs of a runtime
-    (name, limits, cameras, methods, the engine), read-only except for forwarded changes."""
+    (the :class:`~.served.ServedMap` the parent's map shares), read-only except for the
+    changes forwarded (:meth:`~.served.ServedMap.apply_change`: same input, same order)."""
 
     def __init__(self, name: str, engine: Engine, spec: EngineSpec,
                  cameras: dict[str, Camera]) -> None:
-        self.name = name
-        self.engine = engine
-        self.limits = spec.limits
-        self.methods = spec.methods
-        self.default_method = spec.methods[0]
-        self._cameras = dict(cameras)
-
-    def camera(self, camera_id: str) -> Camera | None:
-        return self._cameras.get(camera_id)
-
-    def camera_ids(self) -> list[str]:
-        return sorted(self._cameras)
-
-    def cameras(self) -> dict[str, Camera]:
-        return dict(self._cameras)
-
-    def map_state(self) -> MapState:
-        return self.engine.map.snapshot()
-
-    def check_method(self, method: str | None) -> str:
-        return served_method(self.name, self.methods, self.default_method, method)
-
-    def relocalize(self, frame: Frame, *, method: str, prior: Prior | None,
-                   hypotheses: int) -> RelocResult:
-        return self.engine.relocalize(frame, method=method, prior=prior, hypotheses=hypotheses)
-
-    def apply(self, op: str, args: tuple[Any, ...]) -> None:
-        """Apply a change the parent applied (same input, same order)."""
-        if op == "kf":
-            kf: KeyframeInput = args[0]
-            self.engine.add_keyframe(kf.kf_id, kf.image, kf.camera, kf.world_from_cam,
-                                     **kf.engine_kwargs())
-        elif op == "del":
-            self.engine.remove_keyframe(args[0])
-        elif op == "cam":
-            self._cameras[args[0]] = args[1]
-        else:
-            raise ValueError(f"unknown replica change {op!r}")
+        super().__init__(name, engine, limits=spec.limits, methods=spec.methods,
+                         default_method=spec.methods[0], cameras=cameras)
 
 
 def worker_main(conn: Connection, index: int) -> None:
@@ -185,7 +149,7 @@ def worker_main(conn: Connection, index: int) -> None:
             if replica is None:
                 continue   # its base comes later and includes this change
             try:
-                replica.apply(kind, tuple(args))
+                replica.apply_change(WriteOp(kind), *args)
             except Exception:
                 log.exception("worker %d: change %s on map %s did not apply", index, kind, name)
                 os._exit(3)
@@ -321,12 +285,13 @@ class ProcessWorkers:
             if handles:
                 self.rebase(rt, handles)
 
-    def forward(self, name: str, op: str, *args: Any) -> None:
+    def forward(self, name: str, op: WriteOp, *args: Any) -> None:
         """Send a change the parent just applied to every worker (called under the map's
-        apply lock, so in journal order)."""
+        apply lock, so in journal order). The op travels as its string, like the other
+        message kinds ("load", "query", "stop")."""
         with self._lock:
             handles = list(self._handles)
-        msg = (op, name, *args)
+        msg = (op.value, name, *args)
         for handle in handles:
             handle.send(msg)
 

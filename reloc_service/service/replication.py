@@ -22,6 +22,7 @@ from reloc_client import protocol as wire
 
 from .codec import pose_covariance_of, to_camera
 from .runtime import MapRuntime
+from .served import WriteOp
 from .workers import WorkerPool
 
 log = logging.getLogger(__name__)
@@ -104,7 +105,8 @@ class Bootstrap:
         self.maps = maps
         self._gate = gate
         self._writer_for = writer_for
-        self.fetched: list[tuple[MapRuntime, str, Any, bytes]] = []
+        #: (map, CAMERA: a CameraPut or KEYFRAME: a KeyframeInfo, key, payload) as fetched.
+        self.fetched: list[tuple[MapRuntime, WriteOp, Any, bytes]] = []
         #: While True, live keyframe puts go through :meth:`put_unless_copied`.
         self.active = True
         #: (map, keyframe id) -> (pose, timestamp, pose covariance) copied from a peer (or
@@ -130,10 +132,10 @@ class Bootstrap:
         try:
             for name, rt in sorted(self.maps.items()):
                 for key, payload in self._get(wire.keys.cameras(self.prefix, name)):
-                    self.fetched.append((rt, "cam", key, payload))
+                    self.fetched.append((rt, WriteOp.CAMERA, key, payload))
                 for key, payload in self._get(wire.keys.keyframes(self.prefix, name)
                                               + "?image=true"):
-                    self.fetched.append((rt, "kf", key, payload))
+                    self.fetched.append((rt, WriteOp.KEYFRAME, key, payload))
         finally:
             self._ready.set()
         if not self._done.wait(self.TIMEOUT * 2):
@@ -174,7 +176,7 @@ class Bootstrap:
         same map version. Returns the keyframes copied."""
         copied = 0
         peer_ids: set[int] = set()
-        for _rt, _op, _key, payload in (f for f in self.fetched if f[0] is rt and f[1] == "kf"):
+        for payload in self._fetched_payloads(rt, WriteOp.KEYFRAME):
             try:
                 info = wire.KeyframeInfo.decode(payload, rt.limits)
                 peer_ids.add(info.id)
@@ -185,7 +187,7 @@ class Bootstrap:
         if peer_ids:   # restored from our own storage, removed by the peer meanwhile
             for kf_id in sorted(set(rt.map_state().keyframes) - peer_ids):
                 rt.delete_keyframe(kf_id)
-        for _rt, _op, _key, payload in (f for f in self.fetched if f[0] is rt and f[1] == "cam"):
+        for payload in self._fetched_payloads(rt, WriteOp.CAMERA):
             try:
                 put = wire.CameraPut.decode(payload, rt.limits)
                 self._ensure_camera(rt, put.id, put.camera)
@@ -193,6 +195,11 @@ class Bootstrap:
                 log.warning("bootstrap: map %s: a copied camera was not applied: %s",
                             rt.name, exc)
         return copied
+
+    def _fetched_payloads(self, rt: MapRuntime, op: WriteOp) -> list[bytes]:
+        """The payloads fetched for ``rt`` of kind ``op``, in the order the peers sent them."""
+        return [payload for fetched_rt, fetched_op, _key, payload in self.fetched
+                if fetched_rt is rt and fetched_op is op]
 
     def _copy_keyframe(self, rt: MapRuntime, info: wire.KeyframeInfo) -> int:
         if info.image is None or (rt.name, info.id) in self.copied:

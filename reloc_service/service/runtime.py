@@ -24,21 +24,11 @@ import numpy as np
 from reloc_client import protocol as wire
 from reloc_client.protocol import EventKind
 
-from ..algorithms.relocalizers.base import Prior, RelocResult
-from ..core.cameras import Camera
 from ..core.errors import MapError, StorageError
-from ..core.frame import Frame
-from ..core.map import MapState
 from ..engine import Engine
-from .codec import (
-    KeyframeInput,
-    WithLimits,
-    decode_camera_put,
-    decode_keyframe_put,
-    error_of,
-    served_method,
-)
+from .codec import KeyframeInput, WithLimits, decode_camera_put, decode_keyframe_put, error_of
 from .durability import REPLAY_LIMITS, MapStore, RestoreReport, ServiceMeta
+from .served import ServedMap, WriteOp
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +38,7 @@ Publish = Callable[[str, EventKind, dict[str, Any]], None]
 class Replicas(Protocol):
     """Where a map's applied changes go besides its engine (:class:`.processes.ProcessWorkers`)."""
 
-    def forward(self, name: str, op: str, *args: Any) -> None: ...
+    def forward(self, name: str, op: WriteOp, *args: Any) -> None: ...
 
     def rebase(self, rt: MapRuntime) -> None: ...
 
@@ -92,8 +82,9 @@ class TrainingJob:
     started: float = 0.0
 
 
-class MapRuntime:
-    """Everything the service holds for map ``name`` (see module docstring).
+class MapRuntime(ServedMap):
+    """Everything the service holds for map ``name`` (see module docstring); its query face
+    (engine, cameras, methods) is the :class:`~.served.ServedMap` a worker's replica shares.
 
     Map changes (:meth:`put_keyframe` etc.) come from the map's writer thread; queries
     (:meth:`relocalize`, :meth:`map_state`, :meth:`status`) from any worker thread.
@@ -108,16 +99,12 @@ class MapRuntime:
     def __init__(self, name: str, engine: Engine, *, instance: str, limits: wire.Limits,
                  methods: tuple[str, ...], default_method: str, directory: Path | None,
                  publish: Publish, snapshot_every: int = 200, fsync: bool = True) -> None:
-        self.name = name
-        self.engine = engine
+        super().__init__(name, engine, limits=limits, methods=methods,
+                         default_method=default_method)
         self.instance = instance
-        self.limits = limits
-        self.methods = methods
-        self.default_method = default_method
         self.stats = Stats()
         self.started_at = time.monotonic()
         self._publish = publish
-        self._cameras: dict[str, Camera] = {}
         self._kf_camera_ids: dict[int, str] = {}
         #: The map's journal, snapshots and service.json; None without storage.
         self.store = None if directory is None else MapStore(
@@ -126,7 +113,7 @@ class MapRuntime:
         self._maintenance = threading.Lock()          # training and snapshots do not overlap
         self._job_lock = threading.Lock()
         self._job: TrainingJob | None = None
-        self._deferred: list[tuple[str, Any]] = []    # applied after the running snapshot
+        self._deferred: list[tuple[WriteOp, Any]] = []    # applied after the running snapshot
         self._snapshotting = False
         self._snapshot_thread: threading.Thread | None = None
         self.restore_report = RestoreReport()
@@ -139,15 +126,6 @@ class MapRuntime:
         self.replicas: Replicas | None = None
 
     # -- reading -------------------------------------------------------------------------------
-    def camera(self, camera_id: str) -> Camera | None:
-        return self._cameras.get(camera_id)
-
-    def camera_ids(self) -> list[str]:
-        return sorted(self._cameras)
-
-    def cameras(self) -> dict[str, Camera]:
-        return dict(self._cameras)
-
     def keyframe_camera_id(self, kf_id: int) -> str | None:
         return self._kf_camera_ids.get(kf_id)
 
@@ -155,18 +133,6 @@ class MapRuntime:
         """The lock under which changes are journaled and applied, in order (held, no change
         is applied: the replica processes save a base under it)."""
         return self._apply_lock
-
-    def map_state(self) -> MapState:
-        """The map as the relocalizers currently see it."""
-        return self.engine.map.snapshot()
-
-    def check_method(self, method: str | None) -> str:
-        """``method`` (default: the map's default) if served; UNKNOWN_METHOD otherwise."""
-        return served_method(self.name, self.methods, self.default_method, method)
-
-    def relocalize(self, frame: Frame, *, method: str, prior: Prior | None,
-                   hypotheses: int) -> RelocResult:
-        return self.engine.relocalize(frame, method=method, prior=prior, hypotheses=hypotheses)
 
     def status(self) -> wire.StatusReply:
         st = self.engine.status()
@@ -199,9 +165,9 @@ class MapRuntime:
         try:
             kf = decode_keyframe_put(self, kf_id, payload)
             with self._apply_lock:
-                self._journal_record({"op": "kf", "id": kf_id, "payload": payload})
+                self._journal_record(WriteOp.KEYFRAME, kf_id, payload)
                 self.publish(EventKind.KEYFRAME_ACCEPTED, id=kf_id)
-                self._apply_or_defer("kf", kf)
+                self._apply_or_defer(WriteOp.KEYFRAME, kf)
         except Exception as exc:
             self.reject(EventKind.KEYFRAME_REJECTED, exc, id=kf_id)
 
@@ -211,9 +177,9 @@ class MapRuntime:
             with self._apply_lock:
                 if kf_id not in self.engine.map and not self._deferred_has(kf_id):
                     raise MapError(f"cannot remove keyframe {kf_id}: not in map {self.name!r}")
-                self._journal_record({"op": "del", "id": kf_id})
+                self._journal_record(WriteOp.DELETE, kf_id)
                 self.publish(EventKind.KEYFRAME_ACCEPTED, id=kf_id, removed=True)
-                self._apply_or_defer("del", kf_id)
+                self._apply_or_defer(WriteOp.DELETE, kf_id)
         except Exception as exc:
             self.reject(EventKind.KEYFRAME_REJECTED, exc, id=kf_id)
 
@@ -222,11 +188,11 @@ class MapRuntime:
         try:
             camera = decode_camera_put(camera_id, payload, self.limits)
             with self._apply_lock:
-                self._journal_record({"op": "cam", "id": camera_id, "payload": payload})
+                self._journal_record(WriteOp.CAMERA, camera_id, payload)
                 previous = self._cameras.get(camera_id)
-                self._cameras[camera_id] = camera
+                self.apply_change(WriteOp.CAMERA, camera_id, camera)
                 if self.replicas is not None:
-                    self.replicas.forward(self.name, "cam", camera_id, camera)
+                    self.replicas.forward(self.name, WriteOp.CAMERA, camera_id, camera)
             self.stats.count("cameras_put")
             if previous is None or previous.to_dict() == camera.to_dict():
                 self.publish(EventKind.CAMERA_ADDED, id=camera_id)
@@ -241,26 +207,30 @@ class MapRuntime:
         except Exception as exc:
             self.reject(EventKind.CAMERA_REJECTED, exc, id=camera_id)
 
-    def _journal_record(self, record: dict[str, Any]) -> None:
+    def _journal_record(self, op: WriteOp, ident: Any, payload: bytes | None = None) -> None:
+        """Append a change as the journal stores it: the op's string, the id, and the put as
+        it was sent (a delete has none)."""
         if self.store is not None:
+            record: dict[str, Any] = {"op": op.value, "id": ident}
+            if payload is not None:
+                record["payload"] = payload
             self.store.append(record)
 
     def _deferred_has(self, kf_id: int) -> bool:
-        return any(op == "kf" and item.kf_id == kf_id for op, item in self._deferred)
+        return any(op is WriteOp.KEYFRAME and item.kf_id == kf_id for op, item in self._deferred)
 
-    def _apply_or_defer(self, op: str, item: Any) -> None:
+    def _apply_or_defer(self, op: WriteOp, item: Any) -> None:
         if self._snapshotting:
             self._deferred.append((op, item))
         else:
             self._apply(op, item)
 
-    def _apply(self, op: str, item: Any, *, replay: bool = False) -> None:
-        if op == "kf":
+    def _apply(self, op: WriteOp, item: Any, *, replay: bool = False) -> None:
+        if op is WriteOp.KEYFRAME:
             kf: KeyframeInput = item
-            self.engine.add_keyframe(kf.kf_id, kf.image, kf.camera, kf.world_from_cam,
-                                     **kf.engine_kwargs())
+            self.apply_change(WriteOp.KEYFRAME, kf)
             if self.replicas is not None:   # before keyframe_added: a query after it sees it
-                self.replicas.forward(self.name, "kf", kf)
+                self.replicas.forward(self.name, WriteOp.KEYFRAME, kf)
             if kf.camera_id is not None:
                 self._kf_camera_ids[kf.kf_id] = kf.camera_id
             else:
@@ -269,10 +239,10 @@ class MapRuntime:
                 self.stats.count("keyframes_put")
                 self.publish(EventKind.KEYFRAME_ADDED, id=kf.kf_id,
                              map_version=self.engine.map.version)
-        elif op == "del":
-            self.engine.remove_keyframe(item)
+        elif op is WriteOp.DELETE:
+            self.apply_change(WriteOp.DELETE, item)
             if self.replicas is not None:
-                self.replicas.forward(self.name, "del", item)
+                self.replicas.forward(self.name, WriteOp.DELETE, item)
             self._kf_camera_ids.pop(item, None)
             if not replay:
                 self.stats.count("keyframes_deleted")
@@ -305,16 +275,16 @@ class MapRuntime:
     def _replay_record(self, record: dict[str, Any]) -> None:
         """Apply a journal record again (raises if it does not apply: it is skipped)."""
         op = record["op"]
-        if op == "kf":
+        if op == WriteOp.KEYFRAME:
             kf = decode_keyframe_put(WithLimits(self, REPLAY_LIMITS), record["id"],
                                      record["payload"])
-            self._apply("kf", kf, replay=True)
-        elif op == "del":
+            self._apply(WriteOp.KEYFRAME, kf, replay=True)
+        elif op == WriteOp.DELETE:
             if record["id"] in self.engine.map:
-                self._apply("del", record["id"], replay=True)
-        elif op == "cam":
-            self._cameras[record["id"]] = decode_camera_put(record["id"], record["payload"],
-                                                            REPLAY_LIMITS)
+                self._apply(WriteOp.DELETE, record["id"], replay=True)
+        elif op == WriteOp.CAMERA:
+            self.apply_change(WriteOp.CAMERA, record["id"],
+                              decode_camera_put(record["id"], record["payload"], REPLAY_LIMITS))
         else:
             raise ValueError(f"unknown journal op {op!r}")
 
@@ -372,7 +342,7 @@ class MapRuntime:
                     self._apply(op, item)
                 except Exception as exc:
                     self.reject(EventKind.KEYFRAME_REJECTED, exc,
-                                id=item.kf_id if op == "kf" else item)
+                                id=item.kf_id if op is WriteOp.KEYFRAME else item)
 
     # -- training --------------------------------------------------------------------------------
     def start_training(self, method: str | None) -> tuple[str, bool]:
@@ -428,7 +398,7 @@ class MapRuntime:
             return None if self._job is None else self._job.thread
 
     # -- shutdown --------------------------------------------------------------------------------
-    def journal_only(self, op: str, ident: Any, payload: bytes | None) -> bool:
+    def journal_only(self, op: WriteOp, ident: Any, payload: bytes | None) -> bool:
         """At shutdown: validate and journal a queued keyframe put or delete without applying
         it (applying runs SIFT and triangulation, ~0.3 s a keyframe); the journal replay at
         the next start applies it. False without storage (nothing would survive anyway)."""
@@ -436,21 +406,22 @@ class MapRuntime:
             return False
         try:
             with self._apply_lock:
-                if op == "kf":
+                if op is WriteOp.KEYFRAME:
                     assert payload is not None
                     decode_keyframe_put(self, ident, payload)   # refused as usual
-                    self._journal_record({"op": "kf", "id": ident, "payload": payload})
+                    self._journal_record(WriteOp.KEYFRAME, ident, payload)
                     self._unapplied.add(ident)
                 else:
                     if (ident not in self.engine.map and ident not in self._unapplied
                             and not self._deferred_has(ident)):
                         raise MapError(f"cannot remove keyframe {ident}: not in map "
                                        f"{self.name!r}")
-                    self._journal_record({"op": "del", "id": ident})
+                    self._journal_record(WriteOp.DELETE, ident)
                     self._unapplied.discard(ident)
                 self._journal_ahead = True
             self.publish(EventKind.KEYFRAME_ACCEPTED, id=ident, **({"removed": True}
-                                                                   if op == "del" else {}))
+                                                                   if op is WriteOp.DELETE
+                                                                   else {}))
         except Exception as exc:
             self.reject(EventKind.KEYFRAME_REJECTED, exc, id=ident)
         return True

@@ -18,6 +18,7 @@ from ..storage.journal import QUARANTINE_DIR, Journal, scan_segment, segment_nam
 from ..storage.snapshot import verify_snapshot
 from ..storage.snapshot_files import CURRENT_FILE, current_snapshot, snapshot_dirs
 from .durability import REPLAY_LIMITS, SERVICE_FILE, read_service_file
+from .served import WriteOp
 
 
 @dataclass
@@ -161,13 +162,13 @@ def record_problem(record: bytes) -> str | None:
     try:
         entry = msgpack.unpackb(record, raw=False)
         op = entry["op"]
-        if op == "kf":
+        if op == WriteOp.KEYFRAME:
             put = wire.KeyframePut.decode(entry["payload"], REPLAY_LIMITS)
             if put.id != entry["id"]:
                 return f"keyframe {entry['id']}: the put names keyframe {put.id}"
-        elif op == "cam":
+        elif op == WriteOp.CAMERA:
             wire.CameraPut.decode(entry["payload"], REPLAY_LIMITS)
-        elif op != "del":
+        elif op != WriteOp.DELETE:
             return f"unknown op {op!r}"
     except wire.ProtocolError as exc:
         return f"{entry.get('op')} {entry.get('id')!r}: {exc.message}"

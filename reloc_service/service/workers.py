@@ -159,3 +159,9 @@ def stop_on_signals() -> threading.Event:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
     return stop
+
+
+def seconds_left(deadline: float, share: float = 1.0) -> float:
+    """``share`` of the seconds left until ``deadline`` (a ``time.monotonic()`` time; 0 when
+    past): how long a stop may wait for one more pool, writer or map."""
+    return max(0.0, deadline - time.monotonic()) * share

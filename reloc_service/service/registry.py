@@ -1,0 +1,217 @@
+"""The maps a service serves, and how each comes to be served: restored from its storage at
+start (the cheapest first, each declared as soon as it is up, so small maps are served while a
+big journal replays), created by its first put, or failed (its storage did not restore: its
+queries and puts get STORAGE_ERROR with the reason, its files are left as they are).
+
+The registry knows nothing of Zenoh: the service gives it the callables that declare a map
+(queryables, liveliness token, ROS 2 node) and publish its events.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from reloc_client import protocol as wire
+from reloc_client.protocol import ErrorCode
+
+from ..core.errors import ConfigError, StorageError
+from ..engine import Engine, EngineConf
+from .config import ServiceConf
+from .durability import (
+    RestoreInterrupted,
+    check_storage,
+    journal_bytes,
+    map_dirname,
+    open_engine,
+    recover_current,
+    stored_map_names,
+)
+from .runtime import MapRuntime, Publish
+from .workers import seconds_left
+
+if TYPE_CHECKING:
+    from .processes import ProcessWorkers
+
+log = logging.getLogger(__name__)
+
+
+class MapRegistry:
+    """The served maps by name (:attr:`maps`), the failed ones (:attr:`failed`) and those
+    still being restored.
+
+    :attr:`maps` and :attr:`failed` are read from any thread without a lock; ``_lock``
+    orders their changes (a map restored or created once, never both served and failed).
+    It is taken inside no other lock of the service; under it a map created by a put is
+    opened and attached to the worker processes (whose locks thus come after it)."""
+
+    def __init__(self, conf: ServiceConf, engine_conf: EngineConf, methods: tuple[str, ...],
+                 *, limits: wire.Limits, stopped: threading.Event, publish: Publish,
+                 declare: Callable[[str], None], declare_created: Callable[[str], None],
+                 declare_failed: Callable[[str, str], None]) -> None:
+        """``declare`` makes a restored map reachable, ``declare_created`` one its first put
+        created, ``declare_failed`` a failed one (with the reason); ``publish`` sends a
+        map's events; ``stopped`` is set when the service stops (restoring stops too)."""
+        self.conf = conf
+        self.storage = conf.storage_path
+        self.engine_conf = engine_conf
+        self.methods = methods
+        self.limits = limits
+        self._stopped = stopped
+        self._publish = publish
+        self._declare = declare
+        self._declare_created = declare_created
+        self._declare_failed = declare_failed
+        self.maps: dict[str, MapRuntime] = {}
+        #: Maps whose storage did not restore: map -> why (queries get STORAGE_ERROR with it).
+        self.failed: dict[str, str] = {}
+        #: The worker processes (worker_mode "process"): every map opened is attached to them.
+        self.processes: ProcessWorkers | None = None
+        self._lock = threading.Lock()
+        self._loading: set[str] = set()      # being restored: not declared yet
+        self._ready = threading.Event()      # every stored and configured map is up (or failed)
+        self._loader: threading.Thread | None = None
+
+    # -- start -----------------------------------------------------------------------------------
+    def check_methods(self) -> None:
+        """Build every method once on an empty map: bad names or options fail at start."""
+        try:
+            Engine(self.engine_conf)
+        except ConfigError as exc:
+            raise ConfigError(f"service.methods / [options]: {exc}") from exc
+
+    def maps_to_restore(self) -> list[str]:
+        """Check the storage root, then the stored and configured maps, each once, the
+        cheapest restore first (fewest journal bytes to replay)."""
+        if self.storage is not None:
+            check_storage(self.storage)
+        stored = [] if self.storage is None else stored_map_names(self.storage)
+        return self._restore_order(stored + sorted(self.conf.maps))
+
+    def _restore_order(self, names: list[str]) -> list[str]:
+        def cost(name: str) -> int:
+            return 0 if self.storage is None else journal_bytes(self.storage / map_dirname(name))
+
+        unique = list(dict.fromkeys(names))
+        return sorted(unique, key=lambda n: (cost(n), n))
+
+    def expect(self, names: list[str]) -> None:
+        """``names`` are about to be restored: their puts get BUSY until they are served."""
+        self._loading = set(names)
+
+    def load_in_background(self, names: list[str]) -> None:
+        """:meth:`load` ``names`` on a thread, declaring each map once it is up."""
+        self._loader = threading.Thread(target=self.load, args=(names,),
+                                        name="restore-maps", daemon=True)
+        self._loader.start()
+
+    def load(self, names: list[str], *, declare: bool = True) -> None:
+        """Restore ``names`` in order; declare each one ready (``declare``) or failed at once."""
+        try:
+            for name in names:
+                if self._stopped.is_set():
+                    break
+                self._bring_up(name, declare=declare)
+        finally:
+            self._loading.clear()
+            self._ready.set()
+
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        """Wait until every map found at start is served (or failed); False on timeout."""
+        return self._ready.wait(timeout)
+
+    @property
+    def ready(self) -> bool:
+        return self._ready.is_set()
+
+    def _bring_up(self, name: str, *, declare: bool) -> None:
+        try:
+            rt = self._open_map(name)
+        except RestoreInterrupted as exc:
+            log.info("%s", exc)
+            return
+        except Exception as exc:   # one map's damage never takes down the others
+            self._fail_map(name, exc)
+            return
+        with self._lock:
+            self._loading.discard(name)
+            if self._stopped.is_set():
+                rt.close(final_snapshot=False)
+                return
+            self.maps[name] = rt
+        if declare:
+            self._declare(name)
+
+    def _fail_map(self, name: str, exc: BaseException) -> None:
+        """Mark ``name`` failed: its queries and puts get STORAGE_ERROR with the reason; its
+        files stay as they are."""
+        where = ("" if self.storage is None
+                 else f" (see `reloc map check {self.storage / map_dirname(name)}`)")
+        message = (f"map {name!r} is not served: its storage did not restore: {exc}; its "
+                   f"files are left untouched{where}")
+        log.error("%s", message, exc_info=not isinstance(exc, StorageError))
+        with self._lock:
+            self._loading.discard(name)
+            self.failed[name] = message
+        self._declare_failed(name, message)
+
+    # -- serving ---------------------------------------------------------------------------------
+    def check_restored(self, name: str) -> None:
+        """STORAGE_ERROR if ``name`` failed to restore, BUSY while it is being restored."""
+        if name in self.failed:
+            raise StorageError(self.failed[name])
+        if name in self._loading:
+            raise wire.ProtocolError(ErrorCode.BUSY,
+                                     f"map {name!r} is being restored from storage; put again "
+                                     f"once it is served (its liveliness token appears)")
+
+    def create(self, name: str) -> MapRuntime:
+        """The runtime of ``name``, created (and declared) unless another put did it first;
+        for a first put already validated. STORAGE_ERROR or BUSY as :meth:`check_restored`."""
+        with self._lock:
+            self.check_restored(name)
+            if name not in self.maps:
+                self.maps[name] = self._open_map(name)
+                self._declare_created(name)
+                log.info("map %s created by its first put", name)
+            return self.maps[name]
+
+    def _open_map(self, name: str) -> MapRuntime:
+        """The runtime of map ``name``, restored from its storage (StorageError naming the
+        file if that is damaged beyond what restoring skips)."""
+        directory = None if self.storage is None else self.storage / map_dirname(name)
+        start = time.perf_counter()
+        recovered = None if directory is None else recover_current(directory)
+        engine = open_engine(directory, self.engine_conf)
+        s = self.conf.service
+        rt = MapRuntime(name, engine, instance=self.conf.instance, limits=self.limits,
+                        methods=self.methods, default_method=self.methods[0],
+                        directory=directory, publish=self._publish,
+                        snapshot_every=s.snapshot_every, fsync=s.fsync)
+        if directory is not None:
+            check_storage(directory)
+            replayed = rt.restore(self._stopped)
+            if recovered is not None:
+                rt.restore_report.recovered_snapshot = recovered
+                rt.stats.count("restore_snapshot_recovered")
+            state = rt.map_state()
+            log.info("map %s: %d keyframes restored (%d journal records replayed) in %.1f s",
+                     name, len(state.keyframes), replayed, time.perf_counter() - start)
+            trained = all(m["trained"] for m in engine.status()["methods"].values())
+            if len(state.keyframes) and not trained and s.train_on_load:
+                rt.start_training(None)
+        if self.processes is not None:
+            self.processes.attach(rt)
+        return rt
+
+    # -- stop ------------------------------------------------------------------------------------
+    def close(self, *, final_snapshot: bool, deadline: float) -> None:
+        """Close every served map (final snapshots with the time left until ``deadline``)."""
+        for rt in list(self.maps.values()):
+            try:
+                rt.close(final_snapshot=final_snapshot, timeout=seconds_left(deadline))
+            except Exception as exc:
+                log.error("map %s: closing failed: %s", rt.name, exc)

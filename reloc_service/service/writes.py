@@ -1,0 +1,302 @@
+"""The write path: keyframe and camera puts (from the Zenoh subscriber or the ROS 2 bridge)
+queued in their map's writer thread, which journals then applies them in arrival order, and the
+rejected events that answer a put refused on the way (the accepted and added events are the
+runtime's, :class:`~.runtime.MapRuntime`).
+
+Each served map has its own writer (one thread), so one map's snapshot or training never
+holds up another map's puts; a shared writer takes the puts of maps this instance does not
+serve (rejected, or ignored when another instance serves them, in order) and the bootstrap's
+copy. A writer started for a put that then did not create its map is retired (no idle thread
+per junk name). At shutdown the queued puts are journaled without being applied
+(:meth:`Writes.flush`); the replay at the next start applies them.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from reloc_client import protocol as wire
+from reloc_client.protocol import ErrorCode, EventKind, ProtocolError
+
+from .codec import decode_camera_put, decode_keyframe_put, error_of
+from .config import ServiceConf
+from .registry import MapRegistry
+from .replication import Bootstrap, Peers
+from .runtime import MapRuntime, Publish
+from .served import WriteOp
+from .workers import WorkerPool, seconds_left
+
+log = logging.getLogger(__name__)
+
+#: Distinct malformed keys remembered so that each is logged once (a flood of keys is bounded).
+WARNED_KEYS = 1024
+
+
+@dataclass(frozen=True)
+class WriteJob:
+    """A queued keyframe or camera write: applied by its map's writer, or (at shutdown)
+    journaled without being applied."""
+
+    writes: Writes
+    map_name: str
+    op: WriteOp
+    ident: Any
+    apply: Callable[[MapRuntime], None]
+    payload: bytes | None
+
+    @property
+    def rejected(self) -> EventKind:
+        """The event that refuses this write."""
+        return (EventKind.CAMERA_REJECTED if self.op is WriteOp.CAMERA
+                else EventKind.KEYFRAME_REJECTED)
+
+    def __call__(self, _queued: float) -> None:
+        self.writes.run(self)
+
+
+class Writes:
+    """The writers of one service and the puts queued in them (see module docstring).
+
+    ``_lock`` guards the writers table: a put is queued, and an idle writer retired, under
+    it (never interleaved). It is taken inside no other lock of the service."""
+
+    def __init__(self, conf: ServiceConf, registry: MapRegistry, *, prefix: str,
+                 limits: wire.Limits, stopped: threading.Event, publish: Publish) -> None:
+        self.conf = conf.service
+        self.registry = registry
+        self.prefix = prefix
+        self.limits = limits
+        self._stopped = stopped
+        self._publish = publish
+        #: Writes of maps this instance does not serve (rejected or ignored, in order) and the
+        #: bootstrap's copy (created by :meth:`open`); each served map has its own writer in
+        #: ``writers``.
+        self.writer: WorkerPool | None = None
+        self.writers: dict[str, WorkerPool] = {}
+        self._lock = threading.Lock()
+        #: The other instances under the prefix: a put on a map one of them serves is theirs.
+        self.peers: Peers | None = None
+        #: The copy of peers' maps at start (bootstrap_from_peers): while it runs, live
+        #: keyframe puts skip what it copied.
+        self.bootstrap: Bootstrap | None = None
+        self._warned_keys: dict[str, None] = {}   # malformed keys already logged (bounded)
+
+    def open(self) -> None:
+        """Start the shared writer (the maps' own writers start with their first put)."""
+        self.writer = WorkerPool("writer", workers=1, queue_size=self.conf.writer_queue_size,
+                                 max_bytes=self.conf.writer_queue_bytes)
+
+    # -- samples (called in Zenoh threads: enqueue only) -----------------------------------------
+    def keyframe_sample(self, map_name: str, kf_id: int, payload: bytes | None) -> None:
+        """Queue a keyframe put (``payload``) or delete (None)."""
+        if payload is None:
+            self._enqueue(map_name, WriteOp.DELETE, kf_id, lambda rt: rt.delete_keyframe(kf_id))
+        elif self.bootstrap is not None and self.bootstrap.active:
+            copy = self.bootstrap
+            self._enqueue(map_name, WriteOp.KEYFRAME, kf_id,
+                          lambda rt: copy.put_unless_copied(rt, kf_id, payload), payload)
+        else:
+            self._enqueue(map_name, WriteOp.KEYFRAME, kf_id,
+                          lambda rt: rt.put_keyframe(kf_id, payload), payload)
+
+    def camera_sample(self, map_name: str, camera_id: str, payload: bytes | None) -> None:
+        """Queue a camera put; a delete (None) is rejected at once."""
+        if payload is None:
+            self.reject(map_name, EventKind.CAMERA_REJECTED, camera_id, ErrorCode.BAD_VALUE,
+                        "cameras cannot be deleted; put the camera again to change it")
+            return
+        self._enqueue(map_name, WriteOp.CAMERA, camera_id,
+                      lambda rt: rt.put_camera(camera_id, payload), payload)
+
+    def refuse_sample(self, key: str, problem: str, code: ErrorCode) -> None:
+        """A refused sample: a rejected event on its map's events key if this instance serves
+        that map (the sender listens there), else one WARNING per key naming the rule."""
+        target = self._rejection_target(key)
+        if target is not None:
+            self.reject(*target, code, problem)
+            return
+        if key in self._warned_keys:
+            return
+        if len(self._warned_keys) >= WARNED_KEYS:
+            self._warned_keys.pop(next(iter(self._warned_keys)))
+        self._warned_keys[key] = None
+        log.warning("ignoring a sample on %s (%s): %s (logged once per key)", key, code.value,
+                    problem)
+
+    def _rejection_target(self, key: str) -> tuple[str, EventKind, Any] | None:
+        """(map, event kind, id) for a sample on ``<prefix>/<served map>/keyframes|cameras/
+        <id>``; None when the map is not one this instance serves."""
+        head = f"{self.prefix}/"
+        parts = key[len(head):].split("/") if key.startswith(head) else []
+        if len(parts) != 3 or parts[0] not in self.registry.maps:
+            return None
+        leaf = parts[2]
+        if parts[1] == "keyframes":
+            canonical = (leaf.isdigit() and (leaf == "0" or not leaf.startswith("0"))
+                         and int(leaf) < 2**63)
+            return parts[0], EventKind.KEYFRAME_REJECTED, int(leaf) if canonical else leaf
+        if parts[1] == "cameras":
+            return parts[0], EventKind.CAMERA_REJECTED, leaf
+        return None
+
+    def _enqueue(self, map_name: str, op: WriteOp, ident: Any,
+                 apply: Callable[[MapRuntime], None], payload: bytes | None = None) -> None:
+        """Queue a write in its map's writer; BUSY at once if stopping or the queue is full."""
+        job = WriteJob(self, map_name, op, ident, apply, payload)
+        if self._stopped.is_set():
+            self.reject(map_name, job.rejected, ident, ErrorCode.BUSY,
+                        "the service is stopping; put again once it is back (or to a replica)")
+        elif not self._submit(map_name, job, size=len(payload or b"")):
+            self.reject(map_name, job.rejected, ident, ErrorCode.BUSY,
+                        f"writer queue full ({self.conf.writer_queue_size} puts or "
+                        f"{self.conf.writer_queue_bytes} bytes waiting); put again later")
+
+    def reject(self, map_name: str, kind: EventKind, ident: Any, code: ErrorCode,
+               message: str) -> None:
+        """Publish a rejected event (``kind``) for put ``ident`` and count it on its map."""
+        rt = self.registry.maps.get(map_name)
+        if rt is not None:
+            rt.stats.count("rejected")
+        self._publish(map_name, kind, {"id": ident, "code": code.value, "message": message})
+
+    # -- writers ---------------------------------------------------------------------------------
+    def writer_for(self, map_name: str) -> WorkerPool:
+        """The writer of ``map_name``: its own if the map is served or may be created by this
+        put, else the shared one (which rejects or ignores, in order)."""
+        with self._lock:
+            return self._writer_locked(map_name)
+
+    def _writer_locked(self, map_name: str) -> WorkerPool:
+        pool = self.writers.get(map_name)
+        if pool is not None:
+            return pool
+        if map_name not in self.registry.maps and not self.conf.allow_new_maps:
+            assert self.writer is not None
+            return self.writer
+        pool = WorkerPool(f"writer-{map_name}", workers=1,
+                          queue_size=self.conf.writer_queue_size,
+                          max_bytes=self.conf.writer_queue_bytes)
+        self.writers[map_name] = pool
+        return pool
+
+    def _submit(self, map_name: str, job: WriteJob, *, size: int = 0) -> bool:
+        with self._lock:   # not interleaved with _retire
+            return self._writer_locked(map_name).submit(job, size=size)
+
+    def _retire(self, map_name: str) -> None:
+        """Stop the writer of a map that its put did not create (no idle thread per junk
+        name); called from that writer's own thread, so closed from another."""
+        with self._lock:
+            pool = self.writers.get(map_name)
+            if (pool is None or map_name in self.registry.maps or pool.pending
+                    or self._stopped.is_set()):
+                return
+            del self.writers[map_name]
+        threading.Thread(target=pool.close, name=f"retire-{map_name}", daemon=True).start()
+
+    def wait_idle(self, timeout: float = 30.0) -> bool:
+        """Wait until the queued puts are applied."""
+        deadline = time.monotonic() + timeout
+        with self._lock:
+            pools = [*([self.writer] if self.writer else []), *self.writers.values()]
+        return all(pool.join(seconds_left(deadline)) for pool in pools)
+
+    def flush(self, deadline: float) -> int:
+        """Take the queued writes out of every writer, let each finish the write it is
+        running (so the journal keeps arrival order), then journal the queued ones without
+        applying them; the number journaled. Queued map copies get no reply (their gets end
+        empty); the writer threads stop."""
+        with self._lock:
+            pools = [*self.writers.values(), *([self.writer] if self.writer else [])]
+        queued = [job for pool in pools for job in pool.take_queued()]
+        for pool in pools:   # a running put ends within a second; a map copy may not
+            if not pool.join(min(seconds_left(deadline, share=0.25), 5.0)):
+                log.warning("%s: still busy at shutdown", pool.name)
+        journaled = sum(self._journal_unapplied(job) for job in queued
+                        if isinstance(job, WriteJob))
+        for pool in pools:
+            pool.close(timeout=seconds_left(deadline, share=0.25))
+        return journaled
+
+    # -- jobs (writer threads) -------------------------------------------------------------------
+    def run(self, job: WriteJob) -> None:
+        """A queued write, in its map's writer thread."""
+        try:
+            rt = self._map_for_put(job)
+        except Exception as exc:
+            code, message = error_of(exc)
+            self.reject(job.map_name, job.rejected, job.ident, code, message)
+            self._retire(job.map_name)
+            return
+        if rt is None and self.peers is not None and self.peers.serves(job.map_name):
+            log.debug("put on map %s ignored: another instance serves it", job.map_name)
+        elif rt is None:
+            self.reject(job.map_name, job.rejected, job.ident, ErrorCode.UNKNOWN_MAP,
+                        f"map {job.map_name!r} is not served and this service does not create "
+                        "maps (service.allow_new_maps = false)")
+        else:
+            job.apply(rt)
+            if rt.wants_snapshot():
+                rt.start_snapshot()
+            return
+        self._retire(job.map_name)
+
+    def _map_for_put(self, job: WriteJob) -> MapRuntime | None:
+        """The runtime of the job's map; created (and served) if new maps are allowed and the
+        put decodes and validates (ProtocolError otherwise: garbage on a new name leaves
+        nothing on disk). A delete never creates a map. A map being restored refuses puts
+        (BUSY), a failed one too (STORAGE_ERROR)."""
+        name = job.map_name
+        rt = self.registry.maps.get(name)
+        if rt is not None:
+            return rt
+        self.registry.check_restored(name)
+        if not self.conf.allow_new_maps or self._stopped.is_set():
+            return None
+        if job.payload is None:
+            raise ProtocolError(ErrorCode.UNKNOWN_MAP,
+                                f"map {name!r} does not exist; a delete does not create it")
+        self._validate_first_put(job, job.payload)
+        return self.registry.create(name)
+
+    def _validate_first_put(self, job: WriteJob, payload: bytes) -> None:
+        """Decode a put on a map that does not exist yet, as the new map would (no camera
+        registered: a keyframe needs an inline camera); ProtocolError if it would fail."""
+        wire.check_name(job.map_name)
+        if job.op is WriteOp.CAMERA:
+            decode_camera_put(job.ident, payload, self.limits)
+        else:
+            decode_keyframe_put(_NoCameras(job.map_name, self.limits), job.ident, payload)
+
+    def _journal_unapplied(self, job: WriteJob) -> bool:
+        """At shutdown: journal a queued write without applying it (cameras are cheap and
+        keyframes need them: applied). True if journaled."""
+        rt = self.registry.maps.get(job.map_name)
+        if rt is None:   # a put that would have created its map: refused, not lost silently
+            self.reject(job.map_name, job.rejected, job.ident, ErrorCode.BUSY,
+                        f"the service stopped before creating map {job.map_name!r}; put "
+                        "again once it is back")
+            return False
+        if job.op is WriteOp.CAMERA:
+            job.apply(rt)
+            return False
+        return rt.journal_only(job.op, job.ident, job.payload)
+
+
+class _NoCameras:
+    """The camera registry of a map that does not exist yet (validating its first put)."""
+
+    def __init__(self, name: str, limits: wire.Limits) -> None:
+        self.name = name
+        self.limits = limits
+
+    def camera(self, camera_id: str) -> None:
+        return None
+
+    def camera_ids(self) -> list[str]:
+        return []
