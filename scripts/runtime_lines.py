@@ -16,8 +16,8 @@ sys.path.insert(0, str(REPO / "tests"))  # one import-graph reader: the architec
 
 from archcheck import Module, closure, load  # noqa: E402
 
-#: ``reloc serve``: the CLI's entry, its serve subcommand, and the module that subcommand
-#: delegates to by name (a string the reader cannot see as an import).
+#: ``reloc serve``: the CLI's entry, its serve subcommand and the module that implements it
+#: (imported inside the subcommand's functions, which the reader follows).
 SERVE_ROOTS = ("reloc_service.cli.main", "reloc_service.cli.serve", "reloc_service.service.cli")
 #: The tools, where they live now and where they lived before moving under tools/ (957bde1).
 TOOLS = ("reloc_service.tools", "reloc_service.eval", "reloc_service.data", "reloc_service.synth",
