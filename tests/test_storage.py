@@ -5,14 +5,17 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import mmap
 import os
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from reloc_service.core.errors import StorageError
+from reloc_service.core.file_mapping import is_mapped
 from reloc_service.core.frame import EncodedImage, Keyframe
 from reloc_service.core.map import KeyframeMap, MapState
 from reloc_service.storage import snapshot as storage
@@ -405,7 +408,7 @@ def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
     kf = state.keyframes[1]
     image = kf.image_source                           # PNG, decoded on first use
     assert isinstance(image, EncodedImage) and not image.data.flags.writeable
-    assert isinstance(image.data.base.obj, mmap.mmap)
+    assert is_mapped(image.data)
     pixels = kf.image
     assert np.array_equal(pixels, rich_state.keyframes[1].image)
     assert kf.image_source is image                   # a keyframe stays encoded ...
@@ -739,3 +742,31 @@ def test_exact_geometry_saves_landmarks_as_held(tmp_path, synthetic_map):
     save_map(state, tmp_path / "compact")
     compact, _ = load_map(tmp_path / "compact")
     assert not np.array_equal(compact.landmark_points(ids), state.landmark_points(ids))
+
+
+def test_a_map_of_more_keyframes_than_open_files_allowed_loads(tmp_path, synthetic_map):
+    """Every keyframe image stays mapped, yet no file stays open per keyframe: a map of 300
+    keyframes loads, every image readable, in a process allowed 128 open files (systemd's
+    default soft limit is 1024, and maps of thousands of keyframes are common)."""
+    first = synthetic_map.keyframes[synthetic_map.keyframe_ids()[0]]
+    kmap = KeyframeMap()
+    for i in range(300):
+        kmap.add_keyframe(Keyframe(image=first.image, camera=first.camera, id=i,
+                                   world_from_cam=first.world_from_cam, features={}))
+    save_map(kmap.snapshot(), tmp_path)
+    code = textwrap.dedent(f"""
+        import os, resource
+        resource.setrlimit(resource.RLIMIT_NOFILE,
+                           (128, resource.getrlimit(resource.RLIMIT_NOFILE)[1]))
+        from reloc_service.storage.snapshot import load_map
+        state, _ = load_map({str(tmp_path)!r})
+        images = [kf.image for kf in state.keyframes.values()]
+        assert len(images) == 300 and all(im.shape == images[0].shape for im in images)
+        print(len(os.listdir("/proc/self/fd")))
+    """)
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True,
+                          text=True, timeout=120,
+                          env={**os.environ, "PYTHONPATH": f"{root}{os.pathsep}{root / 'clients'}"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert int(done.stdout.split()[-1]) < 64  # open files after the load: not one per image

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import io
-import mmap
 import os
 import re
 import shutil
@@ -24,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..core.errors import StorageError
+from ..core.file_mapping import map_file
 from ..core.fileio import atomic_write, fsync_path
 
 CURRENT_FILE = "CURRENT"
@@ -187,8 +187,9 @@ class SnapshotReader:
         return self._map(relpath) if future is None else future.result()
 
     def _map(self, relpath: str) -> npt.NDArray[np.uint8]:
-        """``relpath``'s bytes memory-mapped read-only after checking their size and SHA-256.
-        One open and no copy: hashing the mapping instead of read() chunks halves the load
+        """``relpath``'s bytes memory-mapped read-only after checking their size and SHA-256
+        (:func:`..core.file_mapping.map_file`: the file is closed once mapped). One open and
+        no copy: hashing the mapping instead of read() chunks halves the load
         time of a big map (reads copied every byte once more before hashing it)."""
         path = self.root / relpath
         expected = self.files.get(relpath)
@@ -197,18 +198,20 @@ class SnapshotReader:
         try:
             with open(path, "rb") as fh:
                 size = os.fstat(fh.fileno()).st_size
-                mapped = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) if size else None
+                # no descriptor stays open per mapped file: a map keeps every keyframe's
+                # image mapped, more files than a process may hold open
+                mapped = map_file(fh, size) if size else None
         except OSError as exc:
             raise StorageError(f"{path}: cannot read ({exc.strerror}); the map is damaged") from exc
         if size != expected.get("size", size):
             raise StorageError(f"{path}: {size} bytes, expected {expected['size']} "
                                f"(truncated or damaged)")
-        digest = hashlib.sha256(mapped if mapped is not None else b"").hexdigest()
+        digest = hashlib.sha256(mapped.array.data if mapped is not None else b"").hexdigest()
         if mapped is not None:
             # hashing touched every page: drop them from this process (they stay in the page
             # cache) so a kept mapping costs resident memory only once its bytes are used
-            mapped.madvise(mmap.MADV_DONTNEED)
-        data = np.frombuffer(mapped, np.uint8) if mapped is not None else np.zeros(0, np.uint8)
+            mapped.drop_pages()
+        data = mapped.array if mapped is not None else np.zeros(0, np.uint8)
         if digest != expected["sha256"]:
             raise StorageError(f"{path}: checksum mismatch (sha256 {digest[:12]}..., "
                                f"expected {str(expected['sha256'])[:12]}...); the file is damaged")
