@@ -74,7 +74,7 @@ def test_protocol_imports_only_msgpack_and_numpy():
     assert len(paths) > 1, "the wire protocol package clients/reloc_client/protocol/ is missing"
     stdlib = {"__future__", "dataclasses", "enum", "math", "typing", "collections", "struct", "re",
               "numbers", "reloc_client", "abc", "functools", "itertools", "sys", "io", "base64",
-              "json"}
+              "json", "reprlib"}
     for path in paths:
         tops = {name.split(".")[0] for node in ast.walk(ast.parse(path.read_text()))
                 for name in _absolute_tops(node)}

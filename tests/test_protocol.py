@@ -549,3 +549,26 @@ def test_worked_example_in_docs_decodes():
     assert decoded.prior.radius_m == 3.0 and decoded.method == "bow+p3p,sbi+esm"
     answer = P.RelocalizeReply.decode(pack(reply))
     assert answer.status is P.ReplyStatus.OK and len(answer.covariance) == 36
+
+
+@pytest.mark.parametrize("message,field", [
+    (P.RelocalizeRequest(IMAGE, camera=CAMERA), "image"),
+    (P.RelocalizeRequest(IMAGE, camera=CAMERA), "camera"),
+    (P.RelocalizeRequest(IMAGE, camera=CAMERA), "method"),
+    (P.RelocalizeRequest(IMAGE, camera=CAMERA), "prior"),
+    (P.RelocalizeRequest(IMAGE, camera_id="cam0"), "camera_id"),
+    (P.TrainRequest("ferns", "r2"), "method"),
+])
+def test_a_value_nested_a_thousand_levels_deep_gets_a_named_error(message, field):
+    """A crafted request nesting arrays ~1,000 deep in one field is refused with that
+    field's error code and a short description, not a recursion error (the service's
+    INTERNAL)."""
+    deep: object = 1
+    for _ in range(1000):
+        deep = [deep]
+    body = msgpack.unpackb(message.encode(), raw=False)
+    body[field] = deep
+    with pytest.raises(P.ProtocolError) as caught:
+        type(message).decode(msgpack.packb(body))
+    assert caught.value.code in (E.WRONG_TYPE, E.BAD_VALUE, E.BAD_NAME) and field in str(caught.value)
+    assert len(str(caught.value)) < 300

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import enum
 import math
+import reprlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -76,10 +77,17 @@ _UNLIMITED = Limits(max_payload_bytes=2**62, max_image_pixels=2**62, max_feature
 # Field validation: every reader takes the value and its dotted path, and raises ProtocolError.
 # ================================================================================================
 
+#: The repr of a value an error message shows: a few levels and items of a container, so a
+#: value nested a thousand levels deep (a crafted request) is described, not recursed into.
+_SHORT_REPR = reprlib.Repr()
+_SHORT_REPR.maxlevel = 3
+_SHORT_REPR.maxstring = _SHORT_REPR.maxother = 60
+
+
 def _describe(value: Any) -> str:
     if isinstance(value, bytes | bytearray):
         return f"{len(value)} bytes"
-    text = repr(value)
+    text = _SHORT_REPR.repr(value)
     text = text if len(text) <= 60 else text[:57] + "..."
     return f"{type(value).__name__} {text}" if not isinstance(value, int | float | str) else text
 
