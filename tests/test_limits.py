@@ -44,6 +44,8 @@ MAP = "lab"
 METHOD = "sbi+p3p"
 MiB = 1024 * 1024
 
+BLOCK = zenoh.CongestionControl.BLOCK
+
 
 def upload(client: RelocClient, scene, events: Events, n: int = 4) -> None:
     client.set_camera("cam0", scene.camera)
@@ -269,23 +271,29 @@ def test_garbage_on_new_map_names_creates_nothing(served, synthetic_scene):
     with raw_session(port) as session:
         sub = session.declare_subscriber(
             "reloc/*/events", lambda s: rejected.append(wire.Event.decode(s.payload.to_bytes())))
+
+        def send(key: str, payload: bytes) -> None:
+            # Block rather than drop under congestion: a dropped put would be Zenoh's
+            # choice, not the service's, and this test is about what the service does.
+            session.put(key, payload, congestion_control=BLOCK)
+
         try:
             # Zenoh routes a new subscriber asynchronously: events the service publishes before
             # it knows this one are lost. Probe (garbage too) until a rejection is heard.
             def heard() -> bool:
-                session.put(wire.keys.keyframe("reloc", "junkprobe", 1), b"\xc1garbage")
+                send(wire.keys.keyframe("reloc", "junkprobe", 1), b"\xc1garbage")
                 return any(e.map == "junkprobe" for e in rejected)
             wait_until(heard, timeout=20, interval=0.2)
             for i in range(20):
-                session.put(wire.keys.keyframe("reloc", f"junk{i}", 1), b"\xc1garbage")
-            session.put(wire.keys.camera("reloc", "junkcam", "c0"), b"\xc1garbage")
-            session.delete(wire.keys.keyframe("reloc", "junkdel", 3))
+                send(wire.keys.keyframe("reloc", f"junk{i}", 1), b"\xc1garbage")
+            send(wire.keys.camera("reloc", "junkcam", "c0"), b"\xc1garbage")
+            session.delete(wire.keys.keyframe("reloc", "junkdel", 3), congestion_control=BLOCK)
             # A valid first put (inline camera) still creates its map.
             put = wire.KeyframePut(
                 id=0, image=wire.WireImage.from_array(synthetic_scene.keyframe_images[0]),
                 world_from_cam=wire.WirePose.from_matrix(synthetic_scene.keyframe_poses[0]),
                 camera=wire.WireCamera.from_dict(synthetic_scene.camera.to_dict()))
-            session.put(wire.keys.keyframe("reloc", "fresh", 0), put.encode())
+            send(wire.keys.keyframe("reloc", "fresh", 0), put.encode())
             assert service.wait_idle(30)
             wait_until(lambda: sum(e.map != "junkprobe" for e in rejected) >= 22, timeout=20)
         finally:
