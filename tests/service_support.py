@@ -34,6 +34,8 @@ CREDENTIALS = {line.split(":")[0]: line.split(":", 1)[1]
                for line in (GROUND / "credentials.example.txt").read_text().split()}
 #: The map a :func:`write_config` service serves.
 MAP = "lab"
+# Tests put with this where a put Zenoh drops under congestion would read as a service fault.
+BLOCK = zenoh.CongestionControl.BLOCK
 
 
 def free_port() -> int:

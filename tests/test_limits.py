@@ -20,6 +20,7 @@ from reloc_client import cli
 from reloc_client import protocol as wire
 from reloc_client.client import RelocClient, ServiceError
 from service_support import (
+    BLOCK,
     CREDENTIALS,
     ROOT,
     Events,
@@ -43,8 +44,6 @@ from reloc_service.service.workers import WorkerPool
 MAP = "lab"
 METHOD = "sbi+p3p"
 MiB = 1024 * 1024
-
-BLOCK = zenoh.CongestionControl.BLOCK
 
 
 def upload(client: RelocClient, scene, events: Events, n: int = 4) -> None:

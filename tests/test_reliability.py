@@ -30,6 +30,7 @@ from reloc_client import protocol as wire
 from reloc_client.client import NoReplyError, RelocClient, ServiceBusy, ServiceError
 from reloc_client.protocol import ErrorCode, ProtocolError
 from service_support import (
+    BLOCK,
     ROOT,
     Events,
     endpoint,
@@ -227,9 +228,9 @@ def test_fuzz_every_queryable_over_zenoh(served):
                 replies[f"{kind}:{outcome}"] = replies.get(f"{kind}:{outcome}", 0) + 1
         assert replies.get("relocalize:ok", 0) == 0 and replies.get("train:ok", 0) == 0
         for i, payload in enumerate(payloads[:8]):
-            session.put(f"reloc/{MAP}/keyframes/{100 + i}", payload)
-            session.put(f"reloc/{MAP}/cameras/junk{i}", payload)
-        session.put(f"reloc/{MAP}/keyframes/not-a-number", b"x")
+            session.put(f"reloc/{MAP}/keyframes/{100 + i}", payload, congestion_control=BLOCK)
+            session.put(f"reloc/{MAP}/cameras/junk{i}", payload, congestion_control=BLOCK)
+        session.put(f"reloc/{MAP}/keyframes/not-a-number", b"x", congestion_control=BLOCK)
         for kind in ("keyframes", "cameras"):   # map copies still work
             assert len(list(session.get(f"reloc/{MAP}/{kind}/**", timeout=20))) >= 1
     assert service.wait_idle(30)

@@ -18,7 +18,7 @@ import pytest
 import zenoh
 from reloc_client import protocol as wire
 from reloc_client.client import RelocClient, ServiceBusy, ServiceError
-from service_support import Events, endpoint, free_port, raw_session, service_conf, wait_until
+from service_support import BLOCK, Events, endpoint, free_port, raw_session, service_conf, wait_until
 
 from reloc_service.core.geometry import pose_error
 from reloc_service.service.app import Service
@@ -375,7 +375,7 @@ def test_malformed_keyframe_puts_are_rejected_with_an_event(served, synthetic_sc
     _, port, client, events = served
     build, code = BAD_PUTS[case]
     with raw_session(port) as session:
-        session.put(wire.keys.keyframe("reloc", MAP, 90), build(synthetic_scene))
+        session.put(wire.keys.keyframe("reloc", MAP, 90), build(synthetic_scene), congestion_control=BLOCK)
     events.wait("keyframe_rejected", id=90, code=code)
     events.seen.clear()
     assert 90 not in [i.id for i in client.keyframes()]
