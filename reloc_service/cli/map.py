@@ -1,12 +1,16 @@
 """``reloc map check DIR``: report what a map directory (or a whole storage) holds, read only;
-exit status 1 when something is damaged, 2 when DIR is not a map directory or storage."""
+exit status 1 when something is damaged, 2 when DIR is not a map directory or storage.
+``reloc map set-current DIR SNAPSHOT``: point a missing ``CURRENT`` at a verified snapshot;
+refused while a service (or another tool) holds the map."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
-HELP = "inspect map storage: `reloc map check DIR` (exit 1 if damaged)"
+HELP = ("inspect map storage: `reloc map check DIR` (exit 1 if damaged); repair a missing "
+        "CURRENT: `reloc map set-current DIR SNAPSHOT`")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -16,9 +20,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     check.add_argument("directory", metavar="DIR", help="a map directory (holding journal/, "
                        "map/, service.json) or a storage directory holding map directories")
     check.add_argument("--json", action="store_true", help="print the report as JSON")
+    current = sub.add_parser("set-current", help="point the missing map/CURRENT of a map "
+                             "directory at one of its snapshots, after verifying every file "
+                             "of it; refused while a service holds the map")
+    current.add_argument("directory", metavar="DIR", help="a map directory")
+    current.add_argument("snapshot", metavar="SNAPSHOT", help="a snapshot name under "
+                         "DIR/map/snapshots/ (`reloc map check DIR` lists them)")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.map_command == "set-current":
+        return run_set_current(args)
     from ..core.errors import StorageError
     from ..service.storage_check import check_path, format_check, to_json
 
@@ -27,5 +39,42 @@ def run(args: argparse.Namespace) -> int:
     except StorageError as exc:
         print(f"reloc map check: {exc}", file=sys.stderr)
         return 2
+    _note_holders([Path(c.directory) for c in checks])
     print(to_json(checks) if args.json else "\n".join(format_check(c) for c in checks))
     return 1 if any(c.damaged for c in checks) else 0
+
+
+def _note_holders(directories: list[Path]) -> None:
+    """Say (on stderr, so that --json stays parseable) which maps a running process holds:
+    reading goes ahead, but the report is of files that may be changing."""
+    from ..storage.lock import holder_if_locked
+
+    for directory in directories:
+        holder = holder_if_locked(directory)
+        if holder is not None:
+            print(f"reloc map check: note: {directory} is in use by {holder.describe()}; "
+                  f"read-only inspection goes ahead, but writes in progress may show as a "
+                  f"torn journal tail", file=sys.stderr)
+
+
+def run_set_current(args: argparse.Namespace) -> int:
+    """Exit 0 once CURRENT names the snapshot, 1 if refused (held by a service, CURRENT
+    present, snapshot damaged), 2 if DIR is not a map directory."""
+    from ..core.errors import StorageError
+    from ..service.storage_check import is_map_dir
+    from ..storage.lock import DirectoryLock
+    from ..storage.snapshot import restore_current
+
+    directory = Path(args.directory)
+    if not directory.is_dir() or not is_map_dir(directory):
+        print(f"reloc map set-current: {directory}: not a map directory (expected journal/, "
+              f"map/ or service.json)", file=sys.stderr)
+        return 2
+    try:
+        with DirectoryLock(directory, what="map directory").acquire("reloc map set-current"):
+            path = restore_current(directory / "map", args.snapshot)
+    except StorageError as exc:
+        print(f"reloc map set-current: refused: {exc}", file=sys.stderr)
+        return 1
+    print(f"{directory / 'map' / 'CURRENT'} -> snapshots/{path.name} (every file verified)")
+    return 0

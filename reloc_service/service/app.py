@@ -31,6 +31,7 @@ from reloc_client.protocol import ErrorCode, EventKind, ProtocolError
 
 from ..core.numeric import limit_blas_threads
 from ..engine import EngineConf, MappingConf
+from ..storage.lock import LockHeld
 from . import handlers
 from .codec import error_reply
 from .config import ServiceConf
@@ -351,6 +352,8 @@ def serve(conf: ServiceConf) -> int:
     service = Service(conf)
     try:
         service.start(wait_ready=False)   # small maps are served while big ones replay
+    except LockHeld:   # another process owns the storage: nothing was started or written
+        raise
     except BaseException:
         service.stop(final_snapshot=False)
         raise

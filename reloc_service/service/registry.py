@@ -13,6 +13,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from reloc_client import protocol as wire
@@ -20,6 +21,7 @@ from reloc_client.protocol import ErrorCode
 
 from ..core.errors import ConfigError, StorageError
 from ..engine import Engine, EngineConf
+from ..storage.lock import DirectoryLock
 from .config import ServiceConf
 from .durability import (
     RestoreInterrupted,
@@ -27,6 +29,7 @@ from .durability import (
     journal_bytes,
     map_dirname,
     open_engine,
+    record_map_name,
     recover_current,
     stored_map_names,
 )
@@ -74,6 +77,10 @@ class MapRegistry:
         self._loading: set[str] = set()      # being restored: not declared yet
         self._ready = threading.Event()      # every stored and configured map is up (or failed)
         self._loader: threading.Thread | None = None
+        #: The storage's lock and each opened map's, held while the service runs: no other
+        #: service or writing tool changes these files meanwhile.
+        self._storage_lock: DirectoryLock | None = None
+        self._map_locks: dict[str, DirectoryLock] = {}
 
     # -- start -----------------------------------------------------------------------------------
     def check_methods(self) -> None:
@@ -88,8 +95,17 @@ class MapRegistry:
         cheapest restore first (fewest journal bytes to replay)."""
         if self.storage is not None:
             check_storage(self.storage)
+            self.lock_storage()
         stored = [] if self.storage is None else stored_map_names(self.storage)
         return self._restore_order(stored + sorted(self.conf.maps))
+
+    def lock_storage(self) -> None:
+        """Own the storage directory for this process's lifetime (before any map is opened);
+        LockHeld naming the holder if another service (or tool) owns it."""
+        assert self.storage is not None
+        if self._storage_lock is None:
+            self._storage_lock = DirectoryLock(self.storage, what="storage").acquire(
+                "reloc serve")
 
     def _restore_order(self, names: list[str]) -> list[str]:
         def cost(name: str) -> int:
@@ -140,6 +156,7 @@ class MapRegistry:
             self._loading.discard(name)
             if self._stopped.is_set():
                 rt.close(final_snapshot=False)
+                self._unlock_map(name)
                 return
             self.maps[name] = rt
         if declare:
@@ -181,8 +198,29 @@ class MapRegistry:
 
     def _open_map(self, name: str) -> MapRuntime:
         """The runtime of map ``name``, restored from its storage (StorageError naming the
-        file if that is damaged beyond what restoring skips)."""
+        file if that is damaged beyond what restoring skips). Its directory is locked and
+        its name recorded in it first; the lock is held until the map is closed, or given
+        back at once if the map does not open (a failed map is left to the operator's
+        tools)."""
         directory = None if self.storage is None else self.storage / map_dirname(name)
+        if directory is not None:
+            check_storage(directory)
+            self._map_locks[name] = DirectoryLock(directory, what=f"map {name!r}").acquire(
+                "reloc serve")
+        try:
+            if directory is not None:
+                record_map_name(directory, name)
+            return self._restore_map(name, directory)
+        except BaseException:
+            self._unlock_map(name)
+            raise
+
+    def _unlock_map(self, name: str) -> None:
+        lock = self._map_locks.pop(name, None)
+        if lock is not None:
+            lock.release()
+
+    def _restore_map(self, name: str, directory: Path | None) -> MapRuntime:
         start = time.perf_counter()
         recovered = None if directory is None else recover_current(directory)
         engine = open_engine(directory, self.engine_conf)
@@ -215,3 +253,8 @@ class MapRegistry:
                 rt.close(final_snapshot=final_snapshot, timeout=seconds_left(deadline))
             except Exception as exc:
                 log.error("map %s: closing failed: %s", rt.name, exc)
+            self._unlock_map(rt.name)
+        for name in list(self._map_locks):
+            self._unlock_map(name)
+        if self._storage_lock is not None:
+            self._storage_lock.release()
