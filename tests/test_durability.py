@@ -8,6 +8,7 @@ from reloc_service.core.cameras import PinholeCamera
 from reloc_service.core.errors import StorageError
 from reloc_service.engine import Engine, EngineConf
 from reloc_service.service.durability import (
+    MAP_NAME_FILE,
     SERVICE_FILE,
     MapStore,
     RestoreReport,
@@ -15,6 +16,7 @@ from reloc_service.service.durability import (
     map_dirname,
     map_name_of,
     open_engine,
+    record_map_name,
     stored_map_names,
 )
 
@@ -106,3 +108,48 @@ def test_map_directories_round_trip_their_names(tmp_path):
         (tmp_path / map_dirname(name) / "journal").mkdir(parents=True)
     (tmp_path / "no-journal-or-map").mkdir()      # not a map directory: not listed
     assert sorted(stored_map_names(tmp_path)) == sorted([".hidden", "drone_1", "room"])
+
+
+#: Names the protocol accepts (at most 128 characters) whose percent-encoding exceeds NAME_MAX.
+LONG_NAMES = ["\ud55c" * 30, "\U0001f681" * 64, "%" * 128, "." + "\u00e9" * 127]
+
+
+@pytest.mark.parametrize("name", LONG_NAMES)
+def test_long_map_names_get_directory_names_that_fit_and_keep_a_readable_prefix(tmp_path,
+                                                                                 name):
+    dirname = map_dirname(name)
+    assert len(dirname.encode()) <= 255 and dirname not in (".", "..") and "/" not in dirname
+    prefix, digest = dirname.rsplit("+", 1)
+    assert len(digest) == 32                               # BLAKE2b of the whole name
+    assert name.startswith(map_name_of(prefix)) and len(map_name_of(prefix)) >= 10
+    (tmp_path / dirname / "journal").mkdir(parents=True)     # the file system takes it
+    record_map_name(tmp_path / dirname, name)
+    assert stored_map_names(tmp_path) == [name]
+
+
+def test_short_names_keep_their_percent_encoded_directory_names():
+    assert map_dirname("lab") == "lab"
+    assert map_dirname(".hidden") == "%2Ehidden"
+    assert map_dirname("caf\u00e9") == "caf%C3%A9"
+    name = "\u00e9" * 42                     # 252 encoded bytes: still fits, stays readable
+    assert map_dirname(name) == "%C3%A9" * 42
+
+
+def test_long_names_sharing_a_prefix_get_different_directories():
+    names = ["\ud55c" * 29 + c for c in "abc"] + ["\ud55c" * 30]
+    assert len({map_dirname(n) for n in names}) == len(names)
+
+
+def test_a_directory_holding_another_map_is_refused_by_name(tmp_path):
+    directory = tmp_path / map_dirname("\ud55c" * 30)
+    (directory / "journal").mkdir(parents=True)
+    record_map_name(directory, "\ud55c" * 30)
+    with pytest.raises(StorageError, match="holds map .* not 'other'"):
+        record_map_name(directory, "other")
+    (directory / MAP_NAME_FILE).write_text("other")   # a record naming another directory's map
+    assert stored_map_names(tmp_path) == []
+
+
+def test_a_hashed_directory_without_its_recorded_name_is_left_alone(tmp_path):
+    (tmp_path / map_dirname("%" * 128) / "journal").mkdir(parents=True)
+    assert stored_map_names(tmp_path) == []

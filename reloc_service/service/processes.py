@@ -63,6 +63,7 @@ from ..core.numeric import limit_blas_threads
 from ..engine import Engine, EngineConf, MappingConf
 from . import handlers
 from .codec import error_reply
+from .durability import map_dirname
 from .served import ServedMap, WriteOp
 
 if TYPE_CHECKING:
@@ -304,7 +305,9 @@ class ProcessWorkers:
                            if not h.dead]
             if not targets:
                 return
-            path = Path(tempfile.mkdtemp(prefix=f"{rt.name}-", dir=self._scratch))
+            # named like the map's storage directory, cut short: mkdtemp adds to it, and the
+            # name must fit NAME_MAX whatever the map's name
+            path = Path(tempfile.mkdtemp(prefix=f"{map_dirname(rt.name)[:120]}-", dir=self._scratch))
             # float64 geometry as the map holds it: a worker answers bit for bit as this map does
             rt.engine.save(path, exact_geometry=True)
             base = _Base(path, {id(h) for h in targets})
