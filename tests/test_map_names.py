@@ -69,7 +69,8 @@ def test_storage_written_before_names_were_recorded_restores_unchanged(tmp_path:
         assert set(service.maps) == {"lab+1"} and not service.registry.failed
     finally:
         service.stop(final_snapshot=False)
-    assert sorted(p.name for p in storage.iterdir()) == [".lock", "lab%2B1"]
+    assert [p.name for p in storage.iterdir() if p.is_dir()] == ["lab%2B1"]   # no new map
+    assert (storage / "lab%2B1" / MAP_NAME_FILE).read_text() == "lab+1"
 
 
 @pytest.mark.slow

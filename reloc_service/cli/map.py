@@ -9,8 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
-HELP = ("inspect map storage: `reloc map check DIR` (exit 1 if damaged); repair a missing "
-        "CURRENT: `reloc map set-current DIR SNAPSHOT`")
+HELP = "inspect map storage: `reloc map check DIR` (exit 1 if damaged)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
