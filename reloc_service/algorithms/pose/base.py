@@ -114,15 +114,16 @@ class Support:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), 0)
 
 
-def total_covariance(estimate: PoseEstimate) -> Array | None:
-    """The covariance of ``estimate`` relative to the world: its ``covariance`` (relative to
-    the map) plus its ``map_covariance`` (the keyframe poses' errors, independent of the
-    measurements); None without a ``covariance``."""
-    if estimate.covariance is None:
+def total_covariance(estimate: PoseEstimate, own: Array | None = None) -> Array | None:
+    """The covariance of ``estimate`` relative to the world: its own (``own`` where given,
+    else its ``covariance``; relative to the map) plus its ``map_covariance`` (the keyframe
+    poses' errors, independent of the measurements); None without an own covariance."""
+    own = estimate.covariance if own is None else own
+    if own is None:
         return None
     if estimate.map_covariance is None:
-        return estimate.covariance
-    return np.asarray(estimate.covariance + estimate.map_covariance, np.float64)
+        return own
+    return np.asarray(own + estimate.map_covariance, np.float64)
 
 
 def log10_false_alarms(num_matches: int, inliers: int, sample_size: int, p: float) -> float:

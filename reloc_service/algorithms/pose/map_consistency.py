@@ -30,6 +30,7 @@ from ...core.triangulation import ViewObservations, keypoint_sigmas, refine_poin
 from .base import PoseEstimate
 from .guided import GuidedConf
 from .intrinsics import IntrinsicsCheck, check_intrinsics
+from .map_uncertainty import map_covariance
 from .pnp import PnPConf, pose_projector
 
 Array = npt.NDArray[np.float64]
@@ -176,6 +177,18 @@ def settle_intrinsics(estimate: PoseEstimate, state: MapState, kind: str, conf: 
         estimate.covariance_given_intrinsics = covariance_with_intrinsics(
             estimate.covariance, check, trusted=True)
         estimate.covariance = covariance_with_intrinsics(estimate.covariance, check)
+
+
+def settle_pose_errors(estimate: PoseEstimate, state: MapState, kind: str, conf: PnPConf,
+                       landmark_ids: npt.ArrayLike | None) -> PoseEstimate:
+    """``estimate`` with both the errors it owes to others: the intrinsics' (judged,
+    :func:`settle_intrinsics`) and the keyframe poses' behind its inliers' ``landmark_ids``
+    (:func:`.map_uncertainty.map_covariance`), the latter only where it has a covariance to
+    add them to."""
+    settle_intrinsics(estimate, state, kind, conf)
+    if landmark_ids is not None and estimate.covariance is not None:
+        estimate.map_covariance = map_covariance(estimate.world_from_cam, state, landmark_ids)
+    return estimate
 
 
 def covariance_with_intrinsics(covariance: Array, check: IntrinsicsCheck, *,

@@ -22,8 +22,7 @@ from .base import PoseEstimate, PoseFinder, Support, register
 from .guided import GuidedConf, search_by_projection
 from .kernels import compiled
 from .landmark_pool import LandmarkPool
-from .map_consistency import prepare_map, settle_intrinsics
-from .map_uncertainty import map_covariance
+from .map_consistency import prepare_map, settle_pose_errors
 from .pnp import PnPConf, PointUncertainty, level_scales, solve_pnp_indexed
 from .repetition import (
     RepetitionConf,
@@ -116,8 +115,7 @@ class P3PPoseFinder(PoseFinder):
             est = self._grow(query, feats, est, keyframes, state, q_idx,
                              pool.landmark_ids[rows])
         est.timings = {**est.timings, **timings}  # every match and solve, guided's own
-        settle_intrinsics(est, state, self.conf.kind, self.conf)
-        return _with_map_covariance(est, state)
+        return settle_pose_errors(est, state, self.conf.kind, self.conf, est.inlier_landmark_ids)
 
     def _match_and_solve(self, query: Frame, feats: Features, keyframes: list[Keyframe],
                          state: MapState, timings: dict[str, float]
@@ -221,8 +219,8 @@ class P3PPoseFinder(PoseFinder):
             # local map, as a first pose with few inliers is (judged on its twin consensus).
             alt = self._grow(query, feats, alt, [state.keyframes[k] for k in alt.keyframe_ids],
                              state, twins[0], pool.landmark_ids[twins[1]])
-            settle_intrinsics(alt, state, self.conf.kind, self.conf)
-            grown.append(_with_map_covariance(alt, state))
+            grown.append(settle_pose_errors(alt, state, self.conf.kind, self.conf,
+                                            alt.inlier_landmark_ids))
         return grown
 
     def _elsewhere(self, query: Frame, estimate: PoseEstimate, state: MapState,
@@ -316,14 +314,6 @@ class P3PPoseFinder(PoseFinder):
                                                     ratio=self.conf.ratio)
         keep = _best_per_landmark(pool.landmark_ids[rows], dist, rows, len(pool.landmark_ids))
         return q_idx[keep], rows[keep], pool
-
-
-def _with_map_covariance(est: PoseEstimate, state: MapState) -> PoseEstimate:
-    """``est`` with the covariance the poses of the keyframes behind its inliers' landmarks
-    add (:func:`.map_uncertainty.map_covariance`)."""
-    if est.inlier_landmark_ids is not None and est.covariance is not None:
-        est.map_covariance = map_covariance(est.world_from_cam, state, est.inlier_landmark_ids)
-    return est
 
 
 def _keyframes_in(candidates: list[PlaceCandidate], state: MapState) -> list[Keyframe]:

@@ -10,7 +10,6 @@ A wrong pose is worse than no pose for a drone: every relocalizer passes its est
 from __future__ import annotations
 
 import abc
-import dataclasses
 import functools
 import math
 from collections.abc import Mapping
@@ -317,7 +316,7 @@ def stated_covariance(estimate: PoseEstimate, max_position_sigma_m: float) -> Ar
     (:func:`..pose.base.total_covariance`). A weakness: where the intrinsics go unchecked a
     stale calibration passes, with the calibration's covariance."""
     if intrinsics_unchecked(estimate, max_position_sigma_m):
-        estimate = dataclasses.replace(estimate, covariance=estimate.covariance_given_intrinsics)
+        return total_covariance(estimate, estimate.covariance_given_intrinsics)
     return total_covariance(estimate)
 
 

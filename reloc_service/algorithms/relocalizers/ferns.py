@@ -62,8 +62,7 @@ from ..ferns.training import WarpConf, prepare_image
 from ..place.sbi import SmallBlurryImageFinder
 from ..pose.base import PoseEstimate
 from ..pose.guided import GuidedConf
-from ..pose.map_consistency import prepare_map, settle_intrinsics
-from ..pose.map_uncertainty import map_covariance
+from ..pose.map_consistency import prepare_map, settle_pose_errors
 from ..pose.pnp import PnPConf, solve_pnp_indexed
 from ..pose.support import query_support
 from . import uniqueness
@@ -551,9 +550,7 @@ class FernsRelocalizer(Relocalizer):
         est.chance_probability = _per_keypoint_chance(est.chance_probability, len(kp),
                                                       est.num_matches)
         est.keyframe_ids = _keyframes_seeing(state, lm[inliers])
-        settle_intrinsics(est, state, self.conf.kind, self.pnp_conf)
-        est.map_covariance = map_covariance(est.world_from_cam, state, lm[inliers])
-        return est, inliers
+        return settle_pose_errors(est, state, self.conf.kind, self.pnp_conf, lm[inliers]), inliers
 
     # -- persistence -------------------------------------------------------------------------
     def defer_unchecked_intrinsics(self) -> None:
