@@ -211,3 +211,26 @@ def test_an_oversized_put_is_followed_by_a_heap_trim(tmp_path, monkeypatch):
         while not trims and time.monotonic() < deadline:
             time.sleep(0.05)
     assert len(trims) >= 1, "no heap trim after the refusals"
+
+
+# -- the deployment configurations --------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+DEPLOYMENT_TOMLS = sorted([ROOT / "config" / "companion.toml",
+                           ROOT / "config" / "ground-station.toml",
+                           *(ROOT / "deploy").rglob("*.toml")])
+
+
+@pytest.mark.parametrize("path", DEPLOYMENT_TOMLS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_deployment_configs_create_no_map_by_put_and_set_their_quotas(path: Path):
+    """No deployment lets a put create a map (only the local default does: a put cannot say
+    who sent it, and none of these routers limits who may put on a new map name), and each
+    sets quotas no larger than the ground station's."""
+    from reloc_service.service.config import load_config
+
+    conf = load_config(path)
+    assert not conf.service.allow_new_maps, f"{path.name} creates maps from puts"
+    ground = load_config(ROOT / "config" / "ground-station.toml").quotas
+    assert conf.quotas != QuotasConf(), "quotas left at the code defaults"
+    for field in dataclasses.fields(QuotasConf):
+        assert getattr(conf.quotas, field.name) <= getattr(ground, field.name), field.name

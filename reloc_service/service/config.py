@@ -94,14 +94,14 @@ class LimitsConf:
 @dataclass(frozen=True)
 class QuotasConf:
     """What the maps may hold; a put beyond is refused with QUOTA_EXCEEDED (maps restored or
-    configured are served whatever their size; their further puts are refused). Bytes are
-    counted as :mod:`.quotas` says: each keyframe's image as held, depth and features.
+    configured are served whatever their size; only their further puts are refused). Bytes
+    are counted as :mod:`.quotas` says: each keyframe's image as held, depth and features
+    (about 365 KB for a 640x480 JPEG keyframe with the default methods).
 
-    The defaults fit a companion computer (a 1 GB ``MemoryMax`` in deploy/companion,
-    docs/reliability.md "Quotas" has the measurement): a map costs the service and each worker
-    process about 3x the bytes it counts here (features built in every replica, landmarks,
-    indexes), so 256 MiB counted keeps the maps under about 0.8 GB of the service and its two
-    workers with a VGA map of about 600 keyframes... (see the docs for the ground station)."""
+    The defaults are safe for a development machine that creates maps by puts; the files of
+    ``config/`` and ``deploy/`` size them for a companion computer's 1 GB ``MemoryMax`` and
+    for a ground station (docs/reliability.md, "Quotas": the service grew by about 5.5x what
+    is counted)."""
 
     #: Maps served at once; a put creating one more is refused.
     max_maps: int = 16

@@ -142,6 +142,7 @@ class MapRuntime(ServedMap):
     def status(self) -> wire.StatusReply:
         st = self.engine.status()
         counters, latency = self.stats.snapshot()
+        counters["quota_bytes"] = self.usage.total   # what the map counts against [quotas]
         with self._job_lock:
             training = self._job is not None
         return wire.StatusReply(
