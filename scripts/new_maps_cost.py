@@ -73,17 +73,21 @@ def start(root: Path, config: Path, log: Path) -> subprocess.Popen[bytes]:
                             stdout=log.open("ab"), stderr=subprocess.STDOUT)
 
 
-def served(s: zenoh.Session, names: list[str], timeout: float) -> bool:
-    """Wait until every map in ``names`` answers ``status``."""
+def served(s: zenoh.Session, names: list[str], timeout: float) -> str:
+    """Wait until every map in ``names`` answers ``status`` (or an error); how many did."""
     deadline = time.monotonic() + timeout
-    left = list(names)
+    left, errors = list(names), 0
     while left and time.monotonic() < deadline:
-        left = [n for n in left
-                if not any(r.ok is not None for r in s.get(wire.keys.status("reloc", n),
-                                                            timeout=2))]
+        still = []
+        for name in left:
+            replies = list(s.get(wire.keys.status("reloc", name), timeout=2))
+            if not replies:
+                still.append(name)
+            errors += any(r.ok is None for r in replies)
+        left = still
         if left:
             time.sleep(0.5)
-    return not left
+    return f"{len(names) - len(left) - errors} served, {errors} errors, {len(left)} silent"
 
 
 def measure(pid: int) -> dict[str, int]:
@@ -112,7 +116,9 @@ def main() -> int:
         config = Path(tmp) / "service.toml"
         lines = ["[zenoh]", 'mode = "peer"', f'listen = ["tcp/127.0.0.1:{port}"]',
                  "multicast_scouting = false", "[service]", 'instance = "maps"',
-                 f'storage = "{tmp}/storage"', "train_on_load = false"]
+                 f'storage = "{tmp}/storage"', "train_on_load = false",
+                 # every map's final snapshot at the stop, on a loaded machine
+                 "stop_timeout_s = 55.0"]
         if args.max_maps:
             lines += ["[quotas]", f"max_maps = {args.max_maps}"]
         config.write_text("\n".join(lines) + "\n")
@@ -144,8 +150,15 @@ def main() -> int:
             if proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)
                 proc.wait(120)
+            text = log.read_text().splitlines()
+            errors = [line for line in text if " ERROR " in line]
+            stops = [line for line in text if "stopped in" in line]
+            unfinished = sum("did not finish" in line for line in text)
     print(f"root {args.root}: {args.maps} maps created by puts: {ok} in {created_s:.1f} s; "
           f"served after restart: {restored}")
+    for line in [*errors[:3], *stops]:
+        print(f"  log: {line[:300]}")
+    print(f"  final snapshots not finished within the stop budget: {unfinished}")
     for label, m in (("idle", idle), (f"{args.maps} maps", after), ("after restart", again)):
         print(f"  {label:>14}: {m['threads']} threads, {m['rss_mb']} MB resident (service "
               f"and {m['children']} children), {m['open_files']} open files")
