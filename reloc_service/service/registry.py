@@ -30,6 +30,7 @@ from .durability import (
     recover_current,
     stored_map_names,
 )
+from .restore_verdict import judge
 from .runtime import MapRuntime, Publish
 from .workers import seconds_left
 
@@ -184,6 +185,9 @@ class MapRegistry:
         file if that is damaged beyond what restoring skips)."""
         directory = None if self.storage is None else self.storage / map_dirname(name)
         start = time.perf_counter()
+        verdict = None if directory is None else judge(directory)
+        if verdict is not None and verdict.refusal is not None:
+            raise StorageError(verdict.refusal)   # nothing loaded, nothing written
         recovered = None if directory is None else recover_current(directory)
         engine = open_engine(directory, self.engine_conf)
         s = self.conf.service
@@ -193,7 +197,7 @@ class MapRegistry:
                         snapshot_every=s.snapshot_every, fsync=s.fsync)
         if directory is not None:
             check_storage(directory)
-            replayed = rt.restore(self._stopped)
+            replayed = rt.restore(self._stopped, verdict)
             if recovered is not None:
                 rt.restore_report.recovered_snapshot = recovered
                 rt.stats.count("restore_snapshot_recovered")
