@@ -34,7 +34,7 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import msgpack
 from reloc_client import protocol as wire
@@ -46,9 +46,6 @@ from ..engine import Engine, EngineConf
 from ..storage.journal import Journal, JournalReport
 from ..storage.snapshot import restore_current
 from ..storage.snapshot_files import CURRENT_FILE, snapshot_dirs
-
-if TYPE_CHECKING:
-    from .restore_verdict import Verdict
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +101,20 @@ class RestoreReport:
                 "recovered_snapshot": self.recovered_snapshot,
                 "degraded": bool(self.degraded), "losses": self.losses,
                 "missing_keyframe_ids": self.missing_keyframe_ids}
+
+
+class ReplayPlan(Protocol):
+    """Where a restore continues, as :class:`.restore_verdict.Verdict` says: the map's
+    identity (None: to be assigned), whether it is a map written before identities, the
+    last sequence number its snapshot holds, the first segment to replay, the next sequence
+    number, and the lowest number a new segment may take."""
+
+    map_id: str | None
+    legacy: bool
+    snapshot_seq: int
+    replay_from: int
+    next_seq: int
+    min_segment: int
 
 
 @dataclass(frozen=True)
@@ -166,7 +177,7 @@ class MapStore:
                                f"keyframe_camera_ids and next_segment as written by the "
                                f"service") from exc
 
-    def replay(self, verdict: Verdict, apply: Callable[[dict[str, Any]], None],
+    def replay(self, verdict: ReplayPlan, apply: Callable[[dict[str, Any]], None],
                report: RestoreReport, stop: threading.Event | None = None) -> None:
         """Hand every journal record the snapshot does not hold (from segment
         ``verdict.replay_from``, sequence numbers above ``verdict.snapshot_seq``) to
@@ -187,7 +198,7 @@ class MapStore:
         self._open_for_appending(verdict)
         self.since_snapshot = report.replayed
 
-    def _open_for_appending(self, verdict: Verdict) -> None:
+    def _open_for_appending(self, verdict: ReplayPlan) -> None:
         """Open the journal numbering from ``verdict.next_seq`` under the map's identity; a
         map without one gets it now, recorded in ``service.json`` after the first segment
         that carries it exists (so a recorded identity always has a segment behind it)."""
