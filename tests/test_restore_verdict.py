@@ -244,7 +244,17 @@ def _unwritable_quarantine(storage: Path) -> str:
     return "not a writable directory"
 
 
-REFUSED = {"other_maps_snapshot": _other_snapshot, "other_maps_snapshot_dir": _other_snapshot_dir,
+def _service_field_edited(storage: Path) -> str:
+    """``service.json``'s ``last_seq`` edited to something that is not a number."""
+    path = storage / MAP / "service.json"
+    meta = json.loads(path.read_text())
+    meta["last_seq"] = "many"
+    path.write_text(json.dumps(meta))
+    return "expected service.json and the manifests as the service writes them"
+
+
+REFUSED = {"service_json_field_edited": _service_field_edited,
+           "other_maps_snapshot": _other_snapshot, "other_maps_snapshot_dir": _other_snapshot_dir,
            "format_version_edited": _format_version,
            "unwritable_quarantine": _unwritable_quarantine}
 

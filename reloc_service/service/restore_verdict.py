@@ -169,10 +169,12 @@ def judge(directory: str | Path) -> Verdict:
         _check_identity(verdict, meta, store, snapshot, segments)
         _check_quarantine(directory / "journal", segments)
         _check_sequence(verdict, meta, store, snapshot_ids, segments)
+        _merge_recorded(verdict, read_losses(directory))
     except StorageError as exc:
         verdict.refusal = str(exc)
-        return verdict
-    _merge_recorded(verdict, read_losses(directory))
+    except (ValueError, TypeError, KeyError) as exc:   # a field edited to another type
+        verdict.refusal = (f"{directory}: {type(exc).__name__}: {exc}; expected {SERVICE_FILE} "
+                           f"and the manifests as the service writes them")
     return verdict
 
 
@@ -231,6 +233,11 @@ def _check_identity(verdict: Verdict, meta: dict[str, Any], store: dict[str, Any
         verdict.legacy = True
         return
     map_id, source = recorded[0]
+    try:
+        uuid.UUID(hex=map_id)
+    except (ValueError, TypeError):
+        raise StorageError(f"{source}: map_id {map_id!r} is not a UUID; expected the 32 hex "
+                           f"digits the service writes") from None
     for other, where in recorded[1:]:
         if other != map_id:
             raise StorageError(

@@ -288,7 +288,10 @@ class MapRuntime(ServedMap):
             log.warning("map %s: %s", self.name, note)
         if not verdict.losses:
             return
-        record_losses(self.store.directory, verdict.losses)
+        try:
+            record_losses(self.store.directory, verdict.losses)
+        except (OSError, StorageError) as exc:   # still served degraded; found again next time
+            log.error("map %s: could not record the losses found: %s", self.name, exc)
         self._losses = list(verdict.losses)
         report = self.restore_report
         report.losses = [loss.to_dict() for loss in verdict.losses]
