@@ -358,3 +358,40 @@ def test_a_snapshot_failing_on_a_full_disk_leaves_nothing_and_puts_go_on(
     finally:
         service.stop(final_snapshot=False)
         peer.close()
+
+
+# -- a snapshot the process never finished ------------------------------------------------------
+
+def _partial_snapshot(map_dir: Path) -> None:
+    """What a kill -9 in the middle of a map's first snapshot leaves: a numbered snapshot
+    directory holding part of a file and no manifest, no CURRENT, and a service.json (if
+    any) naming no snapshot."""
+    snapshot = snapshot_files.new_snapshot_dir(map_dir / "map")
+    (snapshot / "keyframes").mkdir()
+    (snapshot / "keyframes" / "000000.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 100)
+
+
+def _empty_snapshot_dir(map_dir: Path) -> None:
+    """Killed right after the snapshot directory was made."""
+    snapshot_files.new_snapshot_dir(map_dir / "map")
+
+
+@pytest.mark.parametrize("leftover", [_partial_snapshot, _empty_snapshot_dir])
+def test_a_first_snapshot_killed_midway_is_removed_and_the_journal_restores_everything(
+        synthetic_scene, tmp_path, capsys, leftover):
+    """A map whose first snapshot was interrupted still has every change in its journal
+    (segments are deleted only after service.json names a snapshot): the map restores
+    completely, ``reloc map check`` agrees (exit 0), and the unfinished directory is gone."""
+    storage = tmp_path / "storage"
+    journal_of_keyframes(storage / MAP, synthetic_scene, 3)
+    leftover(storage / MAP)
+    code, report = check(storage / MAP, capsys)
+    assert code == 0, report["problems"]
+    service, peer = served(storage)
+    try:
+        assert kf_ids(peer.client) == {0, 1, 2}
+        assert peer.client.status().degraded == ""
+    finally:
+        service.stop(final_snapshot=False)
+        peer.close()
+    assert snapshot_files.snapshot_dirs(storage / MAP / "map") == []

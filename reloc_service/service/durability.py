@@ -28,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import shutil
 import threading
 import time
 import urllib.parse
@@ -396,28 +397,48 @@ def open_engine(directory: Path | None, conf: EngineConf) -> Engine:
     return Engine(conf)
 
 
+def committed_snapshot(directory: Path, meta: dict[str, Any]) -> str | None:
+    """With ``map/CURRENT`` missing, the snapshot the journal of map directory ``directory``
+    continues from: the one ``service.json`` (``meta``) names. None when it names none: no
+    snapshot was ever committed (``service.json`` names each one before any journal segment
+    is deleted), so the journal still holds every change and a snapshot directory present is
+    a save the process did not finish (killed while writing it, or before pointing
+    ``CURRENT`` at it). StorageError when the named one is not there."""
+    named = meta.get("snapshot")
+    if named is None:
+        return None
+    present = [p.name for p in snapshot_dirs(directory / "map")]
+    if not isinstance(named, str) or named not in present:
+        raise StorageError(
+            f"{directory / 'map' / CURRENT_FILE}: missing; snapshot(s) {present or 'none'} "
+            f"present, {directory / SERVICE_FILE} names {named!r}: cannot tell which snapshot "
+            f"the journal continues from, so the map is not restored (nothing was deleted); "
+            f"inspect it with `reloc map check {directory}`, then point CURRENT at a snapshot "
+            f"with `reloc map set-current {directory} <n>`")
+    return named
+
+
 def recover_current(directory: Path) -> str | None:
     """Restore a missing ``map/CURRENT`` of map directory ``directory``; the snapshot name
-    if it was restored, None if nothing was missing (or the map is new).
+    if it was restored, None if nothing was missing (or no snapshot was ever committed).
 
-    Only the snapshot ``service.json`` names is a valid target: the journal continues from
-    it (``next_segment``), so any other snapshot would silently lose or repeat records. It is
-    used only if every file of it verifies against its manifest; otherwise StorageError (the
-    map is failed, nothing is deleted or rewritten)."""
+    Only the snapshot ``service.json`` names is a valid target (:func:`committed_snapshot`):
+    the journal continues from it (``next_segment``), so any other snapshot would silently
+    lose or repeat records. It is used only if every file of it verifies against its
+    manifest; otherwise StorageError (the map is failed, nothing is deleted or rewritten).
+    Where none was ever committed, the unfinished saves present are removed: nothing refers
+    to them and the journal holds what they would have."""
     map_dir = directory / "map"
     if (map_dir / CURRENT_FILE).is_file():
         return None
-    present = [p.name for p in snapshot_dirs(map_dir)]
-    named = read_service_file(directory).get("snapshot")
-    if not present and named is None:
+    named = committed_snapshot(directory, read_service_file(directory))
+    if named is None:
+        for unfinished in snapshot_dirs(map_dir):
+            log.warning("map directory %s: removing %s, a snapshot never committed (no "
+                        "CURRENT, not named by %s); the journal holds every change",
+                        directory, unfinished, SERVICE_FILE)
+            shutil.rmtree(unfinished, ignore_errors=True)
         return None
-    if not isinstance(named, str) or named not in present:
-        raise StorageError(
-            f"{map_dir / CURRENT_FILE}: missing; snapshot(s) {present or 'none'} present, "
-            f"{directory / SERVICE_FILE} names {named!r}: cannot tell which snapshot the "
-            f"journal continues from, so the map is not restored (nothing was deleted); "
-            f"inspect it with `reloc map check {directory}`, then write CURRENT "
-            f"('snapshots/<n>') by hand")
     restore_current(map_dir, named)
     log.warning("map directory %s: %s was missing; restored it to snapshots/%s, the snapshot "
                 "service.json names (every file verified)", directory, CURRENT_FILE, named)

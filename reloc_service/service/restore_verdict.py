@@ -42,8 +42,8 @@ from ..core.errors import StorageError
 from ..core.fileio import atomic_write
 from ..storage.journal import QUARANTINE_DIR, Journal, SegmentScan, scan_segment, segment_name
 from ..storage.snapshot import snapshot_summary
-from ..storage.snapshot_files import CURRENT_FILE, current_snapshot, snapshot_dirs
-from .durability import SERVICE_FILE, read_service_file
+from ..storage.snapshot_files import CURRENT_FILE, current_snapshot
+from .durability import SERVICE_FILE, committed_snapshot, read_service_file
 
 LOSSES_FILE = "losses.json"
 
@@ -181,21 +181,13 @@ def judge(directory: str | Path) -> Verdict:
 def snapshot_to_load(directory: Path, meta: dict[str, Any]) -> Path | None:
     """The snapshot a restore loads: the one ``CURRENT`` names, or (``CURRENT`` missing) the
     one ``service.json`` names, which a restore points ``CURRENT`` back at; None for a map
-    without snapshots. StorageError when there is no telling which."""
+    without a committed snapshot (:func:`.durability.committed_snapshot`). StorageError
+    when there is no telling which."""
     map_dir = directory / "map"
     if (map_dir / CURRENT_FILE).is_file():
         return current_snapshot(map_dir)
-    present = [p.name for p in snapshot_dirs(map_dir)]
-    named = meta.get("snapshot")
-    if not present and named is None:
-        return None
-    if not isinstance(named, str) or named not in present:
-        raise StorageError(
-            f"{map_dir / CURRENT_FILE}: missing; snapshot(s) {present or 'none'} present, "
-            f"{directory / SERVICE_FILE} names {named!r}: cannot tell which snapshot the "
-            f"journal continues from, so the map is not restored (nothing was deleted); "
-            f"write CURRENT ('snapshots/<n>') by hand")
-    return map_dir / "snapshots" / named
+    named = committed_snapshot(directory, meta)
+    return None if named is None else map_dir / "snapshots" / named
 
 
 def _read_journal(journal: Path) -> list[_Segment]:

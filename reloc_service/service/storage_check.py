@@ -156,8 +156,10 @@ def _check_snapshots(directory: Path, out: MapCheck, meta: dict[str, Any]) -> No
             if snap.current:
                 out.problems.append(f"the current snapshot is damaged: {exc}")
         out.snapshots.append(snap)
+    # Snapshots present with neither CURRENT nor service.json naming one are unfinished
+    # saves the restore removes (:func:`.durability.recover_current`): not damage.
     if current is None and not (map_dir / CURRENT_FILE).exists() and (
-            out.snapshots or meta.get("snapshot") is not None):
+            meta.get("snapshot") is not None):
         out.problems.append(f"{map_dir / CURRENT_FILE}: missing although snapshot(s) "
                             f"{[s.name for s in out.snapshots]} are present and "
                             f"{SERVICE_FILE} names {meta.get('snapshot')!r}")
