@@ -45,7 +45,7 @@ from ..core.cameras import Camera, camera_from_dict
 from ..core.errors import CameraError, StorageError
 from ..core.fileio import atomic_write
 from ..engine import Engine, EngineConf
-from ..storage.journal import Journal, JournalReport
+from ..storage.journal import FIRST_SEGMENT, Journal, JournalReport
 from ..storage.snapshot import restore_current
 from ..storage.snapshot_files import CURRENT_FILE, snapshot_dirs
 
@@ -399,20 +399,24 @@ def open_engine(directory: Path | None, conf: EngineConf) -> Engine:
 
 def committed_snapshot(directory: Path, meta: dict[str, Any]) -> str | None:
     """With ``map/CURRENT`` missing, the snapshot the journal of map directory ``directory``
-    continues from: the one ``service.json`` (``meta``) names. None when it names none: no
-    snapshot was ever committed (``service.json`` names each one before any journal segment
-    is deleted), so the journal still holds every change and a snapshot directory present is
-    a save the process did not finish (killed while writing it, or before pointing
-    ``CURRENT`` at it). StorageError when the named one is not there."""
+    continues from: the one ``service.json`` (``meta``) names. None when it names none and
+    the journal still begins with its first segment: no segment was ever deleted (that
+    happens only after ``service.json`` names a snapshot), so the journal holds every change
+    and the snapshot directories present are saves the process did not finish (killed while
+    writing one, or before pointing ``CURRENT`` at it). StorageError when there is no telling
+    which snapshot the journal continues from."""
     named = meta.get("snapshot")
-    if named is None:
+    map_dir = directory / "map"
+    present = [p.name for p in snapshot_dirs(map_dir)]
+    if named is None and not present:
         return None
-    present = [p.name for p in snapshot_dirs(directory / "map")]
+    if named is None and Journal(directory / "journal").segments()[:1] == [FIRST_SEGMENT]:
+        return None
     if not isinstance(named, str) or named not in present:
         raise StorageError(
-            f"{directory / 'map' / CURRENT_FILE}: missing; snapshot(s) {present or 'none'} "
-            f"present, {directory / SERVICE_FILE} names {named!r}: cannot tell which snapshot "
-            f"the journal continues from, so the map is not restored (nothing was deleted); "
+            f"{map_dir / CURRENT_FILE}: missing; snapshot(s) {present or 'none'} present, "
+            f"{directory / SERVICE_FILE} names {named!r}: cannot tell which snapshot the "
+            f"journal continues from, so the map is not restored (nothing was deleted); "
             f"inspect it with `reloc map check {directory}`, then point CURRENT at a snapshot "
             f"with `reloc map set-current {directory} <n>`")
     return named

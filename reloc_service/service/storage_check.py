@@ -18,7 +18,7 @@ from ..core.errors import StorageError
 from ..storage.journal import QUARANTINE_DIR, Journal, scan_segment, segment_name
 from ..storage.snapshot import load_map, verify_snapshot
 from ..storage.snapshot_files import CURRENT_FILE, current_snapshot, snapshot_dirs
-from .durability import REPLAY_LIMITS, SERVICE_FILE, read_service_file
+from .durability import REPLAY_LIMITS, SERVICE_FILE, committed_snapshot, read_service_file
 from .restore_verdict import Verdict, judge, record_losses
 from .served import WriteOp
 
@@ -156,13 +156,22 @@ def _check_snapshots(directory: Path, out: MapCheck, meta: dict[str, Any]) -> No
             if snap.current:
                 out.problems.append(f"the current snapshot is damaged: {exc}")
         out.snapshots.append(snap)
-    # Snapshots present with neither CURRENT nor service.json naming one are unfinished
-    # saves the restore removes (:func:`.durability.recover_current`): not damage.
+    # Snapshots no CURRENT names, of a journal that still holds every change, are unfinished
+    # saves the restore removes (:func:`.durability.committed_snapshot`): not damage.
     if current is None and not (map_dir / CURRENT_FILE).exists() and (
-            meta.get("snapshot") is not None):
+            meta.get("snapshot") is not None or (out.snapshots and not _unfinished(directory))):
         out.problems.append(f"{map_dir / CURRENT_FILE}: missing although snapshot(s) "
                             f"{[s.name for s in out.snapshots]} are present and "
                             f"{SERVICE_FILE} names {meta.get('snapshot')!r}")
+
+
+def _unfinished(directory: Path) -> bool:
+    """Whether the snapshots of ``directory`` (CURRENT missing, service.json naming none) are
+    saves never finished, which the restore removes."""
+    try:
+        return committed_snapshot(directory, {}) is None
+    except StorageError:
+        return False
 
 
 def _check_journal(directory: Path, out: MapCheck) -> None:

@@ -57,6 +57,9 @@ _FRAME_V1 = struct.Struct("<II")      # payload length, crc32(payload)
 MAX_RECORD_BYTES = 256 * 1024 * 1024
 _SEGMENT_RE = re.compile(r"^(\d{12})\.journal$")
 QUARANTINE_DIR = "quarantine"
+#: The number of a journal's first segment (later ones count up; older ones are deleted
+#: once a snapshot holds their records).
+FIRST_SEGMENT = 1
 
 
 def segment_name(number: int) -> str:
@@ -321,7 +324,7 @@ class Journal:
             self._mkdir()
             numbers = self.segments()
             if not numbers:
-                self._start_segment(max(1, min_segment))
+                self._start_segment(max(FIRST_SEGMENT, min_segment))
                 return self._segment
             last = self.directory / segment_name(numbers[-1])
             scan = scan_segment(last)
