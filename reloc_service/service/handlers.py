@@ -123,11 +123,11 @@ def train(rt: MapRuntime, payload: bytes) -> bytes:
     return wire.TrainReply(accepted=True, job_id=job_id, reason=reason).encode()
 
 
-def status(rt: MapRuntime, payload: bytes) -> bytes:
-    """Empty payload -> StatusReply bytes."""
+def status(rt: MapRuntime, payload: bytes, *, content_hash: bool = False) -> bytes:
+    """Empty payload -> StatusReply bytes (with the map's content hash if asked)."""
     if payload:
         wire.unpack_message(payload, rt.limits)  # a payload is not expected, but a valid one is OK
-    return rt.status().encode()
+    return rt.status(content_hash=content_hash).encode()
 
 
 # -- map copying ------------------------------------------------------------------------------

@@ -28,6 +28,7 @@ from ..core.errors import MapError, StorageError
 from ..engine import Engine
 from .codec import KeyframeInput, WithLimits, decode_camera_put, decode_keyframe_put, error_of
 from .durability import REPLAY_LIMITS, MapStore, RestoreReport, ServiceMeta
+from .map_digest import ContentDigest
 from .quotas import MapUsage, Quotas, keyframe_bytes
 from .restore_verdict import Loss, Verdict, judge, record_losses, unaccepted
 from .served import ServedMap, WriteOp
@@ -131,6 +132,11 @@ class MapRuntime(ServedMap):
         #: What the map's keyframes count against the quotas (None: no quota checked).
         self.quotas = quotas
         self.usage = MapUsage.of(engine.map.snapshot())
+        #: The map's content hash (status ``content_hash``; replicas compare it).
+        self.content = ContentDigest()
+        #: Why this replica disagrees with a peer (status ``diverged``; set by
+        #: :class:`.replication.DivergenceWatch`), "" when it does not.
+        self.diverged = ""
 
     # -- reading -------------------------------------------------------------------------------
     def keyframe_camera_id(self, kf_id: int) -> str | None:
@@ -141,7 +147,9 @@ class MapRuntime(ServedMap):
         is applied: the replica processes save a base under it)."""
         return self._apply_lock
 
-    def status(self) -> wire.StatusReply:
+    def status(self, *, content_hash: bool = False) -> wire.StatusReply:
+        """The map's status; with ``content_hash``, its content hash too (computed on demand:
+        the first time, each keyframe's pixels are read)."""
         st = self.engine.status()
         counters, latency = self.stats.snapshot()
         counters["quota_bytes"] = self.usage.total   # what the map counts against [quotas]
@@ -154,7 +162,14 @@ class MapRuntime(ServedMap):
             map_version=st["map_version"], methods=self.methods,
             default_method=self.default_method, cameras=tuple(self.camera_ids()),
             training=training, uptime_s=time.monotonic() - self.started_at,
-            counters=counters, latency_s=latency, degraded=self.degraded())
+            counters=counters, latency_s=latency, degraded=self.degraded(),
+            map_id=self.map_id or "", content_hash=self.content.of(self.map_state()) if content_hash else "",
+            diverged=self.diverged)
+
+    @property
+    def map_id(self) -> str | None:
+        """The map's identity (None without storage, or before its restore assigned it)."""
+        return None if self.store is None else self.store.map_id
 
     # -- events ----------------------------------------------------------------------------------
     def publish(self, kind: EventKind, **fields: Any) -> None:

@@ -58,6 +58,7 @@ class EventKind(enum.StrEnum):
     CAMERA_REJECTED = "camera_rejected"
     MAP_SAVED = "map_saved"
     STORAGE_DAMAGED = "storage_damaged"    # restoring the map skipped or recovered something
+    REPLICA_DIVERGED = "replica_diverged"  # a peer serves another map, or another content
 
 
 def unpack_message(data: bytes, limits: Limits = DEFAULT_LIMITS) -> dict[str, Any]:
@@ -568,16 +569,28 @@ class StatusReply(Message):
     #: Why the map is served degraded (what its restore lacks: the missing keyframe ids or
     #: sequence numbers); empty when it is not.
     degraded: str = ""
+    #: The map's identity (a UUID's 32 hex digits, made when the map was created); empty
+    #: when the service keeps no storage for it.
+    map_id: str = ""
+    #: A digest of the map's content (keyframe ids, poses, timestamps, images): two replicas
+    #: of the same map at the same version have the same one. Empty when not computed.
+    content_hash: str = ""
+    #: Why this replica disagrees with a peer serving the same map name (another identity,
+    #: another content at the same version, or lagging behind); empty when it does not.
+    diverged: str = ""
 
     def to_wire(self) -> dict[str, Any]:
-        # ``degraded`` only when set: a client that predates it reads a healthy map's status
+        # the optional strings only when set: a client that predates them reads a healthy
+        # map's status
         return {"map": self.map, "instance": self.instance, "keyframes": self.keyframes,
                 "landmarks": self.landmarks, "trained": self.trained,
                 "map_version": self.map_version, "methods": list(self.methods),
                 "default_method": self.default_method, "cameras": list(self.cameras),
                 "training": self.training, "uptime_s": self.uptime_s,
                 "counters": dict(self.counters), "latency_s": dict(self.latency_s),
-                **({"degraded": self.degraded} if self.degraded else {})}
+                **{k: v for k, v in (("degraded", self.degraded), ("map_id", self.map_id),
+                                     ("content_hash", self.content_hash),
+                                     ("diverged", self.diverged)) if v}}
 
     @classmethod
     def from_wire(cls, value: Any, path: str, limits: Limits) -> StatusReply:
@@ -598,9 +611,21 @@ class StatusReply(Message):
             uptime_s=f.opt("uptime_s", lambda v, p: _float(v, p, non_negative=True), 0.0),
             counters=f.opt("counters", lambda v, p: _str_map(v, p, nonneg, limits), {}),
             latency_s=f.opt("latency_s", lambda v, p: _timings(v, p, limits), {}),
-            degraded=f.opt("degraded", lambda v, p: _str(v, p, limits), ""))
+            degraded=f.opt("degraded", lambda v, p: _str(v, p, limits), ""),
+            map_id=f.opt("map_id", _hex_digest, ""),
+            content_hash=f.opt("content_hash", _hex_digest, ""),
+            diverged=f.opt("diverged", lambda v, p: _str(v, p, limits), ""))
         f.done()
         return out
+
+
+def _hex_digest(value: Any, path: str) -> str:
+    """A lowercase hexadecimal digest of 32 to 128 digits (a map identity, a content hash)."""
+    if not isinstance(value, str):
+        raise _fail(ErrorCode.WRONG_TYPE, path, "a string of hex digits", value)
+    if not 32 <= len(value) <= 128 or any(c not in "0123456789abcdef" for c in value):
+        raise _fail(ErrorCode.BAD_VALUE, path, "32 to 128 lowercase hex digits", value)
+    return value
 
 
 @dataclass(frozen=True)
