@@ -38,7 +38,7 @@ from .codec import error_reply
 from .config import ServiceConf
 from .processes import EngineSpec, ProcessWorkers
 from .registry import MapRegistry
-from .replication import Bootstrap, Peers
+from .replication import Bootstrap, DivergenceWatch, Peers
 from .runtime import MapRuntime
 from .workers import Lane, WorkerPool, seconds_left, stop_on_signals
 from .writes import Writes
@@ -82,6 +82,8 @@ class Service:
         #: The worker processes (worker_mode "process"); they start with the first query.
         self.processes: ProcessWorkers | None = None
         self.control_pool: WorkerPool | None = None
+        #: Compares the served maps with the peers serving them (a replica's).
+        self.watch: DivergenceWatch | None = None
         self.started_at = time.monotonic()
 
     # -- life cycle ------------------------------------------------------------------------------
@@ -117,6 +119,10 @@ class Service:
             self.ros2 = Ros2Bridge(self, self.conf.ros2)
         if s.bootstrap_from_peers:   # a replica copies peers' maps once its own are restored
             self._bootstrap(names)
+            if s.replica_check_s > 0:
+                self.watch = DivergenceWatch(self.session, self.prefix, self.instance,
+                                             self.maps, interval_s=s.replica_check_s)
+                self.watch.start()
         else:
             self.registry.load_in_background(names)
             if wait_ready:
@@ -133,12 +139,14 @@ class Service:
         already: live puts buffer in the writer queues meanwhile."""
         self.registry.load(names, declare=False)
         assert self.writes.writer is not None
-        self.writes.bootstrap = Bootstrap(self.session, self.prefix, self.maps,
-                                          gate=self.writes.writer,
-                                          writer_for=self.writes.writer_for)
-        self.writes.bootstrap.run()
+        bootstrap = Bootstrap(self.session, self.prefix, self.maps, gate=self.writes.writer,
+                              writer_for=self.writes.writer_for, instance=self.instance)
+        self.writes.bootstrap = bootstrap
+        bootstrap.run()
         for name in sorted(self.maps):
             self._declare(name)
+        for rt, fields in bootstrap.refusals:   # said once the map's events are declared
+            rt.publish(EventKind.REPLICA_DIVERGED, **fields)
 
     def wait_ready(self, timeout: float | None = None) -> bool:
         """Wait until every map found at start is served (or failed); False on timeout."""
@@ -155,6 +163,8 @@ class Service:
         deadline = start + self.conf.service.stop_timeout_s
         if self.ros2 is not None:
             self.ros2.close()              # ROS 2 tools see the nodes go
+        if self.watch is not None:
+            self.watch.close()
         if self.layer is not None:
             self.layer.withdraw()          # clients see the maps go; no more puts arrive
         journaled = self.writes.flush(deadline)
@@ -320,11 +330,12 @@ class Service:
     def _control(self, rt: MapRuntime, kind: QueryKind, query: PendingQuery) -> None:
         try:
             if kind is QueryKind.STATUS:
-                query.reply(handlers.status(rt, query.payload))
+                query.reply(handlers.status(rt, query.payload, content_hash=_flag(
+                    query.parameters, "content_hash")))
             elif kind is QueryKind.TRAIN:
                 query.reply(handlers.train(rt, query.payload))
             elif kind is QueryKind.KEYFRAMES:
-                images = query.parameters.get("image", "false").lower() in ("true", "1", "yes")
+                images = _flag(query.parameters, "image")
                 for kf_id, payload in handlers.keyframe_infos(rt, images=images):
                     key = wire.keys.keyframe(self.prefix, rt.name, kf_id)
                     if query.wants(key):
@@ -339,6 +350,11 @@ class Service:
             query.reply_err(error_reply(exc))
         finally:
             query.finish()
+
+
+def _flag(parameters: Any, name: str) -> bool:
+    """Whether a query's selector parameter ``name`` is set (true, 1 or yes)."""
+    return str(parameters.get(name, "false")).lower() in ("true", "1", "yes")
 
 
 def serve(conf: ServiceConf) -> int:

@@ -167,6 +167,10 @@ class ServiceSection:
     #: on ``<prefix>/<map>/keyframes/**?image=true``) before answering queries; keyframe puts
     #: arriving meanwhile are buffered in the writer queue and applied after the copy.
     bootstrap_from_peers: bool = False
+    #: Seconds between comparisons of each served map with the peers serving it (identity,
+    #: map version, content hash), divergence reported; 0: never. Only a replica
+    #: (``bootstrap_from_peers``) compares.
+    replica_check_s: float = 5.0
     #: Journal records between background snapshots (0: snapshot only after training and at
     #: shutdown).
     snapshot_every: int = 200
@@ -198,6 +202,9 @@ class ServiceSection:
         if self.blas_threads < 0:
             raise ConfigError(f"service.blas_threads: expected >= 0 (0: the BLAS's default), "
                               f"got {self.blas_threads}")
+        if not self.replica_check_s >= 0:
+            raise ConfigError(f"service.replica_check_s: expected seconds >= 0 (0: off), got "
+                              f"{self.replica_check_s}")
         if not self.stop_timeout_s > 0:
             raise ConfigError(f"service.stop_timeout_s: expected seconds > 0, got "
                               f"{self.stop_timeout_s}")

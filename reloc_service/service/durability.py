@@ -45,7 +45,7 @@ from ..core.cameras import Camera, camera_from_dict
 from ..core.errors import CameraError, StorageError
 from ..core.fileio import atomic_write
 from ..engine import Engine, EngineConf
-from ..storage.journal import FIRST_SEGMENT, Journal, JournalReport
+from ..storage.journal import FIRST_SEGMENT, Journal, JournalReport, segment_name
 from ..storage.snapshot import restore_current
 from ..storage.snapshot_files import CURRENT_FILE, snapshot_dirs
 
@@ -240,6 +240,27 @@ class MapStore:
             log.error("map %s: skipping a journal record that does not replay: %s", self.name,
                       exc)
             return False
+
+    def adopt_identity(self, map_id: str) -> None:
+        """Take ``map_id`` (a peer's identity for the same map) as this map's, for a map that
+        holds nothing yet: no snapshot, no keyframe journaled (the caller checks the latter
+        and puts its cameras again). Its segments are replaced by a new first segment under
+        ``map_id``; a crash midway leaves either the old identity or none (a new map)."""
+        new = uuid.UUID(hex=map_id)
+        meta = read_service_file(self.directory)
+        if meta.get("snapshot"):
+            raise StorageError(f"map {self.name}: holds a snapshot; an identity is adopted only "
+                               f"by a map that holds nothing yet")
+        self.journal.close()
+        write_service_file(self.directory, {k: v for k, v in meta.items() if k != "map_id"})
+        for number in self.journal.segments():
+            (self.journal.directory / segment_name(number)).unlink(missing_ok=True)
+        self.journal.identity = new
+        self.journal.next_seq = 1
+        segment = self.journal.open()
+        write_service_file(self.directory, {**meta, "map_id": new.hex, "next_segment": segment})
+        self.since_snapshot = 0
+        log.info("map %s: identity %s adopted from a peer", self.name, new.hex)
 
     # -- snapshots -------------------------------------------------------------------------------
     def rotate(self) -> int:

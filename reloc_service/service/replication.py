@@ -2,7 +2,8 @@
 :class:`Peers`), and copying the served maps from running replicas at start
 (``service.bootstrap_from_peers``, :class:`Bootstrap`): the peer's history replayed so that
 the copy is the same map (same keyframes, intrinsics and map version), with live puts held in
-the writers meanwhile.
+the writers meanwhile; only from peers whose map identity matches (:func:`choose_peers`),
+and comparing replicas afterwards (:class:`DivergenceWatch`).
 
 Both take the Zenoh session and what they need of the service as parameters, so this module
 does not import the service (:mod:`.app` imports it)."""
@@ -13,12 +14,14 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 import zenoh
 from reloc_client import protocol as wire
+from reloc_client.protocol import EventKind
 
 from .codec import pose_covariance_of, to_camera
 from .runtime import MapRuntime
@@ -96,7 +99,8 @@ class Bootstrap:
     TIMEOUT = 60.0
 
     def __init__(self, session: Any, prefix: str, maps: Mapping[str, MapRuntime], *,
-                 gate: WorkerPool, writer_for: Callable[[str], WorkerPool | Lane]) -> None:
+                 gate: WorkerPool, writer_for: Callable[[str], WorkerPool | Lane],
+                 instance: str = "") -> None:
         """Copy ``maps`` (the service's served maps) from the replicas answering on
         ``prefix``; ``gate`` is the writer that applies the copies, ``writer_for`` gives each
         map's writer (held until the copies are applied)."""
@@ -105,6 +109,11 @@ class Bootstrap:
         self.maps = maps
         self._gate = gate
         self._writer_for = writer_for
+        self.instance = instance
+        #: map -> the identity it takes from its peers (a map that holds nothing yet).
+        self.adopt: dict[str, str] = {}
+        #: (map, event fields) of each peer not followed: published once the map is declared.
+        self.refusals: list[tuple[MapRuntime, dict[str, Any]]] = []
         #: (map, CAMERA: a CameraPut or KEYFRAME: a KeyframeInfo, key, payload) as fetched.
         self.fetched: list[tuple[MapRuntime, WriteOp, Any, bytes]] = []
         #: While True, live keyframe puts go through :meth:`put_unless_copied`.
@@ -131,23 +140,43 @@ class Bootstrap:
         self._hold_writers()
         try:
             for name, rt in sorted(self.maps.items()):
-                for key, payload in self._get(wire.keys.cameras(self.prefix, name)):
-                    self.fetched.append((rt, WriteOp.CAMERA, key, payload))
-                for key, payload in self._get(wire.keys.keyframes(self.prefix, name)
-                                              + "?image=true"):
-                    self.fetched.append((rt, WriteOp.KEYFRAME, key, payload))
+                followed = self._followed(rt)
+                for key, payload, peer in self._get(wire.keys.cameras(self.prefix, name)):
+                    if followed is None or peer in followed:
+                        self.fetched.append((rt, WriteOp.CAMERA, key, payload))
+                for key, payload, peer in self._get(wire.keys.keyframes(self.prefix, name)
+                                                    + "?image=true"):
+                    if followed is None or peer in followed:
+                        self.fetched.append((rt, WriteOp.KEYFRAME, key, payload))
         finally:
             self._ready.set()
         if not self._done.wait(self.TIMEOUT * 2):
             log.error("bootstrap: the writer did not apply the copied maps in time")
 
-    def _get(self, key: str) -> list[tuple[str, bytes]]:
+    def _followed(self, rt: MapRuntime) -> set[str] | None:
+        """The peers (Zenoh ids) ``rt`` copies from (None: any, a map without storage);
+        each peer refused is logged and kept for its event, an identity to adopt noted."""
+        peers = peer_statuses(self.session, self.prefix, rt.name, self.instance, rt.limits,
+                              timeout=10.0)
+        choice = choose_peers(rt, peers)
+        for fields in choice.refused:
+            log.error("bootstrap: map %s: not following %s: %s", rt.name, fields["peer"],
+                      fields["message"])
+            rt.diverged = fields["message"]
+            self.refusals.append((rt, fields))
+        if choice.adopt is not None:
+            self.adopt[rt.name] = choice.adopt
+        return choice.followed
+
+    def _get(self, key: str) -> list[tuple[str, bytes, str]]:
+        """(key, payload, replier's Zenoh id) of every reply to ``key``."""
         out = []
         for reply in self.session.get(
                 key, timeout=self.TIMEOUT, target=zenoh.QueryTarget.ALL,
                 consolidation=zenoh.ConsolidationMode.NONE):
             if reply.ok is not None:
-                out.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+                out.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes(),
+                            _replier(reply)))
             else:
                 log.warning("bootstrap: an error reply to %s: %r", key,
                             reply.err.payload.to_bytes()[:200] if reply.err else b"")
@@ -158,6 +187,8 @@ class Bootstrap:
             if not self._ready.wait(self.TIMEOUT * 4):   # start-up failed before the gets
                 return
             counts: dict[str, int] = {}
+            for name, map_id in sorted(self.adopt.items()):
+                _adopt_identity(self.maps[name], map_id)
             for rt in {id(rt): rt for rt, *_ in self.fetched}.values():
                 counts[rt.name] = self._replay_history(rt)
             for name, rt in self.maps.items():
@@ -262,3 +293,195 @@ def _same_covariance(a: npt.NDArray[np.float64] | None, b: npt.NDArray[np.float6
     if a is None or b is None:
         return a is None and b is None
     return bool(np.allclose(a, b, rtol=1e-12, atol=0.0))
+
+
+# -- map identity and divergence ------------------------------------------------------------------
+
+def peer_statuses(session: Any, prefix: str, map_name: str, instance: str,
+                  limits: wire.Limits, *, timeout: float = 2.0
+                  ) -> dict[str, wire.StatusReply]:
+    """The status of ``map_name`` as each other instance serving it reports it, by the
+    replier's Zenoh id (what a keyframes get's replies are matched with)."""
+    out: dict[str, wire.StatusReply] = {}
+    try:
+        replies = session.get(wire.keys.status(prefix, map_name) + "?content_hash=true",
+                              timeout=timeout,
+                              target=zenoh.QueryTarget.ALL,
+                              consolidation=zenoh.ConsolidationMode.NONE)
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            try:
+                status = wire.StatusReply.decode(reply.ok.payload.to_bytes(), limits)
+            except wire.ProtocolError as exc:
+                log.warning("map %s: a peer's status does not decode: %s", map_name, exc)
+                continue
+            if status.instance != instance:
+                out[_replier(reply)] = status
+    except Exception as exc:   # a closing session: no peer known
+        log.debug("status get for map %s failed: %s", map_name, exc)
+    return out
+
+
+def _replier(reply: Any) -> str:
+    """The Zenoh id of the session that sent ``reply`` (the same for all its queryables)."""
+    replier = reply.replier_id
+    return str(getattr(replier, "zid", replier))
+
+
+@dataclass
+class PeerChoice:
+    """Which peers a replica follows (None: any), the identity it adopts (a map that holds
+    nothing yet), and the event fields of each peer it refuses."""
+
+    followed: set[str] | None
+    adopt: str | None = None
+    refused: list[dict[str, Any]] = field(default_factory=list)
+
+
+def choose_peers(rt: MapRuntime, peers: Mapping[str, wire.StatusReply]) -> PeerChoice:
+    """A replica follows only the peers serving its map's identity. A map holding keyframes
+    keeps its identity; one holding none takes the identity most peers serve (ties: the
+    lowest instance name's) so that it matches them at its next start. A map without storage
+    has no identity and follows any peer, as a peer without one is followed by a new map."""
+    local = rt.map_id
+    if local is None:
+        return PeerChoice(None)
+    if not rt.map_state().keyframes:
+        ids = sorted((-sum(p.map_id == s.map_id for p in peers.values()), s.instance, s.map_id)
+                     for s in peers.values() if s.map_id)
+        if not ids:
+            return PeerChoice(None)
+        local = ids[0][2]
+    choice = PeerChoice(set(), adopt=local if local != rt.map_id else None)
+    assert choice.followed is not None
+    for peer, status in sorted(peers.items(), key=lambda p: p[1].instance):
+        if status.map_id == local:
+            choice.followed.add(peer)
+        else:
+            choice.refused.append(_identity_fields(rt, status, local, action="not followed"))
+    return choice
+
+
+def _identity_fields(rt: MapRuntime, peer: wire.StatusReply, local: str, *, action: str
+                     ) -> dict[str, Any]:
+    """The ``replica_diverged`` event fields of a peer serving another map identity."""
+    return {"reason": "identity", "peer": peer.instance, "map_id": local,
+            "peer_map_id": peer.map_id, "action": action,
+            "message": (f"peer {peer.instance} serves map {rt.name!r} with identity "
+                        f"{peer.map_id or 'unknown (it reports none)'}, this replica holds "
+                        f"identity {local}: another map under the same name; {action}, this "
+                        f"replica keeps and serves its own")}
+
+
+def _adopt_identity(rt: MapRuntime, map_id: str) -> None:
+    """Take a peer's identity for ``rt`` (holding nothing yet), then journal its cameras
+    again under it (the segments holding them are replaced)."""
+    if rt.store is None or rt.map_state().keyframes:
+        return
+    with rt.apply_lock():
+        rt.store.adopt_identity(map_id)
+        for camera_id, camera in sorted(rt.cameras().items()):
+            rt.put_camera(camera_id, wire.CameraPut(
+                camera_id, wire.WireCamera.from_dict(camera.to_dict())).encode())
+
+
+class DivergenceWatch:
+    """Compares each served map with the peers serving it, every ``interval_s``: another
+    identity, another content hash at the same map version (seen twice in a row: a put
+    applied between the two reads of a status is not divergence), or a version behind a
+    peer's for ``lag_s`` are reported (ERROR log, ``replica_diverged`` event, status
+    ``diverged``) once each, and cleared from the status when they no longer hold."""
+
+    def __init__(self, session: Any, prefix: str, instance: str,
+                 maps: Mapping[str, MapRuntime], *, interval_s: float,
+                 lag_s: float | None = None) -> None:
+        self.session = session
+        self.prefix = prefix
+        self.instance = instance
+        self.maps = maps
+        self.interval_s = interval_s
+        #: Seconds behind a peer's version before this replica reports it lags.
+        self.lag_s = 6 * interval_s if lag_s is None else lag_s
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        #: (map, peer instance) -> what was seen last: a content mismatch (version, hashes),
+        #: the time this replica fell behind, the reason reported.
+        self._mismatch: dict[tuple[str, str], tuple[int, str, str]] = {}
+        self._behind_since: dict[tuple[str, str], float] = {}
+        self._reported: dict[tuple[str, str], str] = {}
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="replica-watch", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            try:
+                self.check_once()
+            except Exception as exc:   # a closing session, a map going: next round
+                log.debug("replica check failed: %s", exc)
+
+    def check_once(self) -> dict[str, str]:
+        """Compare every served map with its peers now; map -> what diverges ("" if none)."""
+        out = {}
+        for name, rt in sorted(self.maps.items()):
+            peers = peer_statuses(self.session, self.prefix, name, self.instance, rt.limits)
+            problems = [p for p in (self._compare(rt, peer) for peer in
+                                    sorted(peers.values(), key=lambda s: s.instance)) if p]
+            rt.diverged = "; ".join(problems)
+            out[name] = rt.diverged
+        return out
+
+    def _compare(self, rt: MapRuntime, peer: wire.StatusReply) -> str:
+        """What diverges between ``rt`` and ``peer`` ("" if nothing), reported when new."""
+        key = (rt.name, peer.instance)
+        state = rt.map_state()
+        local_id = rt.map_id or ""
+        fields: dict[str, Any] | None = None
+        if local_id and peer.map_id != local_id:
+            fields = _identity_fields(rt, peer, local_id, action="not followed")
+        elif peer.map_id and peer.content_hash:
+            fields = self._content(rt, peer, state.version, rt.content.of(state))
+        if fields is None:
+            self._reported.pop(key, None)
+            return ""
+        if self._reported.get(key) != fields["reason"]:
+            self._reported[key] = fields["reason"]
+            log.error("map %s: replica diverged: %s", rt.name, fields["message"])
+            rt.publish(EventKind.REPLICA_DIVERGED, **fields)
+        return str(fields["message"])
+
+    def _content(self, rt: MapRuntime, peer: wire.StatusReply, version: int, digest: str
+                 ) -> dict[str, Any] | None:
+        """A content or version divergence of the same map identity, or None."""
+        key = (rt.name, peer.instance)
+        base = {"peer": peer.instance, "map_id": rt.map_id, "peer_map_id": peer.map_id,
+                "map_version": version, "peer_map_version": peer.map_version,
+                "content_hash": digest, "peer_content_hash": peer.content_hash}
+        seen = (peer.map_version, digest, peer.content_hash)
+        if version == peer.map_version and digest != peer.content_hash:
+            repeated = self._mismatch.get(key) == seen
+            self._mismatch[key] = seen
+            if repeated:
+                return {**base, "reason": "content", "message": (
+                    f"peer {peer.instance} holds other content for map {rt.name!r} at the "
+                    f"same map version {version} (content hash {peer.content_hash[:16]} "
+                    f"there, {digest[:16]} here)")}
+            return None
+        self._mismatch.pop(key, None)
+        if version < peer.map_version:
+            since = self._behind_since.setdefault(key, time.monotonic())
+            if time.monotonic() - since >= self.lag_s:
+                return {**base, "reason": "lagging", "message": (
+                    f"this replica lags peer {peer.instance} on map {rt.name!r}: map version "
+                    f"{version} here, {peer.map_version} there, for "
+                    f"{time.monotonic() - since:.0f} s")}
+            return None
+        self._behind_since.pop(key, None)
+        return None
