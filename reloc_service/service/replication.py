@@ -188,7 +188,7 @@ class Bootstrap:
                 return
             counts: dict[str, int] = {}
             for name, map_id in sorted(self.adopt.items()):
-                _adopt_identity(self.maps[name], map_id)
+                self._adopt(self.maps[name], map_id)
             for rt in {id(rt): rt for rt, *_ in self.fetched}.values():
                 counts[rt.name] = self._replay_history(rt)
             for name, rt in self.maps.items():
@@ -198,6 +198,16 @@ class Bootstrap:
         finally:
             self.active = False
             self._done.set()
+
+    def _adopt(self, rt: MapRuntime, map_id: str) -> None:
+        """Take the peers' identity for ``rt``; if its storage cannot, copy nothing into it
+        (its own identity would then hold another map's keyframes)."""
+        try:
+            _adopt_identity(rt, map_id)
+        except Exception as exc:
+            log.error("bootstrap: map %s: cannot take the peers' identity %s (%s); nothing "
+                      "copied, the map keeps identity %s", rt.name, map_id, exc, rt.map_id)
+            self.fetched = [f for f in self.fetched if f[0] is not rt]
 
     def _replay_history(self, rt: MapRuntime) -> int:
         """Apply the copies of ``rt``'s map as the peer built it: keyframes in the peer's
