@@ -181,3 +181,37 @@ def test_status_map_id_and_content_hash_round_trip():
         assert exc.code is wire.ErrorCode.BAD_VALUE and "hex" in exc.message
     else:
         raise AssertionError("a map_id that is not hex decoded")
+
+
+def test_a_lagging_replica_catches_up_from_its_peer(synthetic_scene, tmp_path):
+    """Changes that reached one replica only (its peer's disk was full, say): keyframe 2
+    added, keyframe 1 moved. The other replica is reported lagging and copies them; then
+    both hold the same content, and nothing more is reported."""
+    scene = synthetic_scene
+    port = free_port()
+    with open_router(port), \
+            Service(ground_conf("service-a", port, tmp_path / "a")) as first:
+        rt1 = first.maps["drone1"]
+        rt1.put_camera("cam0", wire.CameraPut(
+            "cam0", wire.WireCamera.from_dict(scene.camera.to_dict())).encode())
+        for kf_id in range(2):
+            _put(rt1, scene, kf_id, _shifted(scene, kf_id, 0.0))
+        replica = _replica(port, tmp_path / "a2", replica_check_s=0.0)
+        try:
+            rt2 = replica.maps["drone1"]
+            watch = DivergenceWatch(replica.session, replica.prefix, replica.instance,
+                                    replica.maps, interval_s=1.0, lag_s=0.0,
+                                    writer_for=replica.writes.writer_for)
+            _put(rt1, scene, 2, _shifted(scene, 2, 0.0))       # only on the first
+            _put(rt1, scene, 1, _shifted(scene, 1, 0.05))
+            assert "lags peer ground-a" in watch.check_once()["drone1"]
+            assert replica.wait_idle(60)
+            assert rt2.map_state().keyframe_ids() == [0, 1, 2]
+            assert np.allclose(rt2.map_state().keyframes[1].world_from_cam,
+                               _shifted(scene, 1, 0.05), atol=1e-9)
+            assert rt2.status().counters.get("catch_up_keyframes") == 2
+            assert (rt2.status(content_hash=True).content_hash
+                    == rt1.status(content_hash=True).content_hash)
+            assert watch.check_once()["drone1"] == "" == rt2.status().diverged
+        finally:
+            replica.stop()

@@ -121,7 +121,8 @@ class Service:
             self._bootstrap(names)
             if s.replica_check_s > 0:
                 self.watch = DivergenceWatch(self.session, self.prefix, self.instance,
-                                             self.maps, interval_s=s.replica_check_s)
+                                             self.maps, interval_s=s.replica_check_s,
+                                             writer_for=self.writes.writer_for)
                 self.watch.start()
         else:
             self.registry.load_in_background(names)
