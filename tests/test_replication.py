@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 from reloc_client import protocol as wire
-from reloc_client.client import RelocClient, to_wire_image
+from reloc_client.client import RelocClient, ServiceError, to_wire_image
 from service_support import Events, endpoint, free_port, open_router
 from test_scaleout import _stream, ground_conf
 
@@ -215,3 +215,39 @@ def test_a_lagging_replica_catches_up_from_its_peer(synthetic_scene, tmp_path):
             assert watch.check_once()["drone1"] == "" == rt2.status().diverged
         finally:
             replica.stop()
+
+
+def test_an_acknowledgement_names_the_replicas_that_stored_the_keyframe(synthetic_scene,
+                                                                        tmp_path):
+    """Two replicas; the second refuses every keyframe after its first (its quota, standing
+    in for a full disk). add_keyframe(wait=True, replicas=N) says which stored it: N=1
+    succeeds with the one that did, N=2 raises naming who stored it and who refused."""
+    scene = synthetic_scene
+    port = free_port()
+    full = ground_conf("service-replica", port, tmp_path / "a2", replica_check_s=0.0)
+    full = dataclasses.replace(full, quotas=dataclasses.replace(full.quotas,
+                                                                max_keyframes_per_map=1))
+    with open_router(port), \
+            Service(ground_conf("service-a", port, tmp_path / "a")) as first, \
+            Service(full) as second, \
+            RelocClient(endpoint(port), map="drone1", timeout=20) as client:
+        client.set_camera("cam0", scene.camera, wait=True)
+        assert first.wait_idle(30) and second.wait_idle(30)
+        stored = client.add_keyframe(0, scene.keyframe_images[0], scene.keyframe_poses[0],
+                                     camera_id="cam0", wait=True, replicas=2)
+        assert stored == ("ground-a", "ground-a2")
+        stored = client.add_keyframe(1, scene.keyframe_images[1], scene.keyframe_poses[1],
+                                     camera_id="cam0", wait=True, replicas=1)
+        assert "ground-a" in stored
+        try:
+            client.add_keyframe(2, scene.keyframe_images[2], scene.keyframe_poses[2],
+                                camera_id="cam0", wait=True, replicas=2)
+        except ServiceError as exc:
+            assert exc.code is wire.ErrorCode.QUOTA_EXCEEDED, exc
+            assert "1 of 2 replicas" in str(exc) and "['ground-a']" in str(exc), exc
+            assert "refused by ground-a2" in str(exc), exc
+        else:
+            raise AssertionError("a keyframe one replica refused was acknowledged by two")
+        assert first.wait_idle(30)
+        assert first.maps["drone1"].map_state().keyframe_ids() == [0, 1, 2]
+        assert second.maps["drone1"].map_state().keyframe_ids() == [0]

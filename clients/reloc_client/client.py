@@ -260,7 +260,8 @@ class RelocClient:
                      features: wire.WireFeatures | Mapping[str, Any] | None = None,
                      depth: Any = None, image_format: str | None = None,
                      pose_covariance: Any = None,
-                     wait: bool = False, timeout: float | None = None) -> None:
+                     wait: bool = False, timeout: float | None = None,
+                     replicas: int | None = None) -> tuple[str, ...]:
         """Put keyframe ``kf_id`` (added, or replaced if it exists) with its image,
         ``world_from_cam`` ((4, 4) or (t, q)), and exactly one of ``camera_id`` / ``camera``.
         ``pose_covariance`` (6, 6): how well ``world_from_cam`` is known (twist (rho, omega),
@@ -274,14 +275,25 @@ class RelocClient:
         is applied to the map shortly after, ``keyframe_added``), and raises ServiceError
         (ServiceBusy) if the service refused it, NoReplyError if no acknowledgement came
         within ``timeout`` seconds (default: the client's): put it again later (or use an
-        :class:`Outbox`)."""
+        :class:`Outbox`).
+
+        ``replicas`` (with ``wait``; several instances serving the map): wait until that many
+        instances stored the keyframe, and return their names; ServiceError naming who
+        stored it and who refused (and why) once every instance serving the map answered
+        short of that, NoReplyError naming who stored it on timeout. Without ``replicas``
+        the first answer decides (a refusal by one replica raises even if another stored
+        it). Returns the instances known to have stored it (empty without ``wait``)."""
         payload = keyframe_put_bytes(kf_id, image, world_from_cam, camera_id=camera_id,
                                      camera=camera, timestamp=timestamp, features=features,
                                      depth=depth, image_format=image_format,
                                      pose_covariance=pose_covariance)
         key = wire.keys.keyframe(self.prefix, self.map, kf_id)
-        self._send(("kf", kf_id), lambda: self._put(key, payload), wait=wait,
-                   timeout=timeout, what=f"keyframe {kf_id}")
+        if replicas is not None:
+            return self._send_to_replicas(("kf", kf_id), lambda: self._put(key, payload),
+                                          replicas=replicas, timeout=timeout,
+                                          what=f"keyframe {kf_id}")
+        return self._send(("kf", kf_id), lambda: self._put(key, payload), wait=wait,
+                          timeout=timeout, what=f"keyframe {kf_id}")
 
     def remove_keyframe(self, kf_id: int, *, wait: bool = False,
                         timeout: float | None = None) -> None:
@@ -298,19 +310,21 @@ class RelocClient:
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def _send(self, ack: tuple[str, Any], send: Callable[[], None], *, wait: bool,
-              timeout: float | None, what: str) -> None:
-        """``send()``; with ``wait``, block until the service acknowledges ``ack``."""
+              timeout: float | None, what: str) -> tuple[str, ...]:
+        """``send()``; with ``wait``, block until the service acknowledges ``ack`` (the
+        instance that did, when it says)."""
         if not wait:
             send()
-            return
+            return ()
         timeout = _check_timeout(timeout, self.timeout)
         acks = self._ack_events()
         acks.expect(ack)
         try:
             send()
-            event = acks.wait(ack, timeout)
+            events = acks.wait(ack, timeout, lambda evs: bool(evs))
         finally:
             acks.forget(ack)
+        event = events[0] if events else None
         if event is None:
             raise NoReplyError(f"{what} on map {self.map!r} was not acknowledged within "
                                f"{timeout} s: is a reloc service serving it under prefix "
@@ -319,6 +333,39 @@ class RelocClient:
             code = _error_code(event.fields.get("code"))
             cls = ServiceBusy if code is ErrorCode.BUSY else ServiceError
             raise cls(code, f"{what}: {event.fields.get('message', 'refused')}")
+        instance = event.fields.get("instance")
+        return (instance,) if isinstance(instance, str) else ()
+
+    def _send_to_replicas(self, ack: tuple[str, Any], send: Callable[[], None], *,
+                          replicas: int, timeout: float | None, what: str) -> tuple[str, ...]:
+        """``send()``, then wait until ``replicas`` instances stored ``ack`` (their names),
+        or every instance serving the map answered (ServiceError), or ``timeout``."""
+        if isinstance(replicas, bool) or not isinstance(replicas, int) or replicas < 1:
+            raise ValueError(f"replicas: expected an integer >= 1, got {replicas!r}")
+        timeout = _check_timeout(timeout, self.timeout)
+        serving = {i for i, m in self.maps(timeout=min(timeout, 2.0)) if m == self.map}
+        expected = max(len(serving), replicas)
+        acks = self._ack_events()
+        acks.expect(ack)
+        try:
+            send()
+            events = acks.wait(ack, timeout, lambda evs: _replica_answers(evs, replicas,
+                                                                          expected))
+        finally:
+            acks.forget(ack)
+        stored, refused = _stored_refused(events)
+        if len(stored) >= replicas:
+            return tuple(sorted(stored))
+        said = (f"stored by {sorted(stored) or 'none'}; refused by "
+                + (", ".join(f"{i or '?'} ({e.fields.get('code')}: "
+                             f"{e.fields.get('message', 'refused')})"
+                             for i, e in sorted(refused.items())) or "none"))
+        if not refused:
+            raise NoReplyError(f"{what} on map {self.map!r}: {len(stored)} of {replicas} "
+                               f"replicas acknowledged within {timeout} s ({said})")
+        first = refused[sorted(refused)[0]]
+        raise ServiceError(_error_code(first.fields.get("code")),
+                           f"{what}: {len(stored)} of {replicas} replicas stored it ({said})")
 
     def _ack_events(self) -> _Acks:
         """The map's acknowledgement events, subscribed once per client."""
@@ -574,12 +621,12 @@ class _Acks:
 
     def __init__(self) -> None:
         self._cond = threading.Condition()
-        self._waiting: dict[tuple[str, Any], wire.Event | None] = {}
+        self._waiting: dict[tuple[str, Any], list[wire.Event]] = {}
         self.subscriber: zenoh.Subscriber | None = None
 
     def expect(self, ack: tuple[str, Any]) -> None:
         with self._cond:
-            self._waiting[ack] = None
+            self._waiting[ack] = []
 
     def forget(self, ack: tuple[str, Any]) -> None:
         with self._cond:
@@ -588,14 +635,38 @@ class _Acks:
     def on_event(self, event: wire.Event) -> None:
         ack = (self.KINDS[event.kind], event.fields.get("id"))
         with self._cond:
-            if ack in self._waiting and self._waiting[ack] is None:
-                self._waiting[ack] = event
+            if ack in self._waiting:
+                self._waiting[ack].append(event)
                 self._cond.notify_all()
 
-    def wait(self, ack: tuple[str, Any], timeout: float) -> wire.Event | None:
+    def wait(self, ack: tuple[str, Any], timeout: float,
+             done: Callable[[list[wire.Event]], bool]) -> list[wire.Event]:
+        """The events of ``ack`` so far, once ``done`` says they suffice or at ``timeout``."""
         with self._cond:
-            self._cond.wait_for(lambda: self._waiting.get(ack) is not None, timeout)
-            return self._waiting.get(ack)
+            self._cond.wait_for(lambda: done(self._waiting.get(ack, [])), timeout)
+            return list(self._waiting.get(ack, []))
+
+
+def _stored_refused(events: list[wire.Event]) -> tuple[set[str], dict[str, wire.Event]]:
+    """The instances that stored a put (accepted or applied it) and those that refused it
+    (their first refusal), each instance counted by its first answer."""
+    stored: set[str] = set()
+    refused: dict[str, wire.Event] = {}
+    for event in events:
+        instance = str(event.fields.get("instance", ""))
+        if instance in stored or instance in refused:
+            continue
+        if event.kind in (wire.EventKind.KEYFRAME_REJECTED, wire.EventKind.CAMERA_REJECTED):
+            refused[instance] = event
+        else:
+            stored.add(instance)
+    return stored, refused
+
+
+def _replica_answers(events: list[wire.Event], replicas: int, expected: int) -> bool:
+    """Enough instances stored it, or every instance expected answered."""
+    stored, refused = _stored_refused(events)
+    return len(stored) >= replicas or len(stored) + len(refused) >= expected
 
 
 def _error_code(code: Any) -> ErrorCode:

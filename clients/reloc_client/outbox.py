@@ -49,7 +49,7 @@ class Outbox:
         self.rejected: list[tuple[str, ServiceError]] = []
         #: Sends that got no acknowledgement (each was sent again).
         self.retries = 0
-        self._items: collections.deque[tuple[str, Callable[[], None]]] = collections.deque()
+        self._items: collections.deque[tuple[str, Callable[[], object]]] = collections.deque()
         self._cond = threading.Condition()
         self._sending = False
         self._closed = False
@@ -103,7 +103,7 @@ class Outbox:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _enqueue(self, what: str, send: Callable[[], None]) -> None:
+    def _enqueue(self, what: str, send: Callable[[], object]) -> None:
         with self._cond:
             if self._closed:
                 raise RuntimeError("outbox closed; expected changes before close()")
@@ -128,7 +128,7 @@ class Outbox:
                 with self._cond:
                     self._cond.wait_for(lambda: self._closed, self.retry_s)
 
-    def _send_one(self, what: str, send: Callable[[], None]) -> bool:
+    def _send_one(self, what: str, send: Callable[[], object]) -> bool:
         """Send one change; True once it is done with (acknowledged or refused)."""
         try:
             send()

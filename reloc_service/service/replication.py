@@ -560,7 +560,7 @@ def apply_copies(rt: MapRuntime, infos: list[wire.KeyframeInfo]) -> int:
     holds are kept (a removal is not inferred from a peer's absence). The number put."""
     copied = 0
     for info in infos:
-        if _holds(rt, info):
+        if info.image is None or _holds(rt, info):
             continue
         if info.camera_id is not None:
             Bootstrap._ensure_camera(rt, info.camera_id, info.camera)

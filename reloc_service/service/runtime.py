@@ -37,6 +37,11 @@ log = logging.getLogger(__name__)
 
 Publish = Callable[[str, EventKind, dict[str, Any]], None]
 
+#: The events acknowledging a put or delete: they name the instance that sends them.
+ACK_KINDS = frozenset({EventKind.KEYFRAME_ACCEPTED, EventKind.KEYFRAME_ADDED,
+                       EventKind.KEYFRAME_REMOVED, EventKind.KEYFRAME_REJECTED,
+                       EventKind.CAMERA_ADDED, EventKind.CAMERA_REJECTED})
+
 
 class Replicas(Protocol):
     """Where a map's applied changes go besides its engine (:class:`.processes.ProcessWorkers`)."""
@@ -173,6 +178,8 @@ class MapRuntime(ServedMap):
 
     # -- events ----------------------------------------------------------------------------------
     def publish(self, kind: EventKind, **fields: Any) -> None:
+        if kind in ACK_KINDS:   # a client waiting for several replicas tells them apart
+            fields.setdefault("instance", self.instance)
         self._publish(self.name, kind, fields)
 
     def reject(self, kind: EventKind, exc: BaseException, **fields: Any) -> None:
