@@ -123,3 +123,12 @@ def test_reloc_eval_with_the_default_chain_exits_cleanly(tmp_path):
 def test_reloc_demo_exits_cleanly():
     proc = run_reloc("demo", timeout=900)
     assert_clean_exit(proc)
+
+
+@pytest.mark.slow
+def test_reloc_bench_quick_exits_cleanly(tmp_path):
+    out = tmp_path / "bench.json"
+    proc = run_reloc("bench", "--quick", "--json", str(out), "--workdir", str(tmp_path / "work"),
+                     timeout=3600)
+    assert_clean_exit(proc)
+    assert out.is_file()
