@@ -100,7 +100,9 @@ def serve_config(directory: Path, port: int) -> Path:
     path.write_text("\n".join([
         "[zenoh]", 'mode = "peer"', f'listen = ["tcp/127.0.0.1:{port}"]',
         "multicast_scouting = false", "[service]", 'instance = "exit-runs"',
-        f'storage = "{directory / "storage"}"', "[maps.lab]", ""]))
+        f'storage = "{directory / "storage"}"',
+        # the Strecha sets' 1536x1024 images, above the companion-sized default
+        "[limits]", f"max_image_pixels = {1536 * 1024}", "[maps.lab]", ""]))
     return path
 
 
@@ -161,6 +163,17 @@ def run_serve(k: int, sets: list[Path], work: Path) -> Run:
     return Run(proc.returncode, time.monotonic() - start, marks, stderr + "\n".join(problems))
 
 
+def write_outputs(work: Path, tallies: dict[str, Tally]) -> None:
+    """OUT/table.md (the Markdown table) and OUT/runs.json (every run's exit and marks)."""
+    lines = ["| command | runs | exit 0 | other exits (code: runs) | abnormal stderr | clean | "
+             "median s |", "|---|---|---|---|---|---|---|",
+             *[tally.row(name) for name, tally in tallies.items()]]
+    (work / "table.md").write_text("\n".join(lines) + "\n")
+    (work / "runs.json").write_text(json.dumps(
+        {name: [{"code": r.code, "seconds": r.seconds, "marks": r.marks} for r in t.runs]
+         for name, t in tallies.items()}, indent=1))
+
+
 COMMANDS: dict[str, Callable[[int, list[Path], Path], Run]] = {
     "eval": run_eval, "serve": run_serve, "demo": run_demo, "bench-quick": run_bench_quick}
 
@@ -174,7 +187,7 @@ def main() -> int:
                         help=f"set to use in turn (default: the real sets of {REAL})")
     parser.add_argument("--out", type=Path, default=Path("out/exit_runs"))
     args = parser.parse_args()
-    sets = args.dataset or [REAL / name for name in REAL_SETS]
+    sets = [s.resolve() for s in args.dataset or [REAL / name for name in REAL_SETS]]
     missing = [str(s) for s in sets if not (s / "map.txt").is_file()]
     if missing:
         print(f"exit_runs: expected reloc datasets, not found: {missing}", file=sys.stderr)
@@ -190,15 +203,8 @@ def main() -> int:
                   f"{' ' + str(run.marks) if run.marks else ''}", flush=True)
             if run.code != 0 or run.marks:
                 (work / f"{name}-{k}.stderr").write_text(run.stderr)
-    lines = ["| command | runs | exit 0 | other exits (code: runs) | abnormal stderr | clean | "
-             "median s |", "|---|---|---|---|---|---|---|",
-             *[tally.row(name) for name, tally in tallies.items()]]
-    table = "\n".join(lines)
-    print(table)
-    (work / "table.md").write_text(table + "\n")
-    (work / "runs.json").write_text(json.dumps(
-        {name: [{"code": r.code, "seconds": r.seconds, "marks": r.marks} for r in t.runs]
-         for name, t in tallies.items()}, indent=1))
+        write_outputs(work, tallies)   # after every round: a stopped run keeps its table
+    print((work / "table.md").read_text(), end="")
     return 0 if all(r.code == 0 and not r.marks for t in tallies.values() for r in t.runs) else 1
 
 
