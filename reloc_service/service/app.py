@@ -30,6 +30,7 @@ from typing import Any
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode, EventKind, ProtocolError
 
+from ..algorithms.relocalizers.overlap import close_helpers
 from ..core.numeric import limit_blas_threads
 from ..engine import EngineConf, MappingConf
 from ..storage.lock import LockHeld
@@ -163,6 +164,8 @@ class Service:
                 pool.close(timeout=seconds_left(deadline, share=0.5))
         if self.processes is not None:
             self.processes.close()
+        # the queries are done: their helper threads (thread-mode workers) end here
+        close_helpers(timeout=seconds_left(deadline, share=0.25))
         self.registry.close(final_snapshot=final_snapshot, deadline=deadline)
         if self.layer is not None:
             self.layer.close()
