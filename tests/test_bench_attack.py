@@ -18,6 +18,7 @@ EXPECTED_CASES = {
     "garbage-new-maps": "input", "msgpack-nested-1e5": "input", "arrays-1000-deep": "input",
     "image-bomb": "input", "oversized-put": "input", "get-everything": "input",
     "long-map-names": "input", "second-service": "storage", "kill9-restart": "storage",
+    "kill9-mid-snapshot": "storage",
     "journal-bit-flip": "storage", "journal-zeroed-tail": "storage",
     "concurrent-delete-put-train": "storage"}
 

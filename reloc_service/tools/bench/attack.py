@@ -669,28 +669,73 @@ def files_of(directory: Path) -> dict[str, bytes]:
 
 
 @register("kill9-restart", "storage",
-          "kill -9 right after the last acknowledgement, three times: every acknowledged "
-          "keyframe is back after each restart")
+          "kill -9 right after the last acknowledgement, three times (no snapshots: the "
+          "journal alone): every acknowledged keyframe is back after each restart")
 def kill9_restart(arena: Arena) -> list[Attempt]:
-    service = AttackService(arena.case_folder("kill9-restart"), snapshot_every=8).start()
+    service = AttackService(arena.case_folder("kill9-restart")).start()
     acked: list[int] = []
     out = []
     try:
         for n in range(3):
             with service.client() as c:
                 acked += put_acknowledged(c, arena.scene, range(6 * n, 6 * n + 6))
-            try:
-                code = service.restart("kill9")
-            except Exception as exc:  # the restart itself failed: what the attack found
-                out.append(broke(f"kill -9 after {len(acked)} acknowledged, restart failed: "
-                                 f"{type(exc).__name__}: {exc}"))
+            attempt = kill9_and_compare(service, acked)
+            out.append(attempt)
+            if not attempt.clean:
                 break
-            with service.client() as c:
-                out.append(compare_held(f"kill -9 (exit {code}) after {len(acked)} acknowledged",
-                                        held_ids(c), set(acked)))
     finally:
         service.stop("sigterm")
     return out
+
+
+def kill9_and_compare(service: AttackService, acked: Sequence[int]) -> Attempt:
+    """kill -9 the service, start it again: clean if it holds exactly ``acked``."""
+    what = f"kill -9 after {len(acked)} acknowledged"
+    try:
+        code = service.restart("kill9")
+    except Exception as exc:  # the restart itself failed: what the attack found
+        return broke(f"{what}, restart failed: {type(exc).__name__}: {exc}")
+    with service.client() as c:
+        return compare_held(f"{what} (exit {code})", held_ids(c), set(acked))
+
+
+#: Journal records between snapshots in the mid-snapshot case: the 9th record (a camera and 8
+#: keyframes) starts one, and the kill -9 follows the 8th keyframe's acknowledgement.
+SNAPSHOT_EVERY = 8
+
+
+@register("kill9-mid-snapshot", "storage",
+          "kill -9 right after the acknowledgement that starts a snapshot, the map's first "
+          "and a later one: every acknowledged keyframe is back after the restart")
+def kill9_mid_snapshot(arena: Arena) -> list[Attempt]:
+    out = []
+    for later in (False, True):
+        folder = arena.case_folder(f"kill9-mid-snapshot-{'later' if later else 'first'}")
+        service = AttackService(folder, snapshot_every=SNAPSHOT_EVERY).start()
+        try:
+            acked: list[int] = []
+            if later:  # a first snapshot, complete: SIGTERM writes one before it exits
+                with service.client() as c:
+                    acked += put_acknowledged(c, arena.scene, range(100, 104))
+                service.restart("sigterm")
+            with service.client() as c:
+                acked += put_acknowledged(c, arena.scene, range(SNAPSHOT_EVERY))
+            partial = partial_snapshots(service.storage / MAP_NAME)
+            attempt = kill9_and_compare(service, acked)
+            label = "a later snapshot" if later else "the first snapshot"
+            out.append(Attempt(attempt.clean, f"{label} ({partial} incomplete at the kill): "
+                                              f"{attempt.detail}"))
+        finally:
+            service.stop("sigterm")
+    return out
+
+
+def partial_snapshots(map_dir: Path) -> int:
+    """Snapshot directories of ``map_dir`` without their manifest (being written)."""
+    snapshots = map_dir / "map" / "snapshots"
+    if not snapshots.is_dir():
+        return 0
+    return sum(not (d / "manifest.json").exists() for d in snapshots.iterdir() if d.is_dir())
 
 
 JOURNAL_IDS = range(6)
@@ -939,11 +984,16 @@ def table_lines(attack: Mapping[str, Any]) -> list[str]:
     for r in attack["cases"]:
         details = r["details"]
         shown = next((d for d in details if not d["clean"]), details[0] if details else None)
-        text = "" if shown is None else shown["detail"].replace("|", "\\|")
+        text = "" if shown is None else shorten(shown["detail"]).replace("|", "\\|")
         rows.append(f"| {r['case']} | {r['group']} | {r['attempts']} | {r['clean']} | "
                     f"{r['broke']} | {text} |")
     return [*rows, "", f"attempts / clean / broke something: {attack['attempts']} / "
                        f"{attack['clean']} / {attack['broke']}", ""]
+
+
+def shorten(text: str, limit: int = 200) -> str:
+    """``text`` cut to ``limit`` characters for a table cell (the JSON keeps it whole)."""
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def run_into(result: dict[str, Any], workdir: Path | None, say: Callable[[str], None]) -> None:
