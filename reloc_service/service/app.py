@@ -1,4 +1,4 @@
-"""The service: maps, worker pools, the per-map writers and the Zenoh layer, started and stopped
+"""The service: maps, worker pools, the maps' writers and the Zenoh layer, started and stopped
 together. :class:`Service` holds the life cycle and the dispatch; the served maps and their
 restore are its :class:`~.registry.MapRegistry`'s, the writers and puts its
 :class:`~.writes.Writes`'.
@@ -8,8 +8,9 @@ relocalize queries go to a bounded pool of worker threads (full: "busy" at once)
 answering on the maps themselves (``service.worker_mode = "thread"``) or handing the request
 to a worker process holding replicas of them (``"process"``, the default: :mod:`.processes`), status /
 train / map-copy queries to a small control pool, and keyframe and camera puts to their map's
-writer thread, which journals then applies them in arrival order (one writer per map, so one
-map's snapshot or training never holds up another map's puts: :mod:`.writes`).
+queue in the writer pool, which journals then applies each map's puts in arrival order (a
+bounded pool shared by the maps, so one map's snapshot or training holds up at most one of
+its threads and 300 maps need no more threads than one: :mod:`.writes`).
 
 Stopping is bounded by ``service.stop_timeout_s``: puts still queued are validated and
 journaled without being applied (the replay at the next start applies them), a final snapshot
@@ -39,7 +40,7 @@ from .processes import EngineSpec, ProcessWorkers
 from .registry import MapRegistry
 from .replication import Bootstrap, Peers
 from .runtime import MapRuntime
-from .workers import WorkerPool, seconds_left, stop_on_signals
+from .workers import Lane, WorkerPool, seconds_left, stop_on_signals
 from .writes import Writes
 from .zenoh_io import PendingQuery, QueryKind, ZenohLayer, open_session
 
@@ -206,8 +207,8 @@ class Service:
         """Wait until queued keyframe puts are applied (tests, demo)."""
         return self.writes.wait_idle(timeout)
 
-    def _writer_for(self, map_name: str) -> WorkerPool:
-        """The writer thread of ``map_name`` (tests hold it to fill its queue)."""
+    def _writer_for(self, map_name: str) -> Lane | WorkerPool:
+        """Where the writes of ``map_name`` queue (tests hold it to fill its queue)."""
         return self.writes.writer_for(map_name)
 
     # -- declarations (the registry calls these as maps come and fail) ----------------------------

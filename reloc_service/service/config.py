@@ -6,6 +6,7 @@ Layout (every section and key optional; the embedded default equals ``config/def
     [zenoh]     mode, listen, connect, multicast_scouting, config_file (a Zenoh JSON5 file)
     [service]   instance, prefix, storage, workers, worker_mode, queue_size, methods, ...
     [limits]    max_payload_bytes, max_image_pixels, max_features, max_hypotheses
+    [quotas]    max_maps, max_keyframes_per_map, max_map_bytes, max_total_bytes
     [maps.NAME] maps served from the start (a table, possibly empty, per map)
     [options.PLUGIN]  plugin options (``[options.sbi]``, ``[options.p3p]``, ``[options.verify]``)
     [mapping]   map-building options (the engine's MappingConf)
@@ -91,6 +92,35 @@ class LimitsConf:
 
 
 @dataclass(frozen=True)
+class QuotasConf:
+    """What the maps may hold; a put beyond is refused with QUOTA_EXCEEDED (maps restored or
+    configured are served whatever their size; only their further puts are refused). Bytes
+    are counted as :mod:`.quotas` says: each keyframe's image as held, depth and features
+    (about 365 KB for a 640x480 JPEG keyframe with the default methods).
+
+    The defaults are safe for a development machine that creates maps by puts; the files of
+    ``config/`` and ``deploy/`` size them for a companion computer's 1 GB ``MemoryMax`` and
+    for a ground station (docs/reliability.md, "Quotas": the service grew by about 5.5x what
+    is counted)."""
+
+    #: Maps served at once; a put creating one more is refused.
+    max_maps: int = 16
+    #: Keyframes per map (a replaced keyframe is not one more).
+    max_keyframes_per_map: int = 10_000
+    #: Bytes one map counts (its keyframes' images, depth and features).
+    max_map_bytes: int = 256 * 1024 * 1024
+    #: Bytes every map counts together.
+    max_total_bytes: int = 512 * 1024 * 1024
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"quotas.{f.name}: expected a positive integer, got "
+                                  f"{value!r}")
+
+
+@dataclass(frozen=True)
 class ServiceSection:
     """The service itself: names, threads, queues, storage, methods."""
 
@@ -120,11 +150,16 @@ class ServiceSection:
     blas_threads: int = 1
     #: Relocalize queries waiting for a worker; one more is answered "busy" at once.
     queue_size: int = 8
-    #: Keyframe puts/deletes waiting for the writer; one more is rejected (BUSY event).
+    #: Threads applying the maps' keyframe and camera puts, shared by every map: one map's
+    #: puts run one at a time and in order, up to this many maps at once. A map with nothing
+    #: queued holds no thread, so 300 maps cost no more threads than one.
+    writer_threads: int = 4
+    #: Keyframe puts/deletes waiting for a map's writer; one more is rejected (BUSY event).
     writer_queue_size: int = 512
-    #: Payload bytes the writer may hold (queued and running puts); a put beyond is rejected
-    #: (BUSY event). 128 MiB: four puts at the 32 MiB payload limit, or about 400 VGA
-    #: keyframes, while 40 puts of 30 MiB no longer hold 1.2 GB on a 4-8 GB companion.
+    #: Payload bytes the writers may hold (queued and running puts, every map together); a
+    #: put beyond is rejected (BUSY event). 128 MiB: four puts at the 32 MiB payload limit, or
+    #: about 400 VGA keyframes, while 40 puts of 30 MiB no longer hold 1.2 GB on a 4-8 GB
+    #: companion.
     writer_queue_bytes: int = 128 * 1024 * 1024
     #: A put on a map that is not served creates it (else the put is ignored).
     allow_new_maps: bool = True
@@ -149,7 +184,8 @@ class ServiceSection:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "methods", _str_tuple(self.methods, "service.methods"))
-        for name in ("workers", "queue_size", "writer_queue_size", "writer_queue_bytes"):
+        for name in ("workers", "queue_size", "writer_threads", "writer_queue_size",
+                     "writer_queue_bytes"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"service.{name}: expected an integer >= 1, got "
                                   f"{getattr(self, name)}")
@@ -204,6 +240,7 @@ class ServiceConf:
     zenoh: ZenohConf = field(default_factory=ZenohConf)
     service: ServiceSection = field(default_factory=ServiceSection)
     limits: LimitsConf = field(default_factory=LimitsConf)
+    quotas: QuotasConf = field(default_factory=QuotasConf)
     maps: Mapping[str, MapConf] = field(default_factory=lambda: MappingProxyType({}))
     #: Plugin name -> options (passed to the engine, checked by each plugin's Conf).
     options: Mapping[str, Mapping[str, Any]] = field(
@@ -229,7 +266,7 @@ class ServiceConf:
 
 
 _SECTIONS: dict[str, type] = {"zenoh": ZenohConf, "service": ServiceSection,
-                              "limits": LimitsConf, "ros2": Ros2Conf}
+                              "limits": LimitsConf, "quotas": QuotasConf, "ros2": Ros2Conf}
 _TOP_KEYS = sorted([*_SECTIONS, "maps", "options", "mapping"])
 
 
@@ -251,7 +288,8 @@ def parse_config(data: Mapping[str, Any], *, source: str = "config") -> ServiceC
                for name, t in _table(data.get("options", {}), f"{source}: [options]").items()}
     mapping = dict(_table(data.get("mapping", {}), f"{source}: [mapping]"))
     return ServiceConf(zenoh=sections["zenoh"], service=sections["service"],
-                       limits=sections["limits"], maps=MappingProxyType(maps),
+                       limits=sections["limits"], quotas=sections["quotas"],
+                       maps=MappingProxyType(maps),
                        options=MappingProxyType(options), mapping=MappingProxyType(mapping),
                        ros2=sections["ros2"])
 

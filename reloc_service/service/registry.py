@@ -33,6 +33,7 @@ from .durability import (
     recover_current,
     stored_map_names,
 )
+from .quotas import Quotas
 from .runtime import MapRuntime, Publish
 from .workers import seconds_left
 
@@ -73,6 +74,8 @@ class MapRegistry:
         self.failed: dict[str, str] = {}
         #: The worker processes (worker_mode "process"): every map opened is attached to them.
         self.processes: ProcessWorkers | None = None
+        #: The quotas every map's puts are checked against (their use is each map's).
+        self.quotas = Quotas(conf.quotas, lambda: [rt.usage for rt in list(self.maps.values())])
         self._lock = threading.Lock()
         self._loading: set[str] = set()      # being restored: not declared yet
         self._ready = threading.Event()      # every stored and configured map is up (or failed)
@@ -187,10 +190,12 @@ class MapRegistry:
 
     def create(self, name: str) -> MapRuntime:
         """The runtime of ``name``, created (and declared) unless another put did it first;
-        for a first put already validated. STORAGE_ERROR or BUSY as :meth:`check_restored`."""
+        for a first put already validated. STORAGE_ERROR or BUSY as :meth:`check_restored`,
+        QUOTA_EXCEEDED when ``quotas.max_maps`` are served already."""
         with self._lock:
             self.check_restored(name)
             if name not in self.maps:
+                self.quotas.check_new_map(name, len(self.maps))
                 self.maps[name] = self._open_map(name)
                 self._declare_created(name)
                 log.info("map %s created by its first put", name)
@@ -228,7 +233,7 @@ class MapRegistry:
         rt = MapRuntime(name, engine, instance=self.conf.instance, limits=self.limits,
                         methods=self.methods, default_method=self.methods[0],
                         directory=directory, publish=self._publish,
-                        snapshot_every=s.snapshot_every, fsync=s.fsync)
+                        snapshot_every=s.snapshot_every, fsync=s.fsync, quotas=self.quotas)
         if directory is not None:
             check_storage(directory)
             replayed = rt.restore(self._stopped)

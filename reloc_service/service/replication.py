@@ -23,7 +23,7 @@ from reloc_client import protocol as wire
 from .codec import pose_covariance_of, to_camera
 from .runtime import MapRuntime
 from .served import WriteOp
-from .workers import WorkerPool
+from .workers import Lane, WorkerPool
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,7 @@ class Bootstrap:
     TIMEOUT = 60.0
 
     def __init__(self, session: Any, prefix: str, maps: Mapping[str, MapRuntime], *,
-                 gate: WorkerPool, writer_for: Callable[[str], WorkerPool]) -> None:
+                 gate: WorkerPool, writer_for: Callable[[str], WorkerPool | Lane]) -> None:
         """Copy ``maps`` (the service's served maps) from the replicas answering on
         ``prefix``; ``gate`` is the writer that applies the copies, ``writer_for`` gives each
         map's writer (held until the copies are applied)."""

@@ -28,6 +28,7 @@ from ..core.errors import MapError, StorageError
 from ..engine import Engine
 from .codec import KeyframeInput, WithLimits, decode_camera_put, decode_keyframe_put, error_of
 from .durability import REPLAY_LIMITS, MapStore, RestoreReport, ServiceMeta
+from .quotas import MapUsage, Quotas, keyframe_bytes
 from .served import ServedMap, WriteOp
 
 log = logging.getLogger(__name__)
@@ -98,7 +99,8 @@ class MapRuntime(ServedMap):
 
     def __init__(self, name: str, engine: Engine, *, instance: str, limits: wire.Limits,
                  methods: tuple[str, ...], default_method: str, directory: Path | None,
-                 publish: Publish, snapshot_every: int = 200, fsync: bool = True) -> None:
+                 publish: Publish, snapshot_every: int = 200, fsync: bool = True,
+                 quotas: Quotas | None = None) -> None:
         super().__init__(name, engine, limits=limits, methods=methods,
                          default_method=default_method)
         self.instance = instance
@@ -124,6 +126,9 @@ class MapRuntime(ServedMap):
         #: The worker processes holding replicas of this map (worker_mode "process"): every
         #: change applied here is forwarded to them, in order (see :mod:`.processes`).
         self.replicas: Replicas | None = None
+        #: What the map's keyframes count against the quotas (None: no quota checked).
+        self.quotas = quotas
+        self.usage = MapUsage.of(engine.map.snapshot())
 
     # -- reading -------------------------------------------------------------------------------
     def keyframe_camera_id(self, kf_id: int) -> str | None:
@@ -137,6 +142,7 @@ class MapRuntime(ServedMap):
     def status(self) -> wire.StatusReply:
         st = self.engine.status()
         counters, latency = self.stats.snapshot()
+        counters["quota_bytes"] = self.usage.total   # what the map counts against [quotas]
         with self._job_lock:
             training = self._job is not None
         return wire.StatusReply(
@@ -165,11 +171,31 @@ class MapRuntime(ServedMap):
         try:
             kf = decode_keyframe_put(self, kf_id, payload)
             with self._apply_lock:
-                self._journal_record(WriteOp.KEYFRAME, kf_id, payload)
-                self.publish(EventKind.KEYFRAME_ACCEPTED, id=kf_id)
-                self._apply_or_defer(WriteOp.KEYFRAME, kf)
+                self._admit(kf_id, len(payload))   # QUOTA_EXCEEDED: nothing journaled
+                try:
+                    self._journal_record(WriteOp.KEYFRAME, kf_id, payload)
+                    self.publish(EventKind.KEYFRAME_ACCEPTED, id=kf_id)
+                    self._apply_or_defer(WriteOp.KEYFRAME, kf)
+                except Exception:
+                    self._recount(kf_id)
+                    raise
         except Exception as exc:
             self.reject(EventKind.KEYFRAME_REJECTED, exc, id=kf_id)
+
+    def _admit(self, kf_id: int, size: int) -> None:
+        """Count a put against the quotas (QUOTA_EXCEEDED beyond them)."""
+        if self.quotas is not None:
+            self.quotas.admit(self.name, self.usage, kf_id, size)
+
+    def _recount(self, kf_id: int) -> None:
+        """Count keyframe ``kf_id`` as the map now holds it (a put that failed on the way
+        counts what stayed: the old keyframe, or nothing)."""
+        keyframe = self.engine.map.snapshot().keyframes.get(kf_id)
+        size = None if keyframe is None else keyframe_bytes(keyframe)
+        if self.quotas is not None:
+            self.quotas.count(self.usage, kf_id, size)
+        else:
+            self.usage.set_bytes(kf_id, size)
 
     def delete_keyframe(self, kf_id: int) -> None:
         """Journal and apply the removal of keyframe ``kf_id``."""
@@ -180,6 +206,7 @@ class MapRuntime(ServedMap):
                 self._journal_record(WriteOp.DELETE, kf_id)
                 self.publish(EventKind.KEYFRAME_ACCEPTED, id=kf_id, removed=True)
                 self._apply_or_defer(WriteOp.DELETE, kf_id)
+                self._recount(kf_id)   # frees its quota (once applied)
         except Exception as exc:
             self.reject(EventKind.KEYFRAME_REJECTED, exc, id=kf_id)
 
@@ -229,6 +256,7 @@ class MapRuntime(ServedMap):
         if op is WriteOp.KEYFRAME:
             kf: KeyframeInput = item
             self.apply_change(WriteOp.KEYFRAME, kf)
+            self._recount(kf.kf_id)   # its features are known now
             if self.replicas is not None:   # before keyframe_added: a query after it sees it
                 self.replicas.forward(self.name, WriteOp.KEYFRAME, kf)
             if kf.camera_id is not None:
@@ -241,6 +269,7 @@ class MapRuntime(ServedMap):
                              map_version=self.engine.map.version)
         elif op is WriteOp.DELETE:
             self.apply_change(WriteOp.DELETE, item)
+            self._recount(item)
             if self.replicas is not None:
                 self.replicas.forward(self.name, WriteOp.DELETE, item)
             self._kf_camera_ids.pop(item, None)
@@ -409,6 +438,7 @@ class MapRuntime(ServedMap):
                 if op is WriteOp.KEYFRAME:
                     assert payload is not None
                     decode_keyframe_put(self, ident, payload)   # refused as usual
+                    self._admit(ident, len(payload))
                     self._journal_record(WriteOp.KEYFRAME, ident, payload)
                     self._unapplied.add(ident)
                 else:

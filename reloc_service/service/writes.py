@@ -1,14 +1,16 @@
 """The write path: keyframe and camera puts (from the Zenoh subscriber or the ROS 2 bridge)
-queued in their map's writer thread, which journals then applies them in arrival order, and the
-rejected events that answer a put refused on the way (the accepted and added events are the
-runtime's, :class:`~.runtime.MapRuntime`).
+queued per map in a pool of writer threads shared by every map, which journal then apply each
+map's puts in arrival order, and the rejected events that answer a put refused on the way (the
+accepted and added events are the runtime's, :class:`~.runtime.MapRuntime`).
 
-Each served map has its own writer (one thread), so one map's snapshot or training never
-holds up another map's puts; a shared writer takes the puts of maps this instance does not
-serve (rejected, or ignored when another instance serves them, in order) and the bootstrap's
-copy. A writer started for a put that then did not create its map is retired (no idle thread
-per junk name). At shutdown the queued puts are journaled without being applied
-(:meth:`Writes.flush`); the replay at the next start applies them.
+The maps' writes go to one :class:`~.workers.KeyedPool` of ``service.writer_threads``
+threads: one map's puts run one at a time and in order, different maps' in parallel, so one
+map's slow write (a snapshot's wait, a big keyframe) holds up at most one thread, and the
+service's threads do not grow with its maps (a map with nothing queued holds no thread). A
+shared writer (one thread) takes the puts of maps this instance does not serve (rejected, or
+ignored when another instance serves them, in order) and the bootstrap's copy. At shutdown
+the queued puts are journaled without being applied (:meth:`Writes.flush`); the replay at the
+next start applies them.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from .registry import MapRegistry
 from .replication import Bootstrap, Peers
 from .runtime import MapRuntime, Publish
 from .served import WriteOp
-from .workers import WorkerPool, seconds_left
+from .workers import KeyedPool, Lane, WorkerPool, seconds_left
 
 log = logging.getLogger(__name__)
 
@@ -60,10 +62,7 @@ class WriteJob:
 
 
 class Writes:
-    """The writers of one service and the puts queued in them (see module docstring).
-
-    ``_lock`` guards the writers table: a put is queued, and an idle writer retired, under
-    it (never interleaved). It is taken inside no other lock of the service."""
+    """The writers of one service and the puts queued in them (see module docstring)."""
 
     def __init__(self, conf: ServiceConf, registry: MapRegistry, *, prefix: str,
                  limits: wire.Limits, stopped: threading.Event, publish: Publish) -> None:
@@ -74,11 +73,10 @@ class Writes:
         self._stopped = stopped
         self._publish = publish
         #: Writes of maps this instance does not serve (rejected or ignored, in order) and the
-        #: bootstrap's copy (created by :meth:`open`); each served map has its own writer in
-        #: ``writers``.
+        #: bootstrap's copy (created by :meth:`open`).
         self.writer: WorkerPool | None = None
-        self.writers: dict[str, WorkerPool] = {}
-        self._lock = threading.Lock()
+        #: The served maps' writes (and those of maps their put may create), one lane per map.
+        self.pool: KeyedPool | None = None
         #: The other instances under the prefix: a put on a map one of them serves is theirs.
         self.peers: Peers | None = None
         #: The copy of peers' maps at start (bootstrap_from_peers): while it runs, live
@@ -87,9 +85,12 @@ class Writes:
         self._warned_keys: dict[str, None] = {}   # malformed keys already logged (bounded)
 
     def open(self) -> None:
-        """Start the shared writer (the maps' own writers start with their first put)."""
+        """Start the shared writer and the maps' writer pool."""
         self.writer = WorkerPool("writer", workers=1, queue_size=self.conf.writer_queue_size,
                                  max_bytes=self.conf.writer_queue_bytes)
+        self.pool = KeyedPool("map-writer", workers=self.conf.writer_threads,
+                              queue_size=self.conf.writer_queue_size,
+                              max_bytes=self.conf.writer_queue_bytes)
 
     # -- samples (called in Zenoh threads: enqueue only) -----------------------------------------
     def keyframe_sample(self, map_name: str, kf_id: int, payload: bytes | None) -> None:
@@ -165,54 +166,32 @@ class Writes:
         self._publish(map_name, kind, {"id": ident, "code": code.value, "message": message})
 
     # -- writers ---------------------------------------------------------------------------------
-    def writer_for(self, map_name: str) -> WorkerPool:
-        """The writer of ``map_name``: its own if the map is served or may be created by this
-        put, else the shared one (which rejects or ignores, in order)."""
-        with self._lock:
-            return self._writer_locked(map_name)
-
-    def _writer_locked(self, map_name: str) -> WorkerPool:
-        pool = self.writers.get(map_name)
-        if pool is not None:
-            return pool
+    def writer_for(self, map_name: str) -> Lane | WorkerPool:
+        """Where the writes of ``map_name`` queue: its lane of the maps' pool if the map is
+        served or may be created by this put, else the shared writer (which rejects or
+        ignores, in order)."""
+        assert self.writer is not None and self.pool is not None
         if map_name not in self.registry.maps and not self.conf.allow_new_maps:
-            assert self.writer is not None
             return self.writer
-        pool = WorkerPool(f"writer-{map_name}", workers=1,
-                          queue_size=self.conf.writer_queue_size,
-                          max_bytes=self.conf.writer_queue_bytes)
-        self.writers[map_name] = pool
-        return pool
+        return Lane(self.pool, map_name)
 
     def _submit(self, map_name: str, job: WriteJob, *, size: int = 0) -> bool:
-        with self._lock:   # not interleaved with _retire
-            return self._writer_locked(map_name).submit(job, size=size)
+        return self.writer_for(map_name).submit(job, size=size)
 
-    def _retire(self, map_name: str) -> None:
-        """Stop the writer of a map that its put did not create (no idle thread per junk
-        name); called from that writer's own thread, so closed from another."""
-        with self._lock:
-            pool = self.writers.get(map_name)
-            if (pool is None or map_name in self.registry.maps or pool.pending
-                    or self._stopped.is_set()):
-                return
-            del self.writers[map_name]
-        threading.Thread(target=pool.close, name=f"retire-{map_name}", daemon=True).start()
+    def _pools(self) -> list[KeyedPool | WorkerPool]:
+        return [pool for pool in (self.pool, self.writer) if pool is not None]
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
         """Wait until the queued puts are applied."""
         deadline = time.monotonic() + timeout
-        with self._lock:
-            pools = [*([self.writer] if self.writer else []), *self.writers.values()]
-        return all(pool.join(seconds_left(deadline)) for pool in pools)
+        return all(pool.join(seconds_left(deadline)) for pool in self._pools())
 
     def flush(self, deadline: float) -> int:
         """Take the queued writes out of every writer, let each finish the write it is
         running (so the journal keeps arrival order), then journal the queued ones without
         applying them; the number journaled. Queued map copies get no reply (their gets end
         empty); the writer threads stop."""
-        with self._lock:
-            pools = [*self.writers.values(), *([self.writer] if self.writer else [])]
+        pools = self._pools()
         queued = [job for pool in pools for job in pool.take_queued()]
         for pool in pools:   # a running put ends within a second; a map copy may not
             if not pool.join(min(seconds_left(deadline, share=0.25), 5.0)):
@@ -231,7 +210,6 @@ class Writes:
         except Exception as exc:
             code, message = error_of(exc)
             self.reject(job.map_name, job.rejected, job.ident, code, message)
-            self._retire(job.map_name)
             return
         if rt is None and self.peers is not None and self.peers.serves(job.map_name):
             log.debug("put on map %s ignored: another instance serves it", job.map_name)
@@ -243,8 +221,6 @@ class Writes:
             job.apply(rt)
             if rt.wants_snapshot():
                 rt.start_snapshot()
-            return
-        self._retire(job.map_name)
 
     def _map_for_put(self, job: WriteJob) -> MapRuntime | None:
         """The runtime of the job's map; created (and served) if new maps are allowed and the

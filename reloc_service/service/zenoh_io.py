@@ -13,11 +13,12 @@ from __future__ import annotations
 import enum
 import json
 import logging
+import queue
 import re
 import threading
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import zenoh
 from reloc_client import protocol as wire
@@ -25,6 +26,7 @@ from reloc_client.protocol import ErrorCode
 
 from ..core.errors import ConfigError
 from .config import ZenohConf
+from .memory import Trimmer
 
 log = logging.getLogger(__name__)
 
@@ -142,6 +144,10 @@ class ZenohLayer:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._tokens: dict[str, zenoh.LivelinessToken] = {}
         self._lock = threading.Lock()
+        #: Gives the heap back after an oversized payload is refused (:mod:`.memory`).
+        self.trimmer = Trimmer()
+        #: Every map's queries, handed to one thread (not one thread per queryable).
+        self._inbox = QueryInbox()
         # One subscriber for keyframes and cameras: samples of two subscribers may be delivered
         # out of order, and a keyframe must not overtake the camera it was sent after.
         self._subscribers = [session.declare_subscriber(f"{self.prefix}/*/*/*", self._on_put)]
@@ -195,12 +201,14 @@ class ZenohLayer:
     def close(self) -> None:
         """Undeclare everything."""
         self.withdraw()
+        self.trimmer.cancel()
         with self._lock:
             maps, self._maps = self._maps, {}
             self._publishers = {}
         for entities in maps.values():
             for entity in reversed(entities):
                 _undeclare(entity)
+        self._inbox.close()
 
     # -- callbacks (Zenoh threads: copy, parse the key, hand over) -------------------------
     def _queryable(self, key: str, map_name: str, kind: QueryKind) -> zenoh.Queryable:
@@ -214,7 +222,7 @@ class ZenohLayer:
             except Exception:  # never let an exception reach Zenoh's thread
                 log.exception("query on %s failed in the dispatcher", key)
 
-        return self.session.declare_queryable(key, on_query)
+        return self.session.declare_queryable(key, self._inbox.handler(on_query))
 
     def _payload_fits(self, payload: zenoh.ZBytes | None, key: str,
                       query: zenoh.Query | None = None) -> bool:
@@ -226,6 +234,7 @@ class ZenohLayer:
         if size <= limit:
             return True
         problem = f"{key}: payload: {size} bytes; expected at most {limit}"
+        self.trimmer.request()   # Zenoh's copy of it is freed soon: give the pages back
         if query is not None:
             query.reply_err(wire.encode_error(ErrorCode.PAYLOAD_TOO_LARGE, problem))
             query.drop()
@@ -261,6 +270,49 @@ class ZenohLayer:
         if sample.kind == zenoh.SampleKind.PUT and not self._payload_fits(sample.payload, key):
             return
         self.dispatcher.on_camera_sample(map_name, camera_id, _sample_payload(sample))
+
+
+class QueryInbox:
+    """The queries of every map's queryables, handed by Zenoh's network thread to one thread
+    of ours that checks and dispatches them (the dispatch only queues work or answers "busy",
+    so one thread keeps up). zenoh-python otherwise runs each Python callback on a thread of
+    its own, one per queryable: five threads per map, 1,800 for 300 maps. The callback Zenoh
+    runs itself only appends to a queue (no Zenoh call, no lock held elsewhere)."""
+
+    def __init__(self) -> None:
+        self._queue: queue.SimpleQueue[tuple[Callable[[zenoh.Query], None], zenoh.Query] | None]
+        self._queue = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._run, name="zenoh-queries", daemon=True)
+        self._thread.start()
+
+    def handler(self, on_query: Callable[[zenoh.Query], None]) -> Callable[[zenoh.Query], Any]:
+        """What to declare a queryable with: its queries go to ``on_query`` on our thread."""
+        def enqueue(query: zenoh.Query) -> None:
+            self._queue.put((on_query, query))
+        return _direct_callback(enqueue)
+
+    def _run(self) -> None:
+        while (item := self._queue.get()) is not None:
+            on_query, query = item
+            try:
+                on_query(query)
+            except Exception:  # on_query reports its own errors; this is the last resort
+                log.exception("dispatching a query failed")
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Dispatch the queries already received, then stop the thread."""
+        self._queue.put(None)
+        self._thread.join(timeout)
+
+
+def _direct_callback(fn: Callable[[zenoh.Query], None]) -> Callable[[zenoh.Query], Any]:
+    """``fn`` as a Zenoh callback run on Zenoh's own thread (``indirect=False``, an unstable
+    zenoh-python option); ``fn`` itself, on a thread of its own, where that is not offered."""
+    try:
+        callback: Callable[[zenoh.Query], Any] = zenoh.handlers.Callback(fn, indirect=False)
+        return callback
+    except TypeError:
+        return fn
 
 
 def _sample_payload(sample: zenoh.Sample) -> bytes | None:

@@ -42,6 +42,7 @@ class ErrorCode(enum.StrEnum):
     UNKNOWN_MAP = "UNKNOWN_MAP"
     UNKNOWN_KEYFRAME = "UNKNOWN_KEYFRAME"
     BUSY = "BUSY"
+    QUOTA_EXCEEDED = "QUOTA_EXCEEDED"      # the map or the service holds what its quota allows
     STORAGE_ERROR = "STORAGE_ERROR"
     INTERNAL = "INTERNAL"
 
