@@ -13,14 +13,15 @@ import pytest
 from reloc_service.tools.bench import attack
 from reloc_service.tools.bench import cli as bench_cli
 
-#: The cases the suite must hold (more may be added: quotas, restore completeness, replicas).
+#: The cases the suite must hold (more may be added: restore completeness, replicas).
 EXPECTED_CASES = {
     "garbage-new-maps": "input", "msgpack-nested-1e5": "input", "arrays-1000-deep": "input",
     "image-bomb": "input", "oversized-put": "input", "get-everything": "input",
     "long-map-names": "input", "second-service": "storage", "kill9-restart": "storage",
     "kill9-mid-snapshot": "storage",
     "journal-bit-flip": "storage", "journal-zeroed-tail": "storage",
-    "concurrent-delete-put-train": "storage"}
+    "concurrent-delete-put-train": "storage", "quota-maps": "quota",
+    "quota-keyframes": "quota", "quota-bytes": "quota"}
 
 
 def test_the_registry_lists_every_case_with_a_known_group():
