@@ -666,7 +666,7 @@ def second_service(arena: Arena) -> list[Attempt]:
 
 
 def files_of(directory: Path) -> dict[str, bytes]:
-    """Every file under ``directory`` (lock holder records aside) by relative path."""
+    """Every file under ``directory`` (lock holder records too) by relative path."""
     return {p.relative_to(directory).as_posix(): p.read_bytes()
             for p in sorted(directory.rglob("*")) if p.is_file()}
 
@@ -708,8 +708,9 @@ SNAPSHOT_EVERY = 8
 
 
 @register("kill9-mid-snapshot", "storage",
-          "kill -9 right after the acknowledgement that starts a snapshot, the map's first "
-          "and a later one: every acknowledged keyframe is back after the restart")
+          "kill -9 while a snapshot is being written (its directory without a manifest yet), "
+          "the map's first and a later one: every acknowledged keyframe is back after the "
+          "restart")
 def kill9_mid_snapshot(arena: Arena) -> list[Attempt]:
     out = []
     for later in (False, True):
@@ -723,7 +724,7 @@ def kill9_mid_snapshot(arena: Arena) -> list[Attempt]:
                 service.restart("sigterm")
             with service.client() as c:
                 acked += put_acknowledged(c, arena.scene, range(SNAPSHOT_EVERY))
-            partial = partial_snapshots(service.storage / MAP_NAME)
+            partial = wait_partial_snapshot(service.storage / MAP_NAME)
             attempt = kill9_and_compare(service, acked)
             label = "a later snapshot" if later else "the first snapshot"
             out.append(Attempt(attempt.clean, f"{label} ({partial} incomplete at the kill): "
@@ -731,6 +732,17 @@ def kill9_mid_snapshot(arena: Arena) -> list[Attempt]:
         finally:
             service.stop("sigterm")
     return out
+
+
+def wait_partial_snapshot(map_dir: Path, timeout: float = 10.0) -> int:
+    """Wait (polling every 5 ms) until a snapshot of ``map_dir`` is being written, so that a
+    kill lands in the middle of it; the incomplete snapshots then (0 after ``timeout``)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        partial = partial_snapshots(map_dir)
+        if partial or time.monotonic() > deadline:
+            return partial
+        time.sleep(0.005)
 
 
 def partial_snapshots(map_dir: Path) -> int:
