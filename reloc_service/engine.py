@@ -365,11 +365,13 @@ class Engine:
                 self._publish(updated)
 
     # -- persistence ---------------------------------------------------------------------------
-    def save(self, directory: str | Path, *, exact_geometry: bool = False) -> Path:
+    def save(self, directory: str | Path, *, exact_geometry: bool = False,
+             store: Mapping[str, Any] | None = None) -> Path:
         """Save the published map and every live relocalizer's models (consistent with it);
         returns the snapshot. Queries go on meanwhile: the read lock is held only while the
         relocalizers write their models (into a scratch directory), not for the map files.
-        ``exact_geometry``: landmark geometry float64 as held (see :func:`.storage.save_map`)."""
+        ``exact_geometry``: landmark geometry float64 as held; ``store``: the owner's fields
+        of the manifest (see :func:`.storage.snapshot.save_map`)."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         with self._save_lock, tempfile.TemporaryDirectory(dir=directory, prefix=".models-") as tmp:
@@ -381,7 +383,8 @@ class Engine:
                 methods = list(self._live)
             models = {m: functools.partial(_move_contents, Path(tmp) / model_dir_name(m))
                       for m in methods}
-            return save_map(state, directory, models=models, exact_geometry=exact_geometry)
+            return save_map(state, directory, models=models, exact_geometry=exact_geometry,
+                            store=store)
 
     @classmethod
     def load(cls, directory: str | Path, conf: EngineConf | None = None, *,

@@ -164,8 +164,9 @@ def durable_keyframe_ids(map_dir: Path) -> set[int]:
     if (map_dir / "service.json").is_file():
         meta = json.loads((map_dir / "service.json").read_text())
         first_segment = meta["next_segment"]
-        manifest = map_dir / "map" / "snapshots" / meta["snapshot"] / "manifest.json"
-        ids = {kf["id"] for kf in json.loads(manifest.read_text())["keyframes"]}
+        if "snapshot" in meta:   # (a map's identity is recorded before its first snapshot)
+            manifest = map_dir / "map" / "snapshots" / meta["snapshot"] / "manifest.json"
+            ids = {kf["id"] for kf in json.loads(manifest.read_text())["keyframes"]}
     for raw in Journal(map_dir / "journal").replay(first_segment):
         record = msgpack.unpackb(raw)
         if record["op"] == "kf":

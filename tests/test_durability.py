@@ -19,6 +19,7 @@ from reloc_service.service.durability import (
     record_map_name,
     stored_map_names,
 )
+from reloc_service.service.restore_verdict import judge
 
 CAMERA = PinholeCamera(width=320, height=240, fx=250.0, fy=250.0, cx=159.5, cy=119.5)
 
@@ -27,7 +28,7 @@ def opened(directory, **kw) -> tuple[MapStore, list[dict]]:
     """A store on ``directory`` restored as the runtime does it; the records it replayed."""
     store = MapStore("m", directory, **kw)
     applied: list[dict] = []
-    store.replay(store.read_meta().next_segment, applied.append, RestoreReport())
+    store.replay(judge(directory), applied.append, RestoreReport())
     return store, applied
 
 
@@ -40,7 +41,7 @@ def test_records_replay_in_order_and_count_towards_the_next_snapshot(tmp_path):
     assert store.wants_snapshot()
     store.close()
     store, applied = opened(tmp_path, snapshot_every=3)
-    assert applied == [{"op": "del", "id": i} for i in range(3)]
+    assert applied == [{"op": "del", "id": i, "seq": i + 1} for i in range(3)]
     assert store.since_snapshot == 3 and store.wants_snapshot()
     store.close()
 
@@ -56,7 +57,7 @@ def test_a_record_that_does_not_apply_is_skipped_and_counted(tmp_path):
             raise ValueError("keyframe 1 does not decode")
 
     report = RestoreReport()
-    MapStore("m", tmp_path).replay(0, apply, report)
+    MapStore("m", tmp_path).replay(judge(tmp_path), apply, report)
     assert (report.replayed, report.not_applied) == (2, 1)
     assert report.damaged and report.counters()["restore_records_not_applied"] == 1
 
@@ -79,7 +80,7 @@ def test_a_snapshot_names_itself_and_drops_the_journal_before_it(tmp_path):
     meta = store.read_meta()
     assert meta.cameras["cam0"].to_dict() == CAMERA.to_dict()
     assert meta.keyframe_camera_ids == {3: "cam0"}
-    assert applied == [{"op": "del", "id": 7}]
+    assert applied == [{"op": "del", "id": 7, "seq": 2}]    # the camera (1) is in the snapshot
     store.close()
     assert open_engine(tmp_path, EngineConf()).map.snapshot().version == \
         engine.map.snapshot().version

@@ -215,3 +215,59 @@ def test_first_format_segments_are_still_read(tmp_path):
     j.append(b"new")
     j.close()
     assert list(Journal(tmp_path).replay()) == [*old, b"new"]
+
+
+# -- the third format: map identity and sequence numbers in the segment header ------------------
+
+def test_segments_of_a_journal_with_an_identity_carry_it_and_chain_by_sequence_number(tmp_path):
+    import uuid
+
+    j = Journal(tmp_path)
+    j.identity = uuid.UUID(int=7)
+    assert j.open() == 1
+    for r in records(3):
+        j.append(r)
+    assert j.next_seq == 4
+    assert j.rotate() == 2
+    j.append(b"after the rotation")
+    j.close()
+    first, second = scan_segment(tmp_path / segment_name(1)), scan_segment(tmp_path / segment_name(2))
+    assert (first.version, first.map_id, first.first_seq) == (3, uuid.UUID(int=7).hex, 1)
+    assert (second.version, second.first_seq, second.records) == (3, 4, [b"after the rotation"])
+    assert list(Journal(tmp_path).replay()) == [*records(3), b"after the rotation"]
+    assert not list(tmp_path.glob("*.new"))          # created whole, then renamed
+
+
+def test_a_third_format_segment_shorter_than_its_header_is_kept_not_reused(tmp_path):
+    """Such a segment is never what a crash leaves (segments are created whole): it is kept as
+    the evidence of a loss and appending continues in a new segment."""
+    import uuid
+
+    j = Journal(tmp_path)
+    j.identity = uuid.UUID(int=7)
+    j.open()
+    j.append(b"lost")
+    j.close()
+    (tmp_path / segment_name(1)).write_bytes(b"")
+    j = Journal(tmp_path)
+    j.identity = uuid.UUID(int=7)
+    assert j.open() == 2
+    j.close()
+    assert (tmp_path / segment_name(1)).read_bytes() == b""
+    assert scan_segment(tmp_path / segment_name(1)).version == 0
+
+
+def test_a_journal_with_an_identity_does_not_continue_a_second_format_segment(tmp_path):
+    import uuid
+
+    j = Journal(tmp_path)
+    j.open()
+    j.append(b"legacy")
+    j.close()
+    j = Journal(tmp_path)
+    j.identity = uuid.UUID(int=7)
+    assert j.open() == 2
+    j.append(b"numbered")
+    j.close()
+    assert scan_segment(tmp_path / segment_name(1)).version == 2
+    assert list(Journal(tmp_path).replay()) == [b"legacy", b"numbered"]

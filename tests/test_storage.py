@@ -770,3 +770,31 @@ def test_a_map_of_more_keyframes_than_open_files_allowed_loads(tmp_path, synthet
                           env={**os.environ, "PYTHONPATH": f"{root}{os.pathsep}{root / 'clients'}"})
     assert done.returncode == 0, done.stderr[-2000:]
     assert int(done.stdout.split()[-1]) < 64  # open files after the load: not one per image
+
+
+def test_a_save_failing_on_a_full_disk_removes_its_partial_snapshot(tmp_path, synthetic_map,
+                                                                   monkeypatch):
+    """Injected: a keyframe image's write puts half its bytes on disk, then raises ENOSPC.
+    The partial snapshot directory is removed (its space given back), CURRENT is unchanged."""
+    import errno
+    import os
+
+    first = _tiny_state(synthetic_map, 2)
+    kept = save_map(first, tmp_path)
+    real_write = snapshot_files.SnapshotWriter.write
+
+    def full_disk(self, relpath, data):
+        if relpath.startswith("images/"):
+            (self.root / relpath).parent.mkdir(parents=True, exist_ok=True)
+            (self.root / relpath).write_bytes(data[: len(data) // 2])
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_write(self, relpath, data)
+
+    monkeypatch.setattr(snapshot_files.SnapshotWriter, "write", full_disk)
+    with pytest.raises(OSError) as err:
+        save_map(synthetic_map, tmp_path)
+    assert err.value.errno == errno.ENOSPC
+    monkeypatch.undo()
+    assert [p.name for p in (tmp_path / "snapshots").iterdir()] == [kept.name]
+    assert current_snapshot(tmp_path) == kept
+    _assert_states_equal(first, load_map(tmp_path)[0])

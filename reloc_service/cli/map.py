@@ -1,5 +1,7 @@
-"""``reloc map check DIR``: report what a map directory (or a whole storage) holds, read only;
-exit status 1 when something is damaged, 2 when DIR is not a map directory or storage.
+"""``reloc map check DIR``: report what a map directory (or a whole storage) holds, read only,
+and the verdict the service's restore reaches on it; exit status 1 when something is damaged
+(or the map would be served degraded or refused), 2 when DIR is not a map directory or
+storage. ``--accept-loss`` records that the losses named are accepted.
 ``reloc map set-current DIR SNAPSHOT``: point a missing ``CURRENT`` at a verified snapshot;
 refused while a service (or another tool) holds the map."""
 
@@ -19,6 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     check.add_argument("directory", metavar="DIR", help="a map directory (holding journal/, "
                        "map/, service.json) or a storage directory holding map directories")
     check.add_argument("--json", action="store_true", help="print the report as JSON")
+    check.add_argument("--accept-loss", action="store_true", help="record that the losses "
+                       "this map directory's restore names are accepted (the service then "
+                       "serves it normally); a refused map is left as it is")
     current = sub.add_parser("set-current", help="point the missing map/CURRENT of a map "
                              "directory at one of its snapshots, after verifying every file "
                              "of it; refused while a service holds the map")
@@ -31,9 +36,16 @@ def run(args: argparse.Namespace) -> int:
     if args.map_command == "set-current":
         return run_set_current(args)
     from ..core.errors import StorageError
-    from ..service.storage_check import check_path, format_check, to_json
+    from ..service.storage_check import accept_losses, check_path, format_check, is_map_dir, to_json
 
     try:
+        if args.accept_loss:
+            if not is_map_dir(Path(args.directory)):
+                raise StorageError(f"{args.directory}: not a map directory; --accept-loss "
+                                   f"takes one map directory")
+            verdict = accept_losses(Path(args.directory))
+            print(f"{args.directory}: accepted: "
+                  + "; ".join(loss.describe() for loss in verdict.accepted), file=sys.stderr)
         checks = check_path(args.directory)
     except StorageError as exc:
         print(f"reloc map check: {exc}", file=sys.stderr)

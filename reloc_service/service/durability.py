@@ -4,7 +4,9 @@ Per map directory ``<storage>/<map>/``::
 
     journal/NNNNNNNNNNNN.journal   every accepted put/delete, fsynced before it is applied
     map/                           engine snapshots (``reloc_service.storage.snapshot``: map + models)
-    service.json                   cameras, keyframe camera ids, first journal segment to replay
+    service.json                   the map's identity (a UUID), cameras, keyframe camera ids, the
+                               snapshot, its last sequence number and keyframe ids, the
+                               first journal segment to replay
 
 A snapshot rotates the journal, saves the engine, writes ``service.json`` atomically and only
 then deletes the older journal segments (:class:`MapStore`; when it runs and what happens to
@@ -14,6 +16,11 @@ what it can prove: a damaged journal record is skipped (its bytes quarantined, s
 :mod:`.journal`), a missing ``map/CURRENT`` is restored only to the snapshot ``service.json``
 names (verified, :func:`recover_current`), and anything else that does not read is a
 StorageError for this map alone. What was skipped is reported in a :class:`RestoreReport`.
+
+Every journal record carries a sequence number (``seq``, one more than the previous record's);
+each snapshot records the last one it holds and the map's identity, and each journal segment
+the map's identity and the number it starts at, so that a restore proves it is complete or
+says what it lacks (:mod:`.restore_verdict`).
 """
 
 from __future__ import annotations
@@ -21,13 +28,15 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import shutil
 import threading
 import time
 import urllib.parse
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import msgpack
 from reloc_client import protocol as wire
@@ -67,10 +76,17 @@ class RestoreReport:
     not_applied: int = 0
     journal: JournalReport = field(default_factory=JournalReport)
     recovered_snapshot: str | None = None
+    #: Acknowledged changes the restore could not give back (not accepted by an operator):
+    #: ``Loss.to_dict()`` of each, and the keyframe ids they held where those are known.
+    losses: list[dict[str, Any]] = field(default_factory=list)
+    missing_keyframe_ids: list[int] = field(default_factory=list)
+    #: Why the map is degraded (empty: it is not).
+    degraded: str = ""
 
     @property
     def damaged(self) -> bool:
-        return bool(self.journal.damage or self.not_applied or self.recovered_snapshot)
+        return bool(self.journal.damage or self.not_applied or self.recovered_snapshot
+                    or self.degraded)
 
     def counters(self) -> dict[str, int]:
         """Status counters (a StatusReply carries them without a protocol change)."""
@@ -79,7 +95,9 @@ class RestoreReport:
                 "restore_journal_skipped": len(self.journal.skipped),
                 "restore_journal_torn_bytes": self.journal.torn_bytes,
                 "restore_quarantine_files": len(self.journal.quarantined),
-                "restore_snapshot_recovered": int(self.recovered_snapshot is not None)}
+                "restore_snapshot_recovered": int(self.recovered_snapshot is not None),
+                "restore_degraded": int(bool(self.degraded)),
+                "restore_missing_keyframes": len(self.missing_keyframe_ids)}
 
     def event_fields(self) -> dict[str, Any]:
         """Fields of the ``storage_damaged`` event published when :attr:`damaged`."""
@@ -88,7 +106,23 @@ class RestoreReport:
                 "journal_skipped": [[d.segment, d.offset, d.size] for d in self.journal.skipped],
                 "journal_torn_bytes": self.journal.torn_bytes,
                 "quarantined": [str(p) for p in self.journal.quarantined],
-                "recovered_snapshot": self.recovered_snapshot}
+                "recovered_snapshot": self.recovered_snapshot,
+                "degraded": bool(self.degraded), "losses": self.losses,
+                "missing_keyframe_ids": self.missing_keyframe_ids}
+
+
+class ReplayPlan(Protocol):
+    """Where a restore continues, as :class:`.restore_verdict.Verdict` says: the map's
+    identity (None: to be assigned), whether it is a map written before identities, the
+    last sequence number its snapshot holds, the first segment to replay, the next sequence
+    number, and the lowest number a new segment may take."""
+
+    map_id: str | None
+    legacy: bool
+    snapshot_seq: int
+    replay_from: int
+    next_seq: int
+    min_segment: int
 
 
 @dataclass(frozen=True)
@@ -99,6 +133,8 @@ class ServiceMeta:
     cameras: dict[str, Camera] = field(default_factory=dict)
     keyframe_camera_ids: dict[int, str] = field(default_factory=dict)
     next_segment: int = 0
+    #: The map's identity as recorded (None: a legacy map or a new one).
+    map_id: str | None = None
 
 
 class MapStore:
@@ -113,10 +149,20 @@ class MapStore:
         self.snapshot_every = snapshot_every
         #: Records journaled since the last snapshot (replayed ones included).
         self.since_snapshot = 0
+        #: The last sequence number journaled when the journal was last rotated (what the
+        #: snapshot being saved holds).
+        self._rotated_seq = 0
+
+    @property
+    def map_id(self) -> str | None:
+        """The map's identity (a UUID's hex) once restored."""
+        return None if self.journal.identity is None else self.journal.identity.hex
 
     def append(self, record: dict[str, Any]) -> None:
-        """Journal ``record`` (``op`` kf / del / cam); durable when this returns."""
-        self.journal.append(msgpack.packb(record, use_bin_type=True))
+        """Journal ``record`` (``op`` kf / del / cam) with the next sequence number
+        (``seq``); durable when this returns."""
+        self.journal.append(msgpack.packb({**record, "seq": self.journal.next_seq},
+                                          use_bin_type=True))
         self.since_snapshot += 1
 
     def wants_snapshot(self) -> bool:
@@ -132,34 +178,63 @@ class MapStore:
                 cameras={cid: camera_from_dict(d) for cid, d in meta.get("cameras", {}).items()},
                 keyframe_camera_ids={int(k): str(v) for k, v in
                                      meta.get("keyframe_camera_ids", {}).items()},
-                next_segment=int(meta.get("next_segment", 0)))
+                next_segment=int(meta.get("next_segment", 0)),
+                map_id=None if meta.get("map_id") is None else str(meta["map_id"]))
         except (AttributeError, KeyError, TypeError, ValueError, CameraError) as exc:
             raise StorageError(f"{self.directory / SERVICE_FILE}: {exc}; expected cameras, "
                                f"keyframe_camera_ids and next_segment as written by the "
                                f"service") from exc
 
-    def replay(self, from_segment: int, apply: Callable[[dict[str, Any]], None],
+    def replay(self, verdict: ReplayPlan, apply: Callable[[dict[str, Any]], None],
                report: RestoreReport, stop: threading.Event | None = None) -> None:
-        """Hand every journal record from segment ``from_segment`` on to ``apply``, counting
-        in ``report`` those it applied and those it raised on (skipped, logged); then open
-        the journal for appending. RestoreInterrupted if ``stop`` is set meanwhile (the
-        journal is left as it was)."""
-        for raw in self.journal.replay(from_segment=from_segment):
+        """Hand every journal record the snapshot does not hold (from segment
+        ``verdict.replay_from``, sequence numbers above ``verdict.snapshot_seq``) to
+        ``apply``, counting in ``report`` those it applied and those it raised on (skipped,
+        logged); then open the journal for appending with the map's identity (assigned now
+        to a legacy or new map, and recorded in ``service.json``). RestoreInterrupted if
+        ``stop`` is set meanwhile (the journal is left as it was)."""
+        for raw in self.journal.replay(from_segment=verdict.replay_from):
             if stop is not None and stop.is_set():
                 raise RestoreInterrupted(f"map {self.name}: restore interrupted after "
                                          f"{report.replayed} journal records (shutting down)")
-            if self._replay_record(raw, apply):
+            applied = self._replay_record(raw, apply, verdict.snapshot_seq)
+            if applied:
                 report.replayed += 1
-            else:
+            elif applied is not None:
                 report.not_applied += 1
         report.journal = self.journal.report
-        self.journal.open()
+        self._open_for_appending(verdict)
         self.since_snapshot = report.replayed
 
-    def _replay_record(self, raw: bytes, apply: Callable[[dict[str, Any]], None]) -> bool:
-        """True if the record was applied again, False if it was skipped (logged)."""
+    def _open_for_appending(self, verdict: ReplayPlan) -> None:
+        """Open the journal numbering from ``verdict.next_seq`` under the map's identity; a
+        map without one gets it now, recorded in ``service.json`` after the first segment
+        that carries it exists (so a recorded identity always has a segment behind it)."""
+        self.journal.identity = (uuid.UUID(verdict.map_id) if verdict.map_id is not None
+                                 else uuid.uuid4())
+        self.journal.next_seq = verdict.next_seq
+        segment = self.journal.open(min_segment=verdict.min_segment)
+        meta = read_service_file(self.directory)
+        if meta.get("map_id") != self.journal.identity.hex:
+            log.info("map %s: identity %s recorded%s", self.name, self.journal.identity.hex,
+                     " (a map written before identities: sequence checks start now)"
+                     if verdict.legacy and (meta or self.journal.segments() != [segment])
+                     else "")
+            # the replay position is kept: legacy segments are replayed by number
+            write_service_file(self.directory, {**meta, "map_id": self.journal.identity.hex,
+                                                "next_segment": meta.get("next_segment",
+                                                                         verdict.replay_from)})
+
+    def _replay_record(self, raw: bytes, apply: Callable[[dict[str, Any]], None],
+                       snapshot_seq: int) -> bool | None:
+        """True if the record was applied again, False if it was skipped (logged), None if
+        the snapshot already holds it (its sequence number is not above ``snapshot_seq``)."""
         try:
-            apply(msgpack.unpackb(raw, raw=False))
+            record = msgpack.unpackb(raw, raw=False)
+            seq = record.get("seq") if isinstance(record, dict) else None
+            if isinstance(seq, int) and seq <= snapshot_seq:
+                return None
+            apply(record)
             return True
         except Exception as exc:  # a record that cannot be applied again is skipped, loudly
             log.error("map %s: skipping a journal record that does not replay: %s", self.name,
@@ -172,15 +247,18 @@ class MapStore:
         everything journaled before it. Call with the map's changes held."""
         segment = self.journal.rotate()
         self.since_snapshot = 0
+        self._rotated_seq = self.journal.next_seq - 1
         return segment
 
     def save(self, engine: Engine, meta: ServiceMeta) -> Path:
         """Save ``engine``, then ``service.json`` naming the snapshot and ``meta`` (the
         cameras as of :meth:`rotate`, ``meta.next_segment`` its segment), then delete the
         segments before it; the snapshot directory."""
-        path = engine.save(self.directory / "map")
+        store = {"map_id": self.map_id, "last_seq": self._rotated_seq}
+        path = engine.save(self.directory / "map", store=store)
         write_service_file(self.directory, {
-            "snapshot": path.name, "next_segment": meta.next_segment,
+            **store, "snapshot": path.name, "next_segment": meta.next_segment,
+            "keyframe_ids": sorted(engine.map.snapshot().keyframes),
             "cameras": {cid: cam.to_dict() for cid, cam in meta.cameras.items()},
             "keyframe_camera_ids": {str(k): v for k, v in meta.keyframe_camera_ids.items()},
             "map_version": engine.map.snapshot().version, "time": time.time()})
@@ -319,28 +397,48 @@ def open_engine(directory: Path | None, conf: EngineConf) -> Engine:
     return Engine(conf)
 
 
+def committed_snapshot(directory: Path, meta: dict[str, Any]) -> str | None:
+    """With ``map/CURRENT`` missing, the snapshot the journal of map directory ``directory``
+    continues from: the one ``service.json`` (``meta``) names. None when it names none: no
+    snapshot was ever committed (``service.json`` names each one before any journal segment
+    is deleted), so the journal still holds every change and a snapshot directory present is
+    a save the process did not finish (killed while writing it, or before pointing
+    ``CURRENT`` at it). StorageError when the named one is not there."""
+    named = meta.get("snapshot")
+    if named is None:
+        return None
+    present = [p.name for p in snapshot_dirs(directory / "map")]
+    if not isinstance(named, str) or named not in present:
+        raise StorageError(
+            f"{directory / 'map' / CURRENT_FILE}: missing; snapshot(s) {present or 'none'} "
+            f"present, {directory / SERVICE_FILE} names {named!r}: cannot tell which snapshot "
+            f"the journal continues from, so the map is not restored (nothing was deleted); "
+            f"inspect it with `reloc map check {directory}`, then point CURRENT at a snapshot "
+            f"with `reloc map set-current {directory} <n>`")
+    return named
+
+
 def recover_current(directory: Path) -> str | None:
     """Restore a missing ``map/CURRENT`` of map directory ``directory``; the snapshot name
-    if it was restored, None if nothing was missing (or the map is new).
+    if it was restored, None if nothing was missing (or no snapshot was ever committed).
 
-    Only the snapshot ``service.json`` names is a valid target: the journal continues from
-    it (``next_segment``), so any other snapshot would silently lose or repeat records. It is
-    used only if every file of it verifies against its manifest; otherwise StorageError (the
-    map is failed, nothing is deleted or rewritten)."""
+    Only the snapshot ``service.json`` names is a valid target (:func:`committed_snapshot`):
+    the journal continues from it (``next_segment``), so any other snapshot would silently
+    lose or repeat records. It is used only if every file of it verifies against its
+    manifest; otherwise StorageError (the map is failed, nothing is deleted or rewritten).
+    Where none was ever committed, the unfinished saves present are removed: nothing refers
+    to them and the journal holds what they would have."""
     map_dir = directory / "map"
     if (map_dir / CURRENT_FILE).is_file():
         return None
-    present = [p.name for p in snapshot_dirs(map_dir)]
-    named = read_service_file(directory).get("snapshot")
-    if not present and named is None:
+    named = committed_snapshot(directory, read_service_file(directory))
+    if named is None:
+        for unfinished in snapshot_dirs(map_dir):
+            log.warning("map directory %s: removing %s, a snapshot never committed (no "
+                        "CURRENT, not named by %s); the journal holds every change",
+                        directory, unfinished, SERVICE_FILE)
+            shutil.rmtree(unfinished, ignore_errors=True)
         return None
-    if not isinstance(named, str) or named not in present:
-        raise StorageError(
-            f"{map_dir / CURRENT_FILE}: missing; snapshot(s) {present or 'none'} present, "
-            f"{directory / SERVICE_FILE} names {named!r}: cannot tell which snapshot the "
-            f"journal continues from, so the map is not restored (nothing was deleted); "
-            f"inspect it with `reloc map check {directory}`, then write CURRENT "
-            f"('snapshots/<n>') by hand")
     restore_current(map_dir, named)
     log.warning("map directory %s: %s was missing; restored it to snapshots/%s, the snapshot "
                 "service.json names (every file verified)", directory, CURRENT_FILE, named)

@@ -34,6 +34,7 @@ from .durability import (
     stored_map_names,
 )
 from .quotas import Quotas
+from .restore_verdict import judge
 from .runtime import MapRuntime, Publish
 from .workers import seconds_left
 
@@ -227,6 +228,9 @@ class MapRegistry:
 
     def _restore_map(self, name: str, directory: Path | None) -> MapRuntime:
         start = time.perf_counter()
+        verdict = None if directory is None else judge(directory)
+        if verdict is not None and verdict.refusal is not None:
+            raise StorageError(verdict.refusal)   # nothing loaded, nothing written
         recovered = None if directory is None else recover_current(directory)
         engine = open_engine(directory, self.engine_conf)
         s = self.conf.service
@@ -236,7 +240,7 @@ class MapRegistry:
                         snapshot_every=s.snapshot_every, fsync=s.fsync, quotas=self.quotas)
         if directory is not None:
             check_storage(directory)
-            replayed = rt.restore(self._stopped)
+            replayed = rt.restore(self._stopped, verdict)
             if recovered is not None:
                 rt.restore_report.recovered_snapshot = recovered
                 rt.stats.count("restore_snapshot_recovered")

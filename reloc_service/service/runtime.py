@@ -29,6 +29,7 @@ from ..engine import Engine
 from .codec import KeyframeInput, WithLimits, decode_camera_put, decode_keyframe_put, error_of
 from .durability import REPLAY_LIMITS, MapStore, RestoreReport, ServiceMeta
 from .quotas import MapUsage, Quotas, keyframe_bytes
+from .restore_verdict import Loss, Verdict, judge, record_losses, unaccepted
 from .served import ServedMap, WriteOp
 
 log = logging.getLogger(__name__)
@@ -119,6 +120,7 @@ class MapRuntime(ServedMap):
         self._snapshotting = False
         self._snapshot_thread: threading.Thread | None = None
         self.restore_report = RestoreReport()
+        self._losses: list[Loss] = []       # what the restore lacks, until accepted
         #: Keyframes journaled at shutdown without being applied, and whether any record was.
         self._unapplied: set[int] = set()
         self._journal_ahead = False
@@ -152,7 +154,7 @@ class MapRuntime(ServedMap):
             map_version=st["map_version"], methods=self.methods,
             default_method=self.default_method, cameras=tuple(self.camera_ids()),
             training=training, uptime_s=time.monotonic() - self.started_at,
-            counters=counters, latency_s=latency)
+            counters=counters, latency_s=latency, degraded=self.degraded())
 
     # -- events ----------------------------------------------------------------------------------
     def publish(self, kind: EventKind, **fields: Any) -> None:
@@ -282,24 +284,56 @@ class MapRuntime(ServedMap):
         return self.store is not None and self.store.wants_snapshot()
 
     # -- restore ---------------------------------------------------------------------------------
-    def restore(self, stop: threading.Event | None = None) -> int:
+    def restore(self, stop: threading.Event | None = None, verdict: Verdict | None = None
+                ) -> int:
         """Replay the journal after the snapshot the engine was loaded from (see
         :func:`.durability.open_engine`), then open it for appending. Returns the records
-        replayed; what was skipped is in :attr:`restore_report` and the status counters.
-        StorageError if ``service.json`` or a journal segment header does not read (nothing is
-        changed); RestoreInterrupted if ``stop`` is set meanwhile (the journal is left as it
-        was)."""
+        replayed; what was skipped, and what the restore lacks (``verdict``, judged on the
+        map directory before it was loaded: :func:`.restore_verdict.judge`), is in
+        :attr:`restore_report` and the status counters. StorageError if ``service.json`` or
+        a journal segment header does not read (nothing is changed); RestoreInterrupted if
+        ``stop`` is set meanwhile (the journal is left as it was)."""
         if self.store is None:
             return 0
+        if verdict is None:
+            verdict = judge(self.store.directory)
+        if verdict.refusal is not None:
+            raise StorageError(verdict.refusal)
         meta = self.store.read_meta()
         self._cameras.update(meta.cameras)
         self._kf_camera_ids.update(meta.keyframe_camera_ids)
         report = self.restore_report
-        self.store.replay(meta.next_segment, self._replay_record, report, stop)
+        self.store.replay(verdict, self._replay_record, report, stop)
+        self._note_losses(verdict)
         for name, n in report.counters().items():
             if n:
                 self.stats.count(name, n)
         return report.replayed
+
+    def _note_losses(self, verdict: Verdict) -> None:
+        """Record what the restore lacks (so a restart still knows it) and say so."""
+        assert self.store is not None
+        for note in verdict.notes:
+            log.warning("map %s: %s", self.name, note)
+        if not verdict.losses:
+            return
+        try:
+            record_losses(self.store.directory, verdict.losses)
+        except (OSError, StorageError) as exc:   # still served degraded; found again next time
+            log.error("map %s: could not record the losses found: %s", self.name, exc)
+        self._losses = list(verdict.losses)
+        report = self.restore_report
+        report.losses = [loss.to_dict() for loss in verdict.losses]
+        report.missing_keyframe_ids = verdict.missing_keyframe_ids
+        report.degraded = verdict.describe()
+        log.error("map %s: served degraded: %s", self.name, report.degraded)
+
+    def degraded(self) -> str:
+        """Why the map is served degraded ("" once every loss is accepted, or if none)."""
+        if not self._losses or self.store is None:
+            return ""
+        self._losses = unaccepted(self.store.directory, self._losses)
+        return self.restore_report.degraded if self._losses else ""
 
     def _replay_record(self, record: dict[str, Any]) -> None:
         """Apply a journal record again (raises if it does not apply: it is skipped)."""

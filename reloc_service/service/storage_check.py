@@ -1,7 +1,8 @@
 """What a map directory (or a whole storage) holds, read only: snapshots verified against their
 manifests, ``CURRENT`` and ``service.json``, journal records (good, skipped, torn tail, and
-intact ones a replay would refuse) and quarantined bytes. Backs ``reloc map check``; never
-writes anything."""
+intact ones a replay would refuse), quarantined bytes, and the restore verdict the service
+reaches on it (:func:`.restore_verdict.judge`, then the same snapshot load). Backs
+``reloc map check``; writes nothing, except :func:`accept_losses` (``--accept-loss``)."""
 
 from __future__ import annotations
 
@@ -15,9 +16,10 @@ from reloc_client import protocol as wire
 
 from ..core.errors import StorageError
 from ..storage.journal import QUARANTINE_DIR, Journal, scan_segment, segment_name
-from ..storage.snapshot import verify_snapshot
+from ..storage.snapshot import load_map, verify_snapshot
 from ..storage.snapshot_files import CURRENT_FILE, current_snapshot, snapshot_dirs
 from .durability import REPLAY_LIMITS, SERVICE_FILE, read_service_file
+from .restore_verdict import Verdict, judge, record_losses
 from .served import WriteOp
 
 
@@ -55,6 +57,8 @@ class MapCheck:
     segments: list[SegmentCheck] = field(default_factory=list)
     quarantine: list[tuple[str, int]] = field(default_factory=list)   # (file, bytes)
     problems: list[str] = field(default_factory=list)
+    #: The restore verdict (:meth:`.restore_verdict.Verdict.to_dict`).
+    verdict: dict[str, Any] = field(default_factory=dict)
 
     @property
     def damaged(self) -> bool:
@@ -92,7 +96,36 @@ def check_map_dir(directory: Path) -> MapCheck:
     quarantine = directory / "journal" / QUARANTINE_DIR
     if quarantine.is_dir():
         out.quarantine = [(str(p), p.stat().st_size) for p in sorted(quarantine.iterdir())]
+    verdict = restore_verdict(directory)
+    out.verdict = verdict.to_dict()
+    if verdict.refusal is not None:
+        out.problems.append(f"the service refuses this map: {verdict.refusal}")
+    out.problems += [f"the service serves this map degraded: {loss.describe()}"
+                     for loss in verdict.losses]
     return out
+
+
+def restore_verdict(directory: Path) -> Verdict:
+    """The service's verdict on map directory ``directory``: :func:`.restore_verdict.judge`,
+    then (unless refused) the load of its current snapshot the service would do (a manifest
+    that reads but whose files do not fit its format version, ...), read only."""
+    verdict = judge(directory)
+    if verdict.refusal is None and (directory / "map" / CURRENT_FILE).is_file():
+        try:
+            load_map(directory / "map")
+        except StorageError as exc:
+            verdict.refusal = str(exc)
+    return verdict
+
+
+def accept_losses(directory: Path) -> Verdict:
+    """Record that an operator accepts every loss the verdict on ``directory`` names (the
+    map is then served normally); the verdict afterwards. A refused map is left as it is."""
+    verdict = restore_verdict(directory)
+    if verdict.refusal is None and verdict.losses:
+        record_losses(directory, verdict.losses, accept=True)
+        verdict = restore_verdict(directory)
+    return verdict
 
 
 def _check_service_file(directory: Path, out: MapCheck) -> dict[str, Any]:
@@ -123,8 +156,10 @@ def _check_snapshots(directory: Path, out: MapCheck, meta: dict[str, Any]) -> No
             if snap.current:
                 out.problems.append(f"the current snapshot is damaged: {exc}")
         out.snapshots.append(snap)
+    # Snapshots present with neither CURRENT nor service.json naming one are unfinished
+    # saves the restore removes (:func:`.durability.recover_current`): not damage.
     if current is None and not (map_dir / CURRENT_FILE).exists() and (
-            out.snapshots or meta.get("snapshot") is not None):
+            meta.get("snapshot") is not None):
         out.problems.append(f"{map_dir / CURRENT_FILE}: missing although snapshot(s) "
                             f"{[s.name for s in out.snapshots]} are present and "
                             f"{SERVICE_FILE} names {meta.get('snapshot')!r}")
@@ -180,6 +215,13 @@ def record_problem(record: bytes) -> str | None:
 def format_check(check: MapCheck) -> str:
     """A human-readable report of one map directory."""
     lines = [f"{check.directory}: {'DAMAGED' if check.damaged else 'ok'}"]
+    if check.verdict:
+        lines.append(f"  restore: {check.verdict['outcome']}"
+                     + (f", missing keyframe ids {check.verdict['missing_keyframe_ids']}"
+                        if check.verdict["missing_keyframe_ids"] else "")
+                     + (f" ({len(check.verdict['accepted'])} loss(es) accepted)"
+                        if check.verdict["accepted"] else ""))
+        lines += [f"  note: {note}" for note in check.verdict["notes"]]
     lines.append(f"  CURRENT -> {check.current or '(missing)'}")
     for s in check.snapshots:
         marks = "".join([" [CURRENT]" if s.current else "",

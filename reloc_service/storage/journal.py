@@ -14,6 +14,15 @@ last record, what a crash mid-write leaves) is truncated when the journal is ope
 writing, after its bytes are quarantined too; a segment ending in damaged (complete) bytes is
 left as it is and appending continues in a new segment. Segments of the first format
 (``RELOCJ01``, no sync markers) are still read; appending never continues one.
+
+A journal given a map identity (:attr:`Journal.identity`) writes segments of the third format
+(``RELOCJ03``): the header also holds the map's 16-byte UUID and the sequence number the
+segment starts at (the number its first record carries, one more than the previous segment's
+last), so segments chain and a segment of another map is recognised. Such a segment is
+created whole (header written to a temporary file, fsynced, renamed), so a segment shorter
+than its header is never what a crash leaves: it is kept as evidence of a loss and appending
+continues in a new segment. Without an identity the second format (``RELOCJ02``) is written,
+as before; both are read.
 """
 
 from __future__ import annotations
@@ -23,6 +32,7 @@ import os
 import re
 import struct
 import threading
+import uuid
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -34,9 +44,12 @@ from ..core.fileio import atomic_write
 log = logging.getLogger(__name__)
 
 MAGIC = b"RELOCJ02"
+#: The third format: the header also holds the map identity and the first sequence number.
+MAGIC_V3 = b"RELOCJ03"
 #: The first format: ``length | crc32 | payload`` frames without sync markers (read only).
 MAGIC_V1 = b"RELOCJ01"
 _HEADER = struct.Struct("<8sQ")       # magic, segment number
+_HEADER_V3 = struct.Struct("<8sQ16sQ")  # magic, segment number, map UUID, first sequence number
 SYNC = b"\xd3RJ\x0c"
 _FRAME = struct.Struct("<4sIII")      # sync, payload length, crc32(payload), header crc32
 _FRAME_V1 = struct.Struct("<II")      # payload length, crc32(payload)
@@ -75,7 +88,15 @@ class SegmentScan:
     records: list[bytes]
     valid_bytes: int
     damage: tuple[Damage, ...] = ()
+    #: 1, 2 or 3; 0 for a file shorter than any header (nothing provable in it).
     version: int = 2
+    #: Format 3: the map's identity (a UUID's hex) and the segment's first sequence number.
+    map_id: str | None = None
+    first_seq: int | None = None
+
+    @property
+    def header_bytes(self) -> int:
+        return _HEADER_V3.size if self.version == 3 else _HEADER.size
 
     @property
     def dropped_bytes(self) -> int:
@@ -147,16 +168,30 @@ def scan_segment(path: Path) -> SegmentScan:
     StorageError if the header is not a reloc journal segment header."""
     data = path.read_bytes()
     number = _segment_number(path)
-    if len(data) < _HEADER.size:
+    if len(data) < _HEADER.size or (data[:8] == MAGIC_V3 and len(data) < _HEADER_V3.size):
         cut = (Damage(number, 0, len(data), "torn"),) if data else ()
-        return SegmentScan(number, [], 0, cut)
+        return SegmentScan(number, [], 0, cut, version=0)
     magic, stored = _HEADER.unpack_from(data)
-    if magic not in (MAGIC, MAGIC_V1) or stored != number:
+    if magic not in (MAGIC, MAGIC_V1, MAGIC_V3) or stored != number:
         raise StorageError(f"{path}: not a reloc journal segment {number} (bad header: "
-                           f"expected {MAGIC!r} and segment number {number})")
+                           f"expected {MAGIC_V3!r} or {MAGIC!r} and segment number {number})")
     if magic == MAGIC_V1:
         return _scan_v1(data, number)
-    pos, records, damage = _HEADER.size, [], list[Damage]()
+    map_id, first_seq = None, None
+    if magic == MAGIC_V3:
+        _, _, raw_id, first_seq = _HEADER_V3.unpack_from(data)
+        map_id = raw_id.hex()
+    start = _HEADER_V3.size if magic == MAGIC_V3 else _HEADER.size
+    records, damage, pos = _scan_frames(data, number, start)
+    return SegmentScan(number, records, pos, damage, version=3 if magic == MAGIC_V3 else 2,
+                       map_id=map_id, first_seq=first_seq)
+
+
+def _scan_frames(data: bytes, number: int, pos: int
+                 ) -> tuple[list[bytes], tuple[Damage, ...], int]:
+    """The records framed in ``data`` from ``pos``, the damaged ranges, and where appending
+    could continue (after the last record, before a torn tail; the end after damage)."""
+    records, damage = [], list[Damage]()
     while pos < len(data):
         status, end = _frame_at(data, pos)
         if status == "ok":
@@ -169,9 +204,9 @@ def scan_segment(path: Path) -> SegmentScan:
         nxt = _resync(data, pos + 1)
         damage.append(Damage(number, pos, (len(data) if nxt is None else nxt) - pos, "corrupt"))
         if nxt is None:
-            return SegmentScan(number, records, len(data), tuple(damage))
+            return records, tuple(damage), len(data)
         pos = nxt
-    return SegmentScan(number, records, pos, tuple(damage))
+    return records, tuple(damage), pos
 
 
 def _scan_v1(data: bytes, number: int) -> SegmentScan:
@@ -208,6 +243,11 @@ class Journal:
 
     def __init__(self, directory: str | Path, *, fsync: bool = True,
                  quarantine: str | Path | None = None) -> None:
+        #: The map's UUID: set, new segments are of the third format and carry it.
+        self.identity: uuid.UUID | None = None
+        #: The sequence number the next record carries (its owner numbers the records; a
+        #: new segment's header records it as its first).
+        self.next_seq = 1
         self.directory = Path(directory)
         self.quarantine = (self.directory / QUARANTINE_DIR if quarantine is None
                            else Path(quarantine))
@@ -271,26 +311,30 @@ class Journal:
         return target
 
     # -- writing -------------------------------------------------------------------------------
-    def open(self) -> int:
+    def open(self, *, min_segment: int = 0) -> int:
         """Open for appending: continue the last segment after truncating a torn tail (its
-        bytes quarantined first), or start a new segment if the last one is of the first
-        format or ends in damaged bytes (left untouched). Returns the current segment."""
+        bytes quarantined first), or start a new segment (numbered at least ``min_segment``)
+        if the last one is of an older format than this journal writes, ends in damaged bytes
+        (left untouched) or, in the third format, is shorter than its header (kept: such a
+        segment is never what a crash leaves). Returns the current segment."""
         with self._lock:
             self._mkdir()
             numbers = self.segments()
             if not numbers:
-                self._start_segment(1)
+                self._start_segment(max(1, min_segment))
                 return self._segment
             last = self.directory / segment_name(numbers[-1])
             scan = scan_segment(last)
             for d in scan.damage:
                 self._quarantine(last, d)
-            if scan.version != 2 or scan.ends_damaged:
-                self._start_segment(numbers[-1] + 1)
+            if scan.version == 0 and self.identity is None:
+                last.unlink()     # a second-format segment cut while its header was written
+                self._start_segment(max(numbers[-1], min_segment))
                 return self._segment
-            if scan.valid_bytes < _HEADER.size:
-                last.unlink()     # a segment cut while its header was written: no record
-                self._start_segment(numbers[-1])
+            if (scan.version != (3 if self.identity is not None else 2) or scan.ends_damaged
+                    or min_segment > numbers[-1]
+                    or (self.identity is not None and scan.map_id != self.identity.hex)):
+                self._start_segment(max(numbers[-1] + 1, min_segment))
                 return self._segment
             self._continue(last, scan)
             return self._segment
@@ -332,6 +376,7 @@ class Journal:
                 raise StorageError(f"cannot write the journal in {self.directory}: "
                                    f"{exc.strerror or exc}") from exc
             self._size += len(record)
+            self.next_seq += 1
 
     def rotate(self) -> int:
         """Close the current segment and start the next; returns the new segment's number.
@@ -363,23 +408,31 @@ class Journal:
                                f"{exc.strerror or exc}") from exc
 
     def _start_segment(self, number: int) -> None:
-        """Open a fresh segment ``number`` with its header (fsynced with its directory)."""
+        """Open a fresh segment ``number`` with its header (fsynced with its directory); in
+        the third format created whole under a temporary name, then renamed."""
         path = self.directory / segment_name(number)
+        header = (_HEADER.pack(MAGIC, number) if self.identity is None else
+                  _HEADER_V3.pack(MAGIC_V3, number, self.identity.bytes, self.next_seq))
+        target = path if self.identity is None else path.with_name(path.name + ".new")
         try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
             try:
-                _write_all(fd, _HEADER.pack(MAGIC, number))
+                _write_all(fd, header)
                 self._sync(fd)
+                if target != path:
+                    os.replace(target, path)
                 _fsync_dir(self.directory)
             except OSError:
                 os.close(fd)
                 raise
         except OSError as exc:
             self._broken = True
+            if target != path:
+                target.unlink(missing_ok=True)
             raise StorageError(f"cannot start journal segment {path}: "
                                f"{exc.strerror or exc}") from exc
         self._close_fd()
-        self._fd, self._segment, self._size, self._broken = fd, number, _HEADER.size, False
+        self._fd, self._segment, self._size, self._broken = fd, number, len(header), False
 
     def _undo_partial_write(self) -> None:
         assert self._fd is not None

@@ -46,6 +46,7 @@ import io
 import json
 import os
 import re
+import shutil
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -223,16 +224,32 @@ def _write_landmarks(writer: SnapshotWriter, columns: LandmarkColumns,
 
 def save_map(state: MapState, directory: str | Path, *,
              models: Mapping[str, ModelWriter] | None = None,
-             exact_geometry: bool = False) -> Path:
+             exact_geometry: bool = False, store: Mapping[str, Any] | None = None) -> Path:
     """Save ``state`` (and models: method -> writer called with its own empty directory) as a
     new snapshot of map directory ``directory``; returns the snapshot path. With
     ``exact_geometry`` landmark points and sigmas are stored float64 as held (a replica that
     must answer bit for bit as this map does), else float32 where far below their
-    uncertainty (:func:`.landmark_codec.encode_geometry`)."""
+    uncertainty (:func:`.landmark_codec.encode_geometry`). ``store``: what the map's owner
+    records about it (identity, last sequence number held), kept as the manifest's
+    ``store``. A save that fails (a full disk, ...) removes its partial snapshot directory:
+    the space it took is given back and ``CURRENT`` still names the previous snapshot."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     previous = current_or_none(directory)
     snapshot = new_snapshot_dir(directory)
+    try:
+        _write_snapshot(state, snapshot, models or {}, exact_geometry, store or {})
+    except BaseException:
+        shutil.rmtree(snapshot, ignore_errors=True)   # nothing refers to it yet
+        raise
+    switch_current(directory, snapshot)
+    prune_snapshots(directory, snapshot, previous)
+    return snapshot
+
+
+def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelWriter],
+                    exact_geometry: bool, store: Mapping[str, Any]) -> None:
+    """Every file of a new snapshot, the manifest last, fsynced with their directories."""
     writer = SnapshotWriter(snapshot)
     # insertion order, kept by load_map: a replica copies the map in the order it was built
     kfs = list(state.keyframes.values())
@@ -243,7 +260,7 @@ def save_map(state: MapState, directory: str | Path, *,
     thumbnails = _write_thumbnails(writer, kfs)
     landmarks = _write_landmarks(writer, columns, state.keyframes, exact=exact_geometry)
     model_dirs: dict[str, str] = {}
-    for method, write_model in (models or {}).items():
+    for method, write_model in models.items():
         rel = f"{MODELS_DIR}/{model_dir_name(method)}"
         (snapshot / rel).mkdir(parents=True, exist_ok=True)
         write_model(snapshot / rel)
@@ -252,14 +269,11 @@ def save_map(state: MapState, directory: str | Path, *,
     manifest = {"format": FORMAT, "format_version": FORMAT_VERSION,
                 "map_version": int(state.version), "next_landmark_id": int(state.next_landmark_id),
                 "keyframes": keyframes, "landmarks": landmarks, "thumbnails": thumbnails,
-                "models": model_dirs,
+                "models": model_dirs, "store": dict(store),
                 "files": writer.files}
     writer.write(MANIFEST_FILE, json.dumps(manifest, indent=1).encode("utf-8"))
     fsync_tree(snapshot)
     fsync_path(snapshot.parent)
-    switch_current(directory, snapshot)
-    prune_snapshots(directory, snapshot, previous)
-    return snapshot
 
 
 # -- reading ----------------------------------------------------------------------------------
@@ -625,6 +639,22 @@ def verify_snapshot(snapshot: str | Path) -> int:
     for rel in manifest["files"]:
         reader.read(rel)
     return len(manifest["files"])
+
+
+def snapshot_summary(snapshot: str | Path) -> tuple[dict[str, Any], list[int]]:
+    """The ``store`` fields (``{}`` for a snapshot saved without them) and the keyframe ids
+    of ``snapshot``'s manifest, checked as :func:`load_map` checks it (StorageError)."""
+    snapshot = Path(snapshot)
+    manifest = _read_manifest(snapshot)
+    store = manifest.get("store", {})
+    if not isinstance(store, dict):
+        raise StorageError(f"{snapshot / MANIFEST_FILE}: field 'store' is not an object")
+    try:
+        ids = [int(entry["id"]) for entry in manifest["keyframes"]]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise StorageError(f"{snapshot / MANIFEST_FILE}: a keyframe entry without an integer "
+                           f"id ({exc})") from exc
+    return store, ids
 
 
 def restore_current(directory: str | Path, snapshot: str | Path) -> Path:

@@ -565,14 +565,19 @@ class StatusReply(Message):
     uptime_s: float = 0.0
     counters: Mapping[str, int] = field(default_factory=dict)
     latency_s: Mapping[str, float] = field(default_factory=dict)
+    #: Why the map is served degraded (what its restore lacks: the missing keyframe ids or
+    #: sequence numbers); empty when it is not.
+    degraded: str = ""
 
     def to_wire(self) -> dict[str, Any]:
+        # ``degraded`` only when set: a client that predates it reads a healthy map's status
         return {"map": self.map, "instance": self.instance, "keyframes": self.keyframes,
                 "landmarks": self.landmarks, "trained": self.trained,
                 "map_version": self.map_version, "methods": list(self.methods),
                 "default_method": self.default_method, "cameras": list(self.cameras),
                 "training": self.training, "uptime_s": self.uptime_s,
-                "counters": dict(self.counters), "latency_s": dict(self.latency_s)}
+                "counters": dict(self.counters), "latency_s": dict(self.latency_s),
+                **({"degraded": self.degraded} if self.degraded else {})}
 
     @classmethod
     def from_wire(cls, value: Any, path: str, limits: Limits) -> StatusReply:
@@ -592,7 +597,8 @@ class StatusReply(Message):
             training=f.opt("training", _bool, False),
             uptime_s=f.opt("uptime_s", lambda v, p: _float(v, p, non_negative=True), 0.0),
             counters=f.opt("counters", lambda v, p: _str_map(v, p, nonneg, limits), {}),
-            latency_s=f.opt("latency_s", lambda v, p: _timings(v, p, limits), {}))
+            latency_s=f.opt("latency_s", lambda v, p: _timings(v, p, limits), {}),
+            degraded=f.opt("degraded", lambda v, p: _str(v, p, limits), ""))
         f.done()
         return out
 
