@@ -280,9 +280,8 @@ class MapRegistry:
         if directory is not None:
             check_storage(directory)
             rt.begin_restore(verdict)
-            if recovered is not None:
+            if recovered is not None:   # counted once the replay ends, with the others
                 rt.restore_report.recovered_snapshot = recovered
-                rt.stats.count("restore_snapshot_recovered")
         if self.processes is not None:
             self.processes.attach(rt)
         return rt
