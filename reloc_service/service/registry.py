@@ -188,6 +188,8 @@ class MapRegistry:
             self._unlock_map(rt.name)
             self._fail_map(rt.name, exc)
             return
+        if rt.store is None:   # a map without storage: nothing was restored
+            return
         state = rt.map_state()
         log.info("map %s: %d keyframes restored (%d journal records replayed) in %.1f s",
                  rt.name, len(state.keyframes), replayed, time.perf_counter() - start)
