@@ -568,16 +568,21 @@ class StatusReply(Message):
     #: Why the map is served degraded (what its restore lacks: the missing keyframe ids or
     #: sequence numbers); empty when it is not.
     degraded: str = ""
+    #: The map is served from its snapshot while its journal backlog replays (progress in
+    #: the counters ``replay_records_done`` and ``replay_records_total``).
+    replaying: bool = False
 
     def to_wire(self) -> dict[str, Any]:
-        # ``degraded`` only when set: a client that predates it reads a healthy map's status
+        # ``degraded`` and ``replaying`` only when set: a client that predates them reads a
+        # healthy map's status
         return {"map": self.map, "instance": self.instance, "keyframes": self.keyframes,
                 "landmarks": self.landmarks, "trained": self.trained,
                 "map_version": self.map_version, "methods": list(self.methods),
                 "default_method": self.default_method, "cameras": list(self.cameras),
                 "training": self.training, "uptime_s": self.uptime_s,
                 "counters": dict(self.counters), "latency_s": dict(self.latency_s),
-                **({"degraded": self.degraded} if self.degraded else {})}
+                **({"degraded": self.degraded} if self.degraded else {}),
+                **({"replaying": True} if self.replaying else {})}
 
     @classmethod
     def from_wire(cls, value: Any, path: str, limits: Limits) -> StatusReply:
@@ -598,7 +603,8 @@ class StatusReply(Message):
             uptime_s=f.opt("uptime_s", lambda v, p: _float(v, p, non_negative=True), 0.0),
             counters=f.opt("counters", lambda v, p: _str_map(v, p, nonneg, limits), {}),
             latency_s=f.opt("latency_s", lambda v, p: _timings(v, p, limits), {}),
-            degraded=f.opt("degraded", lambda v, p: _str(v, p, limits), ""))
+            degraded=f.opt("degraded", lambda v, p: _str(v, p, limits), ""),
+            replaying=f.opt("replaying", _bool, False))
         f.done()
         return out
 
