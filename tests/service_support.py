@@ -177,8 +177,9 @@ def durable_keyframe_ids(map_dir: Path) -> set[int]:
 
 
 class ServiceProcess:
-    """``reloc serve --config FILE`` in a subprocess, ready once its map answers (within
-    ``ready_s``: a restart replaying hundreds of journal records needs minutes under load)."""
+    """``reloc serve --config FILE`` in a subprocess, ready once its map answers and its
+    journal has replayed (within ``ready_s``: a restart replaying hundreds of journal records
+    needs minutes under load)."""
 
     def __init__(self, config: Path, port: int, log: Path, ready_s: float = 60.0) -> None:
         self.log_path = log
@@ -198,8 +199,7 @@ class ServiceProcess:
         try:
             if self.client is None:  # a client-mode session needs the service listening
                 self.client = RelocClient(endpoint(self.port), map=MAP, timeout=30)
-            self.client.status(timeout=1)
-            return True
+            return not self.client.status(timeout=1).replaying
         except (ConnectionError, NoReplyError):
             return False
 

@@ -196,6 +196,58 @@ def test_run_ahead_without_an_idle_core_or_a_free_helper_runs_nothing(monkeypatc
     assert ran == []
 
 
+def helper_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name == overlap.THREAD_NAME and t.is_alive()]
+
+
+def test_close_helpers_lets_the_steps_under_way_finish_and_joins_every_helper(idle):
+    beside = overlap.run_beside(threading.get_ident)
+    assert beside.overlapped and helper_threads()
+    assert overlap.close_helpers(timeout=5.0) and helper_threads() == []
+    assert beside.result() != threading.get_ident()        # its answer kept for the caller
+    release = threading.Event()
+    ahead = overlap.run_ahead(lambda: release.wait(5.0) and "extracted")
+    assert ahead is not None and helper_threads()
+    threading.Timer(0.2, release.set).start()
+    assert overlap.close_helpers(timeout=5.0) and helper_threads() == []
+    assert ahead.done and ahead.result() == "extracted"     # finished, not cut short
+    # the pool is usable again: a later query starts a new helper, which close stops too
+    again = overlap.run_beside(threading.get_ident)
+    assert again.overlapped and again.result() != threading.get_ident()
+    assert overlap.close_helpers(timeout=5.0) and helper_threads() == []
+
+
+def test_close_helpers_names_a_step_that_outlives_its_wait(idle):
+    release = threading.Event()
+    ahead = overlap.run_ahead(release.wait)
+    assert ahead is not None
+    try:
+        assert not overlap.close_helpers(timeout=0.1)
+    finally:
+        release.set()
+    assert ahead.result() and overlap.close_helpers(timeout=5.0) and helper_threads() == []
+
+
+def test_a_query_racing_close_helpers_always_gets_its_answer(idle):
+    answers: list[int] = []
+    stop = threading.Event()
+
+    def queries() -> None:
+        while not stop.is_set():
+            answers.append(overlap.run_beside(lambda: 1).result())
+
+    asking = threading.Thread(target=queries)
+    asking.start()
+    try:
+        for _ in range(20):
+            assert overlap.close_helpers(timeout=5.0)
+    finally:
+        stop.set()
+        asking.join(10.0)
+    assert not asking.is_alive(), "a query waited for a helper that close_helpers stopped"
+    assert answers and set(answers) == {1}
+
+
 def test_features_of_waits_for_the_extraction_ahead(synthetic_scene, idle):
     frame = Frame(synthetic_scene.query_images[0], synthetic_scene.camera)
     orb = feature_lib.extract(frame.image, FeatureConf("orb", 200))

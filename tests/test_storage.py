@@ -390,12 +390,8 @@ def test_format_0_or_unknown_versions_are_refused(tmp_path, synthetic_map):
 
 
 def _maps_a_file(a: np.ndarray) -> bool:
-    """``a`` is an np.memmap or a view (of a view...) of one: it reads the file, no copy."""
-    while isinstance(a, np.ndarray):
-        if isinstance(a, np.memmap):
-            return True
-        a = a.base
-    return False
+    """``a`` views (through views...) a file's memory map: it reads the file, no copy."""
+    return is_mapped(a)
 
 
 def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
@@ -770,6 +766,29 @@ def test_a_map_of_more_keyframes_than_open_files_allowed_loads(tmp_path, synthet
                           env={**os.environ, "PYTHONPATH": f"{root}{os.pathsep}{root / 'clients'}"})
     assert done.returncode == 0, done.stderr[-2000:]
     assert int(done.stdout.split()[-1]) < 64  # open files after the load: not one per image
+
+
+def test_a_loaded_map_keeps_no_file_open(tmp_path, synthetic_map):
+    """Neither the keyframe images nor the feature and landmark arrays (.npy, memory-mapped)
+    keep a file open once loaded: ten copies of a map loaded side by side hold no more open
+    files than none (np.load's memory maps kept one per array, about ten per map), and
+    their arrays read as saved."""
+    import os
+
+    state = synthetic_map.snapshot() if hasattr(synthetic_map, "snapshot") else synthetic_map
+    save_map(state, tmp_path)
+    before = len(os.listdir("/proc/self/fd"))
+    loaded = [load_map(tmp_path)[0] for _ in range(10)]
+    held = len(os.listdir("/proc/self/fd")) - before
+    assert held <= 2, f"{held} more open files after loading the map 10 times"
+    assert any(kf.features for kf in state.keyframes.values())
+    for copy in loaded:
+        assert sorted(copy.keyframes) == sorted(state.keyframes)
+        for kf_id, kf in state.keyframes.items():
+            for kind, feats in kf.features.items():
+                got = copy.keyframes[kf_id].features[kind]
+                assert np.array_equal(got.keypoints_px, feats.keypoints_px)
+                assert np.array_equal(got.descriptors, feats.descriptors)
 
 
 def test_a_save_failing_on_a_full_disk_removes_its_partial_snapshot(tmp_path, synthetic_map,

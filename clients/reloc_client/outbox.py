@@ -3,9 +3,11 @@ service: kept in memory and sent in order, each resent until the service acknowl
 
 from __future__ import annotations
 
+import atexit
 import collections
 import logging
 import threading
+import weakref
 from collections.abc import Callable
 from typing import Any
 
@@ -24,6 +26,10 @@ from .client import (
 )
 
 log = logging.getLogger(__name__)
+
+#: Outboxes not closed yet: closed at interpreter exit if their owner forgot, so that no
+#: sending thread is inside Zenoh's native code when the interpreter finalizes.
+_OPEN: weakref.WeakSet[Outbox] = weakref.WeakSet()
 
 
 class Outbox:
@@ -55,6 +61,7 @@ class Outbox:
         self._closed = False
         self._thread = threading.Thread(target=self._run, name="reloc-outbox", daemon=True)
         self._thread.start()
+        _OPEN.add(self)
 
     def add_keyframe(self, kf_id: int, image: ImageLike, world_from_cam: PoseLike,
                      **kwargs: Any) -> None:
@@ -95,6 +102,7 @@ class Outbox:
             self._closed = True
             self._cond.notify_all()
         self._thread.join(self.ack_timeout + 1.0)
+        _OPEN.discard(self)
         return self.pending
 
     def __enter__(self) -> Outbox:
@@ -144,3 +152,15 @@ class Outbox:
             log.exception("outbox: sending %s failed", what)
             return False
         return True
+
+
+def _close_at_exit() -> None:
+    """Close the outboxes left open (their unacknowledged changes are lost with the process
+    anyway), joining their threads before the interpreter finalizes."""
+    for outbox in list(_OPEN):
+        dropped = outbox.close()
+        if dropped:
+            log.warning("outbox closed at exit with %d changes unacknowledged", dropped)
+
+
+atexit.register(_close_at_exit)

@@ -30,6 +30,7 @@ from typing import Any
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode, EventKind, ProtocolError
 
+from ..algorithms.relocalizers.overlap import close_helpers
 from ..core.numeric import limit_blas_threads
 from ..engine import EngineConf, MappingConf
 from ..storage.lock import LockHeld
@@ -174,6 +175,8 @@ class Service:
                 pool.close(timeout=seconds_left(deadline, share=0.5))
         if self.processes is not None:
             self.processes.close()
+        # the queries are done: their helper threads (thread-mode workers) end here
+        close_helpers(timeout=seconds_left(deadline, share=0.25))
         self.registry.close(final_snapshot=final_snapshot, deadline=deadline)
         if self.layer is not None:
             self.layer.close()
@@ -234,7 +237,7 @@ class Service:
             return
         if self.ros2 is not None:
             self.ros2.serve_map(name)
-        if rt.restore_report.damaged:
+        if rt.restore_report.damaged and not rt.replaying:   # else once it has replayed
             rt.publish(EventKind.STORAGE_DAMAGED, **rt.restore_report.event_fields())
 
     def _declare_created(self, name: str) -> None:
@@ -288,6 +291,13 @@ class Service:
                 query.finish()
             return
         if kind is QueryKind.KEYFRAMES:
+            if rt.replaying:   # a copy holds the whole map or nothing
+                query.reply_err(wire.encode_error(
+                    ErrorCode.BUSY, f"map {map_name!r} is replaying its journal "
+                    f"({rt.status().counters.get('replay_records_done', 0)} records of "
+                    f"{rt.status().counters.get('replay_records_total', 0)}); retry once its "
+                    "status no longer says replaying"))
+                return
             # Answered by the writer after the puts already received, so a replica that
             # subscribed before asking (bootstrap_from_peers) misses none of them.
             if not self.writes.writer_for(map_name).submit(
@@ -325,6 +335,11 @@ class Service:
             query.finish()
 
     def _copy_after_writes(self, rt: MapRuntime, query: PendingQuery) -> None:
+        if not rt.wait_replayed(self._stopped):   # a copy holds the whole map, or nothing
+            query.reply_err(wire.encode_error(ErrorCode.BUSY, f"map {rt.name!r} did not finish "
+                                              "replaying its journal; retry"))
+            query.finish()
+            return
         rt.wait_snapshot()
         self._control(rt, QueryKind.KEYFRAMES, query)
 

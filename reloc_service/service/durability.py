@@ -152,6 +152,9 @@ class MapStore:
         #: The last sequence number journaled when the journal was last rotated (what the
         #: snapshot being saved holds).
         self._rotated_seq = 0
+        #: Where the replay stands: (sequence number, segment) of the last record it handed
+        #: on, None before the first or after a record without a sequence number (legacy).
+        self.replayed_to: tuple[int, int] | None = None
 
     @property
     def map_id(self) -> str | None:
@@ -193,11 +196,11 @@ class MapStore:
         logged); then open the journal for appending with the map's identity (assigned now
         to a legacy or new map, and recorded in ``service.json``). RestoreInterrupted if
         ``stop`` is set meanwhile (the journal is left as it was)."""
-        for raw in self.journal.replay(from_segment=verdict.replay_from):
+        for segment, raw in self.journal.replay_numbered(from_segment=verdict.replay_from):
             if stop is not None and stop.is_set():
                 raise RestoreInterrupted(f"map {self.name}: restore interrupted after "
                                          f"{report.replayed} journal records (shutting down)")
-            applied = self._replay_record(raw, apply, verdict.snapshot_seq)
+            applied = self._replay_record(raw, apply, verdict.snapshot_seq, segment)
             if applied:
                 report.replayed += 1
             elif applied is not None:
@@ -226,9 +229,11 @@ class MapStore:
                                                                          verdict.replay_from)})
 
     def _replay_record(self, raw: bytes, apply: Callable[[dict[str, Any]], None],
-                       snapshot_seq: int) -> bool | None:
+                       snapshot_seq: int, segment: int) -> bool | None:
         """True if the record was applied again, False if it was skipped (logged), None if
-        the snapshot already holds it (its sequence number is not above ``snapshot_seq``)."""
+        the snapshot already holds it (its sequence number is not above ``snapshot_seq``).
+        Either way the replay has moved past it (:attr:`replayed_to`)."""
+        seq = None
         try:
             record = msgpack.unpackb(raw, raw=False)
             seq = record.get("seq") if isinstance(record, dict) else None
@@ -240,6 +245,9 @@ class MapStore:
             log.error("map %s: skipping a journal record that does not replay: %s", self.name,
                       exc)
             return False
+        finally:
+            self.replayed_to = ((seq, segment) if isinstance(seq, int)
+                                and not isinstance(seq, bool) else None)
 
     def adopt_identity(self, map_id: str) -> None:
         """Take ``map_id`` (a peer's identity for the same map) as this map's, for a map that
@@ -275,7 +283,24 @@ class MapStore:
         """Save ``engine``, then ``service.json`` naming the snapshot and ``meta`` (the
         cameras as of :meth:`rotate`, ``meta.next_segment`` its segment), then delete the
         segments before it; the snapshot directory."""
-        store = {"map_id": self.map_id, "last_seq": self._rotated_seq}
+        return self._save(engine, meta, {"map_id": self.map_id, "last_seq": self._rotated_seq})
+
+    def save_replayed(self, engine: Engine, meta: ServiceMeta, map_id: str,
+                      snapshot_seq: int) -> Path | None:
+        """For a replay stopped midway: save ``engine`` (which holds the records up to
+        :attr:`replayed_to`) as a snapshot holding exactly those, so the next restore goes
+        on from the record after it (skipped by sequence number) instead of the first. The
+        segment holding that record stays (it is ``next_segment``); earlier ones are
+        deleted. None (nothing written) when the last record replayed carries no sequence
+        number (a journal written before them: the next restore replays it whole), or when
+        it replayed nothing past the loaded snapshot (``snapshot_seq``)."""
+        if self.replayed_to is None or self.replayed_to[0] <= snapshot_seq:
+            return None
+        seq, segment = self.replayed_to
+        meta = ServiceMeta(meta.cameras, meta.keyframe_camera_ids, segment, map_id)
+        return self._save(engine, meta, {"map_id": map_id, "last_seq": seq})
+
+    def _save(self, engine: Engine, meta: ServiceMeta, store: dict[str, Any]) -> Path:
         path = engine.save(self.directory / "map", store=store)
         write_service_file(self.directory, {
             **store, "snapshot": path.name, "next_segment": meta.next_segment,

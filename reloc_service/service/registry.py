@@ -1,7 +1,8 @@
 """The maps a service serves, and how each comes to be served: restored from its storage at
-start (the cheapest first, each declared as soon as it is up, so small maps are served while a
-big journal replays), created by its first put, or failed (its storage did not restore: its
-queries and puts get STORAGE_ERROR with the reason, its files are left as they are).
+start (the cheapest first, each declared as soon as its snapshot is loaded, then served from it
+while its journal backlog replays; its puts wait for the replay), created by its first put, or
+failed (its storage did not restore: its queries and puts get STORAGE_ERROR with the reason,
+its files are left as they are).
 
 The registry knows nothing of Zenoh: the service gives it the callables that declare a map
 (queryables, liveliness token, ROS 2 node) and publish its events.
@@ -17,7 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from reloc_client import protocol as wire
-from reloc_client.protocol import ErrorCode
+from reloc_client.protocol import ErrorCode, EventKind
 
 from ..core.errors import ConfigError, StorageError
 from ..engine import Engine, EngineConf
@@ -148,23 +149,56 @@ class MapRegistry:
         return self._ready.is_set()
 
     def _bring_up(self, name: str, *, declare: bool) -> None:
+        """Load ``name``'s snapshot, serve it (``declare``), then replay its journal
+        backlog behind it (queries answer from what is replayed so far)."""
+        start = time.perf_counter()
         try:
             rt = self._open_map(name)
-        except RestoreInterrupted as exc:
-            log.info("%s", exc)
-            return
         except Exception as exc:   # one map's damage never takes down the others
             self._fail_map(name, exc)
             return
         with self._lock:
             self._loading.discard(name)
             if self._stopped.is_set():
-                rt.close(final_snapshot=False)
+                rt.close(final_snapshot=False, timeout=0.0)
                 self._unlock_map(name)
                 return
             self.maps[name] = rt
         if declare:
             self._declare(name)
+        self._replay(rt, declared=declare, start=start)
+
+    def _replay(self, rt: MapRuntime, *, declared: bool, start: float) -> None:
+        """Replay the journal backlog of served map ``rt``; publish what the restore skipped
+        (a declared map: the declaration came before the replay found it) and start the
+        training a restored map needs. A replay that fails fails the map."""
+        if rt.replaying:
+            log.info("map %s: served from its snapshot (%d keyframes) while %d journal "
+                     "records replay", rt.name, len(rt.map_state().keyframes),
+                     rt.status().counters.get("replay_records_total", 0))
+        try:
+            replayed = rt.replay_backlog(self._stopped)
+        except RestoreInterrupted as exc:
+            log.info("%s", exc)
+            return
+        except Exception as exc:
+            with self._lock:
+                self.maps.pop(rt.name, None)
+            rt.close(final_snapshot=False, timeout=0.0)
+            self._unlock_map(rt.name)
+            self._fail_map(rt.name, exc)
+            return
+        if rt.store is None:   # a map without storage: nothing was restored
+            return
+        state = rt.map_state()
+        log.info("map %s: %d keyframes restored (%d journal records replayed) in %.1f s",
+                 rt.name, len(state.keyframes), replayed, time.perf_counter() - start)
+        if declared and rt.restore_report.damaged:
+            self._publish(rt.name, EventKind.STORAGE_DAMAGED,
+                          rt.restore_report.event_fields())
+        trained = all(m["trained"] for m in rt.engine.status()["methods"].values())
+        if len(state.keyframes) and not trained and self.conf.service.train_on_load:
+            rt.start_training(None)
 
     def _fail_map(self, name: str, exc: BaseException) -> None:
         """Mark ``name`` failed: its queries and puts get STORAGE_ERROR with the reason; its
@@ -197,7 +231,13 @@ class MapRegistry:
             self.check_restored(name)
             if name not in self.maps:
                 self.quotas.check_new_map(name, len(self.maps))
-                self.maps[name] = self._open_map(name)
+                rt = self._open_map(name)
+                try:
+                    rt.replay_backlog(self._stopped)   # a new map: opens its journal
+                except BaseException:
+                    self._unlock_map(name)
+                    raise
+                self.maps[name] = rt
                 self._declare_created(name)
                 log.info("map %s created by its first put", name)
             return self.maps[name]
@@ -227,7 +267,8 @@ class MapRegistry:
             lock.release()
 
     def _restore_map(self, name: str, directory: Path | None) -> MapRuntime:
-        start = time.perf_counter()
+        """The runtime of ``name`` with its snapshot loaded and its restore begun
+        (:meth:`.MapRuntime.begin_restore`); its journal replay is the caller's."""
         verdict = None if directory is None else judge(directory)
         if verdict is not None and verdict.refusal is not None:
             raise StorageError(verdict.refusal)   # nothing loaded, nothing written
@@ -240,16 +281,9 @@ class MapRegistry:
                         snapshot_every=s.snapshot_every, fsync=s.fsync, quotas=self.quotas)
         if directory is not None:
             check_storage(directory)
-            replayed = rt.restore(self._stopped, verdict)
-            if recovered is not None:
+            rt.begin_restore(verdict)
+            if recovered is not None:   # counted once the replay ends, with the others
                 rt.restore_report.recovered_snapshot = recovered
-                rt.stats.count("restore_snapshot_recovered")
-            state = rt.map_state()
-            log.info("map %s: %d keyframes restored (%d journal records replayed) in %.1f s",
-                     name, len(state.keyframes), replayed, time.perf_counter() - start)
-            trained = all(m["trained"] for m in engine.status()["methods"].values())
-            if len(state.keyframes) and not trained and s.train_on_load:
-                rt.start_training(None)
         if self.processes is not None:
             self.processes.attach(rt)
         return rt

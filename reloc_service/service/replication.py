@@ -459,6 +459,8 @@ class DivergenceWatch:
         """What diverges between ``rt`` and ``peer`` ("" if nothing), reported when new; a
         lag starts a catch-up from that peer."""
         key = (rt.name, peer.instance)
+        if peer.replaying or rt.replaying:   # identity and content known once replayed
+            return ""
         state = rt.map_state()
         local_id = rt.map_id or ""
         fields: dict[str, Any] | None = None

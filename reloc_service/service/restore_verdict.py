@@ -117,6 +117,9 @@ class Verdict:
     next_seq: int = 1
     replay_from: int = 0
     min_segment: int = 0
+    #: Journal records a restore will read past the snapshot (its progress is counted
+    #: against this; records without a sequence number all count).
+    to_replay: int = 0
 
     @property
     def outcome(self) -> Outcome:
@@ -169,6 +172,7 @@ def judge(directory: str | Path) -> Verdict:
         _check_identity(verdict, meta, store, snapshot, segments)
         _check_quarantine(directory / "journal", segments)
         _check_sequence(verdict, meta, store, snapshot_ids, segments)
+        verdict.to_replay = _records_to_replay(verdict, segments)
         _merge_recorded(verdict, read_losses(directory))
     except StorageError as exc:
         verdict.refusal = str(exc)
@@ -285,6 +289,12 @@ def _check_sequence(verdict: Verdict, meta: dict[str, Any], store: dict[str, Any
             f"journal continues; replayed by sequence number instead (nothing lost by it)")
     verdict.min_segment = max(verdict.min_segment, *(s.scan.number + 1 for s in numbered
                                                      if s.scan.version == 0), 0)
+
+
+def _records_to_replay(verdict: Verdict, segments: list[_Segment]) -> int:
+    """The records of the segments a restore replays that the snapshot does not hold."""
+    return sum(1 for seg in segments if seg.scan.number >= verdict.replay_from
+               for seq in seg.seqs if seq is None or seq > verdict.snapshot_seq)
 
 
 def _older_snapshot(meta: dict[str, Any], loaded: int, expected: int,

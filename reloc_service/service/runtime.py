@@ -27,7 +27,7 @@ from reloc_client.protocol import EventKind
 from ..core.errors import MapError, StorageError
 from ..engine import Engine
 from .codec import KeyframeInput, WithLimits, decode_camera_put, decode_keyframe_put, error_of
-from .durability import REPLAY_LIMITS, MapStore, RestoreReport, ServiceMeta
+from .durability import REPLAY_LIMITS, MapStore, RestoreInterrupted, RestoreReport, ServiceMeta
 from .map_digest import ContentDigest
 from .quotas import MapUsage, Quotas, keyframe_bytes
 from .restore_verdict import Loss, Verdict, judge, record_losses, unaccepted
@@ -127,6 +127,15 @@ class MapRuntime(ServedMap):
         self._snapshot_thread: threading.Thread | None = None
         self.restore_report = RestoreReport()
         self._losses: list[Loss] = []       # what the restore lacks, until accepted
+        #: The journal replay after the snapshot (see :meth:`begin_restore`): where it
+        #: continues from, whether it started, ended (however) and completed; the writers
+        #: hold this map's changes until it completes.
+        self._verdict: Verdict | None = None
+        self._replay_started = False
+        self._replay_ended = threading.Event()
+        self._replay_ended.set()
+        self._replay_complete = True
+        self._replay_failed = False
         #: Keyframes journaled at shutdown without being applied, and whether any record was.
         self._unapplied: set[int] = set()
         self._journal_ahead = False
@@ -167,14 +176,29 @@ class MapRuntime(ServedMap):
             map_version=st["map_version"], methods=self.methods,
             default_method=self.default_method, cameras=tuple(self.camera_ids()),
             training=training, uptime_s=time.monotonic() - self.started_at,
-            counters=counters, latency_s=latency, degraded=self.degraded(),
-            map_id=self.map_id or "", content_hash=self.content.of(self.map_state()) if content_hash else "",
+            counters={**counters, **self._replay_progress()}, latency_s=latency,
+            degraded=self.degraded(), replaying=self.replaying, map_id=self.map_id or "",
+            content_hash=self.content.of(self.map_state()) if content_hash else "",
             diverged=self.diverged)
 
     @property
     def map_id(self) -> str | None:
         """The map's identity (None without storage, or before its restore assigned it)."""
         return None if self.store is None else self.store.map_id
+
+    @property
+    def replaying(self) -> bool:
+        """The map is served from its snapshot while its journal backlog replays."""
+        return not self._replay_complete
+
+    def _replay_progress(self) -> dict[str, int]:
+        """While the journal replays: the records replayed (or skipped as not applying) and
+        how many there are (status counters)."""
+        if self._replay_complete or self._verdict is None:
+            return {}
+        report = self.restore_report
+        return {"replay_records_done": report.replayed + report.not_applied,
+                "replay_records_total": self._verdict.to_replay}
 
     # -- events ----------------------------------------------------------------------------------
     def publish(self, kind: EventKind, **fields: Any) -> None:
@@ -308,15 +332,19 @@ class MapRuntime(ServedMap):
     # -- restore ---------------------------------------------------------------------------------
     def restore(self, stop: threading.Event | None = None, verdict: Verdict | None = None
                 ) -> int:
-        """Replay the journal after the snapshot the engine was loaded from (see
-        :func:`.durability.open_engine`), then open it for appending. Returns the records
-        replayed; what was skipped, and what the restore lacks (``verdict``, judged on the
-        map directory before it was loaded: :func:`.restore_verdict.judge`), is in
-        :attr:`restore_report` and the status counters. StorageError if ``service.json`` or
-        a journal segment header does not read (nothing is changed); RestoreInterrupted if
-        ``stop`` is set meanwhile (the journal is left as it was)."""
+        """:meth:`begin_restore`, then :meth:`replay_backlog`: the records replayed."""
+        self.begin_restore(verdict)
+        return self.replay_backlog(stop)
+
+    def begin_restore(self, verdict: Verdict | None = None) -> None:
+        """Take the cameras of ``service.json`` and what the restore lacks (``verdict``,
+        judged on the map directory before it was loaded: :func:`.restore_verdict.judge`):
+        the map can be served from the snapshot the engine was loaded from (see
+        :func:`.durability.open_engine`) while :meth:`replay_backlog` applies the journal
+        after it; its changes wait for that. StorageError if the verdict refuses the map
+        or ``service.json`` does not read (nothing is changed)."""
         if self.store is None:
-            return 0
+            return
         if verdict is None:
             verdict = judge(self.store.directory)
         if verdict.refusal is not None:
@@ -324,13 +352,50 @@ class MapRuntime(ServedMap):
         meta = self.store.read_meta()
         self._cameras.update(meta.cameras)
         self._kf_camera_ids.update(meta.keyframe_camera_ids)
-        report = self.restore_report
-        self.store.replay(verdict, self._replay_record, report, stop)
         self._note_losses(verdict)
+        self._verdict = verdict
+        self._replay_complete = False
+        self._replay_ended.clear()
+
+    def replay_backlog(self, stop: threading.Event | None = None) -> int:
+        """Replay the journal after the snapshot (each record under the apply lock, so
+        queries see the map grow and replicas get the records in order), then open it for
+        appending; the records replayed. What was skipped is in :attr:`restore_report` and
+        the status counters. StorageError if a journal segment header does not read;
+        RestoreInterrupted if ``stop`` is set meanwhile or the map was closed (the journal
+        is left as it was; :meth:`close` saves what was replayed)."""
+        if self._replay_complete or self._verdict is None or self.store is None:
+            return 0
+        with self._job_lock:
+            if self._closed:
+                raise RestoreInterrupted(f"map {self.name}: closed before its journal replay")
+            self._replay_started = True
+        report = self.restore_report
+        try:
+            self.store.replay(self._verdict, self._replay_locked, report, stop)
+        except BaseException as exc:
+            self._replay_failed = not isinstance(exc, RestoreInterrupted)
+            self._replay_ended.set()
+            raise
         for name, n in report.counters().items():
             if n:
                 self.stats.count(name, n)
+        self._replay_complete = True
+        self._replay_ended.set()
         return report.replayed
+
+    def wait_replayed(self, stop: threading.Event) -> bool:
+        """Wait until the journal replay ends (the writers hold this map's changes until
+        then): True once it completed, False if it did not (stopped, or failed) or ``stop``
+        is set first."""
+        while not self._replay_ended.wait(0.2):
+            if stop.is_set():
+                return False
+        return self._replay_complete
+
+    def _replay_locked(self, record: dict[str, Any]) -> None:
+        with self._apply_lock:
+            self._replay_record(record)
 
     def _note_losses(self, verdict: Verdict) -> None:
         """Record what the restore lacks (so a restart still knows it) and say so."""
@@ -380,7 +445,7 @@ class MapRuntime(ServedMap):
         if self.store is None:
             return False
         with self._job_lock:
-            if self._journal_ahead or self._closed:
+            if self._journal_ahead or self._closed or not self._replay_complete:
                 return False   # it would drop the records journaled (not applied) at shutdown
             running = self._snapshot_thread is not None and self._snapshot_thread.is_alive()
             if not running:
@@ -489,6 +554,11 @@ class MapRuntime(ServedMap):
         the next start applies it. False without storage (nothing would survive anyway)."""
         if self.store is None:
             return False
+        if not self._replay_complete:   # the journal was never opened for appending
+            self.reject(EventKind.KEYFRAME_REJECTED, wire.ProtocolError(
+                wire.ErrorCode.BUSY, f"the service stopped while map {self.name!r} was "
+                "replaying its journal; put again once it is back"), id=ident)
+            return False
         try:
             with self._apply_lock:
                 if op is WriteOp.KEYFRAME:
@@ -516,8 +586,12 @@ class MapRuntime(ServedMap):
         """Final snapshot within ``timeout`` s (when something changed since the last one and
         no record was journaled without being applied: the snapshot would drop it from the
         journal), then close the journal. A running training job is not waited for beyond
-        the same ``timeout``: its models are lost, the map is not."""
+        the same ``timeout``: its models are lost, the map is not. A map closed while its
+        journal replays saves what was replayed instead (:meth:`_close_mid_replay`)."""
         deadline = time.monotonic() + timeout
+        if not self._replay_complete:
+            self._close_mid_replay(deadline)
+            return
         if (final_snapshot and self.store is not None and self.store.since_snapshot > 0
                 and not self._journal_ahead):
             if self._maintenance.acquire(timeout=max(0.0, timeout)):
@@ -536,6 +610,65 @@ class MapRuntime(ServedMap):
             return   # it may still rotate the journal: leave that open (the process exits)
         if self.store is not None:
             self.store.close()
+
+    def _close_mid_replay(self, deadline: float) -> None:
+        """Once the replay has stopped (at its next record: the service's stop event is
+        set), save what it replayed as a snapshot within the time left, so that the next
+        start resumes after it; if that does not fit, the next start replays the same
+        records again (nothing is lost: the journal is untouched)."""
+        with self._job_lock:
+            self._closed = True
+            started = self._replay_started
+        if not started or self._replay_failed:
+            if self.store is not None:
+                self.store.close()
+            return
+        if not self._replay_ended.wait(max(0.0, deadline - time.monotonic())):
+            log.warning("map %s: the journal replay did not stop within the stop budget; "
+                        "the next start replays it again", self.name)
+            return
+        if self._replay_complete:   # it completed meanwhile: the journal is open
+            assert self.store is not None
+            self.store.close()
+            return
+        thread = threading.Thread(target=self._save_replayed, args=(deadline,),
+                                  name=f"snapshot-{self.name}", daemon=True)
+        thread.start()
+        thread.join(max(0.0, deadline - time.monotonic()))
+        if thread.is_alive():
+            log.warning("map %s: what the stopped replay applied was not saved within the "
+                        "stop budget; the next start replays those records again (nothing "
+                        "is lost)", self.name)
+
+    def _save_replayed(self, deadline: float) -> None:
+        """Save the state the stopped replay reached (see :meth:`.MapStore.save_replayed`)."""
+        assert self.store is not None and self._verdict is not None
+        if self._verdict.map_id is None:   # a journal written before sequence numbers
+            log.info("map %s: journal replay stopped; the next start replays it from the "
+                     "start (it has no sequence numbers to resume by)", self.name)
+            return
+        if not self._maintenance.acquire(timeout=max(0.0, deadline - time.monotonic())):
+            return
+        try:
+            meta = ServiceMeta(cameras=dict(self._cameras),
+                               keyframe_camera_ids=dict(self._kf_camera_ids))
+            path = self.store.save_replayed(self.engine, meta, self._verdict.map_id,
+                                            self._verdict.snapshot_seq)
+            report = self.restore_report
+            if path is None:
+                log.info("map %s: journal replay stopped before a numbered record past the "
+                         "snapshot; nothing to save", self.name)
+            else:
+                log.info("map %s: journal replay stopped after %d of %d records; saved as "
+                         "snapshot %s, the next start resumes after sequence number %s",
+                         self.name, report.replayed + report.not_applied,
+                         self._verdict.to_replay, path.name,
+                         None if self.store.replayed_to is None else self.store.replayed_to[0])
+        except Exception as exc:
+            log.error("map %s: saving what the stopped replay applied failed (the next "
+                      "start replays those records again): %s", self.name, exc)
+        finally:
+            self._maintenance.release()
 
     def _start_final_snapshot(self) -> threading.Thread | None:
         self.start_snapshot()

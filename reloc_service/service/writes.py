@@ -217,10 +217,23 @@ class Writes:
             self.reject(job.map_name, job.rejected, job.ident, ErrorCode.UNKNOWN_MAP,
                         f"map {job.map_name!r} is not served and this service does not create "
                         "maps (service.allow_new_maps = false)")
-        else:
+        elif self._replayed(rt, job):
             job.apply(rt)
             if rt.wants_snapshot():
                 rt.start_snapshot()
+
+    def _replayed(self, rt: MapRuntime, job: WriteJob) -> bool:
+        """Hold the job (and the map's later ones, queued behind it in its lane) until the
+        map's journal backlog is replayed, so they apply after it, in order; False (the job
+        rejected) if the replay did not complete: the service stopped, or the map failed."""
+        if rt.wait_replayed(self._stopped):
+            return True
+        failure = self.registry.failed.get(job.map_name)
+        self.reject(job.map_name, job.rejected, job.ident,
+                    ErrorCode.STORAGE_ERROR if failure else ErrorCode.BUSY,
+                    failure or f"the service stopped while map {job.map_name!r} was "
+                    "replaying its journal; put again once it is back")
+        return False
 
     def _map_for_put(self, job: WriteJob) -> MapRuntime | None:
         """The runtime of the job's map; created (and served) if new maps are allowed and the

@@ -274,6 +274,11 @@ class Journal:
         """Every provable record of segments >= ``from_segment``, in order. Damaged bytes are
         skipped with an ERROR (a torn tail with a WARNING), quarantined and counted in
         :attr:`report`."""
+        for _, record in self.replay_numbered(from_segment):
+            yield record
+
+    def replay_numbered(self, from_segment: int = 0) -> Iterator[tuple[int, bytes]]:
+        """As :meth:`replay`, each record with the number of the segment holding it."""
         for number in self.segments():
             if number < from_segment:
                 continue
@@ -281,7 +286,8 @@ class Journal:
             scan = scan_segment(path)
             self._note_damage(path, scan)
             self.report.records += len(scan.records)
-            yield from scan.records
+            for record in scan.records:
+                yield number, record
 
     def _note_damage(self, path: Path, scan: SegmentScan) -> None:
         for d in scan.damage:

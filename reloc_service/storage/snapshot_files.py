@@ -32,6 +32,9 @@ MANIFEST_FILE = "manifest.json"
 #: Snapshots kept after a save (:func:`prune_snapshots`): the new one and the one it replaced.
 KEEP_SNAPSHOTS = 2
 
+#: Bytes of a .npy header read at most (numpy writes a few hundred).
+NPY_HEADER_MAX = 1 << 16
+
 
 class SnapshotWriter:
     """Writes files into a new snapshot directory, fsynced, recording their checksums."""
@@ -218,17 +221,25 @@ class SnapshotReader:
         return data
 
     def npy(self, relpath: str) -> np.ndarray:
-        """The checked array of ``relpath``, memory-mapped read-only (a plain array when it
-        has no element: an empty map cannot be mapped)."""
-        path = self.check(relpath)
+        """The checked array of ``relpath``, viewing its read-only memory map (``map``: no
+        open file kept, where ``np.load(mmap_mode=...)`` keeps one per array); a plain array
+        when it has no element (an empty region cannot be mapped)."""
+        raw = self.map(relpath)
+        path = self.root / relpath
         try:
-            array = np.load(path, mmap_mode="r", allow_pickle=False)
-        except ValueError as exc:
-            try:
-                array = np.load(path, allow_pickle=False)
-            except (ValueError, OSError, EOFError):
-                raise StorageError(f"{path}: not a readable .npy ({exc})") from exc
-        return array
+            shape, dtype, fortran, offset = _npy_header(raw)
+        except (ValueError, OSError, EOFError) as exc:
+            raise StorageError(f"{path}: not a readable .npy ({exc})") from exc
+        if dtype.hasobject:
+            raise StorageError(f"{path}: a .npy of Python objects; expected numbers")
+        count = int(np.prod(shape, dtype=np.int64))
+        if offset + count * dtype.itemsize > len(raw):
+            raise StorageError(f"{path}: {len(raw)} bytes hold less than its header's "
+                               f"{shape} x {dtype}")
+        if count == 0:
+            return np.zeros(shape, dtype)
+        return np.ndarray(shape, dtype, buffer=raw, offset=offset,
+                          order="F" if fortran else "C")
 
     def npz(self, relpath: str, fields: tuple[str, ...], *, optional: tuple[str, ...] = ()
             ) -> dict[str, np.ndarray]:
@@ -247,3 +258,17 @@ class SnapshotReader:
         for rel in self.files:
             if rel.startswith(relroot + "/"):
                 self.read(rel)
+
+
+def _npy_header(raw: npt.NDArray[np.uint8]) -> tuple[tuple[int, ...], np.dtype, bool, int]:
+    """(shape, dtype, Fortran order, data offset) of the .npy bytes ``raw`` (format versions
+    1 and 2; ValueError otherwise)."""
+    head = io.BytesIO(raw[:NPY_HEADER_MAX].tobytes())
+    version = np.lib.format.read_magic(head)
+    if version == (1, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(head)
+    elif version == (2, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_2_0(head)
+    else:
+        raise ValueError(f".npy format version {version}, expected 1.0 or 2.0")
+    return tuple(shape), np.dtype(dtype), bool(fortran), head.tell()

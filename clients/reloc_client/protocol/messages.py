@@ -569,6 +569,9 @@ class StatusReply(Message):
     #: Why the map is served degraded (what its restore lacks: the missing keyframe ids or
     #: sequence numbers); empty when it is not.
     degraded: str = ""
+    #: The map is served from its snapshot while its journal backlog replays (progress in
+    #: the counters ``replay_records_done`` and ``replay_records_total``).
+    replaying: bool = False
     #: The map's identity (a UUID's 32 hex digits, made when the map was created); empty
     #: when the service keeps no storage for it.
     map_id: str = ""
@@ -580,7 +583,7 @@ class StatusReply(Message):
     diverged: str = ""
 
     def to_wire(self) -> dict[str, Any]:
-        # the optional strings only when set: a client that predates them reads a healthy
+        # the optional fields only when set: a client that predates them reads a healthy
         # map's status
         return {"map": self.map, "instance": self.instance, "keyframes": self.keyframes,
                 "landmarks": self.landmarks, "trained": self.trained,
@@ -588,6 +591,7 @@ class StatusReply(Message):
                 "default_method": self.default_method, "cameras": list(self.cameras),
                 "training": self.training, "uptime_s": self.uptime_s,
                 "counters": dict(self.counters), "latency_s": dict(self.latency_s),
+                **({"replaying": True} if self.replaying else {}),
                 **{k: v for k, v in (("degraded", self.degraded), ("map_id", self.map_id),
                                      ("content_hash", self.content_hash),
                                      ("diverged", self.diverged)) if v}}
@@ -612,6 +616,7 @@ class StatusReply(Message):
             counters=f.opt("counters", lambda v, p: _str_map(v, p, nonneg, limits), {}),
             latency_s=f.opt("latency_s", lambda v, p: _timings(v, p, limits), {}),
             degraded=f.opt("degraded", lambda v, p: _str(v, p, limits), ""),
+            replaying=f.opt("replaying", _bool, False),
             map_id=f.opt("map_id", _hex_digest, ""),
             content_hash=f.opt("content_hash", _hex_digest, ""),
             diverged=f.opt("diverged", lambda v, p: _str(v, p, limits), ""))

@@ -8,12 +8,21 @@ never wait for each other's helpers.
 
 :func:`run_beside` is for work the query needs now (it waits for it); :func:`run_ahead` for
 work it may need later, or not at all (a fallback chain's next step's features, started when
-the current step begins to fail), which nobody has to wait for."""
+the current step begins to fail), which nobody has to wait for.
+
+The module owns its helpers: :func:`close_helpers` lets the steps under way finish (a bounded
+wait), stops the threads and joins them, and runs at interpreter exit too (``atexit``). A
+helper must not be inside OpenCV when the interpreter finalizes: the interpreter ends a daemon
+thread that returns to it then with ``pthread_exit``, whose unwinding through OpenCV's
+``catch (...)`` aborts the process ("FATAL: exception not rethrown", exit 134), as a step
+started ahead for the last query of ``reloc eval`` could."""
 
 from __future__ import annotations
 
+import atexit
 import os
 import queue
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -26,20 +35,35 @@ T = TypeVar("T")
 MAX_HELPERS = max(1, (os.cpu_count() or 2) - 1)
 
 
+#: Seconds :func:`close_helpers` waits at interpreter exit for the steps under way (one
+#: query's feature extraction or place finding takes well under a second).
+EXIT_WAIT_S = 10.0
+
+#: Name of the helper threads.
+THREAD_NAME = "reloc-beside"
+
+
 class _Helper:
-    """One daemon thread running the tasks put in its inbox; a task delivers its own outcome
-    (:class:`Beside` into the helper's outbox, :class:`Ahead` into itself). Queues, not a
-    ``concurrent.futures`` pool: a hand-off is two C-level queue operations (a pool's submit
-    took 0.13 ms of Python per query)."""
+    """One daemon thread running the tasks put in its inbox until it finds ``None`` there; a
+    task delivers its own outcome (:class:`Beside` into the helper's outbox, :class:`Ahead`
+    into itself). Queues, not a ``concurrent.futures`` pool: a hand-off is two C-level queue
+    operations (a pool's submit took 0.13 ms of Python per query). Daemon, so that a step
+    stuck past :func:`close_helpers`'s wait cannot hold the process forever; joined by
+    :func:`close_helpers` otherwise."""
 
     def __init__(self) -> None:
-        self.inbox: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+        self.inbox: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
         self.outbox: queue.SimpleQueue[tuple[bool, Any]] = queue.SimpleQueue()
-        threading.Thread(target=self._serve, name="reloc-beside", daemon=True).start()
+        #: Set (under the pool's lock) once the helper is told to stop: never lent again.
+        self.retired = False
+        self.thread = threading.Thread(target=self._serve, name=THREAD_NAME, daemon=True)
+        self.thread.start()
 
     def _serve(self) -> None:
         while True:
             task = self.inbox.get()
+            if task is None:
+                return
             task()
             del task
 
@@ -81,27 +105,55 @@ class Beside(Generic[T]):
 
 
 class _Helpers:
-    """The process's helper threads, the free ones in a queue (created on first use)."""
+    """The process's helper threads, the free ones in a queue (created on first use). A task
+    is put in a helper's inbox under the lock that :meth:`close` takes, so no task lands
+    behind a helper's stop and waits forever."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._free: queue.SimpleQueue[_Helper] = queue.SimpleQueue()
-        self._started = 0
+        self._started: list[_Helper] = []
+        self._closed = False
 
-    def borrow(self) -> _Helper | None:
-        """A free helper, started if fewer than :data:`MAX_HELPERS` are; None when all
-        are lent."""
-        try:
-            return self._free.get_nowait()
-        except queue.Empty:
-            with self._lock:
-                if self._started >= MAX_HELPERS:
+    def lend(self, task_for: Callable[[_Helper], Callable[[], None]]) -> _Helper | None:
+        """A free helper (started if fewer than :data:`MAX_HELPERS` are) running
+        ``task_for(helper)``; None, nothing started, when all are lent or the pool is
+        closed."""
+        with self._lock:
+            if self._closed:
+                return None
+            try:
+                helper = self._free.get_nowait()
+            except queue.Empty:
+                if len(self._started) >= MAX_HELPERS:
                     return None
-                self._started += 1
-            return _Helper()
+                helper = _Helper()
+                self._started.append(helper)
+            helper.inbox.put(task_for(helper))
+            return helper
 
     def give_back(self, helper: _Helper) -> None:
-        self._free.put(helper)
+        with self._lock:
+            if not helper.retired:
+                self._free.put(helper)
+
+    def close(self, timeout: float, *, final: bool = False) -> list[threading.Thread]:
+        """Stop every helper once the task it runs (if any) ends, and join them within
+        ``timeout`` seconds; the threads still running then. Later steps start new helpers,
+        unless ``final`` (interpreter exit: they run in the caller's thread)."""
+        with self._lock:
+            self._closed = True
+            helpers, self._started = self._started, []
+            self._free = queue.SimpleQueue()
+            for helper in helpers:
+                helper.retired = True
+                helper.inbox.put(None)
+        deadline = time.monotonic() + timeout
+        for helper in helpers:
+            helper.thread.join(max(0.0, deadline - time.monotonic()))
+        with self._lock:
+            self._closed = final
+        return [h.thread for h in helpers if h.thread.is_alive()]
 
     def reset_after_fork(self) -> None:
         """A forked child has none of its parent's threads: start afresh."""
@@ -110,6 +162,26 @@ class _Helpers:
 
 _HELPERS = _Helpers()
 os.register_at_fork(after_in_child=_HELPERS.reset_after_fork)
+
+
+def close_helpers(timeout: float = EXIT_WAIT_S) -> bool:
+    """Let the steps under way finish, stop the helper threads and join them (within
+    ``timeout`` seconds); True when none is left running. Steps started later start new
+    helpers. For whoever ends the work of a process (a command, a service stopping)."""
+    return not _HELPERS.close(timeout)
+
+
+def _close_at_exit() -> None:
+    """Interpreter exit: :func:`close_helpers`, and no helper after it (a step started by
+    another exit handler runs in its caller's thread). A step still running after
+    :data:`EXIT_WAIT_S` is named on stderr: the interpreter may abort when it returns."""
+    left = _HELPERS.close(EXIT_WAIT_S, final=True)
+    if left:
+        print(f"reloc: {len(left)} helper thread(s) still running a step after "
+              f"{EXIT_WAIT_S:g} s at exit", file=sys.stderr)
+
+
+atexit.register(_close_at_exit)
 
 #: The kernel's instant count of running and runnable threads (4th field, "running/total").
 LOADAVG = "/proc/loadavg"
@@ -182,12 +254,15 @@ def run_beside(step: Callable[[], T], *, enabled: bool = True) -> Beside[T]:
     (:func:`idle_core`) and a helper free; else (or with ``enabled`` False) ``step`` runs
     when :meth:`Beside.result` is called. The caller must call :meth:`Beside.result` (also
     when its own work fails), so no step outlives its query."""
-    helper = _HELPERS.borrow() if enabled and idle_core() else None
-    if helper is None:
+    if not (enabled and idle_core()):
         return Beside(call=step)
-    outbox = helper.outbox
-    helper.inbox.put(lambda: outbox.put(_outcome(step)))
-    return Beside(helper=helper)
+
+    def task_for(helper: _Helper) -> Callable[[], None]:
+        outbox = helper.outbox
+        return lambda: outbox.put(_outcome(step))
+
+    helper = _HELPERS.lend(task_for)
+    return Beside(call=step) if helper is None else Beside(helper=helper)
 
 
 class Ahead(Generic[T]):
@@ -220,15 +295,15 @@ def run_ahead(step: Callable[[], T]) -> Ahead[T] | None:
     helper free, and return at once; None (``step`` not run) otherwise. For work a query may
     not need (features of a later fallback step): unlike :func:`run_beside`, the step may
     outlive its query, and its helper serves other queries only once it ends."""
-    helper = _HELPERS.borrow() if idle_core() else None
-    if helper is None:
+    if not idle_core():
         return None
     ahead: Ahead[T] = Ahead()
 
-    def task() -> None:
-        outcome = _outcome(step)
-        _HELPERS.give_back(helper)  # first: whoever saw the step end finds its helper free
-        ahead._finish(outcome)
+    def task_for(helper: _Helper) -> Callable[[], None]:
+        def task() -> None:
+            outcome = _outcome(step)
+            _HELPERS.give_back(helper)  # first: whoever saw the step end finds it free
+            ahead._finish(outcome)
+        return task
 
-    helper.inbox.put(task)
-    return ahead
+    return ahead if _HELPERS.lend(task_for) is not None else None

@@ -32,8 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write PNG plots into DIR (needs matplotlib)")
     parser.add_argument("--only", metavar="SECTION", action="append",
                         help="run only this section (repeatable); one of: latency, peers, "
-                             "throughput, scaling, ferns, planar, accuracy, soak (without "
-                             "--only every section but soak runs; soak only when named here)")
+                             "throughput, scaling, ferns, planar, accuracy, soak, attack "
+                             "(without --only every section but soak and attack runs; those "
+                             "only when named here). attack: the attack cases of "
+                             "docs/reliability.md against reloc serve processes, a few "
+                             "minutes; exit status 1 if any attempt broke something")
     parser.add_argument("--dataset", metavar="DIR", type=Path, action="append",
                         help="accuracy section: a reloc dataset to score (repeatable); with "
                              "--dataset or --preset only the sets named are scored, else the "
@@ -75,10 +78,10 @@ def main(args: argparse.Namespace) -> int:
     explicit_accuracy = "accuracy" in (args.only or []) or bool(datasets or presets)
     run_accuracy = explicit_accuracy or not args.only
     if args.only:
-        unknown = sorted(set(args.only) - set(suite.SECTIONS) - {"accuracy", "soak"})
+        unknown = sorted(set(args.only) - set(suite.SECTIONS) - {"accuracy", *NAMED_ONLY})
         if unknown:
             print(f"reloc bench: unknown section(s) {unknown}; expected some of "
-                  f"{[*suite.SECTIONS, 'accuracy', 'soak']}", file=sys.stderr)
+                  f"{[*suite.SECTIONS, 'accuracy', *NAMED_ONLY]}", file=sys.stderr)
             return 2
         conf = dataclasses.replace(conf, sections=tuple(s for s in suite.SECTIONS
                                                         if s in args.only))
@@ -121,6 +124,10 @@ def main(args: argparse.Namespace) -> int:
         from . import soak
 
         soak.run_into(result, soak_conf(args), args.workdir, suite.say)
+    if "attack" in (args.only or []):
+        from . import attack
+
+        attack.run_into(result, args.workdir, suite.say)
     from .targets import targets
 
     if baseline is not None:
@@ -161,7 +168,14 @@ def main(args: argparse.Namespace) -> int:
         from .soak import table_lines as soak_table
 
         print("\n".join(["", f"Soak ({_f(sk['load_s'], 0)} s):", *soak_table(sk)]))
+    ak = result.get("attack")
+    if ak and "error" not in ak:
+        from .attack import table_lines as attack_table
+
+        print("\n".join(["", f"Attack ({_f(ak['seconds'], 0)} s):", *attack_table(ak)]))
     failed = suite.failed_sections(result)
+    if ak and "error" not in ak and ak["broke"]:
+        failed.append(f"attack ({ak['broke']} of {ak['attempts']} attempts broke something)")
     if sk and "error" not in sk and (sk["keyframes"]["lost"] or sk["keyframes"]["duplicated"]):
         failed.append(f"soak ({sk['keyframes']['lost']} keyframes lost, "
                       f"{sk['keyframes']['duplicated']} duplicated)")
@@ -171,6 +185,10 @@ def main(args: argparse.Namespace) -> int:
         print(f"reloc bench: section(s) failed: {', '.join(failed)}", file=sys.stderr)
         return 1
     return 0
+
+
+#: Sections run only when named with ``--only`` (too long, or not a measurement of speed).
+NAMED_ONLY = ("soak", "attack")
 
 
 def write_json(path: Path, result: Mapping[str, Any]) -> None:

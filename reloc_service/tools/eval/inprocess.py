@@ -84,9 +84,15 @@ class InProcessBackend:
         return np.asarray(errors, dtype=np.float64)
 
     def close(self) -> None:
+        """Close the engine and stop the queries' helper threads: a step a chain started
+        ahead for the last query may still run inside OpenCV, and must end before the
+        interpreter does (:func:`~reloc_service.algorithms.relocalizers.overlap.close_helpers`)."""
+        from ...algorithms.relocalizers.overlap import close_helpers
+
         close = getattr(self.engine, "close", None)
         if close is not None:
             close()
+        close_helpers()
 
 
 def engine_conf(methods: Sequence[str], options: Mapping[str, Any],
