@@ -231,15 +231,16 @@ def put_acknowledged(client: Any, scene: TinyScene, ids: Sequence[int] | range) 
 def held_ids(client: Any, timeout: float = READY_TIMEOUT_S) -> set[int]:
     """The keyframe ids the client's map holds, once the map answers: after a start, maps
     are restored one by one after the first answers, and a fresh session learns the
-    service's queryables a moment after it opens (NoReplyError until then; raised after
-    ``timeout`` seconds)."""
-    from reloc_client.client import NoReplyError
+    service's queryables a moment after it opens (NoReplyError until then), and a map whose
+    journal still replays answers BUSY (its list is not whole yet); raised after ``timeout``
+    seconds."""
+    from reloc_client.client import NoReplyError, ServiceBusy
 
     deadline = time.monotonic() + timeout
     while True:
         try:
             return {info.id for info in client.keyframes(timeout=5.0)}
-        except NoReplyError:
+        except (NoReplyError, ServiceBusy):
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.5)
