@@ -27,6 +27,13 @@ Job = Callable[[float], None]
 _STOP = object()
 
 
+
+def _check_bounds(name: str, workers: int, queue_size: int, max_bytes: int | None) -> None:
+    """ValueError unless a pool's bounds are usable (both pools take the same ones)."""
+    if workers < 1 or queue_size < 1 or (max_bytes is not None and max_bytes < 1):
+        raise ValueError(f"{name}: expected workers >= 1, queue_size >= 1 and max_bytes "
+                         f">= 1 or None, got {workers}, {queue_size}, {max_bytes}")
+
 class WorkerPool:
     """``workers`` daemon threads serving a queue of at most ``queue_size`` waiting jobs and,
     if ``max_bytes`` is set, at most ``max_bytes`` of payload held by queued and running jobs
@@ -34,9 +41,7 @@ class WorkerPool:
 
     def __init__(self, name: str, *, workers: int, queue_size: int,
                  max_bytes: int | None = None) -> None:
-        if workers < 1 or queue_size < 1 or (max_bytes is not None and max_bytes < 1):
-            raise ValueError(f"{name}: expected workers >= 1, queue_size >= 1 and max_bytes "
-                             f">= 1 or None, got {workers}, {queue_size}, {max_bytes}")
+        _check_bounds(name, workers, queue_size, max_bytes)
         self.name = name
         self.max_bytes = max_bytes
         self._held_bytes = 0
@@ -162,9 +167,7 @@ class KeyedPool:
 
     def __init__(self, name: str, *, workers: int, queue_size: int,
                  max_bytes: int | None = None) -> None:
-        if workers < 1 or queue_size < 1 or (max_bytes is not None and max_bytes < 1):
-            raise ValueError(f"{name}: expected workers >= 1, queue_size >= 1 and max_bytes "
-                             f">= 1 or None, got {workers}, {queue_size}, {max_bytes}")
+        _check_bounds(name, workers, queue_size, max_bytes)
         self.name = name
         self.queue_size = queue_size
         self.max_bytes = max_bytes
