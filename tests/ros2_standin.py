@@ -340,3 +340,12 @@ def subscribe_px4(drone: StandIn, name: str = "/fmu/in/vehicle_visual_odometry"
         lambda sample: received.put(sample.payload.to_bytes())))
     drone.advertise("MS", name, PX4_VEHICLE_ODOMETRY, PX4_HASH)
     return received
+
+
+def px4_own_odometry(px4_timestamp_us: int) -> bytes:
+    """A VehicleOdometry as PX4 publishes it on /fmu/out/vehicle_odometry: ``timestamp`` on
+    PX4's boot clock (the pose itself is not read by the tests)."""
+    nan = float("nan")
+    body = struct.pack("<QQB3x3f4fB3x15fBb", px4_timestamp_us, px4_timestamp_us, 1,
+                       0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1, *([nan] * 6), *([0.01] * 9), 0, 0)
+    return b"\x00\x01\x00\x00" + body

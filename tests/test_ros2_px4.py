@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import re
+import time
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from ros2_standin import (
     PX4_HASH,
     StandIn,
     compressed_image,
+    px4_own_odometry,
     read_pose,
     read_trigger_response,
     read_vehicle_odometry,
@@ -131,6 +133,38 @@ def test_quality_and_microseconds():
     assert px4.microseconds(Time()) == 1_234_567_890
 
 
+def test_px4_clock_takes_the_least_delayed_sample_of_the_window_and_restarts_with_px4():
+    clock = px4.Px4Clock(window_s=2.0)
+    assert clock.offset_us(10_000_000) is None
+    # PX4 clock = wall - 9_000_000; received 3 ms, 1 ms, 7 ms after PX4 stamped them
+    for px4_us, latency in ((1_000_000, 3000), (1_010_000, 1000), (1_020_000, 7000)):
+        clock.observe(px4_us, px4_us + 9_000_000 + latency)
+    assert clock.offset_us(10_030_000) == -9_001_000
+    assert clock.offset_us(12_500_000) is None                     # all older than the window
+    clock.observe(2_000_000, 12_600_000)
+    clock.observe(50_000, 12_700_000)                              # PX4 rebooted
+    assert clock.offset_us(12_700_000) == 50_000 - 12_700_000
+
+
+def test_times_on_px4_clock_or_the_stamp_as_is():
+    class Time:
+        sec, nanosec = 100, 250_000_000
+
+    conf = px4.Px4Conf(enabled=True)
+    assert px4.Px4Publisher(None, b"", conf, None).times_us(Time(), 7) == (7, 100_250_000)
+    clock = px4.Px4Clock()
+    with_clock = px4.Px4Publisher(None, b"", conf, clock)
+    assert with_clock.times_us(Time(), 101_000_000) is None        # no PX4 sample yet
+    clock.observe(5_000_000, 100_000_000)                          # PX4 booted at wall 95 s
+    assert with_clock.times_us(Time(), 101_000_000) == (6_000_000, 5_250_000)
+    clock.observe(5_000_001, 100_000_001)
+
+    class Early:
+        sec, nanosec = 90, 0                                       # before PX4 booted: no
+
+    assert with_clock.times_us(Early(), 101_000_000) is None
+
+
 # -- the type -------------------------------------------------------------------------------------
 
 def test_type_hash_is_computed_from_the_shipped_msg_and_is_the_one_px4_keys_with():
@@ -175,12 +209,15 @@ def test_px4_is_off_by_default_and_its_section_is_checked():
         "enabled": True, "topic": "/px4_1/fmu/in/vehicle_visual_odometry", "world_frame": "ned",
         "body_frame": "frd", "pose_frame": "ned"}}}).ros2.px4
     assert conf == px4.Px4Conf(True, "/px4_1/fmu/in/vehicle_visual_odometry", "ned", "frd", "ned")
+    assert parse_config({"ros2": {"enabled": True, "px4": {"clock_topic": ""}}}).ros2.px4 \
+        == px4.Px4Conf(clock_topic="")
     bad = [({"px4": {"enabled": True}}, "needs ros2.enabled = true"),
            ({"enabled": True, "px4": {"frame": "enu"}}, r"unknown option\(s\) \['frame'\]"),
            ({"enabled": True, "px4": {"world_frame": "nwu"}}, r"world_frame: expected one of"),
            ({"enabled": True, "px4": {"body_frame": "rfu"}}, r"body_frame: expected one of"),
            ({"enabled": True, "px4": {"pose_frame": "enu"}}, r"pose_frame: expected one of"),
            ({"enabled": True, "px4": {"topic": "fmu/in/x"}}, r"expected an absolute ROS name"),
+           ({"enabled": True, "px4": {"clock_topic": "x"}}, r"clock_topic: expected an absol"),
            ({"enabled": True, "px4": True}, r"ros2.px4: expected a table")]
     for section, message in bad:
         with pytest.raises(ConfigError, match=message):
@@ -190,9 +227,12 @@ def test_px4_is_off_by_default_and_its_section_is_checked():
 # -- over Zenoh -------------------------------------------------------------------------------------
 
 def test_px4_receives_the_relocalized_pose_as_vehicle_odometry(synthetic_scene):
-    """The stand-in builds the map, subscribes as PX4's zenoh module does, calls Trigger: the
-    VehicleOdometry it decodes is the published ROS pose converted to NED/FRD by hand; after
-    ``bump_reset_counter`` the next one carries reset_counter 1."""
+    """The stand-in builds the map and subscribes as PX4's zenoh module does. Before PX4's
+    clock is known, a Trigger publishes the ROS pose but withholds the VehicleOdometry; once
+    the stand-in publishes PX4's own odometry (stamps on a clock that booted 1000 s ago), the
+    VehicleOdometry it decodes is the ROS pose converted to NED/FRD by hand, its
+    timestamp_sample the image stamp on PX4's clock; after ``bump_reset_counter`` the next one
+    carries reset_counter 1."""
     scene = synthetic_scene
     port = free_port()
     with open_router(port):
@@ -201,28 +241,46 @@ def test_px4_receives_the_relocalized_pose_as_vehicle_odometry(synthetic_scene):
         try:
             drone.subscribe_poses("/reloc/room/pose")
             received = subscribe_px4(drone)
-            tokens = wait_until(lambda: [t for t in drone.graph() if "/MP/" in t and
-                                         "%fmu%in%vehicle_visual_odometry/" in t])
-            assert tokens[0].endswith("/px4_msgs::msg::dds_::VehicleOdometry_/" + PX4_HASH
-                                      + "/::,10:,:,:,,")
+            graph = wait_until(lambda: (lambda g: g if any(
+                "/MS/" in t and "%fmu%out%vehicle_odometry/" in t for t in g) else None)(
+                    drone.graph()))
+            [token] = [t for t in graph if "/MP/" in t and "%fmu%in%vehicle_visual_odometry" in t]
+            assert token.endswith("/px4_msgs::msg::dds_::VehicleOdometry_/" + PX4_HASH
+                                  + "/::,10:,:,:,,")
             feed_map(drone, scene.camera.to_dict(), list(zip(
                 pngs(scene.keyframe_images), scene.keyframe_poses, strict=True)),
                 repeat_nearby=False)
             wait_until(lambda: len(service.maps["room"].map_state().keyframes) == 6, timeout=60)
             node = service.ros2.node("room")
             [png] = pngs(scene.query_images[:1])
-            for seq, reset in ((1, 0), (2, 1)):
-                t = stamp(200.0 + seq + 0.25)
+
+            def trigger(seq: int):
+                t = stamp(time.time())
                 before = service.ros2.counters["images"]
                 drone.publish("/camera/image_raw/compressed", CIMG, HASH[CIMG],
                               compressed_image(t, "camera", "png", png))
-                wait_until(lambda b=before: service.ros2.counters["images"] > b)
+                wait_until(lambda: service.ros2.counters["images"] > before)
                 [(payload, _att)] = drone.call_trigger("/reloc/room/relocalize", seq=seq)
                 success, message = read_trigger_response(payload)
                 assert success, message
-                ros_pose = read_pose(drone.poses.get(timeout=10)[0])
+                return t, message, read_pose(drone.poses.get(timeout=10)[0])
+
+            trigger(1)
+            assert node.px4.withheld == 1 and received.empty()      # PX4's clock unknown
+            boot_us = time.time_ns() // 1000 - 1_000_000_000
+            for _ in range(5):
+                drone.publish("/fmu/out/vehicle_odometry", "px4_msgs/msg/VehicleOdometry",
+                              PX4_HASH, px4_own_odometry(time.time_ns() // 1000 - boot_us))
+                time.sleep(0.02)
+            wait_until(lambda: node.px4.clock.samples == 5)
+            for seq, reset in ((2, 0), (3, 1)):
+                t, message, ros_pose = trigger(seq)
                 odom = read_vehicle_odometry(received.get(timeout=10))
-                _check_conversion(odom, ros_pose, t, message)
+                _check_conversion(odom, ros_pose, message)
+                on_px4_clock = t[0] * 1_000_000 + t[1] // 1000 - boot_us
+                # the offset is PX4's minus the least delayed sample's latency (loopback)
+                assert 0 <= on_px4_clock - odom.timestamp_sample < 50_000
+                assert abs(odom.timestamp - (time.time_ns() // 1000 - boot_us)) < 10_000_000
                 assert odom.reset_counter == reset
                 node.px4.bump_reset_counter()
             assert received.empty()
@@ -231,7 +289,7 @@ def test_px4_receives_the_relocalized_pose_as_vehicle_odometry(synthetic_scene):
             service.stop()
 
 
-def _check_conversion(odom, ros_pose, t, message) -> None:
+def _check_conversion(odom, ros_pose, message) -> None:
     """VehicleOdometry against the ROS pose (ENU map, FLU body), converted here independently."""
     ned_from_enu = np.array([[0, 1, 0], [1, 0, 0], [0, 0, -1]], dtype=float)
     enu_from_frd = ros_pose.map_from_body[:3, :3] @ np.diag([1.0, -1.0, -1.0])
@@ -251,7 +309,6 @@ def _check_conversion(odom, ros_pose, t, message) -> None:
                                np.diag(enu_from_frd.T @ cov[3:, 3:] @ enu_from_frd), rtol=1e-6)
     assert (odom.pose_frame, odom.velocity_frame) == (2, 0)          # FRD world, velocity unknown
     assert np.all(np.isnan(odom.velocity)) and np.all(np.isnan(odom.angular_velocity))
-    assert odom.timestamp_sample == t[0] * 1_000_000 + t[1] // 1000  # the image's stamp
     confidence = float(re.search(r"confidence (\d\.\d\d)", message).group(1))
     assert abs(odom.quality - 100 * confidence) <= 1
 

@@ -204,11 +204,19 @@ class MapNode:
                  conf.resolve(conf.relocalize_service, self.map_name))
 
     def _declare_px4(self) -> px4.Px4Publisher:
-        """The VehicleOdometry publisher PX4's zenoh module subscribes to (ros2/px4.py)."""
-        key, token = self._endpoint(graph.EntityKind.PUBLISHER, self.conf.px4.topic,
-                                    px4.vehicle_odometry_type())
-        publisher = px4.Px4Publisher(self.bridge.session.declare_publisher(key),
-                                     graph.gid_of(token), self.conf.px4)
+        """The VehicleOdometry publisher PX4's zenoh module subscribes to, and the subscriber
+        to PX4's own VehicleOdometry whose stamps give PX4's clock (ros2/px4.py)."""
+        conf, session, odometry = self.conf.px4, self.bridge.session, px4.vehicle_odometry_type()
+        clock = None
+        if conf.clock_topic:
+            clock_key, _ = self._endpoint(graph.EntityKind.SUBSCRIBER, conf.clock_topic, odometry)
+            clock = px4.Px4Clock()
+            # PX4's attachments differ from rmw_zenoh's across versions: the stamp is read
+            # from the payload, so every sample is taken
+            self._entities.append(session.declare_subscriber(clock_key, clock.on_sample))
+        key, token = self._endpoint(graph.EntityKind.PUBLISHER, conf.topic, odometry)
+        publisher = px4.Px4Publisher(session.declare_publisher(key), graph.gid_of(token), conf,
+                                     clock)
         self._entities.append(publisher.publisher)
         return publisher
 

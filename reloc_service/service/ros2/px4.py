@@ -23,13 +23,23 @@ Frames. reloc's map frame is the VIO's world frame and the pose is the VIO's bod
 
 reloc measures no velocity: ``velocity``, ``angular_velocity`` and ``velocity_variance`` are NaN
 (EKF2 uses a velocity only when all three values are finite) with VELOCITY_FRAME_UNKNOWN.
+
+Time. EKF2 places an external vision sample by ``timestamp_sample`` on PX4's boot clock, and
+PX4's zenoh module does no time synchronisation (it overwrites ``timestamp`` on receipt and
+keeps ``timestamp_sample``). :class:`Px4Clock` learns PX4's clock from the ``timestamp`` of
+PX4's own ``/fmu/out/vehicle_odometry``; ``timestamp_sample`` is the image stamp (the
+companion's wall clock, as ROS camera drivers stamp) moved onto it. Without a recent PX4
+sample the VehicleOdometry is withheld rather than sent on the wrong clock.
 """
 
 from __future__ import annotations
 
+import collections
 import functools
+import logging
 import math
 import re
+import struct
 import threading
 import time
 from dataclasses import dataclass
@@ -45,6 +55,7 @@ from . import convert, graph
 from . import types as ros
 
 Array = npt.NDArray[np.float64]
+log = logging.getLogger(__name__)
 
 VEHICLE_ODOMETRY = "px4_msgs/msg/VehicleOdometry"
 POSE_FRAME_NED = 1
@@ -78,6 +89,10 @@ class Px4Conf:
     #: ``frd``: the map's heading is arbitrary (POSE_FRAME_FRD); ``ned``: the map is aligned
     #: with true north (POSE_FRAME_NED).
     pose_frame: str = "frd"
+    #: PX4's own VehicleOdometry (its ``timestamp`` is PX4's boot clock): ``timestamp_sample``
+    #: is the image stamp moved onto that clock. "": the image stamp as is (a camera already
+    #: stamping in PX4's clock).
+    clock_topic: str = "/fmu/out/vehicle_odometry"
 
     def __post_init__(self) -> None:
         for key, choices in (("world_frame", WORLD_FRAMES), ("body_frame", BODY_FRAMES),
@@ -85,9 +100,12 @@ class Px4Conf:
             if getattr(self, key) not in choices:
                 raise ConfigError(f"ros2.px4.{key}: expected one of {list(choices)}, got "
                                   f"{getattr(self, key)!r}")
-        if not _ABSOLUTE_NAME.match(self.topic):
-            raise ConfigError(f"ros2.px4.topic: expected an absolute ROS name like "
-                              f"'/fmu/in/vehicle_visual_odometry', got {self.topic!r}")
+        for key, example in (("topic", "/fmu/in/vehicle_visual_odometry"),
+                             ("clock_topic", "/fmu/out/vehicle_odometry")):
+            value = getattr(self, key)
+            if not (_ABSOLUTE_NAME.match(value) or (key == "clock_topic" and value == "")):
+                raise ConfigError(f"ros2.px4.{key}: expected an absolute ROS name like "
+                                  f"{example!r}, got {value!r}")
 
 
 def px4_conf(value: Any) -> Px4Conf:
@@ -98,7 +116,7 @@ def px4_conf(value: Any) -> Px4Conf:
         return value
     if not isinstance(value, dict):
         raise ConfigError(f"ros2.px4: expected a table ([ros2.px4] with enabled, topic, "
-                          f"world_frame, body_frame, pose_frame), got {value!r}")
+                          f"world_frame, body_frame, pose_frame, clock_topic), got {value!r}")
     return make_conf(Px4Conf, value, owner="ros2.px4")
 
 
@@ -195,18 +213,72 @@ def vehicle_odometry(pose: Px4Pose, *, timestamp_us: int, timestamp_sample_us: i
         reset_counter=reset_counter % 256, quality=quality)
 
 
-# -- the publisher ----------------------------------------------------------------------------------
+# -- PX4's clock ------------------------------------------------------------------------------------
+
+#: The clock offset is the best of the PX4 samples received this recently: long enough to hold
+#: a sample that met no queueing (PX4 publishes vehicle_odometry at the EKF's rate, tens of Hz),
+#: short enough that the two crystals' drift (tens of ppm: under 0.1 ms here) does not matter.
+CLOCK_WINDOW_S = 2.0
+
+
+class Px4Clock:
+    """PX4's boot clock (``hrt_absolute_time``, microseconds) seen from the local wall clock,
+    from the ``timestamp`` of PX4's own messages (PX4's zenoh module is not time-synchronised:
+    it overwrites an incoming ``timestamp`` with its clock but keeps ``timestamp_sample``, which
+    EKF2 uses to place the sample in its delay buffer).
+
+    A sample received ``latency`` after PX4 stamped it gives ``px4 - received = offset -
+    latency <= offset``: the largest over the window is the least delayed sample's."""
+
+    def __init__(self, window_s: float = CLOCK_WINDOW_S) -> None:
+        self.window_us = int(window_s * 1e6)
+        self.samples = 0
+        self._seen: collections.deque[tuple[int, int]] = collections.deque()  # (local, offset)
+        self._last_px4 = -1
+        self._lock = threading.Lock()
+
+    def observe(self, px4_us: int, local_us: int) -> None:
+        """One PX4 stamp ``px4_us`` received at ``local_us`` (wall clock, microseconds)."""
+        with self._lock:
+            if px4_us < self._last_px4:      # PX4 rebooted: its clock started again
+                self._seen.clear()
+            self._last_px4 = px4_us
+            self._seen.append((local_us, px4_us - local_us))
+            self.samples += 1
+
+    def offset_us(self, now_us: int) -> int | None:
+        """PX4's clock minus the wall clock, from the samples of the last window; None
+        without one (PX4 silent, or not reachable)."""
+        with self._lock:
+            while self._seen and self._seen[0][0] < now_us - self.window_us:
+                self._seen.popleft()
+            return max((offset for _, offset in self._seen), default=None)
+
+    def on_sample(self, sample: Any) -> None:
+        """Zenoh callback on PX4's VehicleOdometry: its first field, ``timestamp``."""
+        received = time.time_ns() // 1000
+        data = sample.payload.to_bytes()
+        if len(data) < 12 or data[:2] not in (b"\x00\x01", b"\x00\x00"):
+            return
+        (px4_us,) = struct.unpack_from("<Q" if data[1] else ">Q", data, 4)
+        self.observe(px4_us, received)
+
+
+# -- the publisher ---------------------------------------------------------------------------------
 
 class Px4Publisher:
     """Publishes each relocalized pose as VehicleOdometry on an rmw_zenoh publisher (declared
     by the map's node, which owns its key and token)."""
 
-    def __init__(self, publisher: Any, gid: bytes, conf: Px4Conf) -> None:
+    def __init__(self, publisher: Any, gid: bytes, conf: Px4Conf,
+                 clock: Px4Clock | None = None) -> None:
         self.publisher = publisher
         self.gid = gid
         self.conf = conf
+        self.clock = clock
         self.reset_counter = 0
         self.published = 0
+        self.withheld = 0
         self._seq = 1
         self._lock = threading.Lock()
 
@@ -217,17 +289,31 @@ class Px4Publisher:
             self.reset_counter = (self.reset_counter + 1) % 256
             return self.reset_counter
 
+    def times_us(self, stamp: Any, now_us: int) -> tuple[int, int] | None:
+        """(timestamp, timestamp_sample) for an image stamped ``stamp`` (wall clock): on PX4's
+        clock when ``clock_topic`` is set (None while it is unknown, or when the image would
+        predate PX4's boot: another clock), else the wall clock and the stamp as they are."""
+        sample_us = microseconds(stamp)
+        if self.clock is None:
+            return now_us, sample_us
+        offset = self.clock.offset_us(now_us)
+        if offset is None or sample_us + offset < 0:
+            return None
+        return now_us + offset, sample_us + offset
+
     def publish(self, stamp: Any, out: convert.PoseOut, confidence: float) -> Any:
         """Publish ``out`` (the body pose in the map frame, as on the ROS pose topic) of the
-        image stamped ``stamp`` (builtin_interfaces/Time); ``timestamp_sample`` is that stamp in
-        microseconds, ``timestamp`` the wall clock now (PX4's zenoh module overwrites it with
-        its own clock on receipt). The message sent."""
+        image stamped ``stamp`` (builtin_interfaces/Time), with :meth:`times_us`. The message
+        sent, or None when withheld (PX4's clock unknown)."""
+        times = self.times_us(stamp, time.time_ns() // 1000)
+        if times is None:
+            self._withhold(stamp)
+            return None
         world_from_body = pose_from_tq(out.position, out.quat_xyzw)
         pose = px4_pose(world_from_body, out.covariance, world_frame=self.conf.world_frame,
                         body_frame=self.conf.body_frame)
         with self._lock:
-            msg = vehicle_odometry(pose, timestamp_us=time.time_ns() // 1000,
-                                   timestamp_sample_us=microseconds(stamp),
+            msg = vehicle_odometry(pose, timestamp_us=times[0], timestamp_sample_us=times[1],
                                    pose_frame=POSE_FRAMES[self.conf.pose_frame],
                                    reset_counter=self.reset_counter,
                                    quality=quality_of(confidence))
@@ -236,3 +322,13 @@ class Px4Publisher:
             self.publisher.put(ros.encode(msg, VEHICLE_ODOMETRY), attachment=attachment.encode())
             self.published += 1
         return msg
+
+    def _withhold(self, stamp: Any) -> None:
+        self.withheld += 1
+        if self.withheld == 1 or self.withheld % 100 == 0:
+            log.warning(
+                "PX4: VehicleOdometry withheld (%d so far): no sample of PX4's clock on %s in "
+                "the last %.0f s, or image stamp %.3f s predates PX4's boot; EKF2 places a "
+                "sample by its timestamp_sample, on PX4's clock (set [ros2.px4] clock_topic = "
+                "\"\" if the camera stamps in PX4's clock already)", self.withheld,
+                self.conf.clock_topic, CLOCK_WINDOW_S, microseconds(stamp) / 1e6)
