@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 from service_support import ROOT, endpoint, free_port, open_router, wait_until
 
 from reloc_service.core.errors import ConfigError
-from reloc_service.service.config import parse_config
+from reloc_service.service.config import load_config, parse_config
 from reloc_service.service.ros2 import px4
 from reloc_service.service.ros2 import types as ros
 from reloc_service.service.ros2.conf import Ros2Conf
@@ -222,6 +222,11 @@ def test_px4_is_off_by_default_and_its_section_is_checked():
     for section, message in bad:
         with pytest.raises(ConfigError, match=message):
             parse_config({"ros2": section})
+
+
+def test_the_deploy_example_documents_the_defaults():
+    conf = load_config(ROOT / "deploy" / "ros2" / "reloc-ros2.toml").ros2.px4
+    assert conf == px4.Px4Conf()
 
 
 # -- over Zenoh -------------------------------------------------------------------------------------

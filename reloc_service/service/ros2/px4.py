@@ -42,6 +42,7 @@ import re
 import struct
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import resources
 from typing import Any
@@ -51,6 +52,7 @@ import numpy.typing as npt
 
 from ...core.errors import ConfigError
 from ...core.geometry import matrix_to_quat_xyzw, pose_from_tq
+from ...core.plugins import make_conf
 from . import convert, graph
 from . import types as ros
 
@@ -110,11 +112,9 @@ class Px4Conf:
 
 def px4_conf(value: Any) -> Px4Conf:
     """``[ros2.px4]`` (a table, or a Px4Conf already) as a Px4Conf; ConfigError otherwise."""
-    from ...core.plugins import make_conf
-
     if isinstance(value, Px4Conf):
         return value
-    if not isinstance(value, dict):
+    if not isinstance(value, Mapping):
         raise ConfigError(f"ros2.px4: expected a table ([ros2.px4] with enabled, topic, "
                           f"world_frame, body_frame, pose_frame, clock_topic), got {value!r}")
     return make_conf(Px4Conf, value, owner="ros2.px4")
@@ -171,7 +171,7 @@ def px4_pose(world_from_body: Array, covariance: Array | None, *, world_frame: s
     x, y, z, w = matrix_to_quat_xyzw(ned_from_frd)
     unknown = covariance is None or not np.any(covariance)
     if unknown:
-        pos_var = rot_var = np.full(3, np.nan)
+        pos_var, rot_var = np.full(3, np.nan), np.full(3, np.nan)
     else:
         c = np.asarray(covariance, dtype=np.float64)
         pos_var = _diagonal(ned_w, c[:3, :3])
