@@ -16,6 +16,7 @@ import pytest
 from ros2_standin import (
     HASH,
     PX4_HASH,
+    PX4_VEHICLE_ODOMETRY,
     StandIn,
     compressed_image,
     px4_own_odometry,
@@ -252,6 +253,12 @@ def test_px4_receives_the_relocalized_pose_as_vehicle_odometry(synthetic_scene):
             [token] = [t for t in graph if "/MP/" in t and "%fmu%in%vehicle_visual_odometry" in t]
             assert token.endswith("/px4_msgs::msg::dds_::VehicleOdometry_/" + PX4_HASH
                                   + "/::,10:,:,:,,")
+            # a PX4 of another message version subscribes with another hash: reported
+            other = "RIHS01_" + "0" * 64
+            drone.advertise("MS", "/fmu/in/vehicle_visual_odometry", PX4_VEHICLE_ODOMETRY, other)
+            wait_until(lambda: ("/fmu/in/vehicle_visual_odometry",
+                                "px4_msgs::msg::dds_::VehicleOdometry_", other)
+                       in service.ros2.mismatches)
             feed_map(drone, scene.camera.to_dict(), list(zip(
                 pngs(scene.keyframe_images), scene.keyframe_poses, strict=True)),
                 repeat_nearby=False)
