@@ -128,7 +128,7 @@ def _time(stamp_ns: int) -> Any:
     return ros.message("builtin_interfaces/msg/Time", sec=seconds, nanosec=nanoseconds)
 
 
-def _header(stamp_ns: int, frame_id: str) -> Any:
+def header_message(stamp_ns: int, frame_id: str) -> Any:
     return ros.message("std_msgs/msg/Header", stamp=_time(stamp_ns), frame_id=frame_id)
 
 
@@ -145,7 +145,7 @@ def camera_info_message(camera: Camera, header: Any = None) -> Any:
                  dtype=np.float64)
     roi = ros.message("sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0,
                       width=0, do_rectify=False)
-    return ros.message(ros.CAMERA_INFO, header=header or _header(0, ""), height=camera.height,
+    return ros.message(ros.CAMERA_INFO, header=header or header_message(0, ""), height=camera.height,
                        width=camera.width, distortion_model=models[camera.model],
                        d=np.array(d, dtype=np.float64), k=k, r=np.eye(3).ravel(), p=p,
                        binning_x=0, binning_y=0, roi=roi)
@@ -155,16 +155,16 @@ def _frame_messages(dataset: Dataset, entry: DatasetEntry, stamp_ns: int, camera
                     layout: BagLayout) -> list[tuple[str, Any]]:
     """The messages of one frame: camera info, image, odometry (and transform)."""
     data = _image_bytes(dataset.root / entry.image_path)
-    header = _header(stamp_ns, entry.camera_id)
+    header = header_message(stamp_ns, entry.camera_id)
     camera_info = camera_info_message(camera, header)
     image = ros.message(ros.COMPRESSED_IMAGE, header=header,
                         format="png" if data.startswith(b"\x89PNG") else "jpeg",
                         data=np.frombuffer(data, dtype=np.uint8))
     world_from_body = entry.world_from_cam @ invert(layout.body_from_cam)
     messages = [(ros.CAMERA_INFO, camera_info), (ros.COMPRESSED_IMAGE, image),
-                (ros.ODOMETRY, _odometry(world_from_body, stamp_ns, layout))]
+                (ros.ODOMETRY, odometry_message(world_from_body, stamp_ns, layout))]
     if layout.tf_topic:
-        messages.append((TF_MESSAGE, _transform(world_from_body, stamp_ns, layout)))
+        messages.append((TF_MESSAGE, transform_message(world_from_body, stamp_ns, layout)))
     return messages
 
 
@@ -188,7 +188,7 @@ def _quaternion(rotation: Array) -> Any:
     return ros.message("geometry_msgs/msg/Quaternion", x=x, y=y, z=z, w=w)
 
 
-def _odometry(world_from_body: Array, stamp_ns: int, layout: BagLayout) -> Any:
+def odometry_message(world_from_body: Array, stamp_ns: int, layout: BagLayout) -> Any:
     """nav_msgs/Odometry of the body in the odometry frame; covariances all zero (unknown)."""
     m = ros.message
     pose = m("geometry_msgs/msg/Pose",
@@ -197,19 +197,19 @@ def _odometry(world_from_body: Array, stamp_ns: int, layout: BagLayout) -> Any:
     zero = np.zeros(3)
     twist = m("geometry_msgs/msg/Twist", linear=_vector("geometry_msgs/msg/Vector3", zero),
               angular=_vector("geometry_msgs/msg/Vector3", zero))
-    return m(ros.ODOMETRY, header=_header(stamp_ns, layout.odom_frame),
+    return m(ros.ODOMETRY, header=header_message(stamp_ns, layout.odom_frame),
              child_frame_id=layout.body_frame,
              pose=m("geometry_msgs/msg/PoseWithCovariance", pose=pose, covariance=np.zeros(36)),
              twist=m("geometry_msgs/msg/TwistWithCovariance", twist=twist,
                      covariance=np.zeros(36)))
 
 
-def _transform(world_from_body: Array, stamp_ns: int, layout: BagLayout) -> Any:
+def transform_message(world_from_body: Array, stamp_ns: int, layout: BagLayout) -> Any:
     """tf2_msgs/TFMessage with the one transform ``odom_frame -> body_frame``."""
     m = ros.message
     transform = m("geometry_msgs/msg/Transform",
                   translation=_vector("geometry_msgs/msg/Vector3", world_from_body[:3, 3]),
                   rotation=_quaternion(world_from_body[:3, :3]))
-    stamped = m("geometry_msgs/msg/TransformStamped", header=_header(stamp_ns, layout.odom_frame),
+    stamped = m("geometry_msgs/msg/TransformStamped", header=header_message(stamp_ns, layout.odom_frame),
                 child_frame_id=layout.body_frame, transform=transform)
     return m(TF_MESSAGE, transforms=[stamped])
