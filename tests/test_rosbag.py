@@ -170,6 +170,17 @@ def test_images_without_odometry_within_the_tolerance_are_left_out(tmp_path, cap
     assert "3 paired with a pose, 3 without a pose" in capsys.readouterr().out
 
 
+def test_a_topic_whose_type_hash_rosbags_computes_differently_does_not_stop_the_bag(tmp_path):
+    # rosbags' own hash of a type with a ``char`` field differs from rosidl's (the official
+    # one a real recording carries); its high-level reader refuses such a bag at open.
+    assert ros.type_hash("std_msgs/msg/Char") != ros.typestore().hash_rihs01("std_msgs/msg/Char")
+    stamps = [1_000_000_000, 1_100_000_000]
+    write_bag(tmp_path / "bag", images=stamps, odometry=stamps, char_topic=True)
+    assert from_bag(tmp_path / "bag", tmp_path / "out", "--odometry-topic", ODOM,
+                    "--camera-info-topic", INFO) == 0
+    assert len(read_dataset(tmp_path / "out").map_entries) == 2
+
+
 # -- raw images and damaged ones -------------------------------------------------------------
 
 def test_raw_images_become_grey_pngs_of_the_same_pixels(tmp_path):
@@ -356,10 +367,11 @@ def test_the_real_tum_fr1_rpy_set_through_a_bag_gives_the_same_map_and_eval_tabl
 
 def write_bag(path: Path, *, images: list[int], odometry: list[int] | None,
               raw: np.ndarray | None = None, image_topic: str = IMAGE,
-              corrupt: set[int] = frozenset()) -> None:  # type: ignore[assignment]
+              corrupt: set[int] = frozenset(), char_topic: bool = False) -> None:  # type: ignore[assignment]
     """A bag of the mini set's first image at ``images`` stamps (ns; a CompressedImage PNG, or
     ``raw`` as a bgr8 Image), its CameraInfo once, and identity-pose odometry at ``odometry``
-    stamps (None: no odometry topic)."""
+    stamps (None: no odometry topic); ``char_topic``: also a std_msgs/Char topic under its
+    official type hash, as ROS 2 records it."""
     from rosbags.rosbag2 import Writer
 
     from reloc_service.tools.data.dataset import read_cameras
@@ -374,6 +386,12 @@ def write_bag(path: Path, *, images: list[int], odometry: list[int] | None,
         info_conn = writer.add_connection(INFO, ros.CAMERA_INFO, typestore=store)
         odom_conn = (writer.add_connection(ODOM, ros.ODOMETRY, typestore=store)
                      if odometry is not None else None)
+        if char_topic:
+            msgdef, _ = store.generate_msgdef("std_msgs/msg/Char", ros_version=2)
+            char_conn = writer.add_connection("/status_char", "std_msgs/msg/Char", msgdef=msgdef,
+                                              rihs01=ros.type_hash("std_msgs/msg/Char"))
+            writer.write(char_conn, images[0], ros.encode(ros.message("std_msgs/msg/Char",
+                                                                      data=65), "std_msgs/msg/Char"))
         writer.write(info_conn, images[0], ros.encode(
             camera_info_message(camera, header_message(images[0], "cam")), ros.CAMERA_INFO))
         for stamp in images:

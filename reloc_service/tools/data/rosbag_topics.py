@@ -1,7 +1,13 @@
 """What a rosbag2 recording holds, read through rosbags (MCAP or SQLite3, a bag folder or its
 storage file): its topics and their types, each topic checked against the role it is given,
 and the header stamp of a message. Every problem is a DatasetError that names the topic and
-what the bag holds instead."""
+what the bag holds instead.
+
+Messages are decoded with the message definitions the live bridge uses (rosbags' Jazzy store,
+:mod:`~reloc_service.service.ros2.types`), not the bag's own: rosbags' high-level reader checks
+every topic's type hash at open with a hash function that differs from rosidl's for ``char``
+fields, so one unrelated topic of such a type (a service event, ``std_msgs/Char``) would make it
+refuse a real recording whole."""
 
 from __future__ import annotations
 
@@ -35,9 +41,9 @@ class TopicInfo:
 
 @contextlib.contextmanager
 def open_bag(path: Path) -> Iterator[Any]:
-    """An open ``rosbags.highlevel.AnyReader`` on the rosbag2 at ``path`` (a bag folder with
+    """An open ``rosbags.rosbag2.Reader`` on the rosbag2 at ``path`` (a bag folder with
     ``metadata.yaml``, or one ``.mcap`` / ``.db3`` file); DatasetError when it is not one."""
-    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.rosbag2 import Reader, ReaderError
 
     if not path.exists():
         raise DatasetError(f"bag {path} does not exist; expected a rosbag2 folder (with "
@@ -49,9 +55,9 @@ def open_bag(path: Path) -> Iterator[Any]:
         raise DatasetError(f"bag {path}: expected a rosbag2 folder (with metadata.yaml) or a "
                            f".mcap / .db3 file, got a {path.suffix or 'suffix-less'} file")
     try:
-        reader = AnyReader([path], default_typestore=ros.typestore())
+        reader = Reader(path)
         reader.open()
-    except (AnyReaderError, FileNotFoundError) as exc:
+    except (ReaderError, FileNotFoundError) as exc:
         raise DatasetError(f"bag {path}: cannot be read as a rosbag2 recording: {exc}") from None
     except Exception as exc:   # a damaged storage file raises whatever its parser raises
         raise DatasetError(f"bag {path}: cannot be read as a rosbag2 recording "
@@ -109,16 +115,14 @@ def stamp_ns(stamp: Any) -> int:
 
 def read_messages(reader: Any, connections: list[Any], *, desc: str) -> Iterator[tuple[str, Any]]:
     """(topic, message) of the given connections in log order, with a progress line;
-    DatasetError when a message does not decode."""
-    from rosbags.highlevel import AnyReaderError
-
+    DatasetError naming the topic when a message does not decode."""
     from ...core.progress import progress
 
+    assert connections, "an empty list would read every topic"
     total = sum(int(c.msgcount) for c in connections)
     for connection, _, raw in progress(reader.messages(connections=connections), total=total,
                                        desc=desc):
         try:
-            yield connection.topic, reader.deserialize(raw, connection.msgtype)
-        except (AnyReaderError, ValueError, IndexError, AssertionError) as exc:
-            raise DatasetError(f"topic {connection.topic}: a {connection.msgtype} message does "
-                               f"not decode ({len(raw)} bytes): {exc}") from None
+            yield connection.topic, ros.decode(raw, connection.msgtype)
+        except ValueError as exc:
+            raise DatasetError(f"topic {connection.topic}: {exc}") from None
