@@ -181,6 +181,16 @@ def test_a_topic_whose_type_hash_rosbags_computes_differently_does_not_stop_the_
     assert len(read_dataset(tmp_path / "out").map_entries) == 2
 
 
+def test_pose_stamped_odometry_is_read_as_the_bridge_reads_it(tmp_path):
+    stamps = [1_000_000_000, 1_100_000_000, 1_200_000_000]
+    write_bag(tmp_path / "bag", images=stamps, odometry=[s + 4_000_000 for s in stamps],
+              odometry_type=ros.POSE_STAMPED)
+    assert from_bag(tmp_path / "bag", tmp_path / "out", "--odometry-topic", ODOM,
+                    "--camera-info-topic", INFO) == 0
+    xs = [e.world_from_cam[0, 3] for e in read_dataset(tmp_path / "out").map_entries]
+    np.testing.assert_allclose(xs, [1.004, 1.104, 1.204], atol=1e-12)
+
+
 # -- raw images and damaged ones -------------------------------------------------------------
 
 def test_raw_images_become_grey_pngs_of_the_same_pixels(tmp_path):
@@ -367,11 +377,13 @@ def test_the_real_tum_fr1_rpy_set_through_a_bag_gives_the_same_map_and_eval_tabl
 
 def write_bag(path: Path, *, images: list[int], odometry: list[int] | None,
               raw: np.ndarray | None = None, image_topic: str = IMAGE,
-              corrupt: set[int] = frozenset(), char_topic: bool = False) -> None:  # type: ignore[assignment]
+              corrupt: set[int] = frozenset(), char_topic: bool = False,
+              odometry_type: str = ros.ODOMETRY) -> None:  # type: ignore[assignment]
     """A bag of the mini set's first image at ``images`` stamps (ns; a CompressedImage PNG, or
-    ``raw`` as a bgr8 Image), its CameraInfo once, and identity-pose odometry at ``odometry``
-    stamps (None: no odometry topic); ``char_topic``: also a std_msgs/Char topic under its
-    official type hash, as ROS 2 records it."""
+    ``raw`` as a bgr8 Image), its CameraInfo once, and odometry (:func:`shift`) at ``odometry``
+    stamps (None: no odometry topic), of ``odometry_type`` (Odometry or PoseStamped);
+    ``char_topic``: also a std_msgs/Char topic under its official type hash, as ROS 2 records
+    it."""
     from rosbags.rosbag2 import Writer
 
     from reloc_service.tools.data.dataset import read_cameras
@@ -384,7 +396,7 @@ def write_bag(path: Path, *, images: list[int], odometry: list[int] | None,
         image_type = ros.IMAGE if raw is not None else ros.COMPRESSED_IMAGE
         image_conn = writer.add_connection(image_topic, image_type, typestore=store)
         info_conn = writer.add_connection(INFO, ros.CAMERA_INFO, typestore=store)
-        odom_conn = (writer.add_connection(ODOM, ros.ODOMETRY, typestore=store)
+        odom_conn = (writer.add_connection(ODOM, odometry_type, typestore=store)
                      if odometry is not None else None)
         if char_topic:
             msgdef, _ = store.generate_msgdef("std_msgs/msg/Char", ros_version=2)
@@ -407,5 +419,15 @@ def write_bag(path: Path, *, images: list[int], odometry: list[int] | None,
             writer.write(image_conn, stamp, ros.encode(msg, image_type))
         for stamp in odometry or []:
             assert odom_conn is not None
-            writer.write(odom_conn, stamp, ros.encode(odometry_message(np.eye(4), stamp, layout),
-                                                      ros.ODOMETRY))
+            odometry_msg = odometry_message(np.eye(4) + shift(stamp), stamp, layout)
+            if odometry_type == ros.POSE_STAMPED:
+                odometry_msg = ros.message(ros.POSE_STAMPED, header=odometry_msg.header,
+                                           pose=odometry_msg.pose.pose)
+            writer.write(odom_conn, stamp, ros.encode(odometry_msg, odometry_type))
+
+
+def shift(stamp_ns: int) -> np.ndarray:
+    """The odometry of the bags written here: the body moves 1 m/s along x."""
+    out = np.zeros((4, 4))
+    out[0, 3] = stamp_ns * 1e-9
+    return out

@@ -201,9 +201,10 @@ def _first_pass(reader: Any, bag: Path, options: RosbagOptions) -> _FirstPass:
             rows += _poses_of(msg, source, first.tf_edges)
         if topic == options.image_topic:
             first.image_stamps.append(stamp_ns(msg.header.stamp))
-            if first.first_image_size is None:
-                first.first_image_size = image_size(msg)
+            if len(first.image_stamps) == 1:
                 first.camera_frame = str(msg.header.frame_id)
+            if first.first_image_size is None:   # the first image that decodes
+                first.first_image_size = image_size(msg)
         if topic == info_topic:
             _note_camera_info(first, msg)
     first.poses, first.pose_count = _stamped_poses(rows, source, bag, first.tf_edges), len(rows)
@@ -266,7 +267,9 @@ def _camera(first: _FirstPass, source: CameraSource) -> Camera:
     if source.camera is not None:
         return source.camera
     if source.intrinsics is not None:
-        assert first.first_image_size is not None
+        if first.first_image_size is None:
+            raise DatasetError("--intrinsics: no image of the image topic decodes, so their size "
+                               "is unknown; expected JPEG/PNG or raw 8-bit images")
         width, height = first.first_image_size
         return PinholeCamera(width, height, *source.intrinsics)
     try:
