@@ -281,6 +281,19 @@ def test_a_camera_of_another_size_is_refused_and_nothing_is_left(tmp_path, capsy
     assert "is 640x480 px but the camera is 320x240" in err
 
 
+def test_a_camera_info_reloc_cannot_use_or_that_changes_is_refused(tmp_path, capsys):
+    stamps = [1_000_000_000, 1_100_000_000]
+    write_bag(tmp_path / "changes", images=stamps, odometry=stamps,
+              infos=(("plumb_bob", 517.306408), ("plumb_bob", 600.0)))
+    err = refused(capsys, tmp_path / "changes", tmp_path / "out", "--odometry-topic", ODOM,
+                  "--camera-info-topic", INFO)
+    assert f"topic {INFO}: the camera changes 1 time(s) during the recording" in err
+    write_bag(tmp_path / "model", images=stamps, odometry=stamps, infos=(("kannala", 500.0),))
+    err = refused(capsys, tmp_path / "model", tmp_path / "out", "--odometry-topic", ODOM,
+                  "--camera-info-topic", INFO)
+    assert f"topic {INFO}: camera_info: distortion model 'kannala'" in err
+
+
 def test_bad_arguments_and_places_are_refused(tmp_path, capsys):
     bag = to_bag(tmp_path)
     err = refused(capsys, bag, tmp_path / "out", "--odometry-topic", ODOM)
@@ -378,12 +391,13 @@ def test_the_real_tum_fr1_rpy_set_through_a_bag_gives_the_same_map_and_eval_tabl
 def write_bag(path: Path, *, images: list[int], odometry: list[int] | None,
               raw: np.ndarray | None = None, image_topic: str = IMAGE,
               corrupt: set[int] = frozenset(), char_topic: bool = False,
-              odometry_type: str = ros.ODOMETRY) -> None:  # type: ignore[assignment]
+              odometry_type: str = ros.ODOMETRY,
+              infos: tuple[tuple[str, float], ...] = ()) -> None:  # type: ignore[assignment]
     """A bag of the mini set's first image at ``images`` stamps (ns; a CompressedImage PNG, or
     ``raw`` as a bgr8 Image), its CameraInfo once, and odometry (:func:`shift`) at ``odometry``
     stamps (None: no odometry topic), of ``odometry_type`` (Odometry or PoseStamped);
     ``char_topic``: also a std_msgs/Char topic under its official type hash, as ROS 2 records
-    it."""
+    it; ``infos``: (distortion model, fx) of each CameraInfo (default: one, the set's)."""
     from rosbags.rosbag2 import Writer
 
     from reloc_service.tools.data.dataset import read_cameras
@@ -404,8 +418,10 @@ def write_bag(path: Path, *, images: list[int], odometry: list[int] | None,
                                               rihs01=ros.type_hash("std_msgs/msg/Char"))
             writer.write(char_conn, images[0], ros.encode(ros.message("std_msgs/msg/Char",
                                                                       data=65), "std_msgs/msg/Char"))
-        writer.write(info_conn, images[0], ros.encode(
-            camera_info_message(camera, header_message(images[0], "cam")), ros.CAMERA_INFO))
+        for i, (model, fx) in enumerate(infos or (("plumb_bob", camera.fx),)):
+            info = camera_info_message(camera, header_message(images[0] + i, "cam"))
+            info.distortion_model, info.k[0] = model, fx
+            writer.write(info_conn, images[0] + i, ros.encode(info, ros.CAMERA_INFO))
         for stamp in images:
             header = header_message(stamp, "cam")
             if raw is not None:

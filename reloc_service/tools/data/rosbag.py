@@ -259,8 +259,14 @@ def _stamped_poses(rows: list[tuple[float, Array]], source: PoseSource, bag: Pat
 def _note_camera_info(first: _FirstPass, msg: Any) -> None:
     if first.camera_info is None:
         first.camera_info = msg
-    elif convert.camera_dict(msg) != convert.camera_dict(first.camera_info):
+    elif _calibration(msg) != _calibration(first.camera_info):
         first.camera_info_changes += 1
+
+
+def _calibration(info: Any) -> tuple[Any, ...]:
+    """What of a CameraInfo makes the camera (compared, not yet checked)."""
+    return (int(info.width), int(info.height), str(info.distortion_model),
+            tuple(np.asarray(info.k, np.float64)), tuple(np.asarray(info.d, np.float64)))
 
 
 def _camera(first: _FirstPass, source: CameraSource) -> Camera:
