@@ -288,6 +288,11 @@ def test_a_camera_info_reloc_cannot_use_or_that_changes_is_refused(tmp_path, cap
     err = refused(capsys, tmp_path / "changes", tmp_path / "out", "--odometry-topic", ODOM,
                   "--camera-info-topic", INFO)
     assert f"topic {INFO}: the camera changes 1 time(s) during the recording" in err
+    write_bag(tmp_path / "later", images=stamps, odometry=stamps,
+              infos=(("plumb_bob", 517.306408), ("kannala", 500.0)))
+    err = refused(capsys, tmp_path / "later", tmp_path / "out", "--odometry-topic", ODOM,
+                  "--camera-info-topic", INFO)
+    assert "the camera changes 1 time(s)" in err
     write_bag(tmp_path / "model", images=stamps, odometry=stamps, infos=(("kannala", 500.0),))
     err = refused(capsys, tmp_path / "model", tmp_path / "out", "--odometry-topic", ODOM,
                   "--camera-info-topic", INFO)
