@@ -20,8 +20,6 @@ noise), so the whole suite runs in a few minutes on a loaded two-core machine.
 from __future__ import annotations
 
 import contextlib
-import json
-import sys
 import tempfile
 import time
 import traceback
@@ -76,7 +74,7 @@ def run_case(case: Case, arena: Arena) -> dict[str, Any]:
 
 def run_attack(names: Sequence[str] | None = None, *, workdir: Path | None = None,
                on_progress: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Run the cases ``names`` (default: all of :data:`CASES`, in order); the JSON section:
+    """Run the cases ``names`` (default: all of :data:`CASES`, group by group); the JSON section:
     one row per case and the totals."""
     unknown = sorted(set(names or ()) - set(CASES))
     if unknown:
@@ -90,7 +88,7 @@ def run_attack(names: Sequence[str] | None = None, *, workdir: Path | None = Non
         arena = Arena(folder, tiny_scene())
         stack.callback(arena.close)
         rows = []
-        for name in names or list(CASES):
+        for name in names or by_group():
             row = run_case(CASES[name], arena)
             rows.append(row)
             say(f"attack {name}: {row['attempts']} attempts, {row['clean']} clean, "
@@ -98,6 +96,11 @@ def run_attack(names: Sequence[str] | None = None, *, workdir: Path | None = Non
     totals = {k: sum(r[k] for r in rows) for k in ("attempts", "clean", "broke")}
     return {"cases": rows, **totals, "seconds": time.perf_counter() - started,
             "groups": {g: [c.name for c in CASES.values() if c.group == g] for g in GROUPS}}
+
+
+def by_group() -> list[str]:
+    """Every case name, the groups in :data:`GROUPS` order (each group's cases as registered)."""
+    return sorted(CASES, key=lambda name: GROUPS.index(CASES[name].group))
 
 
 def table_lines(attack: Mapping[str, Any]) -> list[str]:
@@ -132,6 +135,3 @@ def run_into(result: dict[str, Any], workdir: Path | None, say: Callable[[str], 
         return
     result.setdefault("section_seconds", {})["attack"] = result["attack"]["seconds"]
 
-
-if __name__ == "__main__":  # one case by name, for a quick look: python -m ... attack NAME
-    print(json.dumps(run_attack(sys.argv[1:] or None, on_progress=print), indent=1))

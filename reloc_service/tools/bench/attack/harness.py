@@ -105,7 +105,9 @@ class AttackService:
     needs. Its config and logs are kept in ``folder``."""
 
     def __init__(self, folder: Path, storage: Path | None = None, *,
-                 snapshot_every: int = 0, quotas: Mapping[str, int] | None = None) -> None:
+                 snapshot_every: int = 0, quotas: Mapping[str, int] | None = None,
+                 connect: Sequence[str] = (), service: Mapping[str, Any] | None = None
+                 ) -> None:
         self.folder = folder
         folder.mkdir(parents=True, exist_ok=True)
         self.storage = storage or folder / "storage"
@@ -115,8 +117,11 @@ class AttackService:
         doc["service"].update(allow_new_maps=True, train_on_load=False, fsync=True,
                               snapshot_every=snapshot_every,
                               instance=f"attack-{self.endpoint.rsplit(':', 1)[1]}")
+        doc["service"].update(service or {})
+        doc["zenoh"]["connect"] = list(connect)
         if quotas:
             doc["quotas"] = dict(quotas)
+        self.instance: str = doc["service"]["instance"]
         self.config = folder / "service.toml"
         self.config.write_text(toml_text(doc))
         self.proc: subprocess.Popen[bytes] | None = None
