@@ -87,6 +87,18 @@ def statuses(client: Any, content_hash: bool = True) -> dict[str, Any]:
     return out
 
 
+def wait_routed(client: Any, *instances: str, timeout: float = READY_TIMEOUT_S) -> None:
+    """Wait until every one of ``instances`` answers ``client`` through the router: a service
+    answers on its own endpoint before the router routes to it, and a put sent before then
+    never reaches it (a replica catches up later, but the case judges acknowledgements)."""
+    deadline = time.monotonic() + timeout
+    while not set(instances) <= set(statuses(client, content_hash=False)):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"instances {sorted(instances)} not reachable through the router "
+                               f"within {timeout:.0f} s")
+        time.sleep(0.5)
+
+
 def wait_status(client: Any, instance: str, accept: Any, timeout: float = 60.0) -> Any:
     """``instance``'s status once ``accept(status)`` holds, or its last status (None if it
     never answered) after ``timeout`` seconds."""
@@ -219,6 +231,7 @@ def replica_refuses(arena: Arena) -> list[Attempt]:
         attempts = []
         try:
             with RelocClient(hub, map=MAP_NAME, timeout=REPLY_TIMEOUT_S) as c:
+                wait_routed(c, full.instance, other.instance)
                 c.set_camera(CAMERA_ID, scene.camera, wait=True)
                 told: dict[int, tuple[str, ...]] = {}
                 for kf_id in range(6):
@@ -310,6 +323,7 @@ def replica_disk_full(arena: Arena) -> list[Attempt]:
             attempts = []
             try:
                 with RelocClient(hub, map=MAP_NAME, timeout=REPLY_TIMEOUT_S) as c:
+                    wait_routed(c, full.instance, other.instance)
                     c.set_camera(CAMERA_ID, scene.camera, wait=True)
                     for kf_id in range(4):
                         c.add_keyframe(kf_id, scene.image(kf_id), scene.pose(kf_id),
