@@ -13,7 +13,7 @@ import pytest
 from reloc_service.tools.bench import attack
 from reloc_service.tools.bench import cli as bench_cli
 
-#: The cases the suite must hold (more may be added: a deleted segment, replicas).
+#: The cases the suite must hold (more may be added).
 EXPECTED_CASES = {
     "garbage-new-maps": "input", "msgpack-nested-1e5": "input", "arrays-1000-deep": "input",
     "image-bomb": "input", "oversized-put": "input", "get-everything": "input",
@@ -22,7 +22,9 @@ EXPECTED_CASES = {
     "journal-bit-flip": "storage", "journal-zeroed-tail": "storage",
     "concurrent-delete-put-train": "storage", "quota-maps": "quota",
     "quota-keyframes": "quota", "quota-bytes": "quota", "another-maps-snapshot": "storage",
-    "current-rolled-back": "storage"}
+    "current-rolled-back": "storage", "journal-segment-lost": "storage",
+    "replica-another-map": "replica", "replica-catch-up": "replica",
+    "replica-refuses": "replica"}
 
 
 def test_the_registry_lists_every_case_with_a_known_group():

@@ -34,7 +34,7 @@ from ..algorithms.relocalizers.overlap import close_helpers
 from ..core.numeric import limit_blas_threads
 from ..engine import EngineConf, MappingConf
 from ..storage.lock import LockHeld
-from . import handlers
+from . import handlers, open_files
 from .codec import error_reply
 from .config import ServiceConf
 from .processes import EngineSpec, ProcessWorkers
@@ -382,6 +382,8 @@ def serve(conf: ServiceConf) -> int:
     native code, which aborts the process ("exception not rethrown"): the process then
     leaves with ``os._exit`` instead."""
     stop = stop_on_signals()
+    # Two files per served map: systemd's soft limit of 1024 holds about 380 of them.
+    open_files.raise_limit(max(conf.quotas.max_maps, len(conf.maps)))
     service = Service(conf)
     try:
         service.start(wait_ready=False)   # small maps are served while big ones replay
