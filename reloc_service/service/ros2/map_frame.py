@@ -148,6 +148,9 @@ class MapFrame:
     def __post_init__(self) -> None:
         self._lock = threading.Lock()
         self.session = 0
+        #: Counts the odometry's resets only: a sample is of the current odometry when its
+        #: epoch is this one (a session begun by a disagreement keeps the odometry it had).
+        self.epoch = 0
         self.defining = False
         self.estimate: Sample | None = None
         self.lost = False
@@ -167,9 +170,9 @@ class MapFrame:
         return State.UNANCHORED if self.estimate is None else State.ANCHORED
 
     def current(self) -> tuple[int, Sample | None]:
-        """(session, estimate or None) read together."""
+        """(odometry epoch, estimate or None) read together."""
         with self._lock:
-            return self.session, self.estimate
+            return self.epoch, self.estimate
 
     def status(self) -> dict[str, str]:
         """State, ``map_from_odom`` (``tx ty tz qx qy qz qw``) and counts, as strings."""
@@ -199,6 +202,7 @@ class MapFrame:
             if reason is None:
                 return False
             self.odom_frame_id = frame_id
+            self.epoch += 1
             self._new_session(f"odometry reset: {reason}")
             return True
 
@@ -226,10 +230,10 @@ class MapFrame:
             self.lost = lost
 
     # -- samples -------------------------------------------------------------------------------
-    def add_sample(self, sample: Sample, session: int) -> Verdict:
-        """Test ``sample`` (of odometry session ``session``) and update the state."""
+    def add_sample(self, sample: Sample, epoch: int) -> Verdict:
+        """Test ``sample`` (made with the odometry of ``epoch``) and update the state."""
         with self._lock:
-            if session != self.session or self.lost:
+            if epoch != self.epoch or self.lost:
                 self.counts["samples_ignored"] += 1
                 return Verdict.IGNORED
             self.counts["samples"] += 1

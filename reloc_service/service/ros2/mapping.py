@@ -50,12 +50,12 @@ PENDING_CANDIDATES = 64
 
 @dataclass(frozen=True)
 class Candidate:
-    """An image the rule selected, with its odometry (of odometry session ``session``)."""
+    """An image the rule selected, with its odometry."""
 
     image: Any                          # bridge.LatestImage
     odom_from_body: Array
     ros_covariance: Array | None        # the odometry's, ROS's convention
-    session: int
+    epoch: int                          # the odometry's (MapFrame.epoch)
     world_from_cam: Array | None        # predicted in the map frame (None: unanchored probe)
     depth_m: float | None
 
@@ -110,14 +110,15 @@ class Mapping:
         with self._lock:
             counts = {f"mapping_{k}": str(v) for k, v in sorted(self.counts.items())}
             known = len(self.keyframes)
+            waiting = len(self._queue) + (self._in_flight is not None)
         return {**self.frame.status(), "mapping": "on" if self.enabled else "paused",
-                "keyframes": str(known), **counts}
+                "keyframes": str(known), "candidates_waiting": str(waiting), **counts}
 
     # -- candidates (the bridge's worker) ------------------------------------------------------
     def consider(self, image: Any, odom_from_body: Array, ros_covariance: Array | None) -> None:
         """An image paired with the odometry of its stamp: maybe a keyframe (see module)."""
         odom_from_cam = odom_from_body @ self.node.body_from_cam
-        session, estimate = self.frame.current()
+        epoch, estimate = self.frame.current()
         if estimate is not None:
             self._republish_tf(image.stamp, estimate)
         if not self.enabled or self.node.lost:
@@ -136,16 +137,17 @@ class Mapping:
                 known = self._known()
                 if not self.rule.is_new(world_from_cam, known):
                     return
-                candidate = Candidate(image, odom_from_body, ros_covariance, session,
+                candidate = Candidate(image, odom_from_body, ros_covariance, epoch,
                                       world_from_cam, self.rule.nearest_depth(world_from_cam,
                                                                               known))
             else:
+                session = self.frame.session
                 if self._probe_session != session:
                     self._probes, self._probe_session = [], session
                 if not self.rule.is_new(odom_from_cam, self._probes):
                     return
                 self._probes.append((odom_from_cam, None))
-                candidate = Candidate(image, odom_from_body, ros_covariance, session, None, None)
+                candidate = Candidate(image, odom_from_body, ros_covariance, epoch, None, None)
             self._queue.append(candidate)
         self._pump()
 
@@ -182,12 +184,12 @@ class Mapping:
                 self.keyframes[kf_id] = (pose, median_scene_depth(state.keyframes[kf_id]))
 
     def _pump(self) -> None:
-        """Relocalize the next candidate of the current session, one at a time."""
+        """Relocalize the next candidate of the current odometry, one at a time."""
         with self._lock:
             if self._in_flight is not None:
                 return
-            session = self.frame.session
-            while self._queue and self._queue[0].session != session:
+            epoch = self.frame.epoch
+            while self._queue and self._queue[0].epoch != epoch:
                 self._queue.popleft()
                 self.count("stale_candidates")
             if not self._queue:
@@ -250,9 +252,9 @@ class Mapping:
         covariance_odom = self._odometry_covariance(candidate, odom_from_cam)
         sample = sample_of(map_from_cam, covariance_map, odom_from_cam,
                            np.zeros((6, 6)) if covariance_odom is None else covariance_odom)
-        verdict = self.frame.add_sample(sample, candidate.session)
+        verdict = self.frame.add_sample(sample, candidate.epoch)
         self.count(f"samples_{verdict.value}")
-        session, estimate = self.frame.current()
+        _, estimate = self.frame.current()
         if verdict in (Verdict.AGREES, Verdict.ANCHORED) and estimate is not None:
             self.publish_tf(candidate.image.stamp, estimate)
             self._add_if_new(candidate.image, candidate.odom_from_body,
