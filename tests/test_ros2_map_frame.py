@@ -34,7 +34,7 @@ from service_support import endpoint, free_port, open_router, wait_until
 from test_ros2_bridge import relocalize
 
 from reloc_service.core.errors import ConfigError
-from reloc_service.core.geometry import invert, se3_exp
+from reloc_service.core.geometry import invert, pose_from_tum, se3_exp, se3_log
 from reloc_service.service.app import Service
 from reloc_service.service.ros2 import types as ros
 from reloc_service.service.ros2.conf import Ros2Conf
@@ -79,16 +79,15 @@ def draw_sample(map_from_odom: np.ndarray, rng, odom_from_cam: np.ndarray | None
 
 def test_a_sample_composes_the_poses_and_its_covariance_is_the_sampled_one():
     """``map_from_cam @ inv(odom_from_cam)`` with ``Ad(odom_from_cam) (S_map + S_odom) Ad^T``:
-    the covariance of 4000 noisy samples (as log residuals) matches it."""
+    the covariance of 1500 noisy samples (as log residuals) matches it."""
     rng = np.random.default_rng(0)
     truth = invert(ODOM2_FROM_MAP)
-    draws = [draw_sample(truth, rng) for _ in range(4000)]
-    from reloc_service.core.geometry import se3_log
+    draws = [draw_sample(truth, rng) for _ in range(1500)]
     residuals = np.array([se3_log(invert(truth) @ s.map_from_odom) for s in draws])
     empirical = np.cov(residuals.T)
     predicted = draws[0].covariance
     np.testing.assert_allclose(np.sqrt(np.diag(empirical)), np.sqrt(np.diag(predicted)),
-                               rtol=0.08)
+                               rtol=0.1)
     exact = sample_of(truth @ pose(30.0, (1.0, -0.5, 1.2)), COV_RELOC,
                       pose(30.0, (1.0, -0.5, 1.2)), COV_ODOM)
     np.testing.assert_allclose(exact.map_from_odom, truth, atol=1e-12)
@@ -100,9 +99,9 @@ def test_agreement_is_a_chi_square_gate_on_the_summed_covariances():
     truth = invert(ODOM2_FROM_MAP)
     conf = MapFrameConf()
     assert conf.gate == pytest.approx(22.4577, abs=1e-3)   # chi2.ppf(0.999, 6)
-    pairs = [(draw_sample(truth, rng), draw_sample(truth, rng)) for _ in range(2000)]
+    pairs = [(draw_sample(truth, rng), draw_sample(truth, rng)) for _ in range(600)]
     agree = np.mean([mahalanobis2(a, b) <= conf.gate for a, b in pairs])
-    assert 0.995 <= agree <= 1.0
+    assert 0.99 <= agree <= 1.0
     jumped = draw_sample(np.eye(4), rng)
     assert mahalanobis2(pairs[0][0], jumped) > 1e4
 
@@ -372,23 +371,21 @@ def test_a_vio_restart_in_a_shifted_frame_adds_no_keyframe_in_the_wrong_frame(
         truth_by_stamp[t] = world_from_cam
         publish_frame(drone, t, "odom", ODOM2_FROM_MAP @ world_from_cam, png)
     settle(service, images + len(frames))
-    status = counts(service)
-    assert count_of(service, "mapping_samples_disagrees") == disagreed + 1
-    assert "disagrees with map_from_odom" in status["last_event"] or "anchored" in status[
-        "last_event"]
-    # map -> odom re-estimated: map_from_odom = inv(odom2_from_map)
-    from reloc_service.core.geometry import pose_from_tum
-    estimate = pose_from_tum(np.array(status["map_from_odom"].split(), float))
-    metres, degrees = pose_error(estimate, invert(ODOM2_FROM_MAP))
-    print(f"\nmap_from_odom re-estimated within {metres * 100:.2f} cm / {degrees:.2f} deg")
-    assert metres < 0.05 and degrees < 2.0
     # no keyframe in the wrong frame: every one added since sits where its image was taken
     added = [kf for k, kf in rt.map_state().keyframes.items() if k not in before]
-    print(f"{len(added)} keyframes added after the restart; status {status}")
+    print(f"{len(added)} keyframes added after the restart; status {counts(service)}")
     assert len(added) >= 2          # mapping resumed once anchored
     for kf in added:
         metres, degrees = pose_error(kf.world_from_cam, truth_by_stamp[kf.timestamp])
         assert metres < 0.05 and degrees < 2.0, (kf.id, metres, degrees)
+    status = counts(service)
+    assert count_of(service, "mapping_samples_disagrees") == disagreed + 1
+    assert (status["state"], status["session"], status["resets"]) == ("anchored", "1", "1")
+    # map -> odom re-estimated: map_from_odom = inv(odom2_from_map)
+    estimate = pose_from_tum(np.array(status["map_from_odom"].split(), float))
+    metres, degrees = pose_error(estimate, invert(ODOM2_FROM_MAP))
+    print(f"\nmap_from_odom re-estimated within {metres * 100:.2f} cm / {degrees:.2f} deg")
+    assert metres < 0.05 and degrees < 2.0
     # the last /tf: map -> odom with the estimate, official hash in the key
     readings = []
 

@@ -22,7 +22,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -34,9 +34,6 @@ from . import convert, graph
 from . import types as ros
 from .keyframe_rule import KeyframeRule, Rule, median_scene_depth
 from .map_frame import MapFrame, MapFrameConf, Sample, Verdict, sample_of
-
-if TYPE_CHECKING:
-    from .bridge import MapNode
 
 log = logging.getLogger(__name__)
 
@@ -60,10 +57,26 @@ class Candidate:
     depth_m: float | None
 
 
+class MappedNode(Protocol):
+    """What the mapping needs of its map node (:class:`.bridge.MapNode`)."""
+
+    bridge: Any
+    conf: Any
+    map_name: str
+    body_from_cam: Array
+    lost: bool
+
+    def put_keyframe(self, latest: Any, world_from_cam: Array,
+                     pose_covariance: tuple[float, ...] | None) -> int: ...
+
+    def keyframe_covariance(self, ros_covariance: Array | None, world_from_cam: Array,
+                            world_from_body: Array) -> tuple[float, ...] | None: ...
+
+
 class Mapping:
     """One map node's mapping (see module docstring)."""
 
-    def __init__(self, node: MapNode, camera_id: str, *, map_is_empty: bool) -> None:
+    def __init__(self, node: MappedNode, camera_id: str, *, map_is_empty: bool) -> None:
         conf = node.conf
         self.node = node
         self.camera_id = camera_id
