@@ -7,6 +7,8 @@ scene depth (keyframe_rule.py), and over real Zenoh, driven as a drone node woul
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 from ros2_standin import (
@@ -411,3 +413,40 @@ def test_a_vio_restart_in_a_shifted_frame_adds_no_keyframe_in_the_wrong_frame(
             metres, degrees = pose_error(reading.map_from_body,
                                          world_from_cam @ invert(body_from_cam()))
             assert metres < 0.25 and degrees < 10.0, (i, metres, degrees, message)
+
+
+def test_a_new_odometry_frame_id_stops_mapping_until_anchored_again(mapped, synthetic_scene,
+                                                                    caplog):
+    """The VIO comes back in frame ``odom_2`` (turned -45 deg, shifted 1 m): the odometry
+    itself says it is a new session, no relocalization has to disagree; the session is
+    anchored from the next relocalizations and /tf names ``odom_2`` as the child."""
+    service, drone, tf, _views = mapped
+    scene = synthetic_scene
+    odom3_from_map = pose(-45.0, (0.0, 1.0, 0.2))
+    resets, disagreed = count_of(service, "resets"), count_of(service, "samples_disagreed")
+    images = service.ros2.counters["images"]
+    shots = [0, 2, 4, 5]
+    caplog.set_level(logging.WARNING, logger="reloc_service.service.ros2.map_frame")
+    for i, k in enumerate(shots):
+        publish_frame(drone, 500.0 + i, "odom_2", odom3_from_map @ scene.keyframe_poses[k],
+                      pngs([scene.keyframe_images[k]])[0])
+    settle(service, images + len(shots))
+    status = counts(service)
+    assert count_of(service, "resets") == resets + 1
+    assert count_of(service, "samples_disagreed") == disagreed   # the odometry said so
+    assert any("frame id changed from 'odom' to 'odom_2'; mapping stops" in r.getMessage()
+               for r in caplog.records)
+    assert (status["state"], status["odom_frame_id"]) == ("anchored", "odom_2")
+    estimate = pose_from_tum(np.array(status["map_from_odom"].split(), float))
+    metres, degrees = pose_error(estimate, invert(odom3_from_map))
+    assert metres < 0.05 and degrees < 2.0
+    readings = []
+
+    def last_arrived() -> bool:
+        while not tf.empty():
+            readings.extend(read_tf(tf.get()[1]))
+        return bool(readings) and readings[-1].child == "odom_2"
+
+    wait_until(last_arrived)
+    metres, degrees = pose_error(readings[-1].parent_from_child, invert(odom3_from_map))
+    assert readings[-1].parent == "map" and metres < 0.05 and degrees < 2.0

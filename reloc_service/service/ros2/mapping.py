@@ -159,7 +159,7 @@ class Mapping:
                     self._probes, self._probe_session = [], session
                 if not self.rule.is_new(odom_from_cam, self._probes):
                     return
-                self._probes.append((odom_from_cam, None))
+                self._probes = [*self._probes[-(PENDING_CANDIDATES - 1):], (odom_from_cam, None)]
                 candidate = Candidate(image, odom_from_body, ros_covariance, epoch, None, None)
             self._queue.append(candidate)
         self._pump()
