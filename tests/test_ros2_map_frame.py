@@ -204,6 +204,17 @@ def test_the_overlap_rule_scales_with_the_scene_depth():
     assert rule.nearest_depth(moved, [(kf, None), (pose(0.0, (5.0, 0, 0)), 7.0)]) == 7.0
 
 
+def test_the_distance_rule_is_metres_or_angle():
+    from reloc_service.core.geometry import look_at
+
+    rule = KeyframeRule(Rule.DISTANCE, min_distance_m=0.1, min_angle_deg=10.0)
+    first = look_at((0, 0, 1), (0, 2, 1))
+    assert rule.is_new(first, [])
+    assert not rule.is_new(look_at((0.05, 0, 1), (0.05, 2, 1)), [(first, None)])
+    assert rule.is_new(look_at((0.15, 0, 1), (0.15, 2, 1)), [(first, None)])   # moved
+    assert rule.is_new(look_at((0, 0, 1), (0.6, 2, 1)), [(first, None)])       # turned 17 deg
+
+
 def test_scene_depth_of_a_keyframe_is_the_median_depth_of_its_map_points(synthetic_map,
                                                                          synthetic_scene):
     """The mapped synthetic room: each keyframe's depth from its triangulated map points is

@@ -99,6 +99,7 @@ class Mapping:
         self._can_relocalize = False
         self._depth_version = -1
         self._last_put: int | None = None
+        self._waited_for: int | None = None
         self._tf: Any = None
         self._tf_gid = b""
         self._tf_seq = itertools.count(1)
@@ -229,13 +230,16 @@ class Mapping:
             self._pump()
 
     def _wait_for_map(self) -> None:
-        """Until the map holds the last keyframe put (relocalized against the map as built)."""
+        """Until the map holds the last keyframe put (relocalized against the map as built);
+        a keyframe the writer refused (a quota) is waited for once, not by every candidate."""
         rt = self.node.bridge.host.maps.get(self.node.map_name)
+        last = self._last_put
+        if rt is None or last is None or last == self._waited_for:
+            return
         deadline = time.monotonic() + MAP_CATCH_UP_S
-        while (rt is not None and self._last_put is not None
-               and self._last_put not in rt.map_state().keyframes
-               and time.monotonic() < deadline):
+        while last not in rt.map_state().keyframes and time.monotonic() < deadline:
             time.sleep(0.01)
+        self._waited_for = last
 
     def _relocalize(self, candidate: Candidate, queued_s: float) -> tuple[Array, Array] | str:
         """(map_from_cam, its covariance) or why not."""
