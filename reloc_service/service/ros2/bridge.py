@@ -11,8 +11,10 @@ Per map, node ``<node_name>`` in namespace ``<namespace>/<map>``:
 - publishes ``geometry_msgs/PoseWithCovarianceStamped`` (the body pose in the map frame,
   the image's stamp, ROS's covariance convention);
 - builds the map: an image paired with the odometry of its stamp becomes a keyframe when
-  the keyframe rule says so; cameras and keyframes go through the service's writer (journaled
-  like any put);
+  the keyframe rule says so and, once the map can check it, it relocalizes in agreement with
+  its odometry (:mod:`.mapping`, :mod:`.map_frame`: ``map_from_odom`` per odometry session,
+  ``map -> odom`` on /tf, a std_srvs/SetBool ``mapping`` service); cameras and keyframes go
+  through the service's writer (journaled like any put);
 - declares the node, publisher, subscriber and service liveliness tokens and watches the
   graph: another node advertising one of our names with another type hash is reported loudly
   (rmw_zenoh would never deliver between them).
