@@ -360,3 +360,64 @@ def call_set_bool(drone: StandIn, name: str, data: bool, *, seq: int, timeout: f
         att = reply.ok.attachment.to_bytes() if reply.ok.attachment is not None else None
         out.append((success, message, att))
     return out
+
+
+# -- PX4: px4_msgs/msg/VehicleOdometry as PX4's zenoh module (v1.17) receives it ---------------
+
+#: The RIHS01 hash PX4's zenoh module puts in its VehicleOdometry keys (rosidl's hash of
+#: PX4's msg/versioned/VehicleOdometry.msg, as a third-party Zenoh client subscribed to PX4's
+#: ``/fmu/out/vehicle_odometry`` with it).
+PX4_VEHICLE_ODOMETRY = "px4_msgs/msg/VehicleOdometry"
+PX4_HASH = "RIHS01_4295b96ad312084aa35c84bdcec65ba2f57eb4f6a293d57d52d95acbe99ff817"
+
+
+@dataclass
+class VehicleOdometryReading:
+    timestamp: int
+    timestamp_sample: int
+    pose_frame: int
+    position: np.ndarray            # float32 values, as PX4 receives them
+    q: np.ndarray                   # w x y z
+    velocity_frame: int
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+    position_variance: np.ndarray
+    orientation_variance: np.ndarray
+    velocity_variance: np.ndarray
+    reset_counter: int
+    quality: int
+
+
+def read_vehicle_odometry(data: bytes) -> VehicleOdometryReading:
+    """CDR of VehicleOdometry: uint64 x2, uint8, float32[3], float32[4], uint8, float32[3] x5,
+    uint8, int8 (each aligned to its own size, counted after the 4-byte header)."""
+    r = Reader(data)
+    timestamp, sample = r._take("2Q", 8)
+    pose_frame = r.u8()
+    position, q = np.array(r._take("3f", 4)), np.array(r._take("4f", 4))
+    velocity_frame = r.u8()
+    vectors = [np.array(r._take("3f", 4)) for _ in range(5)]
+    reset_counter, quality = r._take("Bb", 1)
+    assert r.pos == len(r.body), (r.pos, len(r.body))     # nothing left over
+    return VehicleOdometryReading(timestamp, sample, pose_frame, position, q, velocity_frame,
+                                  *vectors, reset_counter, quality)
+
+
+def subscribe_px4(drone: StandIn, name: str = "/fmu/in/vehicle_visual_odometry"
+                  ) -> queue.Queue[bytes]:
+    """Subscribe as PX4's zenoh module does (its key, an MS token; it ignores attachments)."""
+    received: queue.Queue[bytes] = queue.Queue()
+    drone._subs.append(drone.session.declare_subscriber(
+        key(drone.domain, name, PX4_VEHICLE_ODOMETRY, PX4_HASH),
+        lambda sample: received.put(sample.payload.to_bytes())))
+    drone.advertise("MS", name, PX4_VEHICLE_ODOMETRY, PX4_HASH)
+    return received
+
+
+def px4_own_odometry(px4_timestamp_us: int) -> bytes:
+    """A VehicleOdometry as PX4 publishes it on /fmu/out/vehicle_odometry: ``timestamp`` on
+    PX4's boot clock (the pose itself is not read by the tests)."""
+    nan = float("nan")
+    body = struct.pack("<QQB3x3f4fB3x15fBb", px4_timestamp_us, px4_timestamp_us, 1,
+                       0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1, *([nan] * 6), *([0.01] * 9), 0, 0)
+    return b"\x00\x01\x00\x00" + body

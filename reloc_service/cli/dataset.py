@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "convert (TUM RGB-D, EuRoC) and check reloc datasets"
+HELP = "convert (TUM RGB-D, EuRoC, rosbag2) and check reloc datasets"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -40,7 +40,7 @@ from reloc_client import protocol as wire
 from ...core.geometry import pose_from_tq
 from .. import codec
 from ..workers import WorkerPool
-from . import convert, graph
+from . import convert, graph, px4
 from . import types as ros
 from .conf import Ros2Conf
 from .mapping import Mapping
@@ -199,6 +199,9 @@ class MapNode:
         self.service_key = service_key
         self._entities.append(session.declare_queryable(service_key, self._on_request,
                                                         complete=True))
+        self.px4: px4.Px4Publisher | None = None
+        if conf.px4.enabled:
+            self.px4 = self._declare_px4()
         for token in self._pending_tokens:
             self._tokens.append(session.liveliness().declare_token(token))
         log.info("ROS 2 node %s/%s (domain %d) serves map %s: pose on %s, service %s",
@@ -218,6 +221,23 @@ class MapNode:
         self.mapping.attach(tf_publisher, graph.gid_of(tf_token), service_key)
         self._entities.append(session.declare_queryable(service_key, self.mapping.on_request,
                                                         complete=True))
+
+    def _declare_px4(self) -> px4.Px4Publisher:
+        """The VehicleOdometry publisher PX4's zenoh module subscribes to, and the subscriber
+        to PX4's own VehicleOdometry whose stamps give PX4's clock (ros2/px4.py)."""
+        conf, session, odometry = self.conf.px4, self.bridge.session, px4.vehicle_odometry_type()
+        clock = None
+        if conf.clock_topic:
+            clock_key, _ = self._endpoint(graph.EntityKind.SUBSCRIBER, conf.clock_topic, odometry)
+            clock = px4.Px4Clock()
+            # PX4's attachments differ from rmw_zenoh's across versions: the stamp is read
+            # from the payload, so every sample is taken
+            self._entities.append(session.declare_subscriber(clock_key, clock.on_sample))
+        key, token = self._endpoint(graph.EntityKind.PUBLISHER, conf.topic, odometry)
+        publisher = px4.Px4Publisher(session.declare_publisher(key), graph.gid_of(token), conf,
+                                     clock)
+        self._entities.append(publisher.publisher)
+        return publisher
 
     def _endpoint(self, kind: graph.EntityKind, name: str, ros_type: str) -> tuple[str, str]:
         """(data key, token) of an endpoint; the token is declared after every entity."""
@@ -430,6 +450,8 @@ class MapNode:
         out = convert.body_pose(world_from_cam, covariance, self.body_from_cam)
         self.publish_pose(latest.stamp, out)
         self.bridge.count("poses")
+        if self.px4 is not None:
+            self.px4.publish(latest.stamp, out, reply.confidence)
         x, y, z = out.position
         return True, (f"relocalized: position {x:.3f} {y:.3f} {z:.3f} m in {self.conf.frame_id}, "
                       f"{reply.inliers} inliers, confidence {reply.confidence:.2f}")

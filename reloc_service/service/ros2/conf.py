@@ -13,6 +13,7 @@ from types import MappingProxyType
 from typing import Any
 
 from ...core.errors import ConfigError
+from .px4 import Px4Conf, px4_conf
 
 #: Distros whose rmw_zenoh puts RIHS01 type hashes in keys; Humble writes
 #: ``TypeHashNotSupported``.
@@ -89,7 +90,14 @@ class Ros2Conf:
     odometry_max_speed_m_s: float = 20.0
     odometry_max_turn_rate_deg_s: float = 720.0
 
+    #: ``[ros2.px4]``: the pose as px4_msgs/VehicleOdometry for PX4's zenoh module (ros2/px4.py).
+    px4: Px4Conf = field(default_factory=Px4Conf)
+
     def __post_init__(self) -> None:
+        object.__setattr__(self, "px4", px4_conf(self.px4))
+        if self.px4.enabled and not self.enabled:
+            raise ConfigError("ros2.px4.enabled = true needs ros2.enabled = true (the PX4 "
+                              "publisher belongs to each map's ROS 2 node)")
         if not 0 <= self.domain_id <= 232:
             raise ConfigError(f"ros2.domain_id: expected 0..232, got {self.domain_id}")
         _check_choice("distro", self.distro, DISTROS)

@@ -1,11 +1,14 @@
-"""``reloc dataset {from-tum,from-euroc,check}``: argument parsing and printing only; the work
-is in :mod:`.tum`, :mod:`.euroc` and :mod:`.dataset` (imported lazily to keep ``--help`` fast)."""
+"""``reloc dataset {from-tum,from-euroc,from-rosbag,to-rosbag,check}``: argument parsing and
+printing only; the work is in :mod:`.tum`, :mod:`.euroc`, :mod:`.rosbag_cli` and :mod:`.dataset`
+(imported lazily to keep ``--help`` fast)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 from typing import TYPE_CHECKING, Any
+
+from .rosbag_cli import add_rosbag_commands, run_rosbag_command
 
 if TYPE_CHECKING:
     from ...core.cameras import Camera
@@ -18,12 +21,12 @@ def add_dataset_arguments(parent: Any) -> argparse.ArgumentParser:
     its default ``func`` is :func:`main_dataset`."""
     if hasattr(parent, "add_parser"):
         parser = parent.add_parser(
-            "dataset", help="convert (TUM RGB-D, EuRoC) and check reloc datasets",
+            "dataset", help="convert (TUM RGB-D, EuRoC, rosbag2) and check reloc datasets",
             description="Convert public sequences to reloc dataset v1 folders, or check one.")
     else:
         parser = parent
     commands = parser.add_subparsers(dest="dataset_command", required=True,
-                                     metavar="{from-tum,from-euroc,check}")
+                                     metavar="{from-tum,from-euroc,from-rosbag,to-rosbag,check}")
     tum = commands.add_parser("from-tum", help="convert a TUM RGB-D sequence folder",
                               description="Convert a TUM RGB-D sequence (rgb.txt, depth.txt, "
                               "groundtruth.txt) to a reloc dataset, copying the chosen images.")
@@ -34,6 +37,7 @@ def add_dataset_arguments(parent: Any) -> argparse.ArgumentParser:
     euroc.add_argument("--cam", default="cam0", choices=["cam0", "cam1"],
                        help="camera to convert (default: cam0)")
     _add_conversion_arguments(euroc)
+    add_rosbag_commands(commands)
     check = commands.add_parser("check", help="validate a dataset and print a summary",
                                 description="Read a reloc dataset, validate it and print a "
                                 "summary; exit status 1 with the error if it is malformed.")
@@ -75,6 +79,8 @@ def main_dataset(args: argparse.Namespace) -> int:
     try:
         if args.dataset_command == "check":
             return _check(args)
+        if args.dataset_command in ("from-rosbag", "to-rosbag"):
+            return run_rosbag_command(args, format_summary)
         return _convert(args)
     except (RelocError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
