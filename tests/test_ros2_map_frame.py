@@ -279,10 +279,14 @@ def new_views(scene) -> list[tuple[np.ndarray, bytes]]:
 @pytest.fixture(scope="module")
 def mapped(synthetic_scene):
     """A service whose map "room" was built by a drone from the 6 synthetic keyframes (the
-    first session: its odometry frame ``odom`` is the map frame), the drone, and new views."""
+    first session: its odometry frame ``odom`` is the map frame), the drone, and new views.
+    The overlap rule at 10 % of the depth, 2 m assumed until the map knows it: the keyframes,
+    25 cm apart, are each a new view whatever their depth (1.24 to 2.11 m: 12 to 21 cm)."""
     port = free_port()
     with open_router(port):
-        service = start_service(port, "room")
+        service = start_service(port, "room", keyframe_rule="overlap",
+                                keyframe_overlap_fraction=FRACTION,
+                                keyframe_default_depth_m=DEFAULT_DEPTH_M)
         drone = StandIn(endpoint(port))
         drone.subscribe_poses("/reloc/room/pose")
         tf = subscribe_tf(drone)
@@ -299,6 +303,9 @@ def mapped(synthetic_scene):
         finally:
             drone.close()
             service.stop()
+
+
+FRACTION, DEFAULT_DEPTH_M = 0.1, 2.0
 
 
 def keyframe_count(service: Service) -> int:
@@ -324,6 +331,26 @@ def settle(service: Service, images: int) -> None:
     assert service.ros2.worker.join(timeout=60)    # every image considered
     wait_until(lambda: counts(service)["candidates_waiting"] == "0", timeout=90)
     service.wait_idle()
+
+
+def test_the_keyframe_distance_follows_the_scene_depth_the_map_knows(mapped, synthetic_scene):
+    """A keyframe's radius is 10 % of the depth of its map points, not of the assumed 2 m: a
+    camera between the two radii behind keyframe 2 is judged by the known one."""
+    service, drone, _tf, _views = mapped
+    state = service.maps["room"].map_state()
+    depth = median_scene_depth(state.keyframes[2])
+    assert depth is not None
+    known, assumed = FRACTION * depth, FRACTION * DEFAULT_DEPTH_M
+    assert abs(known - assumed) > 0.02
+    behind = synthetic_scene.keyframe_poses[2].copy()
+    behind[:3, 3] -= behind[:3, 2] * 0.5 * (known + assumed)   # back along the optical axis
+    [png] = pngs([synthetic_scene.render(behind)[0]])
+    before, images = keyframe_count(service), service.ros2.counters["images"]
+    publish_frame(drone, 105.0, "odom", behind, png)
+    settle(service, images + 1)
+    # farther than the known radius: a new keyframe; nearer: none (the assumed depth would
+    # have said the opposite)
+    assert keyframe_count(service) == before + (1 if known < assumed else 0), (known, assumed)
 
 
 def test_set_bool_pauses_and_resumes_mapping(mapped):
