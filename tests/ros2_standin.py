@@ -290,6 +290,78 @@ def read_dataset(root: Path) -> tuple[dict[str, Any], list[tuple[bytes, np.ndarr
     return camera, frames("map.txt"), frames("queries.txt")
 
 
+# -- the map frame: odometry in a named frame, /tf, the mapping SetBool service ----------------
+
+# Official RIHS01 hashes, from rosidl-generated type support code (tf2_msgs TFMessage,
+# std_srvs SetBool of Jazzy/Kilted).
+HASH["tf2_msgs/msg/TFMessage"] = (
+    "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087")
+HASH["std_srvs/srv/SetBool"] = (
+    "RIHS01_abe9e4bb6b41b40e6789712c00ec8871923e089af3f667a79992a428cff2da0a")
+
+
+def odometry_in(frame_id: str, stamp: tuple[int, int], odom_from_body: np.ndarray,
+                covariance: np.ndarray | None = None) -> bytes:
+    """nav_msgs/Odometry whose header names ``frame_id`` (a VIO's odometry frame)."""
+    q = Rotation.from_matrix(odom_from_body[:3, :3]).as_quat()
+    w = Writer().header(stamp, frame_id).string("base_link")
+    cov = np.zeros(36) if covariance is None else np.asarray(covariance, np.float64).ravel()
+    w.f64s(odom_from_body[:3, 3]).f64s(q).f64s(cov)
+    return w.f64s(np.zeros(6)).f64s(np.zeros(36)).done()
+
+
+@dataclass
+class TransformReading:
+    stamp: tuple[int, int]
+    parent: str
+    child: str
+    parent_from_child: np.ndarray
+
+
+def read_tf(data: bytes) -> list[TransformReading]:
+    """tf2_msgs/TFMessage: a sequence of geometry_msgs/TransformStamped."""
+    r = Reader(data)
+    out = []
+    for _ in range(r.u32()):
+        stamp = (r.i32(), r.u32())
+        parent = r.string()
+        child = r.string()
+        t, q = r.f64s(3), r.f64s(4)
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.from_quat(q).as_matrix()
+        pose[:3, 3] = t
+        out.append(TransformReading(stamp, parent, child, pose))
+    return out
+
+
+def subscribe_tf(drone: StandIn, name: str = "/tf") -> queue.Queue[tuple[str, bytes]]:
+    """Every /tf sample as (key, payload), on the official TFMessage hash."""
+    ros_type = "tf2_msgs/msg/TFMessage"
+    samples: queue.Queue[tuple[str, bytes]] = queue.Queue()
+    drone._subs.append(drone.session.declare_subscriber(
+        key(drone.domain, name, ros_type, HASH[ros_type]),
+        lambda s: samples.put((str(s.key_expr), s.payload.to_bytes()))))
+    drone.advertise("MS", name, ros_type, HASH[ros_type])
+    return samples
+
+
+def call_set_bool(drone: StandIn, name: str, data: bool, *, seq: int, timeout: float = 30.0
+                  ) -> list[tuple[bool, str, bytes | None]]:
+    """A std_srvs/SetBool call: (success, message, attachment) of every reply."""
+    ros_type = "std_srvs/srv/SetBool"
+    replies = drone.session.get(key(drone.domain, name, ros_type, HASH[ros_type]),
+                                payload=Writer().u8(1 if data else 0).done(),
+                                attachment=attachment(seq, drone.gid), timeout=timeout)
+    out = []
+    for reply in replies:
+        assert reply.ok is not None, reply.err.payload.to_bytes() if reply.err else None
+        r = Reader(reply.ok.payload.to_bytes())
+        success, message = bool(r.u8()), r.string()
+        att = reply.ok.attachment.to_bytes() if reply.ok.attachment is not None else None
+        out.append((success, message, att))
+    return out
+
+
 # -- PX4: px4_msgs/msg/VehicleOdometry as PX4's zenoh module (v1.17) receives it ---------------
 
 #: The RIHS01 hash PX4's zenoh module puts in its VehicleOdometry keys (rosidl's hash of

@@ -27,7 +27,9 @@ def body_from_cam() -> np.ndarray:
 
 def ros2_section(**extra) -> dict:
     q = Rotation.from_matrix(BODY_FROM_CAM_R).as_quat()
-    return {"enabled": True, "body_from_cam": [*BODY_FROM_CAM_T, *q], **extra}
+    # the fixed-metres rule the scenes below were laid out for (overlap rule: opt in)
+    return {"enabled": True, "body_from_cam": [*BODY_FROM_CAM_T, *q], "keyframe_rule": "distance",
+            **extra}
 
 
 def start_service(router_port: int, map_name: str, **ros2) -> Service:

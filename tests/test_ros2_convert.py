@@ -140,15 +140,6 @@ def test_raw_images_to_grey():
         convert.grey_from_raw(msg)
 
 
-def test_keyframe_rule_distance_or_angle():
-    select = convert.KeyframeSelector(min_distance_m=0.1, min_angle_deg=10.0)
-    first = look_at((0, 0, 1), (0, 2, 1))
-    assert select.is_new(first, [])
-    assert not select.is_new(look_at((0.05, 0, 1), (0.05, 2, 1)), [first])
-    assert select.is_new(look_at((0.15, 0, 1), (0.15, 2, 1)), [first])        # moved
-    assert select.is_new(look_at((0, 0, 1), (0.6, 2, 1)), [first])            # turned 17 deg
-
-
 def test_odometry_pairing_by_nearest_stamp():
     poses = convert.StampedPoses()
     assert poses.newest() == float("-inf")

@@ -48,16 +48,18 @@ def test_zenoh_ros2_sdk_sees_calls_and_reads_reloc(synthetic_scene, sdk_session)
         try:
             wait_until(lambda: any("/SS/" in t for t in drone.graph()))
             # a new session learns the graph over a moment (``ros2 topic list --spin-time``)
-            topics = wait_until(lambda: (lambda t: t if len(t) >= 5 else None)(
+            topics = wait_until(lambda: (lambda t: t if len(t) >= 6 else None)(
                 dict(get_topic_names_and_types(router_port=port, timeout=1.0))))
             assert topics == {
                 "/reloc/room/pose": ["geometry_msgs/msg/PoseWithCovarianceStamped"],
                 "/camera/image_raw/compressed": ["sensor_msgs/msg/CompressedImage"],
                 "/camera/camera_info": ["sensor_msgs/msg/CameraInfo"],
-                "/odom": ["nav_msgs/msg/Odometry"], "/reloc/room/lost": ["std_msgs/msg/Bool"]}
-            services = wait_until(lambda: dict(get_service_names_and_types(router_port=port,
-                                                                           timeout=1.0)))
-            assert services == {"/reloc/room/relocalize": ["std_srvs/srv/Trigger"]}
+                "/odom": ["nav_msgs/msg/Odometry"], "/reloc/room/lost": ["std_msgs/msg/Bool"],
+                "/tf": ["tf2_msgs/msg/TFMessage"]}
+            services = wait_until(lambda: (lambda s: s if len(s) >= 2 else None)(
+                dict(get_service_names_and_types(router_port=port, timeout=1.0))))
+            assert services == {"/reloc/room/relocalize": ["std_srvs/srv/Trigger"],
+                                "/reloc/room/mapping": ["std_srvs/srv/SetBool"]}
 
             feed_map(drone, scene.camera.to_dict(),
                      list(zip(pngs(scene.keyframe_images), scene.keyframe_poses, strict=True)),

@@ -11,8 +11,10 @@ Per map, node ``<node_name>`` in namespace ``<namespace>/<map>``:
 - publishes ``geometry_msgs/PoseWithCovarianceStamped`` (the body pose in the map frame,
   the image's stamp, ROS's covariance convention);
 - builds the map: an image paired with the odometry of its stamp becomes a keyframe when
-  the keyframe rule says so; cameras and keyframes go through the service's writer (journaled
-  like any put);
+  the keyframe rule says so and, once the map can check it, it relocalizes in agreement with
+  its odometry (:mod:`.mapping`, :mod:`.map_frame`: ``map_from_odom`` per odometry session,
+  ``map -> odom`` on /tf, a std_srvs/SetBool ``mapping`` service); cameras and keyframes go
+  through the service's writer (journaled like any put);
 - declares the node, publisher, subscriber and service liveliness tokens and watches the
   graph: another node advertising one of our names with another type hash is reported loudly
   (rmw_zenoh would never deliver between them).
@@ -41,6 +43,7 @@ from ..workers import WorkerPool
 from . import convert, graph, px4
 from . import types as ros
 from .conf import Ros2Conf
+from .mapping import Mapping
 
 log = logging.getLogger(__name__)
 
@@ -155,13 +158,10 @@ class MapNode:
                                conf.node_namespace(map_name))
         self.qos = graph.Qos(depth=conf.qos_depth)
         self.body_from_cam = pose_from_tq(conf.body_from_cam[:3], conf.body_from_cam[3:])
-        self.selector = convert.KeyframeSelector(conf.keyframe_min_distance_m,
-                                                 conf.keyframe_min_angle_deg)
         self.odometry = convert.StampedPoses()
         self.latest: LatestImage | None = None
         self.lost = False
         self.camera: dict[str, Any] | None = None
-        self.keyframe_poses: list[np.ndarray] = []
         self._pending: collections.deque[LatestImage] = collections.deque(maxlen=PENDING_IMAGES)
         self._images_lost = 0
         self._seq = itertools.count(1)
@@ -171,6 +171,11 @@ class MapNode:
         self._pending_tokens: list[str] = []      # declared once every entity exists
         self._next_kf_id = self._restore_keyframes()
         self._declare()
+
+    def map_frame_status(self) -> dict[str, str]:
+        """The map frame's state (anchored, unanchored, lost), ``map_from_odom``
+        (``tx ty tz qx qy qz qw``), whether mapping is on, and the counts, as strings."""
+        return self.mapping.status()
 
     # -- declarations --------------------------------------------------------------------------
     def _declare(self) -> None:
@@ -188,6 +193,7 @@ class MapNode:
         if conf.build_map:
             self._subscribe(conf.odometry_topic, odometry_type, self._on_odometry)
         self._subscribe(conf.lost_topic, ros.BOOL, self._on_lost)
+        self._declare_mapping()
         service_key, _ = self._endpoint(graph.EntityKind.SERVICE, conf.relocalize_service,
                                         ros.TRIGGER)
         self.service_key = service_key
@@ -202,6 +208,19 @@ class MapNode:
                  self.node.namespace, self.node.name, conf.domain_id, self.map_name,
                  conf.resolve(conf.pose_topic, self.map_name),
                  conf.resolve(conf.relocalize_service, self.map_name))
+
+    def _declare_mapping(self) -> None:
+        """The ``map -> odom`` publisher on /tf and the ``mapping`` SetBool service."""
+        conf, session = self.conf, self.bridge.session
+        tf_key, tf_token = self._endpoint(graph.EntityKind.PUBLISHER, conf.tf_topic,
+                                          ros.TF_MESSAGE)
+        tf_publisher = session.declare_publisher(tf_key)
+        self._entities.append(tf_publisher)
+        service_key, _ = self._endpoint(graph.EntityKind.SERVICE, conf.mapping_service,
+                                        ros.SET_BOOL)
+        self.mapping.attach(tf_publisher, graph.gid_of(tf_token), service_key)
+        self._entities.append(session.declare_queryable(service_key, self.mapping.on_request,
+                                                        complete=True))
 
     def _declare_px4(self) -> px4.Px4Publisher:
         """The VehicleOdometry publisher PX4's zenoh module subscribes to, and the subscriber
@@ -279,6 +298,7 @@ class MapNode:
         if flag.data and not self.lost:
             self._images_lost = 0      # every Nth image counted from the moment VIO was lost
         self.lost = bool(flag.data)
+        self.mapping.frame.set_lost(self.lost)
 
     def _on_odometry(self, msg: Any) -> None:
         odometry = self.conf.odometry_type == "odometry"
@@ -286,8 +306,10 @@ class MapNode:
         # nav_msgs/Odometry carries the pose's covariance (PoseStamped has none): kept with
         # the pose, it becomes the covariance of the keyframes made from it.
         covariance = np.array(msg.pose.covariance, np.float64) if odometry else None
-        self.odometry.add(convert.stamp_seconds(msg.header.stamp), convert.pose_of(pose),
-                          covariance)
+        stamp, odom_from_body = convert.stamp_seconds(msg.header.stamp), convert.pose_of(pose)
+        if self.mapping.frame.on_odometry(msg.header.frame_id, stamp, odom_from_body):
+            self.odometry = convert.StampedPoses()   # a reset: no image pairs across it
+        self.odometry.add(stamp, odom_from_body, covariance)
         self.bridge.count("odometry")
         self._retry_pending()
 
@@ -324,23 +346,25 @@ class MapNode:
             else:
                 self._pending.append(latest)
             return
-        world_from_body, ros_covariance = paired
-        world_from_cam = world_from_body @ self.body_from_cam
-        if not self.selector.is_new(world_from_cam, self.keyframe_poses):
-            return
+        odom_from_body, ros_covariance = paired
+        self.mapping.consider(latest, odom_from_body, ros_covariance)
+
+    def put_keyframe(self, latest: LatestImage, world_from_cam: np.ndarray,
+                     pose_covariance: tuple[float, ...] | None) -> int:
+        """Put ``latest`` as a keyframe at ``world_from_cam`` (the map frame) through the
+        service's writer; its id (called under the mapping's lock: one put at a time)."""
         kf_id = self._next_kf_id
         self._next_kf_id += 1
         put = wire.KeyframePut(id=kf_id, image=latest.image,
                                world_from_cam=wire.WirePose.from_matrix(world_from_cam),
                                camera_id=CAMERA_ID,
                                timestamp=convert.stamp_seconds(latest.stamp),
-                               pose_covariance=self._keyframe_covariance(
-                                   ros_covariance, world_from_cam, world_from_body))
+                               pose_covariance=pose_covariance)
         self.bridge.host.on_keyframe_sample(self.map_name, kf_id, put.encode())
-        self.keyframe_poses.append(world_from_cam)
         self.bridge.count("keyframes")
+        return kf_id
 
-    def _keyframe_covariance(self, ros_covariance: np.ndarray | None,
+    def keyframe_covariance(self, ros_covariance: np.ndarray | None,
                              world_from_cam: np.ndarray, world_from_body: np.ndarray
                              ) -> tuple[float, ...] | None:
         """The odometry's pose covariance as the keyframe's (36 row-major values), or None
@@ -357,12 +381,15 @@ class MapNode:
         return None if ours is None else tuple(float(v) for v in ours.ravel())
 
     def _restore_keyframes(self) -> int:
-        """Poses of the map's keyframes (the rule applies to them too); the next free id."""
+        """The map's keyframes to the mapping (the rule applies to them too; an empty map's
+        first odometry session defines the map frame); the next free id."""
         rt = self.bridge.host.maps.get(self.map_name)
-        if rt is None:
+        state = None if rt is None else rt.map_state()
+        self.mapping = Mapping(self, CAMERA_ID, map_is_empty=state is None
+                               or not state.keyframes)
+        if state is None:
             return 0
-        state = rt.map_state()
-        self.keyframe_poses = [kf.world_from_cam for kf in state.keyframes.values()]
+        self.mapping.restore(state)
         return max(state.keyframe_ids(), default=-1) + 1
 
     # -- the relocalize service -----------------------------------------------------------------

@@ -20,6 +20,7 @@ from .px4 import Px4Conf, px4_conf
 DISTROS = ("jazzy", "kilted", "rolling", "humble")
 IMAGE_TYPES = ("compressed", "raw")
 ODOMETRY_TYPES = ("odometry", "pose_stamped")
+KEYFRAME_RULES = ("overlap", "distance")
 _NAME = re.compile(r"^/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$")
 
 
@@ -62,6 +63,33 @@ class Ros2Conf:
     keyframe_min_angle_deg: float = 15.0
     #: An image and an odometry message pair when their stamps differ by at most this.
     max_stamp_difference_s: float = 0.02
+    # -- the map frame (deploy/ros2/README.md, "The map frame") --------------------------------
+    #: ``overlap``: a keyframe when the camera is farther than ``keyframe_overlap_fraction`` x
+    #: the scene depth of each keyframe (``keyframe_default_depth_m`` until the map knows it);
+    #: ``distance``: farther than ``keyframe_min_distance_m``. Either: or turned more than
+    #: ``keyframe_min_angle_deg``.
+    keyframe_rule: str = "overlap"
+    keyframe_overlap_fraction: float = 0.12
+    keyframe_default_depth_m: float = 2.0
+    #: std_srvs/SetBool: false pauses mapping, true resumes it.
+    mapping_service: str = "mapping"
+    #: ``map -> odom`` (tf2_msgs/TFMessage) is published here, child frame the odometry's
+    #: header.frame_id unless ``odom_frame_id`` names it; republished with the images at most
+    #: every ``tf_period_s`` while anchored (0: only when the estimate changes).
+    tf_topic: str = "/tf"
+    odom_frame_id: str = ""
+    tf_period_s: float = 0.1
+    #: A new odometry session is anchored by this many consecutive agreeing relocalizations;
+    #: agreement is a Mahalanobis distance below the chi-square quantile of this confidence.
+    anchor_samples: int = 3
+    anchor_confidence: float = 0.999
+    #: Keyframes are checked by relocalization once the map holds this many (before, the first
+    #: session of an empty map adds them unquestioned: they define the map frame).
+    anchor_min_keyframes: int = 3
+    #: Odometry moving faster than this between two messages has jumped (a reset; 0: off).
+    odometry_max_speed_m_s: float = 20.0
+    odometry_max_turn_rate_deg_s: float = 720.0
+
     #: ``[ros2.px4]``: the pose as px4_msgs/VehicleOdometry for PX4's zenoh module (ros2/px4.py).
     px4: Px4Conf = field(default_factory=Px4Conf)
 
@@ -75,6 +103,7 @@ class Ros2Conf:
         _check_choice("distro", self.distro, DISTROS)
         _check_choice("image_type", self.image_type, IMAGE_TYPES)
         _check_choice("odometry_type", self.odometry_type, ODOMETRY_TYPES)
+        _check_choice("keyframe_rule", self.keyframe_rule, KEYFRAME_RULES)
         if not self.namespace.startswith("/") or not (self.namespace == "/"
                                                        or _NAME.match(self.namespace)):
             raise ConfigError(f"ros2.namespace: expected an absolute ROS name like '/reloc', "
@@ -84,7 +113,7 @@ class Ros2Conf:
                 raise ConfigError(f"ros2.{key}: expected letters, digits and '_', got "
                                   f"{getattr(self, key)!r}")
         for key in ("image_topic", "camera_info_topic", "odometry_topic", "pose_topic",
-                    "relocalize_service", "lost_topic"):
+                    "relocalize_service", "lost_topic", "mapping_service", "tf_topic"):
             if not _NAME.match(getattr(self, key)):
                 raise ConfigError(f"ros2.{key}: expected a ROS name ('/a/b' or 'b'), got "
                                   f"{getattr(self, key)!r}")
@@ -105,6 +134,7 @@ class Ros2Conf:
             value = getattr(self, key)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"ros2.{key}: expected a number >= 0, got {value}")
+        self._check_map_frame_numbers()
         pose = self.body_from_cam
         if len(pose) != 7 or not all(isinstance(v, int | float) and math.isfinite(v)
                                      for v in pose):
@@ -113,6 +143,26 @@ class Ros2Conf:
         if abs(math.sqrt(sum(v * v for v in pose[3:])) - 1.0) > 1e-3:
             raise ConfigError(f"ros2.body_from_cam: the quaternion {list(pose[3:])} is not "
                               "unit length")
+
+    def _check_map_frame_numbers(self) -> None:
+        for key in ("keyframe_overlap_fraction", "keyframe_default_depth_m", "tf_period_s",
+                    "odometry_max_speed_m_s", "odometry_max_turn_rate_deg_s"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"ros2.{key}: expected a number >= 0, got {value}")
+        if self.keyframe_default_depth_m <= 0 or self.keyframe_overlap_fraction <= 0:
+            raise ConfigError(f"ros2: expected keyframe_overlap_fraction > 0 and "
+                              f"keyframe_default_depth_m > 0, got {self.keyframe_overlap_fraction}"
+                              f" and {self.keyframe_default_depth_m}")
+        if self.anchor_samples < 1 or self.anchor_min_keyframes < 1:
+            raise ConfigError(f"ros2: expected anchor_samples >= 1 and anchor_min_keyframes >= 1,"
+                              f" got {self.anchor_samples} and {self.anchor_min_keyframes}")
+        if not 0.5 < self.anchor_confidence < 1:
+            raise ConfigError(f"ros2.anchor_confidence: expected a probability in (0.5, 1), got "
+                              f"{self.anchor_confidence}")
+        if self.odom_frame_id and not re.match(r"^[A-Za-z_][A-Za-z0-9_/]*$", self.odom_frame_id):
+            raise ConfigError(f"ros2.odom_frame_id: expected a tf frame name, got "
+                              f"{self.odom_frame_id!r}")
 
     def node_namespace(self, map_name: str) -> str:
         """The namespace of map ``map_name``'s node (the map name made a ROS name chunk)."""

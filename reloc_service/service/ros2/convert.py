@@ -1,6 +1,6 @@
 """Conversions between ROS 2 messages and reloc's types: stamps, poses, the covariance in
-ROS's convention, CameraInfo to a camera, image messages to grey pixels, keyframe selection
-and the pairing of images with odometry."""
+ROS's convention, CameraInfo to a camera, image messages to grey pixels and the pairing of
+images with odometry (the keyframe rule is :mod:`.keyframe_rule`)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import numpy as np
 import numpy.typing as npt
 from reloc_client.protocol import pose_covariance_problem
 
-from ...core.geometry import invert, matrix_to_quat_xyzw, pose_from_tq, rotation_angle, se3_adjoint, skew
+from ...core.geometry import invert, matrix_to_quat_xyzw, pose_from_tq, se3_adjoint, skew
 
 Array = npt.NDArray[np.float64]
 
@@ -154,25 +154,7 @@ def grey_from_raw(image: Any) -> npt.NDArray[np.uint8]:
     return np.asarray(cv2.cvtColor(np.ascontiguousarray(pixels), code), dtype=np.uint8)
 
 
-# -- keyframe selection and pairing ------------------------------------------------------------
-
-@dataclass(frozen=True)
-class KeyframeSelector:
-    """SVO's keyframe rule on metric thresholds: a frame is a new keyframe when its camera is
-    farther than ``min_distance_m`` from every keyframe or looks ``min_angle_deg`` away from
-    each of them."""
-
-    min_distance_m: float
-    min_angle_deg: float
-
-    def is_new(self, world_from_cam: Array, keyframes_world_from_cam: list[Array]) -> bool:
-        for kf in keyframes_world_from_cam:
-            distance = float(np.linalg.norm(kf[:3, 3] - world_from_cam[:3, 3]))
-            angle = np.degrees(rotation_angle(kf[:3, :3].T @ world_from_cam[:3, :3]))
-            if distance <= self.min_distance_m and angle <= self.min_angle_deg:
-                return False
-        return True
-
+# -- pairing -----------------------------------------------------------------------------------
 
 class StampedPoses:
     """The last ``size`` odometry poses by stamp (each with its ROS pose covariance, 36

@@ -27,6 +27,8 @@ IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 BOOL = "std_msgs/msg/Bool"
 TRIGGER = "std_srvs/srv/Trigger"
+SET_BOOL = "std_srvs/srv/SetBool"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
 #: What rmw_zenoh on Humble writes instead of a hash (Humble has no type hashes).
 HASH_NOT_SUPPORTED = "TypeHashNotSupported"
@@ -64,15 +66,36 @@ def _trigger_fielddefs() -> dict[str, Any]:
     }
 
 
+def _set_bool_fielddefs() -> dict[str, Any]:
+    """std_srvs/srv/SetBool as rosidl generates it (request ``bool data``; response ``bool
+    success``, ``string message``; its event), in the format of :func:`_trigger_fielddefs`."""
+    from rosbags.typesys.base import Nodetype
+
+    base = lambda t: (Nodetype.BASE, (t, 0))  # noqa: E731
+    at_most_one = lambda t: (Nodetype.SEQUENCE, ((Nodetype.NAME, t), 1))  # noqa: E731
+    return {
+        "std_srvs/srv/SetBool_Request": ([], [("data", base("bool"))]),
+        "std_srvs/srv/SetBool_Response": ([], [("success", base("bool")),
+                                               ("message", base("string"))]),
+        "std_srvs/srv/SetBool_Event": ([], [
+            ("info", (Nodetype.NAME, "service_msgs/msg/ServiceEventInfo")),
+            ("request", at_most_one("std_srvs/srv/SetBool_Request")),
+            ("response", at_most_one("std_srvs/srv/SetBool_Response"))]),
+    }
+
+
 _SERVICES = {TRIGGER: ("std_srvs/srv/Trigger_Request", "std_srvs/srv/Trigger_Response",
-                       "std_srvs/srv/Trigger_Event")}
+                       "std_srvs/srv/Trigger_Event"),
+             SET_BOOL: ("std_srvs/srv/SetBool_Request", "std_srvs/srv/SetBool_Response",
+                        "std_srvs/srv/SetBool_Event")}
 
 
 @functools.lru_cache(maxsize=1)
 def typestore() -> Typestore:
-    """rosbags' Jazzy type store plus the Trigger service's messages."""
+    """rosbags' Jazzy type store plus the Trigger and SetBool services' messages."""
     store = get_typestore(Stores.ROS2_JAZZY)
     store.register(_trigger_fielddefs())
+    store.register(_set_bool_fielddefs())
     return store
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core.errors import DatasetError
-from ...service.ros2.convert import KeyframeSelector
+from ...service.ros2.keyframe_rule import KeyframeRule, Rule
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.intp]
@@ -62,7 +62,10 @@ def select_frames(times: Array, world_from_cam: Array, selection: Selection
     if selection.keyframe_rule is None:
         keyframes = candidates[::selection.keyframe_every]
     else:
-        keyframes = _by_rule(candidates, world_from_cam, KeyframeSelector(*selection.keyframe_rule))
+        distance_m, angle_deg = selection.keyframe_rule
+        keyframes = _by_rule(candidates, world_from_cam,
+                             KeyframeRule(Rule.DISTANCE, min_distance_m=distance_m,
+                                          min_angle_deg=angle_deg))
     if keyframes.size == 0:
         raise DatasetError(f"frame selection: no map keyframe among {len(times)} paired images "
                            f"(images span {times[0]:.3f} .. {times[-1]:.3f} s; map time range "
@@ -78,10 +81,10 @@ def _queries(times: Array, selection: Selection) -> IntArray:
     return in_range if selection.query_range is not None else np.zeros(0, dtype=np.intp)
 
 
-def _by_rule(candidates: IntArray, world_from_cam: Array, rule: KeyframeSelector) -> IntArray:
+def _by_rule(candidates: IntArray, world_from_cam: Array, rule: KeyframeRule) -> IntArray:
     chosen: list[int] = []
     for i in candidates:
-        if rule.is_new(world_from_cam[i], [world_from_cam[k] for k in chosen]):
+        if rule.is_new(world_from_cam[i], [(world_from_cam[k], None) for k in chosen]):
             chosen.append(int(i))
     return np.array(chosen, dtype=np.intp)
 
