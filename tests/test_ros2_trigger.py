@@ -62,7 +62,7 @@ def rig(synthetic_scene):
     port = free_port()
     with open_router(port):
         service = start_service(port, "trig", trigger_wait_s=1.0, max_image_age_s=1.0,
-                                diagnostics_period_s=0.5)
+                                diagnostics_period_s=0.5, relocalize_every_n=1)
         drone = LatchingStandIn(endpoint(port))
         try:
             diagnostics = drone.subscribe("/diagnostics", DIAG, rosbags_hash(DIAG))
@@ -234,6 +234,35 @@ def test_a_keyframe_the_map_refuses_is_reported(rig, synthetic_scene):
     assert status.values["last keyframe image stamp"] == "5000.000000000"
 
 
+def test_a_failed_lost_mode_relocalization_is_reported(rig, synthetic_scene):
+    """While lost, each image is relocalized without a call (relocalize_every_n = 1); one
+    that fails is logged as a WARNING and counted on /diagnostics."""
+    service, drone, diagnostics, records = rig
+    node = service.ros2.node("trig")
+    drone.publish("/reloc/trig/lost", "std_msgs/msg/Bool", rosbags_hash("std_msgs/msg/Bool"),
+                  b"\x00\x01\x00\x00\x01")
+    wait_until(lambda: node.lost)
+    try:
+        [png] = pngs(synthetic_scene.query_images[:1])
+        damaged = bytearray(png)
+        damaged[len(png) // 2: len(png) // 2 + 64] = bytes(64)
+        publish_image(drone, stamp(6000.0), bytes(damaged))
+        wait_until(lambda: node.status.counters["lost_mode_failed"] == 1, timeout=30)
+    finally:
+        drone.publish("/reloc/trig/lost", "std_msgs/msg/Bool",
+                      rosbags_hash("std_msgs/msg/Bool"), b"\x00\x01\x00\x00\x00")
+        wait_until(lambda: not node.lost)
+    assert any(r.levelno == logging.WARNING and "lost-mode relocalization of 6000.000000000 "
+               "failed: image stamped 6000.000000000: BAD_IMAGE" in r.getMessage()
+               for r in records)
+    while True:   # the statuses published until the one after the failure
+        _stamp, [status] = read_diagnostic_array(diagnostics.get(timeout=5)[0])
+        if status.values.get("lost_mode_failed") == "1":
+            break
+    assert status.values["last lost_mode"] == "failed"
+    assert drone.poses.empty()
+
+
 def test_a_latched_camera_info_published_before_reloc_starts_is_received(synthetic_scene):
     """And the per-topic QoS shows in the tokens."""
     port = free_port()
@@ -277,3 +306,72 @@ def test_qos_defaults_and_overrides():
     assert conf.topic_qos("camera_info").transient_local
     assert not conf.topic_qos("image").reliable and conf.topic_qos("image").depth == 10
     assert conf.topic_qos("diagnostics").depth == 1
+
+
+def test_the_deployed_config_parses_with_the_documented_qos():
+    import tomllib
+    from pathlib import Path
+
+    from reloc_service.service.config import parse_config
+
+    path = Path(__file__).resolve().parents[1] / "deploy" / "ros2" / "reloc-ros2.toml"
+    conf = parse_config(tomllib.loads(path.read_text())).ros2
+    assert conf.max_image_age_s == 1.0 and conf.trigger_wait_s == 0.25
+    assert conf.diagnostics_period_s == 1.0
+    assert conf.topic_qos("pose").transient_local and conf.topic_qos("pose").depth == 1
+    assert conf.topic_qos("camera_info").transient_local
+    assert not conf.topic_qos("image").transient_local
+
+
+# -- the desk alone: which image a call answers for ----------------------------------------------
+
+class _Stamp:
+    def __init__(self, sec: int) -> None:
+        self.sec, self.nanosec = sec, 0
+
+
+def _desk(wait_s: float, max_age_s: float = 10.0):
+    from reloc_service.service.ros2.trigger import TriggerDesk
+
+    answers: list[tuple[list, object, str]] = []
+    desk = TriggerDesk(lambda calls, image, reason: answers.append((calls, image, reason)),
+                       max_age_s=max_age_s, wait_s=wait_s, topic="/cam")
+    return desk, answers
+
+
+def test_calls_waiting_together_all_answer_for_the_next_image_and_only_once():
+    desk, answers = _desk(wait_s=5.0)
+    try:
+        desk.call("a")
+        desk.call("b")
+        assert answers == []                                     # both wait
+        image = desk.received(_Stamp(1), None, "cut short")
+        assert answers == [(["a", "b"], image, "")]
+        desk.call("c")                                           # answered already: waits
+        assert len(answers) == 1
+        later = desk.received(_Stamp(2), None, "cut short")
+        assert answers[1] == (["c"], later, "")
+    finally:
+        desk.close()
+
+
+def test_an_unanswered_fresh_image_answers_at_once_and_a_wait_ends_with_the_reason():
+    desk, answers = _desk(wait_s=0.05)
+    try:
+        image = desk.received(_Stamp(7), None, "x")
+        desk.call("a")
+        assert answers == [(["a"], image, "")]
+        desk.call("b")
+        wait_until(lambda: len(answers) == 2, timeout=5)
+        assert answers[1][:2] == (["b"], None)
+        assert answers[1][2] == ("no image newer than image stamped 7.000000000 (answered "
+                                 "already) arrived on /cam within 0.05 s")
+    finally:
+        desk.close()
+
+
+def test_a_waiting_call_is_answered_when_the_desk_closes():
+    desk, answers = _desk(wait_s=60.0)
+    desk.call("a")
+    desk.close()
+    assert answers == [(["a"], None, "reloc is shutting down")]
