@@ -177,6 +177,7 @@ class MapNode:
         conf = self.conf = bridge.conf
         self.node = graph.Node(conf.domain_id, bridge.zid, bridge.next_id(), conf.node_name,
                                conf.node_namespace(map_name))
+        self.qos = graph.Qos(depth=conf.qos_depth)   # an endpoint's without [ros2.qos] entry
         self.status = NodeStatus(map_name, on_change=bridge.diagnostics_changed)
         self.triggers = TriggerDesk(self._answer, max_age_s=conf.max_image_age_s,
                                     wait_s=conf.trigger_wait_s,
@@ -232,7 +233,7 @@ class MapNode:
         self._entities.append(session.declare_subscriber(
             wire.keys.events(self.bridge.host.prefix, self.map_name), self._on_event_sample))
         service_key, _ = self._endpoint(graph.EntityKind.SERVICE, conf.relocalize_service,
-                                        ros.TRIGGER, conf.topic_qos("image"))
+                                        ros.TRIGGER)
         self.service_key = service_key
         self._entities.append(session.declare_queryable(service_key, self._on_request,
                                                         complete=True))
@@ -244,19 +245,23 @@ class MapNode:
                  conf.resolve(conf.relocalize_service, self.map_name))
 
     def _endpoint(self, kind: graph.EntityKind, name: str, ros_type: str,
-                  topic_qos: qos.TopicQos) -> tuple[str, str]:
-        """(data key, token) of an endpoint; the token is declared after every entity."""
+                  topic_qos: qos.TopicQos | None = None) -> tuple[str, str]:
+        """(data key, token) of an endpoint (``topic_qos`` in its token; None: reliable,
+        volatile, ``qos_depth``); the token is declared after every entity."""
         absolute = self.conf.resolve(name, self.map_name)
         dds, type_hash = ros.dds_name(ros_type), self.bridge.hash_of(ros_type)
         token = self.node.endpoint_token(self.bridge.next_id(), kind, absolute, dds, type_hash,
-                                         qos.token_qos(topic_qos))
+                                         self.qos if topic_qos is None
+                                         else qos.token_qos(topic_qos))
         self._pending_tokens.append(token)
         self.names[absolute] = (dds, type_hash)
         return graph.data_key(self.conf.domain_id, absolute, dds, type_hash), token
 
     def _subscribe(self, name: str, ros_type: str, handle: Callable[[Any], None],
-                   topic: str) -> None:
-        topic_qos = self.conf.topic_qos(topic)
+                   topic: str | None = None) -> None:
+        """Subscribe with the QoS of ``topic`` (a key of ``[ros2.qos]``; None: the default)."""
+        topic_qos = (qos.TopicQos(depth=self.conf.qos_depth) if topic is None
+                     else self.conf.topic_qos(topic))
         key, _ = self._endpoint(graph.EntityKind.SUBSCRIBER, name, ros_type, topic_qos)
         bridge = self.bridge
 
@@ -468,8 +473,9 @@ class MapNode:
             return
         self._submit_relocalize(LatestImage(received.stamp, received.image), calls)
 
-    def _submit_relocalize(self, latest: LatestImage, calls: list[Call]) -> None:
+    def _submit_relocalize(self, latest: LatestImage, calls: list[Call] | None) -> None:
         """Relocalize ``latest`` for ``calls`` (none: the lost mode's)."""
+        calls = calls or []
         pool = self.bridge.host.relocalize_pool
         if pool is None or not pool.submit(lambda queued: self._relocalize(latest, calls,
                                                                            queued)):
