@@ -332,10 +332,10 @@ class LatchingStandIn(StandIn):
         self.seq += 1
         self._publishers[k].put(payload, attachment=attachment(self.seq, self.gid))
 
-    def subscribe(self, name: str, ros_type: str, type_hash: str, *,
-                  latched: bool = False) -> queue.Queue[tuple[bytes, bytes | None]]:
+    def subscribe(self, name: str, ros_type: str, type_hash: str, *, latched: bool = False,
+                  depth: int = 1) -> queue.Queue[tuple[bytes, bytes | None]]:
         """A subscription whose (payload, attachment) samples go to the returned queue;
-        ``latched``: reliable transient-local depth 1 (it gets the publisher's cache)."""
+        ``latched``: reliable transient-local ``depth`` (it gets the publisher's cache)."""
         from zenoh import ext
 
         out: queue.Queue[tuple[bytes, bytes | None]] = queue.Queue()
@@ -348,10 +348,10 @@ class LatchingStandIn(StandIn):
         if latched:
             self._subs.append(ext.declare_advanced_subscriber(
                 self.session, k, on_sample,
-                history=ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+                history=ext.HistoryConfig(detect_late_publishers=True, max_samples=depth),
                 recovery=ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
                 subscriber_detection=True))
-            self.advertise_with_qos("MS", name, ros_type, type_hash, LATCHED_QOS)
+            self.advertise_with_qos("MS", name, ros_type, type_hash, f":1:,{depth}:,:,:,,")
         else:
             self._subs.append(self.session.declare_subscriber(k, on_sample))
             self.advertise("MS", name, ros_type, type_hash)
@@ -384,3 +384,30 @@ def read_diagnostic_array(data: bytes) -> tuple[tuple[int, int], list[Diagnostic
         statuses.append(DiagnosticStatus(level, name, message, hardware_id, values))
     assert r.pos == len(r.body), (r.pos, len(r.body))   # every byte read
     return stamp, statuses
+
+
+# rcl_interfaces/msg/Log on /rosout: its official hash and QoS as a real rmw_zenoh node's token
+# carries them (reliable, transient local, depth 1000, lifespan 10 s).
+ROSOUT_HASH = "RIHS01_e28ce254ca8abc06abf92773b74602cdbf116ed34fbaf294fb9f81da9f318eac"
+ROSOUT_QOS = ":1:,1000:,:10,0:,,"
+
+
+@dataclass
+class LogReading:
+    stamp: tuple[int, int]
+    level: int
+    name: str
+    msg: str
+    file: str
+    function: str
+    line: int
+
+
+def read_log(data: bytes) -> LogReading:
+    r = Reader(data)
+    stamp = (r.i32(), r.u32())
+    level = r.u8()
+    name, msg, file, function = r.string(), r.string(), r.string(), r.string()
+    line = r.u32()
+    assert r.pos == len(r.body), (r.pos, len(r.body))
+    return LogReading(stamp, level, name, msg, file, function, line)

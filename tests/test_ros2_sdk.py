@@ -48,10 +48,11 @@ def test_zenoh_ros2_sdk_sees_calls_and_reads_reloc(synthetic_scene, sdk_session)
         try:
             wait_until(lambda: any("/SS/" in t for t in drone.graph()))
             # a new session learns the graph over a moment (``ros2 topic list --spin-time``)
-            topics = wait_until(lambda: (lambda t: t if len(t) >= 6 else None)(
+            topics = wait_until(lambda: (lambda t: t if len(t) >= 7 else None)(
                 dict(get_topic_names_and_types(router_port=port, timeout=1.0))))
             assert topics == {
                 "/diagnostics": ["diagnostic_msgs/msg/DiagnosticArray"],
+                "/rosout": ["rcl_interfaces/msg/Log"],
                 "/reloc/room/pose": ["geometry_msgs/msg/PoseWithCovarianceStamped"],
                 "/camera/image_raw/compressed": ["sensor_msgs/msg/CompressedImage"],
                 "/camera/camera_info": ["sensor_msgs/msg/CameraInfo"],

@@ -11,12 +11,15 @@ import numpy as np
 import pytest
 from ros2_standin import (
     HASH,
+    ROSOUT_HASH,
+    ROSOUT_QOS,
     LatchingStandIn,
     camera_info,
     compressed_image,
     odometry,
     parse_attachment,
     read_diagnostic_array,
+    read_log,
     read_pose,
     read_trigger_response,
     rosbags_hash,
@@ -263,6 +266,37 @@ def test_a_failed_lost_mode_relocalization_is_reported(rig, synthetic_scene):
     assert drone.poses.empty()
 
 
+def test_warnings_reach_rosout_with_the_official_hash(rig):
+    """A late /rosout subscriber (transient local, as rqt_console's) gets the node's earlier
+    warnings, e.g. the rejected image, as rcl_interfaces/msg/Log."""
+    service, drone, _diag, _records = rig
+    assert ros.type_hash("rcl_interfaces/msg/Log") == ROSOUT_HASH
+    bad = service.ros2.counters["bad_samples"]
+    publish_image(drone, stamp(7000.0), b"not a png")
+    wait_until(lambda: service.ros2.counters["bad_samples"] > bad)
+    late = LatchingStandIn(drone_router(service))
+    try:
+        tokens = late.graph()
+        assert any("/MP/" in t and "/reloc/trig/reloc/%rosout/rcl_interfaces::msg::dds_::Log_/"
+                   f"{ROSOUT_HASH}/{ROSOUT_QOS}" in t.replace("%reloc%trig/", "/reloc/trig/")
+                   for t in tokens), tokens
+        logs = late.subscribe("/rosout", "rcl_interfaces/msg/Log", ROSOUT_HASH, latched=True,
+                              depth=1000)
+        lines: list = []
+
+        def rejected() -> list:
+            while not logs.empty():
+                lines.append(read_log(logs.get()[0]))
+            return [m for m in lines if "image stamped 7000.000000000 rejected" in m.msg]
+
+        rejected = wait_until(rejected, timeout=10)
+        assert rejected and rejected[0].level == 30 and rejected[0].name == "reloc.trig.reloc"
+        assert rejected[0].file.endswith("bridge.py") and rejected[0].line > 0
+        assert all(m.level >= 30 for m in lines)
+    finally:
+        late.close()
+
+
 def test_a_latched_camera_info_published_before_reloc_starts_is_received(synthetic_scene):
     """And the per-topic QoS shows in the tokens."""
     port = free_port()
@@ -317,7 +351,7 @@ def test_the_deployed_config_parses_with_the_documented_qos():
     path = Path(__file__).resolve().parents[1] / "deploy" / "ros2" / "reloc-ros2.toml"
     conf = parse_config(tomllib.loads(path.read_text())).ros2
     assert conf.max_image_age_s == 1.0 and conf.trigger_wait_s == 0.25
-    assert conf.diagnostics_period_s == 1.0
+    assert conf.diagnostics_period_s == 1.0 and conf.rosout
     assert conf.topic_qos("pose").transient_local and conf.topic_qos("pose").depth == 1
     assert conf.topic_qos("camera_info").transient_local
     assert not conf.topic_qos("image").transient_local

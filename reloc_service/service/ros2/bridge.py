@@ -40,7 +40,7 @@ from reloc_client import protocol as wire
 from ...core.geometry import pose_from_tq
 from .. import codec
 from ..workers import WorkerPool
-from . import convert, diagnostics, graph, qos
+from . import convert, diagnostics, graph, qos, rosout
 from . import types as ros
 from .conf import Ros2Conf
 from .diagnostics import DIAGNOSTIC_ARRAY, DiagnosticsLoop, NodeStatus
@@ -222,6 +222,8 @@ class MapNode:
             self.diagnostics_gid = graph.gid_of(diag_token)
             self.diagnostics_publisher = qos.declare_publisher(session, diag_key, diag_qos)
             self._entities.append(self.diagnostics_publisher)
+        if conf.rosout:
+            self._declare_rosout()
         image_type = ros.COMPRESSED_IMAGE if conf.image_type == "compressed" else ros.IMAGE
         odometry_type = ros.ODOMETRY if conf.odometry_type == "odometry" else ros.POSE_STAMPED
         self._subscribe(conf.image_topic, image_type, self._on_image, "image")
@@ -243,6 +245,33 @@ class MapNode:
                  self.node.namespace, self.node.name, conf.domain_id, self.map_name,
                  conf.resolve(conf.pose_topic, self.map_name),
                  conf.resolve(conf.relocalize_service, self.map_name))
+
+    def _declare_rosout(self) -> None:
+        """/rosout as every node has it; this node's warnings go there (rosout.py)."""
+        latched = qos.TopicQos(durability=qos.Durability.TRANSIENT_LOCAL, depth=rosout.DEPTH)
+        absolute, dds = rosout.ROSOUT, ros.dds_name(rosout.LOG)
+        type_hash = self.bridge.hash_of(rosout.LOG)
+        token = self.node.endpoint_token(
+            self.bridge.next_id(), graph.EntityKind.PUBLISHER, absolute, dds, type_hash,
+            graph.Qos(depth=rosout.DEPTH, durability=graph.Durability.TRANSIENT_LOCAL,
+                      lifespan=rosout.LIFESPAN))
+        self._pending_tokens.append(token)
+        self.names[absolute] = (dds, type_hash)
+        publisher = qos.declare_publisher(
+            self.bridge.session, graph.data_key(self.conf.domain_id, absolute, dds, type_hash),
+            latched)
+        self._entities.append(publisher)
+        gid = graph.gid_of(token)
+        name = rosout.node_logger_name(self.node.namespace, self.node.name)
+
+        def publish(record: Any) -> None:
+            attachment = graph.Attachment(next(self._seq), time.time_ns(), gid)
+            publisher.put(ros.encode(rosout.log_message(record, name), rosout.LOG),
+                          attachment=attachment.encode())
+
+        self.rosout_handler: rosout.RosoutHandler | None = rosout.RosoutHandler(
+            self.map_name, publish)
+        rosout.RosoutHandler.attach(self.rosout_handler)
 
     def _endpoint(self, kind: graph.EntityKind, name: str, ros_type: str,
                   topic_qos: qos.TopicQos | None = None) -> tuple[str, str]:
@@ -284,6 +313,9 @@ class MapNode:
 
     def close(self) -> None:
         self.triggers.close()   # waiting calls are answered before the service goes
+        handler = getattr(self, "rosout_handler", None)
+        if handler is not None:
+            rosout.RosoutHandler.detach(handler)
         for entity in [*self._tokens, *reversed(self._entities)]:
             _undeclare(entity)
         self._tokens, self._entities = [], []

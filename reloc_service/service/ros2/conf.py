@@ -74,6 +74,8 @@ class Ros2Conf:
     #: change (ROS's diagnostic_updater publishes every 1 s); 0: off.
     diagnostics_period_s: float = 1.0
     diagnostics_topic: str = "/diagnostics"
+    #: The bridge's WARNING and ERROR lines on /rosout (rcl_interfaces/Log), as every node's.
+    rosout: bool = True
     #: Per-topic QoS overrides: ``[ros2.qos.<topic>]`` with reliability ("reliable",
     #: "best_effort"), durability ("volatile", "transient_local"), depth; topics in
     #: qos.TOPICS. Resolved into ``topic_qos``.
