@@ -11,7 +11,8 @@ Per map, node ``<node_name>`` in namespace ``<namespace>/<map>``:
   the lost flag is set, every Nth image is relocalized too;
 - publishes ``geometry_msgs/PoseWithCovarianceStamped`` (the body pose in the map frame,
   the image's stamp, ROS's covariance convention), latched (qos.py);
-- publishes its status on ``/diagnostics`` (diagnostics.py);
+- publishes its status on ``/diagnostics`` (diagnostics.py) and its warnings on ``/rosout``
+  (rosout.py);
 - builds the map: an image paired with the odometry of its stamp becomes a keyframe when
   the keyframe rule says so; cameras and keyframes go through the service's writer (journaled
   like any put);
@@ -220,6 +221,7 @@ class MapNode:
                                                   conf.diagnostics_topic, DIAGNOSTIC_ARRAY,
                                                   diag_qos)
             self.diagnostics_gid = graph.gid_of(diag_token)
+            self._diagnostics_seq = itertools.count(1)   # rmw_zenoh counts per publisher
             self.diagnostics_publisher = qos.declare_publisher(session, diag_key, diag_qos)
             self._entities.append(self.diagnostics_publisher)
         if conf.rosout:
@@ -248,40 +250,25 @@ class MapNode:
 
     def _declare_rosout(self) -> None:
         """/rosout as every node has it; this node's warnings go there (rosout.py)."""
-        latched = qos.TopicQos(durability=qos.Durability.TRANSIENT_LOCAL, depth=rosout.DEPTH)
-        absolute, dds = rosout.ROSOUT, ros.dds_name(rosout.LOG)
-        type_hash = self.bridge.hash_of(rosout.LOG)
-        token = self.node.endpoint_token(
-            self.bridge.next_id(), graph.EntityKind.PUBLISHER, absolute, dds, type_hash,
-            graph.Qos(depth=rosout.DEPTH, durability=graph.Durability.TRANSIENT_LOCAL,
-                      lifespan=rosout.LIFESPAN))
-        self._pending_tokens.append(token)
-        self.names[absolute] = (dds, type_hash)
-        publisher = qos.declare_publisher(
-            self.bridge.session, graph.data_key(self.conf.domain_id, absolute, dds, type_hash),
-            latched)
+        key, token = self._endpoint(graph.EntityKind.PUBLISHER, rosout.ROSOUT, rosout.LOG,
+                                    rosout.TOKEN_QOS)
+        publisher = qos.declare_publisher(self.bridge.session, key, rosout.TOPIC_QOS)
         self._entities.append(publisher)
-        gid = graph.gid_of(token)
-        name = rosout.node_logger_name(self.node.namespace, self.node.name)
-
-        def publish(record: Any) -> None:
-            attachment = graph.Attachment(next(self._seq), time.time_ns(), gid)
-            publisher.put(ros.encode(rosout.log_message(record, name), rosout.LOG),
-                          attachment=attachment.encode())
-
-        self.rosout_handler: rosout.RosoutHandler | None = rosout.RosoutHandler(
-            self.map_name, publish)
-        rosout.RosoutHandler.attach(self.rosout_handler)
+        self.rosout_handler = rosout.RosoutHandler.attach(
+            self.map_name, rosout.LogPublisher(
+                publisher, graph.gid_of(token),
+                rosout.node_logger_name(self.node.namespace, self.node.name)))
 
     def _endpoint(self, kind: graph.EntityKind, name: str, ros_type: str,
-                  topic_qos: qos.TopicQos | None = None) -> tuple[str, str]:
+                  topic_qos: qos.TopicQos | graph.Qos | None = None) -> tuple[str, str]:
         """(data key, token) of an endpoint (``topic_qos`` in its token; None: reliable,
         volatile, ``qos_depth``); the token is declared after every entity."""
         absolute = self.conf.resolve(name, self.map_name)
         dds, type_hash = ros.dds_name(ros_type), self.bridge.hash_of(ros_type)
+        token_qos = (self.qos if topic_qos is None else topic_qos
+                     if isinstance(topic_qos, graph.Qos) else qos.token_qos(topic_qos))
         token = self.node.endpoint_token(self.bridge.next_id(), kind, absolute, dds, type_hash,
-                                         self.qos if topic_qos is None
-                                         else qos.token_qos(topic_qos))
+                                         token_qos)
         self._pending_tokens.append(token)
         self.names[absolute] = (dds, type_hash)
         return graph.data_key(self.conf.domain_id, absolute, dds, type_hash), token
@@ -315,7 +302,7 @@ class MapNode:
         self.triggers.close()   # waiting calls are answered before the service goes
         handler = getattr(self, "rosout_handler", None)
         if handler is not None:
-            rosout.RosoutHandler.detach(handler)
+            handler.detach()
         for entity in [*self._tokens, *reversed(self._entities)]:
             _undeclare(entity)
         self._tokens, self._entities = [], []
@@ -446,7 +433,8 @@ class MapNode:
         status = diagnostics.node_status(self.status, state, self.bridge.host.instance,
                                          {"trigger_waits": self.triggers.waited, **shared},
                                          dict(frame()) if callable(frame) else {})
-        attachment = graph.Attachment(next(self._seq), time.time_ns(), self.diagnostics_gid)
+        attachment = graph.Attachment(next(self._diagnostics_seq), time.time_ns(),
+                                      self.diagnostics_gid)
         self.diagnostics_publisher.put(
             ros.encode(diagnostics.array_message([status]), DIAGNOSTIC_ARRAY),
             attachment=attachment.encode())

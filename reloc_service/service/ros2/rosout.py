@@ -10,17 +10,23 @@ lines (each keyframe added) stay in reloc's own log: /rosout is what needs a loo
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
+from . import graph
 from . import types as ros
+from .qos import Durability, TopicQos
 
 LOG = "rcl_interfaces/msg/Log"
 ROSOUT = "/rosout"
-DEPTH = 1000
-LIFESPAN = (10, 0)              # seconds, nanoseconds
+#: rcl's rosout QoS: the publisher's, and its token's (which carries the 10 s lifespan too).
+TOPIC_QOS = TopicQos(durability=Durability.TRANSIENT_LOCAL, depth=1000)
+TOKEN_QOS = graph.Qos(depth=1000, durability=graph.Durability.TRANSIENT_LOCAL,
+                      lifespan=(10, 0))
 #: rcl_interfaces/msg/Log levels of Python's.
 LEVELS = {logging.DEBUG: 10, logging.INFO: 20, logging.WARNING: 30, logging.ERROR: 40,
           logging.CRITICAL: 50}
@@ -47,6 +53,21 @@ def node_logger_name(namespace: str, node: str) -> str:
     return ".".join([*(p for p in namespace.split("/") if p), node])
 
 
+class LogPublisher:
+    """Publishes records as Log messages of one node on its /rosout publisher."""
+
+    def __init__(self, publisher: Any, gid: bytes, logger_name: str) -> None:
+        self.publisher = publisher
+        self.gid = gid
+        self.logger_name = logger_name
+        self._seq = itertools.count(1)   # rmw_zenoh numbers each publisher's samples
+
+    def __call__(self, record: logging.LogRecord) -> None:
+        attachment = graph.Attachment(next(self._seq), time.time_ns(), self.gid)
+        self.publisher.put(ros.encode(log_message(record, self.logger_name), LOG),
+                           attachment=attachment.encode())
+
+
 class RosoutHandler(logging.Handler):
     """Hands the WARNING+ records of one map's node to ``publish`` (see module docstring);
     a failure to publish is never logged again through it."""
@@ -56,6 +77,17 @@ class RosoutHandler(logging.Handler):
         self.map_name = map_name
         self._publish = publish
         self._inside = threading.local()
+
+    @classmethod
+    def attach(cls, map_name: str, publish: Callable[[logging.LogRecord], None]
+               ) -> RosoutHandler:
+        """A handler on the bridge's loggers, publishing through ``publish``."""
+        handler = cls(map_name, publish)
+        logging.getLogger(WATCHED_LOGGER).addHandler(handler)
+        return handler
+
+    def detach(self) -> None:
+        logging.getLogger(WATCHED_LOGGER).removeHandler(self)
 
     def emit(self, record: logging.LogRecord) -> None:
         if getattr(self._inside, "active", False) or not self._concerns_us(record):
@@ -71,11 +103,3 @@ class RosoutHandler(logging.Handler):
     def _concerns_us(self, record: logging.LogRecord) -> bool:
         message = record.getMessage()
         return not message.startswith("map ") or message.startswith(f"map {self.map_name}:")
-
-    @staticmethod
-    def attach(handler: RosoutHandler) -> None:
-        logging.getLogger(WATCHED_LOGGER).addHandler(handler)
-
-    @staticmethod
-    def detach(handler: RosoutHandler) -> None:
-        logging.getLogger(WATCHED_LOGGER).removeHandler(handler)
