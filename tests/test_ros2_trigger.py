@@ -409,3 +409,23 @@ def test_a_waiting_call_is_answered_when_the_desk_closes():
     desk.call("a")
     desk.close()
     assert answers == [(["a"], None, "reloc is shutting down")]
+
+
+def test_the_arrival_check_reads_the_header_and_the_end_only(synthetic_scene):
+    import cv2
+    from reloc_client import protocol as wire
+
+    from reloc_service.service.ros2.trigger import image_problem
+
+    grey = synthetic_scene.query_images[0]
+    jpeg = cv2.imencode(".jpg", grey)[1].tobytes()
+    png = cv2.imencode(".png", grey)[1].tobytes()
+    for data in (jpeg, png, jpeg + b"\0\0"):             # whole (a JPEG may be padded)
+        assert image_problem(wire.WireImage.from_bytes(data), (320, 240)) is None
+    assert image_problem(wire.WireImage.from_bytes(jpeg[:-100]), None) == (
+        "the JPEG file is cut short (it does not end with the EOI marker)")
+    assert image_problem(wire.WireImage.from_bytes(png[:-20]), None) == (
+        "the PNG file is cut short (it does not end with the IEND chunk)")
+    assert image_problem(wire.WireImage.from_bytes(png), (640, 480)) == (
+        "its size 320x240 is not the camera's 640x480 (camera_info)")
+    assert image_problem(wire.WireImage.from_array(grey), (320, 240)) is None

@@ -108,6 +108,8 @@ class Ros2Conf:
                               f"got {self.type_hashes!r}")
         object.__setattr__(self, "type_hashes", MappingProxyType(dict(self.type_hashes)))
         object.__setattr__(self, "_topic_qos", qos_conf.parse_table(self.qos, self.qos_depth))
+        object.__setattr__(self, "qos", MappingProxyType(
+            {k: MappingProxyType(dict(v)) for k, v in self.qos.items()}))
 
     def topic_qos(self, topic: str) -> qos_conf.TopicQos:
         """The QoS of ``topic`` (a key of :data:`qos.TOPICS`), overrides applied."""
