@@ -5,11 +5,14 @@ Per map, node ``<node_name>`` in namespace ``<namespace>/<map>``:
 - subscribes to the camera (``sensor_msgs/CompressedImage`` or ``Image``), its
   ``sensor_msgs/CameraInfo``, the VIO odometry (``nav_msgs/Odometry`` or
   ``geometry_msgs/PoseStamped``) and a ``std_msgs/Bool`` lost flag;
-- serves ``std_srvs/Trigger`` ``relocalize``: the latest image is relocalized through the
-  same handler as a Zenoh relocalize query, the pose is published and the reply says what
-  happened; while the lost flag is set, every Nth image is relocalized too;
+- serves ``std_srvs/Trigger`` ``relocalize``: the newest image not yet answered for (waiting
+  briefly for it, trigger.py) is relocalized through the same handler as a Zenoh relocalize
+  query, the pose is published and the reply names the image and says what happened; while
+  the lost flag is set, every Nth image is relocalized too;
 - publishes ``geometry_msgs/PoseWithCovarianceStamped`` (the body pose in the map frame,
-  the image's stamp, ROS's covariance convention);
+  the image's stamp, ROS's covariance convention), latched (qos.py);
+- publishes its status on ``/diagnostics`` (diagnostics.py) and its warnings on ``/rosout``
+  (rosout.py);
 - builds the map: an image paired with the odometry of its stamp becomes a keyframe when
   the keyframe rule says so and, once the map can check it, it relocalizes in agreement with
   its odometry (:mod:`.mapping`, :mod:`.map_frame`: ``map_from_odom`` per odometry session,
@@ -40,10 +43,12 @@ from reloc_client import protocol as wire
 from ...core.geometry import pose_from_tq
 from .. import codec
 from ..workers import WorkerPool
-from . import convert, graph, px4
+from . import convert, diagnostics, graph, px4, qos, rosout
 from . import types as ros
 from .conf import Ros2Conf
+from .diagnostics import DIAGNOSTIC_ARRAY, DiagnosticsLoop, NodeStatus
 from .mapping import Mapping
+from .trigger import ReceivedImage, TriggerDesk, image_problem, stamp_text
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +62,8 @@ class Host(Protocol):
     """What the bridge needs of the service (:class:`~reloc_service.service.app.Service`)."""
 
     session: Any
+    prefix: str
+    instance: str
     maps: dict[str, Any]
     relocalize_pool: WorkerPool | None
 
@@ -65,6 +72,10 @@ class Host(Protocol):
     def on_camera_sample(self, map_name: str, camera_id: str, payload: bytes | None) -> None: ...
 
     def relocalize_payload(self, rt: Any, payload: bytes, queued_s: float) -> bytes: ...
+
+
+#: A Trigger call: its query and the request's attachment (the reply carries both back).
+Call = tuple[zenoh.Query, graph.Attachment]
 
 
 @dataclass(frozen=True)
@@ -93,6 +104,8 @@ class Ros2Bridge:
         self.worker = WorkerPool("ros2", workers=1, queue_size=256)
         self._graph = self.session.liveliness().declare_subscriber(
             f"{graph.ADMIN_SPACE}/{conf.domain_id}/**", self._on_token, history=True)
+        self.diagnostics = (DiagnosticsLoop(self._publish_diagnostics, conf.diagnostics_period_s)
+                            if conf.diagnostics_period_s > 0 else None)
 
     def hash_of(self, ros_type: str) -> str:
         """The type hash written in keys and tokens (configured, Humble's, or computed)."""
@@ -119,8 +132,20 @@ class Ros2Bridge:
     def node(self, map_name: str) -> MapNode:
         return self._nodes[map_name]
 
+    def diagnostics_changed(self) -> None:
+        if self.diagnostics is not None:
+            self.diagnostics.changed()
+
+    def _publish_diagnostics(self) -> None:
+        with self._lock:
+            nodes = list(self._nodes.values())
+        for node in nodes:
+            node.publish_diagnostics()
+
     def close(self) -> None:
         """Undeclare every node (ROS tools see them go), then stop the worker."""
+        if self.diagnostics is not None:
+            self.diagnostics.close()
         with self._lock:
             nodes, self._nodes = list(self._nodes.values()), {}
         for node in nodes:
@@ -156,7 +181,14 @@ class MapNode:
         conf = self.conf = bridge.conf
         self.node = graph.Node(conf.domain_id, bridge.zid, bridge.next_id(), conf.node_name,
                                conf.node_namespace(map_name))
-        self.qos = graph.Qos(depth=conf.qos_depth)
+        self.qos = graph.Qos(depth=conf.qos_depth)   # an endpoint's without [ros2.qos] entry
+        self.status = NodeStatus(map_name, on_change=bridge.diagnostics_changed)
+        self.triggers = TriggerDesk(self._answer, max_age_s=conf.max_image_age_s,
+                                    wait_s=conf.trigger_wait_s,
+                                    topic=conf.resolve(conf.image_topic, map_name))
+        self.keyframe_reports = diagnostics.KeyframeReports(
+            self.status, bridge.host.instance,
+            lambda: diagnostics.map_keyframes(bridge.host.maps.get(map_name)))
         self.body_from_cam = pose_from_tq(conf.body_from_cam[:3], conf.body_from_cam[3:])
         self.odometry = convert.StampedPoses()
         self.latest: LatestImage | None = None
@@ -181,18 +213,34 @@ class MapNode:
     def _declare(self) -> None:
         conf, session = self.conf, self.bridge.session
         self._tokens.append(session.liveliness().declare_token(self.node.token()))
+        pose_qos = conf.topic_qos("pose")
         pose_key, pose_token = self._endpoint(graph.EntityKind.PUBLISHER, conf.pose_topic,
-                                              ros.POSE_WITH_COVARIANCE_STAMPED)
+                                              ros.POSE_WITH_COVARIANCE_STAMPED, pose_qos)
         self.pose_gid = graph.gid_of(pose_token)
-        self.publisher = session.declare_publisher(pose_key)
+        self.publisher = qos.declare_publisher(session, pose_key, pose_qos)
         self._entities.append(self.publisher)
+        self.diagnostics_publisher: Any = None
+        if conf.diagnostics_period_s > 0:
+            diag_qos = conf.topic_qos("diagnostics")
+            diag_key, diag_token = self._endpoint(graph.EntityKind.PUBLISHER,
+                                                  conf.diagnostics_topic, DIAGNOSTIC_ARRAY,
+                                                  diag_qos)
+            self.diagnostics_gid = graph.gid_of(diag_token)
+            self._diagnostics_seq = itertools.count(1)   # rmw_zenoh counts per publisher
+            self.diagnostics_publisher = qos.declare_publisher(session, diag_key, diag_qos)
+            self._entities.append(self.diagnostics_publisher)
+        if conf.rosout:
+            self._declare_rosout()
         image_type = ros.COMPRESSED_IMAGE if conf.image_type == "compressed" else ros.IMAGE
         odometry_type = ros.ODOMETRY if conf.odometry_type == "odometry" else ros.POSE_STAMPED
-        self._subscribe(conf.image_topic, image_type, self._on_image)
-        self._subscribe(conf.camera_info_topic, ros.CAMERA_INFO, self._on_camera_info)
+        self._subscribe(conf.image_topic, image_type, self._on_image, "image")
+        self._subscribe(conf.camera_info_topic, ros.CAMERA_INFO, self._on_camera_info,
+                        "camera_info")
         if conf.build_map:
-            self._subscribe(conf.odometry_topic, odometry_type, self._on_odometry)
-        self._subscribe(conf.lost_topic, ros.BOOL, self._on_lost)
+            self._subscribe(conf.odometry_topic, odometry_type, self._on_odometry, "odometry")
+        self._subscribe(conf.lost_topic, ros.BOOL, self._on_lost, "lost")
+        self._entities.append(session.declare_subscriber(
+            wire.keys.events(self.bridge.host.prefix, self.map_name), self._on_event_sample))
         self._declare_mapping()
         service_key, _ = self._endpoint(graph.EntityKind.SERVICE, conf.relocalize_service,
                                         ros.TRIGGER)
@@ -239,18 +287,37 @@ class MapNode:
         self._entities.append(publisher.publisher)
         return publisher
 
-    def _endpoint(self, kind: graph.EntityKind, name: str, ros_type: str) -> tuple[str, str]:
-        """(data key, token) of an endpoint; the token is declared after every entity."""
+    def _declare_rosout(self) -> None:
+        """/rosout as every node has it; this node's warnings go there (rosout.py)."""
+        key, token = self._endpoint(graph.EntityKind.PUBLISHER, rosout.ROSOUT, rosout.LOG,
+                                    rosout.TOKEN_QOS)
+        publisher = qos.declare_publisher(self.bridge.session, key, rosout.TOPIC_QOS)
+        self._entities.append(publisher)
+        self.rosout_handler = rosout.RosoutHandler.attach(
+            self.map_name, rosout.LogPublisher(
+                publisher, graph.gid_of(token),
+                rosout.node_logger_name(self.node.namespace, self.node.name)))
+
+    def _endpoint(self, kind: graph.EntityKind, name: str, ros_type: str,
+                  topic_qos: qos.TopicQos | graph.Qos | None = None) -> tuple[str, str]:
+        """(data key, token) of an endpoint (``topic_qos`` in its token; None: reliable,
+        volatile, ``qos_depth``); the token is declared after every entity."""
         absolute = self.conf.resolve(name, self.map_name)
         dds, type_hash = ros.dds_name(ros_type), self.bridge.hash_of(ros_type)
+        token_qos = (self.qos if topic_qos is None else topic_qos
+                     if isinstance(topic_qos, graph.Qos) else qos.token_qos(topic_qos))
         token = self.node.endpoint_token(self.bridge.next_id(), kind, absolute, dds, type_hash,
-                                         self.qos)
+                                         token_qos)
         self._pending_tokens.append(token)
         self.names[absolute] = (dds, type_hash)
         return graph.data_key(self.conf.domain_id, absolute, dds, type_hash), token
 
-    def _subscribe(self, name: str, ros_type: str, handle: Callable[[Any], None]) -> None:
-        key, _ = self._endpoint(graph.EntityKind.SUBSCRIBER, name, ros_type)
+    def _subscribe(self, name: str, ros_type: str, handle: Callable[[Any], None],
+                   topic: str | None = None) -> None:
+        """Subscribe with the QoS of ``topic`` (a key of ``[ros2.qos]``; None: the default)."""
+        topic_qos = (qos.TopicQos(depth=self.conf.qos_depth) if topic is None
+                     else self.conf.topic_qos(topic))
+        key, _ = self._endpoint(graph.EntityKind.SUBSCRIBER, name, ros_type, topic_qos)
         bridge = self.bridge
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -268,9 +335,13 @@ class MapNode:
                                                                             handle)):
                 bridge.count("dropped_busy")
 
-        self._entities.append(bridge.session.declare_subscriber(key, on_sample))
+        self._entities.append(qos.declare_subscriber(bridge.session, key, topic_qos, on_sample))
 
     def close(self) -> None:
+        self.triggers.close()   # waiting calls are answered before the service goes
+        handler = getattr(self, "rosout_handler", None)
+        if handler is not None:
+            handler.detach()
         for entity in [*self._tokens, *reversed(self._entities)]:
             _undeclare(entity)
         self._tokens, self._entities = [], []
@@ -279,7 +350,15 @@ class MapNode:
     def _decode_and_handle(self, payload: bytes, ros_type: str,
                            handle: Callable[[Any], None]) -> None:
         try:
-            handle(ros.decode(payload, ros_type))
+            msg = ros.decode(payload, ros_type)
+        except ValueError as exc:
+            if handle == self._on_image:   # a Trigger after it answers that it was rejected
+                self.triggers.received(None, None, str(exc))
+            self.bridge.count("bad_samples")
+            log.warning("map %s: a %s sample was not used: %s", self.map_name, ros_type, exc)
+            return
+        try:
+            handle(msg)
         except Exception as exc:   # bad input never stops the bridge
             self.bridge.count("bad_samples")
             log.warning("map %s: a %s sample was not used: %s", self.map_name, ros_type, exc)
@@ -320,20 +399,35 @@ class MapNode:
             self._maybe_keyframe(image)
 
     def _on_image(self, msg: Any) -> None:
-        if self.conf.image_type == "compressed":
-            image = wire.WireImage.from_bytes(bytes(np.asarray(msg.data, np.uint8)))
-        else:
-            image = wire.WireImage.from_array(convert.grey_from_raw(msg))
+        try:
+            image = self._wire_image(msg)
+            problem = image_problem(image, self._camera_size())
+        except Exception as exc:
+            problem = str(exc)
+        if problem is not None:   # answered as rejected, never replaced by an older image
+            self.status.count("images_rejected")
+            received = self.triggers.received(msg.header.stamp, None, problem)
+            raise ValueError(f"{received.label()} rejected: {problem}")
         latest = LatestImage(msg.header.stamp, image)
         self.latest = latest
+        self.triggers.received(msg.header.stamp, image)
         self.bridge.count("images")
         n = self.conf.relocalize_every_n
         if self.lost and n:
             self._images_lost += 1
             if self._images_lost % n == 0:
-                self._submit_relocalize(latest, None)
+                self._submit_relocalize(latest, [])
         if self.conf.build_map:
             self._maybe_keyframe(latest)
+
+    def _wire_image(self, msg: Any) -> wire.WireImage:
+        if self.conf.image_type == "compressed":
+            return wire.WireImage.from_bytes(bytes(np.asarray(msg.data, np.uint8)))
+        return wire.WireImage.from_array(convert.grey_from_raw(msg))
+
+    def _camera_size(self) -> tuple[int, int] | None:
+        camera = self.camera
+        return None if camera is None else (int(camera["width"]), int(camera["height"]))
 
     def _maybe_keyframe(self, latest: LatestImage) -> None:
         """Add ``latest`` as a keyframe if its odometry is known and the rule selects it
@@ -360,9 +454,34 @@ class MapNode:
                                camera_id=CAMERA_ID,
                                timestamp=convert.stamp_seconds(latest.stamp),
                                pose_covariance=pose_covariance)
+        self.keyframe_reports.put(kf_id, stamp_text(latest.stamp))
         self.bridge.host.on_keyframe_sample(self.map_name, kf_id, put.encode())
         self.bridge.count("keyframes")
         return kf_id
+
+    def _on_event_sample(self, sample: zenoh.Sample) -> None:
+        payload = sample.payload.to_bytes()
+        self.bridge.worker.submit(lambda _q: self.keyframe_reports.event(payload))
+
+    def publish_diagnostics(self) -> None:
+        """This node's DiagnosticStatus in a DiagnosticArray on /diagnostics."""
+        if self.diagnostics_publisher is None:
+            return
+        mismatches = sum(1 for name, _t, _h in set(self.bridge.mismatches) if name in self.names)
+        state = diagnostics.map_state(self.bridge.host.maps.get(self.map_name),
+                                      camera_known=self.camera is not None, lost=self.lost,
+                                      mismatches=mismatches)
+        frame = getattr(self, "map_frame_status", None)   # the map frame's, when estimated
+        with self.bridge._lock:
+            shared = {f"bridge {k}": v for k, v in self.bridge.counters.items()}
+        status = diagnostics.node_status(self.status, state, self.bridge.host.instance,
+                                         {"trigger_waits": self.triggers.waited, **shared},
+                                         dict(frame()) if callable(frame) else {})
+        attachment = graph.Attachment(next(self._diagnostics_seq), time.time_ns(),
+                                      self.diagnostics_gid)
+        self.diagnostics_publisher.put(
+            ros.encode(diagnostics.array_message([status]), DIAGNOSTIC_ARRAY),
+            attachment=attachment.encode())
 
     def keyframe_covariance(self, ros_covariance: np.ndarray | None,
                              world_from_cam: np.ndarray, world_from_body: np.ndarray
@@ -404,23 +523,33 @@ class MapNode:
             log.warning("map %s: dropping a relocalize request: %s", self.map_name, exc)
             query.drop()
             return
-        latest = self.latest
-        if latest is None:
-            topic = self.conf.resolve(self.conf.image_topic, self.map_name)
-            self._reply(query, request, False, f"no image received on {topic} yet")
+        self.status.count("trigger_calls")
+        self.triggers.call((query, request))
+
+    def _answer(self, calls: list[Call], received: ReceivedImage | None, reason: str) -> None:
+        """The Trigger calls answer for ``received`` (relocalized, or rejected), or fail
+        with ``reason`` when there is no image to answer for (trigger.py)."""
+        if received is None or received.image is None:
+            message = reason if received is None else (f"{received.label()} was rejected: "
+                                                        f"{received.problem}")
+            image = "" if received is None or received.stamp is None else stamp_text(
+                received.stamp)
+            for call in calls:
+                self._reply(*call, False, message)
+            self.status.answered(False, message, image)
             return
-        self._submit_relocalize(latest, (query, request))
+        self._submit_relocalize(LatestImage(received.stamp, received.image), calls)
 
-    def _submit_relocalize(self, latest: LatestImage,
-                           call: tuple[zenoh.Query, graph.Attachment] | None) -> None:
+    def _submit_relocalize(self, latest: LatestImage, calls: list[Call] | None) -> None:
+        """Relocalize ``latest`` for ``calls`` (none: the lost mode's)."""
+        calls = calls or []
         pool = self.bridge.host.relocalize_pool
-        if pool is None or not pool.submit(lambda queued: self._relocalize(latest, call, queued)):
+        if pool is None or not pool.submit(lambda queued: self._relocalize(latest, calls,
+                                                                           queued)):
             self.bridge.count("busy")
-            if call is not None:
-                self._reply(*call, False, "all relocalize workers busy; call again later")
+            self._report(calls, latest, False, "all relocalize workers busy; call again later")
 
-    def _relocalize(self, latest: LatestImage,
-                    call: tuple[zenoh.Query, graph.Attachment] | None, queued_s: float) -> None:
+    def _relocalize(self, latest: LatestImage, calls: list[Call], queued_s: float) -> None:
         success, message = False, "not relocalized"
         try:
             success, message = self._relocalize_and_publish(latest, queued_s)
@@ -428,8 +557,20 @@ class MapNode:
             code, text = codec.error_of(exc)
             message = f"{code.value}: {text}"
         finally:
-            if call is not None:
-                self._reply(*call, success, message)
+            self._report(calls, latest, success, message)
+
+    def _report(self, calls: list[Call], latest: LatestImage, success: bool,
+                message: str) -> None:
+        """Reply to ``calls`` naming the image; a lost-mode relocalization (no call) is
+        reported to the status (a failure logged)."""
+        image = stamp_text(latest.stamp)
+        message = f"image stamped {image}: {message}"
+        for call in calls:
+            self._reply(*call, success, message)
+        if calls:
+            self.status.answered(success, message, image)
+        else:
+            self.status.lost_mode(success, message, image)
 
     def _relocalize_and_publish(self, latest: LatestImage, queued_s: float) -> tuple[bool, str]:
         rt = self.bridge.host.maps.get(self.map_name)

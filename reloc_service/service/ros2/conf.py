@@ -13,6 +13,7 @@ from types import MappingProxyType
 from typing import Any
 
 from ...core.errors import ConfigError
+from . import qos as qos_conf
 from .px4 import Px4Conf, px4_conf
 
 #: Distros whose rmw_zenoh puts RIHS01 type hashes in keys; Humble writes
@@ -90,6 +91,25 @@ class Ros2Conf:
     odometry_max_speed_m_s: float = 20.0
     odometry_max_turn_rate_deg_s: float = 720.0
 
+    #: Trigger answers for the newest image received at most this long ago (reloc's clock,
+    #: not the stamp: a drone's clock may be another); ten frames of a 10 Hz camera, so a
+    #: dropped frame or two does not fail a call, while a stalled camera does.
+    max_image_age_s: float = 1.0
+    #: A Trigger with no unanswered image waits this long for the next one (the image
+    #: published just before the call may still be on its way: samples of different keys
+    #: are not ordered); 2.5 frames of a 10 Hz camera.
+    trigger_wait_s: float = 0.25
+    #: /diagnostics (diagnostic_msgs/DiagnosticArray) every this many seconds and on each
+    #: change (ROS's diagnostic_updater publishes every 1 s); 0: off.
+    diagnostics_period_s: float = 1.0
+    diagnostics_topic: str = "/diagnostics"
+    #: The bridge's WARNING and ERROR lines on /rosout (rcl_interfaces/Log), as every node's.
+    rosout: bool = True
+    #: Per-topic QoS overrides: ``[ros2.qos.<topic>]`` with reliability ("reliable",
+    #: "best_effort"), durability ("volatile", "transient_local"), depth; topics in
+    #: qos.TOPICS. Resolved into ``topic_qos``.
+    qos: Any = field(default_factory=lambda: MappingProxyType({}))
+
     #: ``[ros2.px4]``: the pose as px4_msgs/VehicleOdometry for PX4's zenoh module (ros2/px4.py).
     px4: Px4Conf = field(default_factory=Px4Conf)
 
@@ -113,7 +133,8 @@ class Ros2Conf:
                 raise ConfigError(f"ros2.{key}: expected letters, digits and '_', got "
                                   f"{getattr(self, key)!r}")
         for key in ("image_topic", "camera_info_topic", "odometry_topic", "pose_topic",
-                    "relocalize_service", "lost_topic", "mapping_service", "tf_topic"):
+                    "relocalize_service", "lost_topic", "mapping_service", "tf_topic",
+                    "diagnostics_topic"):
             if not _NAME.match(getattr(self, key)):
                 raise ConfigError(f"ros2.{key}: expected a ROS name ('/a/b' or 'b'), got "
                                   f"{getattr(self, key)!r}")
@@ -124,17 +145,28 @@ class Ros2Conf:
             raise ConfigError(f"ros2.type_hashes: expected a table of type -> hash strings, "
                               f"got {self.type_hashes!r}")
         object.__setattr__(self, "type_hashes", MappingProxyType(dict(self.type_hashes)))
+        object.__setattr__(self, "_topic_qos", qos_conf.parse_table(self.qos, self.qos_depth))
+        object.__setattr__(self, "qos", MappingProxyType(
+            {k: MappingProxyType(dict(v)) for k, v in self.qos.items()}))
+
+    def topic_qos(self, topic: str) -> qos_conf.TopicQos:
+        """The QoS of ``topic`` (a key of :data:`qos.TOPICS`), overrides applied."""
+        return self._topic_qos[topic]  # type: ignore[attr-defined, no-any-return]
 
     def _check_numbers(self) -> None:
         if self.qos_depth < 1 or self.relocalize_every_n < 0:
             raise ConfigError(f"ros2: expected qos_depth >= 1 and relocalize_every_n >= 0, "
                               f"got {self.qos_depth} and {self.relocalize_every_n}")
         for key in ("keyframe_min_distance_m", "keyframe_min_angle_deg",
-                    "max_stamp_difference_s"):
+                    "max_stamp_difference_s", "max_image_age_s", "trigger_wait_s",
+                    "diagnostics_period_s"):
             value = getattr(self, key)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"ros2.{key}: expected a number >= 0, got {value}")
         self._check_map_frame_numbers()
+        if self.max_image_age_s <= 0:
+            raise ConfigError(f"ros2.max_image_age_s: expected a number > 0, got "
+                              f"{self.max_image_age_s}")
         pose = self.body_from_cam
         if len(pose) != 7 or not all(isinstance(v, int | float) and math.isfinite(v)
                                      for v in pose):

@@ -60,6 +60,9 @@ class Qos:
     depth: int = 10
     reliability: Reliability = Reliability.RELIABLE
     durability: Durability = Durability.VOLATILE
+    #: (seconds, nanoseconds), None for the default (/rosout's is 10 s: a real rmw_zenoh
+    #: token of it reads ``:1:,1000:,:10,0:,,``).
+    lifespan: tuple[int, int] | None = None
 
     def encode(self) -> str:
         """The compact string of a token: ``<rel>:<dur>:<hist>,<depth>:<deadline s,ns>:
@@ -67,7 +70,8 @@ class Qos:
         rel = "" if self.reliability is Reliability.RELIABLE else str(int(self.reliability))
         dur = "" if self.durability is Durability.VOLATILE else str(int(self.durability))
         depth = "" if self.depth == DEFAULT_DEPTH else str(self.depth)
-        return f"{rel}:{dur}:,{depth}:,:,:,,"
+        lifespan = "," if self.lifespan is None else f"{self.lifespan[0]},{self.lifespan[1]}"
+        return f"{rel}:{dur}:,{depth}:,:{lifespan}:,,"
 
 
 def mangle(name: str) -> str:

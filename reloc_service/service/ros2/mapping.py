@@ -34,6 +34,7 @@ from . import convert, graph
 from . import types as ros
 from .keyframe_rule import KeyframeRule, Rule, median_scene_depth
 from .map_frame import MapFrame, MapFrameConf, Sample, Verdict, sample_of
+from .trigger import stamp_text
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +66,7 @@ class MappedNode(Protocol):
     map_name: str
     body_from_cam: Array
     lost: bool
+    status: Any                         # diagnostics.NodeStatus: refusals are reported there
 
     def put_keyframe(self, latest: Any, world_from_cam: Array,
                      pose_covariance: tuple[float, ...] | None) -> int: ...
@@ -222,8 +224,8 @@ class Mapping:
             self._decide(candidate, self._relocalize(candidate, queued_s))
         except Exception as exc:   # a candidate never stops mapping
             self.count("errors")
-            log.warning("map %s: a keyframe candidate was not checked: %s", self.node.map_name,
-                        exc)
+            self.node.status.keyframe_refused(None, stamp_text(candidate.image.stamp),
+                                              f"the candidate could not be checked: {exc}")
         finally:
             with self._lock:
                 self._in_flight = None
@@ -258,11 +260,10 @@ class Mapping:
         return reply.world_from_cam.matrix(), np.reshape(reply.covariance, (6, 6))
 
     def _decide(self, candidate: Candidate, answer: tuple[Array, Array] | str) -> None:
-        stamp = convert.stamp_seconds(candidate.image.stamp)
         if isinstance(answer, str):
             self.count("refused_not_relocalized")
-            log.info("map %s: keyframe candidate at %.3f s not added: not relocalized (%s)",
-                     self.node.map_name, stamp, answer)
+            self.node.status.keyframe_refused(None, stamp_text(candidate.image.stamp),
+                                              f"the candidate did not relocalize ({answer})")
             return
         map_from_cam, covariance_map = answer
         odom_from_cam = candidate.odom_from_body @ self.node.body_from_cam
@@ -278,6 +279,10 @@ class Mapping:
                              candidate.ros_covariance, estimate)
         elif verdict is Verdict.DISAGREES:
             self.count("refused_disagrees")
+            self.node.status.keyframe_refused(
+                None, stamp_text(candidate.image.stamp),
+                "its relocalization disagrees with its odometry through map_from_odom (a VIO "
+                "reset or drift): mapping stops until the new session is anchored")
 
     def _odometry_covariance(self, candidate: Candidate, odom_from_cam: Array) -> Array | None:
         """The odometry's covariance of the camera (ours), else the map's default keyframe
@@ -309,7 +314,8 @@ class Mapping:
             self.keyframes[kf_id] = (world_from_cam, None)
             self._last_put = kf_id
             self.counts["added"] += 1
-        log.info("map %s: keyframe %d added at %.3f s (%s session %d)", self.node.map_name,
+        # "added" is logged once the map applied it (diagnostics.KeyframeReports)
+        log.debug("map %s: keyframe %d put at %.3f s (%s session %d)", self.node.map_name,
                  kf_id, convert.stamp_seconds(image.stamp), self.frame.state.value,
                  self.frame.session)
 
