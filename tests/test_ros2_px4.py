@@ -242,7 +242,8 @@ def test_px4_receives_the_relocalized_pose_as_vehicle_odometry(synthetic_scene):
     scene = synthetic_scene
     port = free_port()
     with open_router(port):
-        service = start_service(port, "room", px4={"enabled": True})
+        service = start_service(port, "room", px4={"enabled": True,
+                                                   "feed": "relocalizations"})
         drone = StandIn(endpoint(port))
         try:
             drone.subscribe_poses("/reloc/room/pose")

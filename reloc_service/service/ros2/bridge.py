@@ -236,8 +236,8 @@ class MapNode:
         self._subscribe(conf.image_topic, image_type, self._on_image, "image")
         self._subscribe(conf.camera_info_topic, ros.CAMERA_INFO, self._on_camera_info,
                         "camera_info")
-        if conf.build_map:
-            self._subscribe(conf.odometry_topic, odometry_type, self._on_odometry, "odometry")
+        # the odometry places the map frame (map -> odom) even when no keyframe is added
+        self._subscribe(conf.odometry_topic, odometry_type, self._on_odometry, "odometry")
         self._subscribe(conf.lost_topic, ros.BOOL, self._on_lost, "lost")
         self._entities.append(session.declare_subscriber(
             wire.keys.events(self.bridge.host.prefix, self.map_name), self._on_event_sample))
@@ -248,6 +248,8 @@ class MapNode:
         self._entities.append(session.declare_queryable(service_key, self._on_request,
                                                         complete=True))
         self.px4: px4.Px4Publisher | None = None
+        self._px4_session: int | None = None   # the map frame's session PX4 was last fed
+        self._px4_last_s = float("-inf")
         if conf.px4.enabled:
             self.px4 = self._declare_px4()
         for token in self._pending_tokens:
@@ -390,7 +392,32 @@ class MapNode:
             self.odometry = convert.StampedPoses()   # a reset: no image pairs across it
         self.odometry.add(stamp, odom_from_body, covariance)
         self.bridge.count("odometry")
+        if self.px4 is not None and self.conf.px4.feed == "odometry":
+            self._feed_px4(msg.header.stamp, odom_from_body, covariance)
         self._retry_pending()
+
+    def _feed_px4(self, stamp: Any, odom_from_body: np.ndarray,
+                  ros_covariance: np.ndarray | None) -> None:
+        """The odometry composed with ``map_from_odom`` to PX4 while the map frame is anchored
+        (at most ``max_rate_hz``); a new session's anchoring increments PX4's reset counter
+        (EKF2 then resets to the next sample instead of fusing a jump)."""
+        assert self.px4 is not None
+        _, estimate = self.mapping.frame.current()
+        if estimate is None:
+            return
+        seconds = convert.stamp_seconds(stamp)
+        rate = self.conf.px4.max_rate_hz
+        if rate and seconds - self._px4_last_s < 1.0 / rate:
+            return
+        session = self.mapping.frame.session
+        if self._px4_session is not None and session != self._px4_session:
+            self.px4.bump_reset_counter()
+        self._px4_session, self._px4_last_s = session, seconds
+        world_from_cam = estimate.map_from_odom @ odom_from_body @ self.body_from_cam
+        covariance = self.mapping.camera_covariance(ros_covariance, odom_from_body, estimate)
+        self.px4.publish(stamp, convert.body_pose(world_from_cam, covariance,
+                                                  self.body_from_cam), 1.0)
+        self.bridge.count("px4_odometry")
 
     def _retry_pending(self) -> None:
         """Images that waited for the camera or their odometry, in arrival order."""
@@ -417,8 +444,7 @@ class MapNode:
             self._images_lost += 1
             if self._images_lost % n == 0:
                 self._submit_relocalize(latest, [])
-        if self.conf.build_map:
-            self._maybe_keyframe(latest)
+        self._maybe_keyframe(latest)
 
     def _wire_image(self, msg: Any) -> wire.WireImage:
         if self.conf.image_type == "compressed":
@@ -591,11 +617,23 @@ class MapNode:
         out = convert.body_pose(world_from_cam, covariance, self.body_from_cam)
         self.publish_pose(latest.stamp, out)
         self.bridge.count("poses")
-        if self.px4 is not None:
+        if self.px4 is not None and self.conf.px4.feed == "relocalizations":
             self.px4.publish(latest.stamp, out, reply.confidence)
+        self._observe(latest, world_from_cam, covariance)
         x, y, z = out.position
         return True, (f"relocalized: position {x:.3f} {y:.3f} {z:.3f} m in {self.conf.frame_id}, "
                       f"{reply.inliers} inliers, confidence {reply.confidence:.2f}")
+
+    def _observe(self, latest: LatestImage, map_from_cam: np.ndarray,
+                 covariance: np.ndarray | None) -> None:
+        """A relocalized image paired with the odometry of its stamp is one more
+        ``map_from_odom`` sample (mapping.py); without odometry or a covariance, nothing."""
+        paired = self.odometry.nearest_with_covariance(convert.stamp_seconds(latest.stamp),
+                                                       self.conf.max_stamp_difference_s)
+        if paired is None or covariance is None:
+            return
+        odom_from_body, ros_covariance = paired
+        self.mapping.observe(latest, odom_from_body, ros_covariance, map_from_cam, covariance)
 
     def publish_pose(self, stamp: Any, out: convert.PoseOut) -> None:
         msg = pose_message(stamp, self.conf.frame_id, out)

@@ -57,8 +57,9 @@ class Ros2Conf:
     #: The camera's pose in the body frame of the odometry, ``tx ty tz qx qy qz qw``
     #: (camera x right, y down, z forward); the published pose is the body's.
     body_from_cam: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
-    #: Build the map from odometry + images: an image becomes a keyframe when its camera is
-    #: farther than this from every keyframe, or turned by more than the angle (SVO's rule).
+    #: Build the map from odometry + images: an image becomes a keyframe when the keyframe
+    #: rule selects it and its relocalization agrees with its odometry (mapping.py). False: a
+    #: finished map; the odometry still places the map frame (map -> odom, PX4's feed).
     build_map: bool = True
     keyframe_min_distance_m: float = 0.15
     keyframe_min_angle_deg: float = 15.0

@@ -130,6 +130,13 @@ class Mapping:
         return {**self.frame.status(), "mapping": "on" if self.enabled else "paused",
                 "keyframes": str(known), "candidates_waiting": str(waiting), **counts}
 
+    @property
+    def adding(self) -> bool:
+        """Keyframes are added (``build_map`` and not paused by the ``mapping`` service).
+        Otherwise images a keyframe apart are still relocalized as probes: they anchor the
+        map frame and keep checking ``map_from_odom`` (localization on a fixed map)."""
+        return self.enabled and bool(self.node.conf.build_map)
+
     # -- candidates (the bridge's worker) ------------------------------------------------------
     def consider(self, image: Any, odom_from_body: Array, ros_covariance: Array | None) -> None:
         """An image paired with the odometry of its stamp: maybe a keyframe (see module)."""
@@ -137,18 +144,20 @@ class Mapping:
         epoch, estimate = self.frame.current()
         if estimate is not None:
             self._republish_tf(image.stamp, estimate)
-        if not self.enabled or self.node.lost:
-            self.count("paused_lost" if self.enabled else "paused")
+        if self.node.lost:
+            self.count("paused_lost")
             return
         if not self._map_can_relocalize():
-            if self.frame.defining and estimate is not None:
+            if self.adding and self.frame.defining and estimate is not None:
                 self._add_if_new(image, odom_from_body, ros_covariance, estimate)
             else:   # a new session on a map that cannot check it: nothing may be added
-                self.count("refused_cannot_check")
+                self.count("refused_cannot_check" if self.adding else "paused")
             return
+        if not self.adding:
+            self.count("paused")   # probes still check the map frame; nothing is added
         with self._lock:
             self._refresh_depths()
-            if estimate is not None:
+            if estimate is not None and self.adding:
                 world_from_cam = estimate.map_from_odom @ odom_from_cam
                 known = self._known()
                 if not self.rule.is_new(world_from_cam, known):
@@ -156,7 +165,7 @@ class Mapping:
                 candidate = Candidate(image, odom_from_body, ros_covariance, epoch,
                                       world_from_cam, self.rule.nearest_depth(world_from_cam,
                                                                               known))
-            else:
+            else:   # probes: anchor a new session; not adding, keep checking the frame
                 session = self.frame.session
                 if self._probe_session != session:
                     self._probes, self._probe_session = [], session
@@ -265,6 +274,23 @@ class Mapping:
             self.node.status.keyframe_refused(None, stamp_text(candidate.image.stamp),
                                               f"the candidate did not relocalize ({answer})")
             return
+        verdict, estimate = self._judge(candidate, answer)
+        if verdict in (Verdict.AGREES, Verdict.ANCHORED) and estimate is not None:
+            if self.adding:
+                self._add_if_new(candidate.image, candidate.odom_from_body,
+                                 candidate.ros_covariance, estimate)
+        elif verdict is Verdict.DISAGREES:
+            self.count("refused_disagrees")
+            self.node.status.keyframe_refused(
+                None, stamp_text(candidate.image.stamp),
+                "its relocalization disagrees with its odometry through map_from_odom (a VIO "
+                "reset or drift): mapping stops until the new session is anchored")
+
+    def _judge(self, candidate: Candidate, answer: tuple[Array, Array]
+               ) -> tuple[Verdict, Sample | None]:
+        """The relocalization ``answer`` of ``candidate``'s image as a ``map_from_odom``
+        sample: its verdict and the estimate after it (``map -> odom`` published when the
+        sample agrees or anchors)."""
         map_from_cam, covariance_map = answer
         odom_from_cam = candidate.odom_from_body @ self.node.body_from_cam
         covariance_odom = self._odometry_covariance(candidate, odom_from_cam)
@@ -275,14 +301,27 @@ class Mapping:
         _, estimate = self.frame.current()
         if verdict in (Verdict.AGREES, Verdict.ANCHORED) and estimate is not None:
             self.publish_tf(candidate.image.stamp, estimate)
-            self._add_if_new(candidate.image, candidate.odom_from_body,
-                             candidate.ros_covariance, estimate)
-        elif verdict is Verdict.DISAGREES:
-            self.count("refused_disagrees")
-            self.node.status.keyframe_refused(
-                None, stamp_text(candidate.image.stamp),
-                "its relocalization disagrees with its odometry through map_from_odom (a VIO "
-                "reset or drift): mapping stops until the new session is anchored")
+        return verdict, estimate
+
+    def observe(self, image: Any, odom_from_body: Array, ros_covariance: Array | None,
+                map_from_cam: Array, covariance_map: Array) -> Verdict:
+        """A relocalization that was not a candidate's (a Trigger call, the lost mode) as one
+        more ``map_from_odom`` sample: a hovering drone anchors and re-anchors without moving
+        a keyframe apart. Never adds a keyframe."""
+        epoch, _ = self.frame.current()
+        candidate = Candidate(image, odom_from_body, ros_covariance, epoch, None, None)
+        verdict, _ = self._judge(candidate, (map_from_cam, covariance_map))
+        return verdict
+
+    def camera_covariance(self, ros_covariance: Array | None, odom_from_body: Array,
+                          estimate: Sample) -> Array | None:
+        """Our covariance of ``map_from_odom @ odom_from_body @ body_from_cam``: the
+        odometry's (or the map's default) plus ``map_from_odom``'s; None when neither the
+        odometry nor the map gives one."""
+        odom_from_cam = odom_from_body @ self.node.body_from_cam
+        values = self._keyframe_covariance(ros_covariance, odom_from_cam, odom_from_body,
+                                           estimate)
+        return None if values is None else np.reshape(values, (6, 6))
 
     def _odometry_covariance(self, candidate: Candidate, odom_from_cam: Array) -> Array | None:
         """The odometry's covariance of the camera (ours), else the map's default keyframe

@@ -75,6 +75,10 @@ POSE_FRAMES = {"frd": POSE_FRAME_FRD, "ned": POSE_FRAME_NED}
 _ABSOLUTE_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
 
 
+#: What goes to PX4 (:attr:`Px4Conf.feed`).
+FEEDS = ("odometry", "relocalizations")
+
+
 @dataclass(frozen=True)
 class Px4Conf:
     """``[ros2.px4]``: off unless ``enabled``."""
@@ -95,10 +99,21 @@ class Px4Conf:
     #: is the image stamp moved onto that clock. "": the image stamp as is (a camera already
     #: stamping in PX4's clock).
     clock_topic: str = "/fmu/out/vehicle_odometry"
+    #: ``odometry``: every odometry message composed with ``map_from_odom`` while the map
+    #: frame is anchored (the VIO's rate and smoothness, in the map frame; nothing while
+    #: unanchored; a re-anchoring increments ``reset_counter``); reloc is then EKF2's only
+    #: vision source. ``relocalizations``: only relocalized poses (a Trigger, the lost mode).
+    feed: str = "odometry"
+    #: At most this many VehicleOdometry messages per second from the odometry (PX4's docs
+    #: ask 30-50 Hz of external vision); 0: every odometry message.
+    max_rate_hz: float = 30.0
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.max_rate_hz) and self.max_rate_hz >= 0):
+            raise ConfigError(f"ros2.px4.max_rate_hz: expected a number >= 0 (0: every "
+                              f"odometry message), got {self.max_rate_hz}")
         for key, choices in (("world_frame", WORLD_FRAMES), ("body_frame", BODY_FRAMES),
-                             ("pose_frame", tuple(POSE_FRAMES))):
+                             ("pose_frame", tuple(POSE_FRAMES)), ("feed", FEEDS)):
             if getattr(self, key) not in choices:
                 raise ConfigError(f"ros2.px4.{key}: expected one of {list(choices)}, got "
                                   f"{getattr(self, key)!r}")
@@ -116,7 +131,8 @@ def px4_conf(value: Any) -> Px4Conf:
         return value
     if not isinstance(value, Mapping):
         raise ConfigError(f"ros2.px4: expected a table ([ros2.px4] with enabled, topic, "
-                          f"world_frame, body_frame, pose_frame, clock_topic), got {value!r}")
+                          f"world_frame, body_frame, pose_frame, clock_topic, feed, "
+                          f"max_rate_hz), got {value!r}")
     return make_conf(Px4Conf, value, owner="ros2.px4")
 
 
