@@ -204,7 +204,7 @@ def test_a_damaged_file_is_refused_by_name_and_nothing_is_written(built, tmp_pat
 
 def test_an_export_while_serving_and_taking_puts_is_consistent(synthetic_scene, tmp_path):
     """Puts stream in (snapshot every 3 records, so snapshots are taken and pruned under the
-    export) while exports run; each export imports and restores to a prefix of the puts."""
+    export) while three exports run; each export imports and restores to a prefix of the puts."""
     scene = synthetic_scene
     port = free_port()
     storage = tmp_path / "a"
@@ -213,7 +213,7 @@ def test_an_export_while_serving_and_taking_puts_is_consistent(synthetic_scene, 
         stop = threading.Event()
 
         def put_more() -> None:
-            for kf_id in range(3, 3 + 12):
+            for kf_id in range(3, 3 + 8):
                 if stop.is_set():
                     return
                 service.on_keyframe_sample(MAP, kf_id, _keyframe_put(scene, kf_id))
@@ -223,7 +223,7 @@ def test_an_export_while_serving_and_taking_puts_is_consistent(synthetic_scene, 
         writer.start()
         counts = []
         try:
-            for i in range(4):
+            for i in range(3):
                 file = tmp_path / f"live{i}.relocmap"
                 manifest, _ = export_map(storage / MAP, file)
                 done = import_map(file, tmp_path / f"b{i}")
@@ -251,3 +251,16 @@ def test_export_refuses_a_directory_that_is_not_a_served_map(tmp_path, capsys):
     with pytest.raises(Exception, match="no service.json"):
         take_view(tmp_path / "x", tmp_path)
     assert not (tmp_path / "f").exists()
+
+
+def test_import_into_a_storage_a_service_holds_is_refused(built, tmp_path, capsys):
+    from reloc_service.storage.lock import DirectoryLock
+
+    storage, _ = built
+    file = tmp_path / "lab.relocmap"
+    export_map(storage / MAP, file)
+    held = tmp_path / "held"
+    held.mkdir()
+    with DirectoryLock(held, what="storage").acquire("reloc serve"):
+        assert reloc(["map", "import", str(file), "--storage", str(held), "--name", "x"]) == 1
+    assert "is in use by" in capsys.readouterr().err and not (held / "x").exists()
