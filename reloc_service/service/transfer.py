@@ -71,15 +71,23 @@ class Transfers:
         self.storage = storage
         self.registry = registry
         self.limits = limits
-        self._dir = Path(tempfile.mkdtemp(prefix="reloc-transfer-"))
+        self._tmp: Path | None = None   # made on first use (most services never transfer)
         self._exports: dict[str, _Export] = {}
         self._uploads: dict[str, _Upload] = {}
         self._lock = threading.Lock()
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="transfer")
 
+    @property
+    def _dir(self) -> Path:
+        """The directory of this service's export files and uploads (never the storage)."""
+        if self._tmp is None:
+            self._tmp = Path(tempfile.mkdtemp(prefix="reloc-transfer-"))
+        return self._tmp
+
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
-        shutil.rmtree(self._dir, ignore_errors=True)
+        if self._tmp is not None:
+            shutil.rmtree(self._tmp, ignore_errors=True)
 
     # -- dispatch (called on the query thread: hand over only) ------------------------------
     def on_export(self, map_name: str, query: PendingQuery) -> None:
