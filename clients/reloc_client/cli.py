@@ -1,5 +1,5 @@
 """``reloc-client``: talk to a reloc service from the shell (maps, status, upload, train,
-relocalize). Thin: parse, call :class:`RelocClient`, print JSON."""
+relocalize, export, import). Thin: parse, call :class:`RelocClient`, print JSON."""
 
 from __future__ import annotations
 
@@ -66,12 +66,27 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a camera dict, or a cameras.json with exactly one camera")
     rl.add_argument("--method", help="method or comma-separated fallback chain")
     rl.add_argument("--hypotheses", type=int, default=1, help="poses to return (default: 1)")
+    ex = sub.add_parser("export", help="download map NAME as one file (resumable: run again "
+                        "after a lost connection)")
+    ex.add_argument("name", metavar="NAME", help="the map to export")
+    ex.add_argument("file", type=Path, metavar="FILE", help="the export file to write")
+    im = sub.add_parser("import", help="upload an export file; the service verifies it in full "
+                        "before serving it (resumable)")
+    im.add_argument("file", type=Path, metavar="FILE", help="a file of `reloc map export`")
+    im.add_argument("--name", help="serve it under this name (default: --map, else the name "
+                    "it was exported under)")
+    im.add_argument("--replace", action="store_true", help="replace a stored map of that "
+                    "name that is not being served")
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command == "export":
+        args.map = args.name
+    elif args.command == "import":
+        args.map = args.name or args.map or _exported_name(args.file)
     if args.map is None and args.command != "maps":
         parser.error(f"{args.command}: --map NAME is required")
     from .client import NoReplyError, RelocClient, ServiceError  # zenoh only when running
@@ -214,8 +229,44 @@ def _depth(root: Path, depth_path: str, metres_per_unit: float) -> wire.WireDept
     return wire.WireDepth(wire.DepthFormat.PNG, header[0], header[1], data, metres_per_unit)
 
 
+def cmd_export(client: Any, args: argparse.Namespace) -> int:
+    from .transfer import download_export
+
+    start = time.perf_counter()
+    done = download_export(client, args.file)
+    _print_json({"file": str(done.path), "bytes": done.size, "sha256": done.sha256,
+                 "map_id": done.map_id, "resumed_from": done.resumed_from,
+                 "seconds": round(time.perf_counter() - start, 2)})
+    return EXIT_OK
+
+
+def cmd_import(client: Any, args: argparse.Namespace) -> int:
+    from .transfer import upload_import
+
+    start = time.perf_counter()
+    done, reply = upload_import(client, args.file, replace=args.replace)
+    _print_json({"map": client.map, "map_id": reply.map_id, "keyframes": reply.keyframes,
+                 "bytes": done.size, "resumed_from": done.resumed_from,
+                 "seconds": round(time.perf_counter() - start, 2)})
+    return EXIT_OK
+
+
+def _exported_name(file: Path) -> str | None:
+    """The map name in an export file's manifest (its first member), None if unreadable."""
+    import tarfile
+
+    try:
+        with tarfile.open(file, "r:") as tar:
+            member = tar.next()
+            fh = tar.extractfile(member) if member is not None else None
+            name = json.loads(fh.read()).get("map_name") if fh is not None else None
+            return name if isinstance(name, str) else None
+    except (OSError, tarfile.TarError, ValueError, AttributeError):
+        return None
+
+
 COMMANDS = {"maps": cmd_maps, "status": cmd_status, "upload": cmd_upload, "train": cmd_train,
-            "relocalize": cmd_relocalize}
+            "relocalize": cmd_relocalize, "export": cmd_export, "import": cmd_import}
 
 
 # -- a minimal reader of reloc dataset v1 (the client must not import reloc_service) --------

@@ -11,7 +11,8 @@ import argparse
 import sys
 from pathlib import Path
 
-HELP = "inspect map storage: `reloc map check DIR` (exit 1 if damaged)"
+HELP = ("inspect and carry map storage: `reloc map check DIR` (exit 1 if damaged), "
+        "`export`/`import` (a map as one file), `ls`, `info`")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,11 +31,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     current.add_argument("directory", metavar="DIR", help="a map directory")
     current.add_argument("snapshot", metavar="SNAPSHOT", help="a snapshot name under "
                          "DIR/map/snapshots/ (`reloc map check DIR` lists them)")
+    from .map_transfer import add_arguments as add_transfer_arguments
+
+    add_transfer_arguments(sub)
 
 
 def run(args: argparse.Namespace) -> int:
     if args.map_command == "set-current":
         return run_set_current(args)
+    if args.map_command in ("export", "import", "ls", "info"):
+        from .map_transfer import run as run_transfer
+
+        return run_transfer(args)
     from ..core.errors import StorageError
     from ..service.storage_check import accept_losses, check_path, format_check, is_map_dir, to_json
 

@@ -41,6 +41,7 @@ from .processes import EngineSpec, ProcessWorkers
 from .registry import MapRegistry
 from .replication import Bootstrap, DivergenceWatch, Peers
 from .runtime import MapRuntime
+from .transfer import Transfers
 from .workers import Lane, WorkerPool, seconds_left, stop_on_signals
 from .writes import Writes
 from .zenoh_io import PendingQuery, QueryKind, ZenohLayer, open_session
@@ -86,6 +87,8 @@ class Service:
         #: Compares the served maps with the peers serving them (a replica's).
         self.watch: DivergenceWatch | None = None
         self.started_at = time.monotonic()
+        #: Maps exported and imported over Zenoh as one file (:mod:`.transfer`).
+        self.transfers = Transfers(self.storage, self.registry, self.limits)
 
     # -- life cycle ------------------------------------------------------------------------------
     def start(self, *, wait_ready: bool = True) -> Service:
@@ -114,6 +117,8 @@ class Service:
         self.session = open_session(self.conf.zenoh)
         self.writes.peers = Peers(self.session, self.prefix, self.instance, self.limits)
         self.layer = ZenohLayer(self.session, self.prefix, self.instance, self)
+        if self.storage is not None:
+            self.layer.serve_imports()
         if self.conf.ros2.enabled:   # imported here: rosbags and xxhash are the extra 'ros2'
             from .ros2.bridge import Ros2Bridge
 
@@ -177,6 +182,7 @@ class Service:
             self.processes.close()
         # the queries are done: their helper threads (thread-mode workers) end here
         close_helpers(timeout=seconds_left(deadline, share=0.25))
+        self.transfers.close()
         self.registry.close(final_snapshot=final_snapshot, deadline=deadline)
         if self.layer is not None:
             self.layer.close()
@@ -273,6 +279,12 @@ class Service:
         self.writes.refuse_sample(key, problem, code)
 
     def on_query(self, map_name: str, kind: QueryKind, query: PendingQuery) -> None:
+        if kind is QueryKind.IMPORT:     # the map need not be served (yet)
+            self.transfers.on_import(map_name, query)
+            return
+        if kind is QueryKind.EXPORT and map_name in self.maps:
+            self.transfers.on_export(map_name, query)
+            return
         rt = self.maps.get(map_name)
         if rt is None:  # undeclared meanwhile, or its storage did not restore
             failure = self.registry.failed.get(map_name)

@@ -148,6 +148,29 @@ class MapRegistry:
     def ready(self) -> bool:
         return self._ready.is_set()
 
+    def reserve(self, name: str) -> None:
+        """Hold ``name`` for a map about to be added to the storage (an import): its puts get
+        BUSY until :meth:`serve_added` (or :meth:`release`); StorageError if it is served."""
+        with self._lock:
+            if name in self.maps or name in self._loading:
+                raise StorageError(f"map {name!r} is served (or being restored) here; an "
+                                   f"import does not replace a served map: import it under "
+                                   f"another name, or stop the service and use `reloc map "
+                                   f"import --replace`")
+            self.failed.pop(name, None)
+            self._loading.add(name)
+
+    def release(self, name: str) -> None:
+        with self._lock:
+            self._loading.discard(name)
+
+    def serve_added(self, name: str) -> None:
+        """Restore and declare map ``name``, added to the storage after :meth:`reserve`;
+        StorageError if it does not restore (it is failed then, as at start)."""
+        self._bring_up(name, declare=True)
+        if name in self.failed:
+            raise StorageError(self.failed[name])
+
     def _bring_up(self, name: str, *, declare: bool) -> None:
         """Load ``name``'s snapshot, serve it (``declare``), then replay its journal
         backlog behind it (queries answer from what is replayed so far)."""

@@ -2,7 +2,7 @@
 only copy the payload and hand it to a dispatcher (the work runs in worker threads).
 
 Key expressions (``reloc_client.protocol.keys``), for each served map ``<map>``:
-``<prefix>/<map>/{relocalize,train,status}`` queryables, ``keyframes/**`` and ``cameras/**``
+``<prefix>/<map>/{relocalize,train,status,export}`` queryables, ``keyframes/**`` and ``cameras/**``
 queryables (copying a map), subscribers on ``<prefix>/*/keyframes/*`` and
 ``<prefix>/*/cameras/*`` (puts and deletes, any map: the first keyframe may create one), a
 publisher on ``<prefix>/<map>/events`` and a liveliness token ``<prefix>/@live/<instance>/<map>``.
@@ -23,6 +23,7 @@ from typing import Any, Protocol
 import zenoh
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode
+from reloc_client.protocol.transfer import export_key
 
 from ..core.errors import ConfigError
 from .config import ZenohConf
@@ -68,6 +69,8 @@ class QueryKind(enum.Enum):
     STATUS = "status"
     KEYFRAMES = "keyframes"
     CAMERAS = "cameras"
+    EXPORT = "export"
+    IMPORT = "import"
 
 
 class PendingQuery:
@@ -143,6 +146,7 @@ class ZenohLayer:
         self._maps: dict[str, list[object]] = {}
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._tokens: dict[str, zenoh.LivelinessToken] = {}
+        self._imports: zenoh.Queryable | None = None
         self._lock = threading.Lock()
         #: Gives the heap back after an oversized payload is refused (:mod:`.memory`).
         self.trimmer = Trimmer()
@@ -166,7 +170,8 @@ class ZenohLayer:
                 self._queryable(k.status(self.prefix, map_name), map_name, QueryKind.STATUS),
                 self._queryable(k.keyframes(self.prefix, map_name), map_name,
                                 QueryKind.KEYFRAMES),
-                self._queryable(k.cameras(self.prefix, map_name), map_name, QueryKind.CAMERAS)]
+                self._queryable(k.cameras(self.prefix, map_name), map_name, QueryKind.CAMERAS),
+                self._queryable(export_key(self.prefix, map_name), map_name, QueryKind.EXPORT)]
             self._publishers[map_name] = self.session.declare_publisher(
                 k.events(self.prefix, map_name))
             entities.append(self._publishers[map_name])
@@ -174,6 +179,28 @@ class ZenohLayer:
             # The token last: a client that sees it can use every key at once.
             self._tokens[map_name] = self.session.liveliness().declare_token(
                 k.liveliness(self.prefix, self.instance, map_name))
+
+    def serve_imports(self) -> None:
+        """Declare ``<prefix>/*/import``: a map is imported under any valid name, served or
+        not yet (the map name is the key's second chunk)."""
+        dispatcher = self.dispatcher
+        wildcard = f"{self.prefix}/*/import"
+
+        def on_query(query: zenoh.Query) -> None:
+            key = str(query.key_expr)
+            try:
+                map_name = wire.check_name(key[len(self.prefix) + 1:].split("/")[0])
+                if self._payload_fits(query.payload, key, query):
+                    dispatcher.on_query(map_name, QueryKind.IMPORT, PendingQuery(query, key))
+            except wire.ProtocolError as exc:
+                query.reply_err(wire.encode_error(exc.code, exc.message))
+                query.drop()
+            except Exception:  # never let an exception reach Zenoh's thread
+                log.exception("query on %s failed in the dispatcher", key)
+
+        with self._lock:
+            self._imports = self.session.declare_queryable(wildcard,
+                                                           self._inbox.handler(on_query))
 
     def served_maps(self) -> list[str]:
         with self._lock:
@@ -208,6 +235,8 @@ class ZenohLayer:
         for entities in maps.values():
             for entity in reversed(entities):
                 _undeclare(entity)
+        if self._imports is not None:
+            _undeclare(self._imports)
         self._inbox.close()
 
     # -- callbacks (Zenoh threads: copy, parse the key, hand over) -------------------------

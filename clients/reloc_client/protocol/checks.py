@@ -44,6 +44,7 @@ class ErrorCode(enum.StrEnum):
     BUSY = "BUSY"
     QUOTA_EXCEEDED = "QUOTA_EXCEEDED"      # the map or the service holds what its quota allows
     STORAGE_ERROR = "STORAGE_ERROR"
+    UNKNOWN_TRANSFER = "UNKNOWN_TRANSFER"  # an export or upload id the service does not hold
     INTERNAL = "INTERNAL"
 
 
