@@ -57,6 +57,7 @@ def check_result(r: dict) -> None:
 
 # -- end to end through the CLI ------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_cli_accuracy_section(tmp_path, monkeypatch, capsys):
     """``--only accuracy --preset desk``: the preset rendered into the workdir (at the tiny
     scale for the test) and scored; JSON, Markdown and the printed table agree."""

@@ -509,6 +509,7 @@ def _answer(result: RelocResult) -> tuple[Any, ...]:
             tuple(result.matched_keyframe_ids), result.map_version)
 
 
+@pytest.mark.slow
 def test_concurrent_queries_answer_as_sequential_ones(synthetic_scene):
     """Queries share a relocalizer under the read lock, so ``relocalize`` must not change
     what another query reads: queries started together right after a map change (bow's

@@ -97,6 +97,7 @@ def test_an_outbox_left_open_is_closed_before_the_interpreter_finalizes():
     assert threads_at_exit(proc.stderr) == []
 
 
+@pytest.mark.slow
 def test_reloc_serve_stops_on_sigterm_with_no_thread_of_ours_left(tmp_path):
     port = free_port()
     service = ServiceProcess(write_config(tmp_path, port), port, tmp_path / "serve.log")

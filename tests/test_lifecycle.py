@@ -219,8 +219,8 @@ def test_outbox_keeps_changes_while_no_service_answers_and_delivers_them_in_orde
 
 # -- case 9 (and case 1 during a training): waiting for a job of a service that goes away ----
 
-@pytest.mark.parametrize("sig", [signal.SIGKILL, pytest.param(signal.SIGTERM,
-                                                                marks=pytest.mark.slow)],
+@pytest.mark.parametrize("sig", [pytest.param(signal.SIGKILL, marks=pytest.mark.slow),
+                                 pytest.param(signal.SIGTERM, marks=pytest.mark.slow)],
                          ids=["kill-9", "sigterm"])
 def test_train_wait_raises_soon_after_the_service_goes(synthetic_scene, tmp_path, sig):
     """kill -9 or SIGTERM during a ~6 s training (60 k-means rounds): the waiting client

@@ -89,6 +89,7 @@ def inline_camera(width: int, height: int) -> PinholeCamera:
 
 # -- case 10: a query image bounded by the map's cameras, headers checked before decoding --------
 
+@pytest.mark.slow
 def test_inline_query_camera_larger_than_the_maps_cameras_is_refused(served, synthetic_scene):
     _, _, client, _, _ = served
     big = flat_image(640, 480, "png")

@@ -82,6 +82,7 @@ def test_a_wrong_radial_distortion_is_refused():
     assert check.radial_px < -5.0
 
 
+@pytest.mark.slow
 def test_the_given_camera_passes_at_about_the_stated_rate():
     rng = np.random.default_rng(2)
     checks = [judged(*correspondences(ROOM, 80, 0.7, rng), ROOM) for _ in range(300)]

@@ -153,6 +153,7 @@ def test_best_match_per_landmark_is_the_numpy_choice():
     assert np.array_equal(fast, slow) and len(np.unique(rows)) == len(fast) < len(rows)
 
 
+@pytest.mark.slow
 def test_relocalizations_of_real_images_are_the_same_with_and_without_kernels(monkeypatch):
     """The default method on the TUM fixture's queries: the same poses, covariances, inliers
     and verdicts, compiled or not (one engine, the kernels switched off in between)."""

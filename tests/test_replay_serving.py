@@ -99,6 +99,7 @@ def test_a_map_is_served_while_its_backlog_replays_and_a_put_applies_after_it(
     assert seqs[100] == n + 2 and max(v for k, v in seqs.items() if k != 100) == n + 1
 
 
+@pytest.mark.slow
 def test_a_replay_stopped_midway_resumes_where_it_stopped(synthetic_scene, tmp_path):
     n = 8
     storage = tmp_path / "storage"

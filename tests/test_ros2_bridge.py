@@ -261,6 +261,7 @@ def test_humble_writes_type_hash_not_supported_and_lost_relocalizes_every_nth(sy
             service.stop()
 
 
+@pytest.mark.slow
 def test_desk_scene_over_ros2(tmp_path_factory):
     """The bridge end to end on a rendered scene: the ``desk`` preset's map frames with odometry
     build the map, each query image is relocalized through the Trigger service and comes back
