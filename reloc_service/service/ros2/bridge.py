@@ -405,12 +405,13 @@ class MapNode:
         _, estimate = self.mapping.frame.current()
         if estimate is None:
             return
-        seconds = convert.stamp_seconds(stamp)
+        seconds, session = convert.stamp_seconds(stamp), self.mapping.frame.session
+        jumped = self._px4_session is not None and session != self._px4_session
         rate = self.conf.px4.max_rate_hz
-        if rate and seconds - self._px4_last_s < 1.0 / rate:
+        # (time going back starts a new session: the cap counts from its first message)
+        if rate and not jumped and 0.0 <= seconds - self._px4_last_s < 1.0 / rate:
             return
-        session = self.mapping.frame.session
-        if self._px4_session is not None and session != self._px4_session:
+        if jumped:
             self.px4.bump_reset_counter()
         self._px4_session, self._px4_last_s = session, seconds
         world_from_cam = estimate.map_from_odom @ odom_from_body @ self.body_from_cam

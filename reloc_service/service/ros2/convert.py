@@ -5,6 +5,7 @@ images with odometry (the keyframe rule is :mod:`.keyframe_rule`)."""
 from __future__ import annotations
 
 import bisect
+import threading
 from collections import deque
 from dataclasses import dataclass
 from typing import Any
@@ -158,38 +159,44 @@ def grey_from_raw(image: Any) -> npt.NDArray[np.uint8]:
 
 class StampedPoses:
     """The last ``size`` odometry poses by stamp (each with its ROS pose covariance, 36
-    values, or None); the one nearest an image's stamp."""
+    values, or None); the one nearest an image's stamp. Added to by the bridge's worker and
+    read by the relocalize workers too (a relocalized image's odometry): one lock keeps the
+    three queues in step, so a lookup never pairs a stamp with its neighbour's pose."""
 
     def __init__(self, size: int = 400) -> None:
         self._stamps: deque[float] = deque(maxlen=size)
         self._poses: deque[Array] = deque(maxlen=size)
         self._covariances: deque[Array | None] = deque(maxlen=size)
+        self._lock = threading.Lock()
 
     def add(self, stamp: float, world_from_body: Array, covariance: Array | None = None
             ) -> None:
-        if self._stamps and stamp < self._stamps[-1]:
-            self._stamps.clear()   # time went back (a bag restarted): start again
-            self._poses.clear()
-            self._covariances.clear()
-        self._stamps.append(stamp)
-        self._poses.append(world_from_body)
-        self._covariances.append(covariance)
+        with self._lock:
+            if self._stamps and stamp < self._stamps[-1]:
+                self._stamps.clear()   # time went back (a bag restarted): start again
+                self._poses.clear()
+                self._covariances.clear()
+            self._stamps.append(stamp)
+            self._poses.append(world_from_body)
+            self._covariances.append(covariance)
 
     def newest(self) -> float:
         """The newest stamp (-inf when empty)."""
-        return self._stamps[-1] if self._stamps else float("-inf")
+        with self._lock:
+            return self._stamps[-1] if self._stamps else float("-inf")
 
     def nearest(self, stamp: float, tolerance_s: float) -> Array | None:
         """The pose stamped within ``tolerance_s`` of ``stamp`` (nearest), else None."""
-        best = self._nearest_index(stamp, tolerance_s)
-        return None if best is None else self._poses[best]
+        found = self.nearest_with_covariance(stamp, tolerance_s)
+        return None if found is None else found[0]
 
     def nearest_with_covariance(self, stamp: float, tolerance_s: float
                                 ) -> tuple[Array, Array | None] | None:
         """(pose, its ROS covariance or None) stamped nearest ``stamp`` within
         ``tolerance_s``, else None."""
-        best = self._nearest_index(stamp, tolerance_s)
-        return None if best is None else (self._poses[best], self._covariances[best])
+        with self._lock:
+            best = self._nearest_index(stamp, tolerance_s)
+            return None if best is None else (self._poses[best], self._covariances[best])
 
     def _nearest_index(self, stamp: float, tolerance_s: float) -> int | None:
         stamps = list(self._stamps)
