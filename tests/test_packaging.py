@@ -146,3 +146,17 @@ def test_pip_install_without_extras_serves_and_tools_need_the_extra(tmp_path):
     assert tools.returncode == 0, tools.stderr[-3000:]
     listed = _run(venv, "reloc", "synth", "--list", cwd=run)
     assert listed.returncode == 0 and "room-hard" in listed.stdout, listed.stderr
+
+
+def test_the_service_configuration_needs_no_ros2_extra():
+    """``reloc serve`` reads [ros2] (and [ros2.px4]) on every install: loading the
+    configuration imports neither rosbags nor xxhash (the ``ros2`` extra), only enabling the
+    bridge does. The slow plain-install test shows the same on a real install."""
+    import subprocess
+    import sys
+
+    code = ("import sys; import reloc_service.service.config, reloc_service.service.app; "
+            "extra = sorted(m for m in ('rosbags', 'xxhash') if m in sys.modules); "
+            "print(extra); sys.exit(1 if extra else 0)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr

@@ -31,7 +31,7 @@ from service_support import ROOT, endpoint, free_port, open_router, wait_until
 
 from reloc_service.core.errors import ConfigError
 from reloc_service.service.config import load_config, parse_config
-from reloc_service.service.ros2 import px4
+from reloc_service.service.ros2 import px4, px4_conf
 from reloc_service.service.ros2 import types as ros
 from reloc_service.service.ros2.conf import Ros2Conf
 
@@ -151,7 +151,7 @@ def test_times_on_px4_clock_or_the_stamp_as_is():
     class Time:
         sec, nanosec = 100, 250_000_000
 
-    conf = px4.Px4Conf(enabled=True)
+    conf = px4_conf.Px4Conf(enabled=True)
     assert px4.Px4Publisher(None, b"", conf, None).times_us(Time(), 7) == (7, 100_250_000)
     clock = px4.Px4Clock()
     with_clock = px4.Px4Publisher(None, b"", conf, clock)
@@ -191,7 +191,7 @@ def test_another_implementation_hashes_the_tests_msg_alike():
 def test_cdr_round_trip_of_a_message_with_float32_and_nan_velocity():
     pose = px4.px4_pose(_yaw_pose([1.0, 2.0, 3.0], 30.0), np.diag([1.0, 2, 3, 4, 5, 6]) * 1e-3)
     msg = px4.vehicle_odometry(pose, timestamp_us=5, timestamp_sample_us=3,
-                               pose_frame=px4.POSE_FRAME_FRD, reset_counter=257, quality=42)
+                               pose_frame=px4_conf.POSE_FRAME_FRD, reset_counter=257, quality=42)
     got = read_vehicle_odometry(ros.encode(msg, px4.VEHICLE_ODOMETRY))
     assert (got.timestamp, got.timestamp_sample, got.pose_frame, got.velocity_frame,
             got.reset_counter, got.quality) == (5, 3, 2, 0, 1, 42)
@@ -209,9 +209,9 @@ def test_px4_is_off_by_default_and_its_section_is_checked():
     conf = parse_config({"ros2": {"enabled": True, "px4": {
         "enabled": True, "topic": "/px4_1/fmu/in/vehicle_visual_odometry", "world_frame": "ned",
         "body_frame": "frd", "pose_frame": "ned"}}}).ros2.px4
-    assert conf == px4.Px4Conf(True, "/px4_1/fmu/in/vehicle_visual_odometry", "ned", "frd", "ned")
+    assert conf == px4_conf.Px4Conf(True, "/px4_1/fmu/in/vehicle_visual_odometry", "ned", "frd", "ned")
     assert parse_config({"ros2": {"enabled": True, "px4": {"clock_topic": ""}}}).ros2.px4 \
-        == px4.Px4Conf(clock_topic="")
+        == px4_conf.Px4Conf(clock_topic="")
     bad = [({"px4": {"enabled": True}}, "needs ros2.enabled = true"),
            ({"enabled": True, "px4": {"frame": "enu"}}, r"unknown option\(s\) \['frame'\]"),
            ({"enabled": True, "px4": {"world_frame": "nwu"}}, r"world_frame: expected one of"),
@@ -227,7 +227,7 @@ def test_px4_is_off_by_default_and_its_section_is_checked():
 
 def test_the_deploy_example_documents_the_defaults():
     conf = load_config(ROOT / "deploy" / "ros2" / "reloc-ros2.toml").ros2.px4
-    assert conf == px4.Px4Conf()
+    assert conf == px4_conf.Px4Conf()
 
 
 # -- over Zenoh -------------------------------------------------------------------------------------

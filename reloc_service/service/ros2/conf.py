@@ -14,7 +14,7 @@ from typing import Any
 
 from ...core.errors import ConfigError
 from . import qos as qos_conf
-from .px4 import Px4Conf, px4_conf
+from .px4_conf import Px4Conf, px4_conf
 
 #: Distros whose rmw_zenoh puts RIHS01 type hashes in keys; Humble writes
 #: ``TypeHashNotSupported``.
