@@ -204,6 +204,10 @@ class Residency:
         """The least recently used idle resident map, taken out of the maps table (queries
         and puts arriving now wait for its close, then load it again)."""
         with self._lock:
+            for name in list(self.registry.maps):   # served without a use yet (an import)
+                if name not in self._lru and name not in self._closing:
+                    self._lru[name] = None
+                    self._lru.move_to_end(name, last=False)
             for name in list(self._lru):
                 rt = self.registry.maps.get(name)
                 if rt is None:
