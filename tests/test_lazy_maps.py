@@ -28,6 +28,7 @@ from service_support import (
 
 from reloc_service.core.errors import ConfigError
 from reloc_service.service.app import Service
+from reloc_service.service.config import parse_config
 from reloc_service.service.durability import MAP_NAME_FILE, map_dirname
 from reloc_service.service.residency import MB
 from reloc_service.service.workers import Lane
@@ -261,6 +262,15 @@ def test_put_on_a_closed_map_loads_it_and_survives_kill_9(template, synthetic_sc
     ({"worker_mode": "thread", "max_resident_mb": -1}, "expected MB >= 0"),
 ])
 def test_max_resident_mb_refuses_what_it_cannot_bound(service, message, tmp_path):
+    """Worker processes hold a replica of every map, the bootstrap copies every map, and a
+    map without storage cannot be reloaded: each refused by name."""
     with pytest.raises(ConfigError, match=message):
         service_conf(free_port(), **{"storage": str(tmp_path), "max_resident_mb": 100,
                                      **service})
+
+
+def test_max_resident_mb_refuses_the_ros2_bridge(tmp_path):
+    with pytest.raises(ConfigError, match=r"\[ros2\] enabled"):
+        parse_config({"service": {"storage": str(tmp_path), "worker_mode": "thread",
+                                  "max_resident_mb": 100},
+                      "ros2": {"enabled": True}})

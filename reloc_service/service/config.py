@@ -327,6 +327,10 @@ def parse_config(data: Mapping[str, Any], *, source: str = "config") -> ServiceC
     options = {name: MappingProxyType(dict(_table(t, f"{source}: [options.{name}]")))
                for name, t in _table(data.get("options", {}), f"{source}: [options]").items()}
     mapping = dict(_table(data.get("mapping", {}), f"{source}: [mapping]"))
+    if sections["service"].max_resident_mb > 0 and sections["ros2"].enabled:
+        raise ConfigError(f"{source}: service.max_resident_mb > 0 cannot be combined with "
+                          "[ros2] enabled (the bridge serves the maps loaded at start; set "
+                          "max_resident_mb = 0)")
     return ServiceConf(zenoh=sections["zenoh"], service=sections["service"],
                        limits=sections["limits"], quotas=sections["quotas"],
                        maps=MappingProxyType(maps),
