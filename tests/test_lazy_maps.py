@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from reloc_client.client import RelocClient, ServiceBusy
+from reloc_client import protocol as wire
+from reloc_client.client import RelocClient, ServiceBusy, to_wire_image
 from service_support import (
     Events,
     ServiceProcess,
@@ -38,8 +39,9 @@ NAMES = ("alpha", "bravo", "charlie")
 
 
 def conf(port: int, storage: Path, **service):
-    return service_conf(port, storage, methods=[METHOD], default_method=METHOD,
-                        worker_mode="thread", workers=2, snapshot_every=0, **service)
+    return service_conf(port, storage, **{"methods": [METHOD], "default_method": METHOD,
+                                          "worker_mode": "thread", "workers": 2,
+                                          "snapshot_every": 0, **service})
 
 
 @pytest.fixture(scope="module")
@@ -221,6 +223,31 @@ def test_a_map_with_puts_waiting_or_training_is_not_closed(template, synthetic_s
         service.stop()
 
 
+def test_worker_processes_drop_the_replica_of_a_closed_map(template, synthetic_scene,
+                                                           tmp_path):
+    template_dir, map_bytes = template
+    storage = stored_maps(template_dir, tmp_path / "storage", names=("alpha", "bravo"))
+    port = free_port()
+    service = Service(conf(port, storage, max_resident_mb=1.5 * map_bytes / MB,
+                           worker_mode="process", workers=1)).start()
+    try:
+        processes = service.processes
+        assert processes is not None
+        with RelocClient(endpoint(port), map="alpha", timeout=60) as alpha, \
+                RelocClient(endpoint(port), map="bravo", timeout=60) as bravo:
+            first = pose_of(alpha, synthetic_scene, 2)   # answered by the worker's replica
+            pose_of(bravo, synthetic_scene, 2)
+            wait_until(lambda: list(service.maps) == ["bravo"], timeout=30)
+            # asked directly, the worker no longer holds alpha
+            request = wire.RelocalizeRequest(image=to_wire_image(synthetic_scene.query_images[2]),
+                                             camera_id="cam0").encode()
+            answer = processes.relocalize("alpha", request, 0.0)
+            assert answer.error and b"has no replica" in answer.payload
+            np.testing.assert_allclose(pose_of(alpha, synthetic_scene, 2), first, atol=1e-9)
+    finally:
+        service.stop()
+
+
 @pytest.mark.slow   # two service processes: about 10 s
 def test_put_on_a_closed_map_loads_it_and_survives_kill_9(template, synthetic_scene,
                                                           tmp_path):
@@ -256,14 +283,13 @@ def test_put_on_a_closed_map_loads_it_and_survives_kill_9(template, synthetic_sc
 
 
 @pytest.mark.parametrize("service, message", [
-    ({"worker_mode": "process"}, "worker_mode"),
     ({"worker_mode": "thread", "storage": ""}, "service.storage"),
     ({"worker_mode": "thread", "bootstrap_from_peers": True}, "bootstrap_from_peers"),
     ({"worker_mode": "thread", "max_resident_mb": -1}, "expected MB >= 0"),
 ])
 def test_max_resident_mb_refuses_what_it_cannot_bound(service, message, tmp_path):
-    """Worker processes hold a replica of every map, the bootstrap copies every map, and a
-    map without storage cannot be reloaded: each refused by name."""
+    """The bootstrap copies every map, and a map without storage cannot be reloaded: each
+    refused by name."""
     with pytest.raises(ConfigError, match=message):
         service_conf(free_port(), **{"storage": str(tmp_path), "max_resident_mb": 100,
                                      **service})

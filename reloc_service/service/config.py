@@ -229,9 +229,8 @@ class ServiceSection:
         _check_names(self.prefix, self.instance)
 
     def _check_residency(self) -> None:
-        """``max_resident_mb`` > 0 closes idle maps: only with storage to reopen them from,
-        thread workers (a worker process holds a replica of every map) and no bootstrap
-        (which copies every map at start)."""
+        """``max_resident_mb`` > 0 closes idle maps: only with storage to reopen them from
+        and no bootstrap (which copies every map at start)."""
         if not self.max_resident_mb >= 0:
             raise ConfigError(f"service.max_resident_mb: expected MB >= 0 (0: unlimited), got "
                               f"{self.max_resident_mb}")
@@ -240,10 +239,6 @@ class ServiceSection:
                               f"{self.cold_load_wait_s}")
         if self.max_resident_mb == 0:
             return
-        if self.worker_mode != "thread":
-            raise ConfigError("service.max_resident_mb > 0 needs service.worker_mode = "
-                              "\"thread\": worker processes hold a replica of every map, which "
-                              "is not evicted with it")
         if not self.storage:
             raise ConfigError("service.max_resident_mb > 0 needs service.storage: an evicted "
                               "map is reopened from its files")

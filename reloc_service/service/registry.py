@@ -167,6 +167,9 @@ class MapRegistry:
             self._fail_map(name, exc)
             return
         self._replay(rt, declared=True, start=start)
+        if name in self.failed or self._stopped.is_set() or rt.replaying:
+            if self.processes is not None:
+                self.processes.detach(rt)
         if name in self.failed:
             return
         if self._stopped.is_set() or rt.replaying:   # interrupted: the journal is untouched
@@ -179,6 +182,8 @@ class MapRegistry:
         """Close resident map ``name`` (final snapshot within ``timeout``, journal, lock):
         its files are released; it is loaded again on its next use."""
         rt = self.maps.pop(name)
+        if self.processes is not None:   # the worker processes drop their replicas
+            self.processes.detach(rt)
         try:
             rt.close(final_snapshot=True, timeout=timeout)
             while rt.maintenance_running():   # a snapshot past the budget may still rotate

@@ -10,7 +10,8 @@ images as held, depth and features); the process's resident memory is a multiple
 A map is never closed while it is in use: a query or a write holds it (:meth:`Residency.acquire`
 ... :meth:`Residency.release`), puts wait in its writer lane, a training job, snapshot or
 journal replay runs, or it journaled puts it has not applied. Closing takes its final
-snapshot, closes its journal and gives back its directory lock, so an idle map holds no file;
+snapshot, closes its journal and gives back its directory lock, so an idle map holds no file
+(with ``worker_mode = "process"`` each worker process drops its replica too);
 its usage is kept, so quotas on the total still count it. A map whose load fails is failed as
 at start (its queries get STORAGE_ERROR with the reason).
 """
