@@ -5,6 +5,7 @@ every map at random; the same storage served with ``max_resident_mb = 0`` (every
 at start, today's default) for comparison. JSON on stdout.
 
     python scripts/many_maps.py [--maps 50] [--resident 5] [--queries 200] [--seed 0]
+                                [--worker-mode thread|process]
 
 Each map is a copy of one map of the tests' synthetic room (320x240, 6 keyframes, camera
 cam0, trained, in a snapshot), built once in-process; ``--resident`` sets the budget to that
@@ -43,9 +44,11 @@ def build_template(root: Path, scene) -> tuple[Path, int]:
     """One stored map (trained, in a snapshot) and the bytes it counts."""
     storage = root / "template"
     port = free_port()
-    conf = service_conf(port, storage, methods=[METHOD], default_method=METHOD,
-                        worker_mode="thread", snapshot_every=0, train_on_load=False)
-    service = Service(conf).start()
+    def conf(port: int):
+        return service_conf(port, storage, methods=[METHOD], default_method=METHOD,
+                            worker_mode="thread", snapshot_every=0, train_on_load=False)
+
+    service = Service(conf(port)).start()
     try:
         with RelocClient(endpoint(port), map="template", timeout=60) as client:
             events = Events(client)
@@ -58,9 +61,13 @@ def build_template(root: Path, scene) -> tuple[Path, int]:
                 events.wait("keyframe_added", id=kf_id, timeout=120)
             assert client.train(wait=True, timeout=300).accepted
             events.close()
-        usage = service.maps["template"].usage.total
     finally:
         service.stop()
+    restored = Service(conf(free_port())).start()   # counted as a map loaded from its snapshot counts
+    try:
+        usage = restored.maps["template"].usage.total
+    finally:
+        restored.stop()
     return storage / "template", usage
 
 
@@ -73,11 +80,12 @@ def copies(template: Path, storage: Path, n: int) -> list[str]:
     return names
 
 
-def write_config(path: Path, port: int, storage: Path, budget_mb: float) -> Path:
+def write_config(path: Path, port: int, storage: Path, budget_mb: float,
+                 worker_mode: str) -> Path:
     path.write_text("\n".join([
         "[zenoh]", 'mode = "peer"', f'listen = ["{endpoint(port)}"]',
         "multicast_scouting = false", "[service]", 'instance = "bench"',
-        f'storage = "{storage}"', 'worker_mode = "thread"', "workers = 2",
+        f'storage = "{storage}"', f'worker_mode = "{worker_mode}"', "workers = 2",
         f'methods = ["{METHOD}"]', f'default_method = "{METHOD}"',
         f"max_resident_mb = {budget_mb}", "cold_load_wait_s = 10.0",
         "[quotas]", "max_maps = 100000", "max_total_bytes = 1099511627776"]) + "\n")
@@ -85,10 +93,25 @@ def write_config(path: Path, port: int, storage: Path, budget_mb: float) -> Path
 
 
 def rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return 0.0
+    """Resident memory of ``pid`` and its descendants (worker processes, their forkserver)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    total, todo = 0.0, [pid]
+    while todo:
+        p = todo.pop()
+        todo += children.get(p, [])
+        try:
+            for line in Path(f"/proc/{p}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1]) / 1024
+        except OSError:
+            continue
+    return total
 
 
 def first_answer(port: int, name: str, scene, proc: subprocess.Popen, start: float) -> float:
@@ -105,9 +128,10 @@ def first_answer(port: int, name: str, scene, proc: subprocess.Popen, start: flo
 
 
 def run(storage: Path, names: list[str], scene, budget_mb: float, queries: int,
-        seed: int, work: Path) -> dict[str, object]:
+        seed: int, work: Path, worker_mode: str) -> dict[str, object]:
     port = free_port()
-    config = write_config(work / f"serve-{budget_mb:g}.toml", port, storage, budget_mb)
+    config = write_config(work / f"serve-{budget_mb:g}.toml", port, storage, budget_mb,
+                          worker_mode)
     log = (work / f"serve-{budget_mb:g}.log").open("ab")
     start = time.monotonic()
     proc = subprocess.Popen([sys.executable, "-m", "reloc_service.cli.main", "serve",
@@ -161,6 +185,7 @@ def main() -> int:
                         help="the budget: this many maps' counted bytes")
     parser.add_argument("--queries", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--worker-mode", choices=("thread", "process"), default="thread")
     args = parser.parse_args()
     scene = make_scene(PINHOLE)
     with tempfile.TemporaryDirectory(prefix="reloc-many-maps-") as tmp:
@@ -172,9 +197,11 @@ def main() -> int:
         names = copies(template, storage, args.maps)
         budget_mb = round(args.resident * map_bytes / MB + 0.01, 2)
         out = {"maps": args.maps, "map_counted_mb": round(map_bytes / MB, 3),
-               "template_build_s": round(built, 1),
-               "bounded": run(storage, names, scene, budget_mb, args.queries, args.seed, work),
-               "all_resident": run(storage, names, scene, 0, args.queries, args.seed, work)}
+               "worker_mode": args.worker_mode, "template_build_s": round(built, 1),
+               "bounded": run(storage, names, scene, budget_mb, args.queries, args.seed, work,
+                              args.worker_mode),
+               "all_resident": run(storage, names, scene, 0, args.queries, args.seed, work,
+                                   args.worker_mode)}
     print(json.dumps(out, indent=1))
     return 0
 

@@ -47,7 +47,7 @@ def conf(port: int, storage: Path, **service):
 @pytest.fixture(scope="module")
 def template(synthetic_scene, tmp_path_factory) -> tuple[Path, int]:
     """A stored map (camera cam0, the scene's 6 keyframes, trained, in a snapshot) and the
-    bytes it counts (its quota usage)."""
+    bytes it counts once loaded from its snapshot (its quota usage)."""
     storage = tmp_path_factory.mktemp("lazy-template") / "storage"
     port = free_port()
     service = Service(conf(port, storage, train_on_load=False)).start()
@@ -64,9 +64,13 @@ def template(synthetic_scene, tmp_path_factory) -> tuple[Path, int]:
                 events.wait("keyframe_added", id=kf_id)
             assert client.train(wait=True, timeout=120).accepted
             events.close()
-        usage = service.maps["template"].usage.total
     finally:
         service.stop()
+    restored = Service(conf(free_port(), storage)).start()   # counted as a loaded map counts
+    try:
+        usage = restored.maps["template"].usage.total
+    finally:
+        restored.stop()
     return storage / "template", usage
 
 
