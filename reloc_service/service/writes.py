@@ -274,9 +274,10 @@ class Writes:
         """At shutdown: journal a queued write without applying it (cameras are cheap and
         keyframes need them: applied). True if journaled."""
         rt = self.registry.maps.get(job.map_name)
-        if rt is None:   # a put that would have created its map: refused, not lost silently
+        if rt is None:   # a put that would have created or loaded its map: refused, not lost
+            doing = "loading" if self.registry.known(job.map_name) else "creating"
             self.reject(job.map_name, job.rejected, job.ident, ErrorCode.BUSY,
-                        f"the service stopped before creating map {job.map_name!r}; put "
+                        f"the service stopped before {doing} map {job.map_name!r}; put "
                         "again once it is back")
             return False
         if job.op is WriteOp.CAMERA:
