@@ -23,7 +23,8 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
 
 from reloc_client import protocol as wire
 
@@ -32,12 +33,26 @@ from .durability import map_dirname, read_service_file
 from .quotas import MapUsage
 
 if TYPE_CHECKING:
-    from .registry import MapRegistry
+    from .config import ServiceConf
     from .runtime import MapRuntime
 
 log = logging.getLogger(__name__)
 
 MB = 1024 * 1024
+
+
+class MapRegistry(Protocol):
+    """What :class:`Residency` uses of the service's :class:`~.registry.MapRegistry`."""
+
+    conf: ServiceConf
+    storage: Path | None
+    methods: tuple[str, ...]
+    maps: dict[str, MapRuntime]
+    failed: dict[str, str]
+
+    def load_resident(self, name: str) -> None: ...
+
+    def close_resident(self, name: str, *, timeout: float) -> None: ...
 
 
 class Residency:
