@@ -185,9 +185,18 @@ class ServiceSection:
     #: start), the final snapshot is taken only within what is left. Keep it well under
     #: systemd's TimeoutStopSec (60 s in deploy/), which kills -9 after.
     stop_timeout_s: float = 20.0
+    #: Memory budget of the resident maps, in MB of what their keyframes count (as the
+    #: quotas count them: images, depth, features); 0: unlimited, every stored map is
+    #: restored at start and stays resident. Above 0, maps are opened on first use and the
+    #: least recently used idle ones are closed past the budget (:mod:`.residency`).
+    max_resident_mb: float = 0.0
+    #: Seconds a query on a stored map that is not resident waits for it to load; past
+    #: that it is answered "busy" with a retry hint (the load goes on).
+    cold_load_wait_s: float = 5.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "methods", _str_tuple(self.methods, "service.methods"))
+        self._check_residency()
         for name in ("workers", "queue_size", "writer_threads", "writer_queue_size",
                      "writer_queue_bytes"):
             if getattr(self, name) < 1:
@@ -218,6 +227,25 @@ class ServiceSection:
         for method in self.methods:
             _check_servable(method)
         _check_names(self.prefix, self.instance)
+
+    def _check_residency(self) -> None:
+        """``max_resident_mb`` > 0 closes idle maps: only with storage to reopen them from
+        and no bootstrap (which copies every map at start)."""
+        if not self.max_resident_mb >= 0:
+            raise ConfigError(f"service.max_resident_mb: expected MB >= 0 (0: unlimited), got "
+                              f"{self.max_resident_mb}")
+        if not self.cold_load_wait_s >= 0:
+            raise ConfigError(f"service.cold_load_wait_s: expected seconds >= 0, got "
+                              f"{self.cold_load_wait_s}")
+        if self.max_resident_mb == 0:
+            return
+        if not self.storage:
+            raise ConfigError("service.max_resident_mb > 0 needs service.storage: an evicted "
+                              "map is reopened from its files")
+        if self.bootstrap_from_peers:
+            raise ConfigError("service.max_resident_mb > 0 cannot be combined with "
+                              "service.bootstrap_from_peers (the bootstrap copies every map "
+                              "into memory at start)")
 
 
 def _check_servable(method: str) -> None:
@@ -294,6 +322,10 @@ def parse_config(data: Mapping[str, Any], *, source: str = "config") -> ServiceC
     options = {name: MappingProxyType(dict(_table(t, f"{source}: [options.{name}]")))
                for name, t in _table(data.get("options", {}), f"{source}: [options]").items()}
     mapping = dict(_table(data.get("mapping", {}), f"{source}: [mapping]"))
+    if sections["service"].max_resident_mb > 0 and sections["ros2"].enabled:
+        raise ConfigError(f"{source}: service.max_resident_mb > 0 cannot be combined with "
+                          "[ros2] enabled (the bridge serves the maps loaded at start; set "
+                          "max_resident_mb = 0)")
     return ServiceConf(zenoh=sections["zenoh"], service=sections["service"],
                        limits=sections["limits"], quotas=sections["quotas"],
                        maps=MappingProxyType(maps),

@@ -134,6 +134,8 @@ def worker_main(conn: Connection, index: int) -> None:
             return
         if kind == "query":
             conn.send(_answer(replicas, *msg[1:]))
+        elif kind == "drop":   # the parent closed the map: its replica goes too
+            replicas.pop(msg[1], None)
         elif kind == "load":
             _, name, base, spec, cameras = msg
             try:
@@ -285,6 +287,18 @@ class ProcessWorkers:
                 handles = [h for h in self._handles if not h.dead]
             if handles:
                 self.rebase(rt, handles)
+
+    def detach(self, rt: MapRuntime) -> None:
+        """Stop serving map ``rt`` from the workers (the parent closes it): its changes are
+        no longer forwarded and every worker drops its replica (after the queries already
+        sent to it, in pipe order)."""
+        with rt.apply_lock():
+            rt.replicas = None
+            with self._lock:
+                self._maps.pop(rt.name, None)
+                handles = list(self._handles)
+        for handle in handles:
+            handle.send(("drop", rt.name))
 
     def forward(self, name: str, op: WriteOp, *args: Any) -> None:
         """Send a change the parent just applied to every worker (called under the map's

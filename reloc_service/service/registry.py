@@ -34,7 +34,8 @@ from .durability import (
     recover_current,
     stored_map_names,
 )
-from .quotas import Quotas
+from .quotas import MapUsage, Quotas
+from .residency import Residency
 from .restore_verdict import judge
 from .runtime import MapRuntime, Publish
 from .workers import seconds_left
@@ -77,7 +78,13 @@ class MapRegistry:
         #: The worker processes (worker_mode "process"): every map opened is attached to them.
         self.processes: ProcessWorkers | None = None
         #: The quotas every map's puts are checked against (their use is each map's).
-        self.quotas = Quotas(conf.quotas, lambda: [rt.usage for rt in list(self.maps.values())])
+        self.quotas = Quotas(conf.quotas, self._usages)
+        #: Which maps are in memory, when ``service.max_resident_mb`` > 0 (None: every map
+        #: is restored at start and stays resident).
+        self.residency: Residency | None = None
+        if conf.service.max_resident_mb > 0:
+            self.residency = Residency(self, budget_mb=conf.service.max_resident_mb,
+                                       stop_timeout_s=conf.service.stop_timeout_s)
         self._lock = threading.Lock()
         self._loading: set[str] = set()      # being restored: not declared yet
         self._ready = threading.Event()      # every stored and configured map is up (or failed)
@@ -119,6 +126,71 @@ class MapRegistry:
         unique = list(dict.fromkeys(names))
         return sorted(unique, key=lambda n: (cost(n), n))
 
+    def _usages(self) -> list[MapUsage]:
+        if self.residency is not None:
+            return self.residency.usages()
+        return [rt.usage for rt in list(self.maps.values())]
+
+    def _served_count(self) -> int:
+        if self.residency is not None:
+            return self.residency.served_count()
+        return len(self.maps)
+
+    def register_lazily(self, names: list[str]) -> None:
+        """Declare ``names`` served without loading them (each loads on first use)."""
+        assert self.residency is not None
+        self.residency.register(names, self._declare)
+        self._ready.set()
+
+    def known(self, name: str) -> bool:
+        """Served here (resident or not)."""
+        return name in self.maps or (self.residency is not None and self.residency.known(name))
+
+    def pin(self, name: str) -> MapRuntime | None:
+        """The runtime of served map ``name``, kept resident until :meth:`unpin` (loaded
+        first if it is not: the caller waits); None if it is not served here."""
+        if self.residency is None:
+            return self.maps.get(name)
+        return self.residency.acquire(name, None)
+
+    def unpin(self, name: str) -> None:
+        if self.residency is not None:
+            self.residency.release(name)
+
+    def load_resident(self, name: str) -> None:
+        """Restore stored map ``name`` on demand (snapshot and journal backlog), then add it
+        to the served maps; failed as at start if it does not restore."""
+        start = time.perf_counter()
+        try:
+            rt = self._open_map(name)
+        except Exception as exc:
+            self._fail_map(name, exc)
+            return
+        self._replay(rt, declared=True, start=start)
+        if name in self.failed or self._stopped.is_set() or rt.replaying:
+            if self.processes is not None:
+                self.processes.detach(rt)
+        if name in self.failed:
+            return
+        if self._stopped.is_set() or rt.replaying:   # interrupted: the journal is untouched
+            rt.close(final_snapshot=False, timeout=0.0)
+            self._unlock_map(name)
+            return
+        self.maps[name] = rt
+
+    def close_resident(self, name: str, *, timeout: float) -> None:
+        """Close resident map ``name`` (final snapshot within ``timeout``, journal, lock):
+        its files are released; it is loaded again on its next use."""
+        rt = self.maps.pop(name)
+        if self.processes is not None:   # the worker processes drop their replicas
+            self.processes.detach(rt)
+        try:
+            rt.close(final_snapshot=True, timeout=timeout)
+            while rt.maintenance_running():   # a snapshot past the budget may still rotate
+                rt.wait_snapshot(timeout)
+        finally:
+            self._unlock_map(name)
+
     def expect(self, names: list[str]) -> None:
         """``names`` are about to be restored: their puts get BUSY until they are served."""
         self._loading = set(names)
@@ -152,7 +224,7 @@ class MapRegistry:
         """Hold ``name`` for a map about to be added to the storage (an import): its puts get
         BUSY until :meth:`serve_added` (or :meth:`release`); StorageError if it is served."""
         with self._lock:
-            if name in self.maps or name in self._loading:
+            if self.known(name) or name in self._loading:
                 raise StorageError(f"map {name!r} is served (or being restored) here; an "
                                    f"import does not replace a served map: import it under "
                                    f"another name, or stop the service and use `reloc map "
@@ -253,7 +325,10 @@ class MapRegistry:
         with self._lock:
             self.check_restored(name)
             if name not in self.maps:
-                self.quotas.check_new_map(name, len(self.maps))
+                if self.residency is not None and self.residency.known(name):
+                    raise wire.ProtocolError(ErrorCode.BUSY, f"map {name!r} is being loaded "
+                                             "or closed; put again")
+                self.quotas.check_new_map(name, self._served_count())
                 rt = self._open_map(name)
                 try:
                     rt.replay_backlog(self._stopped)   # a new map: opens its journal
@@ -314,6 +389,8 @@ class MapRegistry:
     # -- stop ------------------------------------------------------------------------------------
     def close(self, *, final_snapshot: bool, deadline: float) -> None:
         """Close every served map (final snapshots with the time left until ``deadline``)."""
+        if self.residency is not None:
+            self.residency.close()
         for rt in list(self.maps.values()):
             try:
                 rt.close(final_snapshot=final_snapshot, timeout=seconds_left(deadline))

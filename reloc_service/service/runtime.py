@@ -543,6 +543,17 @@ class MapRuntime(ServedMap):
         if thread is not None and thread.is_alive():
             thread.join(timeout)
 
+    def maintenance_running(self) -> bool:
+        """A snapshot or training job holds the map's files or models now."""
+        thread = self._snapshot_thread
+        return (thread is not None and thread.is_alive()) or self._maintenance.locked()
+
+    @property
+    def journal_ahead(self) -> bool:
+        """Records were journaled at shutdown without being applied (no snapshot may drop
+        them before a restart replays them)."""
+        return self._journal_ahead
+
     def training_thread(self) -> threading.Thread | None:
         with self._job_lock:
             return None if self._job is None else self._job.thread

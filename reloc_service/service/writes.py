@@ -134,7 +134,7 @@ class Writes:
         <id>``; None when the map is not one this instance serves."""
         head = f"{self.prefix}/"
         parts = key[len(head):].split("/") if key.startswith(head) else []
-        if len(parts) != 3 or parts[0] not in self.registry.maps:
+        if len(parts) != 3 or not self.registry.known(parts[0]):
             return None
         leaf = parts[2]
         if parts[1] == "keyframes":
@@ -171,7 +171,7 @@ class Writes:
         served or may be created by this put, else the shared writer (which rejects or
         ignores, in order)."""
         assert self.writer is not None and self.pool is not None
-        if map_name not in self.registry.maps and not self.conf.allow_new_maps:
+        if not self.registry.known(map_name) and not self.conf.allow_new_maps:
             return self.writer
         return Lane(self.pool, map_name)
 
@@ -211,6 +211,13 @@ class Writes:
             code, message = error_of(exc)
             self.reject(job.map_name, job.rejected, job.ident, code, message)
             return
+        try:
+            self._apply(job, rt)
+        finally:
+            if rt is not None:   # the map may be closed while idle again
+                self.registry.unpin(rt.name)
+
+    def _apply(self, job: WriteJob, rt: MapRuntime | None) -> None:
         if rt is None and self.peers is not None and self.peers.serves(job.map_name):
             log.debug("put on map %s ignored: another instance serves it", job.map_name)
         elif rt is None:
@@ -241,7 +248,7 @@ class Writes:
         nothing on disk). A delete never creates a map. A map being restored refuses puts
         (BUSY), a failed one too (STORAGE_ERROR)."""
         name = job.map_name
-        rt = self.registry.maps.get(name)
+        rt = self.registry.pin(name)   # loaded first if it is stored but not resident
         if rt is not None:
             return rt
         self.registry.check_restored(name)
@@ -251,7 +258,8 @@ class Writes:
             raise ProtocolError(ErrorCode.UNKNOWN_MAP,
                                 f"map {name!r} does not exist; a delete does not create it")
         self._validate_first_put(job, job.payload)
-        return self.registry.create(name)
+        self.registry.create(name)
+        return self.registry.pin(name)
 
     def _validate_first_put(self, job: WriteJob, payload: bytes) -> None:
         """Decode a put on a map that does not exist yet, as the new map would (no camera
@@ -266,9 +274,10 @@ class Writes:
         """At shutdown: journal a queued write without applying it (cameras are cheap and
         keyframes need them: applied). True if journaled."""
         rt = self.registry.maps.get(job.map_name)
-        if rt is None:   # a put that would have created its map: refused, not lost silently
+        if rt is None:   # a put that would have created or loaded its map: refused, not lost
+            doing = "loading" if self.registry.known(job.map_name) else "creating"
             self.reject(job.map_name, job.rejected, job.ident, ErrorCode.BUSY,
-                        f"the service stopped before creating map {job.map_name!r}; put "
+                        f"the service stopped before {doing} map {job.map_name!r}; put "
                         "again once it is back")
             return False
         if job.op is WriteOp.CAMERA:

@@ -581,6 +581,10 @@ class StatusReply(Message):
     #: Why this replica disagrees with a peer serving the same map name (another identity,
     #: another content at the same version, or lagging behind); empty when it does not.
     diverged: str = ""
+    #: The map is in the service's memory; false for a stored map not loaded yet, or closed
+    #: while idle (``max_resident_mb``): its keyframes, version and cameras are then those
+    #: its storage records, landmarks 0 and trained false until it is loaded.
+    resident: bool = True
 
     def to_wire(self) -> dict[str, Any]:
         # the optional fields only when set: a client that predates them reads a healthy
@@ -592,6 +596,7 @@ class StatusReply(Message):
                 "training": self.training, "uptime_s": self.uptime_s,
                 "counters": dict(self.counters), "latency_s": dict(self.latency_s),
                 **({"replaying": True} if self.replaying else {}),
+                **({} if self.resident else {"resident": False}),
                 **{k: v for k, v in (("degraded", self.degraded), ("map_id", self.map_id),
                                      ("content_hash", self.content_hash),
                                      ("diverged", self.diverged)) if v}}
@@ -619,7 +624,8 @@ class StatusReply(Message):
             replaying=f.opt("replaying", _bool, False),
             map_id=f.opt("map_id", _hex_digest, ""),
             content_hash=f.opt("content_hash", _hex_digest, ""),
-            diverged=f.opt("diverged", lambda v, p: _str(v, p, limits), ""))
+            diverged=f.opt("diverged", lambda v, p: _str(v, p, limits), ""),
+            resident=f.opt("resident", _bool, True))
         f.done()
         return out
 

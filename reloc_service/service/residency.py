@@ -1,0 +1,267 @@
+"""Which stored maps are in memory (``[service] max_resident_mb`` > 0): every map on disk is
+declared at start without being loaded, opened on first use (a cold load: snapshot, then its
+journal backlog), and closed again when the resident maps count more than the budget, least
+recently used first.
+
+What a map counts is what the quotas count for it (:class:`~.quotas.MapUsage`: its keyframes'
+images as held, depth and features); the process's resident memory is a multiple of that
+(docs/performance.md, "Many maps, bounded memory").
+
+A map is never closed while it is in use: a query or a write holds it (:meth:`Residency.acquire`
+... :meth:`Residency.release`), puts wait in its writer lane, a training job, snapshot or
+journal replay runs, or it journaled puts it has not applied. Closing takes its final
+snapshot, closes its journal and gives back its directory lock, so an idle map holds no file
+(with ``worker_mode = "process"`` each worker process drops its replica too);
+its usage is kept, so quotas on the total still count it. A map whose load fails is failed as
+at start (its queries get STORAGE_ERROR with the reason).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+from reloc_client import protocol as wire
+
+from ..core.errors import StorageError
+from .durability import map_dirname, read_service_file
+from .quotas import MapUsage
+
+if TYPE_CHECKING:
+    from .config import ServiceConf
+    from .runtime import MapRuntime
+
+log = logging.getLogger(__name__)
+
+MB = 1024 * 1024
+
+
+class MapRegistry(Protocol):
+    """What :class:`Residency` uses of the service's :class:`~.registry.MapRegistry`."""
+
+    conf: ServiceConf
+    storage: Path | None
+    methods: tuple[str, ...]
+    maps: dict[str, MapRuntime]
+    failed: dict[str, str]
+
+    def load_resident(self, name: str) -> None: ...
+
+    def close_resident(self, name: str, *, timeout: float) -> None: ...
+
+
+class Residency:
+    """The resident and dormant maps of a :class:`~.registry.MapRegistry` (see module
+    docstring). Its lock is taken inside no other; the registry's maps table is changed
+    under it only by single dict operations."""
+
+    def __init__(self, registry: MapRegistry, *, budget_mb: float, stop_timeout_s: float,
+                 pending_writes: Callable[[str], int] | None = None) -> None:
+        self.registry = registry
+        self.budget = int(budget_mb * MB)
+        self.stop_timeout_s = stop_timeout_s
+        #: Jobs queued in a map's writer lane (the service sets it once its writers exist).
+        self.pending_writes = pending_writes
+        self._lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)   # a load or close ended
+        self.dormant: set[str] = set()                   # on disk, declared, not loaded
+        self._loading: set[str] = set()
+        self._closing: set[str] = set()
+        self._lru: collections.OrderedDict[str, None] = collections.OrderedDict()
+        self._pins: collections.Counter[str] = collections.Counter()
+        #: The usage of each closed map (quotas on the total still count it).
+        self.kept_usage: dict[str, MapUsage] = {}
+        self._load_slot = threading.Semaphore(1)   # one cold load at a time: bounded memory
+        self._wake = threading.Event()
+        self._stopped = threading.Event()
+        self._evictor = threading.Thread(target=self._evict_loop, name="map-evictor",
+                                         daemon=True)
+        self.loads = 0
+        self.evictions = 0
+
+    # -- start / stop ----------------------------------------------------------------------------
+    def register(self, names: list[str], declare: Callable[[str], None]) -> None:
+        """Declare ``names`` (stored or configured maps) as served, without loading them."""
+        with self._lock:
+            self.dormant.update(names)
+        for name in names:
+            declare(name)
+        self._evictor.start()
+
+    def close(self) -> None:
+        """Stop closing maps (the registry closes the resident ones)."""
+        self._stopped.set()
+        self._wake.set()
+        with self._lock:
+            self._changed.notify_all()
+
+    # -- reading ---------------------------------------------------------------------------------
+    def known(self, name: str) -> bool:
+        """Served here: resident, loading, closing or dormant."""
+        return (name in self.registry.maps or name in self.dormant or name in self._loading
+                or name in self._closing)
+
+    def served_count(self) -> int:
+        """Maps served here, resident or not."""
+        with self._lock:
+            return len(set(self.registry.maps) | self.dormant | self._loading | self._closing)
+
+    def resident_bytes(self) -> int:
+        """What the resident maps count (their usage totals)."""
+        return sum(rt.usage.total for rt in list(self.registry.maps.values()))
+
+    def usages(self) -> list[MapUsage]:
+        """The usage of every served map: resident ones' and closed ones' (as kept)."""
+        with self._lock:
+            kept = [u for n, u in self.kept_usage.items() if n not in self.registry.maps]
+        return [rt.usage for rt in list(self.registry.maps.values())] + kept
+
+    # -- use -------------------------------------------------------------------------------------
+    def acquire(self, name: str, timeout: float | None) -> MapRuntime | None:
+        """The runtime of served map ``name``, held resident until :meth:`release`; loaded
+        first if it is not resident (waiting at most ``timeout`` s, None: as long as it
+        takes). None when the wait timed out (the load goes on) or the map is not served
+        here; StorageError if its load failed."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._lock:
+            while True:
+                rt = self.registry.maps.get(name)
+                if rt is not None and name not in self._closing:
+                    self._pins[name] += 1
+                    self._lru[name] = None
+                    self._lru.move_to_end(name)
+                    return rt
+                failure = self.registry.failed.get(name)
+                if failure is not None:
+                    raise StorageError(failure)
+                if name not in self.dormant and name not in self._loading \
+                        and name not in self._closing:
+                    return None
+                if self._stopped.is_set():
+                    return None
+                if name in self.dormant:
+                    self.dormant.discard(name)
+                    self._loading.add(name)
+                    threading.Thread(target=self._load, args=(name,), name=f"load-{name}",
+                                     daemon=True).start()
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    return None
+                self._changed.wait(left if left is not None else 1.0)
+
+    def release(self, name: str) -> None:
+        """``name`` is no longer used by the caller of :meth:`acquire`."""
+        with self._lock:
+            self._pins[name] -= 1
+            if self._pins[name] <= 0:
+                del self._pins[name]
+        if self.budget and self.resident_bytes() > self.budget:
+            self._wake.set()
+
+    def loading(self, name: str) -> bool:
+        return name in self._loading
+
+    # -- loading ---------------------------------------------------------------------------------
+    def _load(self, name: str) -> None:
+        start = time.perf_counter()
+        try:
+            with self._load_slot:
+                if not self._stopped.is_set():
+                    self.registry.load_resident(name)
+        finally:
+            with self._lock:
+                self._loading.discard(name)
+                if name in self.registry.maps:
+                    self._lru[name] = None
+                    self.loads += 1
+                elif name not in self.registry.failed:
+                    self.dormant.add(name)   # stopped meanwhile
+                self._changed.notify_all()
+            log.info("map %s: loaded on demand in %.2f s (%.1f MB resident of %.1f MB)", name,
+                     time.perf_counter() - start, self.resident_bytes() / MB, self.budget / MB)
+            self._wake.set()
+
+    # -- eviction --------------------------------------------------------------------------------
+    def _evict_loop(self) -> None:
+        while not self._stopped.is_set():
+            self._wake.wait(1.0)
+            self._wake.clear()
+            try:
+                self.enforce_budget()
+            except Exception as exc:   # never stops evicting for one map's failure
+                log.error("closing idle maps failed: %s", exc)
+
+    def enforce_budget(self) -> int:
+        """Close idle maps, least recently used first, until the resident ones fit the
+        budget (or none left is idle); the number closed."""
+        closed = 0
+        while not self._stopped.is_set() and self.resident_bytes() > self.budget:
+            name = self._take_idle()
+            if name is None:
+                break
+            self._close(name)
+            closed += 1
+        return closed
+
+    def idle(self, rt: MapRuntime) -> bool:
+        """Whether ``rt`` may be closed: nothing uses or changes it (see module docstring)."""
+        name = rt.name
+        return (self._pins[name] <= 0
+                and not (self.pending_writes is not None and self.pending_writes(name))
+                and rt.training_thread() is None and not rt.replaying
+                and not rt.maintenance_running() and not rt.journal_ahead)
+
+    def _take_idle(self) -> str | None:
+        """The least recently used idle resident map, taken out of the maps table (queries
+        and puts arriving now wait for its close, then load it again)."""
+        with self._lock:
+            for name in list(self.registry.maps):   # served without a use yet (an import)
+                if name not in self._lru and name not in self._closing:
+                    self._lru[name] = None
+                    self._lru.move_to_end(name, last=False)
+            for name in list(self._lru):
+                rt = self.registry.maps.get(name)
+                if rt is None:
+                    self._lru.pop(name, None)
+                    continue
+                if self.idle(rt):
+                    self._closing.add(name)
+                    self._lru.pop(name, None)
+                    return name
+        return None
+
+    def _close(self, name: str) -> None:
+        """Take the final snapshot of resident map ``name``, close its journal and lock."""
+        rt = self.registry.maps[name]
+        try:
+            self.kept_usage[name] = rt.usage
+            self.registry.close_resident(name, timeout=self.stop_timeout_s)
+            self.evictions += 1
+            log.info("map %s: closed (idle; %.1f MB resident of %.1f MB)", name,
+                     self.resident_bytes() / MB, self.budget / MB)
+        finally:
+            with self._lock:
+                self._closing.discard(name)
+                if name not in self.registry.failed:
+                    self.dormant.add(name)
+                self._changed.notify_all()
+
+
+def dormant_status(registry: MapRegistry, name: str) -> wire.StatusReply:
+    """The status of a map that is not resident, from what its ``service.json`` records
+    (keyframes, version, cameras, identity) without loading it; its landmarks and training
+    state are known once it is loaded (0 and false until then)."""
+    assert registry.storage is not None
+    meta: dict[str, Any] = read_service_file(registry.storage / map_dirname(name))
+    methods = registry.methods
+    return wire.StatusReply(
+        map=name, instance=registry.conf.instance, keyframes=len(meta.get("keyframe_ids", [])),
+        landmarks=0, trained=False, map_version=int(meta.get("map_version", 0)),
+        methods=methods, default_method=methods[0],
+        cameras=tuple(sorted(meta.get("cameras", {}))), map_id=str(meta.get("map_id") or ""),
+        resident=False)

@@ -1,0 +1,306 @@
+"""Many maps with bounded memory (``[service] max_resident_mb``): a service registers its
+stored maps without loading them, loads each on its first use (a cold load), closes the least
+recently used idle ones past the budget (releasing their files) and loads them again on
+demand with the same answers; a put on a closed map loads it and is durable; a map with puts
+waiting or a training job is never closed. Real services on loopback, real storage."""
+# ruff: noqa: E402
+
+from __future__ import annotations
+
+import os
+import shutil
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from reloc_client import protocol as wire
+from reloc_client.client import RelocClient, ServiceBusy, to_wire_image
+from service_support import (
+    Events,
+    ServiceProcess,
+    durable_keyframe_ids,
+    endpoint,
+    free_port,
+    service_conf,
+    wait_until,
+    write_config,
+)
+
+from reloc_service.core.errors import ConfigError
+from reloc_service.service.app import Service
+from reloc_service.service.config import parse_config
+from reloc_service.service.durability import MAP_NAME_FILE, map_dirname
+from reloc_service.service.residency import MB
+from reloc_service.service.workers import Lane
+
+METHOD = "sbi+p3p"
+NAMES = ("alpha", "bravo", "charlie")
+
+
+def conf(port: int, storage: Path, **service):
+    return service_conf(port, storage, **{"methods": [METHOD], "default_method": METHOD,
+                                          "worker_mode": "thread", "workers": 2,
+                                          "snapshot_every": 0, **service})
+
+
+@pytest.fixture(scope="module")
+def template(synthetic_scene, tmp_path_factory) -> tuple[Path, int]:
+    """A stored map (camera cam0, the scene's 6 keyframes, trained, in a snapshot) and the
+    bytes it counts once loaded from its snapshot (its quota usage)."""
+    storage = tmp_path_factory.mktemp("lazy-template") / "storage"
+    port = free_port()
+    service = Service(conf(port, storage, train_on_load=False)).start()
+    try:
+        with RelocClient(endpoint(port), map="template", timeout=30) as client:
+            events = Events(client)
+            client.set_camera("cam0", synthetic_scene.camera)
+            events.wait("camera_added", id="cam0")
+            for kf_id, (image, pose) in enumerate(zip(synthetic_scene.keyframe_images,
+                                                      synthetic_scene.keyframe_poses,
+                                                      strict=True)):
+                client.add_keyframe(kf_id, image, pose, camera_id="cam0")
+            for kf_id in range(len(synthetic_scene.keyframe_images)):
+                events.wait("keyframe_added", id=kf_id)
+            assert client.train(wait=True, timeout=120).accepted
+            events.close()
+    finally:
+        service.stop()
+    restored = Service(conf(free_port(), storage)).start()   # counted as a loaded map counts
+    try:
+        usage = restored.maps["template"].usage.total
+    finally:
+        restored.stop()
+    return storage / "template", usage
+
+
+def stored_maps(template_dir: Path, storage: Path, names=NAMES) -> Path:
+    """``storage`` holding a copy of the template map under each of ``names``."""
+    for name in names:
+        target = storage / map_dirname(name)
+        shutil.copytree(template_dir, target, ignore=shutil.ignore_patterns("*.lock", "LOCK"))
+        (target / MAP_NAME_FILE).write_text(name)
+    return storage
+
+
+def open_paths(directory: Path) -> set[str]:
+    """Files under ``directory`` this process holds open."""
+    out = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith(str(directory)):
+            out.add(target)
+    return out
+
+
+def pose_of(client: RelocClient, scene, i: int) -> np.ndarray:
+    result = client.relocalize(scene.query_images[i], camera_id="cam0")
+    assert result.ok, result.reason
+    return np.asarray(result.world_from_cam)
+
+
+def test_start_registers_stored_maps_without_loading_them(template, synthetic_scene,
+                                                          tmp_path):
+    storage = stored_maps(template[0], tmp_path / "storage")
+    port = free_port()
+    service = Service(conf(port, storage, max_resident_mb=1000)).start()
+    try:
+        assert service.maps == {}   # nothing loaded at start
+        assert not open_paths(storage / "alpha")   # no journal or lock of a map open
+        with RelocClient(endpoint(port), map="alpha", timeout=30) as client:
+            assert sorted(m for _, m in client.maps()) == sorted(NAMES)
+        for name in NAMES:
+            with RelocClient(endpoint(port), map=name, timeout=30) as client:
+                status = client.status()
+                assert not status.resident and status.keyframes == 6
+        for name in NAMES:   # a query on each loads it, then answers
+            with RelocClient(endpoint(port), map=name, timeout=30) as client:
+                pose = pose_of(client, synthetic_scene, 0)
+                assert np.linalg.norm(pose[:3, 3] - synthetic_scene.query_poses[0][:3, 3]) < 0.05
+                status = client.status()
+                assert status.resident and status.trained and status.landmarks > 0
+        assert sorted(service.maps) == sorted(NAMES)
+    finally:
+        service.stop()
+
+
+def test_a_query_that_cannot_wait_gets_busy_with_a_retry_hint(template, synthetic_scene,
+                                                              tmp_path):
+    storage = stored_maps(template[0], tmp_path / "storage", names=("alpha",))
+    port = free_port()
+    service = Service(conf(port, storage, max_resident_mb=1000, cold_load_wait_s=0)).start()
+    try:
+        with RelocClient(endpoint(port), map="alpha", timeout=30) as client:
+            with pytest.raises(ServiceBusy, match="loaded from storage.*retry"):
+                client.relocalize(synthetic_scene.query_images[0], camera_id="cam0")
+            wait_until(lambda: "alpha" in service.maps, timeout=30)   # the load went on
+            assert client.relocalize(synthetic_scene.query_images[0], camera_id="cam0").ok
+    finally:
+        service.stop()
+
+
+def test_small_budget_keeps_recent_maps_and_reloads_the_others(template, synthetic_scene,
+                                                               tmp_path):
+    template_dir, map_bytes = template
+    storage = stored_maps(template_dir, tmp_path / "storage")
+    port = free_port()
+    budget_mb = 1.5 * map_bytes / MB   # one map fits, two do not
+    service = Service(conf(port, storage, max_resident_mb=budget_mb)).start()
+    residency = service.registry.residency
+    assert residency is not None
+    try:
+        clients = {n: RelocClient(endpoint(port), map=n, timeout=30) for n in NAMES}
+        first = {}
+        for name in NAMES:
+            first[name] = pose_of(clients[name], synthetic_scene, 1)
+            wait_until(lambda name=name: list(service.maps) == [name], timeout=30)
+            assert residency.resident_bytes() <= budget_mb * MB
+        assert not open_paths(storage / "alpha")   # closed: journal and lock released
+        assert not clients["alpha"].status().resident
+        again = pose_of(clients["alpha"], synthetic_scene, 1)   # loaded again on demand
+        np.testing.assert_allclose(again, first["alpha"], atol=1e-9)
+        assert clients["alpha"].status().resident
+        wait_until(lambda: list(service.maps) == ["alpha"], timeout=30)
+        assert residency.evictions >= 3 and residency.loads == 4
+        for client in clients.values():
+            client.close()
+    finally:
+        service.stop()
+
+
+def test_a_map_with_puts_waiting_or_training_is_not_closed(template, synthetic_scene,
+                                                           tmp_path):
+    template_dir, map_bytes = template
+    storage = stored_maps(template_dir, tmp_path / "storage", names=("alpha", "bravo"))
+    port = free_port()
+    service = Service(conf(port, storage, max_resident_mb=1000)).start()
+    residency = service.registry.residency
+    assert residency is not None and service.writes.pool is not None
+    small = int(1.5 * map_bytes)   # one map fits, two do not
+
+    def load_both_alpha_oldest() -> None:
+        residency.budget = 1000 * MB
+        for name in ("alpha", "bravo"):
+            assert residency.acquire(name, 30) is not None
+            residency.release(name)
+
+    def shrink_and_wait_for_one_closed() -> None:
+        residency.budget = small
+        residency._wake.set()
+        wait_until(lambda: len(service.maps) == 1, timeout=30)
+
+    try:
+        # puts waiting in alpha's writer lane behind a running one: alpha, the least
+        # recently used, is kept and bravo closed instead
+        load_both_alpha_oldest()
+        gate = threading.Event()
+        lane = Lane(service.writes.pool, "alpha")
+        assert lane.submit(lambda _q: gate.wait(30)) and lane.submit(lambda _q: None)
+        wait_until(lambda: lane.pending == 1)
+        shrink_and_wait_for_one_closed()
+        assert list(service.maps) == ["alpha"]
+        gate.set()
+        wait_until(lambda: lane.pending == 0)
+        # a training job running on alpha: alpha is kept while it runs
+        load_both_alpha_oldest()
+        rt = service.maps["alpha"]
+        train, training = rt.engine.train, threading.Event()
+
+        def held_train(*args, **kwargs):
+            training.wait(30)
+            return train(*args, **kwargs)
+
+        rt.engine.train = held_train   # the real training, held until the test lets it go
+        rt.start_training(None)
+        shrink_and_wait_for_one_closed()
+        assert list(service.maps) == ["alpha"]
+        training.set()
+        wait_until(lambda: rt.training_thread() is None and not rt.maintenance_running())
+        # idle now: loading bravo closes alpha, the least recently used
+        assert residency.acquire("bravo", 30) is not None
+        residency.release("bravo")
+        wait_until(lambda: list(service.maps) == ["bravo"], timeout=30)
+    finally:
+        service.stop()
+
+
+def test_worker_processes_drop_the_replica_of_a_closed_map(template, synthetic_scene,
+                                                           tmp_path):
+    template_dir, map_bytes = template
+    storage = stored_maps(template_dir, tmp_path / "storage", names=("alpha", "bravo"))
+    port = free_port()
+    service = Service(conf(port, storage, max_resident_mb=1.5 * map_bytes / MB,
+                           worker_mode="process", workers=1)).start()
+    try:
+        processes = service.processes
+        assert processes is not None
+        with RelocClient(endpoint(port), map="alpha", timeout=60) as alpha, \
+                RelocClient(endpoint(port), map="bravo", timeout=60) as bravo:
+            first = pose_of(alpha, synthetic_scene, 2)   # answered by the worker's replica
+            pose_of(bravo, synthetic_scene, 2)
+            wait_until(lambda: list(service.maps) == ["bravo"], timeout=30)
+            # asked directly, the worker no longer holds alpha
+            request = wire.RelocalizeRequest(image=to_wire_image(synthetic_scene.query_images[2]),
+                                             camera_id="cam0").encode()
+            answer = processes.relocalize("alpha", request, 0.0)
+            assert answer.error and b"has no replica" in answer.payload
+            np.testing.assert_allclose(pose_of(alpha, synthetic_scene, 2), first, atol=1e-9)
+    finally:
+        service.stop()
+
+
+@pytest.mark.slow   # two service processes: about 10 s
+def test_put_on_a_closed_map_loads_it_and_survives_kill_9(template, synthetic_scene,
+                                                          tmp_path):
+    template_dir, map_bytes = template
+    stored_maps(template_dir, tmp_path / "storage", names=("lab", "other"))
+    port = free_port()
+    config = write_config(tmp_path, port, worker_mode="thread", methods=[METHOD],
+                          default_method=METHOD, snapshot_every=0,
+                          max_resident_mb=1.5 * map_bytes / MB)
+    service = ServiceProcess(config, port, tmp_path / "log1.txt")
+    try:
+        assert service.client is not None
+        lab = service.client
+        pose_of(lab, synthetic_scene, 0)   # lab resident
+        with RelocClient(endpoint(port), map="other", timeout=30) as other:
+            pose_of(other, synthetic_scene, 0)   # other resident, lab closed
+        wait_until(lambda: not lab.status().resident, timeout=30)
+        events = Events(lab)
+        lab.add_keyframe(77, synthetic_scene.query_images[2], synthetic_scene.query_poses[2],
+                         camera_id="cam0")
+        events.wait("keyframe_added", id=77, timeout=60)
+        assert lab.status().resident and lab.status().keyframes == 7
+        service.kill9()
+    finally:
+        service.close()
+    assert 77 in durable_keyframe_ids(tmp_path / "storage" / "lab")
+    restarted = ServiceProcess(config, port, tmp_path / "log2.txt")
+    try:
+        assert restarted.client is not None
+        assert 77 in {info.id for info in restarted.client.keyframes()}
+    finally:
+        assert restarted.terminate() == 0
+
+
+@pytest.mark.parametrize("service, message", [
+    ({"worker_mode": "thread", "storage": ""}, "service.storage"),
+    ({"worker_mode": "thread", "bootstrap_from_peers": True}, "bootstrap_from_peers"),
+    ({"worker_mode": "thread", "max_resident_mb": -1}, "expected MB >= 0"),
+])
+def test_max_resident_mb_refuses_what_it_cannot_bound(service, message, tmp_path):
+    """The bootstrap copies every map, and a map without storage cannot be reloaded: each
+    refused by name."""
+    with pytest.raises(ConfigError, match=message):
+        service_conf(free_port(), **{"storage": str(tmp_path), "max_resident_mb": 100,
+                                     **service})
+
+
+def test_max_resident_mb_refuses_the_ros2_bridge(tmp_path):
+    with pytest.raises(ConfigError, match=r"\[ros2\] enabled"):
+        parse_config({"service": {"storage": str(tmp_path), "worker_mode": "thread",
+                                  "max_resident_mb": 100},
+                      "ros2": {"enabled": True}})
