@@ -122,19 +122,20 @@ class TrackingRelocalizer(Relocalizer):
         timings: dict[str, float] = {}
         if prior is None or prior.covariance is None:
             return self._refuse("no prior with a covariance to track from", timings, state)
-        kind = self.conf.kind or _map_kind(state)
+        near = state.nearest_keyframes(prior.world_from_cam, self.conf.local_keyframes,
+                                       self.conf.max_view_angle_deg)
+        keyframes = [state.keyframes[k] for k in near]
+        kind = self.conf.kind or _local_kind(keyframes)
         if kind is None:
-            return self._refuse("the map has no ORB or SIFT landmarks", timings, state)
+            return self._refuse("no keyframe near the prior has ORB or SIFT landmarks",
+                                timings, state)
         start = time.perf_counter()
         conf = feature_lib.FeatureConf(kind=kind, max_features=STEP_FEATURES[kind]["max_features"])
         feats = query.features_of(kind, lambda: feature_lib.extract(query.image, conf))
         timings["features"] = time.perf_counter() - start
         start = time.perf_counter()
-        near = state.nearest_keyframes(prior.world_from_cam, self.conf.local_keyframes,
-                                       self.conf.max_view_angle_deg)
-        keyframes = [state.keyframes[k] for k in near]
         pool = LandmarkPool.gather(keyframes, kind)
-        if not near or len(pool.landmark_ids) == 0:
+        if len(pool.landmark_ids) == 0:
             return self._refuse("no keyframe near the prior sees what it sees", timings, state)
         rows_all = np.arange(len(pool.landmark_ids))
         uncertainty = pool.uncertainty(state, keyframes, rows_all)
@@ -180,8 +181,8 @@ class TrackingRelocalizer(Relocalizer):
         # solved pose agrees with it by construction.
         est.unguided_evidence = seed
         est.chance_probability = max(est.chance_probability or 0.0, chance)
-        est = settle_pose_errors(est, state, kind, self.conf, est.inlier_landmark_ids)
         start = time.perf_counter()
+        est = settle_pose_errors(est, state, kind, self.conf, est.inlier_landmark_ids)
         result = result_from_estimate(est, self.verify_conf, method=TRACK,
                                       map_version=state.version, timings=timings)
         timings["verify"] = time.perf_counter() - start
@@ -228,11 +229,14 @@ def _union(first_q: IntArray, first_rows: IntArray, second_q: IntArray, second_r
     return q[keep], rows[keep]
 
 
-def _map_kind(state: MapState) -> str | None:
-    """ORB where the map has ORB landmarks (the cheap path), else SIFT, else None."""
+def _local_kind(keyframes: list[Keyframe]) -> str | None:
+    """ORB where a keyframe near the prior has ORB landmarks (the cheap path), else SIFT
+    where one has SIFT landmarks, else None."""
     for kind in ("orb", "sift"):
-        if state.landmark_count(kind) > 0:
-            return kind
+        for kf in keyframes:
+            feats = kf.features.get(kind)
+            if feats is not None and bool(np.any(feats.landmark_ids >= 0)):
+                return kind
     return None
 
 
