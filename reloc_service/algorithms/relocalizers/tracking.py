@@ -33,7 +33,15 @@ from ..pose.landmark_pool import LandmarkPool
 from ..pose.map_consistency import settle_pose_errors
 from ..pose.pnp import PnPConf, PointUncertainty, solve_pnp_indexed
 from ..pose.prior_windows import match_in_windows, pixel_sigmas, predict_windows
-from .base import Prior, Relocalizer, RelocResult, VerifyConf, register, result_from_estimate
+from .base import (
+    Prior,
+    Relocalizer,
+    RelocResult,
+    VerifyConf,
+    narrow_support,
+    register,
+    result_from_estimate,
+)
 from .multi import STEP_FEATURES
 
 Array = npt.NDArray[np.float64]
@@ -189,6 +197,11 @@ class TrackingRelocalizer(Relocalizer):
         if result.ok and not _within_prior(est, result, prior, self.conf.prior_gate_probability):
             return self._refuse("the tracked pose lies outside the prior's gate", timings, state,
                                 num_matches=len(q_idx), inliers=int(est.inliers or 0))
+        if result.ok and narrow_support(est, self.verify_conf):
+            # A pose fixed by a small area of the image is weakly conditioned: the method,
+            # which weighs such answers against the rest of the map, decides.
+            return self._refuse("the tracked pose rests on a small part of the image", timings,
+                                state, num_matches=len(q_idx), inliers=int(est.inliers or 0))
         return result
 
     def _grow(self, query: Frame, feats: Features, est: PoseEstimate, pool: LandmarkPool,
@@ -274,7 +287,8 @@ def relocalize_with_prior(relocalizer: Relocalizer, tracker: Relocalizer | None,
     """``tracker``'s answer when ``prior`` carries a covariance and tracking verifies; else
     ``relocalizer``'s (the method asked), with tracking's time summed into its timings and
     its reason prefixed to a refusal's."""
-    if tracker is None or prior is None or prior.covariance is None:
+    if (tracker is None or prior is None or prior.covariance is None
+            or relocalizer.method == TRACK):
         return relocalizer.relocalize(query, prior=prior, hypotheses=hypotheses)
     tracked = tracker.relocalize(query, prior=prior, hypotheses=hypotheses)
     if tracked.ok:
