@@ -161,3 +161,16 @@ def test_protocol_round_trip_of_a_prior_with_a_covariance():
             assert np.allclose(np.reshape(back.prior.covariance, (6, 6)), COVARIANCE)
         else:
             assert "covariance" not in prior.to_wire()  # an older service still reads it
+
+
+def test_track_is_a_registered_method(synthetic_scene, synthetic_map):
+    from reloc_service.algorithms.relocalizers.factory import list_methods
+    from reloc_service.algorithms.relocalizers.tracking import TrackingRelocalizer
+
+    track = create_relocalizer("track", _map_of(synthetic_map),
+                               options={"track": {"gate_probability": 0.95}})
+    assert isinstance(track, TrackingRelocalizer) and track.conf.gate_probability == 0.95
+    assert TRACK in {m["method"] for m in list_methods()}
+    with pytest.raises(ConfigError, match="gate_probability"):
+        create_relocalizer("track", _map_of(synthetic_map),
+                           options={"track": {"gate_probability": 1.5}})
