@@ -98,7 +98,10 @@ def match_in_windows(feats: Features, windows: Windows, rows: IntArray,
     near = near.reshape(len(rows), k).astype(np.int64, copy=False)
     slot = near < len(feats)
     d = feats.keypoints_px[np.where(slot, near, 0)] - px[:, None, :]       # (L, K, 2)
-    mahalanobis = np.einsum("lki,lij,lkj->lk", d, windows.inv_cov[rows], d)
+    dx, dy = d[..., 0], d[..., 1]
+    inv = windows.inv_cov[rows]
+    mahalanobis = (inv[:, 0, 0, None] * dx * dx + 2.0 * inv[:, 0, 1, None] * dx * dy
+                   + inv[:, 1, 1, None] * dy * dy)
     near = np.where(slot & (mahalanobis <= gate_chi2), near, len(feats))
     best, second, first = _window_best(feats.descriptors, map_desc[rows], near)
     limit = background_distance(feats.descriptors, map_desc, background_quantile)
