@@ -343,6 +343,11 @@ MALFORMED = {
         "world_from_cam": {"t": [0, 0, 0], "q": [0, 0, 0, 2.0]}, "radius_m": 1.0}), "BAD_POSE"),
     "negative radius": (lambda s: _request(s, prior={"world_from_cam": UNIT_POSE,
                                                      "radius_m": -1.0}), "BAD_VALUE"),
+    "prior covariance not positive semi-definite": (lambda s: _request(s, prior={
+        "world_from_cam": UNIT_POSE, "covariance": [-1.0 if i == 0 else 0.0
+                                                    for i in range(36)]}), "BAD_VALUE"),
+    "prior with neither radius nor covariance": (lambda s: _request(s, prior={
+        "world_from_cam": UNIT_POSE}), "MISSING_FIELD"),
     "unknown method": (lambda s: _request(s, method="ferns"), "UNKNOWN_METHOD"),
 }
 
