@@ -108,12 +108,14 @@ def bench_set(root: Path, repeats: int, seed: int) -> dict[str, Any]:
             rec: dict[str, Any] = {"ok": result.ok, "ms": ms, "method": result.method,
                                    "t": np.inf, "r": np.inf}
             if result.ok:
-                rec["t"], rec["r"] = pose_error(result.world_from_cam, gt)
+                t, r = pose_error(result.world_from_cam, gt)
+                rec["t"], rec["r"] = t, float(np.degrees(r))
                 if prior_pose is not None and name.endswith("off"):
                     # Within the wrong-pose threshold of the wrong prior (2 m or 30 deg from
                     # the truth: the two neighbourhoods do not overlap).
                     t, r = pose_error(result.world_from_cam, prior_pose)
-                    rec["near_prior"] = bool(t <= WRONG_THRESHOLD[0] and r <= WRONG_THRESHOLD[1])
+                    rec["near_prior"] = bool(t <= WRONG_THRESHOLD[0]
+                                             and np.degrees(r) <= WRONG_THRESHOLD[1])
             runs[name].append(rec)
 
         for entry in dataset.query_entries:

@@ -48,7 +48,7 @@ def test_a_good_prior_is_answered_by_tracking(synthetic_scene, synthetic_map):
         assert result.ok, result.reason
         assert result.method == TRACK
         dt, dr = pose_error(result.world_from_cam, gt)
-        assert dt < 0.03 and dr < 1.0
+        assert dt < 0.03 and dr < np.deg2rad(1.0)
         assert result.covariance is not None and result.inliers >= 10
 
 
