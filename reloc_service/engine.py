@@ -50,7 +50,8 @@ from typing import Any
 import numpy.typing as npt
 
 from .algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
-from .algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer
+from .algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, create_tracker
+from .algorithms.relocalizers.tracking import relocalize_with_prior
 from .core.cameras import Camera
 from .core.errors import ConfigError, MapError
 from .core.frame import EncodedImage, Frame, Keyframe
@@ -172,6 +173,9 @@ class _Live:
 
     relocalizer: Relocalizer
     view: MapView
+    #: Tracking from a prior with a covariance, asked before ``relocalizer`` when a query
+    #: carries one (:mod:`.algorithms.relocalizers.tracking`), over the same view.
+    tracker: Relocalizer | None = None
 
 
 class Engine:
@@ -262,7 +266,8 @@ class Engine:
             waited = time.perf_counter() - wait_start
             live = self._live[method]
             version = live.view.version
-            result = live.relocalizer.relocalize(query, prior=prior, hypotheses=hypotheses)
+            result = relocalize_with_prior(live.relocalizer, live.tracker, query, prior=prior,
+                                           hypotheses=hypotheses)
         result.map_version = version
         result.timings["engine_wait"] = waited
         if build:
@@ -310,7 +315,7 @@ class Engine:
     def _create(self, method: str, state: MapState) -> _Live:
         view = MapView(state)
         relocalizer = create_relocalizer(method, view, options=self.conf.options)
-        return _Live(relocalizer, view)
+        return _Live(relocalizer, view, create_tracker(view, options=self.conf.options))
 
     def _build_and_swap(self, method: str, *, progress: bool, only_if_missing: bool) -> None:
         with self._method_lock(method):

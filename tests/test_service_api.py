@@ -93,6 +93,22 @@ def test_relocalize_with_inline_camera_prior_and_hypotheses(served, synthetic_sc
     assert not result.ok and result.reason          # no keyframe within the prior's radius
 
 
+def test_relocalize_tracks_a_prior_with_a_covariance(served, synthetic_scene):
+    _, _, client, _ = served
+    gt = synthetic_scene.query_poses[1]
+    covariance = np.diag([0.05**2] * 3 + [np.deg2rad(2.0) ** 2] * 3)
+    result = client.relocalize(synthetic_scene.query_images[1], camera_id="cam0",
+                               prior=(gt, None, covariance))
+    assert result.ok and result.method == "track"      # tracked from the prior
+    assert_pose(result.world_from_cam, gt)
+    far = gt.copy()
+    far[:3, 3] += [2.0, 0.0, 0.0]
+    result = client.relocalize(synthetic_scene.query_images[1], camera_id="cam0",
+                               prior=(far, None, covariance))
+    assert result.method != "track"                    # the method answers a wrong prior
+    assert not result.ok or np.linalg.norm(result.world_from_cam[:3, 3] - gt[:3, 3]) < 0.05
+
+
 def test_keyframes_get_copies_the_map(served, synthetic_scene):
     _, port, client, _ = served
     infos = client.keyframes()
@@ -327,6 +343,11 @@ MALFORMED = {
         "world_from_cam": {"t": [0, 0, 0], "q": [0, 0, 0, 2.0]}, "radius_m": 1.0}), "BAD_POSE"),
     "negative radius": (lambda s: _request(s, prior={"world_from_cam": UNIT_POSE,
                                                      "radius_m": -1.0}), "BAD_VALUE"),
+    "prior covariance not positive semi-definite": (lambda s: _request(s, prior={
+        "world_from_cam": UNIT_POSE, "covariance": [-1.0 if i == 0 else 0.0
+                                                    for i in range(36)]}), "BAD_VALUE"),
+    "prior with neither radius nor covariance": (lambda s: _request(s, prior={
+        "world_from_cam": UNIT_POSE}), "MISSING_FIELD"),
     "unknown method": (lambda s: _request(s, method="ferns"), "UNKNOWN_METHOD"),
 }
 

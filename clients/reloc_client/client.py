@@ -379,18 +379,24 @@ class RelocClient:
     # -- queries ---------------------------------------------------------------------------
     def relocalize(self, image: ImageLike, *, camera_id: str | None = None,
                    camera: CameraLike | None = None, method: str | None = None,
-                   prior: tuple[PoseLike, float] | wire.Prior | None = None,
+                   prior: tuple[PoseLike, float] | tuple[PoseLike, float | None, Any]
+                   | wire.Prior | None = None,
                    hypotheses: int = 1, timeout: float | None = None,
                    request_id: str | None = None, timestamp: float | None = None,
                    image_format: str | None = None) -> RelocResult:
-        """Where was ``image`` taken? ``prior`` is (world_from_cam, radius_m) or a Prior.
+        """Where was ``image`` taken? ``prior`` is (world_from_cam, radius_m), (world_from_cam,
+        radius_m or None, 6x6 covariance: twist (rho, omega), m and rad) or a Prior; with a
+        covariance the service tracks from the prior first.
 
         Returns a RelocResult (OK or NOT_RELOCALIZED); raises ServiceBusy, ServiceError,
         NoReplyError; ValueError for ``timeout`` <= 0 (None: the client's default)."""
         timeout = _check_timeout(timeout, self.timeout)
         if prior is not None and not isinstance(prior, wire.Prior):
-            prior_pose, radius_m = prior
-            prior = wire.Prior(to_wire_pose(prior_pose, "prior.world_from_cam"), float(radius_m))
+            prior_pose, radius_m, *rest = prior
+            covariance = None if not rest or rest[0] is None else tuple(
+                float(v) for v in np.asarray(rest[0], np.float64).reshape(-1))
+            prior = wire.Prior(to_wire_pose(prior_pose, "prior.world_from_cam"),
+                               None if radius_m is None else float(radius_m), covariance)
         request = wire.RelocalizeRequest(
             image=to_wire_image(image, image_format=image_format), camera_id=camera_id,
             camera=None if camera is None else to_wire_camera(camera), method=method,

@@ -89,7 +89,9 @@ def relocalize_reply(rt: QueryMap, payload: bytes, *, queued_s: float = 0.0
     method = rt.check_method(request.method)
     prior = None
     if request.prior is not None:
-        prior = Prior(request.prior.world_from_cam.matrix(), request.prior.radius_m)
+        covariance = request.prior.covariance
+        prior = Prior(request.prior.world_from_cam.matrix(), request.prior.radius_m,
+                      None if covariance is None else np.reshape(covariance, (6, 6)))
     frame = Frame(image, camera)
     decoded = time.perf_counter()
     result = rt.relocalize(frame, method=method, prior=prior, hypotheses=request.hypotheses)

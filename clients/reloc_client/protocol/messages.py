@@ -261,22 +261,49 @@ class CameraPut(Message):
 
 @dataclass(frozen=True)
 class Prior:
-    """A rough ``world_from_cam`` the caller believes in; candidates are keyframes whose
-    centre is within ``radius_m`` metres of its centre."""
+    """A ``world_from_cam`` the caller believes in (a VIO's, say), with at least one of:
+
+    - ``radius_m``: candidates of the place finders are keyframes whose centre is within that
+      many metres of its centre (as before the covariance existed);
+    - ``covariance``: 36 numbers, row-major, the 6x6 covariance of the prior (twist (rho,
+      omega), right perturbation ``world_from_cam @ exp(xi)``, metres and radians, as every
+      pose covariance of the protocol): the service first tracks, matching the landmarks
+      the prior predicts visible in windows this covariance sets, and only where that does
+      not verify runs the full method (restricted by ``radius_m`` when also given).
+    """
 
     world_from_cam: WirePose
-    radius_m: float
+    radius_m: float | None = None
+    covariance: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.radius_m is None and self.covariance is None:
+            raise ProtocolError(ErrorCode.MISSING_FIELD,
+                                "prior: expected 'radius_m' (metres), 'covariance' (36 numbers, "
+                                "a 6x6 pose covariance) or both")
+        if self.covariance is not None:
+            _pose_covariance(list(self.covariance), "prior.covariance")
 
     def to_wire(self) -> dict[str, Any]:
-        return {"world_from_cam": self.world_from_cam.to_wire(), "radius_m": self.radius_m}
+        out: dict[str, Any] = {"world_from_cam": self.world_from_cam.to_wire()}
+        if self.radius_m is not None:
+            out["radius_m"] = self.radius_m
+        if self.covariance is not None:
+            out["covariance"] = list(self.covariance)
+        return out
 
     @classmethod
     def from_wire(cls, value: Any, path: str) -> Prior:
         f = _Fields(value, path)
-        out = cls(f.req("world_from_cam", WirePose.from_wire),
-                  f.req("radius_m", lambda v, p: _float(v, p, positive=True)))
+        pose = f.req("world_from_cam", WirePose.from_wire)
+        radius = f.opt("radius_m", lambda v, p: _float(v, p, positive=True))
+        covariance = f.opt("covariance", _pose_covariance)
         f.done()
-        return out
+        if radius is None and covariance is None:
+            raise ProtocolError(ErrorCode.MISSING_FIELD,
+                                f"{path}: expected 'radius_m' (metres), 'covariance' (36 "
+                                f"numbers, a 6x6 pose covariance) or both")
+        return cls(pose, radius, covariance)
 
 
 def _method(value: Any, path: str) -> str:

@@ -20,6 +20,7 @@ from typing import Any, ClassVar
 import cv2
 import numpy as np
 import numpy.typing as npt
+from reloc_client.protocol.geometry import pose_covariance_problem
 from reloc_client.result import RelocResult, RelocStatus
 from scipy import stats
 from scipy.spatial import ConvexHull, QhullError
@@ -41,11 +42,25 @@ register = RELOCALIZERS.register
 
 @dataclass(frozen=True)
 class Prior:
-    """A rough pose the caller believes in: candidates are restricted to keyframes whose
-    centre lies within ``radius_m`` of ``world_from_cam``'s centre."""
+    """A pose the caller believes in. With ``radius_m``, candidates are restricted to
+    keyframes whose centre lies within ``radius_m`` of ``world_from_cam``'s centre; with
+    ``covariance`` (6x6, twist (rho, omega), right perturbation ``world_from_cam @ exp(xi)``,
+    metres and radians), the query is first tracked from it (:mod:`.tracking`)."""
 
     world_from_cam: Array
-    radius_m: float
+    radius_m: float | None = None
+    covariance: Array | None = None
+
+    def __post_init__(self) -> None:
+        if self.radius_m is not None and not self.radius_m > 0:
+            raise ConfigError(f"prior.radius_m: expected a positive number of metres, got "
+                              f"{self.radius_m}")
+        if self.covariance is not None:
+            problem = pose_covariance_problem(self.covariance)
+            if problem is not None:
+                raise ConfigError(f"prior.covariance: expected a 6x6 pose covariance "
+                                  f"(symmetric, positive semi-definite, finite; twist (rho, "
+                                  f"omega), m and rad): {problem}")
 
 
 @dataclass(frozen=True)

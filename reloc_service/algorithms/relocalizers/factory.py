@@ -25,7 +25,7 @@ from ...core.methods import MethodSpec, MethodStep, parse_method
 from ..place import bow, sbi  # noqa: F401
 from ..pose import esm, fivept, none, p3p  # noqa: F401
 from ..pose.base import PoseFinder
-from . import ferns, multi  # noqa: F401
+from . import ferns, multi, tracking  # noqa: F401
 from .base import RELOCALIZERS, Relocalizer
 from .chain import ChainRelocalizer
 from .multi import STEP_FEATURES
@@ -51,6 +51,12 @@ def create_relocalizer(spec: str | MethodSpec, kmap: KeyframeMap, *,
     if len(steps) > 1:
         return ChainRelocalizer(kmap, [_create_step(step, kmap, options or {}) for step in steps])
     return _create_step(steps[0], kmap, options or {})
+
+
+def create_tracker(kmap: KeyframeMap, *, options: Options | None = None) -> Relocalizer:
+    """The tracking step (:mod:`.tracking`, ``options["track"]``, ``options["verify"]``)
+    over ``kmap``: what the engine asks first when a query's prior carries a covariance."""
+    return _create_step(MethodStep(relocalizer=tracking.TRACK), kmap, options or {})
 
 
 def _create_step(step: MethodStep, kmap: KeyframeMap, options: Options) -> Relocalizer:

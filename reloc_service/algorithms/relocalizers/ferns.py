@@ -319,6 +319,8 @@ class FernsRelocalizer(Relocalizer):
         region alone, then with the second, ...), until a pose is verified; with
         ``region_fallback``, a query verified in none of them is classified against every
         region. Each region classifies a query once (:class:`_QueryWork`)."""
+        if prior is not None and prior.radius_m is None:
+            prior = None  # a covariance alone restricts no region (tracking reads it)
         pub, work = self._models.published, _QueryWork()
         start = time.perf_counter()
         regions = self.choose_regions(query, prior=prior)

@@ -411,8 +411,9 @@ def pose_options(step: MethodStep, options: Mapping[str, Mapping[str, Any]]) -> 
 
 
 def _allowed_ids(state: MapState, prior: Prior | None) -> set[int] | None:
-    """Keyframe ids whose centre lies within the prior's radius; None without a prior."""
-    if prior is None:
+    """Keyframe ids whose centre lies within the prior's radius; None without a prior or
+    without a radius (a prior with a covariance alone restricts nothing)."""
+    if prior is None or prior.radius_m is None:
         return None
     ids = np.array(state.keyframe_ids(), np.int64)
     if len(ids) == 0:

@@ -1,0 +1,110 @@
+"""Search windows from a pose prior and its covariance: each landmark's projection under the
+prior and, to first order, the 2x2 covariance of that projection
+(``J C J^T + sigma^2 I``, ``J`` the pixel's Jacobian w.r.t. a right perturbation of
+``world_from_cam``, ``C`` the prior's 6x6 covariance, ``sigma`` the keypoint noise and the
+landmark's own depth uncertainty as seen from the prior). A query keypoint may match a
+landmark only inside the landmark's chi-square gate ``d^T S^-1 d <= chi2_2(p)``; the
+descriptor test is then the one guided matching uses (:mod:`.guided`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial import cKDTree
+
+from ...core.cameras import Camera
+from ...core.frame import Features
+from ...core.geometry import invert, transform_points
+from .guided import _one_to_one, _window_best, background_distance, project_into
+from .pnp import PointUncertainty, _pose_jacobian
+
+Array = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class Windows:
+    """Per landmark row of a pool: ``px`` (L, 2) its projection under the prior,
+    ``inv_cov`` (L, 2, 2) the inverse of its projection's covariance, ``radius_px`` (L,)
+    the gate's half major axis, ``area_px`` (L,) the gate's area, ``visible`` (L,) whether
+    it projects in front of the camera and inside the image."""
+
+    px: Array
+    inv_cov: Array
+    radius_px: Array
+    area_px: Array
+    visible: npt.NDArray[np.bool_]
+
+
+def predict_windows(camera: Camera, world_from_cam: Array, covariance: Array,
+                    points_world: Array, gate_chi2: float, pixel_sigmas: Array
+                    ) -> Windows:
+    """:class:`Windows` of (L, 3) world points seen from the prior ``world_from_cam`` with
+    its (6, 6) ``covariance``; ``pixel_sigmas`` (L,) the isotropic noise each projection
+    carries besides the prior's (keypoint localisation, landmark depth)."""
+    px, visible = project_into(camera, world_from_cam, points_world)
+    n = len(points_world)
+    inv_cov = np.zeros((n, 2, 2))
+    radius = np.full(n, np.inf)
+    area = np.full(n, np.inf)
+    rows = np.flatnonzero(visible)
+    if len(rows):
+        points_cam = transform_points(invert(world_from_cam), points_world[rows])
+        jac = _pose_jacobian(camera, points_cam).reshape(len(rows), 2, 6)
+        cov = jac @ covariance @ jac.transpose(0, 2, 1)
+        cov[:, 0, 0] += pixel_sigmas[rows] ** 2
+        cov[:, 1, 1] += pixel_sigmas[rows] ** 2
+        a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+        det = a * c - b * b
+        inv = np.empty_like(cov)
+        inv[:, 0, 0], inv[:, 1, 1] = c / det, a / det
+        inv[:, 0, 1] = inv[:, 1, 0] = -b / det
+        largest = 0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b)
+        inv_cov[rows] = inv
+        radius[rows] = np.sqrt(gate_chi2 * largest)
+        area[rows] = np.pi * gate_chi2 * np.sqrt(det)
+    return Windows(px, inv_cov, radius, area, visible)
+
+
+def pixel_sigmas(uncertainty: PointUncertainty, world_from_cam: Array, points_world: Array,
+                 camera: Camera, keypoint_sigma_px: float) -> Array:
+    """(L,) isotropic pixel noise of each projection besides the prior's: the keypoint's
+    localisation and the landmark's depth uncertainty seen from the prior, in quadrature."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        depth_px = uncertainty.pixel_sigmas(world_from_cam, points_world, camera)
+    depth_px = np.where(np.isfinite(depth_px), depth_px, 0.0)
+    return np.sqrt(keypoint_sigma_px**2 + depth_px**2)
+
+
+def match_in_windows(feats: Features, windows: Windows, rows: IntArray,
+                     map_desc: npt.NDArray[Any], gate_chi2: float, *, neighbours: int,
+                     ratio: float, background_quantile: float) -> tuple[IntArray, IntArray]:
+    """Matches of the landmarks ``rows`` (their windows, descriptors ``map_desc[rows]``) to
+    query keypoints inside their gates: (M,) query keypoint indices and (M,) landmark rows,
+    one to one. Of the ``neighbours`` keypoints nearest each projection (within the
+    largest window's radius), those outside the landmark's own gate are dropped; the best
+    descriptor inside must beat the second by ``ratio`` and be closer than the
+    ``background_quantile`` of unrelated descriptor pairs (as guided matching's)."""
+    empty = np.zeros(0, np.int64)
+    if len(feats) < 2 or len(rows) == 0:
+        return empty, empty
+    k = min(neighbours, len(feats))
+    px = windows.px[rows]
+    bound = float(windows.radius_px[rows].max())
+    _, near = cKDTree(feats.keypoints_px).query(px, k=k, distance_upper_bound=bound)
+    near = near.reshape(len(rows), k).astype(np.int64, copy=False)
+    slot = near < len(feats)
+    d = feats.keypoints_px[np.where(slot, near, 0)] - px[:, None, :]       # (L, K, 2)
+    dx, dy = d[..., 0], d[..., 1]
+    inv = windows.inv_cov[rows]
+    mahalanobis = (inv[:, 0, 0, None] * dx * dx + 2.0 * inv[:, 0, 1, None] * dx * dy
+                   + inv[:, 1, 1, None] * dy * dy)
+    near = np.where(slot & (mahalanobis <= gate_chi2), near, len(feats))
+    best, second, first = _window_best(feats.descriptors, map_desc[rows], near)
+    limit = background_distance(feats.descriptors, map_desc, background_quantile)
+    ok = np.isfinite(best) & (best < ratio * second) & (best < limit)
+    query_idx = near[np.flatnonzero(ok), first[ok]]
+    return _one_to_one(query_idx, rows[ok].astype(np.int64), best[ok])

@@ -1,0 +1,302 @@
+"""Localization with a prior (``"track"``): a query that comes with a pose prior and its
+covariance (a VIO's pose composed with ``map_from_odom``) is a tracking problem. The
+landmarks of the keyframes that see what the prior sees are projected with the prior, each
+is matched only to the query keypoints inside the chi-square gate of its projection's
+covariance (:mod:`..pose.prior_windows`), then PnP LO-RANSAC with refinement and the
+shared verification (:func:`.base.result_from_estimate`), unchanged but for the chance
+model: a wrong match was drawn from its window, not from the whole image.
+
+:func:`relocalize_with_prior` runs it before any method when the prior carries a
+covariance and falls back to that method when tracking does not verify."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats
+
+from ...core import features as feature_lib
+from ...core.errors import ConfigError
+from ...core.frame import Features, Frame, Keyframe
+from ...core.geometry import invert, se3_log
+from ...core.map import KeyframeMap, MapState
+from ...core.methods import MethodStep
+from ...core.plugins import make_conf
+from ..pose.base import PoseEstimate
+from ..pose.guided import GuidedConf, search_by_projection
+from ..pose.landmark_pool import LandmarkPool
+from ..pose.map_consistency import settle_pose_errors
+from ..pose.pnp import PnPConf, PointUncertainty, solve_pnp_indexed
+from ..pose.prior_windows import match_in_windows, pixel_sigmas, predict_windows
+from .base import (
+    Prior,
+    Relocalizer,
+    RelocResult,
+    VerifyConf,
+    narrow_support,
+    register,
+    result_from_estimate,
+)
+from .multi import STEP_FEATURES
+
+Array = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+#: The method name a tracked answer carries (``RelocResult.method``).
+TRACK = "track"
+
+
+@register(TRACK)
+class TrackingRelocalizer(Relocalizer):
+    """Tracking from a pose prior with a covariance: landmarks predicted visible, matched in
+    covariance windows, PnP, the shared verification; refuses without such a prior."""
+
+    @dataclass(frozen=True)
+    class Conf(PnPConf):
+        #: Feature kind matched; None: ORB where the map has ORB landmarks, else SIFT. The
+        #: query's features are those the method's own step of that kind extracts (ORB's
+        #: 500, SIFT's 2000), so a fallback reuses them.
+        kind: str | None = None
+        #: Keyframes nearest the prior (optical axes within ``max_view_angle_deg``) whose
+        #: landmarks are projected.
+        local_keyframes: int = 10
+        max_view_angle_deg: float = 60.0
+        #: Probability that the true keypoint of a landmark lies inside its gate
+        #: (chi-square, 2 degrees of freedom).
+        gate_probability: float = 0.99
+        #: Largest gate area, as a share of the image: a window as large as a cell of the
+        #: verification's coverage grid (1/16 of the image) is no longer local, so its
+        #: landmark is left out; too few left, tracking refuses and the full method runs.
+        max_window_fraction: float = 1.0 / 16.0
+        #: Query keypoints examined per window (nearest the projection first).
+        window_neighbours: int = 32
+        #: Best / second-best descriptor distance inside a window (ORB-SLAM's 0.9) and the
+        #: quantile of unrelated pairs' distances a match must beat (guided matching's).
+        window_ratio: float = 0.9
+        background_quantile: float = 0.01
+        #: A verified tracked pose must lie within this chi-square gate (6 degrees of
+        #: freedom) of the prior, under both covariances: a pose outside it contradicts the
+        #: prior it was matched from, and the full method decides.
+        prior_gate_probability: float = 0.999
+
+        def __post_init__(self) -> None:
+            super().__post_init__()
+            if self.kind is not None and self.kind not in STEP_FEATURES:
+                raise ConfigError(f"track: kind must be one of {sorted(STEP_FEATURES)} or "
+                                  f"None, got {self.kind!r}")
+            for name in ("gate_probability", "prior_gate_probability", "window_ratio",
+                         "max_window_fraction", "background_quantile"):
+                if not 0 < getattr(self, name) <= 1:
+                    raise ConfigError(f"track: {name} must be in (0, 1], got "
+                                      f"{getattr(self, name)}")
+            if self.local_keyframes < 1 or self.window_neighbours < 2:
+                raise ConfigError("track: local_keyframes must be >= 1, window_neighbours >= 2")
+
+    def __init__(self, kmap: KeyframeMap, conf: TrackingRelocalizer.Conf | None = None,
+                 verify_conf: VerifyConf | None = None) -> None:
+        super().__init__(kmap)
+        self.conf = conf or TrackingRelocalizer.Conf()
+        # Tracking always comes before a method that can still answer: where its view
+        # cannot check the intrinsics it leaves the query to that method (as a chain's
+        # first steps do).
+        self.verify_conf = replace(verify_conf or VerifyConf(), trust_unchecked_intrinsics=False)
+
+    @classmethod
+    def from_options(cls, step: MethodStep, kmap: KeyframeMap,
+                     options: Mapping[str, Mapping[str, Any]]) -> TrackingRelocalizer:
+        return cls(kmap, make_conf(cls.Conf, options.get(TRACK), owner="track"),
+                   make_conf(VerifyConf, options.get("verify"), owner="verify"))
+
+    @property
+    def method(self) -> str:
+        return TRACK
+
+    def add_keyframe(self, keyframe: Keyframe) -> None:
+        """Nothing to index: tracking reads the map's landmarks at query time."""
+
+    def remove_keyframe(self, keyframe: Keyframe) -> None:
+        """Nothing indexed."""
+
+    def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
+                   ) -> RelocResult:
+        """The pose tracked from ``prior`` (it must carry a covariance), verified; else
+        NOT_RELOCALIZED with the reason."""
+        state = self.map.snapshot()
+        timings: dict[str, float] = {}
+        if prior is None or prior.covariance is None:
+            return self._refuse("no prior with a covariance to track from", timings, state)
+        near = state.nearest_keyframes(prior.world_from_cam, self.conf.local_keyframes,
+                                       self.conf.max_view_angle_deg)
+        keyframes = [state.keyframes[k] for k in near]
+        kind = self.conf.kind or _local_kind(keyframes)
+        if kind is None:
+            return self._refuse("no keyframe near the prior has ORB or SIFT landmarks",
+                                timings, state)
+        start = time.perf_counter()
+        conf = feature_lib.FeatureConf(kind=kind, max_features=STEP_FEATURES[kind]["max_features"])
+        feats = query.features_of(kind, lambda: feature_lib.extract(query.image, conf))
+        timings["features"] = time.perf_counter() - start
+        start = time.perf_counter()
+        pool = LandmarkPool.gather(keyframes, kind)
+        if len(pool.landmark_ids) == 0:
+            return self._refuse("no keyframe near the prior sees what it sees", timings, state)
+        rows_all = np.arange(len(pool.landmark_ids))
+        uncertainty = pool.uncertainty(state, keyframes, rows_all)
+        gate = float(stats.chi2.ppf(self.conf.gate_probability, 2))
+        sigmas = pixel_sigmas(uncertainty, prior.world_from_cam, pool.points_world,
+                              query.camera, self.conf.keypoint_sigma_px)
+        windows = predict_windows(query.camera, prior.world_from_cam, prior.covariance,
+                                  pool.points_world, gate, sigmas)
+        width, height = query.camera.size
+        local = windows.visible & (windows.area_px <= self.conf.max_window_fraction
+                                   * width * height)
+        rows = np.flatnonzero(local)
+        if len(rows) < self.verify_conf.min_inliers:
+            return self._refuse(
+                f"prior too uncertain to track: {len(rows)} of {int(windows.visible.sum())} "
+                f"predicted landmarks have a window within "
+                f"{self.conf.max_window_fraction:.3g} of the image", timings, state)
+        q_idx, m_rows = match_in_windows(
+            feats, windows, rows, pool.descriptors, gate, neighbours=self.conf.window_neighbours,
+            ratio=self.conf.window_ratio, background_quantile=self.conf.background_quantile)
+        timings["track_match"] = time.perf_counter() - start
+        start = time.perf_counter()
+        solved = solve_pnp_indexed(feats.keypoints_px[q_idx], pool.points_world[m_rows],
+                                   query.camera, self.conf, uncertainty=uncertainty.take(m_rows))
+        timings["solve"] = time.perf_counter() - start
+        if solved is None:
+            return self._refuse(f"no pose from {len(q_idx)} matches in the prior's windows",
+                                timings, state, num_matches=len(q_idx))
+        est, inliers = solved
+        seed = (len(q_idx), int(est.inliers or 0))
+        chance = _window_chance(est, windows.area_px[m_rows])
+        start = time.perf_counter()
+        grown = self._grow(query, feats, est, pool, q_idx[inliers], m_rows[inliers],
+                           uncertainty)
+        timings["guided"] = time.perf_counter() - start
+        if grown is not None:
+            est, q_idx, m_rows, inliers = grown
+        est.keyframe_ids = pool.keyframes_of(m_rows[inliers], near)
+        est.inlier_keypoints = q_idx[inliers]
+        est.inlier_landmark_ids = pool.landmark_ids[m_rows[inliers]]
+        # The false-alarm test judges the consensus found in the prior's windows, against
+        # the chance of agreeing inside a window; what guided matching added around the
+        # solved pose agrees with it by construction.
+        est.unguided_evidence = seed
+        est.chance_probability = max(est.chance_probability or 0.0, chance)
+        start = time.perf_counter()
+        est = settle_pose_errors(est, state, kind, self.conf, est.inlier_landmark_ids)
+        result = result_from_estimate(est, self.verify_conf, method=TRACK,
+                                      map_version=state.version, timings=timings)
+        timings["verify"] = time.perf_counter() - start
+        if result.ok and not _within_prior(est, result, prior, self.conf.prior_gate_probability):
+            return self._refuse("the tracked pose lies outside the prior's gate", timings, state,
+                                num_matches=len(q_idx), inliers=int(est.inliers or 0))
+        if result.ok and narrow_support(est, self.verify_conf):
+            # A pose fixed by a small area of the image is weakly conditioned: the method,
+            # which weighs such answers against the rest of the map, decides.
+            return self._refuse("the tracked pose rests on a small part of the image", timings,
+                                state, num_matches=len(q_idx), inliers=int(est.inliers or 0))
+        return result
+
+    def _grow(self, query: Frame, feats: Features, est: PoseEstimate, pool: LandmarkPool,
+              seed_q: IntArray, seed_rows: IntArray, uncertainty: PointUncertainty
+              ) -> tuple[PoseEstimate, IntArray, IntArray, IntArray] | None:
+        """The pose re-solved on the window consensus (``seed_q``, ``seed_rows``) plus the
+        landmarks guided matching finds around the solved pose (windows of twice the inlier
+        threshold, :func:`..pose.guided.search_by_projection`): the prior's windows are
+        wide, and a crowd of similar descriptors hides matches that the solved pose's narrow
+        windows find. (estimate, query indices, pool rows, inlier indices), or None when that
+        adds no inlier."""
+        guided = GuidedConf()
+        g_idx, g_rows = search_by_projection(
+            feats, query.camera, est.world_from_cam, pool.descriptors, pool.points_world,
+            guided.window_factor * self.conf.max_reproj_error_px, guided)
+        q_all, rows_all = _union(seed_q, seed_rows, g_idx, g_rows)
+        solved = solve_pnp_indexed(feats.keypoints_px[q_all], pool.points_world[rows_all],
+                                   query.camera, self.conf,
+                                   uncertainty=uncertainty.take(rows_all))
+        if solved is None or (solved[0].inliers or 0) <= (est.inliers or 0):
+            return None
+        return solved[0], q_all, rows_all, solved[1]
+
+    def _refuse(self, reason: str, timings: dict[str, float], state: MapState,
+                **evidence: Any) -> RelocResult:
+        return RelocResult.failure(TRACK, reason, timings=timings, map_version=state.version,
+                                   **evidence)
+
+
+def _union(first_q: IntArray, first_rows: IntArray, second_q: IntArray, second_rows: IntArray
+           ) -> tuple[IntArray, IntArray]:
+    """Correspondences (query index, pool row) of both lists, one to one, the first list
+    winning where a query keypoint or a row appears in both."""
+    q = np.concatenate([first_q, second_q])
+    rows = np.concatenate([first_rows, second_rows])
+    keep = np.sort(np.unique(q, return_index=True)[1])
+    keep = np.sort(keep[np.unique(rows[keep], return_index=True)[1]])
+    return q[keep], rows[keep]
+
+
+def _local_kind(keyframes: list[Keyframe]) -> str | None:
+    """ORB where a keyframe near the prior has ORB landmarks (the cheap path), else SIFT
+    where one has SIFT landmarks, else None."""
+    for kind in ("orb", "sift"):
+        for kf in keyframes:
+            feats = kf.features.get(kind)
+            if feats is not None and bool(np.any(feats.landmark_ids >= 0)):
+                return kind
+    return None
+
+
+def _window_chance(est: PoseEstimate, areas_px: Array) -> float:
+    """The probability that a wrong match agrees with a pose by chance when each match was
+    drawn from its window rather than from the whole image: ``pi t^2 / area`` (at most 1)
+    averaged over the matches. The binomial with this mean bounds the tail of the
+    matches' Poisson-binomial count beyond its mean (Hoeffding 1956), which is what the
+    false-alarm test reads."""
+    t = est.inlier_threshold_px
+    if t is None or len(areas_px) == 0:
+        return 0.0
+    return float(np.mean(np.minimum(np.pi * t * t / np.maximum(areas_px, 1e-12), 1.0)))
+
+
+def _within_prior(est: PoseEstimate, result: RelocResult, prior: Prior, probability: float
+                  ) -> bool:
+    """Whether the answer lies inside the prior's ``probability`` gate: the twist from the
+    prior to the answer, Mahalanobis under the sum of both covariances, within
+    ``chi2_6(probability)``."""
+    assert prior.covariance is not None and result.world_from_cam is not None
+    xi = se3_log(invert(prior.world_from_cam) @ result.world_from_cam)
+    own = result.covariance if result.covariance is not None else est.covariance
+    total = np.asarray(prior.covariance, np.float64) + (0.0 if own is None else own)
+    try:
+        m2 = float(xi @ np.linalg.solve(total, xi))
+    except np.linalg.LinAlgError:
+        m2 = float(xi @ np.linalg.pinv(total) @ xi)
+    return m2 <= float(stats.chi2.ppf(probability, 6))
+
+
+def relocalize_with_prior(relocalizer: Relocalizer, tracker: Relocalizer | None,
+                          query: Frame, *, prior: Prior | None = None,
+                          hypotheses: int = 1) -> RelocResult:
+    """``tracker``'s answer when ``prior`` carries a covariance and tracking verifies; else
+    ``relocalizer``'s (the method asked), with tracking's time summed into its timings and
+    its reason prefixed to a refusal's."""
+    if (tracker is None or prior is None or prior.covariance is None
+            or relocalizer.method == TRACK):
+        return relocalizer.relocalize(query, prior=prior, hypotheses=hypotheses)
+    tracked = tracker.relocalize(query, prior=prior, hypotheses=hypotheses)
+    if tracked.ok:
+        return tracked
+    result = relocalizer.relocalize(query, prior=prior, hypotheses=hypotheses)
+    for stage, seconds in tracked.timings.items():
+        key = stage if stage not in ("features", "verify", "solve") else f"track_{stage}"
+        result.timings[key] = result.timings.get(key, 0.0) + seconds
+    if not result.ok:
+        result.reason = f"{TRACK}: {tracked.reason}; {result.reason}"
+    return result

@@ -1,0 +1,176 @@
+"""Localization with a prior: a prior pose with its covariance is tracked first (landmarks
+projected with the prior, matched in covariance windows, PnP, the shared verification); a
+wrong prior gives the right pose from the full method or a refusal."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from reloc_client import protocol as P
+from reloc_client.protocol import ErrorCode, ProtocolError
+
+from reloc_service.algorithms.relocalizers.base import Prior
+from reloc_service.algorithms.relocalizers.factory import create_relocalizer, create_tracker
+from reloc_service.algorithms.relocalizers.tracking import TRACK, relocalize_with_prior
+from reloc_service.core.errors import ConfigError
+from reloc_service.core.frame import Frame
+from reloc_service.core.geometry import pose_covariance_from_sigmas, pose_error, se3_exp
+from reloc_service.core.map import KeyframeMap
+from reloc_service.engine import Engine
+
+#: A VIO's prior: 5 cm and 2 degrees, 1 sigma per axis.
+SIGMA_M, SIGMA_RAD = 0.05, np.deg2rad(2.0)
+COVARIANCE = pose_covariance_from_sigmas(SIGMA_M, SIGMA_RAD)
+
+
+def _map_of(state) -> KeyframeMap:
+    kmap = KeyframeMap()
+    kmap.replace_state(state)
+    return kmap
+
+
+def _perturbed(pose, rng, sigma_m=SIGMA_M, sigma_rad=SIGMA_RAD):
+    """``pose @ exp(xi)`` with xi drawn from the stated covariance (a right perturbation)."""
+    xi = np.concatenate([rng.normal(0, sigma_m, 3), rng.normal(0, sigma_rad, 3)])
+    return pose @ se3_exp(xi)
+
+
+def _query(scene, i):
+    return Frame(scene.query_images[i], scene.camera)
+
+
+def test_a_good_prior_is_answered_by_tracking(synthetic_scene, synthetic_map):
+    tracker = create_tracker(_map_of(synthetic_map))
+    rng = np.random.default_rng(0)
+    for i, gt in enumerate(synthetic_scene.query_poses):
+        prior = Prior(_perturbed(gt, rng), covariance=COVARIANCE)
+        result = tracker.relocalize(_query(synthetic_scene, i), prior=prior)
+        assert result.ok, result.reason
+        assert result.method == TRACK
+        dt, dr = pose_error(result.world_from_cam, gt)
+        assert dt < 0.03 and dr < np.deg2rad(1.0)
+        assert result.covariance is not None and result.inliers >= 10
+
+
+def test_tracking_answers_first_and_the_method_falls_back(synthetic_scene, synthetic_map):
+    kmap = _map_of(synthetic_map)
+    method = create_relocalizer("sbi+p3p", kmap)
+    method.train()
+    tracker = create_tracker(kmap)
+    gt = synthetic_scene.query_poses[1]
+    tracked = relocalize_with_prior(method, tracker, _query(synthetic_scene, 1),
+                                    prior=Prior(_perturbed(gt, np.random.default_rng(1)),
+                                                covariance=COVARIANCE))
+    assert tracked.ok and tracked.method == TRACK
+    # Without a covariance the method answers, as before.
+    plain = relocalize_with_prior(method, tracker, _query(synthetic_scene, 1),
+                                  prior=Prior(gt, radius_m=5.0))
+    assert plain.ok and plain.method == "sbi+p3p"
+
+
+@pytest.mark.parametrize("offset", ["2m", "30deg"])
+def test_a_wrong_prior_gives_the_right_pose_or_a_refusal(synthetic_scene, synthetic_map,
+                                                         offset):
+    kmap = _map_of(synthetic_map)
+    method = create_relocalizer("sbi+p3p", kmap)
+    method.train()
+    tracker = create_tracker(kmap)
+    gt = synthetic_scene.query_poses[0]
+    if offset == "2m":
+        wrong = gt.copy()
+        wrong[:3, 3] += np.array([2.0, 0.0, 0.0])
+    else:
+        wrong = gt @ se3_exp([0, 0, 0, 0, np.deg2rad(30.0), 0])
+    prior = Prior(wrong, covariance=COVARIANCE)
+    alone = tracker.relocalize(_query(synthetic_scene, 0), prior=prior)
+    assert not alone.ok  # nothing near the wrong prior verifies
+    result = relocalize_with_prior(method, tracker, _query(synthetic_scene, 0), prior=prior)
+    if result.ok:
+        assert result.method == "sbi+p3p"
+        assert pose_error(result.world_from_cam, gt)[0] < 0.05
+    else:
+        assert result.reason.startswith("track: ")
+
+
+def test_a_huge_covariance_leaves_the_query_to_the_method(synthetic_scene, synthetic_map):
+    tracker = create_tracker(_map_of(synthetic_map))
+    gt = synthetic_scene.query_poses[2]
+    result = tracker.relocalize(_query(synthetic_scene, 2),
+                                prior=Prior(gt, covariance=pose_covariance_from_sigmas(1.0, 0.5)))
+    assert not result.ok and "prior too uncertain to track" in result.reason
+
+
+def test_no_covariance_no_tracking(synthetic_scene, synthetic_map):
+    tracker = create_tracker(_map_of(synthetic_map))
+    result = tracker.relocalize(_query(synthetic_scene, 0),
+                                prior=Prior(synthetic_scene.query_poses[0], radius_m=1.0))
+    assert not result.ok and "no prior with a covariance" in result.reason
+
+
+def test_engine_tracks_a_prior_with_a_covariance(synthetic_scene):
+    engine = Engine()
+    for i, (image, pose) in enumerate(zip(synthetic_scene.keyframe_images,
+                                          synthetic_scene.keyframe_poses, strict=True)):
+        engine.add_keyframe(i, image, synthetic_scene.camera, pose)
+    engine.train(["sbi+p3p"])
+    gt = synthetic_scene.query_poses[0]
+    prior = Prior(_perturbed(gt, np.random.default_rng(3)), covariance=COVARIANCE)
+    result = engine.relocalize(_query(synthetic_scene, 0), method="sbi+p3p", prior=prior)
+    assert result.ok and result.method == TRACK
+    assert pose_error(result.world_from_cam, gt)[0] < 0.03
+
+
+@pytest.mark.parametrize(("matrix", "problem"), [
+    (np.eye(5), "shape|36 numbers"),
+    (np.diag([1.0, 1, 1, 1, 1, np.nan]), "NaN or infinite|finite number"),
+    (np.eye(6) + np.triu(np.ones((6, 6)), 1), "not symmetric"),
+    (np.diag([1.0, 1, 1, 1, 1, -1]), "not positive semi-definite"),
+])
+def test_covariance_validation(matrix, problem):
+    with pytest.raises(ConfigError, match=problem):
+        Prior(np.eye(4), covariance=matrix)
+    pose = P.WirePose((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    wire_prior = {"world_from_cam": pose.to_wire(),
+                  "covariance": np.asarray(matrix, float).reshape(-1).tolist()}
+    with pytest.raises(ProtocolError, match=problem) as err:
+        P.Prior.from_wire(wire_prior, "relocalize.prior")
+    assert err.value.code == ErrorCode.BAD_VALUE
+    with pytest.raises(ConfigError, match="radius_m"):
+        Prior(np.eye(4), radius_m=-1.0)
+
+
+def test_a_prior_needs_a_radius_or_a_covariance():
+    pose = P.WirePose((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    with pytest.raises(ProtocolError, match="'radius_m'.*'covariance'") as err:
+        P.Prior.from_wire({"world_from_cam": pose.to_wire()}, "relocalize.prior")
+    assert err.value.code == ErrorCode.MISSING_FIELD
+    with pytest.raises(ProtocolError, match="'radius_m'.*'covariance'"):
+        P.Prior(pose)
+
+
+def test_protocol_round_trip_of_a_prior_with_a_covariance():
+    pose = P.WirePose((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0))
+    image = P.WireImage(P.ImageFormat.MONO8, 4, 2, bytes(8))
+    camera = P.WireCamera("pinhole", 4, 2, 2.0, 2.0, 1.5, 0.5)
+    for prior in (P.Prior(pose, 3.0), P.Prior(pose, covariance=tuple(COVARIANCE.reshape(-1))),
+                  P.Prior(pose, 1.5, tuple(COVARIANCE.reshape(-1)))):
+        msg = P.RelocalizeRequest(image, camera=camera, prior=prior)
+        back = P.RelocalizeRequest.decode(msg.encode())
+        assert back.prior == prior
+        if prior.covariance is not None:
+            assert np.allclose(np.reshape(back.prior.covariance, (6, 6)), COVARIANCE)
+        else:
+            assert "covariance" not in prior.to_wire()  # an older service still reads it
+
+
+def test_track_is_a_registered_method(synthetic_scene, synthetic_map):
+    from reloc_service.algorithms.relocalizers.factory import list_methods
+    from reloc_service.algorithms.relocalizers.tracking import TrackingRelocalizer
+
+    track = create_relocalizer("track", _map_of(synthetic_map),
+                               options={"track": {"gate_probability": 0.95}})
+    assert isinstance(track, TrackingRelocalizer) and track.conf.gate_probability == 0.95
+    assert TRACK in {m["method"] for m in list_methods()}
+    with pytest.raises(ConfigError, match="gate_probability"):
+        create_relocalizer("track", _map_of(synthetic_map),
+                           options={"track": {"gate_probability": 1.5}})
