@@ -79,8 +79,14 @@ def rig(synthetic_scene):
             wait_until(lambda: len(rt.map_state().keyframes) == 6, timeout=60)
             [png] = pngs(scene.query_images[:1])   # the workers load the map once, here
             publish_image(drone, stamp(900.0), png)
-            assert trigger(drone, 1)[0]
-            drone.poses.get(timeout=10)
+            # received before the call: the call then answers for it, not for the last
+            # keyframe image (also fresh and unanswered when the machine is slow)
+            node = service.ros2.node("trig")
+            wait_until(lambda: node.latest is not None and node.latest.stamp.sec == 900)
+            success, message = trigger(drone, 1)
+            assert success and message.startswith("image stamped 900.000000000: "), message
+            assert read_pose(drone.poses.get(timeout=10)[0]).stamp == stamp(900.0)
+            assert drone.poses.empty()
             yield service, drone, diagnostics, records
         finally:
             drone.close()
