@@ -112,6 +112,7 @@ def test_start_registers_stored_maps_without_loading_them(template, synthetic_sc
         assert not open_paths(storage / "alpha")   # no journal or lock of a map open
         with RelocClient(endpoint(port), map="alpha", timeout=30) as client:
             assert sorted(m for _, m in client.maps()) == sorted(NAMES)
+            assert client.resident_maps() == []   # served, none in memory
         for name in NAMES:
             with RelocClient(endpoint(port), map=name, timeout=30) as client:
                 status = client.status()
@@ -123,6 +124,9 @@ def test_start_registers_stored_maps_without_loading_them(template, synthetic_sc
                 status = client.status()
                 assert status.resident and status.trained and status.landmarks > 0
         assert sorted(service.maps) == sorted(NAMES)
+        with RelocClient(endpoint(port), map="alpha", timeout=30) as client:
+            assert client.resident_maps() == [(service.instance, n) for n in sorted(NAMES)]
+            assert sorted(m for _, m in client.maps()) == sorted(NAMES)   # unchanged
     finally:
         service.stop()
 
@@ -160,6 +164,7 @@ def test_small_budget_keeps_recent_maps_and_reloads_the_others(template, synthet
             assert residency.resident_bytes() <= budget_mb * MB
         assert not open_paths(storage / "alpha")   # closed: journal and lock released
         assert not clients["alpha"].status().resident
+        wait_until(lambda: clients["alpha"].resident_maps() == [(service.instance, "charlie")])
         again = pose_of(clients["alpha"], synthetic_scene, 1)   # loaded again on demand
         np.testing.assert_allclose(again, first["alpha"], atol=1e-9)
         assert clients["alpha"].status().resident

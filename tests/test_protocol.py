@@ -487,6 +487,12 @@ def test_keys():
     assert k.parse_keyframe("a/b", "a/b/lab/keyframes/17") == ("lab", 17)
     assert k.parse_camera("reloc", "reloc/lab/cameras/cam0") == ("lab", "cam0")
     assert k.parse_liveliness("reloc", "reloc/@live/drone-1/lab") == ("drone-1", "lab")
+    assert k.resident("reloc", "drone-1", "lab") == "reloc/@live/drone-1/lab/resident"
+    assert k.resident_all("reloc") == "reloc/@live/*/*/resident"
+    assert k.parse_resident("reloc", "reloc/@live/drone-1/lab/resident") == ("drone-1", "lab")
+    for bad in ["reloc/@live/drone-1/lab", "reloc/@live/lab/resident"]:
+        with pytest.raises(P.ProtocolError):
+            k.parse_resident("reloc", bad)
     for bad in ["reloc/lab/keyframes/017", "reloc/lab/keyframes/-1", "reloc/lab/keyframes/x",
                 "reloc/lab/cameras/3", "other/lab/keyframes/3", "reloc/lab/keyframes/3/4"]:
         with pytest.raises(P.ProtocolError):

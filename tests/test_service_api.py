@@ -198,6 +198,9 @@ def test_several_maps_and_map_created_by_first_put(served, synthetic_scene):
         assert status.keyframes == 1 and status.cameras == ("c",)
         assert ("test", "second") in other.maps() and ("test", MAP) in other.maps()
         assert ("test", "empty") in other.maps()      # configured, no keyframe yet
+        # every map is in memory (no max_resident_mb), the one a put created too
+        assert {("test", "second"), ("test", MAP), ("test", "empty")} <= set(
+            other.resident_maps())
         ev.close()
     with RelocClient(endpoint(port), map="empty", timeout=30) as empty:
         assert empty.status().keyframes == 0

@@ -510,6 +510,22 @@ class RelocClient:
                 log.warning("ignoring liveliness token %s: %s", reply.ok.key_expr, exc)
         return sorted(found)
 
+    def resident_maps(self, *, timeout: float | None = None) -> list[tuple[str, str]]:
+        """(instance, map) of every map an instance holds in memory: a query on it answers
+        without a load from storage (a service with ``max_resident_mb`` loads maps on first
+        use and closes idle ones; without it every served map is resident)."""
+        found = set()
+        replies = self.session.liveliness().get(wire.keys.resident_all(self.prefix),
+                                                timeout=_check_timeout(timeout, self.timeout))
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            try:
+                found.add(wire.keys.parse_resident(self.prefix, str(reply.ok.key_expr)))
+            except ProtocolError as exc:
+                log.warning("ignoring residency token %s: %s", reply.ok.key_expr, exc)
+        return sorted(found)
+
     def subscribe_events(self, callback: Callable[[wire.Event], None], *,
                          kinds: Iterable[wire.EventKind | str] | None = None) -> zenoh.Subscriber:
         """Call ``callback(event)`` for every event of this map (only ``kinds`` if given),

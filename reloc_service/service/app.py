@@ -118,6 +118,7 @@ class Service:
             pool = self.writes.pool
             assert pool is not None
             self.registry.residency.pending_writes = pool.pending
+            self.registry.residency.on_change = self._resident_changed
         else:
             self.registry.expect(names)
         self.session = open_session(self.conf.zenoh)
@@ -247,8 +248,9 @@ class Service:
             return
         self.layer.serve_map(name)
         rt = self.maps.get(name)
-        if rt is None:
+        if rt is None:   # dormant (loaded on first use) or failed
             return
+        self.layer.set_resident(name, True)
         if self.ros2 is not None:
             self.ros2.serve_map(name)
         if rt.restore_report.damaged and not rt.replaying:   # else once it has replayed
@@ -258,8 +260,14 @@ class Service:
         """Declare a map its first put created (queryables, events, liveliness, ROS 2)."""
         if self.layer is not None:
             self.layer.serve_map(name)
+            self.layer.set_resident(name, True)
         if self.ros2 is not None:
             self.ros2.serve_map(name)
+
+    def _resident_changed(self, name: str, resident: bool) -> None:
+        """A map was loaded into memory or closed (``[service] max_resident_mb``)."""
+        if self.layer is not None and not self._stopped.is_set():
+            self.layer.set_resident(name, resident)
 
     def _declare_failed(self, name: str, message: str) -> None:
         """Publish why map ``name`` failed, then declare its queryables: they answer

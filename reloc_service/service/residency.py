@@ -83,6 +83,9 @@ class Residency:
                                          daemon=True)
         self.loads = 0
         self.evictions = 0
+        #: Told ``(name, True)`` when a map is loaded, ``(name, False)`` when it is closed
+        #: (the service's residency tokens); called outside this object's lock.
+        self.on_change: Callable[[str, bool], None] | None = None
 
     # -- start / stop ----------------------------------------------------------------------------
     def register(self, names: list[str], declare: Callable[[str], None]) -> None:
@@ -184,6 +187,7 @@ class Residency:
                 self._changed.notify_all()
             log.info("map %s: loaded on demand in %.2f s (%.1f MB resident of %.1f MB)", name,
                      time.perf_counter() - start, self.resident_bytes() / MB, self.budget / MB)
+            self._tell(name, name in self.registry.maps)
             self._wake.set()
 
     # -- eviction --------------------------------------------------------------------------------
@@ -250,6 +254,15 @@ class Residency:
                 if name not in self.registry.failed:
                     self.dormant.add(name)
                 self._changed.notify_all()
+            self._tell(name, False)
+
+    def _tell(self, name: str, resident: bool) -> None:
+        if self.on_change is None:
+            return
+        try:
+            self.on_change(name, resident)
+        except Exception as exc:   # a token not declared never stops loading or closing
+            log.warning("map %s: residency token not updated: %s", name, exc)
 
 
 def dormant_status(registry: MapRegistry, name: str) -> wire.StatusReply:

@@ -146,6 +146,7 @@ class ZenohLayer:
         self._maps: dict[str, list[object]] = {}
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._tokens: dict[str, zenoh.LivelinessToken] = {}
+        self._resident: dict[str, zenoh.LivelinessToken] = {}
         self._imports: zenoh.Queryable | None = None
         self._lock = threading.Lock()
         #: Gives the heap back after an oversized payload is refused (:mod:`.memory`).
@@ -179,6 +180,18 @@ class ZenohLayer:
             # The token last: a client that sees it can use every key at once.
             self._tokens[map_name] = self.session.liveliness().declare_token(
                 k.liveliness(self.prefix, self.instance, map_name))
+
+    def set_resident(self, map_name: str, resident: bool) -> None:
+        """Declare (or undeclare) the token saying ``map_name`` is in memory here; ignored
+        for a map not served or once withdrawn."""
+        with self._lock:
+            if resident and map_name in self._tokens and map_name not in self._resident:
+                self._resident[map_name] = self.session.liveliness().declare_token(
+                    wire.keys.resident(self.prefix, self.instance, map_name))
+                return
+            token = None if resident else self._resident.pop(map_name, None)
+        if token is not None:
+            _undeclare(token)
 
     def serve_imports(self) -> None:
         """Declare ``<prefix>/*/import``: a map is imported under any valid name, served or
@@ -221,8 +234,9 @@ class ZenohLayer:
         queryables stay until :meth:`close`, so queries already queued still get answers."""
         with self._lock:
             tokens, self._tokens = self._tokens, {}
+            resident, self._resident = self._resident, {}
             subscribers, self._subscribers = self._subscribers, []
-        for entity in [*tokens.values(), *subscribers]:
+        for entity in [*resident.values(), *tokens.values(), *subscribers]:
             _undeclare(entity)
 
     def close(self) -> None:

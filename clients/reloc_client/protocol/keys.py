@@ -103,6 +103,26 @@ class keys:  # noqa: N801 - a namespace used as ``keys.relocalize(prefix, map)``
         return f"{check_prefix(prefix)}/@live/*/*"
 
     @staticmethod
+    def resident(prefix: str, instance: str, map_name: str) -> str:
+        """``<prefix>/@live/<instance>/<map>/resident``: held while the instance has the map
+        in memory (a query answers without a load from storage). One chunk below the serving
+        token, so ``@live/*/*`` discovery and access rules on ``@live/**`` cover both."""
+        return f"{keys.liveliness(prefix, instance, map_name)}/resident"
+
+    @staticmethod
+    def resident_all(prefix: str) -> str:
+        """``<prefix>/@live/*/*/resident``: liveliness get of every resident (instance, map)."""
+        return f"{check_prefix(prefix)}/@live/*/*/resident"
+
+    @staticmethod
+    def parse_resident(prefix: str, key: str) -> tuple[str, str]:
+        """(instance, map) of a ``<prefix>/@live/<instance>/<map>/resident`` key."""
+        if not key.endswith("/resident"):
+            raise _fail(ErrorCode.BAD_NAME, "residency key",
+                        f"'{check_prefix(prefix)}/@live/<instance>/<map>/resident'", key)
+        return keys.parse_liveliness(prefix, key[:-len("/resident")])
+
+    @staticmethod
     def parse_keyframe(prefix: str, key: str) -> tuple[str, int]:
         """(map, keyframe id) of a concrete ``<prefix>/<map>/keyframes/<id>`` key."""
         map_name, leaf = keys._parse(prefix, key, "keyframes")
