@@ -222,8 +222,31 @@ def test_a_map_with_puts_waiting_or_training_is_not_closed(template, synthetic_s
         rt.start_training(None)
         shrink_and_wait_for_one_closed()
         assert list(service.maps) == ["alpha"]
+        # the job ends only once its snapshot runs: never idle in between, whatever the
+        # evictor's timing (a close there would lose the models just trained)
+        idle_when_done = []
+        publish = rt.publish
+
+        def watched_publish(kind, **fields):
+            if kind is wire.EventKind.TRAIN_DONE:
+                idle_when_done.append(residency.idle(rt) and not snapshot_saved())
+            publish(kind, **fields)
+
+        saved = []
+        snapshot = rt._snapshot
+
+        def snapshot_saved() -> bool:
+            return bool(saved)
+
+        def recorded_snapshot():
+            snapshot()
+            saved.append(True)
+
+        rt.publish = watched_publish
+        rt._snapshot = recorded_snapshot
         training.set()
         wait_until(lambda: rt.training_thread() is None and not rt.maintenance_running())
+        assert idle_when_done == [False]
         # idle now: loading bravo closes alpha, the least recently used
         assert residency.acquire("bravo", 30) is not None
         residency.release("bravo")

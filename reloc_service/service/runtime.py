@@ -531,11 +531,13 @@ class MapRuntime(ServedMap):
             with self._job_lock:
                 self._job = None
             return
+        # The snapshot starts before the job ends: a map with neither running may be closed
+        # as idle (max_resident_mb), and its models must be on disk by then.
+        self.start_snapshot()   # the trained models survive a restart
         with self._job_lock:
             self._job = None
         self.publish(EventKind.TRAIN_DONE, job_id=job.job_id,
                      duration_s=time.perf_counter() - start, map_version=self.map_state().version)
-        self.start_snapshot()   # the trained models survive a restart
 
     def wait_snapshot(self, timeout: float = 60.0) -> None:
         """Wait for a running snapshot (its deferred puts are applied when it ends)."""
