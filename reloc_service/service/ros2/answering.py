@@ -20,6 +20,7 @@ import numpy as np
 import zenoh
 from reloc_client import protocol as wire
 
+from ...algorithms.relocalizers.tracking import TRACK
 from .. import codec
 from . import convert, graph, px4
 from . import types as ros
@@ -93,39 +94,46 @@ class TriggerAnswering:
             return
         self._submit_relocalize(LatestImage(received.stamp, received.image), calls)
 
-    def _submit_relocalize(self, latest: LatestImage, calls: list[Call] | None) -> None:
-        """Relocalize ``latest`` for ``calls`` (none: the lost mode's)."""
+    def _submit_relocalize(self, latest: LatestImage, calls: list[Call] | None,
+                           prior: wire.Prior | None = None) -> None:
+        """Relocalize ``latest`` for ``calls`` (none: the lost mode's, or with ``prior`` the
+        tracking mode's, localize.py)."""
         calls = calls or []
         pool = self.bridge.host.relocalize_pool
         if pool is None or not pool.submit(lambda queued: self._relocalize(latest, calls,
-                                                                           queued)):
+                                                                           queued, prior)):
             self.bridge.count("busy")
-            self._report(calls, latest, False, "all relocalize workers busy; call again later")
+            self._report(calls, latest, False, "all relocalize workers busy; call again later",
+                         prior)
 
-    def _relocalize(self, latest: LatestImage, calls: list[Call], queued_s: float) -> None:
+    def _relocalize(self, latest: LatestImage, calls: list[Call], queued_s: float,
+                    prior: wire.Prior | None = None) -> None:
         success, message = False, "not relocalized"
         try:
-            success, message = self._relocalize_and_publish(latest, queued_s)
+            success, message = self._relocalize_and_publish(latest, queued_s, prior)
         except Exception as exc:
             code, text = codec.error_of(exc)
             message = f"{code.value}: {text}"
         finally:
-            self._report(calls, latest, success, message)
+            self._report(calls, latest, success, message, prior)
 
     def _report(self, calls: list[Call], latest: LatestImage, success: bool,
-                message: str) -> None:
-        """Reply to ``calls`` naming the image; a lost-mode relocalization (no call) is
-        reported to the status (a failure logged)."""
+                message: str, prior: wire.Prior | None = None) -> None:
+        """Reply to ``calls`` naming the image; a relocalization without a call (the lost
+        mode's, or with a prior the tracking mode's) is reported to the status."""
         image = stamp_text(latest.stamp)
         message = f"image stamped {image}: {message}"
         for call in calls:
             self._reply(*call, success, message)
         if calls:
             self.status.answered(success, message, image)
+        elif prior is not None:
+            self.status.localized(success, message, image)
         else:
             self.status.lost_mode(success, message, image)
 
-    def _relocalize_and_publish(self, latest: LatestImage, queued_s: float) -> tuple[bool, str]:
+    def _relocalize_and_publish(self, latest: LatestImage, queued_s: float,
+                                prior: wire.Prior | None = None) -> tuple[bool, str]:
         rt = self.bridge.host.maps.get(self.map_name)
         if rt is None:
             return False, f"map {self.map_name!r} is not served"
@@ -133,7 +141,8 @@ class TriggerAnswering:
             topic = self.conf.resolve(self.conf.camera_info_topic, self.map_name)
             return False, f"no camera_info received on {topic} yet"
         request = wire.RelocalizeRequest(image=latest.image, camera_id=CAMERA_ID,
-                                         timestamp=convert.stamp_seconds(latest.stamp))
+                                         timestamp=convert.stamp_seconds(latest.stamp),
+                                         prior=prior)
         reply = wire.RelocalizeReply.decode(
             self.bridge.host.relocalize_payload(rt, request.encode(), queued_s), rt.limits)
         if reply.status is not wire.ReplyStatus.OK or reply.world_from_cam is None:
@@ -144,6 +153,8 @@ class TriggerAnswering:
         out = convert.body_pose(world_from_cam, covariance, self.body_from_cam)
         self.publish_pose(latest.stamp, out)
         self.bridge.count("poses")
+        if prior is not None and reply.method == TRACK:
+            self.bridge.count("tracked_poses")   # the prior's windows answered
         if self.px4 is not None and self.conf.px4.feed == "relocalizations":
             self.px4.publish(latest.stamp, out, reply.confidence)
         self._observe(latest, world_from_cam, covariance)

@@ -8,7 +8,8 @@ Per map, node ``<node_name>`` in namespace ``<namespace>/<map>``:
 - serves ``std_srvs/Trigger`` ``relocalize``: the newest image not yet answered for (waiting
   briefly for it, trigger.py) is relocalized through the same handler as a Zenoh relocalize
   query, the pose is published and the reply names the image and says what happened; while
-  the lost flag is set, every Nth image is relocalized too;
+  the lost flag is set, every Nth image is relocalized too; while tracking, with
+  ``localize_every_n``, every Nth image is localized with the odometry's prior (localize.py);
 - publishes ``geometry_msgs/PoseWithCovarianceStamped`` (the body pose in the map frame,
   the image's stamp, ROS's covariance convention), latched (qos.py);
 - publishes its status on ``/diagnostics`` (diagnostics.py) and its warnings on ``/rosout``
@@ -46,6 +47,7 @@ from . import types as ros
 from .answering import CAMERA_ID, LatestImage, TriggerAnswering
 from .conf import Ros2Conf
 from .diagnostics import DIAGNOSTIC_ARRAY, DiagnosticsLoop, NodeStatus
+from .localize import PriorLocalization
 from .mapping import Mapping
 from .node import NodeDeclarations, undeclare
 from .trigger import TriggerDesk, image_problem, stamp_text
@@ -190,6 +192,8 @@ class MapNode(NodeDeclarations, TriggerAnswering):
         self._tokens: list[Any] = []
         self._pending_tokens: list[str] = []      # declared once every entity exists
         self._next_kf_id = self._restore_keyframes()
+        self.localize = PriorLocalization(
+            self, lambda latest, prior: self._submit_relocalize(latest, [], prior))
         self._declare()
 
     def map_frame_status(self) -> dict[str, str]:
@@ -243,6 +247,7 @@ class MapNode(NodeDeclarations, TriggerAnswering):
         self.bridge.count("odometry")
         if self.px4 is not None and self.conf.px4.feed == "odometry":
             self._feed_px4(msg.header.stamp, odom_from_body, covariance)
+        self.localize.retry()
         self._retry_pending()
 
     def _feed_px4(self, stamp: Any, odom_from_body: np.ndarray,
@@ -294,6 +299,7 @@ class MapNode(NodeDeclarations, TriggerAnswering):
             self._images_lost += 1
             if self._images_lost % n == 0:
                 self._submit_relocalize(latest, [])
+        self.localize.on_image(latest)
         self._maybe_keyframe(latest)
 
     def _wire_image(self, msg: Any) -> wire.WireImage:
