@@ -1,7 +1,8 @@
 """Helpers shared by the service integration tests (not a test module): free ports, service
 configurations on loopback with multicast scouting off, event collection, raw Zenoh sessions,
-a router of config/router.json5, a ``reloc serve`` process and its durable keyframes, and the
-ground station of deploy/ground with its authenticated clients."""
+a router of config/router.json5, a ``reloc serve`` process and its durable keyframes, the
+ground station of deploy/ground with its authenticated clients, its services' configurations
+and a stream of keyframes put into them."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
+import numpy as np
 import zenoh
 from reloc_client import protocol as wire
 from reloc_client.client import NoReplyError, RelocClient
@@ -280,3 +282,28 @@ def user_client(endpoint: str, map_name: str, user: str | None, password: str | 
         conf.insert_json5("transport/auth/usrpwd",
                           json.dumps({"user": user, "password": password}))
     return RelocClient(endpoint, map=map_name, config=conf, **kw)
+
+
+def ground_conf(name: str, port: int, storage: Path, **service) -> ServiceConf:
+    """deploy/ground/<name>.toml joining the router on ``port`` without credentials."""
+    conf = with_overrides(load_config(GROUND / f"{name}.toml"), connect=[endpoint(port)],
+                          storage=str(storage))
+    return dataclasses.replace(conf, zenoh=dataclasses.replace(conf.zenoh, config_file=""),
+                               service=dataclasses.replace(conf.service, workers=1,
+                                                           **service))
+
+
+def streamed_pose_covariance(kf_id: int) -> np.ndarray | None:
+    """Even keyframes are put with a pose covariance of their own, odd ones without."""
+    return None if kf_id % 2 else np.diag([1e-4, 4e-4, 9e-4, 1e-5, 2e-5, 3e-5]) * (1 + kf_id)
+
+
+def stream_keyframes(client: RelocClient, scene, ids: range, pause: float) -> None:
+    """Keyframes ``ids`` (the scene's, in turn) put one by one, ``pause`` seconds apart, with
+    :func:`streamed_pose_covariance`."""
+    for kf_id in ids:
+        i = kf_id % len(scene.keyframe_images)
+        client.add_keyframe(kf_id, scene.keyframe_images[i], scene.keyframe_poses[i],
+                            camera_id="cam0", timestamp=float(kf_id),
+                            pose_covariance=streamed_pose_covariance(kf_id))
+        time.sleep(pause)

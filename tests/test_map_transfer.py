@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from reloc_client import protocol as wire
 from reloc_client.client import RelocClient
 from service_support import MAP, endpoint, free_port, service_conf
+from storage_support import fill_map, keyframe_put, listing, query_poses
 
 from reloc_service.cli.main import main as reloc
 from reloc_service.service.app import Service
@@ -27,35 +27,6 @@ from reloc_service.service.map_transfer import export_map, import_map, take_view
 from reloc_service.storage.map_archive import MANIFEST, MANIFEST_DIGEST, ArchiveError
 
 KEYFRAMES = 6
-
-
-def _camera_put(scene) -> bytes:
-    return wire.CameraPut("cam0", wire.WireCamera.from_dict(scene.camera.to_dict())).encode()
-
-
-def _keyframe_put(scene, kf_id: int) -> bytes:
-    i = kf_id % len(scene.keyframe_images)
-    return wire.KeyframePut(id=kf_id, image=wire.WireImage.from_array(
-        scene.keyframe_images[i]), world_from_cam=wire.WirePose.from_matrix(
-        scene.keyframe_poses[i]), camera_id="cam0").encode()
-
-
-def _fill(service: Service, scene, ids: range) -> None:
-    service.on_camera_sample(MAP, "cam0", _camera_put(scene))
-    for kf_id in ids:
-        service.on_keyframe_sample(MAP, kf_id, _keyframe_put(scene, kf_id))
-    assert service.wait_idle(120)
-
-
-def _poses(port: int, scene, map_name: str = MAP) -> list[np.ndarray]:
-    """The pose each query image gets (every query must be answered)."""
-    out = []
-    with RelocClient(endpoint(port), map=map_name, timeout=60) as client:
-        for image in scene.query_images[:2]:
-            result = client.relocalize(image, camera_id="cam0")
-            assert result.ok, result.reason
-            out.append(np.asarray(result.world_from_cam))
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +40,7 @@ def built(synthetic_scene, tmp_path_factory):
     service = Service(service_conf(free_port(), storage, maps=(MAP,), snapshot_every=4))
     service.start()
     try:
-        _fill(service, synthetic_scene, range(KEYFRAMES))
+        fill_map(service, synthetic_scene, range(KEYFRAMES))
     finally:
         service.stop(final_snapshot=False)
     copy = storage.parent / "served"    # a served map takes a snapshot at stop: keep the tail
@@ -80,12 +51,7 @@ def built(synthetic_scene, tmp_path_factory):
 def _serve_poses(storage: Path, scene, map_name: str = MAP) -> list[np.ndarray]:
     port = free_port()
     with Service(service_conf(port, storage, maps=(map_name,))):
-        return _poses(port, scene, map_name)
-
-
-def _listing(root: Path) -> list[tuple[str, int]]:
-    return sorted((str(p.relative_to(root)), p.stat().st_size if p.is_file() else -1)
-                  for p in root.rglob("*"))
+        return query_poses(port, scene, map_name)
 
 
 def test_cli_export_import_gives_the_same_answers(built, synthetic_scene, tmp_path, capsys):
@@ -194,10 +160,10 @@ def test_a_damaged_file_is_refused_by_name_and_nothing_is_written(built, tmp_pat
     target = tmp_path / "b"
     target.mkdir()
     (target / "keep").write_text("an unrelated file")
-    before = _listing(target)
+    before = listing(target)
     assert reloc(["map", "import", str(bad), "--storage", str(target)]) == 1
     assert re.search(expected, capsys.readouterr().err)
-    assert _listing(target) == before
+    assert listing(target) == before
     with pytest.raises(ArchiveError, match=expected):
         import_map(bad, target)
 
@@ -209,14 +175,14 @@ def test_an_export_while_serving_and_taking_puts_is_consistent(synthetic_scene, 
     port = free_port()
     storage = tmp_path / "a"
     with Service(service_conf(port, storage, maps=(MAP,), snapshot_every=3)) as service:
-        _fill(service, scene, range(3))
+        fill_map(service, scene, range(3))
         stop = threading.Event()
 
         def put_more() -> None:
             for kf_id in range(3, 3 + 8):
                 if stop.is_set():
                     return
-                service.on_keyframe_sample(MAP, kf_id, _keyframe_put(scene, kf_id))
+                service.on_keyframe_sample(MAP, kf_id, keyframe_put(scene, kf_id))
                 service.wait_idle(60)
 
         writer = threading.Thread(target=put_more)

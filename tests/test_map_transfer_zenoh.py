@@ -24,7 +24,7 @@ from reloc_client.protocol.transfer import (
 )
 from reloc_client.transfer import download_export, upload_import
 from service_support import MAP, endpoint, free_port, service_conf
-from test_map_transfer import _fill, _listing, _poses
+from storage_support import fill_map, listing, query_poses
 
 from reloc_service.service.app import Service
 
@@ -52,7 +52,7 @@ def two_services(synthetic_scene, tmp_path_factory):
     snapshot, so both ends restore the same files alone) and service B with an empty storage."""
     root = tmp_path_factory.mktemp("zenoh-transfer")
     with Service(service_conf(free_port(), root / "a", maps=(MAP,))) as builder:
-        _fill(builder, synthetic_scene, range(KEYFRAMES))
+        fill_map(builder, synthetic_scene, range(KEYFRAMES))
     port_a, port_b = free_port(), free_port()
     with Service(service_conf(port_a, root / "a", maps=(MAP,))), \
             Service(service_conf(port_b, root / "b")):
@@ -72,8 +72,8 @@ def test_export_then_import_over_zenoh_gives_identical_answers(two_services, syn
     imported = json.loads(capsys.readouterr().out)
     assert imported["keyframes"] == KEYFRAMES
     assert imported["map_id"] == exported["map_id"]   # the identity travels
-    expected = _poses(port_a, synthetic_scene)
-    for a, b in zip(expected, _poses(port_b, synthetic_scene, "lab-copy"), strict=True):
+    expected = query_poses(port_a, synthetic_scene)
+    for a, b in zip(expected, query_poses(port_b, synthetic_scene, "lab-copy"), strict=True):
         np.testing.assert_array_equal(a, b)
 
 
@@ -117,7 +117,7 @@ def test_a_damaged_upload_is_refused_by_name_and_nothing_is_stored(two_services,
         with pytest.raises(NoReplyError):
             client.status(timeout=1)
     # nothing written into the storage: no map directory, no hidden staging directory
-    assert [p for p, _ in _listing(root / "b") if "lab-bad" in p or ".import-" in p] == []
+    assert [p for p, _ in listing(root / "b") if "lab-bad" in p or ".import-" in p] == []
 
 
 def test_an_unknown_export_id_is_named(two_services):

@@ -277,6 +277,7 @@ def test_stop_leaves_no_worker_process(synthetic_scene):
         assert not _alive(pid), f"worker {pid} still runs after stop"
 
 
+@pytest.mark.slow  # reloc serve with worker processes started and stopped: 17 s in CI
 def test_sigterm_of_reloc_serve_leaves_no_process(synthetic_scene, tmp_path):
     """`reloc serve` with worker processes, SIGTERM: it exits 0 and none of its descendants
     (the forkserver, the workers) is left."""

@@ -19,7 +19,7 @@ from reloc_client import protocol as wire
 from reloc_client.client import RelocClient, to_wire_camera, to_wire_image, to_wire_pose
 from reloc_client.result import RelocStatus
 from service_support import Events, endpoint, free_port, service_conf, wait_until
-from test_storage_faults import answers, connect, serve, write_config
+from storage_support import answers, connect, serve, write_config
 
 from reloc_service.service.app import Service
 from reloc_service.service.durability import MapStore

@@ -11,8 +11,7 @@ from pathlib import Path
 import numpy as np
 from reloc_client import protocol as wire
 from reloc_client.client import RelocClient, ServiceError, to_wire_image
-from service_support import Events, endpoint, free_port, open_router
-from test_scaleout import _stream, ground_conf
+from service_support import Events, endpoint, free_port, ground_conf, open_router, stream_keyframes
 
 from reloc_service.service.app import Service
 from reloc_service.service.replication import DivergenceWatch
@@ -53,7 +52,7 @@ def test_replica_refuses_a_peer_serving_another_map_under_the_same_name(syntheti
                 events = Events(client)
                 client.set_camera("cam0", scene.camera)
                 events.wait("camera_added", id="cam0")
-                _stream(client, scene, range(10), 0.0)
+                stream_keyframes(client, scene, range(10), 0.0)
                 events.wait("keyframe_added", id=9, timeout=60)
                 events.close()
             assert replica.wait_idle(60)
@@ -104,7 +103,7 @@ def test_new_replica_takes_its_peers_identity_and_keeps_it(synthetic_scene, tmp_
         events = Events(client)
         client.set_camera("cam0", scene.camera)
         events.wait("camera_added", id="cam0")
-        _stream(client, scene, range(3), 0.0)
+        stream_keyframes(client, scene, range(3), 0.0)
         events.wait("keyframe_added", id=2, timeout=60)
         assert first.wait_idle(60)
         first_id = first.maps["drone1"].map_id

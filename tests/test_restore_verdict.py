@@ -22,7 +22,7 @@ import pytest
 from reloc_client import protocol as wire
 from reloc_client.client import NoReplyError, RelocClient, ServiceError
 from service_support import Events, endpoint, free_port, service_conf, wait_until
-from test_storage_faults import Peer, files_of, journal_of_keyframes, journal_segment, kf_ids
+from storage_support import Peer, files_of, journal_of_keyframes, journal_segment, kf_ids
 
 from reloc_service.cli.main import main
 from reloc_service.service.app import Service

@@ -30,32 +30,13 @@ from ros2_support import (
     feed_map,
     pngs,
     pose_error,
+    relocalize,
     stamp,
     start_service,
 )
 from service_support import endpoint, free_port, open_router, wait_until
 
-from reloc_service.service.app import Service
 from reloc_service.service.ros2 import convert
-
-
-def relocalize(drone: StandIn, service: Service, png: bytes, t: tuple[int, int], seq: int,
-               map_name: str):
-    """Publish ``png``, call the Trigger service; (success, message, pose reading or None)."""
-    before = service.ros2.counters["images"]
-    drone.publish("/camera/image_raw/compressed", CIMG, HASH[CIMG],
-                  compressed_image(t, "camera", "png", png))
-    wait_until(lambda: service.ros2.counters["images"] > before)
-    replies = drone.call_trigger(f"/reloc/{map_name}/relocalize", seq=seq)
-    assert len(replies) == 1
-    payload, att = replies[0]
-    assert att is not None and parse_attachment(att) == (seq, drone.gid)  # matched to the call
-    success, message = read_trigger_response(payload)
-    if not success:
-        return success, message, None
-    data, pose_att = drone.poses.get(timeout=10)
-    assert pose_att is not None and len(pose_att) == 33 and pose_att[16] == 16
-    return success, message, read_pose(data)
 
 
 @pytest.fixture(scope="module")

@@ -21,15 +21,18 @@ from ros2_standin import (
 from ros2_support import (
     ODOMETRY_COVARIANCE,
     body_from_cam,
-    feed_map,
+    counts,
+    drone_built_map,
+    odom_hash,
     pngs,
+    pose,
     pose_error,
+    publish_frame,
+    relocalize,
+    settle,
     stamp,
-    start_service,
 )
-from service_support import endpoint, free_port, open_router, wait_until
-from test_ros2_bridge import relocalize
-from test_ros2_map_frame import counts, pose, publish_frame, settle
+from service_support import wait_until
 
 from reloc_service.core.geometry import invert, pose_from_tum
 
@@ -38,14 +41,8 @@ ODOM2_FROM_MAP = pose(60.0, (1.0, -1.0, 0.1))
 NED_FROM_ENU = np.array([[0, 1, 0], [1, 0, 0], [0, 0, -1]], dtype=float)
 
 
-def odometry_hash() -> str:
-    from ros2_standin import rosbags_hash
-
-    return rosbags_hash("nav_msgs/msg/Odometry")
-
-
 def publish_odometry(drone: StandIn, t: float, frame_id: str, odom_from_cam: np.ndarray) -> None:
-    drone.publish("/odom", "nav_msgs/msg/Odometry", odometry_hash(),
+    drone.publish("/odom", "nav_msgs/msg/Odometry", odom_hash(),
                   odometry_in(frame_id, stamp(t), odom_from_cam @ invert(body_from_cam()),
                               ODOMETRY_COVARIANCE))
 
@@ -54,26 +51,11 @@ def publish_odometry(drone: StandIn, t: float, frame_id: str, odom_from_cam: np.
 def flying(synthetic_scene):
     """A service whose map "room" a drone built from the 6 synthetic keyframes (odometry frame
     ``odom``: the map frame), PX4's feed on (the odometry composed with map_from_odom, every
-    message, stamps as they are), the drone and what it receives as PX4."""
-    port = free_port()
-    with open_router(port):
-        service = start_service(port, "room", px4={"enabled": True, "clock_topic": "",
-                                                   "max_rate_hz": 0.0})
-        drone = StandIn(endpoint(port))
-        drone.subscribe_poses("/reloc/room/pose")
-        px4 = subscribe_px4(drone)
-        try:
-            wait_until(lambda: any("/SS/" in t for t in drone.graph()))
-            scene = synthetic_scene
-            feed_map(drone, scene.camera.to_dict(),
-                     list(zip(pngs(scene.keyframe_images), scene.keyframe_poses, strict=True)),
-                     repeat_nearby=False)
-            wait_until(lambda: len(service.maps["room"].map_state().keyframes) == 6, timeout=60)
-            service.wait_idle()
-            yield service, drone, px4
-        finally:
-            drone.close()
-            service.stop()
+    message, stamps as they are), the drone and what it receives as PX4. Each test has its
+    own: they restart the VIO and pause mapping, which a shared map frame would carry over."""
+    with drone_built_map(synthetic_scene, subscribe_px4,
+                         px4={"enabled": True, "clock_topic": "", "max_rate_hz": 0.0}) as built:
+        yield built
 
 
 def hover_then_trigger(service, drone, scene, frame_id: str, odom_from_map: np.ndarray,

@@ -13,27 +13,24 @@ import numpy as np
 import pytest
 from ros2_standin import (
     HASH,
-    StandIn,
     call_set_bool,
-    compressed_image,
-    odometry_in,
     parse_attachment,
     read_tf,
     subscribe_tf,
 )
 from ros2_support import (
-    CIMG,
-    ODOMETRY_COVARIANCE,
     body_from_cam,
-    feed_map,
+    counts,
+    drone_built_map,
     pngs,
+    pose,
     pose_error,
+    publish_frame,
+    relocalize,
+    settle,
     stamp,
-    start_service,
 )
-from scipy.spatial.transform import Rotation
-from service_support import endpoint, free_port, open_router, wait_until
-from test_ros2_bridge import relocalize
+from service_support import wait_until
 
 from reloc_service.core.errors import ConfigError
 from reloc_service.core.geometry import invert, pose_from_tum, se3_exp, se3_log
@@ -50,14 +47,6 @@ from reloc_service.service.ros2.map_frame import (
     mahalanobis2,
     sample_of,
 )
-
-
-def pose(yaw_deg: float, t: tuple[float, float, float]) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix()
-    out[:3, 3] = t
-    return out
-
 
 #: The VIO restarted in a frame turned 90 deg about z and shifted 2 m: odom2_from_map.
 ODOM2_FROM_MAP = pose(90.0, (2.0, 0.5, 0.0))
@@ -249,21 +238,6 @@ def test_tf_and_set_bool_carry_their_official_type_hashes():
 
 # -- over Zenoh, as a drone node ---------------------------------------------------------------
 
-def odom_hash() -> str:
-    from ros2_standin import rosbags_hash
-
-    return rosbags_hash("nav_msgs/msg/Odometry")
-
-
-def publish_frame(drone: StandIn, t: float, frame_id: str, odom_from_cam: np.ndarray,
-                  png: bytes) -> None:
-    """The odometry of the body carrying a camera at ``odom_from_cam``, then the image."""
-    drone.publish("/odom", "nav_msgs/msg/Odometry", odom_hash(),
-                  odometry_in(frame_id, stamp(t), odom_from_cam @ invert(body_from_cam()),
-                              ODOMETRY_COVARIANCE))
-    drone.publish("/camera/image_raw/compressed", CIMG, HASH[CIMG],
-                  compressed_image(stamp(t), "camera", "png", png))
-
 
 def new_views(scene) -> list[tuple[np.ndarray, bytes]]:
     """Views the map has no keyframe at (each keyframe's pose 30 cm forward or up), rendered."""
@@ -282,27 +256,10 @@ def mapped(synthetic_scene):
     first session: its odometry frame ``odom`` is the map frame), the drone, and new views.
     The overlap rule at 10 % of the depth, 2 m assumed until the map knows it: the keyframes,
     25 cm apart, are each a new view whatever their depth (1.24 to 2.11 m: 12 to 21 cm)."""
-    port = free_port()
-    with open_router(port):
-        service = start_service(port, "room", keyframe_rule="overlap",
-                                keyframe_overlap_fraction=FRACTION,
-                                keyframe_default_depth_m=DEFAULT_DEPTH_M)
-        drone = StandIn(endpoint(port))
-        drone.subscribe_poses("/reloc/room/pose")
-        tf = subscribe_tf(drone)
-        try:
-            wait_until(lambda: any("/SS/" in t for t in drone.graph()))
-            scene = synthetic_scene
-            feed_map(drone, scene.camera.to_dict(),
-                     list(zip(pngs(scene.keyframe_images), scene.keyframe_poses, strict=True)),
-                     repeat_nearby=False)
-            rt = service.maps["room"]
-            wait_until(lambda: len(rt.map_state().keyframes) == 6, timeout=60)
-            service.wait_idle()
-            yield service, drone, tf, new_views(scene)
-        finally:
-            drone.close()
-            service.stop()
+    with drone_built_map(synthetic_scene, subscribe_tf, keyframe_rule="overlap",
+                         keyframe_overlap_fraction=FRACTION,
+                         keyframe_default_depth_m=DEFAULT_DEPTH_M) as (service, drone, tf):
+        yield service, drone, tf, new_views(synthetic_scene)
 
 
 FRACTION, DEFAULT_DEPTH_M = 0.1, 2.0
@@ -312,10 +269,6 @@ def keyframe_count(service: Service) -> int:
     return len(service.maps["room"].map_state().keyframes)
 
 
-def counts(service: Service) -> dict[str, str]:
-    return service.ros2.node("room").map_frame_status()
-
-
 def wait_count(service: Service, name: str, before: int) -> None:
     wait_until(lambda: int(counts(service).get(name, "0")) > before, timeout=60)
     service.wait_idle()
@@ -323,14 +276,6 @@ def wait_count(service: Service, name: str, before: int) -> None:
 
 def count_of(service: Service, name: str) -> int:
     return int(counts(service).get(name, "0"))
-
-
-def settle(service: Service, images: int) -> None:
-    """Until the bridge has taken ``images`` images and checked every keyframe candidate."""
-    wait_until(lambda: service.ros2.counters["images"] >= images, timeout=60)
-    assert service.ros2.worker.join(timeout=60)    # every image considered
-    wait_until(lambda: counts(service)["candidates_waiting"] == "0", timeout=90)
-    service.wait_idle()
 
 
 def test_the_keyframe_distance_follows_the_scene_depth_the_map_knows(mapped, synthetic_scene):

@@ -7,7 +7,6 @@ queries go on when a replica process is killed."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import re
@@ -27,22 +26,15 @@ from service_support import (
     Events,
     endpoint,
     free_port,
+    ground_conf,
     open_router,
     stop_process,
+    stream_keyframes,
+    streamed_pose_covariance,
     wait_until,
 )
 
 from reloc_service.service.app import Service
-from reloc_service.service.config import ServiceConf, load_config, with_overrides
-
-
-def ground_conf(name: str, port: int, storage: Path, **service) -> ServiceConf:
-    """deploy/ground/<name>.toml joining the router on ``port`` without credentials."""
-    conf = with_overrides(load_config(GROUND / f"{name}.toml"), connect=[endpoint(port)],
-                          storage=str(storage))
-    return dataclasses.replace(conf, zenoh=dataclasses.replace(conf.zenoh, config_file=""),
-                               service=dataclasses.replace(conf.service, workers=1,
-                                                           **service))
 
 
 def test_shards_serve_their_own_maps_and_clients_are_unaware(synthetic_scene, tmp_path):
@@ -74,23 +66,9 @@ def test_shards_serve_their_own_maps_and_clients_are_unaware(synthetic_scene, tm
         ev2.close()
 
 
-def _pose_covariance(kf_id: int) -> np.ndarray | None:
-    """Even keyframes are put with a pose covariance of their own, odd ones without."""
-    return None if kf_id % 2 else np.diag([1e-4, 4e-4, 9e-4, 1e-5, 2e-5, 3e-5]) * (1 + kf_id)
-
-
-def _stream(client: RelocClient, scene, ids: range, pause: float) -> None:
-    for kf_id in ids:
-        i = kf_id % len(scene.keyframe_images)
-        client.add_keyframe(kf_id, scene.keyframe_images[i], scene.keyframe_poses[i],
-                            camera_id="cam0", timestamp=float(kf_id),
-                            pose_covariance=_pose_covariance(kf_id))
-        time.sleep(pause)
-
-
 def _same_pose_covariances(state, ids) -> bool:
     for kf_id in ids:
-        got, put = state.keyframes[kf_id].pose_covariance, _pose_covariance(kf_id)
+        got, put = state.keyframes[kf_id].pose_covariance, streamed_pose_covariance(kf_id)
         if (got is None) != (put is None) or (put is not None and not np.array_equal(got, put)):
             return False
     return True
@@ -106,18 +84,18 @@ def test_late_replica_bootstraps_then_follows_the_stream(synthetic_scene, tmp_pa
         events = Events(client)
         client.set_camera("cam0", scene.camera)
         events.wait("camera_added", id="cam0")
-        _stream(client, scene, range(6), 0.0)                # the first replica has a map
+        stream_keyframes(client, scene, range(6), 0.0)                # the first replica has a map
         events.wait("keyframe_added", id=5, timeout=60)
         # the second replica starts while keyframes keep coming (during and after its copy)
         started: list[Service] = []
         starter = threading.Thread(target=lambda: started.append(Service(
             ground_conf("service-replica", port, tmp_path / "a2")).start()))
         starter.start()
-        _stream(client, scene, range(6, n - 3), 0.1)
+        stream_keyframes(client, scene, range(6, n - 3), 0.1)
         starter.join(60)
         second = started[0]
         try:
-            _stream(client, scene, range(n - 3, n), 0.05)     # after the copy: live only
+            stream_keyframes(client, scene, range(n - 3, n), 0.05)     # after the copy: live only
             assert first.wait_idle(60) and second.wait_idle(60)
             rt1, rt2 = first.maps["drone1"], second.maps["drone1"]
             wait_until(lambda: len(rt2.map_state().keyframes) == n, timeout=30)
@@ -261,7 +239,7 @@ def test_bootstrapped_replica_keeps_the_intrinsics_keyframes_were_built_with(syn
         client.set_camera("cam0", true_cam)
         client.set_camera("truth", true_cam)     # queries name the true camera on both
         events.wait("camera_added", id="truth")
-        _stream(client, scene, range(5), 0.0)
+        stream_keyframes(client, scene, range(5), 0.0)
         events.wait("keyframe_added", id=4, timeout=60)
         client.set_camera("cam0", {**true_cam, "fx": true_cam["fx"] * 0.65})   # re-put
         # said, not silent: the keyframes built with cam0 keep their intrinsics

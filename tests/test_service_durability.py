@@ -9,6 +9,7 @@ import json
 import math
 import time
 
+import pytest
 from service_support import (
     MAP,
     Events,
@@ -23,6 +24,7 @@ from reloc_service.core.geometry import pose_error
 from reloc_service.storage.journal import Journal
 
 
+@pytest.mark.slow  # two reloc serve starts and a 7-keyframe upload: 19 s in CI, 57 s loaded
 def test_kill_9_mid_upload_loses_no_journaled_keyframe(synthetic_scene, tmp_path):
     port = free_port()
     config = write_config(tmp_path, port, snapshot_every=4)
@@ -68,6 +70,7 @@ def test_kill_9_mid_upload_loses_no_journaled_keyframe(synthetic_scene, tmp_path
     assert saved_before_kill or True   # snapshots every 4 records: usually one before the kill
 
 
+@pytest.mark.slow  # two reloc serve starts and a bow+p3p training: 13 s in CI, 36 s loaded
 def test_trained_models_survive_kill_9(synthetic_scene, tmp_path):
     port = free_port()
     config = write_config(tmp_path, port, methods=["sbi+p3p", "bow+p3p"],
@@ -105,6 +108,7 @@ def test_trained_models_survive_kill_9(synthetic_scene, tmp_path):
         assert restarted.terminate() == 0
 
 
+@pytest.mark.slow  # two reloc serve starts: 18 s in CI, 38 s loaded
 def test_sigterm_flushes_snapshots_and_compacts_the_journal(synthetic_scene, tmp_path):
     port = free_port()
     config = write_config(tmp_path, port, snapshot_every=0)

@@ -11,10 +11,7 @@ from __future__ import annotations
 
 # reloc_client lives in clients/ (importable once the distribution is installed).
 import json
-import os
 import shutil
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -26,11 +23,19 @@ from reloc_client.client import (
     NoReplyError,
     RelocClient,
     ServiceError,
-    to_wire_camera,
-    to_wire_image,
-    to_wire_pose,
 )
-from service_support import ROOT, Events, endpoint, free_port, service_conf, wait_until
+from service_support import Events, endpoint, free_port, service_conf, wait_until
+from storage_support import (
+    Peer,
+    answers,
+    connect,
+    files_of,
+    journal_of_keyframes,
+    journal_segment,
+    kf_ids,
+    serve,
+    write_config,
+)
 
 from reloc_service.service.app import Service
 from reloc_service.storage import journal as J
@@ -92,17 +97,6 @@ def storage(template, tmp_path) -> Path:
     return target
 
 
-def files_of(directory: Path) -> dict[str, bytes]:
-    return {p.relative_to(directory).as_posix(): p.read_bytes()
-            for p in sorted(directory.rglob("*")) if p.is_file()}
-
-
-def journal_segment(map_dir: Path) -> Path:
-    """The segment holding the records after the snapshot."""
-    first = json.loads((map_dir / "service.json").read_text())["next_segment"]
-    return map_dir / "journal" / J.segment_name(first)
-
-
 def record_offsets(path: Path) -> list[tuple[int, int]]:
     """(offset, framed size) of every record of a clean segment."""
     scan = scan_segment(path)
@@ -117,29 +111,6 @@ def flip(path: Path, offset: int) -> None:
     data = bytearray(path.read_bytes())
     data[offset] ^= 0x10
     path.write_bytes(bytes(data))
-
-
-def kf_ids(client: RelocClient) -> set[int]:
-    return {info.id for info in client.keyframes()}
-
-
-class Peer:
-    """A client that listens (the service connects to it), so its event subscription exists
-    before the service restores anything."""
-
-    def __init__(self, port: int, map_name: str) -> None:
-        import zenoh
-
-        config = zenoh.Config()
-        config.insert_json5("mode", '"peer"')
-        config.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
-        config.insert_json5("scouting/multicast/enabled", "false")
-        self.client = RelocClient(map=map_name, config=config, timeout=30)
-        self.events = Events(self.client)
-
-    def close(self) -> None:
-        self.events.close()
-        self.client.close()
 
 
 # -- case 3: a damaged journal record costs that record only ------------------------------------
@@ -293,47 +264,6 @@ def test_a_stray_file_in_the_journal_directory_is_ignored(storage):
         service.stop(final_snapshot=False)
 
 
-def write_config(tmp: Path, port: int, storage: Path, maps: tuple[str, ...]) -> Path:
-    lines = ["[zenoh]", 'mode = "peer"', f'listen = ["{endpoint(port)}"]',
-             "multicast_scouting = false", "[service]", 'instance = "faults"',
-             f'storage = "{storage}"', "train_on_load = false", "snapshot_every = 0"]
-    lines += [f"[maps.{m}]" for m in maps]
-    path = tmp / "service.toml"
-    path.write_text("\n".join(lines) + "\n")
-    return path
-
-
-def serve(config: Path, log: Path) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen([sys.executable, "-m", "reloc_service.cli.main", "serve",
-                             "--config", str(config)], cwd=ROOT, env=env,
-                            stdout=log.open("ab"), stderr=subprocess.STDOUT)
-
-
-def connect(proc: subprocess.Popen, port: int, map_name: str) -> RelocClient:
-    """A client of the service in ``proc`` once it listens (it must not exit meanwhile)."""
-    clients: list[RelocClient] = []
-
-    def attempt() -> bool:
-        assert proc.poll() is None, f"reloc serve exited with {proc.returncode}"
-        try:
-            clients.append(RelocClient(endpoint(port), map=map_name, timeout=30))
-            return True
-        except ConnectionError:
-            return False
-
-    wait_until(attempt, timeout=120, interval=0.1)
-    return clients[0]
-
-
-def answers(client: RelocClient) -> bool:
-    try:
-        client.status(timeout=1)
-        return True
-    except NoReplyError:
-        return False
-
-
 def restored(client: RelocClient) -> bool:
     """The map answers and its journal backlog has replayed."""
     try:
@@ -362,23 +292,6 @@ def test_reloc_serve_keeps_running_with_a_damaged_map(storage, tmp_path):
 
 
 # -- case 7: maps come up one by one -------------------------------------------------------------
-
-def journal_of_keyframes(map_dir: Path, scene, n: int) -> None:
-    """A map directory whose journal holds camera cam0 and ``n`` keyframe puts (no snapshot):
-    a restart replays all of them."""
-    journal = Journal(map_dir / "journal")
-    journal.open()
-    camera = wire.CameraPut("cam0", to_wire_camera(scene.camera)).encode()
-    journal.append(msgpack.packb({"op": "cam", "id": "cam0", "payload": camera},
-                                 use_bin_type=True))
-    for kf_id in range(n):
-        i = kf_id % len(scene.keyframe_images)
-        put = wire.KeyframePut(id=kf_id, image=to_wire_image(scene.keyframe_images[i]),
-                               world_from_cam=to_wire_pose(scene.keyframe_poses[i]),
-                               camera_id="cam0").encode()
-        journal.append(msgpack.packb({"op": "kf", "id": kf_id, "payload": put},
-                                     use_bin_type=True))
-    journal.close()
 
 
 @pytest.mark.slow

@@ -8,7 +8,8 @@ Per map, node ``<node_name>`` in namespace ``<namespace>/<map>``:
 - serves ``std_srvs/Trigger`` ``relocalize``: the newest image not yet answered for (waiting
   briefly for it, trigger.py) is relocalized through the same handler as a Zenoh relocalize
   query, the pose is published and the reply names the image and says what happened; while
-  the lost flag is set, every Nth image is relocalized too;
+  the lost flag is set, every Nth image is relocalized too; while tracking, with
+  ``localize_every_n``, every Nth image is localized with the odometry's prior (localize.py);
 - publishes ``geometry_msgs/PoseWithCovarianceStamped`` (the body pose in the map frame,
   the image's stamp, ROS's covariance convention), latched (qos.py);
 - publishes its status on ``/diagnostics`` (diagnostics.py) and its warnings on ``/rosout``
@@ -33,7 +34,6 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -41,18 +41,19 @@ import zenoh
 from reloc_client import protocol as wire
 
 from ...core.geometry import pose_from_tq
-from .. import codec
 from ..workers import WorkerPool
-from . import convert, diagnostics, graph, px4, qos, rosout
+from . import convert, diagnostics, graph
 from . import types as ros
+from .answering import CAMERA_ID, LatestImage, TriggerAnswering
 from .conf import Ros2Conf
 from .diagnostics import DIAGNOSTIC_ARRAY, DiagnosticsLoop, NodeStatus
+from .localize import PriorLocalization
 from .mapping import Mapping
-from .trigger import ReceivedImage, TriggerDesk, image_problem, stamp_text
+from .node import NodeDeclarations, undeclare
+from .trigger import TriggerDesk, image_problem, stamp_text
 
 log = logging.getLogger(__name__)
 
-CAMERA_ID = "ros2"
 #: Images waiting for the camera or the odometry of their stamp (VIO lags the camera; over
 #: Zenoh, samples of different topics are not ordered among themselves).
 PENDING_IMAGES = 64
@@ -72,18 +73,6 @@ class Host(Protocol):
     def on_camera_sample(self, map_name: str, camera_id: str, payload: bytes | None) -> None: ...
 
     def relocalize_payload(self, rt: Any, payload: bytes, queued_s: float) -> bytes: ...
-
-
-#: A Trigger call: its query and the request's attachment (the reply carries both back).
-Call = tuple[zenoh.Query, graph.Attachment]
-
-
-@dataclass(frozen=True)
-class LatestImage:
-    """An image received on the camera topic."""
-
-    stamp: Any                      # builtin_interfaces/Time, copied to the published pose
-    image: wire.WireImage
 
 
 class Ros2Bridge:
@@ -150,7 +139,7 @@ class Ros2Bridge:
             nodes, self._nodes = list(self._nodes.values()), {}
         for node in nodes:
             node.close()
-        _undeclare(self._graph)
+        undeclare(self._graph)
         self.worker.close(timeout=10.0)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
@@ -172,8 +161,9 @@ class Ros2Bridge:
                 endpoint.node, endpoint.dds_type, endpoint.type_hash, ours[0], ours[1])
 
 
-class MapNode:
-    """One map's node: its entities, the latest image, the odometry and the keyframes."""
+class MapNode(NodeDeclarations, TriggerAnswering):
+    """One map's node: its entities (node.py), the latest image, the odometry, the keyframes
+    and the answers of its relocalize service (answering.py)."""
 
     def __init__(self, bridge: Ros2Bridge, map_name: str) -> None:
         self.bridge = bridge
@@ -202,151 +192,14 @@ class MapNode:
         self._tokens: list[Any] = []
         self._pending_tokens: list[str] = []      # declared once every entity exists
         self._next_kf_id = self._restore_keyframes()
+        self.localize = PriorLocalization(
+            self, lambda latest, prior: self._submit_relocalize(latest, [], prior))
         self._declare()
 
     def map_frame_status(self) -> dict[str, str]:
         """The map frame's state (anchored, unanchored, lost), ``map_from_odom``
         (``tx ty tz qx qy qz qw``), whether mapping is on, and the counts, as strings."""
         return self.mapping.status()
-
-    # -- declarations --------------------------------------------------------------------------
-    def _declare(self) -> None:
-        conf, session = self.conf, self.bridge.session
-        self._tokens.append(session.liveliness().declare_token(self.node.token()))
-        pose_qos = conf.topic_qos("pose")
-        pose_key, pose_token = self._endpoint(graph.EntityKind.PUBLISHER, conf.pose_topic,
-                                              ros.POSE_WITH_COVARIANCE_STAMPED, pose_qos)
-        self.pose_gid = graph.gid_of(pose_token)
-        self.publisher = qos.declare_publisher(session, pose_key, pose_qos)
-        self._entities.append(self.publisher)
-        self.diagnostics_publisher: Any = None
-        if conf.diagnostics_period_s > 0:
-            diag_qos = conf.topic_qos("diagnostics")
-            diag_key, diag_token = self._endpoint(graph.EntityKind.PUBLISHER,
-                                                  conf.diagnostics_topic, DIAGNOSTIC_ARRAY,
-                                                  diag_qos)
-            self.diagnostics_gid = graph.gid_of(diag_token)
-            self._diagnostics_seq = itertools.count(1)   # rmw_zenoh counts per publisher
-            self.diagnostics_publisher = qos.declare_publisher(session, diag_key, diag_qos)
-            self._entities.append(self.diagnostics_publisher)
-        if conf.rosout:
-            self._declare_rosout()
-        image_type = ros.COMPRESSED_IMAGE if conf.image_type == "compressed" else ros.IMAGE
-        odometry_type = ros.ODOMETRY if conf.odometry_type == "odometry" else ros.POSE_STAMPED
-        self._subscribe(conf.image_topic, image_type, self._on_image, "image")
-        self._subscribe(conf.camera_info_topic, ros.CAMERA_INFO, self._on_camera_info,
-                        "camera_info")
-        # the odometry places the map frame (map -> odom) even when no keyframe is added
-        self._subscribe(conf.odometry_topic, odometry_type, self._on_odometry, "odometry")
-        self._subscribe(conf.lost_topic, ros.BOOL, self._on_lost, "lost")
-        self._entities.append(session.declare_subscriber(
-            wire.keys.events(self.bridge.host.prefix, self.map_name), self._on_event_sample))
-        self._declare_mapping()
-        service_key, _ = self._endpoint(graph.EntityKind.SERVICE, conf.relocalize_service,
-                                        ros.TRIGGER)
-        self.service_key = service_key
-        self._entities.append(session.declare_queryable(service_key, self._on_request,
-                                                        complete=True))
-        self.px4: px4.Px4Publisher | None = None
-        self._px4_session: int | None = None   # the map frame's session PX4 was last fed
-        self._px4_last_s = float("-inf")
-        if conf.px4.enabled:
-            self.px4 = self._declare_px4()
-        for token in self._pending_tokens:
-            self._tokens.append(session.liveliness().declare_token(token))
-        log.info("ROS 2 node %s/%s (domain %d) serves map %s: pose on %s, service %s",
-                 self.node.namespace, self.node.name, conf.domain_id, self.map_name,
-                 conf.resolve(conf.pose_topic, self.map_name),
-                 conf.resolve(conf.relocalize_service, self.map_name))
-
-    def _declare_mapping(self) -> None:
-        """The ``map -> odom`` publisher on /tf and the ``mapping`` SetBool service."""
-        conf, session = self.conf, self.bridge.session
-        tf_key, tf_token = self._endpoint(graph.EntityKind.PUBLISHER, conf.tf_topic,
-                                          ros.TF_MESSAGE)
-        tf_publisher = session.declare_publisher(tf_key)
-        self._entities.append(tf_publisher)
-        service_key, _ = self._endpoint(graph.EntityKind.SERVICE, conf.mapping_service,
-                                        ros.SET_BOOL)
-        self.mapping.attach(tf_publisher, graph.gid_of(tf_token), service_key)
-        self._entities.append(session.declare_queryable(service_key, self.mapping.on_request,
-                                                        complete=True))
-
-    def _declare_px4(self) -> px4.Px4Publisher:
-        """The VehicleOdometry publisher PX4's zenoh module subscribes to, and the subscriber
-        to PX4's own VehicleOdometry whose stamps give PX4's clock (ros2/px4.py)."""
-        conf, session, odometry = self.conf.px4, self.bridge.session, px4.vehicle_odometry_type()
-        clock = None
-        if conf.clock_topic:
-            clock_key, _ = self._endpoint(graph.EntityKind.SUBSCRIBER, conf.clock_topic, odometry)
-            clock = px4.Px4Clock()
-            # PX4's attachments differ from rmw_zenoh's across versions: the stamp is read
-            # from the payload, so every sample is taken
-            self._entities.append(session.declare_subscriber(clock_key, clock.on_sample))
-        key, token = self._endpoint(graph.EntityKind.PUBLISHER, conf.topic, odometry)
-        publisher = px4.Px4Publisher(session.declare_publisher(key), graph.gid_of(token), conf,
-                                     clock)
-        self._entities.append(publisher.publisher)
-        return publisher
-
-    def _declare_rosout(self) -> None:
-        """/rosout as every node has it; this node's warnings go there (rosout.py)."""
-        key, token = self._endpoint(graph.EntityKind.PUBLISHER, rosout.ROSOUT, rosout.LOG,
-                                    rosout.TOKEN_QOS)
-        publisher = qos.declare_publisher(self.bridge.session, key, rosout.TOPIC_QOS)
-        self._entities.append(publisher)
-        self.rosout_handler = rosout.RosoutHandler.attach(
-            self.map_name, rosout.LogPublisher(
-                publisher, graph.gid_of(token),
-                rosout.node_logger_name(self.node.namespace, self.node.name)))
-
-    def _endpoint(self, kind: graph.EntityKind, name: str, ros_type: str,
-                  topic_qos: qos.TopicQos | graph.Qos | None = None) -> tuple[str, str]:
-        """(data key, token) of an endpoint (``topic_qos`` in its token; None: reliable,
-        volatile, ``qos_depth``); the token is declared after every entity."""
-        absolute = self.conf.resolve(name, self.map_name)
-        dds, type_hash = ros.dds_name(ros_type), self.bridge.hash_of(ros_type)
-        token_qos = (self.qos if topic_qos is None else topic_qos
-                     if isinstance(topic_qos, graph.Qos) else qos.token_qos(topic_qos))
-        token = self.node.endpoint_token(self.bridge.next_id(), kind, absolute, dds, type_hash,
-                                         token_qos)
-        self._pending_tokens.append(token)
-        self.names[absolute] = (dds, type_hash)
-        return graph.data_key(self.conf.domain_id, absolute, dds, type_hash), token
-
-    def _subscribe(self, name: str, ros_type: str, handle: Callable[[Any], None],
-                   topic: str | None = None) -> None:
-        """Subscribe with the QoS of ``topic`` (a key of ``[ros2.qos]``; None: the default)."""
-        topic_qos = (qos.TopicQos(depth=self.conf.qos_depth) if topic is None
-                     else self.conf.topic_qos(topic))
-        key, _ = self._endpoint(graph.EntityKind.SUBSCRIBER, name, ros_type, topic_qos)
-        bridge = self.bridge
-
-        def on_sample(sample: zenoh.Sample) -> None:
-            if sample.kind != zenoh.SampleKind.PUT:
-                return
-            attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
-            try:
-                graph.Attachment.decode(attachment)
-            except ValueError as exc:   # rmw_zenoh drops such samples; so do we
-                bridge.count("dropped_samples")
-                log.debug("dropping a sample on %s: %s", key, exc)
-                return
-            payload = sample.payload.to_bytes()
-            if not bridge.worker.submit(lambda _q: self._decode_and_handle(payload, ros_type,
-                                                                            handle)):
-                bridge.count("dropped_busy")
-
-        self._entities.append(qos.declare_subscriber(bridge.session, key, topic_qos, on_sample))
-
-    def close(self) -> None:
-        self.triggers.close()   # waiting calls are answered before the service goes
-        handler = getattr(self, "rosout_handler", None)
-        if handler is not None:
-            handler.detach()
-        for entity in [*self._tokens, *reversed(self._entities)]:
-            _undeclare(entity)
-        self._tokens, self._entities = [], []
 
     # -- samples (the bridge's worker) ----------------------------------------------------------
     def _decode_and_handle(self, payload: bytes, ros_type: str,
@@ -394,6 +247,7 @@ class MapNode:
         self.bridge.count("odometry")
         if self.px4 is not None and self.conf.px4.feed == "odometry":
             self._feed_px4(msg.header.stamp, odom_from_body, covariance)
+        self.localize.retry()
         self._retry_pending()
 
     def _feed_px4(self, stamp: Any, odom_from_body: np.ndarray,
@@ -445,6 +299,7 @@ class MapNode:
             self._images_lost += 1
             if self._images_lost % n == 0:
                 self._submit_relocalize(latest, [])
+        self.localize.on_image(latest)
         self._maybe_keyframe(latest)
 
     def _wire_image(self, msg: Any) -> wire.WireImage:
@@ -538,143 +393,3 @@ class MapNode:
         self.mapping.restore(state)
         return max(state.keyframe_ids(), default=-1) + 1
 
-    # -- the relocalize service -----------------------------------------------------------------
-    def _on_request(self, query: zenoh.Query) -> None:
-        attachment = query.attachment.to_bytes() if query.attachment is not None else None
-        try:
-            request = graph.Attachment.decode(attachment)
-            ros.decode(query.payload.to_bytes() if query.payload is not None else b"",
-                       "std_srvs/srv/Trigger_Request")
-        except ValueError as exc:
-            self.bridge.count("dropped_requests")
-            log.warning("map %s: dropping a relocalize request: %s", self.map_name, exc)
-            query.drop()
-            return
-        self.status.count("trigger_calls")
-        self.triggers.call((query, request))
-
-    def _answer(self, calls: list[Call], received: ReceivedImage | None, reason: str) -> None:
-        """The Trigger calls answer for ``received`` (relocalized, or rejected), or fail
-        with ``reason`` when there is no image to answer for (trigger.py)."""
-        if received is None or received.image is None:
-            message = reason if received is None else (f"{received.label()} was rejected: "
-                                                        f"{received.problem}")
-            image = "" if received is None or received.stamp is None else stamp_text(
-                received.stamp)
-            for call in calls:
-                self._reply(*call, False, message)
-            self.status.answered(False, message, image)
-            return
-        self._submit_relocalize(LatestImage(received.stamp, received.image), calls)
-
-    def _submit_relocalize(self, latest: LatestImage, calls: list[Call] | None) -> None:
-        """Relocalize ``latest`` for ``calls`` (none: the lost mode's)."""
-        calls = calls or []
-        pool = self.bridge.host.relocalize_pool
-        if pool is None or not pool.submit(lambda queued: self._relocalize(latest, calls,
-                                                                           queued)):
-            self.bridge.count("busy")
-            self._report(calls, latest, False, "all relocalize workers busy; call again later")
-
-    def _relocalize(self, latest: LatestImage, calls: list[Call], queued_s: float) -> None:
-        success, message = False, "not relocalized"
-        try:
-            success, message = self._relocalize_and_publish(latest, queued_s)
-        except Exception as exc:
-            code, text = codec.error_of(exc)
-            message = f"{code.value}: {text}"
-        finally:
-            self._report(calls, latest, success, message)
-
-    def _report(self, calls: list[Call], latest: LatestImage, success: bool,
-                message: str) -> None:
-        """Reply to ``calls`` naming the image; a lost-mode relocalization (no call) is
-        reported to the status (a failure logged)."""
-        image = stamp_text(latest.stamp)
-        message = f"image stamped {image}: {message}"
-        for call in calls:
-            self._reply(*call, success, message)
-        if calls:
-            self.status.answered(success, message, image)
-        else:
-            self.status.lost_mode(success, message, image)
-
-    def _relocalize_and_publish(self, latest: LatestImage, queued_s: float) -> tuple[bool, str]:
-        rt = self.bridge.host.maps.get(self.map_name)
-        if rt is None:
-            return False, f"map {self.map_name!r} is not served"
-        if self.camera is None:
-            topic = self.conf.resolve(self.conf.camera_info_topic, self.map_name)
-            return False, f"no camera_info received on {topic} yet"
-        request = wire.RelocalizeRequest(image=latest.image, camera_id=CAMERA_ID,
-                                         timestamp=convert.stamp_seconds(latest.stamp))
-        reply = wire.RelocalizeReply.decode(
-            self.bridge.host.relocalize_payload(rt, request.encode(), queued_s), rt.limits)
-        if reply.status is not wire.ReplyStatus.OK or reply.world_from_cam is None:
-            self.bridge.count("not_relocalized")
-            return False, reply.reason or reply.status.value
-        world_from_cam = reply.world_from_cam.matrix()
-        covariance = None if reply.covariance is None else np.reshape(reply.covariance, (6, 6))
-        out = convert.body_pose(world_from_cam, covariance, self.body_from_cam)
-        self.publish_pose(latest.stamp, out)
-        self.bridge.count("poses")
-        if self.px4 is not None and self.conf.px4.feed == "relocalizations":
-            self.px4.publish(latest.stamp, out, reply.confidence)
-        self._observe(latest, world_from_cam, covariance)
-        x, y, z = out.position
-        return True, (f"relocalized: position {x:.3f} {y:.3f} {z:.3f} m in {self.conf.frame_id}, "
-                      f"{reply.inliers} inliers, confidence {reply.confidence:.2f}")
-
-    def _observe(self, latest: LatestImage, map_from_cam: np.ndarray,
-                 covariance: np.ndarray | None) -> None:
-        """A relocalized image paired with the odometry of its stamp is one more
-        ``map_from_odom`` sample (mapping.py); without odometry or a covariance, nothing."""
-        paired = self.odometry.nearest_with_covariance(convert.stamp_seconds(latest.stamp),
-                                                       self.conf.max_stamp_difference_s)
-        if paired is None or covariance is None:
-            return
-        odom_from_body, ros_covariance = paired
-        self.mapping.observe(latest, odom_from_body, ros_covariance, map_from_cam, covariance)
-
-    def publish_pose(self, stamp: Any, out: convert.PoseOut) -> None:
-        msg = pose_message(stamp, self.conf.frame_id, out)
-        attachment = graph.Attachment(next(self._seq), time.time_ns(), self.pose_gid)
-        self.publisher.put(ros.encode(msg, ros.POSE_WITH_COVARIANCE_STAMPED),
-                           attachment=attachment.encode())
-
-    def _reply(self, query: zenoh.Query, request: graph.Attachment, success: bool,
-               message: str) -> None:
-        """The Trigger response, attached with the request's sequence number and the
-        client's GID (how rmw_zenoh's client matches it to its call)."""
-        response = ros.message("std_srvs/srv/Trigger_Response", success=success,
-                               message=message)
-        attachment = graph.Attachment(request.sequence_number, time.time_ns(), request.gid)
-        try:
-            query.reply(self.service_key, ros.encode(response, "std_srvs/srv/Trigger_Response"),
-                        attachment=attachment.encode())
-        except Exception as exc:   # the client may have gone
-            log.debug("relocalize reply not sent: %s", exc)
-        finally:
-            query.drop()
-
-
-def pose_message(stamp: Any, frame_id: str, out: convert.PoseOut) -> Any:
-    """A geometry_msgs/PoseWithCovarianceStamped."""
-    m = ros.message
-    header = m("std_msgs/msg/Header", stamp=stamp, frame_id=frame_id)
-    pose = m("geometry_msgs/msg/Pose",
-             position=m("geometry_msgs/msg/Point", x=float(out.position[0]),
-                        y=float(out.position[1]), z=float(out.position[2])),
-             orientation=m("geometry_msgs/msg/Quaternion", x=float(out.quat_xyzw[0]),
-                           y=float(out.quat_xyzw[1]), z=float(out.quat_xyzw[2]),
-                           w=float(out.quat_xyzw[3])))
-    with_cov = m("geometry_msgs/msg/PoseWithCovariance", pose=pose,
-                 covariance=np.ascontiguousarray(out.covariance, np.float64).ravel())
-    return m(ros.POSE_WITH_COVARIANCE_STAMPED, header=header, pose=with_cov)
-
-
-def _undeclare(entity: Any) -> None:
-    try:
-        entity.undeclare()
-    except Exception as exc:
-        log.debug("undeclare failed: %s", exc)

@@ -51,6 +51,10 @@ class Ros2Conf:
     #: relocalized and the pose published (0: only on a service call).
     lost_topic: str = "lost"
     relocalize_every_n: int = 0
+    #: While tracking (not lost, the map frame anchored), every ``localize_every_n``-th image
+    #: is localized with the odometry's pose in the map frame and its covariance as the
+    #: query's prior, and the pose published (localize.py; 0: off).
+    localize_every_n: int = 0
     #: The frame id of the published poses (the map's frame: the VIO frame it was built in).
     frame_id: str = "map"
     qos_depth: int = 10
@@ -158,6 +162,9 @@ class Ros2Conf:
         if self.qos_depth < 1 or self.relocalize_every_n < 0:
             raise ConfigError(f"ros2: expected qos_depth >= 1 and relocalize_every_n >= 0, "
                               f"got {self.qos_depth} and {self.relocalize_every_n}")
+        if self.localize_every_n < 0:
+            raise ConfigError(f"ros2.localize_every_n: expected an integer >= 0 (0: off), "
+                              f"got {self.localize_every_n}")
         for key in ("keyframe_min_distance_m", "keyframe_min_angle_deg",
                     "max_stamp_difference_s", "max_image_age_s", "trigger_wait_s",
                     "diagnostics_period_s"):

@@ -91,6 +91,15 @@ class NodeStatus:
                         image, message)
         self.on_change()
 
+    def localized(self, success: bool, message: str, image: str) -> None:
+        """A localization of the tracking mode (every Nth image with the odometry's prior);
+        a failure is routine (the service fell back to its full method and could not verify
+        either) and logged at debug level."""
+        with self._lock:
+            self.counters["localize_ok" if success else "localize_failed"] += 1
+        log.debug("map %s: localization of %s with a prior: %s", self.map_name, image, message)
+        self.on_change()
+
     def snapshot(self) -> tuple[dict[str, int], dict[str, LastEvent | None]]:
         with self._lock:
             return dict(self.counters), {"answer": self.last_answer,

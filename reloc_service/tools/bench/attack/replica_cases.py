@@ -9,7 +9,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -214,47 +214,74 @@ def replica_catch_up(arena: Arena) -> list[Attempt]:
     return [clean(f"{steps}; identity and content hash equal to the peer's")]
 
 
+@contextlib.contextmanager
+def two_replicas(folder: Path, scene: TinyScene, full_service: Callable[[str], AttackService]
+                 ) -> Iterator[tuple[Any, AttackService, AttackService]]:
+    """Behind a ``reloc router``: the service ``full_service(router endpoint)`` makes and a
+    replica of lab, both started, and a client through the router that both answer (a put
+    sent before the router routes to an instance never reaches it), the scene's camera set;
+    yields (client, full, other) and stops both services after the block."""
+    from reloc_client.client import RelocClient
+
+    with router(folder) as hub:
+        full = full_service(hub).start()
+        other = replica(folder / "replica", hub).start()
+        try:
+            with RelocClient(hub, map=MAP_NAME, timeout=REPLY_TIMEOUT_S) as client:
+                wait_routed(client, full.instance, other.instance)
+                client.set_camera(CAMERA_ID, scene.camera, wait=True)
+                yield client, full, other
+        finally:
+            other.stop("sigterm")
+            full.stop("sigterm")
+
+
+def put_each(client: Any, scene: TinyScene, ids: range
+             ) -> Iterator[tuple[int, tuple[str, ...], Exception | None]]:
+    """``add_keyframe(wait=True, replicas=2)`` of each of ``ids`` in turn: (id, the instances
+    that stored it, None), or (id, (), the ServiceError) when the put was refused."""
+    from reloc_client.client import ServiceError
+
+    for kf_id in ids:
+        try:
+            names = tuple(client.add_keyframe(kf_id, scene.image(kf_id), scene.pose(kf_id),
+                                              camera_id=CAMERA_ID, wait=True, replicas=2))
+        except ServiceError as exc:
+            yield kf_id, (), exc
+        else:
+            yield kf_id, names, None
+
+
 @register("replica-refuses", "replica",
           "two replicas of lab, one of them refusing writes (a keyframe quota of 4 standing "
           "in for a full disk); add_keyframe(wait=True, replicas=2) of 6 keyframes: 4 stored by "
           "both, keyframes 4-5 raise naming who stored them and who refused; nothing the "
           "client was told is stored is missing")
 def replica_refuses(arena: Arena) -> list[Attempt]:
-    from reloc_client.client import RelocClient, ServiceError
-
     folder = arena.case_folder("replica-refuses")
-    scene = arena.scene
-    with router(folder) as hub:
-        full = AttackService(folder / "full", connect=[hub],
-                             quotas={"max_keyframes_per_map": 4}).start()
-        other = replica(folder / "replica", hub).start()
-        attempts = []
-        try:
-            with RelocClient(hub, map=MAP_NAME, timeout=REPLY_TIMEOUT_S) as c:
-                wait_routed(c, full.instance, other.instance)
-                c.set_camera(CAMERA_ID, scene.camera, wait=True)
-                told: dict[int, tuple[str, ...]] = {}
-                for kf_id in range(6):
-                    try:
-                        told[kf_id] = tuple(c.add_keyframe(
-                            kf_id, scene.image(kf_id), scene.pose(kf_id), camera_id=CAMERA_ID,
-                            wait=True, replicas=2))
-                        attempts.append(judge_stored(kf_id, told[kf_id], kf_id < 4,
-                                                     full.instance, other.instance, ""))
-                    except ServiceError as exc:
-                        # The error names the instances that did store it: they must hold it.
-                        told[kf_id] = tuple(n for n in (full.instance, other.instance)
-                                            if f"stored by ['{n}']" in str(exc))
-                        attempts.append(judge_stored(kf_id, (), kf_id < 4, full.instance,
-                                                     other.instance, str(exc)))
-            for service in (full, other):
-                with service.client() as c:
-                    expected = {k for k, names in told.items() if service.instance in names}
-                    held = held_ids(c, timeout=REPLY_TIMEOUT_S)
-                    attempts.append(compare_held(service.instance, held & expected, expected))
-        finally:
-            other.stop("sigterm")
-            full.stop("sigterm")
+    attempts = []
+
+    def quota_of_4(hub: str) -> AttackService:
+        return AttackService(folder / "full", connect=[hub], quotas={"max_keyframes_per_map": 4})
+
+    with two_replicas(folder, arena.scene, quota_of_4) as (c, full, other):
+        told: dict[int, tuple[str, ...]] = {}
+        for kf_id, names, error in put_each(c, arena.scene, range(6)):
+            if error is None:
+                told[kf_id] = names
+                attempts.append(judge_stored(kf_id, names, kf_id < 4, full.instance,
+                                             other.instance, ""))
+            else:
+                # The error names the instances that did store it: they must hold it.
+                told[kf_id] = tuple(n for n in (full.instance, other.instance)
+                                    if f"stored by ['{n}']" in str(error))
+                attempts.append(judge_stored(kf_id, (), kf_id < 4, full.instance,
+                                             other.instance, str(error)))
+        for service in (full, other):
+            with service.client() as sc:
+                expected = {k for k, held_by in told.items() if service.instance in held_by}
+                held = held_ids(sc, timeout=REPLY_TIMEOUT_S)
+                attempts.append(compare_held(service.instance, held & expected, expected))
     return attempts
 
 
@@ -308,44 +335,31 @@ def fill(path: Path) -> Path:
           "(STORAGE_ERROR) and the one that stored it; space freed: the full replica catches "
           "up to all 6 (not run where tmpfs cannot be mounted)")
 def replica_disk_full(arena: Arena) -> list[Attempt]:
-    from reloc_client.client import RelocClient, ServiceError
-
     folder = arena.case_folder("replica-disk-full")
-    scene = arena.scene
+    attempts = []
+
+    def on_small_disk(hub: str) -> AttackService:
+        return AttackService(folder / "full", folder / "disk" / "storage", connect=[hub],
+                             service={"bootstrap_from_peers": True,
+                                      "replica_check_s": REPLICA_CHECK_S})
+
     with small_disk(folder / "disk") as mounted:
         if not mounted:
             return []
-        with router(folder) as hub:
-            full = AttackService(folder / "full", folder / "disk" / "storage", connect=[hub],
-                                 service={"bootstrap_from_peers": True,
-                                          "replica_check_s": REPLICA_CHECK_S}).start()
-            other = replica(folder / "replica", hub).start()
-            attempts = []
-            try:
-                with RelocClient(hub, map=MAP_NAME, timeout=REPLY_TIMEOUT_S) as c:
-                    wait_routed(c, full.instance, other.instance)
-                    c.set_camera(CAMERA_ID, scene.camera, wait=True)
-                    for kf_id in range(4):
-                        c.add_keyframe(kf_id, scene.image(kf_id), scene.pose(kf_id),
-                                       camera_id=CAMERA_ID, wait=True, replicas=2)
-                    filler = fill(folder / "disk")
-                    for kf_id in range(4, 6):
-                        try:
-                            names = tuple(c.add_keyframe(
-                                kf_id, scene.image(kf_id), scene.pose(kf_id),
-                                camera_id=CAMERA_ID, wait=True, replicas=2))
-                            attempts.append(broke(f"keyframe {kf_id}: stored by "
-                                                  f"{sorted(names)} on a full disk"))
-                        except ServiceError as exc:
-                            attempts.append(judge_full(kf_id, str(exc), full.instance,
-                                                       other.instance))
-                    filler.unlink()
-                    caught = wait_status(c, full.instance, lambda s: s.keyframes == 6)
-                    reference = statuses(c).get(other.instance)
-                attempts.append(judge_caught_up(caught, reference))
-            finally:
-                other.stop("sigterm")
-                full.stop("sigterm")
+        with two_replicas(folder, arena.scene, on_small_disk) as (c, full, other):
+            for _kf_id, _names, error in put_each(c, arena.scene, range(4)):
+                if error is not None:
+                    raise error
+            filler = fill(folder / "disk")
+            for kf_id, names, error in put_each(c, arena.scene, range(4, 6)):
+                attempts.append(
+                    broke(f"keyframe {kf_id}: stored by {sorted(names)} on a full disk")
+                    if error is None else
+                    judge_full(kf_id, str(error), full.instance, other.instance))
+            filler.unlink()
+            caught = wait_status(c, full.instance, lambda s: s.keyframes == 6)
+            reference = statuses(c).get(other.instance)
+        attempts.append(judge_caught_up(caught, reference))
     return attempts
 
 
