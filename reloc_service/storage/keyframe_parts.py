@@ -33,6 +33,9 @@ from .snapshot_files import SnapshotReader
 
 DEPTH_MODES = ("drop", "lossless", "raw")
 IMAGE_MODES = ("needed", "always")
+#: Keyframe cache entry of the CRC-32 and (H, W) of its pixels (an image's bytes never
+#: change while the keyframe object lives: a replaced keyframe is a new object).
+IMAGE_CRC_KEY = "image:crc32"
 #: Suffix of a losslessly compressed depth map: zlib of its float32 bytes, C order.
 LOSSLESS_DEPTH_SUFFIX = ".f32.zlib"
 
@@ -63,12 +66,16 @@ EVERYTHING = StoredParts(depth="raw", images="always")
 
 def image_entry(kf: Keyframe) -> dict[str, Any]:
     """The manifest fields of a keyframe whose image is not stored: its (H, W) and the CRC-32
-    of its pixels (decoded once here unless it is already absent)."""
+    of its pixels (decoded once for the keyframe, kept in its cache: a map snapshotted every
+    200 puts does not decode its 1000 images each time)."""
     source = kf.image_source
     if isinstance(source, AbsentImage):
         return {"image": None, "image_shape": list(source.shape), "image_crc32": source.crc32}
-    pixels = kf.image
-    return {"image": None, "image_shape": list(pixels.shape), "image_crc32": pixels_crc32(pixels)}
+    if IMAGE_CRC_KEY not in kf.cache:
+        pixels = kf.image
+        kf.cache[IMAGE_CRC_KEY] = (pixels_crc32(pixels), list(pixels.shape))
+    crc, shape = kf.cache[IMAGE_CRC_KEY]
+    return {"image": None, "image_shape": shape, "image_crc32": crc}
 
 
 def absent_image(entry: Mapping[str, Any]) -> AbsentImage:
