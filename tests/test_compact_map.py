@@ -171,3 +171,11 @@ def test_the_service_options_are_checked_and_a_replica_keeps_its_images():
     with pytest.raises(ConfigError, match="service.keyframe_images: expected one of needed"):
         ServiceSection(keyframe_images="sometimes")
     assert ServiceSection(bootstrap_from_peers=True).stored_parts().images == "always"
+
+
+def test_a_feature_kind_added_to_a_map_saved_without_images_names_the_option(
+        tmp_path, synthetic_map):
+    assert sorted({k for kf in synthetic_map.keyframes.values() for k in kf.features}) == ["sift"]
+    save_map(synthetic_map, tmp_path, parts=StoredParts())
+    with pytest.raises(MapError, match=KEEP_IMAGES):   # ORB features cannot be extracted
+        Engine.load(tmp_path, EngineConf(methods=("sbi+p3p:orb",)))
