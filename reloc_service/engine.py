@@ -42,7 +42,7 @@ import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -59,6 +59,7 @@ from .core.map import KeyframeMap, MapState
 from .core.mapping import MapBuilder, MappingConf
 from .core.progress import progress as progress_bar
 from .core.triangulation import TriangulationConf
+from .storage.keyframe_parts import StoredParts
 from .storage.snapshot import load_map, model_dir_name, save_map
 
 __all__ = ["Engine", "EngineConf", "MappingConf", "MapView", "ReadWriteLock", "TriangulationConf"]
@@ -69,11 +70,13 @@ Array = npt.NDArray[Any]
 @dataclass(frozen=True)
 class EngineConf:
     """Methods kept ready (the first is the default), plugin options (plugin name -> option
-    dict, as :func:`create_relocalizer` takes them) and the map building configuration."""
+    dict, as :func:`create_relocalizer` takes them), the map building configuration and what
+    a save stores of each keyframe's depth and image (:class:`StoredParts`)."""
 
     methods: tuple[str, ...] = (DEFAULT_METHOD,)
     options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     mapping: MappingConf = field(default_factory=MappingConf)
+    stored: StoredParts = field(default_factory=StoredParts)
 
     def __post_init__(self) -> None:
         methods = tuple(self.methods) if isinstance(self.methods, list | tuple) else None
@@ -371,12 +374,14 @@ class Engine:
 
     # -- persistence ---------------------------------------------------------------------------
     def save(self, directory: str | Path, *, exact_geometry: bool = False,
-             store: Mapping[str, Any] | None = None) -> Path:
+             store: Mapping[str, Any] | None = None, parts: StoredParts | None = None) -> Path:
         """Save the published map and every live relocalizer's models (consistent with it);
         returns the snapshot. Queries go on meanwhile: the read lock is held only while the
         relocalizers write their models (into a scratch directory), not for the map files.
         ``exact_geometry``: landmark geometry float64 as held; ``store``: the owner's fields
-        of the manifest (see :func:`.storage.snapshot.save_map`)."""
+        of the manifest (see :func:`.storage.snapshot.save_map`); ``parts``: what is stored
+        of each keyframe's depth and image (default: ``conf.stored``; images when it says
+        ``"always"`` or a live relocalizer reads them)."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         with self._save_lock, tempfile.TemporaryDirectory(dir=directory, prefix=".models-") as tmp:
@@ -386,10 +391,15 @@ class Engine:
                     (Path(tmp) / model_dir_name(method)).mkdir()
                     live.relocalizer.save(Path(tmp) / model_dir_name(method))
                 methods = list(self._live)
+                reads_images = any(live.relocalizer.reads_keyframe_images
+                                   for live in self._live.values())
+            parts = parts or self.conf.stored
+            parts = replace(parts, images="always" if parts.keeps_images(reads_images)
+                            else "needed")
             models = {m: functools.partial(_move_contents, Path(tmp) / model_dir_name(m))
                       for m in methods}
             return save_map(state, directory, models=models, exact_geometry=exact_geometry,
-                            store=store)
+                            store=store, parts=parts)
 
     @classmethod
     def load(cls, directory: str | Path, conf: EngineConf | None = None, *,

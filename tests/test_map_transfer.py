@@ -37,7 +37,9 @@ def built(synthetic_scene, tmp_path_factory):
     map holds float64 landmark points its snapshot stores as float32 where far below their
     uncertainty, see storage.landmark_codec)."""
     storage = tmp_path_factory.mktemp("a") / "storage"
-    service = Service(service_conf(free_port(), storage, maps=(MAP,), snapshot_every=4))
+    # images kept (as a map served with ferns keeps them): an export carries every part kind
+    service = Service(service_conf(free_port(), storage, maps=(MAP,), snapshot_every=4,
+                                   keyframe_images="always"))
     service.start()
     try:
         fill_map(service, synthetic_scene, range(KEYFRAMES))

@@ -508,7 +508,7 @@ def test_format_4_stores_narrow_columns_and_no_derived_points(tmp_path, rich_sta
     landmark points are float32 offsets from their anchor keyframes."""
     snap = save_map(rich_state, tmp_path)
     manifest = json.loads((snap / "manifest.json").read_text())
-    assert manifest["format_version"] == 4
+    assert manifest["format_version"] == 5   # format 4's columns, images and depth optional
     for kind in ("sift", "orb"):
         for derived in ("points_world", "landmark_ids"):
             assert f"features/{kind}.{derived}.npy" not in manifest["files"]
@@ -610,7 +610,7 @@ def test_a_flipped_bit_in_a_format_3_column_fails_the_load(tmp_path, rich_state,
 def test_format_2_snapshots_are_read(tmp_path):
     """A snapshot written by format 2 (made by that version's code from the format-1 fixture,
     plus keyframe 1's ORB features: none in its 32x24 image, an empty kind, and the small
-    blurry images; kept in tests/data) loads as it was, and saves as format 3."""
+    blurry images; kept in tests/data) loads as it was, and saves as the current format."""
     v1, _ = load_map(V1_MAP)
     state, models = load_map(V2_MAP)
     assert models is None and state.keyframe_ids() == [0, 1]
@@ -625,7 +625,7 @@ def test_format_2_snapshots_are_read(tmp_path):
         assert "sbi:40x30:2.5" in state.keyframes[k].cache
     assert sorted(state.landmarks) == sorted(v1.landmarks)
     snap = save_map(state, tmp_path)
-    assert json.loads((snap / "manifest.json").read_text())["format_version"] == 4
+    assert json.loads((snap / "manifest.json").read_text())["format_version"] == 5
     again, _ = load_map(tmp_path)
     _assert_states_equal(state, again)
 
@@ -636,7 +636,7 @@ V3_MAP = Path(__file__).parent / "data" / "map_v3"
 def test_format_3_snapshots_are_read(tmp_path):
     """A snapshot written by format 3 (made by that version's code from the format-2 fixture:
     float64 landmark points, int64 ids; kept in tests/data) loads as the format-2 one, and
-    saves as format 4."""
+    saves as the current format."""
     manifest = json.loads((V3_MAP / "snapshots" / "000001" / "manifest.json").read_text())
     assert manifest["format_version"] == 3
     v2, _ = load_map(V2_MAP)
@@ -647,7 +647,7 @@ def test_format_3_snapshots_are_read(tmp_path):
     # written before keyframes had a pose covariance: none, the map's default applies
     assert all(kf.pose_covariance is None for kf in state.keyframes.values())
     snap = save_map(state, tmp_path)
-    assert json.loads((snap / "manifest.json").read_text())["format_version"] == 4
+    assert json.loads((snap / "manifest.json").read_text())["format_version"] == 5
     _assert_states_equal(state, load_map(tmp_path)[0])
 
 

@@ -67,7 +67,8 @@ class Service:
         self.methods = (conf.service.default_method,
                         *[m for m in methods if m != conf.service.default_method])
         self.engine_conf = EngineConf(methods=self.methods, options=conf.options,
-                                      mapping=MappingConf.from_options(conf.mapping))
+                                      mapping=MappingConf.from_options(conf.mapping),
+                                      stored=conf.service.stored_parts())
         self._stopped = threading.Event()
         self.registry = MapRegistry(conf, self.engine_conf, self.methods, limits=self.limits,
                                     stopped=self._stopped, publish=self._publish_event,

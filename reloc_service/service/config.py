@@ -31,6 +31,7 @@ from ..algorithms.relocalizers.factory import DEFAULT_METHOD
 from ..core.errors import ConfigError
 from ..core.methods import parse_method
 from ..core.plugins import make_conf
+from ..storage.keyframe_parts import StoredParts
 from .ros2.conf import Ros2Conf
 
 ZENOH_MODES = ("peer", "client", "router")
@@ -193,10 +194,18 @@ class ServiceSection:
     #: Seconds a query on a stored map that is not resident waits for it to load; past
     #: that it is answered "busy" with a retry hint (the load goes on).
     cold_load_wait_s: float = 5.0
+    #: What a snapshot keeps of each keyframe's depth map once its landmarks are made:
+    #: "drop", "lossless" (zlib, bit-exact) or "raw" (:mod:`..storage.keyframe_parts`).
+    keyframe_depth: str = "drop"
+    #: Keyframe images on disk: "needed" (only when a served method reads pixels: ferns,
+    #: sbi+esm) or "always" (needed later to add such a method or a feature kind, and by a
+    #: replica that bootstraps from this one: ``bootstrap_from_peers`` keeps them).
+    keyframe_images: str = "needed"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "methods", _str_tuple(self.methods, "service.methods"))
         self._check_residency()
+        self.stored_parts()   # ConfigError naming the key when a mode is unknown
         for name in ("workers", "queue_size", "writer_threads", "writer_queue_size",
                      "writer_queue_bytes"):
             if getattr(self, name) < 1:
@@ -227,6 +236,15 @@ class ServiceSection:
         for method in self.methods:
             _check_servable(method)
         _check_names(self.prefix, self.instance)
+
+    def stored_parts(self) -> StoredParts:
+        """What the maps' snapshots store of keyframe depth and images; a member of a
+        replica set (``bootstrap_from_peers``) keeps its images, which a peer copies."""
+        images = "always" if self.bootstrap_from_peers else self.keyframe_images
+        try:
+            return StoredParts(depth=self.keyframe_depth, images=images)
+        except ConfigError as exc:
+            raise ConfigError(f"service.{exc}") from None
 
     def _check_residency(self) -> None:
         """``max_resident_mb`` > 0 closes idle maps: only with storage to reopen them from

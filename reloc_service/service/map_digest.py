@@ -18,6 +18,7 @@ import zlib
 
 import numpy as np
 
+from ..core.absent_image import AbsentImage
 from ..core.frame import Keyframe
 from ..core.map import MapState
 
@@ -55,7 +56,12 @@ def _digest(kf: Keyframe) -> bytes:
     pose = np.round(np.asarray(kf.world_from_cam, dtype=np.float64), POSE_DECIMALS) + 0.0
     h.update(pose.tobytes())    # + 0.0: -0.0 and 0.0 hash alike
     h.update(struct.pack("<d", float("nan") if kf.timestamp is None else kf.timestamp))
-    pixels = np.ascontiguousarray(kf.image)
-    h.update(struct.pack("<I", zlib.crc32(pixels.data)))
-    h.update(str(pixels.shape).encode())
+    source = kf.image_source
+    if isinstance(source, AbsentImage):   # not stored: the checksum of what it was
+        crc, shape = source.crc32, source.shape
+    else:
+        pixels = np.ascontiguousarray(kf.image)
+        crc, shape = zlib.crc32(pixels.data), pixels.shape
+    h.update(struct.pack("<I", crc))
+    h.update(str(tuple(shape)).encode())
     return h.digest()

@@ -61,6 +61,7 @@ from ..core.cameras import Camera
 from ..core.frame import area_downscale
 from ..core.numeric import limit_blas_threads
 from ..engine import Engine, EngineConf, MappingConf
+from ..storage.keyframe_parts import EVERYTHING
 from . import handlers
 from .codec import error_reply
 from .durability import map_dirname
@@ -323,7 +324,8 @@ class ProcessWorkers:
             # name must fit NAME_MAX whatever the map's name
             path = Path(tempfile.mkdtemp(prefix=f"{map_dirname(rt.name)[:120]}-", dir=self._scratch))
             # float64 geometry as the map holds it: a worker answers bit for bit as this map does
-            rt.engine.save(path, exact_geometry=True)
+            # and every image and depth map it holds (a copy, not a compact snapshot)
+            rt.engine.save(path, exact_geometry=True, parts=EVERYTHING)
             base = _Base(path, {id(h) for h in targets})
             with self._lock:
                 self._bases[id(base)] = base

@@ -1,13 +1,18 @@
 """Map persistence: a whole map saved as an immutable snapshot directory, switched atomically.
 
-Layout of a map directory ``MAP`` (format version 4)::
+Layout of a map directory ``MAP`` (format version 5)::
 
     MAP/CURRENT                     names the current snapshot: ``snapshots/000012``
     MAP/snapshots/000012/
         manifest.json               format, versions, keyframes, and a SHA-256 of every file
         images/<id>.jpg|png         keyframe images: the JPEG (or grey PNG) a client sent, as
-                                    sent; else the pixels as PNG (decoded when first used)
-        depth/<id>.npy              float32 Z-depth maps (keyframes that have one)
+                                    sent; else the pixels as PNG (decoded when first used);
+                                    only where a method reads them or the owner asks (else
+                                    the manifest keeps their size and CRC-32: format 5,
+                                    :mod:`.keyframe_parts`)
+        depth/<id>.npy|.f32.zlib    float32 Z-depth maps, raw or zlib-compressed, only when
+                                    the owner asks: they are an input to landmark creation,
+                                    done when the keyframe was added (format 5)
         features/<kind>.<field>.npy every keyframe's features of one kind, concatenated in
                                     manifest order (each keyframe names its row range); narrow
                                     where lossless, no field load can derive exactly (points
@@ -30,8 +35,9 @@ decoded on read), the arrays stay on disk until a query touches them (each keyfr
 are built from the shared columns on first use), and a change after loading copies what it
 changes (copy on write; the snapshot files are never written again). Each file's SHA-256 is
 checked at load (streamed, so a check does not hold the file in memory). Snapshots of format
-version 3 (float64 landmark points, float32 ORB keypoints and angles), 2 (every feature field
-in full, PNG images) and 1 (PNG images, one ``.npz`` per keyframe and kind) are still read.
+version 4 (every image and depth map, depth raw), 3 (float64 landmark points, float32 ORB
+keypoints and angles), 2 (every feature field in full, PNG images) and 1 (PNG images, one
+``.npz`` per keyframe and kind) are still read.
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
 ``CURRENT`` with :func:`os.replace` and prunes the snapshots it was built from (keeping the
@@ -58,6 +64,7 @@ import numpy as np
 import numpy.typing as npt
 from reloc_client.protocol import pose_covariance_problem
 
+from ..core.absent_image import AbsentImage
 from ..core.cameras import Camera, camera_from_dict
 from ..core.errors import CameraError, GeometryError, MapError, StorageError
 from ..core.fileio import fsync_path
@@ -77,6 +84,15 @@ from .feature_columns import (
     kind_columns,
     narrowest,
 )
+from .keyframe_parts import (
+    EVERYTHING,
+    LOSSLESS_DEPTH_SUFFIX,
+    StoredParts,
+    absent_image,
+    depth_file,
+    image_entry,
+    read_lossless_depth,
+)
 from .landmark_codec import ANCHORED_POINTS, WidenedColumn, anchored_points, encode_geometry
 from .snapshot_files import (
     CURRENT_FILE,
@@ -93,9 +109,9 @@ from .snapshot_files import (
 )
 
 FORMAT = "reloc map"
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 #: Older format versions this reloc still reads.
-READABLE_VERSIONS = (1, 2, 3, 4)
+READABLE_VERSIONS = (1, 2, 3, 4, 5)
 MODELS_DIR = "models"
 
 FEATURE_FIELDS = ("keypoints_px", "levels", "sizes", "angles", "descriptors", "landmark_ids",
@@ -154,19 +170,25 @@ def _png_bytes(image: npt.NDArray[np.uint8]) -> bytes:
     return buf.tobytes()
 
 
-def _write_keyframe(writer: SnapshotWriter, kf: Keyframe,
-                    rows: Mapping[str, tuple[int, int]]) -> dict[str, Any]:
-    """The manifest entry of ``kf`` (its image and depth written; features by row range)."""
-    ext, data = _image_file(kf)
+def _write_keyframe(writer: SnapshotWriter, kf: Keyframe, rows: Mapping[str, tuple[int, int]],
+                    parts: StoredParts) -> dict[str, Any]:
+    """The manifest entry of ``kf`` (its image and depth written as ``parts`` says, where
+    ``parts.images == "always"`` means stored; features by row range)."""
     entry: dict[str, Any] = {
         "id": kf.id, "camera": kf.camera.to_dict(), "world_from_cam": kf.world_from_cam.tolist(),
         "timestamp": None if kf.timestamp is None else float(kf.timestamp),
-        "image": writer.write(f"images/{kf.id}.{ext}", data),
         "depth": None, "features": {k: list(r) for k, r in sorted(rows.items())}}
+    if parts.images == "always" and not isinstance(kf.image_source, AbsentImage):
+        ext, data = _image_file(kf)
+        entry["image"] = writer.write(f"images/{kf.id}.{ext}", data)
+    else:   # not kept, or a loaded map's keyframe that has none: its size and checksum
+        entry.update(image_entry(kf))
     if kf.pose_covariance is not None:   # absent: none was put (older snapshots neither)
         entry["pose_covariance"] = kf.pose_covariance.tolist()
-    if kf.depth is not None:
+    if kf.depth is not None and parts.depth == "raw":
         entry["depth"] = writer.write(f"depth/{kf.id}.npy", _npy_bytes(kf.depth.astype(np.float32)))
+    elif kf.depth is not None and (compressed := depth_file(kf.id, kf.depth, parts.depth)):
+        entry["depth"] = writer.write(*compressed)
     return entry
 
 
@@ -224,21 +246,25 @@ def _write_landmarks(writer: SnapshotWriter, columns: LandmarkColumns,
 
 def save_map(state: MapState, directory: str | Path, *,
              models: Mapping[str, ModelWriter] | None = None,
-             exact_geometry: bool = False, store: Mapping[str, Any] | None = None) -> Path:
+             exact_geometry: bool = False, store: Mapping[str, Any] | None = None,
+             parts: StoredParts = EVERYTHING) -> Path:
     """Save ``state`` (and models: method -> writer called with its own empty directory) as a
     new snapshot of map directory ``directory``; returns the snapshot path. With
     ``exact_geometry`` landmark points and sigmas are stored float64 as held (a replica that
     must answer bit for bit as this map does), else float32 where far below their
     uncertainty (:func:`.landmark_codec.encode_geometry`). ``store``: what the map's owner
     records about it (identity, last sequence number held), kept as the manifest's
-    ``store``. A save that fails (a full disk, ...) removes its partial snapshot directory:
-    the space it took is given back and ``CURRENT`` still names the previous snapshot."""
+    ``store``. ``parts``: what is stored of each keyframe's depth and image
+    (:class:`.keyframe_parts.StoredParts`; images only with ``images="always"``, the caller
+    having decided whether its methods need them; default: everything, raw). A save that
+    fails (a full disk, ...) removes its partial snapshot directory: the space it took is
+    given back and ``CURRENT`` still names the previous snapshot."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     previous = current_or_none(directory)
     snapshot = new_snapshot_dir(directory)
     try:
-        _write_snapshot(state, snapshot, models or {}, exact_geometry, store or {})
+        _write_snapshot(state, snapshot, models or {}, exact_geometry, store or {}, parts)
     except BaseException:
         shutil.rmtree(snapshot, ignore_errors=True)   # nothing refers to it yet
         raise
@@ -248,13 +274,13 @@ def save_map(state: MapState, directory: str | Path, *,
 
 
 def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelWriter],
-                    exact_geometry: bool, store: Mapping[str, Any]) -> None:
+                    exact_geometry: bool, store: Mapping[str, Any], parts: StoredParts) -> None:
     """Every file of a new snapshot, the manifest last, fsynced with their directories."""
     writer = SnapshotWriter(snapshot)
     # insertion order, kept by load_map: a replica copies the map in the order it was built
     kfs = list(state.keyframes.values())
     rows = _feature_rows(kfs)
-    keyframes = [_write_keyframe(writer, kf, rows[kf.id]) for kf in kfs]
+    keyframes = [_write_keyframe(writer, kf, rows[kf.id], parts) for kf in kfs]
     columns = state.landmarks.columns()
     _write_features(writer, kfs, state, columns, rows)
     thumbnails = _write_thumbnails(writer, kfs)
@@ -486,8 +512,12 @@ class _FeatureColumns:
         try:
             features = self._keyframe_features(int(entry["id"]), dict(entry["features"]))
             camera = self._camera(entry["camera"])
-            image = EncodedImage(reader.map(entry["image"]), (camera.height, camera.width))
-            depth = None if entry.get("depth") is None else reader.npy(entry["depth"])
+            image = (absent_image(entry) if entry.get("image") is None
+                     else EncodedImage(reader.map(entry["image"]), (camera.height, camera.width)))
+            if image.shape != (camera.height, camera.width):
+                raise ValueError(f"image of {image.shape}, camera of {camera.height}x"
+                                 f"{camera.width}")
+            depth = _entry_depth(reader, entry)
             timestamp = entry.get("timestamp")
             # held encoded (Frame.image's setter takes an EncodedImage; its type is the pixels)
             return Keyframe(image=image, camera=camera,  # type: ignore[arg-type]
@@ -528,6 +558,16 @@ class _FeatureColumns:
         if not 0 <= start <= stop <= n:
             raise ValueError(f"{kind} rows [{start}, {stop}) outside the {n} saved")
         return start, stop
+
+
+def _entry_depth(reader: SnapshotReader, entry: Mapping[str, Any]) -> np.ndarray | None:
+    """A keyframe entry's depth map: None, a raw ``.npy`` (mapped) or a lossless one."""
+    rel = entry.get("depth")
+    if rel is None:
+        return None
+    if str(rel).endswith(LOSSLESS_DEPTH_SUFFIX):
+        return read_lossless_depth(reader, entry)
+    return reader.npy(rel)
 
 
 def _size_table(reader: SnapshotReader, relpath: str) -> np.ndarray:

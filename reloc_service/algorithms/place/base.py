@@ -36,6 +36,9 @@ class PlaceFinder(abc.ABC):
     evaluation_only: ClassVar[bool] = False
     #: Feature kinds keyframes must carry (an instance may set its own from its conf).
     required_features: frozenset[str] = frozenset()
+    #: Whether it reads keyframe pixels (beyond features and small blurry images saved
+    #: with the map): a map served with it keeps its keyframe images on disk.
+    reads_keyframe_images: ClassVar[bool] = False
 
     @dataclass(frozen=True)
     class Conf:

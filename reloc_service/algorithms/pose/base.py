@@ -146,6 +146,9 @@ class PoseFinder(abc.ABC):
     name: ClassVar[str]
     #: Feature kinds keyframes must carry (an instance may set its own from its conf).
     required_features: frozenset[str] = frozenset()
+    #: Whether it reads keyframe pixels (beyond features and small blurry images): a map
+    #: served with it keeps its keyframe images on disk.
+    reads_keyframe_images: ClassVar[bool] = False
 
     #: True if the finder uses all candidates jointly (landmarks pooled), False if one at a time.
     pools_candidates: ClassVar[bool] = False

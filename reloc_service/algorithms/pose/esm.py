@@ -237,6 +237,8 @@ class EsmPoseFinder(PoseFinder):
     keyframe's centre (thesis 3.1.2); evidence is the NCC of the aligned thumbnails."""
 
     needs_agreement: ClassVar[bool] = True
+    #: Its keyframe thumbnails (80x60 and 40x30) are made from the pixels when first aligned.
+    reads_keyframe_images: ClassVar[bool] = True
 
     @dataclass(frozen=True)
     class Conf:

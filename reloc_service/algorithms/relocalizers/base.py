@@ -456,6 +456,13 @@ class Relocalizer(abc.ABC):
         """Feature kinds (``"sift"``, ``"orb"``) keyframes must carry, with landmarks."""
         return frozenset()
 
+    @property
+    def reads_keyframe_images(self) -> bool:
+        """Whether it reads keyframe pixels (ferns' warps, ESM's thumbnails), so a map it
+        serves keeps its keyframe images on disk. Default: no (features, landmarks and the
+        small blurry images saved with the map)."""
+        return False
+
     def feature_confs(self) -> dict[str, FeatureConf]:
         """The query features :meth:`relocalize` extracts, by kind, with the settings it
         extracts them with: what a chain may extract ahead for it (:data:`ON_DOUBT`) to

@@ -54,6 +54,10 @@ class ChainRelocalizer(Relocalizer):
     def required_features(self) -> frozenset[str]:
         return frozenset().union(*(step.required_features for step in self.steps))
 
+    @property
+    def reads_keyframe_images(self) -> bool:
+        return any(step.reads_keyframe_images for step in self.steps)
+
     def feature_confs(self) -> dict[str, FeatureConf]:
         return self.steps[0].feature_confs()
 

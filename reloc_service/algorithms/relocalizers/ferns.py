@@ -247,6 +247,10 @@ class FernsRelocalizer(Relocalizer):
         return frozenset({self.conf.kind})
 
     @property
+    def reads_keyframe_images(self) -> bool:
+        return True   # its training samples are warps of the keyframe images
+
+    @property
     def trained(self) -> bool:
         return self.conf.online or self._ever_trained
 

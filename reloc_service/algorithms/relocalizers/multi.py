@@ -124,6 +124,10 @@ class MultiRelocalizer(Relocalizer):
     def required_features(self) -> frozenset[str]:
         return frozenset(self.place.required_features) | frozenset(self.pose.required_features)
 
+    @property
+    def reads_keyframe_images(self) -> bool:
+        return self.place.reads_keyframe_images or self.pose.reads_keyframe_images
+
     def feature_confs(self) -> dict[str, FeatureConf]:
         """The pose finder's, and the place finder's (which extracts first where both
         extract one kind: bow+p3p)."""

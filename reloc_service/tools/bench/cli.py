@@ -535,6 +535,8 @@ def _throughput(t: Mapping[str, Any]) -> list[str]:
 
 
 def _scaling(s: Mapping[str, Any]) -> list[str]:
+    from .map_size import part_table
+
     methods = s["methods"]
     failed = [r for r in s["sizes"] if "error" in r]
     s = {**s, "sizes": [r for r in s["sizes"] if "error" not in r]}
@@ -571,6 +573,7 @@ def _scaling(s: Mapping[str, Any]) -> list[str]:
             + _table(header, rows)
             + ["Recall at 5 cm / 5 deg on the same queries (distractors must not be "
                "proposed):", ""] + _table(recall_header, recall_rows)
+            + part_table(s["sizes"])
             + (notes + [""] if notes else []))
 
 

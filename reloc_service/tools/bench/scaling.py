@@ -184,7 +184,26 @@ def prepare_size(state: MapState, conf: Any, directory: Path) -> dict[str, Any]:
     saved_models = time.perf_counter() - start
     return {"keyframes": len(state.keyframes), "landmarks": len(state.landmarks),
             "save_raw_s": saved, "load_and_train_s": trained, "save_with_models_s": saved_models,
-            "snapshot_mb": tree_mb(directory / "map")}
+            "snapshot_mb": tree_mb(directory / "map"),
+            "snapshot_bytes_per_keyframe": part_bytes_per_keyframe(directory / "map",
+                                                                   len(state.keyframes))}
+
+
+def part_bytes_per_keyframe(map_dir: Path, keyframes: int) -> dict[str, float]:
+    """Bytes per keyframe of each part of the current snapshot of ``map_dir`` (the kinds of
+    :func:`..storage.map_archive.part_kind`: images, depth, features, landmarks, models,
+    thumbnails; ``meta`` is the manifest), and their ``total``."""
+    from ...storage.map_archive import part_kind
+    from ...storage.snapshot_files import current_snapshot
+
+    snapshot = current_snapshot(map_dir)
+    sizes: dict[str, int] = {}
+    for path in snapshot.rglob("*"):
+        if path.is_file():
+            kind = part_kind(f"map/snapshots/{snapshot.name}/{path.relative_to(snapshot)}")
+            sizes[kind] = sizes.get(kind, 0) + path.stat().st_size
+    per = {kind: size / max(keyframes, 1) for kind, size in sorted(sizes.items())}
+    return {**per, "total": sum(per.values())}
 
 
 def run_probe(map_dir: Path, queries_dir: Path, methods: Sequence[str],

@@ -169,11 +169,11 @@ def memory(r: Result) -> list[dict[str, Any]]:
 
     rss, load, snap = value("map_rss_mb"), value("engine_load_s"), value("snapshot_mb")
     return [row("1000 keyframes: resident memory of the map and the default's models",
-                "<= 250 MB", rss, "MB", _at_most(rss, 250.0), where),
-            row("1000 keyframes: `Engine.load`", "<= 2 s", load, "s", _at_most(load, 2.0),
+                "<= 120 MB", rss, "MB", _at_most(rss, 120.0), where),
+            row("1000 keyframes: `Engine.load`", "<= 0.5 s", load, "s", _at_most(load, 0.5),
                 where),
-            row("1000 keyframes: snapshot on disk", "<= 150 MB", snap, "MB",
-                _at_most(snap, 150.0), where)]
+            row("1000 keyframes: snapshot on disk", "<= 50 MB", snap, "MB",
+                _at_most(snap, 50.0), where)]
 
 
 def ferns(r: Result) -> list[dict[str, Any]]:
