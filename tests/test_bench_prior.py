@@ -60,3 +60,14 @@ def test_summary_counts_what_the_table_says():
         "no prior": {**row, "over_limit": 2.0}}}, "f": {"error": "boom"}}})
     assert lines[2] == "| s | no prior | 20.0 | 10.0 | 2.00 | 33% | 1 | 1 | 1/3 |"
     assert lines[3].startswith("| f | failed |")
+
+
+def test_cli_refuses_a_folder_that_is_not_a_dataset(tmp_path, capsys):
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["--only", "prior", "--dataset", str(tmp_path / "nope")])
+    assert cli.main(args) == 2
+    assert "not a reloc dataset with map.txt and queries.txt" in capsys.readouterr().err
+    args = parser.parse_args(["--only", "prior", "--preset", "nope"])
+    assert cli.main(args) == 2
+    assert "unknown preset" in capsys.readouterr().err

@@ -109,6 +109,14 @@ def main(args: argparse.Namespace) -> int:
         if problem:
             print(f"reloc bench: {problem}", file=sys.stderr)
             return 2
+    if named_prior:
+        from .accuracy import AccuracyConf, check_conf
+
+        problem = check_conf(AccuracyConf(presets=tuple(presets or ()),
+                                          datasets=tuple(datasets or ())))
+        if problem:
+            print(f"reloc bench: {problem}", file=sys.stderr)
+            return 2
     baseline = None
     if getattr(args, "baseline", None) is not None:
         try:
