@@ -36,7 +36,7 @@ from service_support import Events, endpoint, free_port, service_conf  # noqa: E
 from reloc_service.service.app import Service  # noqa: E402
 from reloc_service.service.durability import MAP_NAME_FILE, map_dirname  # noqa: E402
 
-METHOD = "sbi+p3p:orb,bow+p3p,sbi+p3p"
+METHOD = "sbi+p3p:orb,sbi+p3p:sift-half,bow+p3p,sbi+p3p"
 MB = 1024 * 1024
 
 

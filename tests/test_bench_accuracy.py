@@ -38,7 +38,8 @@ def tiny_desk(tmp_path_factory) -> Path:
 
 def check_result(r: dict) -> None:
     """One column's figures: the stable keys, rates in [0, 1], ordered recalls."""
-    keys = set(accuracy.SUMMARY_KEYS) | ({"map_descriptors"} if "map_descriptors" in r else set())
+    keys = set(accuracy.SUMMARY_KEYS) | {"over_limit"} | (
+        {"map_descriptors"} if "map_descriptors" in r else set())
     if "first_step" in r:  # a fallback chain: how many of its answers its first step gave
         keys.add("first_step")
         first = r["first_step"]
@@ -52,7 +53,7 @@ def check_result(r: dict) -> None:
         assert 0.0 <= value <= 1.0
     assert rec["5cm_5deg"] <= rec["25cm_10deg"] <= rec["50cm_15deg"] <= r["returned_rate"]
     assert r["returned_rate"] == pytest.approx(r["returned"] / r["queries"])
-    assert r["p50_ms"] > 0 and r["p99_ms"] >= r["p50_ms"]
+    assert 0 < r["p50_ms"] <= r["p90_ms"] <= r["p99_ms"]
 
 
 # -- end to end through the CLI ------------------------------------------------------------------
@@ -133,6 +134,16 @@ def test_scores_equal_reloc_eval(tiny_desk):
     assert ours["recall"] == s.recall and ours["wrong_rate"] == s.wrong_rate
     assert ours["median_t_err_m"] == pytest.approx(s.median_t_err_m, rel=1e-9)
     assert record["landmark_source"] == ev.map.landmark_source
+    # the decode + ORB (1000) limit of the same queries, timed in the same run, and the
+    # column's p50 over it
+    limit = record["limit"]
+    assert limit["orb_features"] == 1000
+    assert 0 < limit["decode_p50_ms"] < limit["orb_limit_p50_ms"] <= limit["orb_limit_p99_ms"]
+    assert ours["over_limit"] == pytest.approx(ours["p50_ms"] / limit["orb_limit_p50_ms"])
+    assert ours["p50_ms"] <= ours["p90_ms"] <= ours["p99_ms"]
+    row = accuracy.detail_lines({"datasets": {"d": record}, "columns": ["sbi+p3p"],
+                                 "default_method": "sbi+p3p", "peers": {}})[-1]
+    assert row.rstrip(" |").endswith(f"{ours['over_limit']:.1f}x")
 
 
 # -- pieces --------------------------------------------------------------------------------------

@@ -175,12 +175,14 @@ def _map_with_orb(scene: PlanarScene, orb_points: Callable[[Features], np.ndarra
 
 def test_method_string_names_each_steps_features(two_kind_scene):
     chain = create_relocalizer(DEFAULT_METHOD, two_kind_scene.map)
-    assert chain.method == DEFAULT_METHOD == "sbi+p3p:orb,bow+p3p,sbi+p3p"
-    orb_step, *sift_steps = chain.steps
+    assert chain.method == DEFAULT_METHOD == "sbi+p3p:orb,sbi+p3p:sift-half,bow+p3p,sbi+p3p"
+    orb_step, half_step, *sift_steps = chain.steps
     assert orb_step.pose.conf.kind == "orb" and orb_step.pose.conf.max_features == 500
     assert orb_step.pose.conf.first_pool_keyframes == 1
+    assert (half_step.pose.conf.kind, half_step.pose.conf.query_scale) == ("sift", 0.5)
     assert [s.pose.conf.kind for s in sift_steps] == ["sift", "sift"]
     assert [s.pose.conf.first_pool_keyframes for s in sift_steps] == [None, None]
+    assert [s.pose.conf.query_scale for s in sift_steps] == [1.0, 1.0]
     assert chain.required_features == {"orb", "sift"}
     # Options of the pose finder apply to its variants, the variant's own table last; the
     # suffix wins over options["p3p"]'s feature settings, so "sbi+p3p" keeps them.

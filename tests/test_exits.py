@@ -117,7 +117,7 @@ def test_reloc_eval_with_the_default_chain_exits_cleanly(tmp_path):
     out = tmp_path / "eval.json"
     proc = run_reloc("eval", str(MINI), "--no-progress", "--json", str(out), timeout=600)
     assert_clean_exit(proc)
-    assert out.is_file() and "sbi+p3p:orb,bow+p3p,sbi+p3p" in proc.stdout
+    assert out.is_file() and "sbi+p3p:orb,sbi+p3p:sift-half,bow+p3p,sbi+p3p" in proc.stdout
 
 
 @pytest.mark.slow

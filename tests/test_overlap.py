@@ -77,14 +77,14 @@ def test_the_option_is_read_from_the_service_config(synthetic_map):
     engine = Engine(EngineConf(options=conf.options))
     chain = engine.relocalizer(DEFAULT_METHOD)
     assert isinstance(chain, ChainRelocalizer)
-    assert [step.conf.overlap for step in chain.steps] == [False, False, False]
+    assert [step.conf.overlap for step in chain.steps] == [False] * len(chain.steps) == [False] * 4
     default = create_relocalizer("sbi+p3p:orb", Engine().map)
     assert isinstance(default, MultiRelocalizer) and default.conf.overlap is True
     with pytest.raises(ConfigError, match="overlap"):
         create_relocalizer("sbi+p3p", Engine().map, options={"multi": {"overlap": "sometimes"}})
     conf = parse_config({"options": {"multi": {"look_ahead": False}}})
     chain = Engine(EngineConf(options=conf.options)).relocalizer(DEFAULT_METHOD)
-    assert [step.conf.look_ahead for step in chain.steps] == [False, False, False]
+    assert [step.conf.look_ahead for step in chain.steps] == [False] * len(chain.steps)
     assert default.conf.look_ahead is True
     with pytest.raises(ConfigError, match="look_ahead"):
         create_relocalizer("sbi+p3p", Engine().map, options={"multi": {"look_ahead": 2}})

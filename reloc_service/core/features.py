@@ -17,16 +17,28 @@ FEATURE_KINDS: tuple[str, ...] = ("sift", "orb")
 
 @dataclass(frozen=True)
 class FeatureConf:
-    """Detector settings. ``max_features`` caps the strongest keypoints kept."""
+    """Detector settings. ``max_features`` caps the strongest keypoints kept. ``scale`` below
+    1 detects on the image reduced by that factor (area averaging) and reports keypoints in
+    the full image's pixels: where blur has removed the fine scales, the reduced image holds
+    the same keypoints at a fraction of the cost."""
 
     kind: str = "sift"
     max_features: int = 2000
+    scale: float = 1.0
 
     def __post_init__(self) -> None:
         if self.kind not in FEATURE_KINDS:
             raise ConfigError(f"feature kind {self.kind!r} unknown; expected one of {FEATURE_KINDS}")
         if self.max_features <= 0:
             raise ConfigError(f"max_features must be positive, got {self.max_features}")
+        if not 0 < self.scale <= 1:
+            raise ConfigError(f"feature scale must be in (0, 1], got {self.scale}")
+
+    @property
+    def key(self) -> str:
+        """The name a frame caches these features under: the kind, with the scale when the
+        image is reduced (``"sift@0.5"``), so full-size features of the kind stay apart."""
+        return self.kind if self.scale == 1 else f"{self.kind}@{self.scale:g}"
 
 
 #: Scale step between ORB's pyramid levels (ORB-SLAM's).
@@ -73,8 +85,30 @@ def extract(image: npt.NDArray[np.uint8], conf: FeatureConf | None = None, *,
     """Detect and describe keypoints in a grey (H, W) uint8 image. A detector is created per
     call (cheap) because OpenCV detectors must not be shared between threads."""
     conf = conf or FeatureConf()
+    if conf.scale != 1:
+        return _extract_reduced(image, conf, mask)
     keypoints, descriptors = _create(conf).detectAndCompute(image, mask)
     return _features_from_cv(conf.kind, list(keypoints), descriptors)
+
+
+def _extract_reduced(image: npt.NDArray[np.uint8], conf: FeatureConf,
+                     mask: npt.NDArray[np.uint8] | None) -> Features:
+    """:func:`extract` on ``image`` reduced by ``conf.scale`` (INTER_AREA: each pixel the mean
+    of the pixels it covers), keypoints, sizes and pyramid levels mapped back to the full
+    image: a keypoint of the reduced image lies at ``(x + 0.5) / scale - 0.5`` and is located
+    to ``1 / scale`` full-image pixels, which the level (``factor^level``) carries."""
+    h, w = image.shape[:2]
+    size = (max(1, round(w * conf.scale)), max(1, round(h * conf.scale)))
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    small_mask = None if mask is None else cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
+    keypoints, descriptors = _create(FeatureConf(conf.kind, conf.max_features)).detectAndCompute(
+        small, small_mask)
+    feats = _features_from_cv(conf.kind, list(keypoints), descriptors)
+    sx, sy = w / size[0], h / size[1]
+    shift = round(np.log(1.0 / conf.scale) / np.log(level_scale_factor(conf.kind)))
+    return Features.create(conf.kind, (feats.keypoints_px + 0.5) * (sx, sy) - 0.5,
+                           feats.descriptors, levels=feats.levels + shift,
+                           sizes=feats.sizes * np.float32(sx), angles=feats.angles)
 
 
 def compute_at(image: npt.NDArray[np.uint8], kind: str, keypoints_px: npt.ArrayLike, *,

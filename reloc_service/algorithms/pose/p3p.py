@@ -66,10 +66,15 @@ class P3PPoseFinder(PoseFinder):
         #: ``keypoint_sigma_px * factor^level`` (``factor`` the detector's scale step between
         #: levels). Off keeps every keypoint at ``keypoint_sigma_px``.
         level_sigmas: bool = False
+        #: Extract the query's features on its image reduced by this factor
+        #: (:class:`~reloc_service.core.features.FeatureConf` ``scale``); each keypoint is then
+        #: located to ``1 / query_scale`` full-image pixels, which its weight carries.
+        query_scale: float = 1.0
 
         def __post_init__(self) -> None:
             super().__post_init__()
-            feature_lib.FeatureConf(kind=self.kind, max_features=self.max_features)
+            feature_lib.FeatureConf(kind=self.kind, max_features=self.max_features,
+                                    scale=self.query_scale)
             if not 0 < self.ratio <= 1:
                 raise ConfigError(f"p3p: ratio must be in (0, 1], got {self.ratio}")
             if self.first_pool_keyframes is not None and self.first_pool_keyframes < 1:
@@ -182,7 +187,7 @@ class P3PPoseFinder(PoseFinder):
         """The query's features of this finder's kind explained by the landmarks of the
         keyframes near ``world_from_cam`` (the local map guided matching projects), in
         windows as guided matching's; None before the features are extracted."""
-        feats = query.features.get(self.conf.kind)
+        feats = query.features.get(self._feature_key)
         if feats is None:
             return None
         conf = GuidedConf(local_keyframes=self.conf.guided_keyframes)
@@ -199,7 +204,7 @@ class P3PPoseFinder(PoseFinder):
         the inliers' query keypoints as closely as Lowe's ratio allows), each grown by guided
         matching over the keyframes its twins came from and those near it; only those
         ``plausible`` as a first pose."""
-        feats = query.features.get(self.conf.kind)
+        feats = query.features.get(self._feature_key)
         if feats is None or estimate.inlier_keypoints is None or estimate.inlier_landmark_ids is None:
             return []
         pool, sigmas, ids = self._map_pool(state)
@@ -258,10 +263,21 @@ class P3PPoseFinder(PoseFinder):
         return self._pooled[1], self._pooled[2], self._pooled[3]
 
     def _scales(self, feats: Features, q_idx: npt.NDArray[np.int64]) -> Array | None:
-        """(M,) pyramid-level scales of query keypoints ``q_idx`` with ``level_sigmas``."""
-        if not self.conf.level_sigmas:
-            return None
-        return level_scales(feats.levels[q_idx], feature_lib.level_scale_factor(self.conf.kind))
+        """(M,) localisation scales of query keypoints ``q_idx``: their pyramid levels' with
+        ``level_sigmas``, else the reduced image's pixel (``1 / query_scale``) when the
+        features come from one, else None (every keypoint to one pixel)."""
+        if self.conf.level_sigmas:
+            return level_scales(feats.levels[q_idx],
+                                feature_lib.level_scale_factor(self.conf.kind))
+        if self.conf.query_scale != 1:
+            return np.full(len(q_idx), 1.0 / self.conf.query_scale)
+        return None
+
+    @property
+    def _feature_key(self) -> str:
+        """The name the query's features of this finder are cached under on the frame."""
+        (key, _), = self.feature_confs().items()
+        return key
 
     def _first_pool(self, keyframes: list[Keyframe]) -> list[Keyframe]:
         """The keyframes whose landmarks are matched first: the best
@@ -276,7 +292,8 @@ class P3PPoseFinder(PoseFinder):
             prepare_map(state, self.conf.kind, self.conf)
 
     def query_kinds(self, query: Frame) -> frozenset[str]:
-        return frozenset() if self.conf.kind in query.features else self.required_features
+        key = self._feature_key
+        return frozenset() if key in query.features else frozenset({key})
 
     def prepare_query(self, query: Frame) -> dict[str, float]:
         timings: dict[str, float] = {}
@@ -284,8 +301,9 @@ class P3PPoseFinder(PoseFinder):
         return timings
 
     def feature_confs(self) -> dict[str, feature_lib.FeatureConf]:
-        return {self.conf.kind: feature_lib.FeatureConf(kind=self.conf.kind,
-                                                        max_features=self.conf.max_features)}
+        conf = feature_lib.FeatureConf(kind=self.conf.kind, max_features=self.conf.max_features,
+                                       scale=self.conf.query_scale)
+        return {conf.key: conf}
 
     def prepare_candidates(self, query: Frame, candidates: list[PlaceCandidate],
                            state: MapState) -> dict[str, float]:

@@ -142,9 +142,11 @@ class ChainRelocalizer(Relocalizer):
         the query's intrinsics (:func:`.base.refuses_the_query`) is then left to it, since
         other keypoints carry other localisation errors (ORB's pyramid-quantised corners
         bias a focal estimate that SIFT's sub-pixel ones do not); the same features would
-        meet the same correspondences, and the chain answers the refusal."""
-        own = self.steps[i].required_features
-        return any(step.required_features - own for step in self.steps[i + 1:])
+        meet the same correspondences, and the chain answers the refusal. Features are told
+        apart as the query caches them (SIFT of a reduced image is not SIFT of the image)."""
+        own, own_kinds = set(self.steps[i].feature_confs()), self.steps[i].required_features
+        return any(set(step.feature_confs()) - own or step.required_features - own_kinds
+                   for step in self.steps[i + 1:])
 
     def _ask(self, query: Frame, i: int, prior: Prior | None, hypotheses: int,
              reasons: list[str]) -> RelocResult | None:

@@ -33,12 +33,14 @@ from .multi import STEP_FEATURES
 Options = Mapping[str, Mapping[str, Any]]
 
 #: The method the engine and the service use when none is named: the fast path first (the
-#: small blurry image, P3P on 500 ORB features), and only
-#: where it cannot verify, the SIFT steps: bag-of-words retrieval (rotation and exposure
-#: invariant) with P3P, then the small blurry image (which still ranks heavily blurred
-#: queries) with P3P. Maps built for it carry ORB and SIFT landmarks. One set of defaults for
-#: every data set: see the README's results table.
-DEFAULT_METHOD = "sbi+p3p:orb,bow+p3p,sbi+p3p"
+#: small blurry image, P3P on 500 ORB features); where it cannot verify, SIFT of the query
+#: reduced to half size (blur and distance remove the fine scales ORB's corners need, and the
+#: coarse ones cost a quarter of full-size SIFT); only where that cannot verify either, the
+#: full-size SIFT steps: bag-of-words retrieval (rotation and exposure invariant) with P3P,
+#: then the small blurry image (which still ranks heavily blurred queries) with P3P. Maps
+#: built for it carry ORB and SIFT landmarks. One set of defaults for every data set: see the
+#: README's results table.
+DEFAULT_METHOD = "sbi+p3p:orb,sbi+p3p:sift-half,bow+p3p,sbi+p3p"
 
 
 def create_relocalizer(spec: str | MethodSpec, kmap: KeyframeMap, *,
@@ -98,6 +100,9 @@ def _feature_variants(pose_cls: type[PoseFinder]) -> list[tuple[str | None, str]
     fields = {f.name for f in dataclasses.fields(pose_cls.Conf)}
     variants: list[tuple[str | None, str]] = [(None, "")]
     if "kind" in fields:
-        variants += [(kind, f" on {conf['max_features']} {kind.upper()} features")
-                     for kind, conf in sorted(STEP_FEATURES.items())]
+        variants += [(kind, f" on {conf['max_features']} {conf['kind'].upper()} features"
+                      + (f" of the image reduced to {conf['query_scale']:g} of its size"
+                         if "query_scale" in conf else ""))
+                     for kind, conf in sorted(STEP_FEATURES.items())
+                     if set(conf) - {"first_pool_keyframes"} <= fields]
     return variants

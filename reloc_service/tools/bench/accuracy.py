@@ -23,6 +23,7 @@ that folder is absent).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 import traceback
@@ -38,6 +39,7 @@ from ...algorithms.relocalizers.base import RelocResult, RelocStatus
 from ...core.methods import MethodSpec, parse_method
 from ...core.numeric import limit_blas_threads
 from ...core.progress import progress
+from .limit import LIMIT_ORB_FEATURES, limit_summary, measure_limit, over_limit
 from .samples import json_safe
 from .workspace import say
 
@@ -62,7 +64,7 @@ SUMMARY_KEYS: tuple[str, ...] = (
     "queries", "returned", "recall", "wrong_rate", "off_rate", "covariance_scale",
     "returned_rate", "not_relocalized_rate",
     "median_t_err_m",
-    "median_r_err_deg", "p50_ms", "p99_ms")
+    "median_r_err_deg", "p50_ms", "p90_ms", "p99_ms")
 
 
 def repo_root() -> Path:
@@ -271,11 +273,14 @@ def score_dataset(root: Path, methods: Sequence[str], *, show_progress: bool = T
                                                      for e in dataset.query_entries}, peers)
         records: dict[str, list[Any]] = {c: [] for c in [*methods, *peer_cols]}
         errors: dict[str, str] = dict(peer_errors)
+        limit: dict[str, list[float]] = {}
         start = time.perf_counter()
         queries: Iterable[Any] = dataset.query_entries
         if show_progress:
             queries = progress(list(queries), desc=f"{Path(root).name}: queries")
         for entry in queries:
+            measure_limit(functools.partial(dataset.load_image, entry), limit,
+                          {"orb": LIMIT_ORB_FEATURES})
             _score_query(backend, dataset, entry, methods, peer_cols, records, errors)
         eval_s = time.perf_counter() - start
     finally:
@@ -286,17 +291,22 @@ def score_dataset(root: Path, methods: Sequence[str], *, show_progress: bool = T
             results[column] = {"error": errors[column]}
         else:
             results[column] = summary_dict(ev.summarize(recs))
+            results[column]["p90_ms"] = (float(np.percentile([r.latency_ms for r in recs], 90))
+                                         if recs else None)
             if column in PEERS:
                 results[column]["map_descriptors"] = peer_cols[column]["descriptors"]
             elif len((spec := parse_method(column)).steps) > 1:
                 results[column]["first_step"] = first_step_share(spec, recs)
+    limits = limit_summary(limit) if limit else {}
+    for column, ratio in over_limit(results, limits).items():
+        results[column]["over_limit"] = ratio
     cams = sorted({dataset.camera(e).model for e in dataset.query_entries})
     return {"root": str(Path(root).resolve()), "landmark_source": source.value,
             "keyframes": len(state.keyframes),
             "landmarks": len(state.landmarks), "sift_landmarks": state.landmark_count("sift"),
             "queries": len(dataset.query_entries),
             "camera_models": cams, "build_s": build_s, "train_s": train_s, "eval_s": eval_s,
-            "results": results}
+            "limit": {**limits, "orb_features": LIMIT_ORB_FEATURES}, "results": results}
 
 
 def eval_default_landmarks() -> Any:
@@ -449,6 +459,12 @@ def _ms(value: Any) -> str:
     return f"{value:.0f} ms" if value >= 10 else f"{value:.1f} ms"
 
 
+def _ratio(value: Any) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return f"{value:.1f}x"
+
+
 def _scale(value: Any) -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return "-"
@@ -502,7 +518,9 @@ def detail_lines(section: Mapping[str, Any]) -> list[str]:
     """One row per dataset and column: recalls, wrong and not-relocalized rates, p50 and
     p99, the default's recall gap to ``sbi+p3p`` and the share its first step answered."""
     header = ["dataset", "method", "recall 5cm/5deg", "recall 25cm/10deg", "off", "wrong",
-              "cov scale", "not relocalized", "p50 ms", "p99 ms", "recall - `sbi+p3p`", "first step"]
+              "cov scale", "not relocalized", "p50 ms", "p90 ms", "p99 ms", "recall - `sbi+p3p`",
+              "first step",
+              "decode + ORB p50", "p50 / limit"]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     for name, d in section["datasets"].items():
         if "error" in d:
@@ -520,9 +538,11 @@ def detail_lines(section: Mapping[str, Any]) -> list[str]:
                 _pct(r["recall"].get("5cm_5deg")), _pct(r["recall"].get("25cm_10deg")),
                 _pct(r.get("off_rate")), _pct(r["wrong_rate"]),
                 _scale(r.get("covariance_scale")), _pct(r.get("not_relocalized_rate")),
-                _ms(r["p50_ms"]),
+                _ms(r["p50_ms"]), _ms(r.get("p90_ms")),
                 _ms(r["p99_ms"]), "-" if gap is None else f"{gap:+.0f} points",
-                "-" if share is None else f"{_pct(share)} by `{first['step']}`"]) + " |")
+                "-" if share is None else f"{_pct(share)} by `{first['step']}`",
+                _ms(d.get("limit", {}).get("orb_limit_p50_ms")), _ratio(r.get("over_limit"))])
+                + " |")
     return lines
 
 
@@ -551,6 +571,9 @@ def markdown_lines(section: Mapping[str, Any]) -> list[str]:
              "config's `service.default_method`. Plain OpenCV: SIFT, `BFMatcher` knn ratio "
              "0.8 against the landmarks of every keyframe, `cv2.solvePnPRansac`, accepted at "
              ">= 20 inliers; dedup keeps one descriptor per landmark. \"first step\": the "
-             "share of a fallback chain's answers its first step gave.", ""]
+             "share of a fallback chain's answers its first step gave. \"decode + ORB\": "
+             f"reading and decoding each query image and extracting {LIMIT_ORB_FEATURES} ORB "
+             "features, timed on the same queries in the same run; \"p50 / limit\": each "
+             "column's p50 over that limit's p50.", ""]
             + detail_lines(section) + [""] + (note_lines(section) + [""]
                                               if note_lines(section) else []))

@@ -32,9 +32,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write PNG plots into DIR (needs matplotlib)")
     parser.add_argument("--only", metavar="SECTION", action="append",
                         help="run only this section (repeatable); one of: latency, peers, "
-                             "throughput, scaling, ferns, planar, accuracy, soak, attack "
-                             "(without --only every section but soak and attack runs; those "
-                             "only when named here). attack: the attack cases of "
+                             "throughput, scaling, ferns, planar, accuracy, prior, soak, "
+                             "attack (without --only every section but soak and attack runs; "
+                             "those only when named here; prior not with --quick). prior: "
+                             "the default method with good and wrong pose priors on the "
+                             "--dataset/--preset sets (default: room, stereo and the real sets). "
+                             "attack: the attack cases of "
                              "docs/reliability.md against reloc serve processes, a few "
                              "minutes; exit status 1 if any attempt broke something")
     parser.add_argument("--dataset", metavar="DIR", type=Path, action="append",
@@ -75,13 +78,16 @@ def main(args: argparse.Namespace) -> int:
     datasets, presets = getattr(args, "dataset", None), getattr(args, "preset", None)
     cache = getattr(args, "cache", None) or (
         args.workdir / "cache" if args.workdir is not None else Path("out/bench-cache"))
-    explicit_accuracy = "accuracy" in (args.only or []) or bool(datasets or presets)
+    named_prior = "prior" in (args.only or [])
+    explicit_accuracy = "accuracy" in (args.only or []) or (
+        bool(datasets or presets) and not named_prior)
     run_accuracy = explicit_accuracy or not args.only
     if args.only:
-        unknown = sorted(set(args.only) - set(suite.SECTIONS) - {"accuracy", *NAMED_ONLY})
+        unknown = sorted(set(args.only) - set(suite.SECTIONS)
+                         - {"accuracy", "prior", *NAMED_ONLY})
         if unknown:
             print(f"reloc bench: unknown section(s) {unknown}; expected some of "
-                  f"{[*suite.SECTIONS, 'accuracy', *NAMED_ONLY]}", file=sys.stderr)
+                  f"{[*suite.SECTIONS, 'accuracy', 'prior', *NAMED_ONLY]}", file=sys.stderr)
             return 2
         conf = dataclasses.replace(conf, sections=tuple(s for s in suite.SECTIONS
                                                         if s in args.only))
@@ -103,6 +109,14 @@ def main(args: argparse.Namespace) -> int:
         if problem:
             print(f"reloc bench: {problem}", file=sys.stderr)
             return 2
+    if named_prior:
+        from .accuracy import AccuracyConf, check_conf
+
+        problem = check_conf(AccuracyConf(presets=tuple(presets or ()),
+                                          datasets=tuple(datasets or ())))
+        if problem:
+            print(f"reloc bench: {problem}", file=sys.stderr)
+            return 2
     baseline = None
     if getattr(args, "baseline", None) is not None:
         try:
@@ -120,6 +134,10 @@ def main(args: argparse.Namespace) -> int:
         write_json(partial, {**result, "partial": True})
     if acc_conf is not None:
         accuracy.run_into(result, acc_conf, args.workdir)
+    if named_prior or not (args.only or args.quick):
+        from . import prior
+
+        prior.run_into(result, prior_conf(args, cache), args.workdir, suite.say)
     if "soak" in (args.only or []):
         from . import soak
 
@@ -179,6 +197,9 @@ def main(args: argparse.Namespace) -> int:
     if sk and "error" not in sk and (sk["keyframes"]["lost"] or sk["keyframes"]["duplicated"]):
         failed.append(f"soak ({sk['keyframes']['lost']} keyframes lost, "
                       f"{sk['keyframes']['duplicated']} duplicated)")
+    pr = result.get("prior")
+    if pr and pr.get("failed_sets"):
+        failed.append(f"prior ({', '.join(pr['failed_sets'])})")
     if acc and (acc.get("failed_datasets") or acc.get("failed_columns")):
         failed.append(f"accuracy ({', '.join([*acc['failed_datasets'], *acc['failed_columns']])})")
     if failed:
@@ -189,6 +210,18 @@ def main(args: argparse.Namespace) -> int:
 
 #: Sections run only when named with ``--only`` (too long, or not a measurement of speed).
 NAMED_ONLY = ("soak", "attack")
+
+
+def prior_conf(args: argparse.Namespace, cache: Path) -> Any:
+    """The prior section's sets: ``--dataset``/``--preset`` as given, else its defaults
+    (the room and stereo presets and the real sets)."""
+    from .prior import PriorConf
+
+    datasets, presets = getattr(args, "dataset", None), getattr(args, "preset", None)
+    if datasets or presets:
+        return PriorConf(datasets=tuple(datasets or ()), presets=tuple(presets or ()),
+                         cache=cache)
+    return PriorConf(cache=cache)
 
 
 def write_json(path: Path, result: Mapping[str, Any]) -> None:
@@ -338,7 +371,7 @@ def render_markdown(result: Mapping[str, Any], *, plots_dir: Path | None = None)
     for name, fn in (("scene", _scene), ("latency", _latency), ("peers", _peers),
                      ("accuracy", _accuracy), ("throughput", _throughput),
                      ("scaling", _scaling), ("ferns", _ferns), ("planar", _planar),
-                     ("soak", _soak)):
+                     ("prior", _prior), ("soak", _soak)):
         section = result.get(name)
         if not section:
             continue
@@ -501,6 +534,12 @@ def _soak(soak: Mapping[str, Any]) -> list[str]:
 
     return ["## Soak (reliability)", "", "See docs/reliability.md for what the run does.", "",
             *table_lines(soak)]
+
+
+def _prior(section: Mapping[str, Any]) -> list[str]:
+    from .prior import markdown_lines
+
+    return markdown_lines(section)
 
 
 def _accuracy(a: Mapping[str, Any]) -> list[str]:

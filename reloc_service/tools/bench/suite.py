@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import math
 import tempfile
 import threading
@@ -46,11 +47,11 @@ import numpy as np
 
 from ...algorithms.relocalizers.base import RelocResult
 from ...algorithms.relocalizers.factory import DEFAULT_METHOD
-from ...core.features import FeatureConf, extract
 from ...core.frame import Frame
 from ...core.numeric import limit_blas_threads
 from ...core.progress import progress
 from ...engine import EngineConf
+from .limit import limit_summary, measure_limit
 from .machine import code_record, load_average, machine_record
 from .samples import (
     JPEG_QUALITY,
@@ -103,13 +104,13 @@ def bench_latency(ws: Workspace) -> dict[str, Any]:
         remote: dict[str, list[Any]] = {v.label: [] for v in VARIANTS}
         passes = [(r, i) for r in range(conf.repeats) for i in range(len(q))]
         for _, i in progress(passes, desc="latency (queries x repeats)"):
-            _measure_limit(q.jpegs[i], limit)
+            measure_limit(functools.partial(decode_jpeg, q.jpegs[i]), limit, LIMIT_COUNTS)
             for v in VARIANTS:
                 local[v.label].append((i, relocalize_jpeg(ws.engines[v.group], q.jpegs[i],
                                                           q.camera, v.method)))
                 remote[v.label].append(clients[v.group].relocalize(
                     q.jpegs[i], camera_id=CAMERA_ID, method=v.method))
-    limits = _limit_summary(limit)
+    limits = limit_summary(limit)
     methods = {}
     for v in VARIANTS:
         row = summarize_samples(local[v.label], q)
@@ -124,25 +125,8 @@ def bench_latency(ws: Workspace) -> dict[str, Any]:
                         "image_on_wire": f"JPEG quality {JPEG_QUALITY}"}}
 
 
-def _measure_limit(jpeg: bytes, out: dict[str, list[float]]) -> None:
-    """Decode alone, then SIFT (2000, as p3p) and ORB (500, as the ORB path) extraction."""
-    start = time.perf_counter()
-    image = decode_jpeg(jpeg)
-    out["decode"].append(time.perf_counter() - start)
-    for kind, n in (("sift", 2000), ("orb", int(ORB_OPTIONS["p3p"]["max_features"]))):
-        start = time.perf_counter()
-        extract(image, FeatureConf(kind=kind, max_features=n))
-        out[kind].append(time.perf_counter() - start)
-
-
-def _limit_summary(limit: Mapping[str, list[float]]) -> dict[str, float]:
-    decode = np.asarray(limit["decode"])
-    out = {"decode_p50_ms": pct_ms(limit["decode"], 50)}
-    for kind in ("sift", "orb"):
-        out[f"{kind}_p50_ms"] = pct_ms(limit[kind], 50)
-        out[f"{kind}_limit_p50_ms"] = pct_ms(list(decode + np.asarray(limit[kind])), 50)
-        out[f"{kind}_limit_p99_ms"] = pct_ms(list(decode + np.asarray(limit[kind])), 99)
-    return out
+#: The limit's extractions: SIFT (2000, as p3p) and ORB (500, as the ORB path).
+LIMIT_COUNTS: dict[str, int] = {"sift": 2000, "orb": int(ORB_OPTIONS["p3p"]["max_features"])}
 
 
 def _remote_summary(replies: Sequence[Any], local: Sequence[tuple[int, RelocResult]]
