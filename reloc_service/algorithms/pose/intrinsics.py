@@ -80,7 +80,7 @@ class IntrinsicsPrior:
     focal_sigma_rel: float = 0.005
     radial_sigma_px: float = 2.0
     false_refusal: float = 1e-3
-    missed_detection: float = 0.1
+    missed_detection: float = 0.5
 
     @property
     def covariance(self) -> Array:

@@ -72,7 +72,7 @@ class PnPConf:
     #: The share of stale calibrations a passing pose's covariance may fail to cover: every
     #: intrinsics error the test misses more often than this moves the pose within 3 of its
     #: stated sigmas (:mod:`.intrinsics_power`).
-    intrinsics_missed_detection: float = 0.1
+    intrinsics_missed_detection: float = 0.5
 
     def __post_init__(self) -> None:
         if self.max_reproj_error_px <= 0:
