@@ -71,12 +71,16 @@ CLUSTER_GRID = 4
 @dataclass(frozen=True)
 class IntrinsicsPrior:
     """How well a correct calibration knows the camera, 1 sigma: the focal's relative error
-    and the radial error at the farthest image corner, pixels; and the false-refusal rate of
-    the test (the share of queries with correct intrinsics it refuses)."""
+    and the radial error at the farthest image corner, pixels; the false-refusal rate of
+    the test (the share of queries with correct intrinsics it refuses); and the
+    missed-detection rate a passing pose's covariance allows for (an intrinsics error the
+    test misses more often than this moves the pose within 3 of its stated sigmas:
+    :mod:`.intrinsics_power`)."""
 
     focal_sigma_rel: float = 0.005
     radial_sigma_px: float = 2.0
     false_refusal: float = 1e-3
+    missed_detection: float = 0.5
 
     @property
     def covariance(self) -> Array:

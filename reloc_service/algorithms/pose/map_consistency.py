@@ -30,6 +30,7 @@ from ...core.triangulation import ViewObservations, keypoint_sigmas, refine_poin
 from .base import PoseEstimate
 from .guided import GuidedConf
 from .intrinsics import IntrinsicsCheck, check_intrinsics
+from .intrinsics_power import blind_spot_factor, governing_covariance
 from .map_uncertainty import map_covariance
 from .pnp import PnPConf, pose_projector
 
@@ -205,12 +206,17 @@ def covariance_with_intrinsics(covariance: Array, check: IntrinsicsCheck, *,
     ORB's let a 5 % focal error pass). Beyond what the local covariance sees, the farthest
     solution the data cannot exclude (:attr:`IntrinsicsCheck.unexcluded_twist`: a scene
     with little depth fits a wrong focal from a pose far away about as well) adds its shift
-    ``s s^T``. ``trusted``: the given intrinsics trusted within the prior,
-    ``d C + B P B^T``."""
+    ``s s^T``. A pose answered is one whose test passed, and under a stale calibration those
+    are the queries whose ``theta_hat`` noise pulled towards zero: ``V + P`` is widened by
+    ``(k - 1) W`` (:func:`.intrinsics_power.blind_spot_factor` ``k``, ``W`` the governing
+    test covariance) so that every error the test misses more often than its missed-detection
+    rate moves the pose within 3 sigma. ``trusted``: the given intrinsics trusted within the
+    prior, ``d C + B P B^T``."""
     shift, theta = check.pose_shift, check.theta
     intrinsics = check.prior.covariance
     if not trusted:
-        intrinsics = intrinsics + check.covariance
+        widening = blind_spot_factor(check) - 1.0
+        intrinsics = intrinsics + check.covariance + widening * governing_covariance(check)
     stated = check.dispersion * covariance + shift @ intrinsics @ shift.T
     if trusted:
         return stated

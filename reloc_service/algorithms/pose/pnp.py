@@ -69,6 +69,10 @@ class PnPConf:
     #: pose that passes carries it in its covariance.
     focal_sigma_rel: float = 0.005
     radial_sigma_px: float = 2.0
+    #: The share of stale calibrations a passing pose's covariance may fail to cover: every
+    #: intrinsics error the test misses more often than this moves the pose within 3 of its
+    #: stated sigmas (:mod:`.intrinsics_power`).
+    intrinsics_missed_detection: float = 0.5
 
     def __post_init__(self) -> None:
         if self.max_reproj_error_px <= 0:
@@ -86,6 +90,9 @@ class PnPConf:
         if not 0 <= self.intrinsics_false_refusal < 1:
             raise ConfigError(f"intrinsics_false_refusal must be in [0, 1), got "
                               f"{self.intrinsics_false_refusal}")
+        if not 0 < self.intrinsics_missed_detection < 1:
+            raise ConfigError(f"intrinsics_missed_detection must be in (0, 1), got "
+                              f"{self.intrinsics_missed_detection}")
         if self.focal_sigma_rel <= 0 or self.radial_sigma_px <= 0:
             raise ConfigError(f"focal_sigma_rel and radial_sigma_px must be positive, got "
                               f"{self.focal_sigma_rel}, {self.radial_sigma_px}")
@@ -94,7 +101,7 @@ class PnPConf:
     def intrinsics_prior(self) -> IntrinsicsPrior:
         """The calibration uncertainty and false-refusal rate :mod:`.intrinsics` tests with."""
         return IntrinsicsPrior(self.focal_sigma_rel, self.radial_sigma_px,
-                               self.intrinsics_false_refusal)
+                               self.intrinsics_false_refusal, self.intrinsics_missed_detection)
 
 
 def solve_pnp(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Camera,

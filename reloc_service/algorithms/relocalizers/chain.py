@@ -12,6 +12,7 @@ from ...core.features import FeatureConf
 from ...core.frame import Frame, Keyframe
 from ...core.map import KeyframeMap
 from ..pose.base import PoseEstimate
+from ..pose.intrinsics_power import estimate_underpowered
 from .base import (
     ANSWERED,
     CONTENDER,
@@ -84,8 +85,10 @@ class ChainRelocalizer(Relocalizer):
         refusal answers as the class docstring says.
 
         A second opinion for weakly conditioned answers: when a step's pose rests on inliers
-        spanning a small part of the image (:func:`.base.narrow_support`), the later steps
-        are asked too, with that answer left on the query as a :class:`.base.Contender`. The
+        spanning a small part of the image (:func:`.base.narrow_support`), or on an
+        intrinsics test too weak to vouch for it while a later step matches other features
+        (:meth:`_underpowered`), the later steps are asked too, with that answer left on the
+        query as a :class:`.base.Contender`. The
         first later step that verifies a pose weighs the contender against its own by the
         query keypoints each explains, with its own (richer) features, and its answer is the
         chain's: the contender, its own pose, or "ambiguous". When no later step weighs it
@@ -118,7 +121,7 @@ class ChainRelocalizer(Relocalizer):
                 if contender is not None and result.ok:
                     break  # a step that cannot weigh it does not overrule it
                 if result.ok and contender is None and i + 1 < len(self.steps) \
-                        and _narrow(step, answered):
+                        and (_narrow(step, answered) or self._underpowered(i, answered)):
                     contender = Contender(result, answered)
                     query.cache[CONTENDER] = contender
                     continue
@@ -147,6 +150,15 @@ class ChainRelocalizer(Relocalizer):
         own, own_kinds = set(self.steps[i].feature_confs()), self.steps[i].required_features
         return any(set(step.feature_confs()) - own or step.required_features - own_kinds
                    for step in self.steps[i + 1:])
+
+    def _underpowered(self, i: int, estimate: PoseEstimate | None) -> bool:
+        """Whether step ``i``'s answer, given by ``estimate``, rests on an intrinsics test too
+        weak to vouch for it (:func:`..pose.intrinsics_power.estimate_underpowered`) while a
+        later step matches other features, whose test may have the power (ORB's coarse
+        corners let a focal error through that SIFT's keypoints reveal): that step is then
+        heard too, as for a narrow support."""
+        return (estimate is not None and self._other_features_after(i)
+                and estimate_underpowered(estimate))
 
     def _ask(self, query: Frame, i: int, prior: Prior | None, hypotheses: int,
              reasons: list[str]) -> RelocResult | None:
