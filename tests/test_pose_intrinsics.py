@@ -23,6 +23,7 @@ from reloc_service.algorithms.relocalizers.base import Relocalizer, RelocResult,
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer
 from reloc_service.core.cameras import Camera, PinholeCamera, RadTanCamera
+from reloc_service.core.features import FeatureConf
 from reloc_service.core.frame import EncodedImage, Frame
 from reloc_service.core.geometry import look_at, pose_error, transform_points
 from reloc_service.core.map import KeyframeMap
@@ -231,6 +232,11 @@ class _Refusing(Relocalizer):
     @property
     def required_features(self) -> frozenset[str]:
         return frozenset({self.kind})
+
+    def feature_confs(self) -> dict[str, FeatureConf]:
+        """The full-size features of its kind, as a p3p step extracts them."""
+        conf = FeatureConf(kind=self.kind)
+        return {conf.key: conf}
 
     def add_keyframe(self, keyframe) -> None:
         pass
