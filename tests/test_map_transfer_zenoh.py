@@ -104,7 +104,7 @@ def test_a_damaged_upload_is_refused_by_name_and_nothing_is_stored(two_services,
     with RelocClient(endpoint(port_a), map=MAP, timeout=30) as client:
         download_export(client, good)
     with tarfile.open(good) as tar:
-        member = next(m for m in tar if "/images/" in m.name)
+        member = next(m for m in tar if "/features/" in m.name)
     raw = bytearray(good.read_bytes())
     raw[member.offset_data + 10] ^= 0x01
     bad = tmp_path / "bad.relocmap"

@@ -125,8 +125,13 @@ def test_bytes_per_map_and_in_total_are_counted_after_a_restart(synthetic_scene,
                 for kf_id in ids:
                     put_keyframe(client, synthetic_scene, kf_id)
         assert service.wait_idle(30)
+        held = {name: rt.usage.total for name, rt in service.maps.items()}
+    # Restored from storage, a map holds what its snapshot keeps (no depth, images only
+    # where a method reads pixels): counted as restored, and the same at every restart.
+    with Service(quota_conf(port, storage, maps=("lab", "other"))) as service:
         used = {name: rt.usage.total for name, rt in service.maps.items()}
         kf1 = keyframe_bytes(service.maps["lab"].map_state().keyframes[1])
+    assert all(0 < used[name] <= held[name] for name in used), (used, held)
     assert 0 < kf1 < used["lab"], used
     conf = quota_conf(port, storage, maps=("lab", "other"), max_map_bytes=used["lab"] + 1,
                       max_total_bytes=used["lab"] + used["other"] + 1)

@@ -320,16 +320,17 @@ def test_a_map_written_by_the_previous_format_restores_and_gets_an_identity(
 
 def test_a_snapshot_failing_on_a_full_disk_leaves_nothing_and_puts_go_on(
         storage, synthetic_scene, monkeypatch):
-    """Injected: the snapshot's write of a keyframe image writes half its bytes, then raises
-    ENOSPC (what a full disk does). The partial snapshot directory is removed, CURRENT still
-    names the previous snapshot, and later puts are journaled and acknowledged."""
+    """Injected: the snapshot's write of a feature column (a part every snapshot writes)
+    writes half its bytes, then raises ENOSPC (what a full disk does). The partial snapshot
+    directory is removed, CURRENT still names the previous snapshot, and later puts are
+    journaled and acknowledged."""
     map_dir = storage / MAP
     snapshots = sorted(p.name for p in (map_dir / "map" / "snapshots").iterdir())
     current = (map_dir / "map" / "CURRENT").read_text()
     real_write = snapshot_files.SnapshotWriter.write
 
     def full_disk(self, relpath, data):
-        if relpath.startswith("images/"):
+        if relpath.startswith("features/"):
             (self.root / relpath).parent.mkdir(parents=True, exist_ok=True)
             with open(self.root / relpath, "wb") as fh:
                 fh.write(data[: len(data) // 2])

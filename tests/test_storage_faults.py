@@ -46,8 +46,10 @@ SNAPSHOT_IDS, JOURNAL_IDS = (0, 1, 2), (3, 4, 5)
 
 
 def conf(port: int, storage: Path, **service):
+    """Snapshots keep the keyframe images (``keyframe_images = "always"``), so a damaged
+    image file is among the faults a restore must name."""
     return service_conf(port, storage, maps=(GOOD, BAD), train_on_load=False,
-                        snapshot_every=0, **service)
+                        snapshot_every=0, keyframe_images="always", **service)
 
 
 def pose_covariance(kf_id: int) -> np.ndarray | None:
