@@ -220,7 +220,7 @@ def prior_conf(args: argparse.Namespace, cache: Path) -> Any:
     datasets, presets = getattr(args, "dataset", None), getattr(args, "preset", None)
     if datasets or presets:
         return PriorConf(datasets=tuple(datasets or ()), presets=tuple(presets or ()),
-                         cache=cache)
+                         real_sets=False, cache=cache)
     return PriorConf(cache=cache)
 
 

@@ -48,11 +48,13 @@ PRESETS: tuple[str, ...] = ("room", "stereo")
 
 @dataclass(frozen=True)
 class PriorConf:
-    """What the section runs on: dataset folders, rendered ``presets`` (into ``cache``),
-    good priors drawn per query, the seed of the draws."""
+    """What the section runs on: dataset folders, rendered ``presets`` (into ``cache``), the
+    real sets found beside the project (``real_sets``), good priors drawn per query, the seed
+    of the draws."""
 
     datasets: tuple[Path, ...] = ()
     presets: tuple[str, ...] = PRESETS
+    real_sets: bool = True
     repeats: int = 3
     seed: int = 0
     scale: float = 1.0
@@ -169,7 +171,7 @@ def bench_prior(conf: PriorConf, workdir: Path, say: Callable[[str], None] = pri
     method = conf.method or service_default_method()
     roots: list[tuple[str, Any]] = [("synth", p) for p in conf.presets]
     roots += [("dir", Path(d)) for d in conf.datasets]
-    if not conf.datasets:
+    if conf.real_sets:
         roots += [("dir", d) for d in real_sets(default_real_root())[0]]
     sets: dict[str, Any] = {}
     for kind, what in roots:
