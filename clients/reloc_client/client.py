@@ -498,32 +498,30 @@ class RelocClient:
 
     def maps(self, *, timeout: float | None = None) -> list[tuple[str, str]]:
         """(instance, map) of every live service instance under this prefix (any map)."""
-        found = set()
-        replies = self.session.liveliness().get(wire.keys.liveliness_all(self.prefix),
-                                                timeout=_check_timeout(timeout, self.timeout))
-        for reply in replies:
-            if reply.ok is None:
-                continue
-            try:
-                found.add(wire.keys.parse_liveliness(self.prefix, str(reply.ok.key_expr)))
-            except ProtocolError as exc:
-                log.warning("ignoring liveliness token %s: %s", reply.ok.key_expr, exc)
-        return sorted(found)
+        return self._tokens(wire.keys.liveliness_all(self.prefix), wire.keys.parse_liveliness,
+                            "liveliness", timeout)
 
     def resident_maps(self, *, timeout: float | None = None) -> list[tuple[str, str]]:
         """(instance, map) of every map an instance holds in memory: a query on it answers
         without a load from storage (a service with ``max_resident_mb`` loads maps on first
         use and closes idle ones; without it every served map is resident)."""
+        return self._tokens(wire.keys.resident_all(self.prefix), wire.keys.parse_resident,
+                            "residency", timeout)
+
+    def _tokens(self, key: str, parse: Callable[[str, str], tuple[str, str]], what: str,
+                timeout: float | None) -> list[tuple[str, str]]:
+        """The (instance, map) of each liveliness token matching ``key``, sorted; a token
+        whose key does not parse is logged and skipped."""
         found = set()
-        replies = self.session.liveliness().get(wire.keys.resident_all(self.prefix),
+        replies = self.session.liveliness().get(key,
                                                 timeout=_check_timeout(timeout, self.timeout))
         for reply in replies:
             if reply.ok is None:
                 continue
             try:
-                found.add(wire.keys.parse_resident(self.prefix, str(reply.ok.key_expr)))
+                found.add(parse(self.prefix, str(reply.ok.key_expr)))
             except ProtocolError as exc:
-                log.warning("ignoring residency token %s: %s", reply.ok.key_expr, exc)
+                log.warning("ignoring %s token %s: %s", what, reply.ok.key_expr, exc)
         return sorted(found)
 
     def subscribe_events(self, callback: Callable[[wire.Event], None], *,
