@@ -14,26 +14,30 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import queue
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 import zenoh
 
 from . import protocol as wire
+from .acks import Acks, ServiceWatch, replica_answers, stored_refused
+from .convert import (
+    CameraLike,
+    ImageLike,
+    PoseLike,
+    keyframe_put_bytes,
+    to_wire_camera,
+    to_wire_depth,
+    to_wire_features,
+    to_wire_image,
+    to_wire_pose,
+)
 from .protocol import ErrorCode, ProtocolError
 from .result import RelocResult, RelocStatus, result_from_reply
-
-Array = npt.NDArray[np.float64]
-ImageLike = wire.WireImage | bytes | bytearray | str | os.PathLike[str] | npt.NDArray[Any]
-PoseLike = wire.WirePose | npt.ArrayLike | tuple[Sequence[float], Sequence[float]]
-CameraLike = wire.WireCamera | Mapping[str, Any] | Any  # or any object with .to_dict()
 
 log = logging.getLogger(__name__)
 
@@ -58,127 +62,6 @@ class NoReplyError(TimeoutError):
 class ServiceGone(NoReplyError):
     """The service instances serving the map went away (their liveliness tokens) while a
     client waited for one of their jobs: the job is lost."""
-
-
-# -- argument conversion (numpy / bytes / files -> wire types) -------------------------------
-
-def to_wire_image(image: ImageLike, *, image_format: str | None = None,
-                  jpeg_quality: int = 90) -> wire.WireImage:
-    """An image argument as a wire image.
-
-    ``image`` may be a :class:`WireImage`; PNG/JPEG file bytes or a path to such a file (sent
-    as is); or a numpy array: (H, W) uint8 is sent raw as ``mono8`` (no OpenCV), a colour
-    (H, W, 3) BGR array as JPEG. ``image_format`` ("mono8", "jpeg", "png") forces the
-    encoding of an array (JPEG/PNG encoding imports OpenCV)."""
-    if isinstance(image, wire.WireImage):
-        return image
-    if isinstance(image, bytes | bytearray | memoryview):
-        return wire.WireImage.from_bytes(bytes(image))
-    if isinstance(image, str | os.PathLike):
-        return wire.WireImage.from_bytes(Path(image).read_bytes())
-    array = np.asarray(image)
-    fmt = image_format or ("mono8" if array.ndim == 2 else "jpeg")
-    if fmt == "mono8":
-        return wire.WireImage.from_array(array)
-    if fmt not in ("jpeg", "png"):
-        raise ValueError(f"image_format: expected 'mono8', 'jpeg' or 'png', got {fmt!r}")
-    import cv2  # only for encoding arrays as JPEG/PNG
-
-    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if fmt == "jpeg" else []
-    ok, buf = cv2.imencode(f".{'jpg' if fmt == 'jpeg' else 'png'}", array, params)
-    if not ok:
-        raise ValueError(f"could not encode an array of shape {array.shape} {array.dtype} as "
-                         f"{fmt}")
-    return wire.WireImage.from_bytes(buf.tobytes())
-
-
-def to_wire_pose(world_from_cam: PoseLike, path: str = "world_from_cam") -> wire.WirePose:
-    """A (4, 4) matrix, a (t, q) pair (q = x y z w) or a WirePose as a wire pose."""
-    if isinstance(world_from_cam, wire.WirePose):
-        return world_from_cam
-    if isinstance(world_from_cam, tuple | list) and len(world_from_cam) == 2:
-        t, q = world_from_cam
-        return wire.WirePose.from_tq(t, q, path)
-    return wire.WirePose.from_matrix(np.asarray(world_from_cam, dtype=np.float64), path)
-
-
-def to_wire_camera(camera: CameraLike) -> wire.WireCamera:
-    """A camera dict, a WireCamera, or any object with ``to_dict()`` (e.g. a reloc Camera)."""
-    if isinstance(camera, wire.WireCamera):
-        return camera
-    if not isinstance(camera, Mapping) and hasattr(camera, "to_dict"):
-        camera = camera.to_dict()
-    if not isinstance(camera, Mapping):
-        raise TypeError(f"camera: expected a camera dict, got {type(camera).__name__}")
-    return wire.WireCamera.from_dict(camera)
-
-
-def to_wire_features(features: wire.WireFeatures | Mapping[str, Any]) -> wire.WireFeatures:
-    """A WireFeatures, or a dict with ``keypoints_px`` (N, 2) and optional ``landmark_ids``
-    (N,) and ``points_world`` (N, 3) arrays."""
-    if isinstance(features, wire.WireFeatures):
-        return features
-    unknown = set(features) - {"keypoints_px", "landmark_ids", "points_world"}
-    if unknown:
-        raise ValueError(f"features: unknown key(s) {sorted(unknown)}; expected keypoints_px, "
-                         "landmark_ids, points_world")
-    return wire.WireFeatures(**features)
-
-
-def to_wire_depth(depth: wire.WireDepth | npt.ArrayLike | tuple[Any, float]) -> wire.WireDepth:
-    """A WireDepth; an (H, W) float array in metres (NaN = unknown, sent at 1 mm per unit);
-    or a pair (uint16 (H, W) array or 16-bit PNG bytes, metres per unit)."""
-    if isinstance(depth, wire.WireDepth):
-        return depth
-    if isinstance(depth, tuple):
-        raw, mpu = depth
-        if isinstance(raw, bytes | bytearray):
-            header = wire.png_header(bytes(raw))
-            if header is None:
-                raise ValueError("depth: expected 16-bit PNG bytes")
-            return wire.WireDepth(wire.DepthFormat.PNG, header[0], header[1], bytes(raw),
-                                  float(mpu))
-        a = np.asarray(raw)
-        if a.ndim != 2 or a.dtype != np.uint16:
-            raise ValueError(f"depth: expected an (H, W) uint16 array, got {a.shape} {a.dtype}")
-        return wire.WireDepth(wire.DepthFormat.MONO16, a.shape[1], a.shape[0],
-                              a.astype("<u2").tobytes(), float(mpu))
-    return wire.WireDepth.from_metres(depth)
-
-
-def keyframe_put_bytes(kf_id: int, image: ImageLike, world_from_cam: PoseLike, *,
-                       camera_id: str | None = None, camera: CameraLike | None = None,
-                       timestamp: float | None = None,
-                       features: wire.WireFeatures | Mapping[str, Any] | None = None,
-                       depth: Any = None, image_format: str | None = None,
-                       pose_covariance: Any = None) -> bytes:
-    """An encoded KeyframePut (see :meth:`RelocClient.add_keyframe` for the arguments)."""
-    return wire.KeyframePut(
-        id=kf_id, image=to_wire_image(image, image_format=image_format),
-        world_from_cam=to_wire_pose(world_from_cam), camera_id=camera_id,
-        camera=None if camera is None else to_wire_camera(camera),
-        timestamp=None if timestamp is None else float(timestamp),
-        features=None if features is None else to_wire_features(features),
-        depth=None if depth is None else to_wire_depth(depth),
-        pose_covariance=to_wire_covariance(pose_covariance)).encode()
-
-
-def to_wire_covariance(covariance: Any) -> tuple[float, ...] | None:
-    """A (6, 6) pose covariance (or its 36 row-major values) as the wire's 36 floats; None
-    stays None. ValueError naming the problem unless it is a pose covariance (finite,
-    symmetric, positive semi-definite)."""
-    if covariance is None:
-        return None
-    try:
-        c = np.asarray(covariance, dtype=np.float64).reshape(6, 6)
-    except (TypeError, ValueError):
-        raise ValueError(f"pose_covariance: expected a (6, 6) array or 36 numbers, got "
-                         f"shape {np.shape(covariance)}") from None
-    problem = wire.pose_covariance_problem(c)
-    if problem is not None:
-        raise ValueError(f"pose_covariance: expected a pose covariance (symmetric, positive "
-                         f"semi-definite): {problem}")
-    return tuple(float(v) for v in c.ravel())
 
 
 # -- the client -------------------------------------------------------------------------------
@@ -225,7 +108,7 @@ class RelocClient:
         except zenoh.ZError as exc:
             raise ConnectionError(f"cannot open a Zenoh session (connect={connect!r}): "
                                   f"{str(exc).split(' at ')[0]}") from exc
-        self._acks: _Acks | None = None
+        self._acks: Acks | None = None
         self._acks_lock = threading.Lock()
 
     # -- life cycle ------------------------------------------------------------------------
@@ -349,11 +232,11 @@ class RelocClient:
         acks.expect(ack)
         try:
             send()
-            events = acks.wait(ack, timeout, lambda evs: _replica_answers(evs, replicas,
+            events = acks.wait(ack, timeout, lambda evs: replica_answers(evs, replicas,
                                                                           expected))
         finally:
             acks.forget(ack)
-        stored, refused = _stored_refused(events)
+        stored, refused = stored_refused(events)
         if len(stored) >= replicas:
             return tuple(sorted(stored))
         said = (f"stored by {sorted(stored) or 'none'}; refused by "
@@ -367,12 +250,12 @@ class RelocClient:
         raise ServiceError(_error_code(first.fields.get("code")),
                            f"{what}: {len(stored)} of {replicas} replicas stored it ({said})")
 
-    def _ack_events(self) -> _Acks:
+    def _ack_events(self) -> Acks:
         """The map's acknowledgement events, subscribed once per client."""
         with self._acks_lock:
             if self._acks is None:
-                acks = _Acks()
-                acks.subscriber = self.subscribe_events(acks.on_event, kinds=_Acks.KINDS)
+                acks = Acks()
+                acks.subscriber = self.subscribe_events(acks.on_event, kinds=Acks.KINDS)
                 self._acks = acks
             return self._acks
 
@@ -420,7 +303,8 @@ class RelocClient:
         events: queue.Queue[wire.Event | None] = queue.Queue()
         # Subscribe before asking, so a fast job's train_done cannot be missed.
         sub = self.subscribe_events(events.put) if wait else None
-        watch = _ServiceWatch(self, lambda: events.put(None)) if wait else None
+        watch = (ServiceWatch(self.session, self.prefix, self.map, lambda: events.put(None))
+                 if wait else None)
         try:
             payload = self._query_one(wire.keys.train(self.prefix, self.map),
                                       wire.TrainRequest(method=method).encode(), None)
@@ -436,7 +320,7 @@ class RelocClient:
     def _wait_for_job(self, events: queue.Queue[wire.Event | None], job_id: str | None,
                       timeout: float | None,
                       on_event: Callable[[wire.Event], None] | None,
-                      watch: _ServiceWatch | None = None) -> wire.Event:
+                      watch: ServiceWatch | None = None) -> wire.Event:
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             remaining = None if deadline is None else deadline - time.monotonic()
@@ -588,105 +472,6 @@ class RelocClient:
             return ServiceError(ErrorCode.INTERNAL, f"non-protocol error reply on {key!r}: {text}")
         cls = ServiceBusy if err.code is ErrorCode.BUSY else ServiceError
         return cls(err.code, err.message)
-
-
-class _ServiceWatch:
-    """The liveliness tokens of the instances serving ``client``'s map. ``gone`` names the
-    token withdrawn when the followed instance's goes (see :meth:`follow`), or the last one
-    when none is left; ``changed()`` is called then."""
-
-    def __init__(self, client: RelocClient, changed: Callable[[], None]) -> None:
-        self.prefix, self.map = client.prefix, client.map
-        self.live: set[str] = set()
-        self.gone: str | None = None
-        self._followed: str | None = None
-        self._lock = threading.Lock()
-        self._changed = changed
-        key = f"{self.prefix}/@live/*/{client.map}"
-        self._sub = client.session.liveliness().declare_subscriber(key, self._on_sample,
-                                                                   history=True)
-
-    def follow(self, instance: Any) -> None:
-        """Watch only ``instance``'s token (the one running the job), if it is a valid name."""
-        try:
-            key = wire.keys.liveliness(self.prefix, instance, self.map)
-        except (ProtocolError, TypeError):
-            return   # an older service does not name itself: any instance will do
-        with self._lock:
-            self._followed = key
-
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        with self._lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self.live.add(key)
-                return
-            self.live.discard(key)
-            if key != self._followed and (self.live or self._followed is not None):
-                return
-            self.gone = key
-        self._changed()
-
-    def undeclare(self) -> None:
-        self._sub.undeclare()
-
-
-class _Acks:
-    """Acknowledgement events of this client's puts, by (``"kf"`` or ``"cam"``, id): only
-    those being waited for are kept."""
-
-    KINDS = {wire.EventKind.KEYFRAME_ACCEPTED: "kf", wire.EventKind.KEYFRAME_ADDED: "kf",
-             wire.EventKind.KEYFRAME_REMOVED: "kf", wire.EventKind.KEYFRAME_REJECTED: "kf",
-             wire.EventKind.CAMERA_ADDED: "cam", wire.EventKind.CAMERA_REJECTED: "cam"}
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition()
-        self._waiting: dict[tuple[str, Any], list[wire.Event]] = {}
-        self.subscriber: zenoh.Subscriber | None = None
-
-    def expect(self, ack: tuple[str, Any]) -> None:
-        with self._cond:
-            self._waiting[ack] = []
-
-    def forget(self, ack: tuple[str, Any]) -> None:
-        with self._cond:
-            self._waiting.pop(ack, None)
-
-    def on_event(self, event: wire.Event) -> None:
-        ack = (self.KINDS[event.kind], event.fields.get("id"))
-        with self._cond:
-            if ack in self._waiting:
-                self._waiting[ack].append(event)
-                self._cond.notify_all()
-
-    def wait(self, ack: tuple[str, Any], timeout: float,
-             done: Callable[[list[wire.Event]], bool]) -> list[wire.Event]:
-        """The events of ``ack`` so far, once ``done`` says they suffice or at ``timeout``."""
-        with self._cond:
-            self._cond.wait_for(lambda: done(self._waiting.get(ack, [])), timeout)
-            return list(self._waiting.get(ack, []))
-
-
-def _stored_refused(events: list[wire.Event]) -> tuple[set[str], dict[str, wire.Event]]:
-    """The instances that stored a put (accepted or applied it) and those that refused it
-    (their first refusal), each instance counted by its first answer."""
-    stored: set[str] = set()
-    refused: dict[str, wire.Event] = {}
-    for event in events:
-        instance = str(event.fields.get("instance", ""))
-        if instance in stored or instance in refused:
-            continue
-        if event.kind in (wire.EventKind.KEYFRAME_REJECTED, wire.EventKind.CAMERA_REJECTED):
-            refused[instance] = event
-        else:
-            stored.add(instance)
-    return stored, refused
-
-
-def _replica_answers(events: list[wire.Event], replicas: int, expected: int) -> bool:
-    """Enough instances stored it, or every instance expected answered."""
-    stored, refused = _stored_refused(events)
-    return len(stored) >= replicas or len(stored) + len(refused) >= expected
 
 
 def _error_code(code: Any) -> ErrorCode:
