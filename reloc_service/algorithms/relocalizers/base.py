@@ -339,8 +339,9 @@ def stated_covariance(estimate: PoseEstimate, max_position_sigma_m: float) -> Ar
     intrinsics marginalised, :func:`..pose.map_consistency.covariance_with_intrinsics`),
     except where its view cannot check them (:func:`intrinsics_unchecked`): the
     calibration's then (its prior alone); plus the keyframe poses' errors
-    (:func:`..pose.base.total_covariance`). A weakness: where the intrinsics go unchecked a
-    stale calibration passes, with the calibration's covariance."""
+    (:func:`..pose.base.total_covariance`). A weakness: where the intrinsics go unchecked (a
+    plane: :attr:`VerifyConf.trust_unchecked_intrinsics`) a stale calibration passes, with
+    the calibration's covariance."""
     if intrinsics_unchecked(estimate, max_position_sigma_m):
         return total_covariance(estimate, estimate.covariance_given_intrinsics)
     return total_covariance(estimate)
