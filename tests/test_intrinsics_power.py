@@ -26,6 +26,11 @@ from reloc_service.algorithms.relocalizers.base import (
     Relocalizer,
     RelocResult,
     RelocStatus,
+    VerifyConf,
+    inlier_cells,
+    intrinsics_unchecked,
+    on_one_plane,
+    verify,
 )
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
 from reloc_service.core.frame import Frame
@@ -181,3 +186,26 @@ def test_an_underpowered_answer_is_left_to_a_step_with_other_features():
     result = ChainRelocalizer(kmap, [_Answering(kmap, strong_est),
                                      _RefusingSift(kmap)]).relocalize(query_frame())
     assert result.ok and result.method == "answering:orb"
+
+
+def test_a_view_off_one_plane_that_cannot_check_the_intrinsics_is_refused():
+    """15 coarse keypoints (2 px) on the central 30 % of a scene with depth: the view
+    cannot bound the focal (the covariance marginalising it would exceed the verification's
+    largest position sigma), yet its points are not one plane, where no view could. Trusting
+    the calibration there would answer a stale one with the calibration's covariance: even
+    a relocalizer's last step refuses it. (A plane seen face on is still answered: see
+    test_chain's plane seen face on.)"""
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        est, check = judged(*correspondences(ROOM, 15, 2.0, rng, spread=0.3), ROOM)
+        if not check.passed:
+            continue
+        est = settled(est, check)
+        if (intrinsics_unchecked(est, VerifyConf().max_position_sigma_m)
+                and not on_one_plane(est.inlier_points_world, est.inlier_sigmas_m)
+                and inlier_cells(est, 4) >= 4):
+            break
+    else:
+        raise AssertionError("no unchecked view off one plane in 40 draws")
+    ok, reason, _ = verify(est, VerifyConf(trust_unchecked_intrinsics=True))
+    assert not ok and reason.startswith("intrinsics unchecked")

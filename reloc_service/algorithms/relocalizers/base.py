@@ -102,10 +102,14 @@ class VerifyConf:
     #: Smallest normalised cross-correlation accepted for photometric (ESM, none) estimates:
     #: aligned thumbnails of unrelated photographs reach up to ~0.8, correct alignments >= 0.95.
     min_ncc: float = 0.85
-    #: Where the view cannot check the query's intrinsics (:func:`intrinsics_unchecked`):
-    #: answer trusting the calibration (True: a relocalizer's last resort; a plane seen face
-    #: on must still be answered), or refuse so that a later step of a chain, with finer
-    #: features, checks them (a chain sets False on its steps but the last).
+    #: Where the view cannot check the query's intrinsics (:func:`intrinsics_unchecked`) and
+    #: its inliers lie on one plane, so that no view of them could (the focal and the
+    #: distance trade off exactly): answer trusting the calibration (True: a relocalizer's
+    #: last resort; a plane seen face on must still be answered), or refuse so that a later
+    #: step of a chain, with finer features, checks them (a chain sets False on its steps
+    #: but the last). Support off one plane that cannot check them is refused either way:
+    #: its data are too few or too coarse, and a stale calibration would pass with the
+    #: calibration's covariance.
     trust_unchecked_intrinsics: bool = True
 
     def __post_init__(self) -> None:
@@ -182,8 +186,8 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
                        f"{min_patch:.0%}): a copy of it elsewhere would fit as well"), 0.0
     if est.intrinsics is not None and not est.intrinsics.passed:
         return False, est.intrinsics.reason, 0.0
-    if (not conf.trust_unchecked_intrinsics
-            and intrinsics_unchecked(est, conf.max_position_sigma_m)):
+    if intrinsics_unchecked(est, conf.max_position_sigma_m) and not (
+            conf.trust_unchecked_intrinsics and _support_on_one_plane(est)):
         return False, ("intrinsics unchecked: the view cannot bound the focal and the "
                        "distortion"), 0.0
     sigma = position_sigma_m(stated_covariance(est, conf.max_position_sigma_m))
@@ -265,6 +269,13 @@ def planar_patch_fraction(estimate: PoseEstimate) -> float | None:
     return float(area / (width * height))
 
 
+def _support_on_one_plane(estimate: PoseEstimate) -> bool:
+    """Whether ``estimate``'s inlier points are consistent with one plane
+    (:func:`on_one_plane`); False when it does not say where they are."""
+    pts, sigmas = estimate.inlier_points_world, estimate.inlier_sigmas_m
+    return pts is not None and sigmas is not None and len(pts) >= 4 and on_one_plane(pts, sigmas)
+
+
 def on_one_plane(points_world: Array, sigmas_m: Array, *, false_rejection: float = 0.01) -> bool:
     """Whether (N, 3) points with 1-sigma uncertainties (N,) are consistent with one plane:
     after a plane fit on the points within 3 sigma of it, no more of them lie beyond 3 sigma
@@ -328,8 +339,9 @@ def stated_covariance(estimate: PoseEstimate, max_position_sigma_m: float) -> Ar
     intrinsics marginalised, :func:`..pose.map_consistency.covariance_with_intrinsics`),
     except where its view cannot check them (:func:`intrinsics_unchecked`): the
     calibration's then (its prior alone); plus the keyframe poses' errors
-    (:func:`..pose.base.total_covariance`). A weakness: where the intrinsics go unchecked a
-    stale calibration passes, with the calibration's covariance."""
+    (:func:`..pose.base.total_covariance`). A weakness: where the intrinsics go unchecked (a
+    plane: :attr:`VerifyConf.trust_unchecked_intrinsics`) a stale calibration passes, with
+    the calibration's covariance."""
     if intrinsics_unchecked(estimate, max_position_sigma_m):
         return total_covariance(estimate, estimate.covariance_given_intrinsics)
     return total_covariance(estimate)
