@@ -48,6 +48,13 @@ def test_copies_share_the_snapshot_and_each_serves_under_its_name(synthetic_scen
     assert journal and not any(os.path.samefile(a / rel, b / rel) for rel in journal)
     apparent, allocated = disk_bytes(storage)
     assert allocated < 0.75 * apparent   # the snapshots take the disk once
+    data = fleet.FleetScene(scene.camera, list(scene.keyframe_images),
+                            list(scene.keyframe_poses), QuerySet(scene.camera, [], []))
+    again, info = fleet.reuse_template(template.directory, data)   # --fleet-template
+    assert (again.keyframes, again.counted_bytes) == (3, template.counted_bytes)
+    assert info["keyframes"] == 3 and info["landmarks"] == len(engine.map.snapshot().landmarks)
+    with pytest.raises(ValueError, match="expected a map directory a fleet run stored"):
+        fleet.reuse_template(storage, data)
 
     port = free_port()
     service = Service(service_conf(port, storage, methods=[METHOD], default_method=METHOD,

@@ -75,6 +75,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fleet-queries", metavar="N", type=int, default=None,
                         help="fleet section: maps picked at random, each queried twice "
                              "(default 200, 16 with --quick)")
+    parser.add_argument("--fleet-template", metavar="DIR", type=Path, default=None,
+                        help="fleet section: serve copies of this template map, stored by an "
+                             "earlier fleet run with --workdir (WORKDIR/fleet/template/"
+                             "template), instead of building it again")
     parser.add_argument("--baseline", metavar="JSON", type=Path,
                         help="the JSON of a run of the code before a change: the targets "
                              "table's \"no recall lost\" row compares every recall both runs "
@@ -169,7 +173,8 @@ def main(args: argparse.Namespace) -> int:
     if "fleet" in (args.only or []):
         from . import fleet
 
-        fleet.run_into(result, fleet_conf(args), args.workdir, cache, suite.say)
+        fleet.run_into(result, fleet_conf(args), args.workdir, cache, suite.say,
+                       template_dir=getattr(args, "fleet_template", None))
     from .targets import targets
 
     if baseline is not None:

@@ -160,6 +160,28 @@ def build_template(conf: FleetConf, scene: FleetScene, tmp: Path,
         "disk_mb": apparent / MB, "queries": len(scene.queries)}
 
 
+def reuse_template(directory: Path, scene: FleetScene) -> tuple[StoredMap, dict[str, Any]]:
+    """A template stored by an earlier run (see :func:`run_fleet`), as :func:`build_template`
+    describes its own; ValueError if ``directory`` holds no stored map."""
+    from ...service.durability import read_service_file
+    from ...service.quotas import MapUsage
+    from ...storage.snapshot import load_map
+
+    if not (directory / "service.json").is_file():
+        raise ValueError(f"--fleet-template {directory}: expected a map directory a fleet run "
+                         "stored (WORKDIR/fleet/template/template)")
+    state, _ = load_map(directory / "map")
+    stored = StoredMap(directory, len(read_service_file(directory)["keyframe_ids"]),
+                       MapUsage.of(state).total)
+    apparent, _ = disk_bytes(directory)
+    return stored, {
+        **scene.info, "image": f"{scene.camera.width}x{scene.camera.height}",
+        "scene_keyframes": len(scene.keyframe_images), "keyframes": stored.keyframes,
+        "landmarks": len(state.landmarks), "build_s": None, "reused": str(directory),
+        "counted_mb": stored.counted_bytes / MB, "disk_mb": apparent / MB,
+        "queries": len(scene.queries)}
+
+
 # -- queries -----------------------------------------------------------------------------------
 
 @dataclasses.dataclass
@@ -283,11 +305,13 @@ def run_spread(conf: FleetConf, storage: Path, names: list[str], queries: QueryS
 # -- the section -------------------------------------------------------------------------------
 
 def run_fleet(conf: FleetConf, *, workdir: Path | None = None, cache: Path,
-              scene: FleetScene | None = None, say: Callable[[str], None] = print
-              ) -> dict[str, Any]:
+              scene: FleetScene | None = None, template_dir: Path | None = None,
+              say: Callable[[str], None] = print) -> dict[str, Any]:
     """The fleet section's JSON (see module docstring) on ``scene`` (default: the preset
     rendered, :func:`render_scene`); its copies are removed before it returns (the
-    template too, unless ``workdir`` keeps it)."""
+    template too, unless ``workdir`` keeps it). ``template_dir``: a template map stored by
+    an earlier run of the same scene (``WORKDIR/fleet/template/template``), used as it is
+    instead of being built again."""
     with contextlib.ExitStack() as stack:
         if workdir is None:
             tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="reloc-fleet-")))
@@ -297,7 +321,8 @@ def run_fleet(conf: FleetConf, *, workdir: Path | None = None, cache: Path,
         start = time.perf_counter()
         scene = scene or render_scene(conf, cache)
         queries = scene.queries
-        template, info = build_template(conf, scene, tmp, say)
+        template, info = (build_template(conf, scene, tmp, say) if template_dir is None
+                          else reuse_template(template_dir, scene))
         budget_mb = conf.budget_mb or round(conf.budget_maps * template.counted_bytes / MB, 1)
         names = [f"site{i:03d}" for i in range(conf.maps)]
         storage = tmp / "storage"
@@ -324,12 +349,13 @@ def run_fleet(conf: FleetConf, *, workdir: Path | None = None, cache: Path,
 
 
 def run_into(result: dict[str, Any], conf: FleetConf, workdir: Path | None, cache: Path,
-             say: Callable[[str], None]) -> None:
+             say: Callable[[str], None], *, template_dir: Path | None = None) -> None:
     """Add the ``fleet`` section to ``result`` (its error, if it fails)."""
     import traceback
 
     try:
-        result["fleet"] = run_fleet(conf, workdir=workdir, cache=cache, say=say)
+        result["fleet"] = run_fleet(conf, workdir=workdir, cache=cache, say=say,
+                                    template_dir=template_dir)
     except Exception as exc:   # the other sections' figures still count
         traceback.print_exc()
         result["fleet"] = {"error": f"{type(exc).__name__}: {exc}"}
