@@ -1,6 +1,6 @@
 """The attack suite of ``reloc bench --only attack`` (:mod:`reloc_service.tools.bench.attack`):
 its registry names every case with a group, a case runs end to end against a real ``reloc
-serve`` process on loopback, a case that raises or breaks something is counted as broke and
+serve`` process on loopback (slow), a case that raises or breaks something is counted as broke and
 makes the command exit 1, and (slow) the whole suite completes with nothing broken."""
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ def test_nested_values_are_msgpack_of_the_depth_asked():
     assert request == {"v": 1, "x": 5, "method": [[None]]}
 
 
+@pytest.mark.slow   # a reloc serve process: about 6 s
 def test_image_bomb_runs_end_to_end_against_reloc_serve(tmp_path):
     result = attack.run_attack(["image-bomb"], workdir=tmp_path)
     [row] = result["cases"]

@@ -31,7 +31,8 @@ def test_toml_text_round_trips_a_service_config_through_the_service_loader(tmp_p
     assert set(conf.maps) == {"bench"}
 
 
-@pytest.mark.parametrize("process", [False, True])
+# reloc serve as a child process (about 6 s) is slow; the in-process service runs by default
+@pytest.mark.parametrize("process", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_loopback_service_serves_and_applies_a_camera(tmp_path, process):
     storage = tmp_path / "storage"
     storage.mkdir()

@@ -8,7 +8,6 @@ waiting or a training job is never closed. Real services on loopback, real stora
 from __future__ import annotations
 
 import os
-import shutil
 import threading
 from pathlib import Path
 
@@ -28,11 +27,17 @@ from service_support import (
 )
 
 from reloc_service.core.errors import ConfigError
+from reloc_service.engine import EngineConf
 from reloc_service.service.app import Service
 from reloc_service.service.config import parse_config
-from reloc_service.service.durability import MAP_NAME_FILE, map_dirname
 from reloc_service.service.residency import MB
 from reloc_service.service.workers import Lane
+from reloc_service.tools.bench.stored_map import (
+    StoredMap,
+    copy_map,
+    engine_from_images,
+    stored_template,
+)
 
 METHOD = "sbi+p3p"
 NAMES = ("alpha", "bravo", "charlie")
@@ -45,41 +50,19 @@ def conf(port: int, storage: Path, **service):
 
 
 @pytest.fixture(scope="module")
-def template(synthetic_scene, tmp_path_factory) -> tuple[Path, int]:
+def template(synthetic_scene, tmp_path_factory) -> StoredMap:
     """A stored map (camera cam0, the scene's 6 keyframes, trained, in a snapshot) and the
     bytes it counts once loaded from its snapshot (its quota usage)."""
     storage = tmp_path_factory.mktemp("lazy-template") / "storage"
-    port = free_port()
-    service = Service(conf(port, storage, train_on_load=False)).start()
-    try:
-        with RelocClient(endpoint(port), map="template", timeout=30) as client:
-            events = Events(client)
-            client.set_camera("cam0", synthetic_scene.camera)
-            events.wait("camera_added", id="cam0")
-            for kf_id, (image, pose) in enumerate(zip(synthetic_scene.keyframe_images,
-                                                      synthetic_scene.keyframe_poses,
-                                                      strict=True)):
-                client.add_keyframe(kf_id, image, pose, camera_id="cam0")
-            for kf_id in range(len(synthetic_scene.keyframe_images)):
-                events.wait("keyframe_added", id=kf_id)
-            assert client.train(wait=True, timeout=120).accepted
-            events.close()
-    finally:
-        service.stop()
-    restored = Service(conf(free_port(), storage)).start()   # counted as a loaded map counts
-    try:
-        usage = restored.maps["template"].usage.total
-    finally:
-        restored.stop()
-    return storage / "template", usage
+    engine = engine_from_images(synthetic_scene.camera, synthetic_scene.keyframe_images,
+                                synthetic_scene.keyframe_poses, EngineConf(methods=(METHOD,)))
+    return stored_template(storage, "template", engine)
 
 
-def stored_maps(template_dir: Path, storage: Path, names=NAMES) -> Path:
+def stored_maps(template: StoredMap, storage: Path, names=NAMES) -> Path:
     """``storage`` holding a copy of the template map under each of ``names``."""
     for name in names:
-        target = storage / map_dirname(name)
-        shutil.copytree(template_dir, target, ignore=shutil.ignore_patterns("*.lock", "LOCK"))
-        (target / MAP_NAME_FILE).write_text(name)
+        copy_map(template, storage, name)
     return storage
 
 
@@ -104,7 +87,7 @@ def pose_of(client: RelocClient, scene, i: int) -> np.ndarray:
 
 def test_start_registers_stored_maps_without_loading_them(template, synthetic_scene,
                                                           tmp_path):
-    storage = stored_maps(template[0], tmp_path / "storage")
+    storage = stored_maps(template, tmp_path / "storage")
     port = free_port()
     service = Service(conf(port, storage, max_resident_mb=1000)).start()
     try:
@@ -133,7 +116,7 @@ def test_start_registers_stored_maps_without_loading_them(template, synthetic_sc
 
 def test_a_query_that_cannot_wait_gets_busy_with_a_retry_hint(template, synthetic_scene,
                                                               tmp_path):
-    storage = stored_maps(template[0], tmp_path / "storage", names=("alpha",))
+    storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
     port = free_port()
     service = Service(conf(port, storage, max_resident_mb=1000, cold_load_wait_s=0)).start()
     try:
@@ -148,8 +131,8 @@ def test_a_query_that_cannot_wait_gets_busy_with_a_retry_hint(template, syntheti
 
 def test_small_budget_keeps_recent_maps_and_reloads_the_others(template, synthetic_scene,
                                                                tmp_path):
-    template_dir, map_bytes = template
-    storage = stored_maps(template_dir, tmp_path / "storage")
+    map_bytes = template.counted_bytes
+    storage = stored_maps(template, tmp_path / "storage")
     port = free_port()
     budget_mb = 1.5 * map_bytes / MB   # one map fits, two do not
     service = Service(conf(port, storage, max_resident_mb=budget_mb)).start()
@@ -178,8 +161,8 @@ def test_small_budget_keeps_recent_maps_and_reloads_the_others(template, synthet
 
 def test_a_map_with_puts_waiting_or_training_is_not_closed(template, synthetic_scene,
                                                            tmp_path):
-    template_dir, map_bytes = template
-    storage = stored_maps(template_dir, tmp_path / "storage", names=("alpha", "bravo"))
+    map_bytes = template.counted_bytes
+    storage = stored_maps(template, tmp_path / "storage", names=("alpha", "bravo"))
     port = free_port()
     service = Service(conf(port, storage, max_resident_mb=1000)).start()
     residency = service.registry.residency
@@ -257,8 +240,8 @@ def test_a_map_with_puts_waiting_or_training_is_not_closed(template, synthetic_s
 
 def test_worker_processes_drop_the_replica_of_a_closed_map(template, synthetic_scene,
                                                            tmp_path):
-    template_dir, map_bytes = template
-    storage = stored_maps(template_dir, tmp_path / "storage", names=("alpha", "bravo"))
+    map_bytes = template.counted_bytes
+    storage = stored_maps(template, tmp_path / "storage", names=("alpha", "bravo"))
     port = free_port()
     service = Service(conf(port, storage, max_resident_mb=1.5 * map_bytes / MB,
                            worker_mode="process", workers=1)).start()
@@ -283,8 +266,8 @@ def test_worker_processes_drop_the_replica_of_a_closed_map(template, synthetic_s
 @pytest.mark.slow   # two service processes: about 10 s
 def test_put_on_a_closed_map_loads_it_and_survives_kill_9(template, synthetic_scene,
                                                           tmp_path):
-    template_dir, map_bytes = template
-    stored_maps(template_dir, tmp_path / "storage", names=("lab", "other"))
+    map_bytes = template.counted_bytes
+    stored_maps(template, tmp_path / "storage", names=("lab", "other"))
     port = free_port()
     config = write_config(tmp_path, port, worker_mode="thread", methods=[METHOD],
                           default_method=METHOD, snapshot_every=0,

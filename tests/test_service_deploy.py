@@ -74,7 +74,10 @@ def _spawn(*args: str) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 
-@pytest.mark.parametrize("with_file", [False, True], ids=["flags", "router.json5"])
+# the router from config/router.json5 is a second process start (about 5 s): slow; the
+# router from flags runs by default
+@pytest.mark.parametrize("with_file", [False, pytest.param(True, marks=pytest.mark.slow)],
+                         ids=["flags", "router.json5"])
 def test_reloc_router_process_connects_service_and_client(with_file, tmp_path):
     port = free_port()
     args = ["router", "--listen", endpoint(port)]
@@ -99,6 +102,7 @@ def test_reloc_router_process_connects_service_and_client(with_file, tmp_path):
             router.wait()
 
 
+@pytest.mark.slow   # a reloc serve process started and stopped: about 8 s
 def test_reloc_serve_exits_cleanly_on_sigint(tmp_path):
     port = free_port()
     serve = _spawn("serve", "--listen", endpoint(port), "--storage", str(tmp_path),

@@ -274,6 +274,8 @@ def restored(client: RelocClient) -> bool:
         return False
 
 
+@pytest.mark.slow   # a reloc serve process restoring two maps: about 10 s; the same damage
+# in-process is test_one_damaged_file_fails_its_map_and_the_others_are_served
 def test_reloc_serve_keeps_running_with_a_damaged_map(storage, tmp_path):
     _snapshot_image_bit(storage / BAD)
     port = free_port()

@@ -33,8 +33,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--only", metavar="SECTION", action="append",
                         help="run only this section (repeatable); one of: latency, peers, "
                              "throughput, scaling, ferns, planar, accuracy, prior, soak, "
-                             "attack (without --only every section but soak and attack runs; "
-                             "those only when named here; prior not with --quick). prior: "
+                             "attack, fleet (without --only every section but soak, attack "
+                             "and fleet runs; those only when named here; prior not with "
+                             "--quick). fleet: --fleet-maps copies of one stored map of "
+                             "--fleet-keyframes keyframes served by one reloc serve with "
+                             "max_resident_mb = --fleet-budget-mb, queried at random. prior: "
                              "the default method with good and wrong pose priors on the "
                              "--dataset/--preset sets (default: room, stereo and the real sets). "
                              "attack: the attack cases of "
@@ -61,6 +64,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--soak-restart-every", metavar="S", type=float, default=None,
                         help="soak section: seconds between stops of the service, kill -9 "
                              "and SIGTERM in turn (default 60, 20 with --quick)")
+    parser.add_argument("--fleet-maps", metavar="N", type=int, default=None,
+                        help="fleet section: stored maps (default 200, 8 with --quick)")
+    parser.add_argument("--fleet-keyframes", metavar="N", type=int, default=None,
+                        help="fleet section: keyframes of each map (default 1000, 40 with "
+                             "--quick)")
+    parser.add_argument("--fleet-budget-mb", metavar="MB", type=float, default=None,
+                        help="fleet section: [service] max_resident_mb (default 1000; with "
+                             "--quick 3.5 maps' counted bytes)")
+    parser.add_argument("--fleet-queries", metavar="N", type=int, default=None,
+                        help="fleet section: maps picked at random, each queried twice "
+                             "(default 200, 16 with --quick)")
+    parser.add_argument("--fleet-template", metavar="DIR", type=Path, default=None,
+                        help="fleet section: serve copies of this template map, stored by an "
+                             "earlier fleet run with --workdir (WORKDIR/fleet/template/"
+                             "template), instead of building it again")
     parser.add_argument("--baseline", metavar="JSON", type=Path,
                         help="the JSON of a run of the code before a change: the targets "
                              "table's \"no recall lost\" row compares every recall both runs "
@@ -91,6 +109,12 @@ def main(args: argparse.Namespace) -> int:
             return 2
         conf = dataclasses.replace(conf, sections=tuple(s for s in suite.SECTIONS
                                                         if s in args.only))
+    if "fleet" in (args.only or []):
+        try:
+            fleet_conf(args)
+        except ValueError as exc:
+            print(f"reloc bench: {exc}", file=sys.stderr)
+            return 2
     acc_conf = None
     if run_accuracy:
         from . import accuracy
@@ -146,6 +170,11 @@ def main(args: argparse.Namespace) -> int:
         from . import attack
 
         attack.run_into(result, args.workdir, suite.say)
+    if "fleet" in (args.only or []):
+        from . import fleet
+
+        fleet.run_into(result, fleet_conf(args), args.workdir, cache, suite.say,
+                       template_dir=getattr(args, "fleet_template", None))
     from .targets import targets
 
     if baseline is not None:
@@ -197,6 +226,14 @@ def main(args: argparse.Namespace) -> int:
     if sk and "error" not in sk and (sk["keyframes"]["lost"] or sk["keyframes"]["duplicated"]):
         failed.append(f"soak ({sk['keyframes']['lost']} keyframes lost, "
                       f"{sk['keyframes']['duplicated']} duplicated)")
+    fl = result.get("fleet")
+    if fl and "error" not in fl:
+        from .fleet_report import failure
+        from .fleet_report import table_lines as fleet_table
+
+        print("\n".join(["", "Fleet:", *fleet_table(fl)]))
+        if failure(fl):
+            failed.append(f"fleet ({failure(fl)})")
     pr = result.get("prior")
     if pr and pr.get("failed_sets"):
         failed.append(f"prior ({', '.join(pr['failed_sets'])})")
@@ -209,7 +246,20 @@ def main(args: argparse.Namespace) -> int:
 
 
 #: Sections run only when named with ``--only`` (too long, or not a measurement of speed).
-NAMED_ONLY = ("soak", "attack")
+NAMED_ONLY = ("soak", "attack", "fleet")
+
+
+def fleet_conf(args: argparse.Namespace) -> Any:
+    """The fleet run's :class:`~.fleet.FleetConf` from ``--quick`` and the ``--fleet-*``
+    flags (a flag given overrides the size it names)."""
+    from .fleet import QUICK_FLEET, FleetConf
+
+    conf = QUICK_FLEET if args.quick else FleetConf()
+    given = {"maps": getattr(args, "fleet_maps", None),
+             "keyframes": getattr(args, "fleet_keyframes", None),
+             "budget_mb": getattr(args, "fleet_budget_mb", None),
+             "queries": getattr(args, "fleet_queries", None)}
+    return dataclasses.replace(conf, **{k: v for k, v in given.items() if v is not None})
 
 
 def prior_conf(args: argparse.Namespace, cache: Path) -> Any:
@@ -371,7 +421,7 @@ def render_markdown(result: Mapping[str, Any], *, plots_dir: Path | None = None)
     for name, fn in (("scene", _scene), ("latency", _latency), ("peers", _peers),
                      ("accuracy", _accuracy), ("throughput", _throughput),
                      ("scaling", _scaling), ("ferns", _ferns), ("planar", _planar),
-                     ("prior", _prior), ("soak", _soak)):
+                     ("prior", _prior), ("soak", _soak), ("fleet", _fleet)):
         section = result.get(name)
         if not section:
             continue
@@ -534,6 +584,12 @@ def _soak(soak: Mapping[str, Any]) -> list[str]:
 
     return ["## Soak (reliability)", "", "See docs/reliability.md for what the run does.", "",
             *table_lines(soak)]
+
+
+def _fleet(section: Mapping[str, Any]) -> list[str]:
+    from .fleet_report import markdown_lines
+
+    return markdown_lines(section)
 
 
 def _prior(section: Mapping[str, Any]) -> list[str]:

@@ -1,0 +1,121 @@
+"""What a served fleet of maps holds in memory, seen from outside the service: the resident
+memory of its process tree sampled over a run (:class:`RssSampler`), and the residency
+manager's own accounting as its log lines state it (:class:`ResidencyLog`)."""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def tree_rss_mb(pid: int) -> float:
+    """Resident memory (MiB) of process ``pid`` and its descendants (worker processes,
+    their forkserver): the sum of their ``VmRSS``; 0 once they are gone."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        children.setdefault(ppid, []).append(int(stat.parent.name))
+    total, todo = 0.0, [pid]
+    while todo:
+        p = todo.pop()
+        todo += children.get(p, [])
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            for line in Path(f"/proc/{p}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1]) / 1024
+    return total
+
+
+@dataclass(eq=False)
+class RssSampler:
+    """:func:`tree_rss_mb` of ``pid`` every ``period_s`` on a thread while :meth:`running`."""
+
+    pid: int
+    period_s: float
+    samples: list[tuple[float, float]] = field(default_factory=list)
+    _stop: threading.Event = field(default_factory=threading.Event)
+
+    def sample(self) -> float:
+        """One sample now (kept with the others): MiB."""
+        value = tree_rss_mb(self.pid)
+        self.samples.append((time.monotonic(), value))
+        return value
+
+    @contextlib.contextmanager
+    def running(self) -> Iterator[RssSampler]:
+        thread = threading.Thread(target=self._loop, name="rss-sampler", daemon=True)
+        thread.start()
+        try:
+            yield self
+        finally:
+            self._stop.set()
+            thread.join()
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.sample()
+
+    def summary(self) -> dict[str, Any]:
+        values = [v for _, v in self.samples if v > 0]
+        if not values:
+            return {"samples": 0, "max_mb": None, "p50_mb": None, "last_mb": None}
+        return {"samples": len(values), "max_mb": max(values),
+                "p50_mb": float(np.median(values)), "last_mb": values[-1]}
+
+
+#: The residency manager's lines (service/residency.py): a map loaded, a map closed, each
+#: with the counted megabytes resident after it and the budget.
+_LOADED = re.compile(r"map (\S+): loaded on demand in ([\d.]+) s \(([\d.]+) MB resident of "
+                     r"([\d.]+) MB\)")
+_CLOSED = re.compile(r"map (\S+): closed \(idle; ([\d.]+) MB resident of ([\d.]+) MB\)")
+
+
+@dataclass
+class ResidencyLog:
+    """What the residency manager logged: each cold load's seconds and the counted MB
+    resident after each load and each close."""
+
+    load_s: list[float] = field(default_factory=list)
+    after_load_mb: list[float] = field(default_factory=list)
+    after_close_mb: list[float] = field(default_factory=list)
+    budget_mb: float | None = None
+
+    @classmethod
+    def read(cls, log: Path) -> ResidencyLog:
+        out = cls()
+        for line in log.read_text(errors="replace").splitlines():
+            if m := _LOADED.search(line):
+                out.load_s.append(float(m[2]))
+                out.after_load_mb.append(float(m[3]))
+                out.budget_mb = float(m[4])
+            elif m := _CLOSED.search(line):
+                out.after_close_mb.append(float(m[2]))
+                out.budget_mb = float(m[3])
+        return out
+
+    @property
+    def loads(self) -> int:
+        return len(self.load_s)
+
+    def summary(self) -> dict[str, Any]:
+        """Loads and closes, the load seconds' p50/max, and the largest counted MB resident
+        right after a load (before the evictor closes the least recently used: the budget
+        may be exceeded by one map for that moment) and after a close."""
+        def top(values: list[float]) -> float | None:
+            return max(values) if values else None
+
+        return {"loads": self.loads, "closes": len(self.after_close_mb),
+                "load_p50_s": float(np.median(self.load_s)) if self.load_s else None,
+                "load_max_s": top(self.load_s), "max_after_load_mb": top(self.after_load_mb),
+                "max_after_close_mb": top(self.after_close_mb), "budget_mb": self.budget_mb}
