@@ -138,6 +138,16 @@ def test_small_budget_keeps_recent_maps_and_reloads_the_others(template, synthet
     service = Service(conf(port, storage, max_resident_mb=budget_mb)).start()
     residency = service.registry.residency
     assert residency is not None
+    counted_after_load: list[int] = []
+    tell = residency.on_change
+
+    def record(name: str, resident: bool) -> None:
+        if resident:
+            counted_after_load.append(residency.resident_bytes())
+        if tell is not None:
+            tell(name, resident)
+
+    residency.on_change = record
     try:
         clients = {n: RelocClient(endpoint(port), map=n, timeout=30) for n in NAMES}
         first = {}
@@ -153,6 +163,10 @@ def test_small_budget_keeps_recent_maps_and_reloads_the_others(template, synthet
         assert clients["alpha"].status().resident
         wait_until(lambda: list(service.maps) == ["alpha"], timeout=30)
         assert residency.evictions >= 3 and residency.loads == 4
+        # Each cold load closed the idle map before it loaded: never two maps counted at once.
+        assert len(counted_after_load) == 4
+        assert max(counted_after_load) <= budget_mb * MB
+        assert residency.peak_bytes == max(counted_after_load)
         for client in clients.values():
             client.close()
     finally:

@@ -1,7 +1,11 @@
 """Which stored maps are in memory (``[service] max_resident_mb`` > 0): every map on disk is
 declared at start without being loaded, opened on first use (a cold load: snapshot, then its
 journal backlog), and closed again when the resident maps count more than the budget, least
-recently used first.
+recently used first. A cold load first makes room for the map it brings (what the map counted
+when it was last closed, else the mean of the maps known so far), so the count stays under the
+budget through the load; if no map is idle within :data:`MAKE_ROOM_WAIT_S` it loads anyway and
+the idle ones are closed once they are. After a close, freed heap pages go back to the system
+(``malloc_trim``): otherwise glibc keeps them and the process's memory never comes back down.
 
 What a map counts is what the quotas count for it (:class:`~.quotas.MapUsage`: its keyframes'
 images as held, depth and features); the process's resident memory is a multiple of that
@@ -30,6 +34,7 @@ from reloc_client import protocol as wire
 
 from ..core.errors import StorageError
 from .durability import map_dirname, read_service_file
+from .memory import trim_now
 from .quotas import MapUsage
 
 if TYPE_CHECKING:
@@ -37,6 +42,9 @@ if TYPE_CHECKING:
     from .runtime import MapRuntime
 
 log = logging.getLogger(__name__)
+
+#: Seconds a cold load waits for a resident map to become idle so it can close it first.
+MAKE_ROOM_WAIT_S = 5.0
 
 MB = 1024 * 1024
 
@@ -83,6 +91,8 @@ class Residency:
                                          daemon=True)
         self.loads = 0
         self.evictions = 0
+        #: The largest count of the resident maps seen after a load (bytes).
+        self.peak_bytes = 0
         #: Told ``(name, True)`` when a map is loaded, ``(name, False)`` when it is closed
         #: (the service's residency tokens); called outside this object's lock.
         self.on_change: Callable[[str, bool], None] | None = None
@@ -163,6 +173,7 @@ class Residency:
             self._pins[name] -= 1
             if self._pins[name] <= 0:
                 del self._pins[name]
+                self._changed.notify_all()   # a cold load may be waiting to close it
         if self.budget and self.resident_bytes() > self.budget:
             self._wake.set()
 
@@ -175,6 +186,7 @@ class Residency:
         try:
             with self._load_slot:
                 if not self._stopped.is_set():
+                    self.make_room(self.expected_bytes(name))
                     self.registry.load_resident(name)
         finally:
             with self._lock:
@@ -182,6 +194,7 @@ class Residency:
                 if name in self.registry.maps:
                     self._lru[name] = None
                     self.loads += 1
+                    self.peak_bytes = max(self.peak_bytes, self.resident_bytes())
                 elif name not in self.registry.failed:
                     self.dormant.add(name)   # stopped meanwhile
                 self._changed.notify_all()
@@ -190,7 +203,38 @@ class Residency:
             self._tell(name, name in self.registry.maps)
             self._wake.set()
 
+    def expected_bytes(self, name: str) -> int:
+        """What map ``name`` will count once loaded: its count when it was last closed, else
+        the mean count of the maps known here (0 when none is)."""
+        kept = self.kept_usage.get(name)
+        if kept is not None:
+            return int(kept.total)
+        known = [u.total for u in self.usages()]
+        return int(sum(known) / len(known)) if known else 0
+
     # -- eviction --------------------------------------------------------------------------------
+    def make_room(self, incoming: int) -> int:
+        """Close idle maps, least recently used first, until ``incoming`` more bytes fit the
+        budget; a map in use is waited for (at most :data:`MAKE_ROOM_WAIT_S` in all). The
+        number closed."""
+        closed = 0
+        deadline = time.monotonic() + MAKE_ROOM_WAIT_S
+        while (self.budget and not self._stopped.is_set()
+               and self.resident_bytes() + incoming > self.budget and self.registry.maps):
+            name = self._take_idle()
+            if name is None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    log.warning("loading a map over the budget: no resident map became idle "
+                                "within %.1f s", MAKE_ROOM_WAIT_S)
+                    break
+                with self._lock:
+                    self._changed.wait(min(left, 0.2))
+                continue
+            self._close(name)
+            closed += 1
+        return closed
+
     def _evict_loop(self) -> None:
         while not self._stopped.is_set():
             self._wake.wait(1.0)
@@ -246,6 +290,7 @@ class Residency:
             self.kept_usage[name] = rt.usage
             self.registry.close_resident(name, timeout=self.stop_timeout_s)
             self.evictions += 1
+            trim_now()   # the closed map's freed pages go back to the system
             log.info("map %s: closed (idle; %.1f MB resident of %.1f MB)", name,
                      self.resident_bytes() / MB, self.budget / MB)
         finally:
