@@ -191,6 +191,8 @@ def bench_prior(conf: PriorConf, workdir: Path, say: Callable[[str], None] = pri
         except Exception as exc:  # the other sets' figures still count
             traceback.print_exc()
             sets[name] = {"error": f"{type(exc).__name__}: {exc}"}
+        # Each set's rows as soon as it is done: a long run shows its figures as it goes.
+        say("\n".join(table_lines({"sets": {name: sets[name]}})[2:]))
     return {"schema": SCHEMA, "method": method, "sigma_m": SIGMA_M, "sigma_deg": SIGMA_DEG,
             "repeats": conf.repeats, "runs": list(RUNS), "sets": sets,
             "failed_sets": [k for k, v in sets.items() if "error" in v]}
