@@ -206,19 +206,3 @@ def test_a_tight_prior_leaves_the_intrinsics_test_fewer_focal_starts(
     assert method.relocalize(_query(synthetic_scene, 0)).ok
     assert starts and all(s == FOCAL_STARTS for s in starts)
 
-
-def test_a_tracked_pose_less_certain_than_the_prior_is_left_to_the_method(
-        synthetic_scene, synthetic_map):
-    kmap = _map_of(synthetic_map)
-    tracker = create_tracker(kmap)
-    gt = synthetic_scene.query_poses[0]
-    # A prior whose position is known to 2 mm (its 2 degrees keep the windows wide enough
-    # for the false-alarm test): no pose from this 320x240 image is known as well, so
-    # tracking cannot improve on it and the method decides.
-    tight = Prior(gt, covariance=pose_covariance_from_sigmas(0.002, np.deg2rad(2.0)))
-    tracked = tracker.relocalize(_query(synthetic_scene, 0), prior=tight)
-    assert not tracked.ok and "less certain than the prior" in tracked.reason
-    method = create_relocalizer("sbi+p3p", kmap)
-    method.train()
-    answer = relocalize_with_prior(method, tracker, _query(synthetic_scene, 0), prior=tight)
-    assert answer.ok and answer.method == "sbi+p3p"

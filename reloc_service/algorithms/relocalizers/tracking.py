@@ -42,7 +42,6 @@ from .base import (
     RelocResult,
     VerifyConf,
     narrow_support,
-    position_sigma_m,
     register,
     result_from_estimate,
 )
@@ -202,11 +201,6 @@ class TrackingRelocalizer(Relocalizer):
         if result.ok and not _within_prior(est, result, prior, self.conf.prior_gate_probability):
             return self._refuse("the tracked pose lies outside the prior's gate", timings, state,
                                 num_matches=len(q_idx), inliers=int(est.inliers or 0))
-        if result.ok and _less_certain_than(result, prior):
-            # A pose known less well than the prior does not correct it: the method, whose
-            # steps may hold finer features, decides.
-            return self._refuse("the tracked pose is less certain than the prior", timings,
-                                state, num_matches=len(q_idx), inliers=int(est.inliers or 0))
         if result.ok and narrow_support(est, self.verify_conf):
             # A pose fixed by a small area of the image is weakly conditioned: the method,
             # which weighs such answers against the rest of the map, decides.
@@ -287,14 +281,6 @@ def _window_chance(est: PoseEstimate, areas_px: Array) -> float:
     if t is None or len(areas_px) == 0:
         return 0.0
     return float(np.mean(np.minimum(np.pi * t * t / np.maximum(areas_px, 1e-12), 1.0)))
-
-
-def _less_certain_than(result: RelocResult, prior: Prior) -> bool:
-    """Whether ``result``'s position is less certain than ``prior``'s: the largest standard
-    deviation of its stated position covariance exceeds the prior's."""
-    assert prior.covariance is not None
-    return position_sigma_m(result.covariance) > position_sigma_m(
-        np.asarray(prior.covariance, np.float64))
 
 
 def _within_prior(est: PoseEstimate, result: RelocResult, prior: Prior, probability: float
