@@ -174,3 +174,35 @@ def test_track_is_a_registered_method(synthetic_scene, synthetic_map):
     with pytest.raises(ConfigError, match="gate_probability"):
         create_relocalizer("track", _map_of(synthetic_map),
                            options={"track": {"gate_probability": 1.5}})
+
+
+def test_a_tight_prior_leaves_the_intrinsics_test_fewer_focal_starts(
+        synthetic_scene, synthetic_map, monkeypatch):
+    from reloc_service.algorithms.pose import pnp
+    from reloc_service.algorithms.pose.intrinsics import FOCAL_STARTS
+
+    # Record the starts each intrinsics test is given; the test itself runs unchanged.
+    starts: list[tuple[float, ...]] = []
+    real = pnp.check_intrinsics
+
+    def recording(*args, **kwargs):
+        starts.append(tuple(kwargs.get("focal_starts", FOCAL_STARTS)))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pnp, "check_intrinsics", recording)
+    tracker = create_tracker(_map_of(synthetic_map))
+    gt = synthetic_scene.query_poses[0]
+    prior = Prior(_perturbed(gt, np.random.default_rng(3)), covariance=COVARIANCE)
+    result = tracker.relocalize(_query(synthetic_scene, 0), prior=prior)
+    assert result.ok, result.reason
+    # The back wall is about 2 m away: a 5 cm prior admits focal errors of about 12 %, so
+    # the starts at 0.66, 0.76, 1.32 and 1.52 cannot yield a pose inside its gate.
+    assert starts and len(starts[-1]) < len(FOCAL_STARTS)
+    assert set(starts[-1]) <= set(FOCAL_STARTS) and 1.15 in starts[-1]
+    # Without a prior the method's test starts from every focal, as before.
+    starts.clear()
+    method = create_relocalizer("sbi+p3p", _map_of(synthetic_map))
+    method.train()
+    assert method.relocalize(_query(synthetic_scene, 0)).ok
+    assert starts and all(s == FOCAL_STARTS for s in starts)
+

@@ -25,7 +25,7 @@ from ...core.errors import ConfigError, GeometryError
 from ...core.geometry import invert, se3_exp, transform_points
 from .base import PoseEstimate
 from .chance import chance_agreement
-from .intrinsics import IntrinsicsCheck, IntrinsicsPrior, check_intrinsics
+from .intrinsics import FOCAL_STARTS, IntrinsicsCheck, IntrinsicsPrior, check_intrinsics
 from .kernels import camera_params, compiled
 
 Array = npt.NDArray[np.float64]
@@ -243,9 +243,10 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
 
 def _check_intrinsics(fit: _Fit, px: Array, points_world: Array, camera: Camera,
                       conf: PnPConf, uncertainty: PointUncertainty | None,
-                      keypoint_scales: Array | None) -> IntrinsicsCheck | None:
+                      keypoint_scales: Array | None, *,
+                      focal_starts: tuple[float, ...] = FOCAL_STARTS) -> IntrinsicsCheck | None:
     """:func:`.intrinsics.check_intrinsics` of ``camera`` on every correspondence of ``fit``,
-    with the refinement's weights."""
+    with the refinement's weights (from ``focal_starts`` besides the given focal)."""
     rows = np.arange(len(points_world))
     weights = _weights(fit.world_from_cam, points_world, rows, camera, conf, uncertainty,
                        keypoint_scales)
@@ -254,7 +255,8 @@ def _check_intrinsics(fit: _Fit, px: Array, points_world: Array, camera: Camera,
                             pose_projector(points_world, camera),
                             depth_m=float(np.median(depths)),
                             threshold_px=conf.max_reproj_error_px,
-                            min_sigma_px=conf.min_sigma_px, prior=conf.intrinsics_prior)
+                            min_sigma_px=conf.min_sigma_px, prior=conf.intrinsics_prior,
+                            focal_starts=focal_starts)
 
 
 def pose_projector(points_world: Array, camera: Camera

@@ -11,8 +11,9 @@ covariance and falls back to that method when tracking does not verify."""
 
 from __future__ import annotations
 
+import functools
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -23,15 +24,17 @@ from scipy import stats
 from ...core import features as feature_lib
 from ...core.errors import ConfigError
 from ...core.frame import Features, Frame, Keyframe
-from ...core.geometry import invert, se3_log
+from ...core.geometry import invert, se3_log, transform_points
 from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
 from ...core.plugins import make_conf
 from ..pose.base import PoseEstimate
 from ..pose.guided import GuidedConf, search_by_projection
+from ..pose.intrinsics import IntrinsicsCheck
 from ..pose.landmark_pool import LandmarkPool
 from ..pose.map_consistency import settle_pose_errors
 from ..pose.pnp import PnPConf, PointUncertainty, solve_pnp_indexed
+from ..pose.prior_focal import axis_variance, focal_reach, focal_starts_within
 from ..pose.prior_windows import match_in_windows, pixel_sigmas, predict_windows
 from .base import (
     Prior,
@@ -189,6 +192,7 @@ class TrackingRelocalizer(Relocalizer):
         # solved pose agrees with it by construction.
         est.unguided_evidence = seed
         est.chance_probability = max(est.chance_probability or 0.0, chance)
+        self._limit_focal_starts(est, prior, pool.points_world[m_rows[inliers]])
         start = time.perf_counter()
         est = settle_pose_errors(est, state, kind, self.conf, est.inlier_landmark_ids)
         result = result_from_estimate(est, self.verify_conf, method=TRACK,
@@ -224,6 +228,20 @@ class TrackingRelocalizer(Relocalizer):
         if solved is None or (solved[0].inliers or 0) <= (est.inliers or 0):
             return None
         return solved[0], q_all, rows_all, solved[1]
+
+    def _limit_focal_starts(self, est: PoseEstimate, prior: Prior, inliers_world: Array
+                            ) -> None:
+        """Start ``est``'s intrinsics test only from the focals the prior's gate leaves open
+        (:mod:`..pose.prior_focal`): a focal error the gate excludes needs no search."""
+        if est.intrinsics_test is None or prior.covariance is None or len(inliers_world) == 0:
+            return
+        depth = float(np.median(transform_points(invert(est.world_from_cam),
+                                                 inliers_world)[:, 2]))
+        reach = focal_reach(axis_variance(prior.covariance, est.covariance), depth,
+                            float(stats.chi2.ppf(self.conf.prior_gate_probability, 6)))
+        # The test is pnp's, which takes its focal starts by keyword.
+        test: Callable[..., IntrinsicsCheck | None] = est.intrinsics_test
+        est.intrinsics_test = functools.partial(test, focal_starts=focal_starts_within(reach))
 
     def _refuse(self, reason: str, timings: dict[str, float], state: MapState,
                 **evidence: Any) -> RelocResult:

@@ -27,7 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write the result as JSON (and, while running, the figures of "
                              "the sections done so far to OUT's stem + .partial.json)")
     parser.add_argument("--markdown", metavar="OUT", type=Path,
-                        help="write the Markdown report (e.g. docs/performance.md)")
+                        help="write the Markdown report (e.g. docs/performance.md); with "
+                             "--only prior alone and OUT present, only OUT's prior section "
+                             "is replaced")
     parser.add_argument("--plots", metavar="DIR", type=Path,
                         help="write PNG plots into DIR (needs matplotlib)")
     parser.add_argument("--only", metavar="SECTION", action="append",
@@ -200,8 +202,7 @@ def main(args: argparse.Namespace) -> int:
         plots_rel = None
         if args.plots is not None:
             plots_rel = Path(os.path.relpath(args.plots, args.markdown.parent))
-        args.markdown.write_text(render_markdown(result, plots_dir=plots_rel),
-                                 encoding="utf-8")
+        args.markdown.write_text(_markdown_of(args, result, plots_rel), encoding="utf-8")
     print("\n".join(headline_lines(result)))
     acc = result.get("accuracy")
     if acc and "error" not in acc:
@@ -397,6 +398,22 @@ def read_baseline(path: Path) -> dict[str, Any]:
         raise ValueError(f"--baseline {path}: expected a reloc bench JSON with an accuracy "
                          "section that ran (`reloc bench --only accuracy --json OUT`)")
     return data
+
+
+def _markdown_of(args: argparse.Namespace, result: Mapping[str, Any],
+                 plots_dir: Path | None) -> str:
+    """The Markdown ``--markdown`` writes: the whole report, except that a run of the prior
+    section alone (measured apart from the full suite, which it would take hours to
+    repeat) replaces only that section of an existing report."""
+    section = result.get("prior")
+    if (args.only == ["prior"] and args.markdown.is_file() and section
+            and "error" not in section):
+        from .prior import splice_markdown
+
+        return splice_markdown(args.markdown.read_text(encoding="utf-8"), section,
+                               f"{result.get('command') or 'reloc bench --only prior'}, "
+                               f"{result['created_utc']}")
+    return render_markdown(result, plots_dir=plots_dir)
 
 
 def render_markdown(result: Mapping[str, Any], *, plots_dir: Path | None = None) -> str:

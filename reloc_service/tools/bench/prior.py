@@ -7,8 +7,9 @@ stated: a VIO that drifted or reset).
 Per set: p50 latency (relocalize from the decoded grey image, as the accuracy section times
 it) against the p50 of decode + ORB extraction (:mod:`.limit`) of the same queries, recall
 within 5 cm / 5 deg, wrong poses (beyond 0.5 m / 15 deg, ``reloc eval``'s definition), the
-share answered by the tracking step; for wrong priors, the answers within that threshold of
-the wrong prior.
+cov scale of the answers (``reloc eval``'s: 1 when the stated covariance fits the errors),
+the share answered by the tracking step; for wrong priors, the answers within that threshold
+of the wrong prior.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from ...algorithms.relocalizers.base import Prior
 from ...algorithms.relocalizers.tracking import TRACK
 from ...core.frame import Frame
 from ...core.geometry import pose_covariance_from_sigmas, pose_error, se3_exp
-from ..eval.metrics import WRONG_THRESHOLD
+from ..eval.metrics import WRONG_THRESHOLD, covariance_scale, translation_mahalanobis
 from .limit import LIMIT_ORB_FEATURES, limit_summary, measure_limit
 from .samples import json_safe
 
@@ -84,8 +85,8 @@ def turned_prior(gt_world_from_cam: Array, rng: np.random.Generator) -> Array:
 
 
 def summarize(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """One run's row: p50, answers, recall, wrong poses, answers near the wrong prior,
-    answers by the tracking step."""
+    """One run's row: p50, answers, recall, wrong poses, answers near the wrong prior, cov
+    scale (NaN without an answer), answers by the tracking step."""
     lat = [r["ms"] for r in records]
     return {"n": len(records), "p50_ms": float(np.median(lat)) if lat else None,
             "answered": sum(bool(r["ok"]) for r in records),
@@ -95,6 +96,8 @@ def summarize(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             "wrong": sum(r["ok"] and (r["t"] > WRONG_THRESHOLD[0] or r["r"] > WRONG_THRESHOLD[1])
                          for r in records),
             "near_wrong_prior": sum(r.get("near_prior", False) for r in records),
+            "cov_scale": covariance_scale([r.get("mahalanobis", np.nan) for r in records],
+                                          [r["ok"] for r in records]) if records else None,
             "by_track": sum(r["method"] == TRACK for r in records)}
 
 
@@ -109,6 +112,9 @@ def _ask(engine: Any, method: str, image: npt.NDArray[np.uint8], camera: Any, gt
     if result.ok:
         t, r = pose_error(result.world_from_cam, gt)
         rec["t"], rec["r"] = t, float(np.degrees(r))
+        if result.covariance is not None:
+            rec["mahalanobis"] = translation_mahalanobis(result.world_from_cam, gt,
+                                                         result.covariance)
         if prior_pose is not None and wrong_prior:
             # Within the wrong-pose threshold of the wrong prior (2 m or 30 deg from the
             # truth: the two neighbourhoods do not overlap).
@@ -185,6 +191,8 @@ def bench_prior(conf: PriorConf, workdir: Path, say: Callable[[str], None] = pri
         except Exception as exc:  # the other sets' figures still count
             traceback.print_exc()
             sets[name] = {"error": f"{type(exc).__name__}: {exc}"}
+        # Each set's rows as soon as it is done: a long run shows its figures as it goes.
+        say("\n".join(table_lines({"sets": {name: sets[name]}})[2:]))
     return {"schema": SCHEMA, "method": method, "sigma_m": SIGMA_M, "sigma_deg": SIGMA_DEG,
             "repeats": conf.repeats, "runs": list(RUNS), "sets": sets,
             "failed_sets": [k for k, v in sets.items() if "error" in v]}
@@ -210,30 +218,32 @@ def run_into(result: dict[str, Any], conf: PriorConf, workdir: Path | None,
 
 
 def _num(value: Any, fmt: str) -> str:
-    return "-" if value is None else format(value, fmt)
+    return "-" if value is None or value != value else format(value, fmt)  # None or NaN
 
 
 def table_lines(section: Mapping[str, Any]) -> list[str]:
-    """One row per set and run: p50, the limit, their ratio, recall, wrong, near the wrong
-    prior, by the tracking step."""
+    """One row per set and run: p50, the limit, their ratio, recall, wrong, cov scale, near
+    the wrong prior, by the tracking step."""
     lines = ["| set | run | p50 ms | decode + ORB p50 ms | p50 / limit | recall 5cm/5deg | "
-             "wrong | near wrong prior | by track |", "|---|---|---|---|---|---|---|---|---|"]
+             "wrong | cov scale | near wrong prior | by track |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, s in section["sets"].items():
         if "error" in s:
-            lines.append(f"| {name} | failed | - | - | - | - | - | - | - |")
+            lines.append(f"| {name} | failed | - | - | - | - | - | - | - | - |")
             continue
         bound = s["limit"].get("orb_limit_p50_ms")
         for run, row in s["runs"].items():
             lines.append(f"| {name} | {run} | {_num(row['p50_ms'], '.1f')} | "
                          f"{_num(bound, '.1f')} | {_num(row['over_limit'], '.2f')} | "
                          f"{_num(row['recall_5cm_5deg'], '.0%')} | {row['wrong']} | "
+                         f"{_num(row.get('cov_scale'), '.2f')} | "
                          f"{row['near_wrong_prior']} | {row['by_track']}/{row['n']} |")
     return lines
 
 
 def markdown_lines(section: Mapping[str, Any]) -> list[str]:
     """The section of ``docs/performance.md``."""
-    return ["## Localization with a prior", "",
+    return [HEADING, "",
             f"Method `{section['method']}` through `Engine.relocalize`, timed from the decoded "
             f"grey image; limit: p50 of reading and decoding each query image and extracting "
             f"{LIMIT_ORB_FEATURES} ORB features, timed on the same queries in the same run. "
@@ -242,7 +252,31 @@ def markdown_lines(section: Mapping[str, Any]) -> list[str]:
             f"axis; {section['repeats']} draws per query), or moved 2 m / turned 30 deg in a "
             f"random direction with the same small covariance stated. Recall within "
             f"{RECALL[0] * 100:.0f} cm / {RECALL[1]:.0f} deg; wrong: returned beyond "
-            f"{WRONG_THRESHOLD[0]} m / {WRONG_THRESHOLD[1]:.0f} deg; near wrong prior: returned "
+            f"{WRONG_THRESHOLD[0]} m / {WRONG_THRESHOLD[1]:.0f} deg; cov scale: the median "
+            f"Mahalanobis length of the answers' position errors under their stated "
+            f"covariance over its value for honest Gaussian errors (1: honest, 2: twice too "
+            f"confident; `reloc eval`'s); near wrong prior: returned "
             f"within that threshold of the wrong prior; by track: answers given by the "
             f"tracking step (`method == \"{TRACK}\"`), the rest by the chain.", "",
             *table_lines(section), ""]
+
+
+#: The heading of the section in ``docs/performance.md``.
+HEADING = "## Localization with a prior"
+
+
+def splice_markdown(existing: str, section: Mapping[str, Any], generated_by: str) -> str:
+    """``existing`` (a ``docs/performance.md`` written by a full run) with its prior section
+    replaced by this run's (or appended where it has none): from :data:`HEADING` to the
+    next ``## `` heading. The section names the run it comes from, ``generated_by``, since
+    the rest of the file comes from another."""
+    lines = existing.rstrip("\n").split("\n")
+    new = markdown_lines(section)
+    new[1:1] = ["", f"Generated by `{generated_by}`; the other sections come from the run "
+                    f"named at the top."]
+    if HEADING not in lines:
+        return "\n".join([*lines, "", *new]).rstrip("\n") + "\n"
+    start = lines.index(HEADING)
+    end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")),
+               len(lines))
+    return "\n".join([*lines[:start], *new, *lines[end:]]).rstrip("\n") + "\n"
