@@ -41,6 +41,14 @@ from ..core.errors import MapError
 from ..core.features import level_scale_factor
 from ..core.frame import Features
 from ..core.landmark_table import LandmarkColumns, LandmarkTable
+from .descriptor_pq import (
+    DESCRIPTOR_CODES,
+    PQCodebook,
+    descriptor_rows,
+    seeded_rows,
+    train_codebook,
+)
+from .landmark_rows import keep_rows
 
 Array = npt.NDArray[np.float64]
 
@@ -210,21 +218,31 @@ def points_are_derived(table: LandmarkTable, landmark_ids: npt.NDArray[np.int64]
 
 
 def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Features]]],
-                 table: LandmarkTable, landmarks: LandmarkColumns) -> dict[str, np.ndarray]:
+                 table: LandmarkTable, landmarks: LandmarkColumns,
+                 codebook: PQCodebook | None = None,
+                 keep: Sequence[npt.NDArray[np.bool_] | None] | None = None
+                 ) -> dict[str, np.ndarray]:
     """The columns a snapshot stores for ``kind`` (name -> array): ``owners`` are (keyframe
     id, first row, features) of every keyframe holding ``kind``, in row order; rows narrowed
     where lossless, and the derivable fields only where they are not what load derives
-    (sizes from a level table, ids from ``landmarks``' observations, points from ``table``)."""
+    (sizes from a level table, ids from ``landmarks``' observations, points from ``table``).
+    With a ``codebook`` the descriptors are stored as its codes (:data:`DESCRIPTOR_CODES`);
+    ``keep``: per owner, the mask of its rows stored (None: all; :mod:`.landmark_rows`)."""
     # a part is the rows as a loaded snapshot stored them (never built since), or Features
     parts: list[Features | dict[str, np.ndarray]] = [
         _stored_rows(features, kind) or features[kind] for _, _, features in owners]
-    fields = [*STORED_FIELDS, *DERIVABLE_FIELDS[:2]]
+    codes = [descriptor_rows(p, _codebook_of(f, kind), codebook)
+             for p, (_, _, f) in zip(parts, owners, strict=True)]
+    fields = [f for f in (*STORED_FIELDS, *DERIVABLE_FIELDS[:2]) if f != "descriptors"]
     if not all(points_are_derived(table, p.landmark_ids, p.points_world)
                for p in parts if isinstance(p, Features)):
         fields.append(DERIVED_FIELD)
         parts = [features[kind] for _, _, features in owners]   # every keyframe's points
     columns = {name: _concat([getattr(p, name) if isinstance(p, Features) else p[name]
                               for p in parts]) for name in fields}
+    columns["descriptors" if codebook is None else DESCRIPTOR_CODES] = _concat(codes)
+    if keep is not None:
+        columns = keep_rows(columns, keep, [len(c) for c in codes])
     sizes = sizes_by_level(columns["levels"], columns["sizes"])
     if sizes is not None:
         del columns["sizes"]
@@ -246,6 +264,27 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     return out
 
 
+def codebook_for(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Features]]],
+                 codec: str, caches: Sequence[dict[str, Any]]) -> PQCodebook | None:
+    """The codebook ``kind``'s descriptors are saved with under ``codec`` (None: in full):
+    only SIFT's are coded ("pq"). The codebook a loaded snapshot's keyframes use, or an
+    earlier save's (kept in the keyframes' ``caches``), is kept: codes are copied, never
+    decoded and coded again. Else one is learnt on the map's own descriptors and put in
+    ``caches`` (None when the map holds too few to learn from)."""
+    if codec != "pq" or kind.split("@")[0] != "sift":
+        return None
+    key = f"pq:{kind}"
+    for (_, _, features), cache in zip(owners, caches, strict=True):
+        if (codebook := _codebook_of(features, kind) or cache.get(key)) is not None:
+            break
+    else:
+        codebook = train_codebook(seeded_rows([f[kind].descriptors for _, _, f in owners]))
+    if codebook is not None:
+        for cache in caches:
+            cache[key] = codebook
+    return codebook
+
+
 def feature_count(features: Mapping[str, Features], kind: str) -> int:
     """Number of ``kind`` keypoints (a loaded keyframe's features are not built for it)."""
     if isinstance(features, LazyFeatures):
@@ -255,6 +294,10 @@ def feature_count(features: Mapping[str, Features], kind: str) -> int:
 
 def _stored_rows(features: Mapping[str, Features], kind: str) -> dict[str, np.ndarray] | None:
     return features.stored(kind) if isinstance(features, LazyFeatures) else None
+
+
+def _codebook_of(features: Mapping[str, Features], kind: str) -> PQCodebook | None:
+    return features.codebook(kind) if isinstance(features, LazyFeatures) else None
 
 
 def _concat(parts: list[np.ndarray]) -> np.ndarray:
@@ -273,9 +316,12 @@ class FeatureColumns:
 
     def __init__(self, columns: Mapping[str, Mapping[str, np.ndarray]],
                  tables: Mapping[str, npt.NDArray[np.float32]] | None = None,
-                 scales: Mapping[str, npt.NDArray[np.float32]] | None = None) -> None:
+                 scales: Mapping[str, npt.NDArray[np.float32]] | None = None,
+                 codebooks: Mapping[str, PQCodebook] | None = None) -> None:
         self.columns = {kind: dict(cols) for kind, cols in columns.items()}
         self.tables = dict(tables or {})
+        #: kind -> codebook of the kinds whose descriptors are stored as PQ codes
+        self.codebooks = dict(codebooks or {})
         #: kind -> (level, scale) table of the kinds whose keypoints are stored as level pixels
         self.scales = dict(scales or {})
         self.landmarks: LandmarkColumns | None = None
@@ -324,6 +370,8 @@ class FeatureColumns:
         if self.landmarks is None:
             raise MapError("features read before the landmark columns were loaded")
         arrays = {f: _canonical(f, c) for f, c in self.raw(kind, start, stop).items()}
+        if DESCRIPTOR_CODES in arrays:
+            arrays["descriptors"] = self.codebooks[kind].decode(arrays.pop(DESCRIPTOR_CODES))
         if DERIVED_FIELD not in arrays:
             arrays[DERIVED_FIELD] = derive_points(self.landmarks, arrays["landmark_ids"])
         for a in arrays.values():
@@ -384,6 +432,10 @@ class LazyFeatures(MutableMapping[str, Features]):
             return len(self._built[kind])
         start, stop = self._rows[kind]
         return stop - start
+
+    def codebook(self, kind: str) -> PQCodebook | None:
+        """The codebook ``kind``'s stored descriptors decode with (None: stored in full)."""
+        return self._columns.codebooks.get(kind)
 
     def stored(self, kind: str) -> dict[str, np.ndarray] | None:
         """``kind``'s rows as stored in the snapshot when never built here (a save copies
