@@ -88,6 +88,8 @@ def test_a_compact_snapshot_stores_sift_codes_and_loads_them_decoded(
     save_map(fresh_map, tmp_path / "pq", parts=PQ)
     full, pq = _files(tmp_path / "full"), _files(tmp_path / "pq")
     assert "features/sift.descriptors.npy" not in pq
+    assert "features/sift.keypoints_px8.npy" in pq and "features/sift.keypoints_px.npy" not in pq
+    assert "features/sift.angles.npy" not in pq
     codes = pq["features/sift.descriptors_pq.npy"] + pq["features/sift.pq_codebook.npy"]
     assert codes < full["features/sift.descriptors.npy"] / 3
     manifest = json.loads((current_snapshot(tmp_path / "pq") / "manifest.json").read_text())
@@ -96,7 +98,10 @@ def test_a_compact_snapshot_stores_sift_codes_and_loads_them_decoded(
     for k, kf in fresh_map.keyframes.items():
         a, b = kf.features["sift"], state.keyframes[k].features["sift"]
         assert b.descriptors.dtype == np.uint8 and b.descriptors.shape == a.descriptors.shape
-        assert np.array_equal(a.keypoints_px, b.keypoints_px)
+        # keypoints in eighths of a pixel (rounded by at most 1/16 px), sizes float16
+        assert np.abs(a.keypoints_px - b.keypoints_px).max() <= 1 / 16 + 1e-9
+        assert np.allclose(a.sizes, b.sizes, rtol=1e-3)
+        assert np.all(b.angles == -1)      # not stored: read by nothing once extracted
         assert np.array_equal(a.landmark_ids, b.landmark_ids)
     err = np.linalg.norm(_sift(state).astype(float) - _sift(fresh_map), axis=1)
     assert np.median(err / np.linalg.norm(_sift(fresh_map), axis=1)) < 0.2
@@ -111,9 +116,11 @@ def test_saving_a_loaded_map_again_never_codes_a_descriptor_twice(
     for kf in loaded.keyframes.values():
         kf.features["sift"]                                     # built: decoded descriptors
     save_map(loaded, tmp_path / "c", parts=PQ)      # coded again, same codebook
+    first_px = np.load(current_snapshot(tmp_path / "a") / "features" / "sift.keypoints_px8.npy")
     for name in ("b", "c"):
         snap = current_snapshot(tmp_path / name) / "features"
         assert np.array_equal(np.load(snap / "sift.descriptors_pq.npy"), first)
+        assert np.array_equal(np.load(snap / "sift.keypoints_px8.npy"), first_px)
     # an in-memory map keeps its first codebook across saves (kept in the keyframes' caches)
     save_map(fresh_map, tmp_path / "d", parts=PQ)
     book_a = np.load(current_snapshot(tmp_path / "a") / "features" / "sift.pq_codebook.npy")

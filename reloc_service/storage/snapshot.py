@@ -19,8 +19,9 @@ Layout of a map directory ``MAP`` (format version 6)::
                                     and ids from the landmarks, ORB sizes from the levels, ORB
                                     keypoints from int16 pixels of their level; ORB angles,
                                     read by nothing, not at all): see :mod:`.feature_columns`;
-                                    SIFT descriptors as PQ codes + codebook where the owner
-                                    asks (format 6, :mod:`.descriptor_pq`), and a keyframe's
+                                    SIFT descriptors as PQ codes + codebook, keypoints in
+                                    1/8 px, no angles where the owner asks (format 6,
+                                    :mod:`.descriptor_pq`), and a keyframe's
                                     keypoints with a landmark only where it asks and the map's
                                     methods allow (its entry says ``landmark_rows_only``:
                                     :mod:`.landmark_rows`)
@@ -40,8 +41,9 @@ decoded on read), the arrays stay on disk until a query touches them (each keyfr
 are built from the shared columns on first use), and a change after loading copies what it
 changes (copy on write; the snapshot files are never written again). Each file's SHA-256 is
 checked at load (streamed, so a check does not hold the file in memory). Snapshots of format
-version 5 (every keypoint, SIFT descriptors in full), 4 (every image and depth map, depth raw), 3 (float64 landmark points, float32 ORB
-keypoints and angles), 2 (every feature field in full, PNG images) and 1 (PNG images, one
+version 5 (every keypoint, SIFT descriptors, keypoints and angles in full), 4 (every image and
+depth map, depth raw), 3 (float64 landmark points, float32 ORB keypoints and angles), 2
+(every feature field in full, PNG images) and 1 (PNG images, one
 ``.npz`` per keyframe and kind) are still read.
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
@@ -81,6 +83,7 @@ from .descriptor_pq import CODEBOOK, DESCRIPTOR_CODES, PQCodebook
 from .feature_columns import (
     ANGLELESS_KINDS,
     DERIVABLE_FIELDS,
+    EIGHTH_PIXELS,
     LEVEL_PIXELS,
     SCALE_TABLE,
     SIZE_TABLE,
@@ -238,7 +241,7 @@ def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: Ma
             writer.write(f"features/{kind}.{CODEBOOK}.npy", _npy_bytes(codebook.centroids))
         keep = [masks.get((kf_id, kind)) for kf_id, _, _ in owners]
         for name, column in kind_columns(kind, owners, state.landmarks, landmarks,
-                                         codebook, keep).items():
+                                         codebook, keep, compact=codec == "pq").items():
             writer.write(f"features/{kind}.{name}.npy", _npy_bytes(column))
 
 
@@ -501,11 +504,14 @@ class _FeatureColumns:
         scales: dict[str, np.ndarray] = {}
         codebooks: dict[str, PQCodebook] = {}
         for kind in kinds:
-            listed = {f for f in (*DERIVABLE_FIELDS, LEVEL_PIXELS, DESCRIPTOR_CODES)
+            listed = {f for f in (*DERIVABLE_FIELDS, LEVEL_PIXELS, DESCRIPTOR_CODES,
+                                  EIGHTH_PIXELS)
                       if f"features/{kind}.{f}.npy" in manifest["files"]}
             stored = [f for f in STORED_FIELDS
-                      if not (f == "keypoints_px" and LEVEL_PIXELS in listed)
+                      if not (f == "keypoints_px" and listed & {LEVEL_PIXELS, EIGHTH_PIXELS})
                       and not (f == "descriptors" and DESCRIPTOR_CODES in listed)
+                      and not (f == "angles" and manifest["format_version"] >= 6
+                               and f"features/{kind}.angles.npy" not in manifest["files"])
                       and not (f == "angles" and manifest["format_version"] >= 4
                                and kind in ANGLELESS_KINDS)]
             fields = [*stored, *sorted(listed)]
