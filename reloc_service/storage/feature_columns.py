@@ -262,13 +262,13 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     out = {name: narrow(name, column) for name, column in columns.items()}
     if kind in ANGLELESS_KINDS or compact:
         del out["angles"]
-    if compact:
-        _compact_keypoints(out)
     if kind == "orb":
         found = level_pixels(out["keypoints_px"], out["levels"], level_scale_factor(kind))
         if found is not None:
             del out["keypoints_px"]
             out[LEVEL_PIXELS], out[SCALE_TABLE] = found
+    if compact:   # after the exact level pixels, which ORB's keypoints take first
+        _compact_keypoints(out)
     return out
 
 
