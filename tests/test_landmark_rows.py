@@ -95,3 +95,18 @@ def test_an_engine_serving_5pt_keeps_every_row(tmp_path, synthetic_map):
     engine = Engine.load(tmp_path / "src", EngineConf(methods=("sbi+5pt",)))
     engine.save(tmp_path / "out", parts=LANDMARKS)
     assert not any(e.get("landmark_rows_only") for e in _entries(tmp_path / "out"))
+
+
+def test_a_keyframe_without_landmarks_keeps_every_keypoint(tmp_path, synthetic_scene):
+    from reloc_service.core.map import KeyframeMap
+    from reloc_service.core.mapping import MapBuilder
+
+    kmap = KeyframeMap()
+    MapBuilder(kmap).add_keyframe(0, synthetic_scene.keyframe_images[0], synthetic_scene.camera,
+                                  synthetic_scene.keyframe_poses[0])
+    lone = kmap.snapshot()          # one keyframe: nothing triangulated yet
+    assert not np.any(lone.keyframes[0].features["sift"].landmark_ids >= 0)
+    save_map(lone, tmp_path, parts=LANDMARKS)
+    state, _ = load_map(tmp_path)
+    assert len(state.keyframes[0].features["sift"]) == len(lone.keyframes[0].features["sift"])
+    assert not holds_landmark_rows_only(state.keyframes[0])

@@ -28,14 +28,17 @@ RowMasks = dict[tuple[int, str], npt.NDArray[np.bool_] | None]
 
 def row_masks(keyframes: Sequence[Keyframe], mode: str) -> RowMasks:
     """The rows a snapshot keeps of each keyframe's features under ``mode``: with
-    ``"landmarks"`` the keypoints with a landmark (None where that is every row)."""
+    ``"landmarks"`` the keypoints with a landmark (None where that is every row). A keyframe
+    without any landmark of a kind keeps all its keypoints of that kind: it is not mapped
+    yet (a map's first keyframe, one whose neighbours are still to come), and the keyframes
+    that will see its keypoints make their landmarks from them."""
     masks: RowMasks = {}
     for kf in keyframes:
         for kind in kf.features:
             keep = None
             if mode == "landmarks":
                 keep = _landmark_ids(kf.features, kind) >= 0
-                keep = None if keep.all() else keep
+                keep = None if keep.all() or not keep.any() else keep
             masks[(kf.id, kind)] = keep
     return masks
 
