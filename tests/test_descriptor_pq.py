@@ -128,6 +128,21 @@ def test_saving_a_loaded_map_again_never_codes_a_descriptor_twice(
     assert np.array_equal(book_a, book_d)
 
 
+def test_a_compact_snapshot_stores_small_blurry_images_as_float16(tmp_path, fresh_map):
+    key = "sbi:40x30:2.5"
+    for kf in fresh_map.keyframes.values():
+        kf.small_blurry_image()
+    save_map(fresh_map, tmp_path / "full", parts=EVERYTHING)
+    save_map(fresh_map, tmp_path / "pq", parts=PQ)
+    name = "thumbnails/sbi_40x30_2.5.npy"
+    assert _files(tmp_path / "pq")[name] < _files(tmp_path / "full")[name] * 0.55
+    state, _ = load_map(tmp_path / "pq")
+    for k, kf in fresh_map.keyframes.items():
+        thumb = state.keyframes[k].cache[key]
+        assert thumb.dtype == np.float32
+        assert np.abs(thumb - kf.cache[key]).max() <= 0.0625
+
+
 def test_a_replica_save_of_a_coded_map_stores_the_decoded_descriptors_in_full(
         tmp_path, fresh_map, small_training):
     save_map(fresh_map, tmp_path / "pq", parts=PQ)

@@ -25,7 +25,8 @@ Layout of a map directory ``MAP`` (format version 6)::
                                     keypoints with a landmark only where it asks and the map's
                                     methods allow (its entry says ``landmark_rows_only``:
                                     :mod:`.landmark_rows`)
-        thumbnails/<key>.npy        small blurry images already computed (one row a keyframe)
+        thumbnails/<key>.npy        small blurry images already computed (one row a keyframe;
+                                    float16 in a compact save, format 6)
         landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR):
                                     integers in the narrowest exact type, points as float32
                                     offsets from an observing keyframe where the rounding is
@@ -245,14 +246,18 @@ def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: Ma
             writer.write(f"features/{kind}.{name}.npy", _npy_bytes(column))
 
 
-def _write_thumbnails(writer: SnapshotWriter, keyframes: list[Keyframe]) -> list[str]:
-    """Small blurry images every keyframe already has (same cache key), one file per key."""
+def _write_thumbnails(writer: SnapshotWriter, keyframes: list[Keyframe], compact: bool
+                      ) -> list[str]:
+    """Small blurry images every keyframe already has (same cache key), one file per key;
+    ``compact``: float16 (zero-mean blurred grey levels within +-255: rounded by at most
+    1/16 of a grey level, noise far below the image's own), else float32 as held."""
     if not keyframes:
         return []
     keys = set.intersection(*({k for k in kf.cache if k.startswith(THUMBNAIL_PREFIX)}
                               for kf in keyframes))
+    dtype = np.float16 if compact else np.float32
     for key in sorted(keys):
-        stack = np.stack([np.asarray(kf.cache[key], np.float32) for kf in keyframes])
+        stack = np.stack([np.asarray(kf.cache[key], np.float32) for kf in keyframes]).astype(dtype)
         writer.write(_thumbnail_path(key), _npy_bytes(stack))
     return sorted(keys)
 
@@ -316,7 +321,7 @@ def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelW
             entry["landmark_rows_only"] = True
     columns = renumber_observations(state.landmarks.columns(), masks)
     _write_features(writer, kfs, state, columns, rows, parts.descriptor_codec, masks)
-    thumbnails = _write_thumbnails(writer, kfs)
+    thumbnails = _write_thumbnails(writer, kfs, compact=parts.descriptor_codec == "pq")
     landmarks = _write_landmarks(writer, columns, state.keyframes, exact=exact_geometry)
     model_dirs: dict[str, str] = {}
     for method, write_model in models.items():
@@ -642,6 +647,8 @@ def _attach_thumbnails(reader: SnapshotReader, manifest: Mapping[str, Any],
         if len(stack) != len(keyframes) or stack.ndim != 3:
             raise StorageError(f"{reader.root / _thumbnail_path(str(key))}: expected "
                                f"({len(keyframes)}, h, w) thumbnails, got {stack.shape}")
+        if stack.dtype == np.float16:   # a compact snapshot's: held float32, as computed
+            stack = stack.astype(np.float32)
         for kf, thumb in zip(keyframes, stack, strict=True):
             kf.cache[str(key)] = thumb
 
