@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from reloc_service.cli import main as cli_main
 from reloc_service.core.landmark_rows import holds_landmark_rows_only
 from reloc_service.storage.feature_columns import LazyFeatures
 from reloc_service.tools.eval.backends import LandmarkSource
@@ -33,3 +34,9 @@ def test_a_round_trip_queries_the_map_loaded_from_a_default_snapshot(synthetic_s
         assert np.linalg.norm(result.world_from_cam[:3, 3] - scene.query_poses[1][:3, 3]) < 0.05
     finally:
         backend.close()
+
+
+def test_a_round_trip_through_a_remote_service_is_a_usage_error(capsys):
+    assert cli_main.main(["eval", "somewhere", "--remote", "tcp/127.0.0.1:1", "--map", "m",
+                          "--round-trip"]) == 2
+    assert "--round-trip evaluates in-process" in capsys.readouterr().err
