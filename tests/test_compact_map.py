@@ -166,7 +166,7 @@ def test_a_pixel_reading_method_on_a_map_saved_without_images_names_the_option(
 
 def test_the_service_options_are_checked_and_a_replica_keeps_its_images():
     assert ServiceConf().service.stored_parts() == StoredParts(
-        depth="drop", images="needed", descriptor_codec="pq", descriptors="landmarks")
+        depth="drop", images="needed", descriptor_codec="none", descriptors="landmarks")
     with pytest.raises(ConfigError, match="service.keyframe_depth: expected one of drop"):
         ServiceSection(keyframe_depth="zip")
     with pytest.raises(ConfigError, match="service.keyframe_images: expected one of needed"):

@@ -176,7 +176,7 @@ def test_a_format_5_snapshot_loads_and_saves_as_format_6(tmp_path, small_trainin
 
 
 def test_the_codec_is_a_service_option_checked_by_name():
-    assert ServiceConf().service.stored_parts().descriptor_codec == "pq"
-    assert ServiceSection(descriptor_codec="none").stored_parts().descriptor_codec == "none"
+    assert ServiceConf().service.stored_parts().descriptor_codec == "none"
+    assert ServiceSection(descriptor_codec="pq").stored_parts().descriptor_codec == "pq"
     with pytest.raises(ConfigError, match=r"service\.descriptor_codec: expected one of none, pq"):
         ServiceSection(descriptor_codec="zip")

@@ -59,8 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "claims radtan with this k1 alone), images unchanged")
     parser.add_argument("--round-trip", action="store_true",
                         help="query the map as a service restores it: saved after training as "
-                        "a service's snapshot stores it by default (no depth, SIFT descriptors "
-                        "as PQ codes, ...) and loaded back; in-process only")
+                        "a service's snapshot stores it by default (no depth, landmark keypoints "
+                        "only, ...) and loaded back; in-process only")
     parser.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 

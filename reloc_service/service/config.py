@@ -201,9 +201,11 @@ class ServiceSection:
     #: sbi+esm) or "always" (needed later to add such a method or a feature kind, and by a
     #: replica that bootstraps from this one: ``bootstrap_from_peers`` keeps them).
     keyframe_images: str = "needed"
-    #: SIFT descriptors on disk: "pq" (product-quantization codes, a quarter of the bytes,
-    #: decoded on load) or "none" (in full) (:mod:`..storage.descriptor_pq`).
-    descriptor_codec: str = "pq"
+    #: SIFT descriptors on disk: "none" (in full) or "pq" (product-quantization codes, a
+    #: quarter of the bytes, decoded on load; keypoints in 1/8 px, float16 small blurry
+    #: images) (:mod:`..storage.descriptor_pq`). "none" by default: "pq" cost one of ten
+    #: tum_fr1_rpy queries for the default, bow+p3p and ferns (README, "Map size").
+    descriptor_codec: str = "none"
     #: Keyframe features on disk: "landmarks" (the keypoints that carry a landmark: all
     #: relocalization reads once the map's methods are trained; a snapshot of a map with an
     #: untrained method, or one that reads other keypoints (5pt), keeps them all) or "all"

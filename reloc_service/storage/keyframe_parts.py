@@ -17,7 +17,7 @@ stores anyway. So by default (:class:`StoredParts`) a snapshot keeps:
 - SIFT descriptors: ``"none"`` (in full) or ``"pq"`` (product-quantization codes, 32 bytes
   instead of 128, decoded when a keyframe's features are first read: :mod:`.descriptor_pq`).
 
-The service's defaults (``[service]`` in the configuration) store landmark rows, PQ-coded.
+The service's defaults (``[service]`` in the configuration) store landmark rows, in full.
 
 A replica that must hold what its source holds saves :data:`EVERYTHING`.
 """

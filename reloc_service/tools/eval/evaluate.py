@@ -246,7 +246,7 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
             the map is built with the dataset's.
         round_trip: query the map as a service restores it: saved after training as a
             service's snapshot stores it by default (:class:`.keyframe_parts.StoredParts`:
-            no depth, SIFT descriptors as PQ codes, ...) and loaded back (in-process only).
+            no depth, landmark keypoints only, ...) and loaded back (in-process only).
     """
     methods = _method_list(method)
     claimed = query_camera or QueryCamera()
