@@ -393,9 +393,13 @@ class Engine:
                 methods = list(self._live)
                 reads_images = any(live.relocalizer.reads_keyframe_images
                                    for live in self._live.values())
+                # every keypoint is kept while a method may read more than the landmark ones:
+                # at a query, or at the training a load gives a method that saved no model
+                every_row = any(live.relocalizer.reads_unmapped_keypoints
+                                or not live.relocalizer.trained for live in self._live.values())
             parts = parts or self.conf.stored
             parts = replace(parts, images="always" if parts.keeps_images(reads_images)
-                            else "needed")
+                            else "needed", descriptors="all" if every_row else parts.descriptors)
             models = {m: functools.partial(_move_contents, Path(tmp) / model_dir_name(m))
                       for m in methods}
             return save_map(state, directory, models=models, exact_geometry=exact_geometry,

@@ -68,7 +68,7 @@ def test_a_compact_snapshot_stores_no_depth_nor_images_and_loads_the_same_map(
         kf.small_blurry_image()   # as the sbi place finder leaves them
     save_map(depth_state, tmp_path, parts=StoredParts())
     manifest = _manifest(tmp_path)
-    assert manifest["format_version"] == FORMAT_VERSION == 5
+    assert manifest["format_version"] == FORMAT_VERSION == 6
     assert not [f for f in manifest["files"] if f.startswith(("images/", "depth/"))]
     state, _ = load_map(tmp_path)
     _assert_same_relocalization_data(depth_state, state)
@@ -121,7 +121,7 @@ def test_a_format_4_snapshot_loads_with_its_images_and_depth_and_saves_compact(t
     assert np.isnan(kf0.depth).any() and kf0.pose_covariance is not None
     assert kf0.image.shape == (kf0.camera.height, kf0.camera.width)
     save_map(state, tmp_path, parts=StoredParts())
-    assert _manifest(tmp_path)["format_version"] == 5
+    assert _manifest(tmp_path)["format_version"] == FORMAT_VERSION
     compact, _ = load_map(tmp_path)
     _assert_same_relocalization_data(state, compact)
     assert compact.keyframes[0].depth is None
@@ -165,7 +165,8 @@ def test_a_pixel_reading_method_on_a_map_saved_without_images_names_the_option(
 
 
 def test_the_service_options_are_checked_and_a_replica_keeps_its_images():
-    assert ServiceConf().service.stored_parts() == StoredParts(depth="drop", images="needed")
+    assert ServiceConf().service.stored_parts() == StoredParts(
+        depth="drop", images="needed", descriptor_codec="none", descriptors="landmarks")
     with pytest.raises(ConfigError, match="service.keyframe_depth: expected one of drop"):
         ServiceSection(keyframe_depth="zip")
     with pytest.raises(ConfigError, match="service.keyframe_images: expected one of needed"):

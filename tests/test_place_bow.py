@@ -268,3 +268,21 @@ def test_config_errors():
         create_place_finder({"name": "bow", "branching": 1}, kmap)
     with pytest.raises(ConfigError, match="unknown option"):
         create_place_finder({"name": "bow", "vocabulary_size": 3}, kmap)
+
+
+def test_float_centres_are_stored_as_float16_and_older_float32_states_still_load(
+        trained, sift_keyframes, images):
+    tree = trained._tree
+    state = tree.to_state()
+    assert state["dtype"] == "float32" and state["stored_dtype"] == "float16"
+    float32_bytes = sum(c.nbytes for c in tree.centres)
+    assert sum(len(level["centres"]) for level in state["levels"]) == float32_bytes // 2
+    restored = VocabularyTree.from_state(state)
+    assert all(np.abs(a - b).max() <= 0.0625 for a, b in zip(restored.centres, tree.centres,
+                                                            strict=True))
+    # a state written before float16 storage: centres in their own dtype, no stored_dtype
+    old = dict(state, levels=[dict(level, centres=np.ascontiguousarray(c).tobytes())
+                              for level, c in zip(state["levels"], tree.centres, strict=True)])
+    del old["stored_dtype"]
+    assert all(np.array_equal(a, b) for a, b in zip(VocabularyTree.from_state(old).centres,
+                                                    tree.centres, strict=True))

@@ -57,6 +57,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--query-k1", type=float, default=None, metavar="V",
                         help="the queries claim radial k1 = V (radtan; a pinhole camera "
                         "claims radtan with this k1 alone), images unchanged")
+    parser.add_argument("--round-trip", action="store_true",
+                        help="query the map as a service restores it: saved after training as "
+                        "a service's snapshot stores it by default (no depth, landmark keypoints "
+                        "only, ...) and loaded back; in-process only")
     parser.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
@@ -100,6 +104,8 @@ def _usage_problem(args: argparse.Namespace) -> str | None:
         return "expected a DATASET folder (or --list-methods)"
     if bool(args.remote) != bool(args.map_name):
         return "--remote ENDPOINT and --map NAME go together"
+    if args.remote and args.round_trip:
+        return "--round-trip evaluates in-process (a service's map is its own snapshot's)"
     return None
 
 
@@ -152,7 +158,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     claimed = QueryCamera(focal_scale=args.query_focal_scale, k1=args.query_k1)
     result = evaluate(args.dataset, args.method, options=options, landmarks=args.landmarks,
                       progress=not args.no_progress, remote=remote,
-                      keyframe_sigma=args.keyframe_sigma, query_camera=claimed)
+                      keyframe_sigma=args.keyframe_sigma, query_camera=claimed,
+                      round_trip=args.round_trip)
     print(report.format_header(result))
     print()
     print(report.format_markdown(result) if args.markdown else report.format_table(result))

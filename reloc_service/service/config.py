@@ -201,6 +201,16 @@ class ServiceSection:
     #: sbi+esm) or "always" (needed later to add such a method or a feature kind, and by a
     #: replica that bootstraps from this one: ``bootstrap_from_peers`` keeps them).
     keyframe_images: str = "needed"
+    #: SIFT descriptors on disk: "none" (in full) or "pq" (product-quantization codes, a
+    #: quarter of the bytes, decoded on load; keypoints in 1/8 px, float16 small blurry
+    #: images) (:mod:`..storage.descriptor_pq`). "none" by default: "pq" cost one of ten
+    #: tum_fr1_rpy queries for the default, bow+p3p and ferns (README, "Map size").
+    descriptor_codec: str = "none"
+    #: Keyframe features on disk: "landmarks" (the keypoints that carry a landmark: all
+    #: relocalization reads once the map's methods are trained; a snapshot of a map with an
+    #: untrained method, or one that reads other keypoints (5pt), keeps them all) or "all"
+    #: (needed to re-train a bag-of-words vocabulary on a restored map, or to add 5pt).
+    keyframe_descriptors: str = "landmarks"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "methods", _str_tuple(self.methods, "service.methods"))
@@ -242,7 +252,9 @@ class ServiceSection:
         replica set (``bootstrap_from_peers``) keeps its images, which a peer copies."""
         images = "always" if self.bootstrap_from_peers else self.keyframe_images
         try:
-            return StoredParts(depth=self.keyframe_depth, images=images)
+            return StoredParts(depth=self.keyframe_depth, images=images,
+                               descriptor_codec=self.descriptor_codec,
+                               descriptors=self.keyframe_descriptors)
         except ConfigError as exc:
             raise ConfigError(f"service.{exc}") from None
 

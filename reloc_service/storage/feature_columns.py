@@ -41,6 +41,14 @@ from ..core.errors import MapError
 from ..core.features import level_scale_factor
 from ..core.frame import Features
 from ..core.landmark_table import LandmarkColumns, LandmarkTable
+from .descriptor_pq import (
+    DESCRIPTOR_CODES,
+    PQCodebook,
+    descriptor_rows,
+    seeded_rows,
+    train_codebook,
+)
+from .landmark_rows import keep_rows
 
 Array = npt.NDArray[np.float64]
 
@@ -57,6 +65,10 @@ NO_ANGLE = -1.0
 #: (level, scale) that makes them ``keypoints_px`` (stored instead of it, format 4).
 LEVEL_PIXELS = "keypoints_level_px"
 SCALE_TABLE = "keypoint_scales_by_level"
+#: (N, 2) int16 keypoints in eighths of a pixel, stored instead of ``keypoints_px`` by a
+#: compact save (format 6): a rounding of at most 1/16 px, far below a SIFT keypoint's own
+#: localisation error; images up to 4,095 px (else the float32 column is kept).
+EIGHTH_PIXELS = "keypoints_px8"
 #: The dtype :class:`Features` holds each field in (descriptors keep theirs).
 CANONICAL = {"keypoints_px": np.float64, "levels": np.int16, "sizes": np.float32,
              "angles": np.float32, "landmark_ids": np.int64, "points_world": np.float64}
@@ -210,21 +222,33 @@ def points_are_derived(table: LandmarkTable, landmark_ids: npt.NDArray[np.int64]
 
 
 def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Features]]],
-                 table: LandmarkTable, landmarks: LandmarkColumns) -> dict[str, np.ndarray]:
+                 table: LandmarkTable, landmarks: LandmarkColumns,
+                 codebook: PQCodebook | None = None,
+                 keep: Sequence[npt.NDArray[np.bool_] | None] | None = None,
+                 compact: bool = False) -> dict[str, np.ndarray]:
     """The columns a snapshot stores for ``kind`` (name -> array): ``owners`` are (keyframe
     id, first row, features) of every keyframe holding ``kind``, in row order; rows narrowed
     where lossless, and the derivable fields only where they are not what load derives
-    (sizes from a level table, ids from ``landmarks``' observations, points from ``table``)."""
+    (sizes from a level table, ids from ``landmarks``' observations, points from ``table``).
+    With a ``codebook`` the descriptors are stored as its codes (:data:`DESCRIPTOR_CODES`);
+    ``keep``: per owner, the mask of its rows stored (None: all; :mod:`.landmark_rows`);
+    ``compact``: keypoints in eighths of a pixel, sizes float16, no angles (read by nothing
+    once extracted: a descriptor is already steered by its keypoint's angle)."""
     # a part is the rows as a loaded snapshot stored them (never built since), or Features
     parts: list[Features | dict[str, np.ndarray]] = [
         _stored_rows(features, kind) or features[kind] for _, _, features in owners]
-    fields = [*STORED_FIELDS, *DERIVABLE_FIELDS[:2]]
+    codes = [descriptor_rows(p, _codebook_of(f, kind), codebook)
+             for p, (_, _, f) in zip(parts, owners, strict=True)]
+    fields = [f for f in (*STORED_FIELDS, *DERIVABLE_FIELDS[:2]) if f != "descriptors"]
     if not all(points_are_derived(table, p.landmark_ids, p.points_world)
                for p in parts if isinstance(p, Features)):
         fields.append(DERIVED_FIELD)
         parts = [features[kind] for _, _, features in owners]   # every keyframe's points
     columns = {name: _concat([getattr(p, name) if isinstance(p, Features) else p[name]
                               for p in parts]) for name in fields}
+    columns["descriptors" if codebook is None else DESCRIPTOR_CODES] = _concat(codes)
+    if keep is not None:
+        columns = keep_rows(columns, keep, [len(c) for c in codes])
     sizes = sizes_by_level(columns["levels"], columns["sizes"])
     if sizes is not None:
         del columns["sizes"]
@@ -236,14 +260,48 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     if ids is not None and np.array_equal(ids, columns["landmark_ids"]):
         del columns["landmark_ids"]
     out = {name: narrow(name, column) for name, column in columns.items()}
-    if kind in ANGLELESS_KINDS:
+    if kind in ANGLELESS_KINDS or compact:
         del out["angles"]
     if kind == "orb":
         found = level_pixels(out["keypoints_px"], out["levels"], level_scale_factor(kind))
         if found is not None:
             del out["keypoints_px"]
             out[LEVEL_PIXELS], out[SCALE_TABLE] = found
+    if compact:   # after the exact level pixels, which ORB's keypoints take first
+        _compact_keypoints(out)
     return out
+
+
+def _compact_keypoints(out: dict[str, np.ndarray]) -> None:
+    """Sizes float16 and float keypoints as :data:`EIGHTH_PIXELS` where they fit (in place)."""
+    if "sizes" in out:
+        out["sizes"] = out["sizes"].astype(np.float16)
+    if "keypoints_px" in out:
+        eighths = np.rint(np.asarray(out["keypoints_px"], np.float64) * 8.0)
+        if len(eighths) and np.all(np.abs(eighths) <= np.iinfo(np.int16).max):  # NaN fails
+            out[EIGHTH_PIXELS] = eighths.astype(np.int16)
+            del out["keypoints_px"]
+
+
+def codebook_for(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Features]]],
+                 codec: str, caches: Sequence[dict[str, Any]]) -> PQCodebook | None:
+    """The codebook ``kind``'s descriptors are saved with under ``codec`` (None: in full):
+    only SIFT's are coded ("pq"). The codebook a loaded snapshot's keyframes use, or an
+    earlier save's (kept in the keyframes' ``caches``), is kept: codes are copied, never
+    decoded and coded again. Else one is learnt on the map's own descriptors and put in
+    ``caches`` (None when the map holds too few to learn from)."""
+    if codec != "pq" or kind.split("@")[0] != "sift":
+        return None
+    key = f"pq:{kind}"
+    for (_, _, features), cache in zip(owners, caches, strict=True):
+        if (codebook := _codebook_of(features, kind) or cache.get(key)) is not None:
+            break
+    else:
+        codebook = train_codebook(seeded_rows([f[kind].descriptors for _, _, f in owners]))
+    if codebook is not None:
+        for cache in caches:
+            cache[key] = codebook
+    return codebook
 
 
 def feature_count(features: Mapping[str, Features], kind: str) -> int:
@@ -255,6 +313,10 @@ def feature_count(features: Mapping[str, Features], kind: str) -> int:
 
 def _stored_rows(features: Mapping[str, Features], kind: str) -> dict[str, np.ndarray] | None:
     return features.stored(kind) if isinstance(features, LazyFeatures) else None
+
+
+def _codebook_of(features: Mapping[str, Features], kind: str) -> PQCodebook | None:
+    return features.codebook(kind) if isinstance(features, LazyFeatures) else None
 
 
 def _concat(parts: list[np.ndarray]) -> np.ndarray:
@@ -273,9 +335,12 @@ class FeatureColumns:
 
     def __init__(self, columns: Mapping[str, Mapping[str, np.ndarray]],
                  tables: Mapping[str, npt.NDArray[np.float32]] | None = None,
-                 scales: Mapping[str, npt.NDArray[np.float32]] | None = None) -> None:
+                 scales: Mapping[str, npt.NDArray[np.float32]] | None = None,
+                 codebooks: Mapping[str, PQCodebook] | None = None) -> None:
         self.columns = {kind: dict(cols) for kind, cols in columns.items()}
         self.tables = dict(tables or {})
+        #: kind -> codebook of the kinds whose descriptors are stored as PQ codes
+        self.codebooks = dict(codebooks or {})
         #: kind -> (level, scale) table of the kinds whose keypoints are stored as level pixels
         self.scales = dict(scales or {})
         self.landmarks: LandmarkColumns | None = None
@@ -313,6 +378,8 @@ class FeatureColumns:
             out["sizes"] = sizes_from_table(self.tables[kind], out["levels"])
         if "angles" not in out:
             out["angles"] = np.full(len(out["levels"]), NO_ANGLE, np.float32)
+        if EIGHTH_PIXELS in out:
+            out["keypoints_px"] = out.pop(EIGHTH_PIXELS).astype(np.float32) / np.float32(8)
         if LEVEL_PIXELS in out:
             out["keypoints_px"] = pixels_from_levels(out.pop(LEVEL_PIXELS), out["levels"],
                                                      self.scales[kind])
@@ -324,6 +391,8 @@ class FeatureColumns:
         if self.landmarks is None:
             raise MapError("features read before the landmark columns were loaded")
         arrays = {f: _canonical(f, c) for f, c in self.raw(kind, start, stop).items()}
+        if DESCRIPTOR_CODES in arrays:
+            arrays["descriptors"] = self.codebooks[kind].decode(arrays.pop(DESCRIPTOR_CODES))
         if DERIVED_FIELD not in arrays:
             arrays[DERIVED_FIELD] = derive_points(self.landmarks, arrays["landmark_ids"])
         for a in arrays.values():
@@ -384,6 +453,10 @@ class LazyFeatures(MutableMapping[str, Features]):
             return len(self._built[kind])
         start, stop = self._rows[kind]
         return stop - start
+
+    def codebook(self, kind: str) -> PQCodebook | None:
+        """The codebook ``kind``'s stored descriptors decode with (None: stored in full)."""
+        return self._columns.codebooks.get(kind)
 
     def stored(self, kind: str) -> dict[str, np.ndarray] | None:
         """``kind``'s rows as stored in the snapshot when never built here (a save copies

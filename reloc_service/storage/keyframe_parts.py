@@ -11,7 +11,13 @@ stores anyway. So by default (:class:`StoredParts`) a snapshot keeps:
   about 16x smaller on a rendered room), or ``"raw"`` (the float32 ``.npy``, as format 4);
 - images: ``"needed"`` (only when a method of the map reads them, else an
   :class:`..core.absent_image.AbsentImage`: size and CRC-32 of the pixels, no file) or
-  ``"always"``.
+  ``"always"``;
+- features: ``"all"`` or ``"landmarks"`` (the rows of keypoints that carry a landmark, where every method
+  of the map is trained and none reads other keypoints: :mod:`.landmark_rows`);
+- SIFT descriptors: ``"none"`` (in full) or ``"pq"`` (product-quantization codes, 32 bytes
+  instead of 128, decoded when a keyframe's features are first read: :mod:`.descriptor_pq`).
+
+The service's defaults (``[service]`` in the configuration) store landmark rows, in full.
 
 A replica that must hold what its source holds saves :data:`EVERYTHING`.
 """
@@ -29,10 +35,14 @@ import numpy.typing as npt
 from ..core.absent_image import AbsentImage, pixels_crc32
 from ..core.errors import ConfigError, StorageError
 from ..core.frame import Keyframe
+from .landmark_rows import ROW_MODES
 from .snapshot_files import SnapshotReader
 
 DEPTH_MODES = ("drop", "lossless", "raw")
 IMAGE_MODES = ("needed", "always")
+#: How SIFT descriptors are stored: in full, or as product-quantization codes
+#: (:mod:`.descriptor_pq`); ORB's 32-byte binary descriptors are stored as they are.
+DESCRIPTOR_CODECS = ("none", "pq")
 #: Keyframe cache entry of the CRC-32 and (H, W) of its pixels (an image's bytes never
 #: change while the keyframe object lives: a replaced keyframe is a new object).
 IMAGE_CRC_KEY = "image:crc32"
@@ -46,6 +56,8 @@ class StoredParts:
 
     depth: str = "drop"
     images: str = "needed"
+    descriptor_codec: str = "none"
+    descriptors: str = "all"
 
     def __post_init__(self) -> None:
         if self.depth not in DEPTH_MODES:
@@ -54,13 +66,19 @@ class StoredParts:
         if self.images not in IMAGE_MODES:
             raise ConfigError(f"keyframe_images: expected one of {', '.join(IMAGE_MODES)}, "
                               f"got {self.images!r}")
+        if self.descriptors not in ROW_MODES:
+            raise ConfigError(f"keyframe_descriptors: expected one of {', '.join(ROW_MODES)}, "
+                              f"got {self.descriptors!r}")
+        if self.descriptor_codec not in DESCRIPTOR_CODECS:
+            raise ConfigError(f"descriptor_codec: expected one of {', '.join(DESCRIPTOR_CODECS)}, "
+                              f"got {self.descriptor_codec!r}")
 
     def keeps_images(self, methods_read_images: bool) -> bool:
         """Whether a map whose methods do (or do not) read keyframe pixels stores images."""
         return self.images == "always" or methods_read_images
 
 
-#: Everything as held: raw depth and every image (a worker's replica, format 4's layout).
+#: Everything as held: raw depth, every image and full descriptors (a worker's replica).
 EVERYTHING = StoredParts(depth="raw", images="always")
 
 

@@ -1,6 +1,6 @@
 """Map persistence: a whole map saved as an immutable snapshot directory, switched atomically.
 
-Layout of a map directory ``MAP`` (format version 5)::
+Layout of a map directory ``MAP`` (format version 6)::
 
     MAP/CURRENT                     names the current snapshot: ``snapshots/000012``
     MAP/snapshots/000012/
@@ -18,8 +18,15 @@ Layout of a map directory ``MAP`` (format version 5)::
                                     where lossless, no field load can derive exactly (points
                                     and ids from the landmarks, ORB sizes from the levels, ORB
                                     keypoints from int16 pixels of their level; ORB angles,
-                                    read by nothing, not at all): see :mod:`.feature_columns`
-        thumbnails/<key>.npy        small blurry images already computed (one row a keyframe)
+                                    read by nothing, not at all): see :mod:`.feature_columns`;
+                                    SIFT descriptors as PQ codes + codebook, keypoints in
+                                    1/8 px, no angles where the owner asks (format 6,
+                                    :mod:`.descriptor_pq`), and a keyframe's
+                                    keypoints with a landmark only where it asks and the map's
+                                    methods allow (its entry says ``landmark_rows_only``:
+                                    :mod:`.landmark_rows`)
+        thumbnails/<key>.npy        small blurry images already computed (one row a keyframe;
+                                    float16 in a compact save, format 6)
         landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR):
                                     integers in the narrowest exact type, points as float32
                                     offsets from an observing keyframe where the rounding is
@@ -35,8 +42,9 @@ decoded on read), the arrays stay on disk until a query touches them (each keyfr
 are built from the shared columns on first use), and a change after loading copies what it
 changes (copy on write; the snapshot files are never written again). Each file's SHA-256 is
 checked at load (streamed, so a check does not hold the file in memory). Snapshots of format
-version 4 (every image and depth map, depth raw), 3 (float64 landmark points, float32 ORB
-keypoints and angles), 2 (every feature field in full, PNG images) and 1 (PNG images, one
+version 5 (every keypoint, SIFT descriptors, keypoints and angles in full), 4 (every image and
+depth map, depth raw), 3 (float64 landmark points, float32 ORB keypoints and angles), 2
+(every feature field in full, PNG images) and 1 (PNG images, one
 ``.npz`` per keyframe and kind) are still read.
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
@@ -69,17 +77,21 @@ from ..core.cameras import Camera, camera_from_dict
 from ..core.errors import CameraError, GeometryError, MapError, StorageError
 from ..core.fileio import fsync_path
 from ..core.frame import SIFT_DIM, EncodedImage, Features, Keyframe
+from ..core.landmark_rows import LANDMARK_ROWS_ONLY
 from ..core.landmark_table import Landmark, LandmarkColumns, LandmarkTable
 from ..core.map import MapState
+from .descriptor_pq import CODEBOOK, DESCRIPTOR_CODES, PQCodebook
 from .feature_columns import (
     ANGLELESS_KINDS,
     DERIVABLE_FIELDS,
+    EIGHTH_PIXELS,
     LEVEL_PIXELS,
     SCALE_TABLE,
     SIZE_TABLE,
     STORED_FIELDS,
     FeatureColumns,
     LazyFeatures,
+    codebook_for,
     feature_count,
     kind_columns,
     narrowest,
@@ -94,6 +106,13 @@ from .keyframe_parts import (
     read_lossless_depth,
 )
 from .landmark_codec import ANCHORED_POINTS, WidenedColumn, anchored_points, encode_geometry
+from .landmark_rows import (
+    RowMasks,
+    kept_count,
+    landmark_rows_only,
+    renumber_observations,
+    row_masks,
+)
 from .snapshot_files import (
     CURRENT_FILE,
     MANIFEST_FILE,
@@ -109,9 +128,9 @@ from .snapshot_files import (
 )
 
 FORMAT = "reloc map"
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 #: Older format versions this reloc still reads.
-READABLE_VERSIONS = (1, 2, 3, 4, 5)
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
 MODELS_DIR = "models"
 
 FEATURE_FIELDS = ("keypoints_px", "levels", "sizes", "angles", "descriptors", "landmark_ids",
@@ -192,38 +211,53 @@ def _write_keyframe(writer: SnapshotWriter, kf: Keyframe, rows: Mapping[str, tup
     return entry
 
 
-def _feature_rows(keyframes: list[Keyframe]) -> dict[int, dict[str, tuple[int, int]]]:
-    """Per keyframe id, per kind, its row range in the concatenated feature columns."""
+def _feature_rows(keyframes: list[Keyframe], masks: RowMasks
+                  ) -> dict[int, dict[str, tuple[int, int]]]:
+    """Per keyframe id, per kind, its row range in the concatenated feature columns (the
+    rows ``masks`` keeps)."""
     ends: dict[str, int] = {}
     out: dict[int, dict[str, tuple[int, int]]] = {}
     for kf in keyframes:
         out[kf.id] = {}
         for kind in sorted(kf.features):
             start = ends.get(kind, 0)
-            ends[kind] = start + feature_count(kf.features, kind)
+            ends[kind] = start + kept_count(masks, kf.id, kind,
+                                            feature_count(kf.features, kind))
             out[kf.id][kind] = (start, ends[kind])
     return out
 
 
 def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: MapState,
                     landmarks: LandmarkColumns,
-                    rows: Mapping[int, Mapping[str, tuple[int, int]]]) -> None:
-    """One ``.npy`` per kind and stored column (:func:`.feature_columns.kind_columns`)."""
+                    rows: Mapping[int, Mapping[str, tuple[int, int]]], codec: str,
+                    masks: RowMasks) -> None:
+    """One ``.npy`` per kind and stored column (:func:`.feature_columns.kind_columns`; the
+    rows ``masks`` keeps), and the codebook of a kind whose descriptors are PQ codes."""
     for kind in sorted({k for kf in keyframes for k in kf.features}):
         owners = [(kf.id, rows[kf.id][kind][0], kf.features)
                   for kf in keyframes if kind in kf.features]
-        for name, column in kind_columns(kind, owners, state.landmarks, landmarks).items():
+        codebook = codebook_for(kind, owners, codec,
+                                [kf.cache for kf in keyframes if kind in kf.features])
+        if codebook is not None:
+            writer.write(f"features/{kind}.{CODEBOOK}.npy", _npy_bytes(codebook.centroids))
+        keep = [masks.get((kf_id, kind)) for kf_id, _, _ in owners]
+        for name, column in kind_columns(kind, owners, state.landmarks, landmarks,
+                                         codebook, keep, compact=codec == "pq").items():
             writer.write(f"features/{kind}.{name}.npy", _npy_bytes(column))
 
 
-def _write_thumbnails(writer: SnapshotWriter, keyframes: list[Keyframe]) -> list[str]:
-    """Small blurry images every keyframe already has (same cache key), one file per key."""
+def _write_thumbnails(writer: SnapshotWriter, keyframes: list[Keyframe], compact: bool
+                      ) -> list[str]:
+    """Small blurry images every keyframe already has (same cache key), one file per key;
+    ``compact``: float16 (zero-mean blurred grey levels within +-255: rounded by at most
+    1/16 of a grey level, noise far below the image's own), else float32 as held."""
     if not keyframes:
         return []
     keys = set.intersection(*({k for k in kf.cache if k.startswith(THUMBNAIL_PREFIX)}
                               for kf in keyframes))
+    dtype = np.float16 if compact else np.float32
     for key in sorted(keys):
-        stack = np.stack([np.asarray(kf.cache[key], np.float32) for kf in keyframes])
+        stack = np.stack([np.asarray(kf.cache[key], np.float32) for kf in keyframes]).astype(dtype)
         writer.write(_thumbnail_path(key), _npy_bytes(stack))
     return sorted(keys)
 
@@ -279,11 +313,15 @@ def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelW
     writer = SnapshotWriter(snapshot)
     # insertion order, kept by load_map: a replica copies the map in the order it was built
     kfs = list(state.keyframes.values())
-    rows = _feature_rows(kfs)
+    masks = row_masks(kfs, parts.descriptors)
+    rows = _feature_rows(kfs, masks)
     keyframes = [_write_keyframe(writer, kf, rows[kf.id], parts) for kf in kfs]
-    columns = state.landmarks.columns()
-    _write_features(writer, kfs, state, columns, rows)
-    thumbnails = _write_thumbnails(writer, kfs)
+    for entry, only in zip(keyframes, landmark_rows_only(kfs, masks), strict=True):
+        if only:
+            entry["landmark_rows_only"] = True
+    columns = renumber_observations(state.landmarks.columns(), masks)
+    _write_features(writer, kfs, state, columns, rows, parts.descriptor_codec, masks)
+    thumbnails = _write_thumbnails(writer, kfs, compact=parts.descriptor_codec == "pq")
     landmarks = _write_landmarks(writer, columns, state.keyframes, exact=exact_geometry)
     model_dirs: dict[str, str] = {}
     for method, write_model in models.items():
@@ -469,11 +507,16 @@ class _FeatureColumns:
         self._cameras: dict[str, Camera] = {}
         tables: dict[str, np.ndarray] = {}
         scales: dict[str, np.ndarray] = {}
+        codebooks: dict[str, PQCodebook] = {}
         for kind in kinds:
-            listed = {f for f in (*DERIVABLE_FIELDS, LEVEL_PIXELS)
+            listed = {f for f in (*DERIVABLE_FIELDS, LEVEL_PIXELS, DESCRIPTOR_CODES,
+                                  EIGHTH_PIXELS)
                       if f"features/{kind}.{f}.npy" in manifest["files"]}
             stored = [f for f in STORED_FIELDS
-                      if not (f == "keypoints_px" and LEVEL_PIXELS in listed)
+                      if not (f == "keypoints_px" and listed & {LEVEL_PIXELS, EIGHTH_PIXELS})
+                      and not (f == "descriptors" and DESCRIPTOR_CODES in listed)
+                      and not (f == "angles" and manifest["format_version"] >= 6
+                               and f"features/{kind}.angles.npy" not in manifest["files"])
                       and not (f == "angles" and manifest["format_version"] >= 4
                                and kind in ANGLELESS_KINDS)]
             fields = [*stored, *sorted(listed)]
@@ -487,6 +530,8 @@ class _FeatureColumns:
                     raise StorageError(f"{reader.root}/features/{kind}.{LEVEL_PIXELS}.npy: "
                                        f"expected (N, 2) int16, got {cols[LEVEL_PIXELS].shape} "
                                        f"{cols[LEVEL_PIXELS].dtype}")
+            if DESCRIPTOR_CODES in cols:
+                codebooks[kind] = _codebook(reader, kind, cols[DESCRIPTOR_CODES])
             lengths = {f: len(c) for f, c in cols.items()}
             if len(set(lengths.values())) != 1:
                 raise StorageError(f"{reader.root}/features/{kind}.*.npy: columns of different "
@@ -494,7 +539,7 @@ class _FeatureColumns:
             # plain ndarray views of the maps: slicing an np.memmap 8000 times (1000 keyframes
             # x 8 columns) paid its __array_finalize__ each time; the views still read the map
             self.columns[kind] = {f: c.view(np.ndarray) for f, c in cols.items()}
-        self.shared = FeatureColumns(self.columns, tables, scales)
+        self.shared = FeatureColumns(self.columns, tables, scales, codebooks)
         self.starts: dict[str, list[tuple[int, int]]] = {}
 
     def attach_landmarks(self, landmarks: LandmarkColumns) -> None:
@@ -520,11 +565,14 @@ class _FeatureColumns:
             depth = _entry_depth(reader, entry)
             timestamp = entry.get("timestamp")
             # held encoded (Frame.image's setter takes an EncodedImage; its type is the pixels)
-            return Keyframe(image=image, camera=camera,  # type: ignore[arg-type]
-                            features=features, id=entry["id"],
-                            world_from_cam=np.array(entry["world_from_cam"], np.float64),
-                            timestamp=None if timestamp is None else float(timestamp),
-                            depth=depth, pose_covariance=_entry_covariance(entry))
+            kf = Keyframe(image=image, camera=camera,  # type: ignore[arg-type]
+                          features=features, id=entry["id"],
+                          world_from_cam=np.array(entry["world_from_cam"], np.float64),
+                          timestamp=None if timestamp is None else float(timestamp),
+                          depth=depth, pose_covariance=_entry_covariance(entry))
+            if entry.get("landmark_rows_only"):
+                kf.cache[LANDMARK_ROWS_ONLY] = True
+            return kf
         except StorageError:
             raise
         except (KeyError, TypeError, ValueError, GeometryError, CameraError, MapError) as exc:
@@ -570,6 +618,17 @@ def _entry_depth(reader: SnapshotReader, entry: Mapping[str, Any]) -> np.ndarray
     return reader.npy(rel)
 
 
+def _codebook(reader: SnapshotReader, kind: str, codes: np.ndarray) -> PQCodebook:
+    """The PQ codebook ``kind``'s (N, M) uint8 ``codes`` decode with (checked against them)."""
+    relpath = f"features/{kind}.{CODEBOOK}.npy"
+    codebook = PQCodebook(np.asarray(reader.npy(relpath)))
+    if codes.dtype != np.uint8 or codes.ndim != 2 or codes.shape[1] != len(codebook.centroids):
+        raise StorageError(f"{reader.root}/features/{kind}.{DESCRIPTOR_CODES}.npy: expected "
+                           f"(N, {len(codebook.centroids)}) uint8 codes, got {codes.shape} "
+                           f"{codes.dtype}")
+    return codebook
+
+
 def _size_table(reader: SnapshotReader, relpath: str) -> np.ndarray:
     """A (K, 2) float32 table of (level ascending, value): sizes or scales by level."""
     table = np.asarray(reader.npy(relpath))
@@ -588,6 +647,8 @@ def _attach_thumbnails(reader: SnapshotReader, manifest: Mapping[str, Any],
         if len(stack) != len(keyframes) or stack.ndim != 3:
             raise StorageError(f"{reader.root / _thumbnail_path(str(key))}: expected "
                                f"({len(keyframes)}, h, w) thumbnails, got {stack.shape}")
+        if stack.dtype == np.float16:   # a compact snapshot's: held float32, as computed
+            stack = stack.astype(np.float32)
         for kf, thumb in zip(keyframes, stack, strict=True):
             kf.cache[str(key)] = thumb
 

@@ -41,6 +41,7 @@ import scipy.sparse as sp
 from ...core.errors import ConfigError, NotTrainedError, StorageError
 from ...core.features import FEATURE_KINDS, FeatureConf, extract
 from ...core.frame import Features, Frame, Keyframe
+from ...core.landmark_rows import check_every_row
 from ...core.map import KeyframeMap
 from ...core.numeric import top_k
 from .base import PlaceCandidate, PlaceFinder, register
@@ -191,6 +192,7 @@ class BagOfWords(PlaceFinder):
 
     def _keyframe_features(self, keyframe: Frame) -> Features:
         """The keyframe's features of ``kind``; extracted once (and cached) when it has none."""
+        check_every_row(keyframe, "a bag-of-words vocabulary (its training and indexing)")
         feats = keyframe.features.get(self.conf.kind)
         if feats is None:
             key = f"bow:features:{self.conf.kind}:{self.conf.max_features}"

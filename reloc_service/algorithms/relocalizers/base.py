@@ -475,6 +475,13 @@ class Relocalizer(abc.ABC):
         small blurry images saved with the map)."""
         return False
 
+    @property
+    def reads_unmapped_keypoints(self) -> bool:
+        """Whether answering a query reads map keyframes' keypoints that carry no landmark
+        (5-point matching), so a map it serves keeps every keypoint on disk. Default: no
+        (training may read them: an untrained method keeps them too, see ``Engine.save``)."""
+        return False
+
     def feature_confs(self) -> dict[str, FeatureConf]:
         """The query features :meth:`relocalize` extracts, by kind, with the settings it
         extracts them with: what a chain may extract ahead for it (:data:`ON_DOUBT`) to

@@ -59,6 +59,10 @@ class ChainRelocalizer(Relocalizer):
     def reads_keyframe_images(self) -> bool:
         return any(step.reads_keyframe_images for step in self.steps)
 
+    @property
+    def reads_unmapped_keypoints(self) -> bool:
+        return any(step.reads_unmapped_keypoints for step in self.steps)
+
     def feature_confs(self) -> dict[str, FeatureConf]:
         return self.steps[0].feature_confs()
 

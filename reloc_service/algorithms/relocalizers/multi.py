@@ -18,6 +18,7 @@ from ...core.errors import ConfigError, NotTrainedError
 from ...core.features import FeatureConf
 from ...core.frame import Frame, Keyframe
 from ...core.geometry import pose_error
+from ...core.landmark_rows import check_every_row
 from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
 from ...core.plugins import make_conf
@@ -38,6 +39,10 @@ from .base import (
     result_from_estimate,
 )
 from .overlap import run_beside
+
+#: Pose finders that match a query against every keypoint of a map keyframe, not only those
+#: with a landmark (5-point: a relative pose from 2D-2D matches).
+POSES_READING_EVERY_KEYPOINT = frozenset({"5pt"})
 
 
 @register("multi")
@@ -128,6 +133,10 @@ class MultiRelocalizer(Relocalizer):
     def reads_keyframe_images(self) -> bool:
         return self.place.reads_keyframe_images or self.pose.reads_keyframe_images
 
+    @property
+    def reads_unmapped_keypoints(self) -> bool:
+        return self.pose.name in POSES_READING_EVERY_KEYPOINT
+
     def feature_confs(self) -> dict[str, FeatureConf]:
         """The pose finder's, and the place finder's (which extracts first where both
         extract one kind: bow+p3p)."""
@@ -146,6 +155,8 @@ class MultiRelocalizer(Relocalizer):
         return self.conf.require_agreement
 
     def add_keyframe(self, keyframe: Keyframe) -> None:
+        if self.reads_unmapped_keypoints:
+            check_every_row(keyframe, f"{self.method}'s {self.pose.name} matching")
         self.place.add_keyframe(keyframe)
 
     def remove_keyframe(self, keyframe: Keyframe) -> None:

@@ -167,9 +167,11 @@ def landmarks_per_keyframe(state: MapState, kind: str = "sift") -> int:
 
 def prepare_size(state: MapState, conf: Any, directory: Path) -> dict[str, Any]:
     """Save ``state``, load it into an :class:`Engine` with ``conf`` (which trains every
-    method), save it again with the trained models under ``directory / "map"``; returns
+    method), save it again with the trained models under ``directory / "map"`` as a service
+    with the default ``[service]`` options stores it; returns
     the times (seconds) and the counts."""
     from ...engine import Engine
+    from ...service.config import ServiceSection
     from ...storage.snapshot import save_map
 
     raw = directory / "raw"
@@ -180,7 +182,7 @@ def prepare_size(state: MapState, conf: Any, directory: Path) -> dict[str, Any]:
     engine = Engine.load(raw, conf)
     trained = time.perf_counter() - start
     start = time.perf_counter()
-    engine.save(directory / "map")
+    engine.save(directory / "map", parts=ServiceSection().stored_parts())   # as a service saves
     saved_models = time.perf_counter() - start
     return {"keyframes": len(state.keyframes), "landmarks": len(state.landmarks),
             "save_raw_s": saved, "load_and_train_s": trained, "save_with_models_s": saved_models,

@@ -223,7 +223,8 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
              landmarks: LandmarkSource | str = LandmarkSource.AUTO,
              progress: bool = True, remote: RemoteSpec | None = None,
              keyframe_sigma: tuple[float, float] = (0.0, 0.0),
-             query_camera: QueryCamera | None = None) -> EvalResult:
+             query_camera: QueryCamera | None = None,
+             round_trip: bool = False) -> EvalResult:
     """Build the map of ``dataset_root``, train, and score every query with each method.
 
     Args:
@@ -243,6 +244,9 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
             (:func:`.metrics.translation_mahalanobis`). (0, 0): exact poses.
         query_camera: what the queries claim about their camera (default: the dataset's);
             the map is built with the dataset's.
+        round_trip: query the map as a service restores it: saved after training as a
+            service's snapshot stores it by default (:class:`.keyframe_parts.StoredParts`:
+            no depth, landmark keypoints only, ...) and loaded back (in-process only).
     """
     methods = _method_list(method)
     claimed = query_camera or QueryCamera()
@@ -254,6 +258,11 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
     try:
         build_s = _build_map(backend, dataset, source, progress, truth_covariance)
         train_s = _timed(lambda: backend.train(progress=progress))
+        if round_trip:
+            if not isinstance(backend, InProcessBackend):
+                raise ConfigError("a snapshot round trip needs the in-process backend (a "
+                                  "service's map is already its own snapshot's)")
+            backend.round_trip()
         with as_a_service_worker() if isinstance(backend, InProcessBackend) else nullcontext():
             results = [_evaluate_method(backend, dataset, m, progress, claimed,
                                         truth_covariance)

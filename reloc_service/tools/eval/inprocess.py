@@ -3,6 +3,7 @@ process, its queries answered as a service worker answers them (:func:`as_a_serv
 
 from __future__ import annotations
 
+import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from typing import Any
@@ -48,6 +49,7 @@ class InProcessBackend:
         from ...engine import Engine
 
         self.engine = Engine(engine_conf(methods, options, landmark_source))
+        self._snapshot_dir: tempfile.TemporaryDirectory[str] | None = None
 
     def add_keyframe(self, kf_id: int, image: npt.NDArray[np.uint8], camera: Camera,
                      world_from_cam: Array, *, depth: npt.NDArray[np.float32] | None,
@@ -57,6 +59,17 @@ class InProcessBackend:
 
     def train(self, *, progress: bool) -> None:
         self.engine.train(progress=progress)
+
+    def round_trip(self) -> None:
+        """Save the map and its trained models as a service's snapshot stores them by default
+        (:meth:`~reloc_service.service.config.ServiceSection.stored_parts`) and go on with the
+        engine loaded from it (its files stay until :meth:`close`: it reads them lazily)."""
+        from ...engine import Engine
+        from ...service.config import ServiceSection
+
+        self._snapshot_dir = tempfile.TemporaryDirectory(prefix="reloc-eval-")
+        self.engine.save(self._snapshot_dir.name, parts=ServiceSection().stored_parts())
+        self.engine = Engine.load(self._snapshot_dir.name, self.engine.conf)
 
     def relocalize(self, image: npt.NDArray[np.uint8], camera: Camera, *, method: str,
                    gt_world_from_cam: Array) -> RelocResult:
@@ -93,6 +106,8 @@ class InProcessBackend:
         if close is not None:
             close()
         close_helpers()
+        if self._snapshot_dir is not None:
+            self._snapshot_dir.cleanup()
 
 
 def engine_conf(methods: Sequence[str], options: Mapping[str, Any],

@@ -1,0 +1,42 @@
+"""``reloc eval --round-trip``: the map queried is the one a service restores from its
+snapshot (compact by default), not the one built in memory."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from reloc_service.cli import main as cli_main
+from reloc_service.core.landmark_rows import holds_landmark_rows_only
+from reloc_service.storage.feature_columns import LazyFeatures
+from reloc_service.tools.eval.backends import LandmarkSource
+from reloc_service.tools.eval.inprocess import InProcessBackend
+
+
+def test_a_round_trip_queries_the_map_loaded_from_a_default_snapshot(synthetic_scene):
+    backend = InProcessBackend(["sbi+p3p"], {}, LandmarkSource.TRIANGULATE)
+    scene = synthetic_scene
+    for i, (image, pose) in enumerate(zip(scene.keyframe_images, scene.keyframe_poses,
+                                          strict=True)):
+        backend.add_keyframe(i, image, scene.camera, pose, depth=None)
+    backend.train(progress=False)
+    built = backend.engine
+    backend.round_trip()
+    try:
+        assert backend.engine is not built
+        state = backend.engine.map.snapshot()
+        kf = state.keyframes[0]
+        assert isinstance(kf.features, LazyFeatures)       # read from the snapshot's columns
+        assert holds_landmark_rows_only(kf)                 # the service's default: landmark rows
+        assert np.all(kf.features["sift"].landmark_ids >= 0)
+        result = backend.relocalize(scene.query_images[1], scene.camera, method="sbi+p3p",
+                                    gt_world_from_cam=scene.query_poses[1])
+        assert result.ok
+        assert np.linalg.norm(result.world_from_cam[:3, 3] - scene.query_poses[1][:3, 3]) < 0.05
+    finally:
+        backend.close()
+
+
+def test_a_round_trip_through_a_remote_service_is_a_usage_error(capsys):
+    assert cli_main.main(["eval", "somewhere", "--remote", "tcp/127.0.0.1:1", "--map", "m",
+                          "--round-trip"]) == 2
+    assert "--round-trip evaluates in-process" in capsys.readouterr().err
