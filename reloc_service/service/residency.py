@@ -34,7 +34,6 @@ from reloc_client import protocol as wire
 
 from ..core.errors import StorageError
 from .durability import map_dirname, read_service_file
-from .memory import trim_now
 from .quotas import MapUsage
 
 if TYPE_CHECKING:
@@ -290,7 +289,6 @@ class Residency:
             self.kept_usage[name] = rt.usage
             self.registry.close_resident(name, timeout=self.stop_timeout_s)
             self.evictions += 1
-            trim_now()   # the closed map's freed pages go back to the system
             log.info("map %s: closed (idle; %.1f MB resident of %.1f MB)", name,
                      self.resident_bytes() / MB, self.budget / MB)
         finally:
