@@ -146,6 +146,9 @@ class PoseFinder(abc.ABC):
     name: ClassVar[str]
     #: Feature kinds keyframes must carry (an instance may set its own from its conf).
     required_features: frozenset[str] = frozenset()
+    #: Whether it matches a query against map keyframes' keypoints that carry no landmark
+    #: (2D-2D matching): a map served with it keeps every keypoint on disk.
+    reads_unmapped_keypoints: ClassVar[bool] = False
     #: Whether it reads keyframe pixels (beyond features and small blurry images): a map
     #: served with it keeps its keyframe images on disk.
     reads_keyframe_images: ClassVar[bool] = False

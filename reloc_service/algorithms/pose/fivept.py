@@ -89,6 +89,7 @@ class FivePointPoseFinder(PoseFinder):
     one metric pose of the query."""
 
     pools_candidates: ClassVar[bool] = True
+    reads_unmapped_keypoints: ClassVar[bool] = True   # relative poses from 2D-2D matches
 
     @dataclasses.dataclass(frozen=True)
     class Conf:

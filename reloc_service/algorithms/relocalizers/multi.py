@@ -40,10 +40,6 @@ from .base import (
 )
 from .overlap import run_beside
 
-#: Pose finders that match a query against every keypoint of a map keyframe, not only those
-#: with a landmark (5-point: a relative pose from 2D-2D matches).
-POSES_READING_EVERY_KEYPOINT = frozenset({"5pt"})
-
 
 @register("multi")
 class MultiRelocalizer(Relocalizer):
@@ -135,7 +131,7 @@ class MultiRelocalizer(Relocalizer):
 
     @property
     def reads_unmapped_keypoints(self) -> bool:
-        return self.pose.name in POSES_READING_EVERY_KEYPOINT
+        return self.pose.reads_unmapped_keypoints
 
     def feature_confs(self) -> dict[str, FeatureConf]:
         """The pose finder's, and the place finder's (which extracts first where both
