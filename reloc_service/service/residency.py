@@ -4,8 +4,7 @@ journal backlog), and closed again when the resident maps count more than the bu
 recently used first. A cold load first makes room for the map it brings (what the map counted
 when it was last closed, else the mean of the maps known so far), so the count stays under the
 budget through the load; if no map is idle within :data:`MAKE_ROOM_WAIT_S` it loads anyway and
-the idle ones are closed once they are. After a close, freed heap pages go back to the system
-(``malloc_trim``): otherwise glibc keeps them and the process's memory never comes back down.
+the idle ones are closed once they are.
 
 What a map counts is what the quotas count for it (:class:`~.quotas.MapUsage`: its keyframes'
 images as held, depth and features); the process's resident memory is a multiple of that
