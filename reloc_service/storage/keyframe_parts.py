@@ -43,6 +43,14 @@ IMAGE_MODES = ("needed", "always")
 #: How SIFT descriptors are stored: in full, or as product-quantization codes
 #: (:mod:`.descriptor_pq`); ORB's 32-byte binary descriptors are stored as they are.
 DESCRIPTOR_CODECS = ("none", "pq")
+
+
+def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
+    """ConfigError naming ``key`` and its choices unless ``value`` is one of them."""
+    if value not in choices:
+        raise ConfigError(f"{key}: expected one of {', '.join(choices)}, got {value!r}")
+
+
 #: Keyframe cache entry of the CRC-32 and (H, W) of its pixels (an image's bytes never
 #: change while the keyframe object lives: a replaced keyframe is a new object).
 IMAGE_CRC_KEY = "image:crc32"
@@ -60,18 +68,10 @@ class StoredParts:
     descriptors: str = "all"
 
     def __post_init__(self) -> None:
-        if self.depth not in DEPTH_MODES:
-            raise ConfigError(f"keyframe_depth: expected one of {', '.join(DEPTH_MODES)}, got "
-                              f"{self.depth!r}")
-        if self.images not in IMAGE_MODES:
-            raise ConfigError(f"keyframe_images: expected one of {', '.join(IMAGE_MODES)}, "
-                              f"got {self.images!r}")
-        if self.descriptors not in ROW_MODES:
-            raise ConfigError(f"keyframe_descriptors: expected one of {', '.join(ROW_MODES)}, "
-                              f"got {self.descriptors!r}")
-        if self.descriptor_codec not in DESCRIPTOR_CODECS:
-            raise ConfigError(f"descriptor_codec: expected one of {', '.join(DESCRIPTOR_CODECS)}, "
-                              f"got {self.descriptor_codec!r}")
+        _check_choice("keyframe_depth", self.depth, DEPTH_MODES)
+        _check_choice("keyframe_images", self.images, IMAGE_MODES)
+        _check_choice("keyframe_descriptors", self.descriptors, ROW_MODES)
+        _check_choice("descriptor_codec", self.descriptor_codec, DESCRIPTOR_CODECS)
 
     def keeps_images(self, methods_read_images: bool) -> bool:
         """Whether a map whose methods do (or do not) read keyframe pixels stores images."""
