@@ -197,16 +197,33 @@ def test_what_a_copys_pose_leaves_unexplained_points_to_the_true_place(repeated_
     assert wrong is not None and pose_error(wrong.world_from_cam, copy_pose)[0] < 0.1
 
     feats = query.features["sift"]
-    pool = finder._map_pool(state)[0]
+    pool, index, _ = finder._map_pool(state)
     explained = finder.support(query, wrong.world_from_cam, state)
-    rows = unexplained_matches(feats, explained.keypoints, pool, RepetitionConf())
+    rows = unexplained_matches(feats, explained.keypoints, index, RepetitionConf())
     kf_ids, votes = state.landmarks.observing_keyframes(pool.landmark_ids[rows])
     near_truth = set(state.nearest_keyframes(gt, 3, 60.0))
     assert near_truth & set(kf_ids[votes == votes.max()].tolist())
-    everything = unexplained_matches(feats, np.zeros(0, np.int64), pool, RepetitionConf())
+    everything = unexplained_matches(feats, np.zeros(0, np.int64), index, RepetitionConf())
     assert len(everything) > len(rows)  # explained keypoints are left out
 
     (there,) = finder._elsewhere(query, wrong, state, pool.landmark_ids[rows], lambda _: True)
     assert pose_error(there.world_from_cam, gt)[0] < 0.02
+    alternatives = finder.alternatives(query, wrong, state)
+    assert any(pose_error(a.world_from_cam, gt)[0] < 0.02 for a in alternatives)
+
+
+def test_the_indexed_repetition_check_finds_the_true_place_too(repeated_scene) -> None:
+    """As above with the whole-map pool searched in its index (as on a map too large to
+    scan): the alternatives still hold the true pose."""
+    from reloc_service.algorithms.place.base import PlaceCandidate
+
+    gt = downward_pose(-0.75, -0.5, 0.8)
+    query = Frame(repeated_scene.render(gt), CAMERA)
+    finder = create_relocalizer("sbi+p3p", repeated_scene.map,
+                                options={"p3p": {"repetition_exact_rows": 0}}).pose
+    state = repeated_scene.map.snapshot()
+    assert finder._map_pool(state)[1].tree is not None
+    above_copy = state.nearest_keyframes(downward_pose(1.25, -0.5, 0.8), 1, 60.0)
+    wrong = finder.find_pose(query, [PlaceCandidate(k, 1.0) for k in above_copy], state)
     alternatives = finder.alternatives(query, wrong, state)
     assert any(pose_error(a.world_from_cam, gt)[0] < 0.02 for a in alternatives)

@@ -30,6 +30,7 @@ from .repetition import (
     twin_correspondences,
     unexplained_matches,
 )
+from .repetition_index import IndexConf, RepetitionIndex
 from .support import explained_keypoints
 
 Array = npt.NDArray[np.float64]
@@ -70,6 +71,9 @@ class P3PPoseFinder(PoseFinder):
         #: (:class:`~reloc_service.core.features.FeatureConf` ``scale``); each keypoint is then
         #: located to ``1 / query_scale`` full-image pixels, which its weight carries.
         query_scale: float = 1.0
+        #: The repetition check's whole-map pool is scanned in full up to this many landmarks,
+        #: searched in an index above (:class:`~.repetition_index.IndexConf` ``exact_rows``).
+        repetition_exact_rows: int = IndexConf.exact_rows
 
         def __post_init__(self) -> None:
             super().__post_init__()
@@ -80,13 +84,20 @@ class P3PPoseFinder(PoseFinder):
             if self.first_pool_keyframes is not None and self.first_pool_keyframes < 1:
                 raise ConfigError(f"p3p: first_pool_keyframes must be >= 1 or None, got "
                                   f"{self.first_pool_keyframes}")
+            if self.repetition_exact_rows < 0:
+                raise ConfigError(f"p3p: repetition_exact_rows must be >= 0, got "
+                                  f"{self.repetition_exact_rows}")
+
+        def repetition_index(self) -> IndexConf:
+            """How the repetition check's whole-map pool is indexed."""
+            return IndexConf(exact_rows=self.repetition_exact_rows)
 
     def __init__(self, conf: P3PPoseFinder.Conf) -> None:
         super().__init__(conf)
         self.required_features = frozenset({conf.kind})
-        #: The map state the landmark pool of every keyframe was gathered for, that pool and
-        #: its landmarks' depth sigmas (:meth:`_map_pool`).
-        self._pooled: tuple[MapState, LandmarkPool, Array, list[int]] | None = None
+        #: The map state the landmark pool of every keyframe was gathered for, that pool, its
+        #: index and the keyframe ids in pool order (:meth:`_map_pool`).
+        self._pooled: tuple[MapState, LandmarkPool, RepetitionIndex, list[int]] | None = None
 
     def find_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
                   ) -> PoseEstimate | None:
@@ -207,13 +218,17 @@ class P3PPoseFinder(PoseFinder):
         feats = query.features.get(self._feature_key)
         if feats is None or estimate.inlier_keypoints is None or estimate.inlier_landmark_ids is None:
             return []
-        pool, sigmas, ids = self._map_pool(state)
+        pool, index, ids = self._map_pool(state)
         conf = RepetitionConf(ratio=self.conf.ratio)
+
+        def sigmas_m(rows: npt.NDArray[np.int64]) -> Array:
+            return state.landmark_sigmas(pool.landmark_ids[rows], 0.0)
+
         twins = twin_correspondences(feats, estimate.inlier_keypoints,
-                                     estimate.inlier_landmark_ids, pool, sigmas, conf)
+                                     estimate.inlier_landmark_ids, pool, index, sigmas_m, conf)
         explained = self.support(query, estimate.world_from_cam, state)
         matched = unexplained_matches(feats, np.zeros(0, np.int64) if explained is None
-                                      else explained.keypoints, pool, conf)
+                                      else explained.keypoints, index, conf)
         grown = self._elsewhere(query, estimate, state, pool.landmark_ids[matched], plausible)
         for alt in alternative_poses(feats, query.camera, twins, pool, self.conf, conf):
             if not plausible(alt):
@@ -253,13 +268,16 @@ class P3PPoseFinder(PoseFinder):
         found = self.find_pose(query, [PlaceCandidate(int(k), 0.0) for k in far], state)
         return [] if found is None or not plausible(found) else [found]
 
-    def _map_pool(self, state: MapState) -> tuple[LandmarkPool, Array, list[int]]:
+    def _map_pool(self, state: MapState) -> tuple[LandmarkPool, RepetitionIndex, list[int]]:
         """The landmarks of every keyframe of ``state`` (:meth:`LandmarkPool.gather`), their
-        depth sigmas and the keyframe ids in pool order; gathered once per map version."""
+        :class:`RepetitionIndex` and the keyframe ids in pool order; made once per map
+        version (at :meth:`prepare_map`, or by the first query of a later version)."""
         if self._pooled is None or self._pooled[0] is not state:
+            self._pooled = None  # the previous version's pool is not held while this one's is made
             ids = list(state.keyframes)
             pool = LandmarkPool.gather([state.keyframes[k] for k in ids], self.conf.kind)
-            self._pooled = (state, pool, state.landmark_sigmas(pool.landmark_ids, 0.0), ids)
+            index = RepetitionIndex.build(pool.descriptors, self.conf.repetition_index())
+            self._pooled = (state, pool, index, ids)
         return self._pooled[1], self._pooled[2], self._pooled[3]
 
     def _scales(self, feats: Features, q_idx: npt.NDArray[np.int64]) -> Array | None:
@@ -287,9 +305,11 @@ class P3PPoseFinder(PoseFinder):
 
     def prepare_map(self, state: MapState) -> None:
         """Each keyframe's agreement with the map's camera (:mod:`.map_consistency`), which
-        the intrinsics test of a query near it reads."""
+        the intrinsics test of a query near it reads, and the whole map's landmark pool and
+        its index, which the repetition check of every query reads."""
         if self.conf.intrinsics_false_refusal > 0:
             prepare_map(state, self.conf.kind, self.conf)
+        self._map_pool(state)
 
     def query_kinds(self, query: Frame) -> frozenset[str]:
         key = self._feature_key

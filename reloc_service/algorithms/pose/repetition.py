@@ -13,10 +13,16 @@ does not make.
 A copy elsewhere also shows in what the pose leaves unexplained: the query keypoints it does
 not explain, matched against the whole map, point at the keyframes of the place the query
 was really taken (:func:`unexplained_matches`).
+
+"Nearest" over the whole map is searched in a :class:`~.repetition_index.RepetitionIndex` of
+the pool: exact up to its ``exact_rows`` rows, above that the nearest two among the rows
+filed near the query descriptor (a twin, as close to the query as its own landmark within
+the ratio, lies near it), so a query's cost does not grow with the map.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +34,7 @@ from ...core.frame import Features
 from .base import PoseEstimate
 from .landmark_pool import LandmarkPool
 from .pnp import PnPConf, solve_pnp_indexed
+from .repetition_index import RepetitionIndex
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -52,12 +59,13 @@ class RepetitionConf:
 
 def twin_correspondences(features: Features, inlier_keypoints: IntArray,
                          inlier_landmark_ids: IntArray, pool: LandmarkPool,
-                         pool_sigmas_m: Array, conf: RepetitionConf) -> tuple[IntArray, IntArray]:
+                         index: RepetitionIndex, sigmas_m: Callable[[IntArray], Array],
+                         conf: RepetitionConf) -> tuple[IntArray, IntArray]:
     """(T,) query keypoint indices and (T,) ``pool`` rows of the twins of the inliers
-    (``inlier_keypoints`` matched to ``inlier_landmark_ids``): for each, the pool's nearest
-    descriptor to its keypoint's other than its own landmark, when close enough (at most
-    ``conf.max_inliers`` inliers, evenly chosen). ``pool_sigmas_m`` (P,): the pool
-    landmarks' depth sigmas."""
+    (``inlier_keypoints`` matched to ``inlier_landmark_ids``): for each, the nearest
+    descriptor ``index`` (over ``pool``) finds to its keypoint's other than its own landmark,
+    when close enough (at most ``conf.max_inliers`` inliers, evenly chosen). ``sigmas_m``:
+    the depth sigmas (R,) of pool rows (R,)."""
     empty = np.zeros(0, np.int64)
     own = pool.rows_of(inlier_landmark_ids)
     keep = own >= 0
@@ -68,34 +76,36 @@ def twin_correspondences(features: Features, inlier_keypoints: IntArray,
         pick = np.unique(np.linspace(0, len(q) - 1, conf.max_inliers).astype(np.int64))
         q, own = q[pick], own[pick]
     desc = features.descriptors[q]
-    dist, nearest = feature_lib.nearest_two(desc, pool.descriptors)
+    dist, nearest = index.nearest_two(desc)
     bound = feature_lib.descriptor_distance(desc, pool.descriptors[own]) / conf.ratio
-    # The nearest row that is not the inlier's own landmark: a twin if close enough.
+    # The nearest row that is not the inlier's own landmark: a twin if close enough (-1:
+    # none found, at distance inf).
     slot = (nearest[:, 0] == own).astype(np.int64)
     twin = nearest[np.arange(len(q)), slot]
-    close = dist[np.arange(len(q)), slot] < bound
+    close = (dist[np.arange(len(q)), slot] < bound) & (twin >= 0)
+    q, own, twin = q[close], own[close], twin[close]
     gap = np.linalg.norm(pool.points_world[twin] - pool.points_world[own], axis=1)
-    apart = gap > 3.0 * (pool_sigmas_m[twin] + pool_sigmas_m[own])
-    found = close & apart
-    return q[found].astype(np.int64), twin[found].astype(np.int64)
+    apart = gap > 3.0 * (sigmas_m(twin) + sigmas_m(own))
+    return q[apart].astype(np.int64), twin[apart].astype(np.int64)
 
 
-def unexplained_matches(features: Features, explained: IntArray, pool: LandmarkPool,
+def unexplained_matches(features: Features, explained: IntArray, index: RepetitionIndex,
                         conf: RepetitionConf) -> IntArray:
-    """(M,) ``pool`` rows that the query keypoints a pose does not explain (all but
-    ``explained``) match under Lowe's ratio test (at most ``conf.max_unexplained`` of them,
-    evenly chosen). Where a repeated picture explains the pose, the rest of the image (the
-    wall around it, the furniture) is the original place's and matches its landmarks; under
-    the right pose what is left is texture without landmarks, whose matches are scattered."""
+    """(M,) pool rows (``index``'s) that the query keypoints a pose does not explain (all
+    but ``explained``) match under Lowe's ratio test (at most ``conf.max_unexplained`` of
+    them, evenly chosen). Where a repeated picture explains the pose, the rest of the image
+    (the wall around it, the furniture) is the original place's and matches its landmarks;
+    under the right pose what is left is texture without landmarks, whose matches are
+    scattered."""
     left = np.setdiff1d(np.arange(len(features)), explained)
     if len(left) > conf.max_unexplained:
         left = left[np.unique(np.linspace(0, len(left) - 1, conf.max_unexplained)
                               .astype(np.int64))]
-    if len(left) == 0:
+    if len(left) == 0 or len(index.descriptors) < 2:
         return np.zeros(0, np.int64)
-    _, rows, _ = feature_lib.match_ratio(features.descriptors[left], pool.descriptors,
-                                         ratio=conf.ratio)
-    return rows.astype(np.int64)
+    dist, rows = index.nearest_two(features.descriptors[left])
+    keep = (dist[:, 0] < conf.ratio * dist[:, 1]) & (rows[:, 0] >= 0)
+    return rows[keep, 0].astype(np.int64)
 
 
 def alternative_poses(features: Features, camera: Camera, twins: tuple[IntArray, IntArray],

@@ -1,0 +1,192 @@
+"""The nearest two landmarks of a query descriptor among every landmark of a map, at a cost that
+grows as the square root of the map, not with it: an inverted file over the pool's
+descriptors (Jegou et al. 2011, IVF; Muja and Lowe 2009, hierarchical k-means with a priority
+search).
+
+A two-level k-means tree (:class:`~..place.vocabulary.VocabularyTree`, trained on a sample of
+the pool) files every pool row under its leaf, about ``leaf_rows`` rows each. A query
+descriptor is compared with the rows of its ``leaves`` nearest leaves among the children of
+its ``branches`` nearest first-level nodes only: ``(1 + branches) * branching`` centres and
+``leaves * leaf_rows`` rows, where ``branching`` grows as the square root of the pool. The
+search is approximate: a neighbour filed under a leaf not scanned is missed. Descriptors
+close enough to be a repetition's (as close to the query as its own match, within Lowe's
+ratio) lie near the query and mostly share its leaves; pools up to ``exact_rows`` rows, where a
+whole scan costs no more than the index saves, are scanned in full (exact).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ...core import features as feature_lib
+from ..place.vocabulary import VocabularyTree
+
+IntArray = npt.NDArray[np.int64]
+
+#: Rows quantised at a time while the pool is filed (bounds the float32 copy of SIFT rows).
+_FILE_CHUNK = 65536
+
+
+@dataclass(frozen=True)
+class IndexConf:
+    """How the pool is indexed and searched."""
+
+    #: Pools of at most this many rows are scanned in full: 300 query descriptors against 20k
+    #: rows is a few tens of ms, what the index's tree traversal and leaf scans cost anyway.
+    exact_rows: int = 20000
+    #: Rows per leaf the tree is sized for (leaves = rows / leaf_rows, two levels).
+    leaf_rows: int = 256
+    #: First-level nodes whose children are ranked for each query descriptor ...
+    branches: int = 4
+    #: ... and the nearest of those children (leaves) scanned.
+    leaves: int = 12
+    #: Training sample per leaf (k-means runs on at most ``sample_per_leaf * leaves`` rows).
+    sample_per_leaf: int = 32
+    #: Lloyd iterations per k-means node.
+    iterations: int = 3
+
+    def __post_init__(self) -> None:
+        if self.exact_rows < 0 or self.leaf_rows < 2 or self.branches < 1 or self.leaves < 1:
+            raise ValueError(f"repetition index: expected exact_rows >= 0, leaf_rows >= 2, "
+                             f"branches >= 1 and leaves >= 1, got {self.exact_rows}, "
+                             f"{self.leaf_rows}, {self.branches}, {self.leaves}")
+
+
+@dataclass(frozen=True, eq=False)
+class RepetitionIndex:
+    """Pool rows filed by leaf: ``order`` (N,) the pool rows leaf by leaf, ``offsets``
+    (leaves + 1,) where each leaf's rows start in ``order``; ``tree`` None when the pool is
+    scanned in full. ``descriptors`` (N, D) are the pool's own (not copied)."""
+
+    descriptors: npt.NDArray[Any]
+    tree: VocabularyTree | None
+    order: npt.NDArray[np.int32]
+    offsets: npt.NDArray[np.int64]
+    branches: int
+    leaves: int
+
+    @classmethod
+    def build(cls, descriptors: npt.NDArray[Any], conf: IndexConf = IndexConf(), *,
+              seed: int = 0) -> RepetitionIndex:
+        """The index of pool ``descriptors`` (N, D) (uint8 SIFT or packed ORB bits)."""
+        empty32, empty64 = np.zeros(0, np.int32), np.zeros(1, np.int64)
+        if len(descriptors) <= max(conf.exact_rows, conf.leaf_rows):
+            return cls(descriptors, None, empty32, empty64, conf.branches, conf.leaves)
+        branching = math.ceil(math.sqrt(len(descriptors) / conf.leaf_rows))
+        rng = np.random.default_rng(seed)
+        size = min(len(descriptors), conf.sample_per_leaf * branching * branching)
+        sample = descriptors[np.sort(rng.choice(len(descriptors), size, replace=False))]
+        tree = VocabularyTree.build(sample, branching=branching, depth=2,
+                                    iterations=conf.iterations, rng=rng)
+        words = np.concatenate([tree.quantise(descriptors[s:s + _FILE_CHUNK])
+                                for s in range(0, len(descriptors), _FILE_CHUNK)])
+        order = np.argsort(words, kind="stable").astype(np.int32)
+        offsets = np.concatenate([[0], np.cumsum(np.bincount(words, minlength=tree.n_words))])
+        return cls(descriptors, tree, order, offsets.astype(np.int64), conf.branches,
+                   conf.leaves)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the index adds to its pool (the tree, the filing)."""
+        tree = 0 if self.tree is None else sum(c.nbytes for c in self.tree.centres) + sum(
+            c.nbytes for c in self.tree.children)
+        return tree + self.order.nbytes + self.offsets.nbytes
+
+    def nearest_two(self, desc: npt.NDArray[Any]
+                    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
+        """(Q, 2) distances and (Q, 2) pool rows of the two nearest pool descriptors found
+        for each of ``desc`` (Q, D), as :func:`~reloc_service.core.features.nearest_two`
+        measures them; ``inf`` and -1 where fewer than two were found."""
+        if self.tree is None:
+            return _two_nearest(desc, self.descriptors)
+        leaves = self._probe(desc)
+        q = np.repeat(np.arange(len(desc)), leaves.shape[1])
+        leaf = leaves.ravel()
+        by_leaf = np.argsort(leaf, kind="stable")
+        q, leaf = q[by_leaf], leaf[by_leaf]
+        starts = np.flatnonzero(np.diff(leaf, prepend=-1))
+        best_d = np.full((len(desc), 2), np.inf, np.float32)
+        best_i = np.full((len(desc), 2), -1, np.int64)
+        # One scan per probed leaf, of every query descriptor probing it (a loop over the
+        # leaves, ``leaves`` per descriptor, not over descriptors).
+        for start, stop in zip(starts, np.append(starts[1:], len(leaf)), strict=True):
+            lo, hi = self.offsets[leaf[start]], self.offsets[leaf[start] + 1]
+            if hi == lo:
+                continue
+            rows = self.order[lo:hi].astype(np.int64)
+            qs = q[start:stop]
+            d, i = _two_nearest(desc[qs], self.descriptors[rows])
+            _merge(best_d, best_i, qs, d, np.where(i >= 0, rows[np.maximum(i, 0)], -1))
+        return best_d, best_i
+
+    def scanned_rows(self, desc: npt.NDArray[Any]) -> npt.NDArray[np.int64]:
+        """(Q,) pool rows :meth:`nearest_two` compares each of ``desc`` (Q, D) with: the
+        per-query cost, every row when the pool is scanned in full."""
+        if self.tree is None:
+            return np.full(len(desc), len(self.descriptors), np.int64)
+        leaves = self._probe(desc)
+        sizes = np.diff(self.offsets)[np.maximum(leaves, 0)]
+        return np.where(leaves >= 0, sizes, 0).sum(axis=1).astype(np.int64)
+
+    def _probe(self, desc: npt.NDArray[Any]) -> npt.NDArray[np.int64]:
+        """(Q, leaves) leaves to scan for each of ``desc``: the nearest ``leaves`` leaf
+        centres among the children of its ``branches`` nearest first-level nodes (a priority
+        search: a near leaf under the second-best node beats a far one under the best); -1
+        for unused slots."""
+        assert self.tree is not None
+        x = desc if feature_lib.is_binary_descriptor(desc) else desc.astype(np.float32)
+        top, kids = self.tree.centres[0][0], self.tree.children[0][0]
+        first = _nearest_slots(x, top[None, None], kids[None, None] >= 0, self.branches)[:, 0]
+        nodes = np.maximum(kids[first], 0)                                      # (Q, b)
+        children = np.where((kids[first] >= 0)[:, :, None], self.tree.children[1][nodes], -1)
+        centres = self.tree.centres[1][nodes].reshape(len(desc), 1, -1, x.shape[1])
+        leaves = children.reshape(len(desc), 1, -1)
+        slots = _nearest_slots(x, centres, leaves >= 0, self.leaves)[:, 0]       # (Q, l)
+        return np.take_along_axis(leaves[:, 0], slots, axis=1).astype(np.int64)
+
+def _nearest_slots(x: npt.NDArray[Any], centres: npt.NDArray[Any],
+                   valid: npt.NDArray[np.bool_], count: int) -> npt.NDArray[np.int64]:
+    """(Q, n, count) indices of the ``count`` nearest of ``centres`` (broadcast to (Q, n, k,
+    D)) to each row of ``x`` (Q, D) along the k axis; slots not ``valid`` (broadcast to
+    (Q, n, k)) come last."""
+    c = np.broadcast_to(centres, (len(x), *centres.shape[1:]))
+    if feature_lib.is_binary_descriptor(x):
+        dist = np.bitwise_count(c ^ x[:, None, None, :]).sum(-1, dtype=np.int32)
+        dist = dist.astype(np.float32)
+    else:
+        # |c|^2 - 2 c.x: |x|^2 is common to every centre and does not change the order.
+        dist = (np.einsum("qnkd,qnkd->qnk", c, c) - 2.0 * np.einsum("qnkd,qd->qnk", c, x)
+                ).astype(np.float32)
+    dist[~np.broadcast_to(valid, dist.shape)] = np.inf
+    return np.argsort(dist, axis=-1, kind="stable")[..., :count].astype(np.int64)
+
+
+def _two_nearest(desc: npt.NDArray[Any], train: npt.NDArray[Any]
+                 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
+    """:func:`~reloc_service.core.features.nearest_two`, also for fewer than two ``train``
+    rows (``inf`` and -1 in the slots without one)."""
+    if len(train) >= 2:
+        d, i = feature_lib.nearest_two(desc, train)
+        return d.astype(np.float32), i.astype(np.int64)
+    dist = np.full((len(desc), 2), np.inf, np.float32)
+    rows = np.full((len(desc), 2), -1, np.int64)
+    if len(train) == 1:
+        dist[:, 0] = feature_lib.descriptor_distance(desc, np.repeat(train, len(desc), axis=0))
+        rows[:, 0] = 0
+    return dist, rows
+
+
+def _merge(best_d: npt.NDArray[np.float32], best_i: npt.NDArray[np.int64], qs: IntArray,
+           d: npt.NDArray[np.float32], i: npt.NDArray[np.int64]) -> None:
+    """Keep in ``best_d``/``best_i`` rows ``qs`` (distinct) the two nearest of what they
+    hold and the new candidates ``d``/``i`` (len(qs), 2)."""
+    all_d = np.concatenate([best_d[qs], d], axis=1)
+    all_i = np.concatenate([best_i[qs], i], axis=1)
+    pick = np.argsort(all_d, axis=1, kind="stable")[:, :2]
+    best_d[qs] = np.take_along_axis(all_d, pick, axis=1)
+    best_i[qs] = np.take_along_axis(all_i, pick, axis=1)

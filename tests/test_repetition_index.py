@@ -1,0 +1,155 @@
+"""The repetition check's index over every landmark of a map: the same twins and ratio-test
+matches as a full scan, a per-query cost that does not grow with the map, and the pool made
+when the map is prepared rather than by the first query."""
+
+from __future__ import annotations
+
+import functools
+
+import cv2
+import numpy as np
+import pytest
+
+from reloc_service.algorithms.pose.landmark_pool import LandmarkPool
+from reloc_service.algorithms.pose.repetition import (
+    RepetitionConf,
+    twin_correspondences,
+    unexplained_matches,
+)
+from reloc_service.algorithms.pose.repetition_index import IndexConf, RepetitionIndex
+from reloc_service.core import features as feature_lib
+from reloc_service.core.frame import Features
+from reloc_service.tools.synth.planar import texture_mosaic
+
+#: Every pool below is indexed (no full scan), in leaves of a few dozen rows.
+INDEXED = IndexConf(exact_rows=0, leaf_rows=32)
+EXACT = IndexConf(exact_rows=10**9)
+
+
+@functools.cache
+def tiles() -> list[np.ndarray]:
+    mosaic = texture_mosaic()
+    return [mosaic[r:r + 512, c:c + 512] for r in (0, 512) for c in (0, 512, 1024)]
+
+
+@functools.cache
+def extract(kind: str, tile: int, warped: bool = False) -> Features:
+    image = tiles()[tile]
+    if warped:  # the same picture seen again: turned 4 degrees and 5% nearer
+        turn = cv2.getRotationMatrix2D((256.0, 256.0), 4.0, 1.05)
+        image = cv2.warpAffine(image, turn, (512, 512), borderMode=cv2.BORDER_REFLECT)
+    return feature_lib.extract(image, feature_lib.FeatureConf(kind=kind, max_features=600))
+
+
+def copied_picture_pool(kind: str) -> tuple[LandmarkPool, int]:
+    """Landmarks of five pictures on a wall, the first of them twice (a copy 2 m along):
+    the pool and the row where the copy starts."""
+    parts = [extract(kind, t) for t in range(5)] + [extract(kind, 0)]
+    desc = np.concatenate([f.descriptors for f in parts])
+    points = np.concatenate([np.c_[f.keypoints_px / 256.0, np.zeros(len(f))] + [i * 0.5, 0, 0]
+                             for i, f in enumerate(parts)])
+    points[-len(parts[-1]):] = points[:len(parts[0])] + [2.0, 0.0, 0.0]
+    n = len(desc)
+    return (LandmarkPool(desc, np.arange(n, dtype=np.int64) + 1000, points,
+                         np.zeros(n, np.int64)), n - len(parts[-1]))
+
+
+def inliers_on_first_copy(kind: str, pool: LandmarkPool, copy_start: int
+                          ) -> tuple[Features, np.ndarray, np.ndarray]:
+    """The query (the first picture, warped) matched to the pool without the copy, as the
+    pose was solved: query keypoints and landmark ids."""
+    query = extract(kind, 0, warped=True)
+    q, rows, _ = feature_lib.match_ratio(query.descriptors, pool.descriptors[:copy_start])
+    return query, q, pool.landmark_ids[rows]
+
+
+def no_sigma(rows: np.ndarray) -> np.ndarray:
+    return np.zeros(len(rows))
+
+
+@pytest.mark.parametrize("kind", ["sift", "orb"])
+def test_the_index_finds_the_twins_a_full_scan_finds(kind: str) -> None:
+    pool, copy_start = copied_picture_pool(kind)
+    query, q, ids = inliers_on_first_copy(kind, pool, copy_start)
+    conf = RepetitionConf()
+    exact = twin_correspondences(query, q, ids, pool, RepetitionIndex.build(pool.descriptors,
+                                                                            EXACT),
+                                 no_sigma, conf)
+    index = RepetitionIndex.build(pool.descriptors, INDEXED)
+    assert index.tree is not None
+    found = twin_correspondences(query, q, ids, pool, index, no_sigma, conf)
+    assert len(exact[0]) >= 30 and np.all(exact[1] >= copy_start)  # the copy's landmarks
+    pairs = set(zip(*exact, strict=True))
+    agree = len(pairs & set(zip(*found, strict=True))) / len(pairs)
+    assert agree >= 0.95, f"the index found {agree:.0%} of the twins a full scan finds"
+
+
+@pytest.mark.parametrize("kind", ["sift", "orb"])
+def test_the_index_gives_the_ratio_test_matches_of_a_full_scan(kind: str) -> None:
+    pool, _ = copied_picture_pool(kind)
+    query = extract(kind, 1, warped=True)   # a picture seen once in the pool
+    conf = RepetitionConf()
+    none = np.zeros(0, np.int64)
+    exact = unexplained_matches(query, none, RepetitionIndex.build(pool.descriptors, EXACT),
+                                conf)
+    found = unexplained_matches(query, none, RepetitionIndex.build(pool.descriptors, INDEXED),
+                                conf)
+    assert len(exact) >= 30
+    # The matches a full scan makes are found too (a missed second neighbour can only add
+    # matches, never take one away from a keypoint whose nearest is found).
+    assert len(np.intersect1d(exact, found)) >= 0.95 * len(exact)
+
+
+def test_a_small_pool_is_scanned_in_full_as_before() -> None:
+    pool, _ = copied_picture_pool("orb")
+    index = RepetitionIndex.build(pool.descriptors, IndexConf(exact_rows=len(pool.descriptors)))
+    query = extract("orb", 1, warped=True)
+    assert index.tree is None
+    assert np.all(index.scanned_rows(query.descriptors) == len(pool.descriptors))
+    d, rows = index.nearest_two(query.descriptors)
+    d_all, rows_all = feature_lib.nearest_two(query.descriptors, pool.descriptors)
+    np.testing.assert_array_equal(rows, rows_all)
+    np.testing.assert_allclose(d, d_all)
+
+
+def test_the_cost_of_a_query_does_not_grow_with_the_pool() -> None:
+    """Four times the landmarks: each query descriptor is compared with about as many rows
+    (leaves of a fixed size, a fixed number of them probed), far fewer than the pool."""
+    rng = np.random.default_rng(0)
+    conf = IndexConf(exact_rows=0, leaf_rows=64)
+    base = rng.integers(0, 256, (32000, 32), dtype=np.uint8)
+    query = base[rng.integers(0, len(base), 200)]
+    small = RepetitionIndex.build(base[:8000], conf).scanned_rows(query).mean()
+    large = RepetitionIndex.build(base, conf).scanned_rows(query).mean()
+    assert large < 2.0 * small, (small, large)
+    assert large < 0.1 * len(base)
+
+
+def test_a_pool_with_fewer_than_two_rows_finds_what_is_there() -> None:
+    one = RepetitionIndex.build(np.full((1, 32), 7, np.uint8))
+    d, rows = one.nearest_two(np.full((2, 32), 7, np.uint8))
+    np.testing.assert_array_equal(rows, [[0, -1], [0, -1]])
+    assert np.all(d[:, 0] == 0) and np.all(np.isinf(d[:, 1]))
+
+
+def test_bad_index_options_say_what_is_expected() -> None:
+    with pytest.raises(ValueError, match="expected exact_rows >= 0"):
+        IndexConf(exact_rows=-1)
+
+
+def test_the_map_pool_is_made_when_the_map_is_prepared_not_by_a_query(monkeypatch) -> None:
+    from reloc_service.algorithms.pose.base import create_pose_finder
+    from reloc_service.tools.synth.planar import keyframe_grid, planar_scene
+
+    scene = planar_scene(keyframe_grid(3, 2), kinds=("orb",), max_features=300)
+    finder = create_pose_finder({"name": "p3p", "kind": "orb", "max_features": 300})
+    state = scene.map.snapshot()
+    finder.prepare_map(state)
+    made: list[int] = []
+    real_build = RepetitionIndex.build
+    monkeypatch.setattr(RepetitionIndex, "build",
+                        lambda *a, **k: made.append(1) or real_build(*a, **k))
+    pool, index, ids = finder._map_pool(state)
+    assert not made, "the first query gathered the map's pool again"
+    assert ids == list(state.keyframes) and len(pool.landmark_ids) == state.landmark_count("orb")
+    assert index.descriptors is pool.descriptors      # the index holds no copy of them
