@@ -138,11 +138,11 @@ def test_bad_index_options_say_what_is_expected() -> None:
 
 
 def test_the_map_pool_is_made_when_the_map_is_prepared_not_by_a_query(monkeypatch) -> None:
-    from reloc_service.algorithms.pose.base import create_pose_finder
+    from reloc_service.algorithms.pose.p3p import P3PPoseFinder
     from reloc_service.tools.synth.planar import keyframe_grid, planar_scene
 
     scene = planar_scene(keyframe_grid(3, 2), kinds=("orb",), max_features=300)
-    finder = create_pose_finder({"name": "p3p", "kind": "orb", "max_features": 300})
+    finder = P3PPoseFinder(P3PPoseFinder.Conf(kind="orb", max_features=300))
     state = scene.map.snapshot()
     finder.prepare_map(state)
     made: list[int] = []
