@@ -155,3 +155,33 @@ def test_a_small_fleet_answers_every_query_within_its_budget(synthetic_scene, tm
     text = render_markdown({"suite": "fleet", "created_utc": "now", "machine": {},
                             "fleet": result})
     assert "## Many maps, bounded memory (fleet)" in text and "| cold queries" in text
+
+
+def test_the_repetition_pool_figure_compares_the_index_with_a_full_scan(synthetic_scene,
+                                                                         tmp_path):
+    from reloc_service.algorithms.pose.repetition_index import IndexConf
+    from reloc_service.engine import MappingConf
+    from reloc_service.tools.bench.fleet_pool import repetition_pool
+
+    scene = synthetic_scene
+    engine = engine_from_images(scene.camera, scene.keyframe_images[:3],
+                                scene.keyframe_poses[:3],
+                                EngineConf(methods=(METHOD,),
+                                           mapping=MappingConf(feature_kinds=("sift", "orb"))),
+                                train=False)
+    template = stored_template(tmp_path / "template", "template", engine)
+    queries = QuerySet.from_images(scene.camera, scene.query_images[:2], scene.query_poses[:2])
+    figures = repetition_pool(template.directory / "map", queries,
+                              conf=IndexConf(exact_rows=0, leaf_rows=16))
+    for kind in ("orb", "sift"):
+        f = figures[kind]
+        assert f["indexed"] and f["rows"] > 100 and f["index_mb"] > 0, kind
+        assert f["scanned_rows_mean"] < f["rows"]
+        assert 0 < f["nearest_found"] <= 1 and 0 < f["ratio_matches_found"] <= 1
+        assert f["search_ms_p50"] > 0 and f["full_scan_ms_p50"] > 0
+    json.dumps(figures)   # the section's JSON
+    from reloc_service.tools.bench.fleet_report import _pool_rows
+
+    rows = _pool_rows(figures)
+    assert [r[0].split(",")[1].split()[0] for r in rows] == ["ORB", "SIFT"]
+    assert all("scanned in full" not in r[2] for r in rows)

@@ -47,6 +47,7 @@ from ...core.cameras import Camera
 from ...core.geometry import pose_error
 from ..eval import metrics
 from .fleet_memory import ResidencyLog, RssSampler
+from .fleet_pool import repetition_pool
 from .fleet_service import first_answer, serve
 from .samples import QuerySet, json_safe, pct_ms
 from .stored_map import CAMERA_ID, StoredMap, copies, disk_bytes
@@ -339,12 +340,15 @@ def run_fleet(conf: FleetConf, *, workdir: Path | None = None, cache: Path,
             shutil.rmtree(storage, ignore_errors=True)
             shutil.rmtree(tmp / "baseline-storage", ignore_errors=True)
         warm, base = fleet["warm"]["p50_ms"], baseline["warm"]["p50_ms"]
+        say("fleet: the repetition check's pool of the template, indexed and scanned")
+        pool = repetition_pool(template.directory / "map", queries)
         return json_safe({
             "conf": dataclasses.asdict(conf), "template": info, "maps": conf.maps,
             "storage": {"apparent_mb": apparent / MB, "on_disk_mb": allocated / MB,
                         "hard_links": True, "removed": not storage.exists()},
             "baseline": baseline, "fleet": fleet,
             "warm_p50_over_baseline": warm / base if base and warm else None,
+            "repetition_pool": pool,
             "seconds": time.perf_counter() - start})
 
 

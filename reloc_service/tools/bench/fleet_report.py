@@ -73,8 +73,21 @@ def table_lines(section: Mapping[str, Any]) -> list[str]:
          f"{_f(rss['max_mb'], 0)} ({_f(fleet['max_rss_over_budget'], 2)}x the budget)"),
         ("recall 5cm/5deg / 25cm/10deg / wrong / cov scale", _accuracy(base), _accuracy(fleet)),
     ]
+    rows += _pool_rows(section.get("repetition_pool", {}))
     lines = ["| | baseline | fleet |", "|---|---|---|"]
     return lines + [f"| {a} | {b} | {c} |" for a, b, c in rows] + [""]
+
+
+def _pool_rows(pool: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+    """The repetition check's pool of the template, per kind: its size, the index's build
+    and one query's search against a full scan of it (:mod:`.fleet_pool`)."""
+    return [(f"repetition check, {kind.upper()} pool of the template: rows (MB), index build "
+             "(s), one query's search / full scan (ms), ratio-test matches found",
+             f"{p['rows']} ({_f(p['pool_mb'])} MB)",
+             f"{_f(p['index_build_s'], 2)}, {_f(p.get('search_ms_p50'))} / "
+             f"{_f(p.get('full_scan_ms_p50'))}, {_pct(p.get('ratio_matches_found'))}"
+             + ("" if p.get("indexed") else " (scanned in full)"))
+            for kind, p in pool.items()]
 
 
 def markdown_lines(section: Mapping[str, Any]) -> list[str]:
