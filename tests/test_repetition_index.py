@@ -153,3 +153,22 @@ def test_the_map_pool_is_made_when_the_map_is_prepared_not_by_a_query(monkeypatc
     assert not made, "the first query gathered the map's pool again"
     assert ids == list(state.keyframes) and len(pool.landmark_ids) == state.landmark_count("orb")
     assert index.descriptors is pool.descriptors      # the index holds no copy of them
+
+
+def test_finders_of_one_kind_share_the_pool_which_goes_with_its_map_state() -> None:
+    import dataclasses
+    import gc
+
+    from reloc_service.algorithms.pose import map_pool
+    from reloc_service.algorithms.pose.p3p import P3PPoseFinder
+    from reloc_service.tools.synth.planar import keyframe_grid, planar_scene
+
+    scene = planar_scene(keyframe_grid(2, 2), kinds=("orb",), max_features=200)
+    half = P3PPoseFinder(P3PPoseFinder.Conf(kind="orb", max_features=200, query_scale=0.5))
+    full = P3PPoseFinder(P3PPoseFinder.Conf(kind="orb", max_features=200))
+    state = dataclasses.replace(scene.map.snapshot())    # a state only this test holds
+    assert half._map_pool(state)[0] is full._map_pool(state)[0]
+    before = len(map_pool._POOLS)
+    del state
+    gc.collect()
+    assert len(map_pool._POOLS) == before - 1

@@ -23,6 +23,7 @@ from .guided import GuidedConf, search_by_projection
 from .kernels import compiled
 from .landmark_pool import LandmarkPool
 from .map_consistency import prepare_map, settle_pose_errors
+from .map_pool import map_pool
 from .pnp import PnPConf, PointUncertainty, level_scales, solve_pnp_indexed
 from .repetition import (
     RepetitionConf,
@@ -95,9 +96,6 @@ class P3PPoseFinder(PoseFinder):
     def __init__(self, conf: P3PPoseFinder.Conf) -> None:
         super().__init__(conf)
         self.required_features = frozenset({conf.kind})
-        #: The map state the landmark pool of every keyframe was gathered for, that pool, its
-        #: index and the keyframe ids in pool order (:meth:`_map_pool`).
-        self._pooled: tuple[MapState, LandmarkPool, RepetitionIndex, list[int]] | None = None
 
     def find_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
                   ) -> PoseEstimate | None:
@@ -270,15 +268,11 @@ class P3PPoseFinder(PoseFinder):
 
     def _map_pool(self, state: MapState) -> tuple[LandmarkPool, RepetitionIndex, list[int]]:
         """The landmarks of every keyframe of ``state`` (:meth:`LandmarkPool.gather`), their
-        :class:`RepetitionIndex` and the keyframe ids in pool order; made once per map
-        version (at :meth:`prepare_map`, or by the first query of a later version)."""
-        if self._pooled is None or self._pooled[0] is not state:
-            self._pooled = None  # the previous version's pool is not held while this one's is made
-            ids = list(state.keyframes)
-            pool = LandmarkPool.gather([state.keyframes[k] for k in ids], self.conf.kind)
-            index = RepetitionIndex.build(pool.descriptors, self.conf.repetition_index())
-            self._pooled = (state, pool, index, ids)
-        return self._pooled[1], self._pooled[2], self._pooled[3]
+        :class:`RepetitionIndex` and the keyframe ids in pool order: :func:`.map_pool.map_pool`,
+        made once per map state (at :meth:`prepare_map`, or by the first query of a later
+        one) and shared with the other pose finders of this kind."""
+        made = map_pool(state, self.conf.kind, self.conf.repetition_index())
+        return made.pool, made.index, made.keyframe_ids
 
     def _scales(self, feats: Features, q_idx: npt.NDArray[np.int64]) -> Array | None:
         """(M,) localisation scales of query keypoints ``q_idx``: their pyramid levels' with
