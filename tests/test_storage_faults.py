@@ -26,6 +26,7 @@ from reloc_client.client import (
 )
 from service_support import Events, endpoint, free_port, service_conf, wait_until
 from storage_support import (
+    ONE_METHOD,
     Peer,
     answers,
     connect,
@@ -47,9 +48,9 @@ SNAPSHOT_IDS, JOURNAL_IDS = (0, 1, 2), (3, 4, 5)
 
 def conf(port: int, storage: Path, **service):
     """Snapshots keep the keyframe images (``keyframe_images = "always"``), so a damaged
-    image file is among the faults a restore must name."""
+    image file is among the faults a restore must name; one method (``ONE_METHOD``)."""
     return service_conf(port, storage, maps=(GOOD, BAD), train_on_load=False,
-                        snapshot_every=0, keyframe_images="always", **service)
+                        snapshot_every=0, keyframe_images="always", **ONE_METHOD, **service)
 
 
 def pose_covariance(kf_id: int) -> np.ndarray | None:
@@ -279,7 +280,8 @@ def restored(client: RelocClient) -> bool:
 def test_reloc_serve_keeps_running_with_a_damaged_map(storage, tmp_path):
     _snapshot_image_bit(storage / BAD)
     port = free_port()
-    proc = serve(write_config(tmp_path, port, storage, (GOOD, BAD)), tmp_path / "serve.log")
+    proc = serve(write_config(tmp_path, port, storage, (GOOD, BAD), one_method=True),
+                 tmp_path / "serve.log")
     try:
         with connect(proc, port, GOOD) as good:
             wait_until(lambda: proc.poll() is not None or restored(good), timeout=120)
