@@ -33,6 +33,10 @@ from reloc_service.storage.journal import Journal
 #: the default chain's (ORB and SIFT triangulated per keyframe, a bow vocabulary built at
 #: every load).
 ONE_METHOD = {"methods": ["sbi+p3p"], "default_method": "sbi+p3p"}
+#: Two methods whose maps hold both feature kinds of the default chain (ORB, whose angles a
+#: snapshot does not store, and SIFT), for the tests of what a snapshot holds per kind,
+#: without the default chain's bow vocabulary built at every load.
+ORB_AND_SIFT = {"methods": ["sbi+p3p:orb", "sbi+p3p"], "default_method": "sbi+p3p"}
 
 
 def write_config(tmp: Path, port: int, storage: Path, maps: tuple[str, ...], *,
