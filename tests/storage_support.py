@@ -27,11 +27,27 @@ from reloc_service.service.app import Service
 from reloc_service.storage import journal as J
 from reloc_service.storage.journal import Journal
 
+#: The [service] keys of the damaged-storage tests' services: one method, SIFT features only.
+#: What those tests check (restores, damaged files, verdicts, map check) does not depend on
+#: the methods, and a map of one feature kind replays and loads in about half the time of
+#: the default chain's (ORB and SIFT triangulated per keyframe, a bow vocabulary built at
+#: every load).
+ONE_METHOD = {"methods": ["sbi+p3p"], "default_method": "sbi+p3p"}
+#: Two methods whose maps hold both feature kinds of the default chain (ORB, whose angles a
+#: snapshot does not store, and SIFT), for the tests of what a snapshot holds per kind,
+#: without the default chain's bow vocabulary built at every load.
+ORB_AND_SIFT = {"methods": ["sbi+p3p:orb", "sbi+p3p"], "default_method": "sbi+p3p"}
 
-def write_config(tmp: Path, port: int, storage: Path, maps: tuple[str, ...]) -> Path:
+
+def write_config(tmp: Path, port: int, storage: Path, maps: tuple[str, ...], *,
+                 one_method: bool = False) -> Path:
+    """A ``reloc serve`` config of ``storage`` serving ``maps``; with ``one_method``, the
+    methods of :data:`ONE_METHOD`."""
     lines = ["[zenoh]", 'mode = "peer"', f'listen = ["{endpoint(port)}"]',
              "multicast_scouting = false", "[service]", 'instance = "faults"',
              f'storage = "{storage}"', "train_on_load = false", "snapshot_every = 0"]
+    if one_method:
+        lines += [f"{key} = {json.dumps(value)}" for key, value in ONE_METHOD.items()]
     lines += [f"[maps.{m}]" for m in maps]
     path = tmp / "service.toml"
     path.write_text("\n".join(lines) + "\n")

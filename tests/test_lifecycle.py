@@ -96,8 +96,9 @@ def test_stop_journals_queued_puts_and_a_snapshot_waiting_on_training_keeps_them
         synthetic_scene, tmp_path):
     """In process, a 3 s budget: the queued puts are journaled, not applied; the snapshot that
     was waiting for a training (its lock held here) must not drop them from the journal when
-    the training ends after the stop."""
-    port, scene, n = free_port(), synthetic_scene, 8
+    the training ends after the stop. (4 puts: every one queues behind the waiting snapshot,
+    and the restart maps each again.)"""
+    port, scene, n = free_port(), synthetic_scene, 4
     conf = service_conf(port, tmp_path / "storage", maps=(MAP,), stop_timeout_s=3.0)
     service = Service(conf).start()
     rt = service.maps[MAP]

@@ -51,8 +51,11 @@ def built(synthetic_scene, tmp_path_factory):
 
 
 def _serve_poses(storage: Path, scene, map_name: str = MAP) -> list[np.ndarray]:
+    """The poses a service restoring ``storage`` gives to the first query images (its
+    queries run on threads: no worker processes to start for two queries; that they answer
+    alike is test_processes')."""
     port = free_port()
-    with Service(service_conf(port, storage, maps=(map_name,))):
+    with Service(service_conf(port, storage, maps=(map_name,), worker_mode="thread")):
         return query_poses(port, scene, map_name)
 
 

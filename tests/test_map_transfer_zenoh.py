@@ -54,8 +54,10 @@ def two_services(synthetic_scene, tmp_path_factory):
     with Service(service_conf(free_port(), root / "a", maps=(MAP,))) as builder:
         fill_map(builder, synthetic_scene, range(KEYFRAMES))
     port_a, port_b = free_port(), free_port()
-    with Service(service_conf(port_a, root / "a", maps=(MAP,))), \
-            Service(service_conf(port_b, root / "b")):
+    # queries on threads: no worker processes to start for a few queries (that they answer
+    # alike is test_processes')
+    with Service(service_conf(port_a, root / "a", maps=(MAP,), worker_mode="thread")), \
+            Service(service_conf(port_b, root / "b", worker_mode="thread")):
         yield root, port_a, port_b
 
 

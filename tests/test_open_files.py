@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 
+import pytest
 from service_support import free_port, write_config
 
 from reloc_service.service import open_files
@@ -46,14 +47,23 @@ def _serve_with_limit(tmp_path, soft: int, hard: int, **quotas) -> tuple[int, st
     return running_soft, log.read_text()
 
 
-def test_serve_raises_a_low_soft_limit_to_the_hard_one(tmp_path):
-    soft, text = _serve_with_limit(tmp_path, 256, 4096)
-    assert soft == 4096, text
-    assert "soft limit raised from 256 to 4096" in text
+@pytest.fixture(scope="module")
+def low_limits(tmp_path_factory) -> tuple[int, str]:
+    """One ``reloc serve`` started with a soft limit of 256 under a hard limit of 512 (below
+    WANTED, so the hard one is the target) and quotas.max_maps = 1000 (more than 512 files
+    hold): both tests below read its soft limit and its log (a process start costs seconds
+    on a loaded machine)."""
+    return _serve_with_limit(tmp_path_factory.mktemp("limits"), 256, 512, max_maps=1000)
 
 
-def test_serve_warns_when_the_hard_limit_cannot_hold_max_maps(tmp_path):
-    soft, text = _serve_with_limit(tmp_path, 256, 512, max_maps=1000)
+def test_serve_raises_a_low_soft_limit_to_the_hard_one(low_limits):
+    soft, text = low_limits
+    assert soft == 512, text
+    assert "soft limit raised from 256 to 512" in text
+
+
+def test_serve_warns_when_the_hard_limit_cannot_hold_max_maps(low_limits):
+    soft, text = low_limits
     assert soft == 512
     needed = open_files.needed_for(1000)
     assert f"the limit 512 cannot hold quotas.max_maps = 1000 maps (about {needed}" in text

@@ -37,23 +37,28 @@ def _replica(port: int, storage: Path, **service) -> Service:
     return Service(ground_conf("service-replica", port, storage, **service)).start()
 
 
+#: Keyframes of the replica's own drone1 (the other one has 2).
+OWN = 4
+
+
 def test_replica_refuses_a_peer_serving_another_map_under_the_same_name(synthetic_scene,
                                                                         tmp_path, caplog):
-    """The replica holds a 10-keyframe drone1; a peer then serves another drone1 (2
-    keyframes, keyframe 0 elsewhere). The replica keeps its 10 and keyframe 0's pose, at its
+    """The replica holds a 4-keyframe drone1; a peer then serves another drone1 (2
+    keyframes, keyframe 0 elsewhere). The replica keeps its 4 and keyframe 0's pose, at its
     start and at the next, says why (ERROR naming both identities, replica_diverged event,
-    status ``diverged``) and serves its own map."""
+    status ``diverged``) and serves its own map. (4 keyframes: a map that differs from the
+    peer's in its ids and poses; each mapped keyframe costs a fraction of a second.)"""
     scene = synthetic_scene
     port = free_port()
     with open_router(port):
-        replica = _replica(port, tmp_path / "a2")          # alone: its own map of 10
+        replica = _replica(port, tmp_path / "a2")          # alone: its own map of 4
         try:
             with RelocClient(endpoint(port), map="drone1", timeout=20) as client:
                 events = Events(client)
                 client.set_camera("cam0", scene.camera)
                 events.wait("camera_added", id="cam0")
-                stream_keyframes(client, scene, range(10), 0.0)
-                events.wait("keyframe_added", id=9, timeout=60)
+                stream_keyframes(client, scene, range(OWN), 0.0)
+                events.wait("keyframe_added", id=OWN - 1, timeout=60)
                 events.close()
             assert replica.wait_idle(60)
             own_id = replica.maps["drone1"].map_id
@@ -75,7 +80,7 @@ def test_replica_refuses_a_peer_serving_another_map_under_the_same_name(syntheti
                 replica = _replica(port, tmp_path / "a2")
                 try:
                     rt = replica.maps["drone1"]
-                    assert rt.map_state().keyframe_ids() == list(range(10))
+                    assert rt.map_state().keyframe_ids() == list(range(OWN))
                     assert np.array_equal(rt.map_state().keyframes[0].world_from_cam, pose0)
                     assert rt.map_id == own_id
                     status = rt.status()

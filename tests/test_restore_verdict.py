@@ -22,7 +22,14 @@ import pytest
 from reloc_client import protocol as wire
 from reloc_client.client import NoReplyError, RelocClient, ServiceError
 from service_support import Events, endpoint, free_port, service_conf, wait_until
-from storage_support import Peer, files_of, journal_of_keyframes, journal_segment, kf_ids
+from storage_support import (
+    ORB_AND_SIFT,
+    Peer,
+    files_of,
+    journal_of_keyframes,
+    journal_segment,
+    kf_ids,
+)
 
 from reloc_service.cli.main import main
 from reloc_service.service.app import Service
@@ -35,8 +42,10 @@ EVERY = (*FIRST, *SECOND, *JOURNALED)
 
 
 def conf(port: int, storage: Path, **service):
+    """Maps ``m`` and ``other``, snapshots on demand only; ORB and SIFT maps
+    (``ORB_AND_SIFT``: an edited format version is refused for the ORB angles it expects)."""
     return service_conf(port, storage, maps=(MAP, OTHER), train_on_load=False,
-                        snapshot_every=0, **service)
+                        snapshot_every=0, **ORB_AND_SIFT, **service)
 
 
 def put(client: RelocClient, scene, events: Events, ids) -> None:

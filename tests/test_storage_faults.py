@@ -26,6 +26,7 @@ from reloc_client.client import (
 )
 from service_support import Events, endpoint, free_port, service_conf, wait_until
 from storage_support import (
+    ONE_METHOD,
     Peer,
     answers,
     connect,
@@ -47,9 +48,9 @@ SNAPSHOT_IDS, JOURNAL_IDS = (0, 1, 2), (3, 4, 5)
 
 def conf(port: int, storage: Path, **service):
     """Snapshots keep the keyframe images (``keyframe_images = "always"``), so a damaged
-    image file is among the faults a restore must name."""
+    image file is among the faults a restore must name; one method (``ONE_METHOD``)."""
     return service_conf(port, storage, maps=(GOOD, BAD), train_on_load=False,
-                        snapshot_every=0, keyframe_images="always", **service)
+                        snapshot_every=0, keyframe_images="always", **ONE_METHOD, **service)
 
 
 def pose_covariance(kf_id: int) -> np.ndarray | None:
@@ -223,6 +224,12 @@ DAMAGE = {"segment_header_byte": _segment_header_byte, "stray_segment": _stray_s
           "truncated_manifest": _truncated_manifest}
 
 
+#: The damage whose case queries the good map through worker processes (the default, as
+#: reloc serve runs): each damage fails the bad map at its restore alike, before any query, so
+#: the other cases query through threads and start no worker process (seconds each under load).
+PROCESS_WORKERS_DAMAGE = "snapshot_image_bit"
+
+
 @pytest.mark.parametrize("damage", sorted(DAMAGE))
 def test_one_damaged_file_fails_its_map_and_the_others_are_served(storage, synthetic_scene,
                                                                   damage):
@@ -230,7 +237,8 @@ def test_one_damaged_file_fails_its_map_and_the_others_are_served(storage, synth
     damaged = DAMAGE[damage](map_dir)
     before = files_of(map_dir)
     port = free_port()
-    service = Service(conf(port, storage)).start()     # does not raise
+    mode = "process" if damage == PROCESS_WORKERS_DAMAGE else "thread"
+    service = Service(conf(port, storage, worker_mode=mode)).start()     # does not raise
     try:
         with RelocClient(endpoint(port), map=GOOD, timeout=30) as good:
             assert kf_ids(good) == {*SNAPSHOT_IDS, *JOURNAL_IDS}
@@ -279,7 +287,8 @@ def restored(client: RelocClient) -> bool:
 def test_reloc_serve_keeps_running_with_a_damaged_map(storage, tmp_path):
     _snapshot_image_bit(storage / BAD)
     port = free_port()
-    proc = serve(write_config(tmp_path, port, storage, (GOOD, BAD)), tmp_path / "serve.log")
+    proc = serve(write_config(tmp_path, port, storage, (GOOD, BAD), one_method=True),
+                 tmp_path / "serve.log")
     try:
         with connect(proc, port, GOOD) as good:
             wait_until(lambda: proc.poll() is not None or restored(good), timeout=120)
