@@ -29,13 +29,18 @@ from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
 from ...core.plugins import make_conf
 from ..pose.base import PoseEstimate
-from ..pose.guided import GuidedConf, search_by_projection
+from ..pose.guided import GuidedConf
 from ..pose.intrinsics import IntrinsicsCheck
 from ..pose.landmark_pool import LandmarkPool
 from ..pose.map_consistency import settle_pose_errors
 from ..pose.pnp import PnPConf, PointUncertainty, solve_pnp_indexed
 from ..pose.prior_focal import axis_variance, focal_reach, focal_starts_within
-from ..pose.prior_windows import match_in_windows, pixel_sigmas, predict_windows
+from ..pose.prior_windows import (
+    match_in_windows,
+    pixel_sigmas,
+    predict_windows,
+    search_around,
+)
 from .base import (
     Prior,
     Relocalizer,
@@ -76,8 +81,6 @@ class TrackingRelocalizer(Relocalizer):
         #: verification's coverage grid (1/16 of the image) is no longer local, so its
         #: landmark is left out; too few left, tracking refuses and the full method runs.
         max_window_fraction: float = 1.0 / 16.0
-        #: Query keypoints examined per window (nearest the projection first).
-        window_neighbours: int = 32
         #: Best / second-best descriptor distance inside a window (ORB-SLAM's 0.9) and the
         #: quantile of unrelated pairs' distances a match must beat (guided matching's).
         window_ratio: float = 0.9
@@ -97,8 +100,8 @@ class TrackingRelocalizer(Relocalizer):
                 if not 0 < getattr(self, name) <= 1:
                     raise ConfigError(f"track: {name} must be in (0, 1], got "
                                       f"{getattr(self, name)}")
-            if self.local_keyframes < 1 or self.window_neighbours < 2:
-                raise ConfigError("track: local_keyframes must be >= 1, window_neighbours >= 2")
+            if self.local_keyframes < 1:
+                raise ConfigError("track: local_keyframes must be >= 1")
 
     def __init__(self, kmap: KeyframeMap, conf: TrackingRelocalizer.Conf | None = None,
                  verify_conf: VerifyConf | None = None) -> None:
@@ -165,7 +168,7 @@ class TrackingRelocalizer(Relocalizer):
                 f"predicted landmarks have a window within "
                 f"{self.conf.max_window_fraction:.3g} of the image", timings, state)
         q_idx, m_rows = match_in_windows(
-            feats, windows, rows, pool.descriptors, gate, neighbours=self.conf.window_neighbours,
+            feats, windows, rows, pool.descriptors, gate,
             ratio=self.conf.window_ratio, background_quantile=self.conf.background_quantile)
         timings["track_match"] = time.perf_counter() - start
         start = time.perf_counter()
@@ -212,16 +215,20 @@ class TrackingRelocalizer(Relocalizer):
               seed_q: IntArray, seed_rows: IntArray, uncertainty: PointUncertainty
               ) -> tuple[PoseEstimate, IntArray, IntArray, IntArray] | None:
         """The pose re-solved on the window consensus (``seed_q``, ``seed_rows``) plus the
-        landmarks guided matching finds around the solved pose (windows of twice the inlier
-        threshold, :func:`..pose.guided.search_by_projection`): the prior's windows are
+        landmarks matched around the solved pose (windows of twice the inlier threshold,
+        :func:`..pose.prior_windows.search_around`): the prior's windows are
         wide, and a crowd of similar descriptors hides matches that the solved pose's narrow
         windows find. (estimate, query indices, pool rows, inlier indices), or None when that
         adds no inlier."""
         guided = GuidedConf()
-        g_idx, g_rows = search_by_projection(
+        g_idx, g_rows = search_around(
             feats, query.camera, est.world_from_cam, pool.descriptors, pool.points_world,
-            guided.window_factor * self.conf.max_reproj_error_px, guided)
+            guided.window_factor * self.conf.max_reproj_error_px, ratio=guided.window_ratio,
+            background_quantile=guided.background_quantile)
         q_all, rows_all = _union(seed_q, seed_rows, g_idx, g_rows)
+        # A RANSAC again, not a refinement from the solved pose: that pose rests on the
+        # window consensus alone, and at its inlier threshold it can leave out the right
+        # guided matches and settle in its own basin (centimetres off on the synthetic room).
         solved = solve_pnp_indexed(feats.keypoints_px[q_all], pool.points_world[rows_all],
                                    query.camera, self.conf,
                                    uncertainty=uncertainty.take(rows_all))
