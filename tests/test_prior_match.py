@@ -1,11 +1,15 @@
-"""The window test of localization with a prior: every query keypoint inside a landmark's
-gate is a candidate, numpy and compiled paths alike."""
+"""The window test of localization with a prior (every query keypoint inside a landmark's
+gate is a candidate, numpy and compiled paths alike) and the covariance of a pose pooled
+from keyframes that disagree."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from reloc_service.algorithms.pose import prior_match
+from reloc_service.algorithms.pose.cluster_covariance import at_least, cluster_robust_covariance
+from reloc_service.algorithms.pose.pnp import pose_projector
 from reloc_service.algorithms.pose.prior_windows import Windows, match_in_windows
 from reloc_service.core.cameras import PinholeCamera
 from reloc_service.core.frame import Features
@@ -96,3 +100,52 @@ def _flip_bits(descriptor: np.ndarray, count: int) -> np.ndarray:
     bits = np.unpackbits(descriptor)
     bits[:count] ^= 1
     return np.packbits(bits)
+
+
+def _two_keyframes(shift_m: float, rng: np.random.Generator):
+    """Points in front of an identity camera, half of them (the second keyframe's) moved
+    by ``shift_m`` along x as a keyframe pose error would move them; pixels of the true
+    points with 0.5 px noise; the pose refitted by Gauss-Newton to all of them."""
+    points = np.c_[rng.uniform(-1.5, 1.5, (200, 2)), rng.uniform(2.0, 5.0, 200)]
+    project = pose_projector(points, CAMERA)
+    px = project(np.eye(4))[0] + rng.normal(0, 0.5, (200, 2))
+    clusters = np.repeat([0, 1], 100)
+    moved = points + np.outer(clusters == 1, [shift_m, 0.0, 0.0])
+    pose = np.eye(4)
+    from reloc_service.core.geometry import se3_exp
+
+    for _ in range(5):
+        projected, jac = pose_projector(moved, CAMERA)(pose)
+        j = jac.reshape(-1, 6)
+        pose = pose @ se3_exp(np.linalg.lstsq(j, (px - projected).ravel(), rcond=None)[0])
+    projected, jac = pose_projector(moved, CAMERA)(pose)
+    residual = (px - projected).ravel()
+    j = jac.reshape(-1, 6)
+    model = residual @ residual / (len(residual) - 6) * np.linalg.inv(j.T @ j)
+    return pose, px, moved, clusters, model
+
+
+@pytest.mark.parametrize("shift_m", [0.0, 0.05])
+def test_the_covariance_widens_to_the_keyframes_disagreement(shift_m):
+    rng = np.random.default_rng(3)
+    pose, px, points, clusters, model = _two_keyframes(shift_m, rng)
+    robust = cluster_robust_covariance(pose, px, points, CAMERA, clusters)
+    assert robust is not None
+    widened = at_least(model, robust)
+    # Never narrower than the model's.
+    assert np.all(np.linalg.eigvalsh(widened - model) > -1e-12)
+    error_x = abs(pose[0, 3])
+    if shift_m == 0.0:
+        # Groups that agree: the model covariance stands, within the sandwich's noise.
+        assert np.sqrt(widened[0, 0]) < 4.0 * np.sqrt(model[0, 0])
+    else:
+        # The compromise is centimetres off along x, several model sigmas; the widened
+        # covariance covers it within 2 sigma.
+        assert error_x > 0.01 and error_x > 2.5 * np.sqrt(model[0, 0])
+        assert error_x < 2.0 * np.sqrt(widened[0, 0])
+
+
+def test_one_keyframe_leaves_nothing_to_compare():
+    rng = np.random.default_rng(4)
+    pose, px, points, clusters, _ = _two_keyframes(0.05, rng)
+    assert cluster_robust_covariance(pose, px, points, CAMERA, np.zeros(len(px), int)) is None

@@ -29,6 +29,7 @@ from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
 from ...core.plugins import make_conf
 from ..pose.base import PoseEstimate
+from ..pose.cluster_covariance import at_least, cluster_robust_covariance
 from ..pose.guided import GuidedConf
 from ..pose.intrinsics import IntrinsicsCheck
 from ..pose.landmark_pool import LandmarkPool
@@ -194,6 +195,9 @@ class TrackingRelocalizer(Relocalizer):
         # the chance of agreeing inside a window; what guided matching added around the
         # solved pose agrees with it by construction.
         est.unguided_evidence = seed
+        self._widen_for_keyframes(est, feats.keypoints_px[q_idx[inliers]],
+                                  pool.points_world[m_rows[inliers]], query,
+                                  pool.keyframe_rows[m_rows[inliers]])
         est.chance_probability = max(est.chance_probability or 0.0, chance)
         self._limit_focal_starts(est, prior, pool.points_world[m_rows[inliers]])
         start = time.perf_counter()
@@ -235,6 +239,20 @@ class TrackingRelocalizer(Relocalizer):
         if solved is None or (solved[0].inliers or 0) <= (est.inliers or 0):
             return None
         return solved[0], q_all, rows_all, solved[1]
+
+    @staticmethod
+    def _widen_for_keyframes(est: PoseEstimate, inlier_px: Array, inliers_world: Array,
+                             query: Frame, source_keyframes: IntArray) -> None:
+        """Widen ``est``'s covariance to the spread its inliers' source keyframes show
+        (:mod:`..pose.cluster_covariance`): the landmarks are pooled from several
+        keyframes, and each group shares its keyframe's pose error, which the model
+        covariance of independent residuals does not see."""
+        if est.covariance is None:
+            return
+        robust = cluster_robust_covariance(est.world_from_cam, inlier_px, inliers_world,
+                                           query.camera, source_keyframes)
+        if robust is not None:
+            est.covariance = at_least(est.covariance, robust)
 
     def _limit_focal_starts(self, est: PoseEstimate, prior: Prior, inliers_world: Array
                             ) -> None:
