@@ -79,19 +79,24 @@ def _gated_best_numpy(keypoints_px: Array, query_desc: npt.NDArray[Any], px: Arr
 
 def _gated_pairs(keypoints_px: Array, px: Array, inv_cov: Array, radius_px: Array,
                  gate_chi2: float) -> tuple[IntArray, IntArray]:
-    """(P,) landmark and (P,) keypoint indices of the pairs inside the landmarks' gates: the
-    pairs within the largest radius (a gate lies inside the circle of its half major axis;
-    a relative margin of 1e-9 keeps rounding from dropping a pair on its boundary), then
-    each landmark's own gate."""
-    finite = np.isfinite(radius_px)
-    if not finite.any():
+    """(P,) landmark and (P,) keypoint indices of the pairs inside the landmarks' gates,
+    by landmark. The landmarks are taken in classes of radius within a factor of two, each
+    class's pairs within its largest radius listed by a k-d tree (a gate lies inside the
+    circle of its half major axis; a relative margin of 1e-9 keeps rounding from dropping
+    a pair on its boundary), then each landmark's own gate."""
+    finite = np.flatnonzero(np.isfinite(radius_px))
+    if len(finite) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    bound = float(radius_px[finite].max()) * (1.0 + 1e-9) + 1e-9
-    rows = np.flatnonzero(finite)
-    pairs = cKDTree(px[rows]).sparse_distance_matrix(cKDTree(keypoints_px), bound,
-                                                     output_type="ndarray")
-    lm = rows[pairs["i"].astype(np.int64)]
-    kp = pairs["j"].astype(np.int64)
+    tree = cKDTree(keypoints_px)
+    octave = np.floor(np.log2(np.maximum(radius_px[finite], 1e-3))).astype(np.int64)
+    lm_parts, kp_parts = [], []
+    for value in np.unique(octave):
+        rows = finite[octave == value]
+        bound = float(radius_px[rows].max()) * (1.0 + 1e-9) + 1e-9
+        pairs = cKDTree(px[rows]).sparse_distance_matrix(tree, bound, output_type="ndarray")
+        lm_parts.append(rows[pairs["i"].astype(np.int64)])
+        kp_parts.append(pairs["j"].astype(np.int64))
+    lm, kp = np.concatenate(lm_parts), np.concatenate(kp_parts)
     d = keypoints_px[kp] - px[lm]
     inv = inv_cov[lm]
     m2 = (inv[:, 0, 0] * d[:, 0] ** 2 + 2.0 * inv[:, 0, 1] * d[:, 0] * d[:, 1]
