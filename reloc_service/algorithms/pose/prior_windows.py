@@ -13,13 +13,13 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial import cKDTree
 
 from ...core.cameras import Camera
 from ...core.frame import Features
 from ...core.geometry import invert, transform_points
-from .guided import _one_to_one, _window_best, background_distance, project_into
+from .guided import _one_to_one, background_distance, project_into
 from .pnp import PointUncertainty, _pose_jacobian
+from .prior_match import gated_best
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -80,31 +80,39 @@ def pixel_sigmas(uncertainty: PointUncertainty, world_from_cam: Array, points_wo
 
 
 def match_in_windows(feats: Features, windows: Windows, rows: IntArray,
-                     map_desc: npt.NDArray[Any], gate_chi2: float, *, neighbours: int,
-                     ratio: float, background_quantile: float) -> tuple[IntArray, IntArray]:
+                     map_desc: npt.NDArray[Any], gate_chi2: float, *, ratio: float,
+                     background_quantile: float) -> tuple[IntArray, IntArray]:
     """Matches of the landmarks ``rows`` (their windows, descriptors ``map_desc[rows]``) to
     query keypoints inside their gates: (M,) query keypoint indices and (M,) landmark rows,
-    one to one. Of the ``neighbours`` keypoints nearest each projection (within the
-    largest window's radius), those outside the landmark's own gate are dropped; the best
-    descriptor inside must beat the second by ``ratio`` and be closer than the
-    ``background_quantile`` of unrelated descriptor pairs (as guided matching's)."""
+    one to one. Every keypoint inside a landmark's gate is a candidate
+    (:func:`.prior_match.gated_best`); the best descriptor must beat the second by
+    ``ratio`` and be closer than the ``background_quantile`` of unrelated descriptor pairs
+    (as guided matching's)."""
     empty = np.zeros(0, np.int64)
     if len(feats) < 2 or len(rows) == 0:
         return empty, empty
-    k = min(neighbours, len(feats))
-    px = windows.px[rows]
-    bound = float(windows.radius_px[rows].max())
-    _, near = cKDTree(feats.keypoints_px).query(px, k=k, distance_upper_bound=bound)
-    near = near.reshape(len(rows), k).astype(np.int64, copy=False)
-    slot = near < len(feats)
-    d = feats.keypoints_px[np.where(slot, near, 0)] - px[:, None, :]       # (L, K, 2)
-    dx, dy = d[..., 0], d[..., 1]
-    inv = windows.inv_cov[rows]
-    mahalanobis = (inv[:, 0, 0, None] * dx * dx + 2.0 * inv[:, 0, 1, None] * dx * dy
-                   + inv[:, 1, 1, None] * dy * dy)
-    near = np.where(slot & (mahalanobis <= gate_chi2), near, len(feats))
-    best, second, first = _window_best(feats.descriptors, map_desc[rows], near)
+    best, second, index = gated_best(feats.keypoints_px, feats.descriptors, windows.px[rows],
+                                     windows.inv_cov[rows], windows.radius_px[rows],
+                                     map_desc[rows], gate_chi2)
     limit = background_distance(feats.descriptors, map_desc, background_quantile)
     ok = np.isfinite(best) & (best < ratio * second) & (best < limit)
-    query_idx = near[np.flatnonzero(ok), first[ok]]
-    return _one_to_one(query_idx, rows[ok].astype(np.int64), best[ok])
+    return _one_to_one(index[ok], rows[ok].astype(np.int64), best[ok])
+
+
+def search_around(feats: Features, camera: Camera, world_from_cam: Array,
+                  map_desc: npt.NDArray[Any], points_world: Array, radius_px: float, *,
+                  ratio: float, background_quantile: float) -> tuple[IntArray, IntArray]:
+    """Guided matching around a solved pose: the landmarks (descriptors (L, D), points
+    (L, 3)) visible from ``world_from_cam`` matched to the query keypoints within
+    ``radius_px`` of their projection, with :func:`match_in_windows`'s tests (a circular
+    window is the gate of an isotropic covariance ``radius_px^2 I`` at chi-square 1).
+    (M,) query keypoint indices and (M,) landmark rows, one to one."""
+    px, visible = project_into(camera, world_from_cam, points_world)
+    n = len(points_world)
+    inv_cov = np.zeros((n, 2, 2))
+    inv_cov[:, 0, 0] = inv_cov[:, 1, 1] = 1.0 / radius_px**2
+    radius = np.where(visible, radius_px, np.inf)
+    windows = Windows(px, inv_cov, radius, np.where(visible, np.pi * radius_px**2, np.inf),
+                      visible)
+    return match_in_windows(feats, windows, np.flatnonzero(visible), map_desc, 1.0,
+                            ratio=ratio, background_quantile=background_quantile)

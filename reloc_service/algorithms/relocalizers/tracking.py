@@ -29,13 +29,19 @@ from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
 from ...core.plugins import make_conf
 from ..pose.base import PoseEstimate
-from ..pose.guided import GuidedConf, search_by_projection
+from ..pose.cluster_covariance import at_least, cluster_robust_covariance
+from ..pose.guided import GuidedConf
 from ..pose.intrinsics import IntrinsicsCheck
 from ..pose.landmark_pool import LandmarkPool
 from ..pose.map_consistency import settle_pose_errors
 from ..pose.pnp import PnPConf, PointUncertainty, solve_pnp_indexed
 from ..pose.prior_focal import axis_variance, focal_reach, focal_starts_within
-from ..pose.prior_windows import match_in_windows, pixel_sigmas, predict_windows
+from ..pose.prior_windows import (
+    match_in_windows,
+    pixel_sigmas,
+    predict_windows,
+    search_around,
+)
 from .base import (
     Prior,
     Relocalizer,
@@ -76,8 +82,6 @@ class TrackingRelocalizer(Relocalizer):
         #: verification's coverage grid (1/16 of the image) is no longer local, so its
         #: landmark is left out; too few left, tracking refuses and the full method runs.
         max_window_fraction: float = 1.0 / 16.0
-        #: Query keypoints examined per window (nearest the projection first).
-        window_neighbours: int = 32
         #: Best / second-best descriptor distance inside a window (ORB-SLAM's 0.9) and the
         #: quantile of unrelated pairs' distances a match must beat (guided matching's).
         window_ratio: float = 0.9
@@ -97,8 +101,8 @@ class TrackingRelocalizer(Relocalizer):
                 if not 0 < getattr(self, name) <= 1:
                     raise ConfigError(f"track: {name} must be in (0, 1], got "
                                       f"{getattr(self, name)}")
-            if self.local_keyframes < 1 or self.window_neighbours < 2:
-                raise ConfigError("track: local_keyframes must be >= 1, window_neighbours >= 2")
+            if self.local_keyframes < 1:
+                raise ConfigError("track: local_keyframes must be >= 1")
 
     def __init__(self, kmap: KeyframeMap, conf: TrackingRelocalizer.Conf | None = None,
                  verify_conf: VerifyConf | None = None) -> None:
@@ -165,7 +169,7 @@ class TrackingRelocalizer(Relocalizer):
                 f"predicted landmarks have a window within "
                 f"{self.conf.max_window_fraction:.3g} of the image", timings, state)
         q_idx, m_rows = match_in_windows(
-            feats, windows, rows, pool.descriptors, gate, neighbours=self.conf.window_neighbours,
+            feats, windows, rows, pool.descriptors, gate,
             ratio=self.conf.window_ratio, background_quantile=self.conf.background_quantile)
         timings["track_match"] = time.perf_counter() - start
         start = time.perf_counter()
@@ -191,6 +195,9 @@ class TrackingRelocalizer(Relocalizer):
         # the chance of agreeing inside a window; what guided matching added around the
         # solved pose agrees with it by construction.
         est.unguided_evidence = seed
+        self._widen_for_keyframes(est, feats.keypoints_px[q_idx[inliers]],
+                                  pool.points_world[m_rows[inliers]], query,
+                                  pool.keyframe_rows[m_rows[inliers]])
         est.chance_probability = max(est.chance_probability or 0.0, chance)
         self._limit_focal_starts(est, prior, pool.points_world[m_rows[inliers]])
         start = time.perf_counter()
@@ -212,22 +219,40 @@ class TrackingRelocalizer(Relocalizer):
               seed_q: IntArray, seed_rows: IntArray, uncertainty: PointUncertainty
               ) -> tuple[PoseEstimate, IntArray, IntArray, IntArray] | None:
         """The pose re-solved on the window consensus (``seed_q``, ``seed_rows``) plus the
-        landmarks guided matching finds around the solved pose (windows of twice the inlier
-        threshold, :func:`..pose.guided.search_by_projection`): the prior's windows are
+        landmarks matched around the solved pose (windows of twice the inlier threshold,
+        :func:`..pose.prior_windows.search_around`): the prior's windows are
         wide, and a crowd of similar descriptors hides matches that the solved pose's narrow
         windows find. (estimate, query indices, pool rows, inlier indices), or None when that
         adds no inlier."""
         guided = GuidedConf()
-        g_idx, g_rows = search_by_projection(
+        g_idx, g_rows = search_around(
             feats, query.camera, est.world_from_cam, pool.descriptors, pool.points_world,
-            guided.window_factor * self.conf.max_reproj_error_px, guided)
+            guided.window_factor * self.conf.max_reproj_error_px, ratio=guided.window_ratio,
+            background_quantile=guided.background_quantile)
         q_all, rows_all = _union(seed_q, seed_rows, g_idx, g_rows)
+        # A RANSAC again, not a refinement from the solved pose: that pose rests on the
+        # window consensus alone, and at its inlier threshold it can leave out the right
+        # guided matches and settle in its own basin (centimetres off on the synthetic room).
         solved = solve_pnp_indexed(feats.keypoints_px[q_all], pool.points_world[rows_all],
                                    query.camera, self.conf,
                                    uncertainty=uncertainty.take(rows_all))
         if solved is None or (solved[0].inliers or 0) <= (est.inliers or 0):
             return None
         return solved[0], q_all, rows_all, solved[1]
+
+    @staticmethod
+    def _widen_for_keyframes(est: PoseEstimate, inlier_px: Array, inliers_world: Array,
+                             query: Frame, source_keyframes: IntArray) -> None:
+        """Widen ``est``'s covariance to the spread its inliers' source keyframes show
+        (:mod:`..pose.cluster_covariance`): the landmarks are pooled from several
+        keyframes, and each group shares its keyframe's pose error, which the model
+        covariance of independent residuals does not see."""
+        if est.covariance is None:
+            return
+        robust = cluster_robust_covariance(est.world_from_cam, inlier_px, inliers_world,
+                                           query.camera, source_keyframes)
+        if robust is not None:
+            est.covariance = at_least(est.covariance, robust)
 
     def _limit_focal_starts(self, est: PoseEstimate, prior: Prior, inliers_world: Array
                             ) -> None:
