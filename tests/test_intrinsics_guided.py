@@ -98,3 +98,31 @@ def test_a_subset_test_on_every_row_is_the_whole_test():
 
 def test_no_test_stays_no_test():
     assert with_unguided_test(None, np.arange(3)) is None
+
+
+def test_an_unguided_test_does_not_weaken_the_whole_sets():
+    """Adding the unguided test keeps the whole set's at its own level: a whole-set p-value
+    between half the level and the level still refuses (a stale focal on repeated-hard
+    at 1.3 had p = 7.5e-4 on every match and none to say on its unguided ones)."""
+    px, points = correspondences(ROOM, 260, 0.5, np.random.default_rng(7))
+    solved = solve_pnp_indexed(px, points, ROOM, PnPConf())
+    assert solved is not None
+    check = with_unguided_test(solved[0].intrinsics_test, np.arange(60))()
+    assert check is not None and check.unguided is not None and check.unguided.passed
+    level = check.prior.false_refusal
+    solution = dataclasses.replace(check.solution, robust_covariance=None)
+    direction = np.array([1.0, 0.0])
+
+    def p_at(size: float) -> float:
+        moved = dataclasses.replace(solution, theta=size * direction)
+        return dataclasses.replace(check, solutions=(moved,)).p_value
+
+    low, high = 0.0, 1.0  # bisect the focal error whose p-value is 0.75 of the level
+    for _ in range(60):
+        mid = (low + high) / 2
+        low, high = (mid, high) if p_at(mid) > 0.75 * level else (low, mid)
+    moved = dataclasses.replace(solution, theta=low * direction)
+    whole = dataclasses.replace(check, solutions=(moved,))
+    assert level / 2 < whole.p_value < level
+    assert not whole.passed
+    assert whole.reason.startswith(f"{REFUSAL}: focal ")

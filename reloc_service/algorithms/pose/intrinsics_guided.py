@@ -9,8 +9,8 @@ pose and focal (:mod:`.intrinsics`) then finds the given focal again. Such match
 selected by the hypothesis under test, so they can confirm the given intrinsics but cannot
 be evidence against a wrong camera. The matches found without the pose (the ratio test over
 the candidates' landmarks) were not: the same test is run on them alone, from the grown
-pose, and the intrinsics pass only where both tests pass (each at half the false-refusal
-rate, :attr:`.intrinsics.IntrinsicsCheck.passed`). Where the unguided matches are too few
+pose, and the intrinsics pass only where both tests pass (each at the false-refusal rate,
+:attr:`.intrinsics.IntrinsicsCheck.passed`). Where the unguided matches are too few
 to test (fewer than 8 inliers), the whole set's test decides alone.
 """
 
