@@ -94,6 +94,10 @@ class PoseEstimate:
     #: solver cannot.
     intrinsics_test: Callable[[], IntrinsicsCheck | None] | None = field(default=None,
                                                                           repr=False)
+    #: Whether the query claims exactly the camera of the keyframes behind the pose (the
+    #: map's calibration, as a drone whose camera built the map), which is what a view
+    #: that cannot check the intrinsics may trust; None where not known (not trusted).
+    query_camera_is_map_calibration: bool | None = None
 
 
 @dataclass(frozen=True, eq=False)

@@ -125,6 +125,11 @@ class IntrinsicsCheck:
     focal_given_px: float
     pose_shift: Array
     dispersion: float = 1.0
+    #: The same test on the correspondences found without the pose (before guided matching
+    #: grew it), where there were enough: matches found in windows around the projections
+    #: of a pose agree with its intrinsics by construction, so they may confirm the given
+    #: camera but not overrule what the unguided ones say (:mod:`.intrinsics_guided`).
+    unguided: IntrinsicsCheck | None = None
 
     def _likelihood_ratio(self, worse: Solution, better: Solution) -> float:
         """The likelihood-ratio statistic of ``better`` against ``worse``: their cost
@@ -208,10 +213,19 @@ class IntrinsicsCheck:
 
     @property
     def passed(self) -> bool:
-        return not self.p_value < self.prior.false_refusal
+        """Whether the given intrinsics pass; with an :attr:`unguided` test, both tests must
+        pass, each at the false-refusal rate: together they refuse a correct camera at most
+        twice as often (the union bound; less, since the unguided matches are part of the
+        whole set). Halving each level instead (Bonferroni) would weaken the whole set's
+        test, which refuses stale focals the unguided matches alone cannot."""
+        level = self.prior.false_refusal
+        return not (self.p_value < level
+                    or (self.unguided is not None and self.unguided.p_value < level))
 
     def with_dispersion(self, dispersion: float) -> IntrinsicsCheck:
-        return dataclasses.replace(self, dispersion=max(1.0, float(dispersion)))
+        unguided = None if self.unguided is None else self.unguided.with_dispersion(dispersion)
+        return dataclasses.replace(self, dispersion=max(1.0, float(dispersion)),
+                                   unguided=unguided)
 
     @property
     def reason(self) -> str:
@@ -219,6 +233,12 @@ class IntrinsicsCheck:
         sigma), or "" when it passes."""
         if self.passed:
             return ""
+        if self.unguided is not None and self.unguided.p_value < self.prior.false_refusal:
+            return self.unguided._disagreement() + " on the matches found without the pose"
+        return self._disagreement()
+
+    def _disagreement(self) -> str:
+        """The refusal naming the component that disagrees most, in units of its sigma."""
         sigma = np.sqrt(np.maximum(np.diag(self.covariance + self.prior.covariance), 1e-300))
         z_focal, z_radial = np.abs(self.theta) / sigma
         if z_focal >= z_radial:

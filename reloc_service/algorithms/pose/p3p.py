@@ -20,6 +20,7 @@ from ...core.map import MapState
 from ..place.base import PlaceCandidate
 from .base import PoseEstimate, PoseFinder, Support, register
 from .guided import GuidedConf, search_by_projection
+from .intrinsics_guided import unguided_positions, with_unguided_test
 from .kernels import compiled
 from .landmark_pool import LandmarkPool
 from .map_consistency import prepare_map, settle_pose_errors
@@ -189,6 +190,8 @@ class P3PPoseFinder(PoseFinder):
         grown.unguided_evidence = seed
         grown.inlier_keypoints = q_all[inliers]
         grown.inlier_landmark_ids = pool.landmark_ids[rows_all[inliers]]
+        grown.intrinsics_test = with_unguided_test(grown.intrinsics_test, unguided_positions(
+            q_all, rows_all, q_idx, pool.rows_of(landmark_ids)))
         grown.timings = {"solve": est.timings.get("solve", 0.0), "guided": elapsed}
         return grown
 

@@ -244,15 +244,20 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
 def _check_intrinsics(fit: _Fit, px: Array, points_world: Array, camera: Camera,
                       conf: PnPConf, uncertainty: PointUncertainty | None,
                       keypoint_scales: Array | None, *,
-                      focal_starts: tuple[float, ...] = FOCAL_STARTS) -> IntrinsicsCheck | None:
-    """:func:`.intrinsics.check_intrinsics` of ``camera`` on every correspondence of ``fit``,
-    with the refinement's weights (from ``focal_starts`` besides the given focal)."""
-    rows = np.arange(len(points_world))
+                      focal_starts: tuple[float, ...] = FOCAL_STARTS,
+                      rows: npt.NDArray[np.int64] | None = None) -> IntrinsicsCheck | None:
+    """:func:`.intrinsics.check_intrinsics` of ``camera`` on every correspondence of ``fit``
+    (or on those of ``rows`` alone, ascending), with the refinement's weights (from
+    ``focal_starts`` besides the given focal)."""
+    rows = np.arange(len(points_world)) if rows is None else np.asarray(rows, np.int64)
     weights = _weights(fit.world_from_cam, points_world, rows, camera, conf, uncertainty,
                        keypoint_scales)
-    depths = transform_points(invert(fit.world_from_cam), points_world[fit.inliers])[:, 2]
-    return check_intrinsics(fit.world_from_cam, px, fit.inliers, weights, camera,
-                            pose_projector(points_world, camera),
+    inliers = np.flatnonzero(np.isin(rows, fit.inliers))  # positions within ``rows``
+    if len(inliers) == 0:
+        return None
+    depths = transform_points(invert(fit.world_from_cam), points_world[rows[inliers]])[:, 2]
+    return check_intrinsics(fit.world_from_cam, px[rows], inliers, weights, camera,
+                            pose_projector(points_world[rows], camera),
                             depth_m=float(np.median(depths)),
                             threshold_px=conf.max_reproj_error_px,
                             min_sigma_px=conf.min_sigma_px, prior=conf.intrinsics_prior,

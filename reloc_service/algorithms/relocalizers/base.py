@@ -25,10 +25,11 @@ from reloc_client.result import RelocResult, RelocStatus
 from scipy import stats
 from scipy.spatial import ConvexHull, QhullError
 
+from ...core.cameras import Camera
 from ...core.errors import ConfigError
 from ...core.features import FeatureConf
 from ...core.frame import Frame, Keyframe
-from ...core.map import KeyframeMap
+from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
 from ...core.plugins import Registry
 from ..pose.base import PoseEstimate, log10_false_alarms, total_covariance
@@ -186,10 +187,10 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
                        f"{min_patch:.0%}): a copy of it elsewhere would fit as well"), 0.0
     if est.intrinsics is not None and not est.intrinsics.passed:
         return False, est.intrinsics.reason, 0.0
-    if intrinsics_unchecked(est, conf.max_position_sigma_m) and not (
-            conf.trust_unchecked_intrinsics and _support_on_one_plane(est)):
-        return False, ("intrinsics unchecked: the view cannot bound the focal and the "
-                       "distortion"), 0.0
+    if intrinsics_unchecked(est, conf.max_position_sigma_m):
+        refusal = _untrusted_calibration(est, conf)
+        if refusal:
+            return False, refusal, 0.0
     sigma = position_sigma_m(stated_covariance(est, conf.max_position_sigma_m))
     if sigma > conf.max_position_sigma_m:
         return False, f"position too uncertain ({sigma:.3f} m > {conf.max_position_sigma_m})", 0.0
@@ -198,6 +199,33 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
     c_ratio = min(1.0, ratio / 0.45)
     c_rms = float(np.exp(-((rms / max_rms) ** 2)))
     return True, "", float(np.clip(c_inl * c_ratio * c_rms, 0.0, 1.0))
+
+
+def _untrusted_calibration(est: PoseEstimate, conf: VerifyConf) -> str:
+    """Why a view that cannot check the query's intrinsics is refused, or "" where the
+    calibration is trusted: only support on one plane (no view of it could check them:
+    the focal and the distance trade off exactly) from a relocalizer's last resort
+    (``conf.trust_unchecked_intrinsics``), and only where the query claims the map's own
+    calibration (the keyframes' camera): another camera's intrinsics nothing vouches for,
+    and a stale one would pass with the calibration's covariance."""
+    if not (conf.trust_unchecked_intrinsics and _support_on_one_plane(est)):
+        return "intrinsics unchecked: the view cannot bound the focal and the distortion"
+    if not est.query_camera_is_map_calibration:
+        return ("intrinsics unchecked: the inliers lie on one plane, where the focal and the "
+                "distance trade off, and the query's camera is not the map's calibration "
+                "(expected the intrinsics of the keyframes behind the pose)")
+    return ""
+
+
+def note_map_calibration(estimate: PoseEstimate | None, query_camera: Camera,
+                         state: MapState) -> None:
+    """Set ``estimate.query_camera_is_map_calibration``: whether ``query_camera`` is exactly
+    the camera of every keyframe of ``state`` behind the pose (its ``keyframe_ids``)."""
+    if estimate is None:
+        return
+    cameras = [state.keyframes[k].camera for k in estimate.keyframe_ids if k in state.keyframes]
+    estimate.query_camera_is_map_calibration = bool(cameras) and all(
+        camera == query_camera for camera in cameras)
 
 
 def plausible_first_pose(estimate: PoseEstimate, conf: VerifyConf) -> bool:

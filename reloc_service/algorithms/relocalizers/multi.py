@@ -33,6 +33,7 @@ from .base import (
     RelocResult,
     VerifyConf,
     doubt,
+    note_map_calibration,
     plausible_first_pose,
     refuses_the_query,
     register,
@@ -261,6 +262,7 @@ class MultiRelocalizer(Relocalizer):
         estimates: list[PoseEstimate | None] = []
         for group in groups:
             estimate = self.pose.find_pose(query, group, state)
+            note_map_calibration(estimate, query.camera, state)
             if estimate is not None:
                 _add_timings(timings, estimate.timings)
             start = time.perf_counter()
@@ -330,6 +332,7 @@ class MultiRelocalizer(Relocalizer):
         plausible = functools.partial(plausible_first_pose, conf=self.verify_conf)
         for alternative in self.pose.alternatives(query, estimates[0], state,
                                                   plausible=plausible):
+            note_map_calibration(alternative, query.camera, state)
             result = result_from_estimate(alternative, self.verify_conf, method=self.method,
                                           map_version=state.version, timings={})
             if result.ok:
