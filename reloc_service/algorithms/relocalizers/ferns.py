@@ -71,6 +71,7 @@ from .base import (
     Relocalizer,
     RelocResult,
     VerifyConf,
+    note_map_calibration,
     refuses_the_query,
     register,
     result_from_estimate,
@@ -556,6 +557,7 @@ class FernsRelocalizer(Relocalizer):
         est.chance_probability = _per_keypoint_chance(est.chance_probability, len(kp),
                                                       est.num_matches)
         est.keyframe_ids = _keyframes_seeing(state, lm[inliers])
+        note_map_calibration(est, query.camera, state)
         return settle_pose_errors(est, state, self.conf.kind, self.pnp_conf, lm[inliers]), inliers
 
     # -- persistence -------------------------------------------------------------------------
