@@ -14,7 +14,12 @@ from reloc_service.algorithms.pose.pnp import (
     solve_pnp,
     solve_pnp_indexed,
 )
-from reloc_service.algorithms.relocalizers.base import VerifyConf, position_sigma_m, result_from_estimate
+from reloc_service.algorithms.relocalizers.base import (
+    VerifyConf,
+    note_map_calibration,
+    position_sigma_m,
+    result_from_estimate,
+)
 from reloc_service.core import features as feature_lib
 from reloc_service.core.cameras import Camera, camera_from_dict
 from reloc_service.core.errors import ConfigError
@@ -268,6 +273,9 @@ def test_find_pose_on_rendered_images(scene, kind, monkeypatch):
     assert dt < 0.01 and np.degrees(dr) < 0.5
     assert set(est.keyframe_ids) <= {c.keyframe_id for c in candidates_near(scene, gt, 3)}
     assert {"features", "match", "solve"} <= est.timings.keys()
+    # The relocalizer notes whether the query claims the map's calibration (it does here),
+    # which a planar view that cannot check the intrinsics needs to be trusted.
+    note_map_calibration(est, query.camera, state)
     assert result_from_estimate(est, VerifyConf(), method="p3p", map_version=0, timings={}).ok
     finder.find_pose(query, candidates_near(scene, gt, 2), state)
     assert len(calls) == 1 and kind in query.features  # extracted once, cached on the query
