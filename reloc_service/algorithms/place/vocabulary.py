@@ -33,7 +33,7 @@ def _words64(bits: npt.NDArray[np.uint8]) -> npt.NDArray[Any]:
     return bits.view(np.uint64)
 
 
-def _pairwise(x: npt.NDArray[Any], centres: npt.NDArray[Any],
+def pairwise_distances(x: npt.NDArray[Any], centres: npt.NDArray[Any],
               x_sq: npt.NDArray[np.float32] | None = None) -> npt.NDArray[np.float32]:
     """(M, K) distances between rows of ``x`` (M, D) and ``centres`` (K, D): squared L2 for
     float descriptors (``x_sq``: the rows' squared norms, if known), Hamming for packed binary
@@ -72,7 +72,7 @@ def _kmeans_pp(x: npt.NDArray[Any], k: int, rng: np.random.Generator,
     """k-means++ seeding (Arthur and Vassilvitskii 2007): up to ``k`` row indices of ``x``,
     each drawn with probability proportional to its squared distance to the nearest seed."""
     def sq_dist(i: int) -> npt.NDArray[np.float64]:
-        d = _pairwise(x, x[i:i + 1], x_sq)[:, 0].astype(np.float64)
+        d = pairwise_distances(x, x[i:i + 1], x_sq)[:, 0].astype(np.float64)
         return d * d if _is_binary(x) else d  # Hamming is a distance, L2 here already squared
 
     seeds = [int(rng.integers(len(x)))]
@@ -118,8 +118,8 @@ def _kmeans(x: npt.NDArray[Any], k: int, iterations: int, rng: np.random.Generat
     else:
         centres = x[_kmeans_pp(x, k, rng, x_sq)].copy()
         for _ in range(iterations):
-            centres = _update_centres(x, np.argmin(_pairwise(x, centres, x_sq), axis=1), centres)
-    labels = np.argmin(_pairwise(x, centres, x_sq), axis=1)
+            centres = _update_centres(x, np.argmin(pairwise_distances(x, centres, x_sq), axis=1), centres)
+    labels = np.argmin(pairwise_distances(x, centres, x_sq), axis=1)
     used = np.flatnonzero(np.bincount(labels, minlength=len(centres)))
     remap = np.full(len(centres), -1, np.intp)
     remap[used] = np.arange(len(used))

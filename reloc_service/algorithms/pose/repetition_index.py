@@ -24,7 +24,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core import features as feature_lib
-from ..place.vocabulary import VocabularyTree
+from ..place.vocabulary import VocabularyTree, pairwise_distances
 
 IntArray = npt.NDArray[np.int64]
 
@@ -169,14 +169,10 @@ def _leaves_of(tree: VocabularyTree, descriptors: npt.NDArray[Any]) -> npt.NDArr
 
 def _to_centres(x: npt.NDArray[Any], centres: npt.NDArray[Any], valid: npt.NDArray[np.bool_]
                 ) -> npt.NDArray[np.float32]:
-    """(N, k) distances (squared L2 less the rows' own norms, or Hamming) from rows ``x``
-    (N, D) to ``centres`` (k, D); ``inf`` at the slots not ``valid`` (k,)."""
-    if feature_lib.is_binary_descriptor(x):
-        dist = np.bitwise_count(x[:, None, :] ^ centres[None]).sum(-1, dtype=np.int32)
-        out = dist.astype(np.float32)
-    else:
-        out = (np.einsum("kd,kd->k", centres, centres) - 2.0 * (x @ centres.T)
-               ).astype(np.float32)
+    """(N, k) distances from rows ``x`` (N, D) to ``centres`` (k, D) as the vocabulary
+    measures them (:func:`..place.vocabulary.pairwise_distances`); ``inf`` at the slots not
+    ``valid`` (k,)."""
+    out = pairwise_distances(x, centres)
     out[:, ~valid] = np.inf
     return out
 
