@@ -21,6 +21,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
+from ...core.features import descriptor_distance
 from ...core.frame import is_binary_descriptor
 from ...core.hamming import _popcount64
 from ...core.numeric import numba_or_none
@@ -65,7 +66,7 @@ def _gated_best_numpy(keypoints_px: Array, query_desc: npt.NDArray[Any], px: Arr
     lm, kp = _gated_pairs(keypoints_px, px, inv_cov, radius_px, gate_chi2)
     if len(lm) == 0:
         return best, second, index
-    dist = _pair_distances(query_desc, kp, landmark_desc, lm)
+    dist = descriptor_distance(query_desc[kp], landmark_desc[lm])
     order = np.lexsort((kp, dist, lm))          # by landmark, then distance, then keypoint
     lm, kp, dist = lm[order], kp[order], dist[order]
     starts = np.flatnonzero(np.r_[True, lm[1:] != lm[:-1]])
@@ -103,19 +104,6 @@ def _gated_pairs(keypoints_px: Array, px: Array, inv_cov: Array, radius_px: Arra
           + inv[:, 1, 1] * d[:, 1] ** 2)
     keep = m2 <= gate_chi2
     return lm[keep], kp[keep]
-
-
-def _pair_distances(query_desc: npt.NDArray[Any], kp: IntArray,
-                    landmark_desc: npt.NDArray[Any], lm: IntArray) -> Array:
-    """(P,) descriptor distance of each pair: Hamming for binary descriptors (popcount of
-    the XOR of 64-bit words, or of bytes), L2 for SIFT."""
-    if is_binary_descriptor(query_desc):
-        a, b = np.ascontiguousarray(query_desc), np.ascontiguousarray(landmark_desc)
-        if a.shape[1] % 8 == 0:
-            a, b = a.view(np.uint64), b.view(np.uint64)
-        return np.bitwise_count(a[kp] ^ b[lm]).sum(axis=1, dtype=np.int64).astype(np.float64)
-    diff = query_desc[kp].astype(np.float32) - landmark_desc[lm].astype(np.float32)
-    return np.sqrt(np.einsum("pd,pd->p", diff, diff)).astype(np.float64)
 
 
 def _are_orb_words(query_desc: npt.NDArray[Any], landmark_desc: npt.NDArray[Any]) -> bool:
