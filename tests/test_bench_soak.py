@@ -10,7 +10,7 @@ import json
 
 import pytest
 
-from reloc_service.tools.bench import soak
+from reloc_service.tools.bench import soak, soak_ledger, soak_report
 from reloc_service.tools.bench.cli import add_arguments, soak_conf
 
 
@@ -60,7 +60,7 @@ def test_soak_harness_counts_consistently(synthetic_scene, tmp_path):
     times = [t for t, _ in rss["samples"]]
     assert times == sorted(times) and all(v is None or v > 0 for _, v in rss["samples"])
     assert 50 < rss["first_mb"] <= rss["max_mb"] < 4000
-    lines = soak.table_lines(result)
+    lines = soak_report.table_lines(result)
     assert any("**keyframes lost**" in line and line.endswith("| **0** |") for line in lines)
 
 
@@ -79,12 +79,12 @@ def test_plot_rss_writes_a_png(tmp_path):
     pytest.importorskip("matplotlib")
     result = {"rss": {"samples": [[1.0, 100.0], [2.0, None], [3.0, 110.0]]},
               "restarts": [{"kind": "kill9", "at_s": 1.5}, {"kind": "sigterm", "at_s": 2.5}]}
-    path = soak.plot_rss(result, tmp_path / "rss.png")
+    path = soak_report.plot_rss(result, tmp_path / "rss.png")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_keyframe_count_finds_losses_duplicates_and_resurrections():
-    ledger = soak.Ledger()
+    ledger = soak_ledger.Ledger()
     ledger.sent = [1000, 1001, 1002, 1003, 1004]
     ledger.added = {0, 1, 1000, 1001, 1002, 1003}          # 1004 never acknowledged
     ledger.delete_sent = [1000, 1001]
@@ -101,7 +101,7 @@ def test_keyframe_count_finds_losses_duplicates_and_resurrections():
 
 
 def test_audit_lists_keyframes_acknowledged_before_it():
-    ledger = soak.Ledger()
+    ledger = soak_ledger.Ledger()
     ledger.added = {1000, 1001}
 
     def listing() -> list[int]:  # the deleter asks to delete 1001 while the listing runs

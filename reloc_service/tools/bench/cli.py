@@ -188,7 +188,7 @@ def main(args: argparse.Namespace) -> int:
 
         result["plots"] = [str(p) for p in plot_all(result, args.plots)]
         if result.get("soak", {}).get("rss", {}).get("samples"):
-            from .soak import plot_rss
+            from .soak_report import plot_rss
 
             args.plots.mkdir(parents=True, exist_ok=True)
             result["plots"].append(str(plot_rss(result["soak"],
@@ -213,7 +213,7 @@ def main(args: argparse.Namespace) -> int:
                          *table_lines(acc), *note_lines(acc)]))
     sk = result.get("soak")
     if sk and "error" not in sk:
-        from .soak import table_lines as soak_table
+        from .soak_report import table_lines as soak_table
 
         print("\n".join(["", f"Soak ({_f(sk['load_s'], 0)} s):", *soak_table(sk)]))
     ak = result.get("attack")
@@ -597,7 +597,7 @@ def _peers(p: Mapping[str, Any]) -> list[str]:
 
 
 def _soak(soak: Mapping[str, Any]) -> list[str]:
-    from .soak import table_lines
+    from .soak_report import table_lines
 
     return ["## Soak (reliability)", "", "See docs/reliability.md for what the run does.", "",
             *table_lines(soak)]

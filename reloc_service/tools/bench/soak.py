@@ -17,7 +17,7 @@ At the end the service is stopped (the next kind in turn) and restarted once mor
 keyframes it holds are compared with the acknowledgements: a keyframe acknowledged as added,
 never asked to be deleted and not held is *lost*; an id held twice is *duplicated*; one
 acknowledged as removed but held again is *resurrected*. :func:`run_soak` returns the JSON
-section; :func:`plot_rss` draws resident memory over time (matplotlib, imported lazily).
+section; :mod:`.soak_report` summarises and draws it.
 """
 
 from __future__ import annotations
@@ -43,14 +43,14 @@ import numpy.typing as npt
 from ...core.cameras import Camera
 from .loopback import free_port, service_doc, toml_text
 from .machine import load_average
-from .samples import JPEG_QUALITY, QuerySet, json_safe, pct_ms
+from .samples import JPEG_QUALITY, QuerySet, json_safe
+from .soak_ledger import Ledger, Outcomes, Phase
+from .soak_report import STOP_KINDS, query_summary, restart_summary, rss_summary
 
 MAP_NAME = "soak"
 CAMERA_ID = "cam0"
 #: First id of a streamed keyframe (the scene's own keyframes are 0..n-1).
 STREAM_FIRST_ID = 1000
-#: The two ways the service is stopped, used in turn.
-STOP_KINDS = ("kill9", "sigterm")
 
 
 @dataclass(frozen=True)
@@ -192,115 +192,6 @@ def rss_mb(pid: int) -> float | None:
         return None
     return None
 
-
-# -- what the clients saw --------------------------------------------------------------------
-
-class Ledger:
-    """Keyframes sent, deleted and acknowledged (thread-safe; the event callback runs in a
-    Zenoh thread and only records)."""
-
-    def __init__(self) -> None:
-        self.lock = threading.Condition()
-        self.sent: list[int] = []
-        self.delete_sent: list[int] = []
-        self.added: set[int] = set()
-        self.removed: set[int] = set()
-        self.added_events: Counter[int] = Counter()
-        self.removed_events: Counter[int] = Counter()
-        self.rejected: Counter[str] = Counter()
-        self.events: Counter[str] = Counter()
-
-    def on_event(self, event: Any) -> None:
-        kind, kf_id = event.kind.value, event.fields.get("id")
-        with self.lock:
-            self.events[kind] += 1
-            if kind == "keyframe_added":
-                self.added.add(kf_id)
-                self.added_events[kf_id] += 1
-            elif kind == "keyframe_removed":
-                self.removed.add(kf_id)
-                self.removed_events[kf_id] += 1
-            elif kind == "keyframe_rejected":
-                self.rejected[str(event.fields.get("code"))] += 1
-            self.lock.notify_all()
-
-    def wait_added(self, kf_id: int, timeout: float) -> bool:
-        with self.lock:
-            return self.lock.wait_for(lambda: kf_id in self.added, timeout)
-
-    def deletable(self, keep: int) -> int | None:
-        """The oldest acknowledged streamed keyframe not yet deleted, if more than ``keep``
-        of them are in the map."""
-        with self.lock:
-            asked = set(self.delete_sent)
-            alive = [k for k in self.sent if k in self.added and k not in asked]
-            return alive[0] if len(alive) > keep else None
-
-
-class Outcomes:
-    """Query outcomes by kind, the latency of answered ones, and answered / failed queries
-    per ``bucket_s`` of the run (thread-safe)."""
-
-    ANSWERED = ("ok", "not_relocalized")
-
-    def __init__(self, clock: Callable[[], float], bucket_s: float = 5.0) -> None:
-        self.lock = threading.Lock()
-        self.counts: Counter[str] = Counter()
-        self.latencies_s: list[float] = []
-        self.sent = 0
-        self.clock, self.bucket_s = clock, bucket_s
-        self.buckets: dict[int, list[int]] = {}
-
-    def record(self, kind: str, latency_s: float | None = None) -> None:
-        with self.lock:
-            self.sent += 1
-            self.counts[kind] += 1
-            if latency_s is not None:
-                self.latencies_s.append(latency_s)
-            row = self.buckets.setdefault(int(self.clock() // self.bucket_s), [0, 0])
-            row[0 if kind in self.ANSWERED else 1] += 1
-
-    def timeline(self) -> list[list[float]]:
-        """``[start_s, answered, failed]`` per bucket, in time order."""
-        with self.lock:
-            return [[k * self.bucket_s, *v] for k, v in sorted(self.buckets.items())]
-
-
-@dataclass
-class Phase:
-    """Whether the service is up (answered a fresh client's query since its last start), and
-    how long each long-lived client took after that to be answered again (its Zenoh session
-    reconnects on its own, with a back-off)."""
-
-    up: threading.Event = field(default_factory=threading.Event)
-    stop: threading.Event = field(default_factory=threading.Event)
-    t0: float = field(default_factory=time.monotonic)
-    #: Starts so far (0: the first) and when the current one began answering.
-    generation: int = 0
-    up_since: float = 0.0
-    #: Seconds from "up" to each client's first answer, per restart (generation >= 1).
-    resumed_s: dict[int, list[float]] = field(default_factory=dict)
-    lock: threading.Lock = field(default_factory=threading.Lock)
-
-    def now(self) -> float:
-        return time.monotonic() - self.t0
-
-    def went_up(self) -> None:
-        with self.lock:
-            self.generation += 1
-            self.up_since = self.now()
-            self.up.set()
-
-    def answered(self, seen: int) -> int:
-        """A client that last saw generation ``seen`` was answered; returns the current."""
-        with self.lock:
-            if seen < self.generation and self.up.is_set():
-                self.resumed_s.setdefault(self.generation, []).append(
-                    self.now() - self.up_since)
-            return self.generation
-
-
-# -- the load ----------------------------------------------------------------------------------
 
 def classify(exc: BaseException) -> str:
     """An outcome name for a failed query: ``busy``, ``no_reply``, an ErrorCode, or the
@@ -498,52 +389,6 @@ def keyframe_count(ledger: Ledger, base: int, held: Sequence[int],
         "rejected_by_code": dict(ledger.rejected)}
 
 
-def query_summary(out: Outcomes) -> dict[str, Any]:
-    answered = out.counts["ok"] + out.counts["not_relocalized"]
-    errors = {k: v for k, v in sorted(out.counts.items()) if k not in ("ok", "not_relocalized")}
-    return {"sent": out.sent, "answered": answered, "ok": out.counts["ok"],
-            "not_relocalized": out.counts["not_relocalized"], "errors_by_code": errors,
-            "p50_ms": pct_ms(out.latencies_s, 50), "p99_ms": pct_ms(out.latencies_s, 99),
-            "bucket_s": out.bucket_s, "timeline": out.timeline()}
-
-
-def restart_summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for kind in STOP_KINDS:
-        mine = [r for r in rows if r["kind"] == kind]
-        if mine:
-            out[kind] = {"count": len(mine),
-                         "stop_s_median": float(np.median([r["stop_s"] for r in mine])),
-                         "stop_s_max": max(r["stop_s"] for r in mine),
-                         "restart_s_median": float(np.median([r["restart_s"] for r in mine])),
-                         "restart_s_max": max(r["restart_s"] for r in mine),
-                         "clients_resumed_s_median": _median_or_none(
-                             [r.get("clients_resumed_max_s") for r in mine]),
-                         "clients_resumed_s_max": _max_or_none(
-                             [r.get("clients_resumed_max_s") for r in mine]),
-                         "exit_codes": sorted({r["exit_code"] for r in mine}),
-                         "killed_after_timeout": sum(r["killed_after_timeout"] for r in mine)}
-    return out
-
-
-def _median_or_none(values: Sequence[float | None]) -> float | None:
-    known = [v for v in values if v is not None]
-    return float(np.median(known)) if known else None
-
-
-def _max_or_none(values: Sequence[float | None]) -> float | None:
-    known = [v for v in values if v is not None]
-    return max(known) if known else None
-
-
-def rss_summary(samples: Sequence[Sequence[Any]]) -> dict[str, Any]:
-    values = [v for _, v in samples if v is not None]
-    if not values:
-        return {"samples": [list(s) for s in samples]}
-    return {"first_mb": values[0], "median_mb": float(np.median(values)), "max_mb": max(values),
-            "last_mb": values[-1], "samples": [list(s) for s in samples]}
-
-
 # -- the run -----------------------------------------------------------------------------------
 
 def run_soak(conf: SoakConf, *, scene: SoakScene | None = None, workdir: Path | None = None,
@@ -666,97 +511,6 @@ def _supervise(conf: SoakConf, scene: SoakScene, runner: ServiceRunner, phase: P
             f"{row['exit_code']}), answering again after {row['restart_s']:.1f} s; holds "
             f"{row['audit'].get('held')} keyframes, lost {row['audit'].get('lost_ids')}")
         next_at = max(next_at + conf.restart_every_s, phase.now() + 1.0)
-
-
-# -- reporting ---------------------------------------------------------------------------------
-
-def table_lines(soak: Mapping[str, Any]) -> list[str]:
-    """The soak's result as a Markdown table (one metric per row)."""
-    q, k, r = soak["queries"], soak["keyframes"], soak["restart_summary"]
-    errors = ", ".join(f"{c} {n}" for c, n in q["errors_by_code"].items()) or "none"
-    rows = [("duration of the load", f"{soak['load_s']:.0f} s"),
-            ("stops (kill -9 / SIGTERM), then a final one",
-             f"{r.get('kill9', {}).get('count', 0)} / {r.get('sigterm', {}).get('count', 0)}"),
-            ("queries sent / answered", f"{q['sent']} / {q['answered']}"),
-            ("answered: ok / not relocalized", f"{q['ok']} / {q['not_relocalized']}"),
-            ("errors by code", errors),
-            ("latency while up, p50 / p99", f"{_ms(q['p50_ms'])} / {_ms(q['p99_ms'])}"),
-            ("keyframes streamed: sent / acknowledged",
-             f"{k['streamed_sent']} / {k['streamed_acknowledged']}"),
-            ("deletes sent / acknowledged", f"{k['delete_sent']} / {k['delete_acknowledged']}"),
-            ("keyframes held after the final restart", str(k["held_final"])),
-            ("**keyframes lost** (checked after every restart and at the end)",
-             f"**{k['lost']}**"),
-            ("**keyframes duplicated**", f"**{k['duplicated']}**"),
-            ("deleted keyframes back after a restart", str(k["resurrected"]))]
-    for kind, label in (("kill9", "kill -9"), ("sigterm", "SIGTERM")):
-        if kind in r:
-            s = r[kind]
-            rows.append((f"{label}: stop time median / max",
-                         f"{s['stop_s_median']:.1f} / {s['stop_s_max']:.1f} s "
-                         f"(exit codes {s['exit_codes']})"))
-            rows.append((f"{label}: process start to first answer, median / max",
-                         f"{s['restart_s_median']:.1f} / {s['restart_s_max']:.1f} s"))
-            rows.append((f"{label}: then until every running client is answered, median / max",
-                         f"{_s(s['clients_resumed_s_median'])} / "
-                         f"{_s(s['clients_resumed_s_max'])}"))
-    rss = soak["rss"]
-    if "max_mb" in rss:
-        rows.append(("service RSS: first / median / max / last",
-                     f"{rss['first_mb']:.0f} / {rss['median_mb']:.0f} / {rss['max_mb']:.0f} / "
-                     f"{rss['last_mb']:.0f} MB"))
-    return ["| measure | value |", "|---|---|", *[f"| {a} | {b} |" for a, b in rows], ""]
-
-
-def _s(value: Any) -> str:
-    return "-" if value is None or not math.isfinite(value) else f"{value:.1f} s"
-
-
-def _ms(value: Any) -> str:
-    return "-" if value is None or not math.isfinite(value) else f"{value:.0f} ms"
-
-
-def plot_rss(soak: Mapping[str, Any], path: Path) -> Path:
-    """Resident memory of the service over the run and, below it, queries answered and
-    failed per bucket (if recorded), with the stops marked."""
-    from .plots import _pyplot, _save
-
-    plt = _pyplot()
-    timeline = soak.get("queries", {}).get("timeline")
-    fig, axes = plt.subplots(2 if timeline else 1, 1, figsize=(9.5, 5.2 if timeline else 3.2),
-                             sharex=True, squeeze=False)
-    ax = axes[0][0]
-    samples = soak["rss"]["samples"]
-    ax.plot([t for t, _ in samples], [np.nan if v is None else v for _, v in samples],
-            "-", lw=1.2, label="service RSS (MB)")
-    ax.set(ylabel="MB", ylim=(0, None), title="reloc serve resident memory during the soak")
-    if timeline:
-        _plot_timeline(axes[1][0], timeline, soak["queries"]["bucket_s"],
-                       soak.get("conf", {}).get("query_clients", "the"))
-    for row in axes:
-        _mark_stops(row[0], soak["restarts"])
-        row[0].grid(True, alpha=0.3)
-        row[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
-    axes[-1][0].set(xlabel="seconds into the run")
-    return _save(fig, path)
-
-
-def _plot_timeline(ax: Any, timeline: Sequence[Sequence[float]], bucket_s: float,
-                   clients: Any) -> None:
-    t = [row[0] for row in timeline]
-    ax.bar(t, [row[1] for row in timeline], width=bucket_s, align="edge", color="tab:blue",
-           label="answered")
-    ax.bar(t, [row[2] for row in timeline], width=bucket_s, align="edge", color="tab:orange",
-           bottom=[row[1] for row in timeline], label="no answer (busy, no reply, error)")
-    ax.set(ylabel=f"queries per {bucket_s:.0f} s", title=f"queries of the {clients} clients")
-
-
-def _mark_stops(ax: Any, restarts: Sequence[Mapping[str, Any]]) -> None:
-    for kind, color, ls, label in (("kill9", "r", "--", "kill -9"),
-                                   ("sigterm", "g", ":", "SIGTERM")):
-        ats = [r["at_s"] for r in restarts if r["kind"] == kind]
-        for n, at in enumerate(ats):
-            ax.axvline(at, color=color, ls=ls, lw=1, label=label if n == 0 else None)
 
 
 def run_into(result: dict[str, Any], conf: SoakConf, workdir: Path | None,
