@@ -26,21 +26,22 @@ from .geometry import (
     rotation_to_quat_xyzw_array,
 )
 from .images import DepthFormat, ImageFormat, WireDepth, WireFeatures, WireImage, jpeg_size, png_header
-from .keys import DEFAULT_PREFIX, MAX_NAME_LEN, check_name, check_prefix, keys
-from .messages import (
-    MESSAGE_TYPES,
+from .keyframe_messages import (
     CameraPut,
-    ErrorReply,
-    Event,
-    EventKind,
-    Hypothesis,
     KeyframeInfo,
     KeyframePut,
+)
+from .keys import DEFAULT_PREFIX, MAX_NAME_LEN, check_name, check_prefix, keys
+from .message_base import (
+    EventKind,
     Message,
-    Prior,
-    RelocalizeReply,
-    RelocalizeRequest,
     ReplyStatus,
+    unpack_message,
+)
+from .messages import (
+    MESSAGE_TYPES,
+    ErrorReply,
+    Event,
     StatusReply,
     TrainReply,
     TrainRequest,
@@ -55,9 +56,14 @@ from .messages import (
     decode_train_reply,
     decode_train_request,
     encode_error,
-    unpack_message,
 )
 from .methods import MethodSpec, MethodStep, split_chain
+from .relocalize_messages import (
+    Hypothesis,
+    Prior,
+    RelocalizeReply,
+    RelocalizeRequest,
+)
 
 __all__ = [
     "PROTOCOL_VERSION", "DEFAULT_PREFIX", "CAMERA_MODELS", "ErrorCode", "ProtocolError", "Limits",

@@ -21,7 +21,7 @@ from typing import Any, ClassVar
 
 from .checks import ErrorCode, Limits, ProtocolError, _bool, _bytes, _fail, _Fields, _int
 from .keys import check_name, check_prefix
-from .messages import Message
+from .message_base import Message
 
 #: Largest chunk of an export or import (well under the default payload limit of 32 MB).
 MAX_CHUNK = 4 * 1024 * 1024
