@@ -22,7 +22,8 @@ from reloc_service.algorithms.ferns.classifier import FernConf
 from reloc_service.algorithms.ferns.training import WarpConf
 from reloc_service.algorithms.relocalizers.base import Prior
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer
-from reloc_service.algorithms.relocalizers.ferns import FernsConf, FernsRelocalizer
+from reloc_service.algorithms.relocalizers.ferns import FernsRelocalizer
+from reloc_service.algorithms.relocalizers.ferns_conf import FernsConf
 from reloc_service.core.cameras import PinholeCamera
 from reloc_service.core.errors import ConfigError, NotTrainedError, StorageError
 from reloc_service.core.frame import Features, Frame, Keyframe

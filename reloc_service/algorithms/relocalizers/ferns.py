@@ -44,21 +44,21 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
 from ...core.errors import ConfigError, NotTrainedError, StorageError
-from ...core.features import FEATURE_KINDS, FeatureConf
+from ...core.features import FeatureConf
 from ...core.fileio import atomic_write
 from ...core.frame import Frame, Keyframe
 from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
 from ...core.numeric import top_k
 from ...core.plugins import make_conf
-from ..ferns.classifier import FernClassifier, FernConf, FernScorer, FernTests
-from ..ferns.models import FernModels, ModelsConf, Published
-from ..ferns.training import WarpConf, prepare_image
+from ..ferns.classifier import FernClassifier, FernScorer, FernTests
+from ..ferns.keypoints import detect_keypoints
+from ..ferns.models import FernModels, Published
+from ..ferns.training import prepare_image
 from ..place.sbi import SmallBlurryImageFinder
 from ..pose.base import PoseEstimate
 from ..pose.guided import GuidedConf
@@ -76,120 +76,14 @@ from .base import (
     register,
     result_from_estimate,
 )
+from .ferns_conf import FernsConf
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
-QUERY_DETECTORS = ("sift", "fast")
-PARTITIONS = ("select", "regions")
-REGION_PRIORS = ("sbi", "none")
 FORMAT_VERSION = 1
 _MODEL_FILE = "ferns.npz"
 _META_FILE = "ferns.json"
-
-
-@dataclass(frozen=True)
-class FernsConf:
-    """Options of the ferns relocalizer (``options["ferns"]``).
-
-    Classifier: ``num_ferns`` x ``num_tests`` tests in a ``patch_size`` patch (thesis: 100 x 12).
-    Training: ``num_warps`` samples per observation (thesis: 100), warps as in
-    :class:`~reloc_service.algorithms.ferns.training.WarpConf`; ``online`` trains each new keyframe as it
-    arrives (else only :meth:`train` does); ``workers`` threads warp keyframes in parallel.
-    Scale: ``max_classes`` per model, ``partition`` "select" or "regions" (module docstring);
-    with regions, ``region_prior`` "sbi" classifies a query against the ``max_regions`` regions
-    whose keyframes its small blurry image resembles most (tried best first, one more each
-    time until a pose is verified; then every region with ``region_fallback``), "none"
-    against every region.
-    Query: ``detector`` "sift" (DoG, like the landmarks' keypoints) or "fast", at most
-    ``max_query_keypoints``; each keypoint gives its ``top_k`` classes with posterior at least
-    ``min_posterior``. ``kind`` is the feature kind whose landmarks are learned.
-
-    ``max_rotation_rad`` is +-0.6 rad (34 deg) by default, enough for the roll of a forward
-    camera; a downward-looking camera that yaws needs pi. Full rotations cost recognition and
-    memory: on the 2000-landmark benchmark the top-1 rate of a 15-degree rotated photo falls
-    from 98% to 51% and the model grows from 85 to 116 MB. The "fast" detector finds corners
-    a few pixels off the landmarks' DoG keypoints: many inliers but a reprojection RMS above
-    the verification's 2.5 px on the test scene, so "sift" is the default.
-    """
-
-    num_ferns: int = 100
-    num_tests: int = 12
-    patch_size: int = 32
-    regularization: float = 1.0
-    num_warps: int = 100
-    max_rotation_rad: float = 0.6
-    min_scale: float = 0.6
-    max_scale: float = 1.5
-    affine: bool = True
-    max_noise_sigma: float = 5.0
-    max_blur_sigma: float = 1.0
-    smoothing_sigma: float = 1.0
-    online: bool = True
-    workers: int = 2
-    max_classes: int = 2000
-    partition: str = "regions"
-    region_prior: str = "sbi"
-    max_regions: int = 2
-    place_keyframes: int = 5
-    region_fallback: bool = True
-    kind: str = "sift"
-    detector: str = "sift"
-    max_query_keypoints: int = 1000
-    top_k: int = 2
-    min_posterior: float = 0.01
-    seed: int = 0
-    #: Solve again on the correspondences a verified pose leaves, up to this many times, and
-    #: answer only the pose that explains the query significantly better than every other
-    #: verified one (:mod:`.uniqueness`; a keypoint's second class is often a repeated
-    #: landmark's twin). 0: the first verified pose answers.
-    competitors: int = 2
-
-    def __post_init__(self) -> None:
-        self.fern_conf()
-        self.warp_conf()
-        if self.detector not in QUERY_DETECTORS:
-            raise ConfigError(f"ferns: detector {self.detector!r} unknown; expected one of "
-                              f"{QUERY_DETECTORS}")
-        if self.kind not in FEATURE_KINDS:
-            raise ConfigError(f"ferns: kind {self.kind!r} unknown; expected one of {FEATURE_KINDS}")
-        if self.partition not in PARTITIONS:
-            raise ConfigError(f"ferns: partition {self.partition!r} unknown; expected one of "
-                              f"{PARTITIONS}")
-        if self.region_prior not in REGION_PRIORS:
-            raise ConfigError(f"ferns: region_prior {self.region_prior!r} unknown; expected one "
-                              f"of {REGION_PRIORS}")
-        if min(self.workers, self.max_classes, self.max_query_keypoints, self.top_k,
-               self.max_regions, self.place_keyframes) < 1:
-            raise ConfigError("ferns: workers, max_classes, max_query_keypoints, top_k, "
-                              "max_regions and place_keyframes must be >= 1")
-        if self.competitors < 0:
-            raise ConfigError(f"ferns: competitors must be >= 0, got {self.competitors}")
-        if not 0 <= self.min_posterior < 1:
-            raise ConfigError(f"ferns: min_posterior must be in [0, 1), got {self.min_posterior}")
-
-    def fern_conf(self) -> FernConf:
-        """The classifier's shape: the :class:`FernConf` options of the same names."""
-        return FernConf(**_shared_fields(self, FernConf))
-
-    def models_conf(self) -> ModelsConf:
-        """What :class:`~reloc_service.algorithms.ferns.models.FernModels` needs of these options."""
-        return ModelsConf(kind=self.kind, partition=self.partition, max_classes=self.max_classes,
-                          num_warps=self.num_warps, workers=self.workers, fern=self.fern_conf(),
-                          warp=self.warp_conf(), seed=self.seed)
-
-    def warp_conf(self) -> WarpConf:
-        """The training warps: the :class:`WarpConf` options of the same names (these
-        options repeat them flat, with a relocalizer's defaults), the real view always among
-        the samples."""
-        return WarpConf(include_identity=True, **_shared_fields(self, WarpConf))
-
-
-def _shared_fields(conf: Any, target: Any) -> dict[str, Any]:
-    """The values of the dataclass ``conf``'s fields that the dataclass ``target`` has too, by
-    name: what ``target(**...)`` takes from ``conf``."""
-    names = {f.name for f in dataclasses.fields(target)}
-    return {f.name: getattr(conf, f.name) for f in dataclasses.fields(conf) if f.name in names}
 
 
 @dataclass(eq=False)
@@ -604,26 +498,7 @@ class FernsRelocalizer(Relocalizer):
         return True
 
 
-# -- helpers -----------------------------------------------------------------------------------
-def detect_keypoints(image: npt.NDArray[np.uint8], detector: str, max_keypoints: int) -> Array:
-    """(N, 2) distinct keypoint pixels of a query: SIFT (DoG extrema, no descriptor) or FAST,
-    the strongest ``max_keypoints``."""
-    if detector == "sift":
-        kps = cv2.SIFT.create().detect(image, None)  # all, then the strongest distinct ones
-    else:
-        fast = cv2.FastFeatureDetector.create(threshold=15, nonmaxSuppression=True)
-        kps = fast.detect(image, None)
-    if not kps:
-        return np.zeros((0, 2))
-    pts = np.asarray(cv2.KeyPoint.convert(kps), np.float64).reshape(-1, 2)
-    response = np.fromiter((k.response for k in kps), np.float64, len(kps))
-    order = np.argsort(-response, kind="stable")
-    pts = pts[order]
-    # SIFT repeats a location for each dominant orientation: keep the first (strongest).
-    _, first = np.unique(np.rint(pts).astype(np.int64), axis=0, return_index=True)
-    return pts[np.sort(first)][:max_keypoints]
-
-
+# -- helpers ---------------------------------------------------------------------------------
 def _per_keypoint_chance(p: float | None, correspondences: int, keypoints: int
                          ) -> float | None:
     """Chance that a query keypoint agrees with a wrong pose when it proposes

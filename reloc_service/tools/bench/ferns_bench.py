@@ -18,8 +18,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from ...algorithms.ferns.keypoints import detect_keypoints
 from ...algorithms.ferns.training import prepare_image
-from ...algorithms.relocalizers.ferns import FernsConf, FernsRelocalizer, detect_keypoints
+from ...algorithms.relocalizers.ferns import FernsRelocalizer
+from ...algorithms.relocalizers.ferns_conf import FernsConf
 from ...core.cameras import PinholeCamera
 from ...core.frame import Features, Keyframe
 from ...core.map import KeyframeMap
