@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import skimage.data
 
-from reloc_service.algorithms.ferns.classifier import FernClassifier, FernConf
+from reloc_service.algorithms.ferns.classifier import FernClassifier
+from reloc_service.algorithms.ferns.fern_tests import FernConf
 from reloc_service.algorithms.ferns.training import (
     WarpConf,
     draw_warps,
@@ -115,8 +116,8 @@ def test_fast_scoring_equals_the_dense_reference(compiled: bool,
     """Both scoring paths (numpy in blocks of patches; the compiled one-pass kernel) give the
     dense reference's top classes and posteriors, with and without a class mask; the numpy
     path's output does not depend on its block size."""
-    from reloc_service.algorithms.ferns import classifier as module
     from reloc_service.algorithms.ferns import kernels
+    from reloc_service.algorithms.ferns import scorer as module
 
     if compiled and kernels.compiled_classify_rows() is None:
         pytest.skip("numba is not installed")

@@ -18,7 +18,7 @@ import pytest
 import skimage.data
 from scipy.spatial import cKDTree
 
-from reloc_service.algorithms.ferns.classifier import FernConf
+from reloc_service.algorithms.ferns.fern_tests import FernConf
 from reloc_service.algorithms.ferns.training import WarpConf
 from reloc_service.algorithms.relocalizers.base import Prior
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer
@@ -445,7 +445,8 @@ def test_a_fallback_classifies_each_region_once(
     """A query the prior sends to the wrong region falls back to every region: its leaves
     are read once and each region classifies it once (the wrong region's classes are
     reused), and the pose is the one classifying every region at once gives."""
-    from reloc_service.algorithms.ferns.classifier import FernScorer, FernTests
+    from reloc_service.algorithms.ferns.fern_tests import FernTests
+    from reloc_service.algorithms.ferns.scorer import FernScorer
 
     reloc, place_b, texture_b = two_places
     query_image = render(texture_b, place_b.queries[0])

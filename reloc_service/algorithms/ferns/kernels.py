@@ -7,7 +7,7 @@ arrays of millions of entries (gather the visited rows, densify them, add the co
 partition, subtract, exponentiate, sum): at 500 patches x 2000 classes the copies and passes
 cost more than the additions. Here one patch's C scores stay in the L1 cache while its M rows
 are added, and nothing is copied. The additions are done in the same order as
-:meth:`~reloc_service.algorithms.ferns.classifier.FernScorer.scores` (ferns in order, from zero, then the
+:meth:`~reloc_service.algorithms.ferns.scorer.FernScorer.scores` (ferns in order, from zero, then the
 class constant), so the scores are bit for bit the same; the posteriors' normaliser is summed
 in float64 (numpy sums float32 pairwise) over the classes that can change it in float32 (see
 :func:`negligible_log_ratio`), so posteriors agree within float32 rounding.

@@ -30,7 +30,9 @@ from ...core.errors import StorageError
 from ...core.frame import Keyframe
 from ...core.map import MapState
 from ...core.progress import progress
-from .classifier import FernClassifier, FernConf, FernScorer, FernTests
+from .classifier import FernClassifier
+from .fern_tests import FernConf, FernTests
+from .scorer import FernScorer
 from .training import WarpConf, draw_warps, sample_leaves
 
 Array = npt.NDArray[np.float64]

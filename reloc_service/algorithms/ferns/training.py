@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core.errors import ConfigError
-from .classifier import FernTests
+from .fern_tests import FernTests
 
 Array = npt.NDArray[np.float64]
 

@@ -55,9 +55,11 @@ from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
 from ...core.numeric import top_k
 from ...core.plugins import make_conf
-from ..ferns.classifier import FernClassifier, FernScorer, FernTests
+from ..ferns.classifier import FernClassifier
+from ..ferns.fern_tests import FernTests
 from ..ferns.keypoints import detect_keypoints
 from ..ferns.models import FernModels, Published
+from ..ferns.scorer import FernScorer
 from ..ferns.training import prepare_image
 from ..place.sbi import SmallBlurryImageFinder
 from ..pose.base import PoseEstimate

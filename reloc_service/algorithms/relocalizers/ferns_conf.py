@@ -10,7 +10,7 @@ from typing import Any
 
 from ...core.errors import ConfigError
 from ...core.features import FEATURE_KINDS
-from ..ferns.classifier import FernConf
+from ..ferns.fern_tests import FernConf
 from ..ferns.models import ModelsConf
 from ..ferns.training import WarpConf
 

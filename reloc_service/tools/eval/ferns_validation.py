@@ -28,7 +28,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ...algorithms.ferns.classifier import FernClassifier, FernConf
+from ...algorithms.ferns.classifier import FernClassifier
+from ...algorithms.ferns.fern_tests import FernConf
 from ...algorithms.ferns.training import WarpConf, draw_warps, sample_leaves
 from ...core.errors import ConfigError
 from ...core.progress import progress
