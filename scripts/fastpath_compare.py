@@ -16,7 +16,7 @@ import tempfile
 from pathlib import Path
 
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
-from reloc_service.tools.bench import accuracy
+from reloc_service.tools.bench import accuracy, accuracy_report
 from reloc_service.tools.bench.machine import load_average
 
 #: The default chain before the half-size SIFT step.
@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="fastpath-") as tmp:
         result = accuracy.bench_accuracy(conf, Path(tmp), show_progress=False)
     result["load_average"] = {"start": start, "end": load_average()}
-    print("\n".join(accuracy.detail_lines(result)))
+    print("\n".join(accuracy_report.detail_lines(result)))
     print(f"load average at the start {start}, at the end {result['load_average']['end']}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,7 @@ import pytest
 
 from reloc_service.core.cameras import FovCamera
 from reloc_service.core.map import KeyframeMap
-from reloc_service.tools.bench import accuracy
+from reloc_service.tools.bench import accuracy, accuracy_report
 from reloc_service.tools.bench.cli import add_arguments
 from reloc_service.tools.bench.peers import PlainResult
 
@@ -108,7 +108,7 @@ def test_cli_accuracy_section(tmp_path, monkeypatch, capsys):
     assert result["section_seconds"]["accuracy"] > 0
     assert result["conf"]["accuracy"]["presets"] == ["desk"]
 
-    table = accuracy.table_lines(acc)
+    table = accuracy_report.table_lines(acc)
     assert len(table) == 2 + 1
     for line in table[2:]:
         cells = [c.strip() for c in line.strip("|").split("|")]
@@ -117,7 +117,7 @@ def test_cli_accuracy_section(tmp_path, monkeypatch, capsys):
     printed = capsys.readouterr().out
     assert all(line in printed for line in table)
     markdown = (tmp_path / "perf.md").read_text()
-    detail = accuracy.detail_lines(acc)
+    detail = accuracy_report.detail_lines(acc)
     assert len(detail) == 2 + len(acc["columns"])  # one row per column of the one dataset
     assert "## Accuracy on datasets" in markdown and all(line in markdown for line in detail)
 
@@ -141,7 +141,7 @@ def test_scores_equal_reloc_eval(tiny_desk):
     assert 0 < limit["decode_p50_ms"] < limit["orb_limit_p50_ms"] <= limit["orb_limit_p99_ms"]
     assert ours["over_limit"] == pytest.approx(ours["p50_ms"] / limit["orb_limit_p50_ms"])
     assert ours["p50_ms"] <= ours["p90_ms"] <= ours["p99_ms"]
-    row = accuracy.detail_lines({"datasets": {"d": record}, "columns": ["sbi+p3p"],
+    row = accuracy_report.detail_lines({"datasets": {"d": record}, "columns": ["sbi+p3p"],
                                  "default_method": "sbi+p3p", "peers": {}})[-1]
     assert row.rstrip(" |").endswith(f"{ours['over_limit']:.1f}x")
 
@@ -186,7 +186,7 @@ def test_absent_real_folder_is_a_note_not_a_failure(tmp_path):
     section = accuracy.bench_accuracy(conf, tmp_path, show_progress=False)
     assert section["datasets"] == {} and section["failed_datasets"] == []
     assert "absent" in section["notes"][0]
-    assert any("absent" in line for line in accuracy.markdown_lines(section))
+    assert any("absent" in line for line in accuracy_report.markdown_lines(section))
 
 
 def test_failures_are_recorded_and_the_rest_runs(tmp_path, monkeypatch, tiny_desk):
@@ -216,9 +216,9 @@ def test_failures_are_recorded_and_the_rest_runs(tmp_path, monkeypatch, tiny_des
     check_result(results["sbi+p3p"])
     for peer in accuracy.PEERS:
         check_result(results[peer])
-    rows = accuracy.table_lines(section)[2:]
+    rows = accuracy_report.table_lines(section)[2:]
     assert "failed" in rows[0] and "failed" not in rows[1] and "| error |" in rows[1]
-    assert any("boom" in line for line in accuracy.note_lines(section))
+    assert any("boom" in line for line in accuracy_report.note_lines(section))
 
 
 def test_peer_is_not_applicable_to_cameras_opencv_cannot_take():
@@ -226,8 +226,8 @@ def test_peer_is_not_applicable_to_cameras_opencv_cannot_take():
     peers, errors = accuracy._make_peers(KeyframeMap().snapshot(), {"cam0": fov})
     assert set(errors) == set(accuracy.PEERS)
     assert all(e.startswith("not applicable") and "fov" in e for e in errors.values())
-    assert accuracy.cell({"error": errors["plain_opencv"]}) == "n/a"
-    assert accuracy.cell({"error": "RuntimeError: boom"}) == "error"
+    assert accuracy_report.cell({"error": errors["plain_opencv"]}) == "n/a"
+    assert accuracy_report.cell({"error": "RuntimeError: boom"}) == "error"
 
 
 def test_plain_result_scored_as_reloc_eval_scores_it():
@@ -246,10 +246,10 @@ def test_plain_result_scored_as_reloc_eval_scores_it():
 
 def test_cell_format():
     r = {"recall": {"5cm_5deg": 0.5, "25cm_10deg": 0.75}, "wrong_rate": 0.0, "p50_ms": 123.4}
-    assert accuracy.cell(r) == "50% / 75% / - / 0% / - / 123 ms"
-    assert accuracy.cell({**r, "p50_ms": 7.25, "wrong_rate": None}) \
+    assert accuracy_report.cell(r) == "50% / 75% / - / 0% / - / 123 ms"
+    assert accuracy_report.cell({**r, "p50_ms": 7.25, "wrong_rate": None}) \
         == "50% / 75% / - / - / - / 7.2 ms"
-    assert accuracy.cell({**r, "off_rate": 0.25, "covariance_scale": 1.26}) \
+    assert accuracy_report.cell({**r, "off_rate": 0.25, "covariance_scale": 1.26}) \
         == "50% / 75% / 25% / 0% / 1.3 / 123 ms"
 
 

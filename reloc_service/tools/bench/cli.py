@@ -206,7 +206,7 @@ def main(args: argparse.Namespace) -> int:
     print("\n".join(headline_lines(result)))
     acc = result.get("accuracy")
     if acc and "error" not in acc:
-        from .accuracy import note_lines, table_lines
+        from .accuracy_report import note_lines, table_lines
 
         print("\n".join(["", "Accuracy (recall@5cm/5deg / recall@25cm/10deg / off / wrong / "
                                  "cov scale / p50):",
@@ -616,7 +616,7 @@ def _prior(section: Mapping[str, Any]) -> list[str]:
 
 
 def _accuracy(a: Mapping[str, Any]) -> list[str]:
-    from .accuracy import markdown_lines
+    from .accuracy_report import markdown_lines
 
     return markdown_lines(a)
 
