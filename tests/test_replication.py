@@ -14,7 +14,7 @@ from reloc_client.client import RelocClient, ServiceError, to_wire_image
 from service_support import Events, endpoint, free_port, ground_conf, open_router, stream_keyframes
 
 from reloc_service.service.app import Service
-from reloc_service.service.replication import DivergenceWatch
+from reloc_service.service.divergence import DivergenceWatch
 from reloc_service.service.runtime import MapRuntime
 
 

@@ -37,9 +37,10 @@ from ..storage.lock import LockHeld
 from . import handlers, open_files
 from .codec import error_reply
 from .config import ServiceConf
+from .divergence import DivergenceWatch
 from .processes import EngineSpec, ProcessWorkers
 from .registry import MapRegistry
-from .replication import Bootstrap, DivergenceWatch, Peers
+from .replication import Bootstrap, Peers
 from .residency import dormant_status
 from .runtime import MapRuntime
 from .transfer import Transfers

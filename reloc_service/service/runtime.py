@@ -149,7 +149,7 @@ class MapRuntime(ServedMap):
         #: The map's content hash (status ``content_hash``; replicas compare it).
         self.content = ContentDigest()
         #: Why this replica disagrees with a peer (status ``diverged``; set by
-        #: :class:`.replication.DivergenceWatch`), "" when it does not.
+        #: :class:`.divergence.DivergenceWatch`), "" when it does not.
         self.diverged = ""
 
     # -- reading -------------------------------------------------------------------------------
