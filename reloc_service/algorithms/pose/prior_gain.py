@@ -14,12 +14,14 @@ by much) neither fails nor passes an answer, whatever its variance there. The an
 narrows the prior when ``trace(H C_answer) < trace(H C_prior)``: its predicted windows
 are smaller on average than the prior's were. ``C_answer`` is what this image owes the
 pose (its matches and its camera's calibration), not the keyframes' pose errors a prior
-anchored to the same map shares. Since ``trace(H (sigma^2 H^-1)) = 6 sigma^2`` whatever the
-number of matches, a consensus of keypoints alone nearly always narrows a prior whose
-windows are wider than a pixel: what fails is a pose whose calibration (or cluster spread)
-leaves it less certain than a sharp prior. Both covariances are twists of a right
-perturbation, the answer's at the answer and the prior's at the prior; within the prior's
-gate the two frames differ by a few degrees, a first-order difference left out."""
+anchored to the same map shares. Since ``trace(H (sigma^2 H^-1)) = 6 sigma^2`` for a pose
+fixed by its ``N`` keypoints alone (noise ``sigma``), such a pose narrows any prior whose
+mean pixel variance over the inliers exceeds ``6 sigma^2 / N``: what fails is a pose whose
+calibration (or its keyframe groups' spread) leaves it less certain than a sharp prior.
+
+Both covariances are twists of a right perturbation, the answer's at the answer and the
+prior's at the prior; within the prior's gate the two frames differ by a few degrees, a
+first-order difference left out."""
 
 from __future__ import annotations
 
