@@ -36,6 +36,7 @@ from ..pose.landmark_pool import LandmarkPool
 from ..pose.map_consistency import settle_pose_errors
 from ..pose.pnp import PnPConf, PointUncertainty, solve_pnp_indexed
 from ..pose.prior_focal import axis_variance, focal_reach, focal_starts_within
+from ..pose.prior_gain import narrows_prior
 from ..pose.prior_windows import (
     match_in_windows,
     pixel_sigmas,
@@ -208,6 +209,17 @@ class TrackingRelocalizer(Relocalizer):
         if result.ok and not _within_prior(est, result, prior, self.conf.prior_gate_probability):
             return self._refuse("the tracked pose lies outside the prior's gate", timings, state,
                                 num_matches=len(q_idx), inliers=int(est.inliers or 0))
+        if result.ok and not narrows_prior(query.camera, est.world_from_cam,
+                                           pool.points_world[m_rows[inliers]],
+                                           est.covariance, prior.covariance):
+            # Where this image (its matches and its camera) fixes the pose less well than
+            # the prior placed their windows, the windows chose the matches: the method,
+            # which matches without the prior, decides. The keyframes' pose errors, in the
+            # answer's stated covariance, are left out: a prior anchored to this map (the
+            # ROS 2 map_from_odom) holds them too.
+            return self._refuse("the tracked pose predicts its inliers no better than the "
+                                "prior", timings, state, num_matches=len(q_idx),
+                                inliers=int(est.inliers or 0))
         if result.ok and narrow_support(est, self.verify_conf):
             # A pose fixed by a small area of the image is weakly conditioned: the method,
             # which weighs such answers against the rest of the map, decides.

@@ -1,0 +1,68 @@
+"""Whether a tracked pose is better determined than the prior it was matched from, as the
+image sees it.
+
+A tracked pose rests on matches drawn from windows the prior placed: along a direction in
+which the matches determine the pose less well than the prior did, the windows (the prior),
+not the image, chose them, and the pose there is the prior's information handed back with
+the matches' noise on top. The comparison is made where the windows live, in the image: the
+variance a pose covariance ``C`` gives the projections of the answer's inliers,
+``sum_i trace(J_i C J_i^T) = trace(H C)`` with ``H = sum_i J_i^T J_i`` (``J_i`` the (2, 6)
+Jacobian of inlier ``i``'s pixel w.r.t. a right perturbation of ``world_from_cam``). Each
+pose direction counts by how far it moves the inliers' pixels, so a direction the image
+cannot see (a move along the optical axis of a camera 10 m from a facade shifts no pixel
+by much) neither fails nor passes an answer, whatever its variance there. The answer
+narrows the prior when ``trace(H C_answer) < trace(H C_prior)``: its predicted windows
+are smaller on average than the prior's were. ``C_answer`` is what this image owes the
+pose (its matches and its camera's calibration), not the keyframes' pose errors a prior
+anchored to the same map shares. Since ``trace(H (sigma^2 H^-1)) = 6 sigma^2`` for a pose
+fixed by its ``N`` keypoints alone (noise ``sigma``), such a pose narrows any prior whose
+mean pixel variance over the inliers exceeds ``6 sigma^2 / N``: what fails is a pose whose
+calibration (or its keyframe groups' spread) leaves it less certain than a sharp prior.
+
+Both covariances are twists of a right perturbation, the answer's at the answer and the
+prior's at the prior; within the prior's gate the two frames differ by a few degrees, a
+first-order difference left out."""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from ...core.cameras import Camera
+from ...core.geometry import invert, transform_points
+from .pnp import _pose_jacobian
+
+Array = npt.NDArray[np.float64]
+
+
+def image_information(camera: Camera, world_from_cam: Array, points_world: Array) -> Array:
+    """(6, 6) ``H = sum_i J_i^T J_i`` of (N, 3) ``points_world`` seen from
+    ``world_from_cam`` (pixels^2 per unit twist; the points in front of the camera)."""
+    points_cam = transform_points(invert(world_from_cam), points_world)
+    points_cam = points_cam[points_cam[:, 2] > 0]
+    if len(points_cam) == 0:
+        return np.zeros((6, 6))
+    jac = _pose_jacobian(camera, points_cam)  # (2N, 6)
+    return jac.T @ jac
+
+
+def image_variance_ratio(camera: Camera, world_from_cam: Array, points_world: Array,
+                         answer_covariance: Array, prior_covariance: Array) -> float:
+    """``trace(H C_answer) / trace(H C_prior)`` over the inliers (N, 3) ``points_world``
+    of the answer ``world_from_cam``: below 1 where the answer predicts its inliers'
+    pixels more precisely than the prior did; inf where the prior predicts them exactly."""
+    info = image_information(camera, world_from_cam, points_world)
+    prior = float(np.trace(info @ np.asarray(prior_covariance, np.float64)))
+    answer = float(np.trace(info @ np.asarray(answer_covariance, np.float64)))
+    return answer / prior if prior > 0 else float("inf")
+
+
+def narrows_prior(camera: Camera, world_from_cam: Array, points_world: Array,
+                  answer_covariance: Array | None, prior_covariance: Array) -> bool:
+    """Whether the answer (its (6, 6) ``answer_covariance``; None: unknown, not
+    narrower) predicts the pixels of its inliers ``points_world`` more precisely than the
+    prior's ``prior_covariance`` did (:func:`image_variance_ratio` below 1)."""
+    if answer_covariance is None or len(points_world) == 0:
+        return False
+    return image_variance_ratio(camera, world_from_cam, points_world, answer_covariance,
+                                prior_covariance) < 1.0

@@ -1,0 +1,96 @@
+"""A tracked pose must predict its inliers' pixels more precisely than its prior did
+(``algorithms/pose/prior_gain.py``): the image variance ``trace(H C)`` of a pose covariance
+is the pixel variance it gives the points, and a tracked pose no better determined than the
+prior in what the image sees is left to the method."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from reloc_service.algorithms.pose.prior_gain import (
+    image_information,
+    image_variance_ratio,
+    narrows_prior,
+)
+from reloc_service.algorithms.relocalizers.base import Prior
+from reloc_service.algorithms.relocalizers.factory import create_relocalizer, create_tracker
+from reloc_service.algorithms.relocalizers.tracking import TRACK, relocalize_with_prior
+from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.frame import Frame
+from reloc_service.core.geometry import pose_covariance_from_sigmas, se3_exp, transform_points
+from reloc_service.core.map import KeyframeMap
+
+CAMERA = PinholeCamera(width=640, height=480, fx=500.0, fy=500.0, cx=319.5, cy=239.5)
+
+
+def _wall(depth_m: float, rng: np.random.Generator) -> np.ndarray:
+    """(200, 3) points on a wall ``depth_m`` in front of an identity camera, in view."""
+    xy = rng.uniform(-0.5, 0.5, (200, 2)) * depth_m * np.array([640.0, 480.0]) / 500.0
+    return np.column_stack([xy, depth_m + rng.normal(0, 0.05 * depth_m, 200)])
+
+
+def test_image_variance_is_the_pixel_variance_a_covariance_gives_the_points():
+    rng = np.random.default_rng(0)
+    points = _wall(3.0, rng)
+    cov = pose_covariance_from_sigmas(0.01, np.deg2rad(0.2))
+    cov[0, 4] = cov[4, 0] = -0.6 * np.sqrt(cov[0, 0] * cov[4, 4])  # a correlated pair
+    # Monte Carlo: the pixels of the points seen from poses drawn from ``cov`` (right
+    # perturbations of the identity), their summed squared shift.
+    base = CAMERA.project(points)
+    shifts = [CAMERA.project(transform_points(np.linalg.inv(se3_exp(xi)), points)) - base
+              for xi in rng.multivariate_normal(np.zeros(6), cov, 3000)]
+    expected = float(np.mean([np.sum(s**2) for s in shifts]))
+    predicted = float(np.trace(image_information(CAMERA, np.eye(4), points) @ cov))
+    assert abs(predicted / expected - 1.0) < 0.05
+
+
+def test_a_move_the_image_cannot_see_neither_fails_nor_passes_an_answer():
+    rng = np.random.default_rng(1)
+    points = _wall(10.0, rng)                      # a facade 10 m away
+    prior = pose_covariance_from_sigmas(0.05, np.deg2rad(2.0))
+    # Sharp in every direction but along the optical axis, where it is twice as uncertain
+    # as the prior: a 10 cm move along the axis shifts a pixel by at most ~3 px here.
+    along_axis = np.diag([0.005, 0.005, 0.10, 1e-4, 1e-4, 1e-4]) ** 2
+    assert narrows_prior(CAMERA, np.eye(4), points, along_axis, prior)
+    # Less certain than the prior in rotation (3 against 2 degrees): every pixel moves.
+    turned = np.diag([0.005, 0.005, 0.005, *np.deg2rad([3.0, 3.0, 3.0])]) ** 2
+    assert not narrows_prior(CAMERA, np.eye(4), points, turned, prior)
+    assert image_variance_ratio(CAMERA, np.eye(4), points, turned, prior) > 2.0
+    assert not narrows_prior(CAMERA, np.eye(4), points, None, prior)
+
+
+def _query(scene, i):
+    return Frame(scene.query_images[i], scene.camera)
+
+
+def test_a_tracked_pose_no_sharper_than_its_prior_is_left_to_the_method(
+        synthetic_scene, synthetic_map):
+    # A sharp VIO prior (1 cm, 0.3 degree) and a camera whose focal is known to 5 % only: a
+    # pose from it is uncertain along its axis by 5 % of the scene's depth (where the
+    # focal's error moves it), which no match in this image resolves, so it cannot narrow
+    # the prior; tracking verifies (its windows are still wider than a keypoint's noise)
+    # but refuses, and the method answers.
+    kmap = KeyframeMap()
+    kmap.replace_state(synthetic_map)
+    tracker = create_tracker(kmap, options={"track": {"focal_sigma_rel": 0.05}})
+    gt = synthetic_scene.query_poses[0]
+    prior = Prior(gt @ se3_exp(np.r_[0.006, -0.004, 0.008, 0.0, 0.003, -0.002]),
+                  covariance=pose_covariance_from_sigmas(0.01, np.deg2rad(0.3)))
+    tracked = tracker.relocalize(_query(synthetic_scene, 0), prior=prior)
+    assert not tracked.ok and "no better than the prior" in tracked.reason
+    method = create_relocalizer("sbi+p3p", kmap)
+    method.train()
+    answer = relocalize_with_prior(method, tracker, _query(synthetic_scene, 0), prior=prior)
+    assert answer.ok and answer.method == "sbi+p3p"
+    # With the calibration known to 0.5 % (the default) the same prior is narrowed.
+    assert create_tracker(kmap).relocalize(_query(synthetic_scene, 0), prior=prior).ok
+
+
+def test_a_tracked_pose_sharper_than_its_prior_is_answered(synthetic_scene, synthetic_map):
+    kmap = KeyframeMap()
+    kmap.replace_state(synthetic_map)
+    gt = synthetic_scene.query_poses[0]
+    prior = Prior(gt @ se3_exp(np.r_[0.03, -0.02, 0.04, 0.0, 0.02, -0.01]),
+                  covariance=pose_covariance_from_sigmas(0.05, np.deg2rad(2.0)))
+    tracked = create_tracker(kmap).relocalize(_query(synthetic_scene, 0), prior=prior)
+    assert tracked.ok and tracked.method == TRACK, tracked.reason
