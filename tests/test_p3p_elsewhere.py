@@ -1,6 +1,7 @@
 """The repetition check's pose "elsewhere" (the keyframes what a pose leaves unexplained points
 to) is judged plausible before its errors are settled: the intrinsics test runs only for a pose
-that is kept, and a kept pose is settled as :meth:`find_pose` settles it."""
+that is kept, and a kept pose is settled as :meth:`find_pose` settles it (a stage of its own
+in the timings)."""
 
 from __future__ import annotations
 
@@ -55,3 +56,15 @@ def test_an_implausible_pose_elsewhere_is_dropped_unsettled(monkeypatch) -> None
 def test_a_plausible_pose_elsewhere_is_settled_and_kept(monkeypatch) -> None:
     got, settled, found = _elsewhere(monkeypatch, plausible=True)
     assert got == [found] and settled == [found]
+
+
+def test_find_pose_times_the_settling_as_its_own_stage(monkeypatch) -> None:
+    finder = P3PPoseFinder(P3PPoseFinder.Conf())
+    found = PoseEstimate(world_from_cam=np.eye(4), keyframe_ids=[7], inliers=30,
+                         timings={"solve": 0.01})
+    settled: list[PoseEstimate] = []
+    monkeypatch.setattr(finder, "_unsettled_pose", lambda *_: found)
+    monkeypatch.setattr(finder, "_settled", lambda est, state: settled.append(est) or est)
+    got = finder.find_pose(None, [], None)  # type: ignore[arg-type]
+    assert got is found and settled == [found]
+    assert got.timings["solve"] == 0.01 and got.timings["settle"] >= 0.0
