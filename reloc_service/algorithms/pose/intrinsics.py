@@ -44,6 +44,7 @@ from scipy import special
 
 from ...core.cameras import Camera
 from ...core.geometry import invert, se3_exp, se3_log
+from . import intrinsics_kernels
 
 Array = npt.NDArray[np.float64]
 
@@ -340,20 +341,74 @@ class _Model:
         """Pixels (M, 2) under ``theta`` of points the given camera projects to
         ``projected_px``, their (M, 2, 6) pose Jacobian (from the given camera's ``jac``)
         and (M, 2, 2) Jacobian w.r.t. ``theta``."""
+        full = self.jacobian(projected_px, jac, theta)
+        return self.pixels(projected_px, theta), full[:, :, :6], full[:, :, 6:]
+
+    def pixels(self, projected_px: Array, theta: Array) -> Array:
+        """(M, 2) pixels under ``theta`` of points the given camera projects to
+        ``projected_px`` (each row from its own row alone)."""
         a, b = theta
         v = projected_px - self.centre
         u = v / self.radius_px
         r2 = (u * u).sum(axis=1)
         g = u * r2[:, None]  # |g| = 1 at the farthest corner
-        pixels = self.centre + (1.0 + a) * v + b * g
+        return self.centre + (1.0 + a) * v + b * g
+
+    def residuals(self, projected_px: Array, px: Array, theta: Array) -> tuple[Array, Array]:
+        """(M, 2) residuals ``px - pixels`` and (M,) their squared lengths (inf where not
+        finite): one compiled pass where numba is installed (:mod:`.intrinsics_kernels`,
+        the same values)."""
+        kernels = intrinsics_kernels.compiled()
+        if kernels is None:
+            residuals = px - self.pixels(projected_px, theta)
+            squared = (residuals**2).sum(axis=1)
+            return residuals, np.where(np.isfinite(squared), squared, np.inf)
+        residuals, squared = np.empty((len(px), 2)), np.empty(len(px))
+        kernels.model_residuals(np.ascontiguousarray(projected_px, np.float64),
+                                np.ascontiguousarray(px, np.float64), *self._numbers(theta),
+                                residuals, squared)
+        return residuals, squared
+
+    def jacobian_of(self, projected_px: Array, jac: Array, rows: npt.NDArray[np.int64],
+                    theta: Array) -> Array:
+        """:meth:`jacobian` of the correspondences ``rows`` alone (a row's Jacobian is its
+        own row's): one compiled pass where numba is installed (the same values)."""
+        kernels = intrinsics_kernels.compiled()
+        if kernels is None:
+            return self.jacobian(projected_px[rows], jac[rows], theta)
+        full = np.empty((len(rows), 2, 8))
+        kernels.model_jacobian(np.ascontiguousarray(projected_px, np.float64),
+                               np.ascontiguousarray(jac, np.float64),
+                               np.ascontiguousarray(rows, np.int64), *self._numbers(theta), full)
+        return full
+
+    def _numbers(self, theta: Array) -> tuple[float, float, float, float, float]:
+        """The kernels' scalars: principal point, reference radius, ``theta``'s a and b."""
+        return (float(self.centre[0]), float(self.centre[1]), self.radius_px,
+                float(theta[0]), float(theta[1]))
+
+    def jacobian(self, projected_px: Array, jac: Array, theta: Array) -> Array:
+        """(M, 2, 8) Jacobian of :meth:`pixels` w.r.t. the pose (6, from the given camera's
+        ``jac`` (M, 2, 6)) and ``theta`` (2), each row from its own row alone (so a caller
+        differentiates only the rows it keeps)."""
+        a, b = theta
+        v = projected_px - self.centre
+        u = v / self.radius_px
+        r2 = (u * u).sum(axis=1)
         # d pixels / d v = (1 + a) I + b (|u|^2 I + 2 u u^T) / R
         dv = (2.0 * b / self.radius_px) * u[:, :, None] * u[:, None, :]
         diagonal = 1.0 + a + b * r2 / self.radius_px
         dv[:, 0, 0] += diagonal
         dv[:, 1, 1] += diagonal
-        d_pose = np.einsum("mij,mjk->mik", dv, jac)
-        d_theta = np.stack([v, g], axis=2)
-        return pixels, d_pose, d_theta
+        full = np.empty((len(v), 2, 8))
+        # dv @ jac per row with its two-term sums written out (einsum's products, summed in
+        # its order, without its per-call cost: the test builds these dozens of times per
+        # pose), then d pixels / d theta = [v, g], written in place of a stack.
+        np.multiply(dv[:, :, 0, None], jac[:, None, 0, :], out=full[:, :, :6])
+        full[:, :, :6] += dv[:, :, 1, None] * jac[:, None, 1, :]
+        full[:, :, 6] = v
+        np.multiply(u, r2[:, None], out=full[:, :, 7])
+        return full
 
 
 @dataclass(frozen=True, eq=False)
@@ -380,14 +435,11 @@ def _normal_equations(world_from_cam: Array, theta: Array, px: Array, weights: A
     """:class:`_Equations` at ``world_from_cam`` and ``theta`` on ``rows`` or (None) on the
     correspondences within ``threshold_px`` of their modelled pixels."""
     projected, jac = project(world_from_cam)
-    modelled, d_pose, d_theta = model.apply(projected, jac, theta)
-    residuals = px - modelled
-    squared = (residuals**2).sum(axis=1)
-    squared = np.where(np.isfinite(squared), squared, np.inf)
+    residuals, squared = model.residuals(projected, px, theta)
     if rows is None:
         rows = np.flatnonzero(squared < threshold_px**2)
     cost = float((weights * np.minimum(squared, threshold_px**2)).sum())
-    full = np.concatenate([d_pose[rows], d_theta[rows]], axis=2)  # (M, 2, 8)
+    full = model.jacobian_of(projected, jac, rows, theta)  # (M, 2, 8)
     w = weights[rows]
     flat = full.reshape(-1, 8)
     weighted = flat * np.repeat(w, 2)[:, None]

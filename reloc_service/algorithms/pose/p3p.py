@@ -104,6 +104,26 @@ class P3PPoseFinder(PoseFinder):
 
         When too few matches survive for a pose, the estimate is the best keyframe's pose with
         zero inliers, so the verification refuses it with the counts as the reason."""
+        found = self._unsettled_pose(query, candidates, state)
+        if found is None:
+            return None
+        # Timed as its own stage: the intrinsics test is a large share of a query that
+        # otherwise shows in no stage of its timings.
+        start = time.perf_counter()
+        settled = self._settled(found, state)
+        settled.timings["settle"] = (settled.timings.get("settle", 0.0)
+                                     + time.perf_counter() - start)
+        return settled
+
+    def _settled(self, est: PoseEstimate, state: MapState) -> PoseEstimate:
+        """``est`` with the errors it owes to the intrinsics and the map
+        (:func:`.map_consistency.settle_pose_errors`; nothing to settle for an estimate
+        without inliers)."""
+        return settle_pose_errors(est, state, self.conf.kind, self.conf, est.inlier_landmark_ids)
+
+    def _unsettled_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
+                        ) -> PoseEstimate | None:
+        """:meth:`find_pose` before :meth:`_settled`."""
         keyframes = _keyframes_in(candidates, state)
         if not keyframes:
             return None
@@ -130,7 +150,7 @@ class P3PPoseFinder(PoseFinder):
             est = self._grow(query, feats, est, keyframes, state, q_idx,
                              pool.landmark_ids[rows])
         est.timings = {**est.timings, **timings}  # every match and solve, guided's own
-        return settle_pose_errors(est, state, self.conf.kind, self.conf, est.inlier_landmark_ids)
+        return est
 
     def _match_and_solve(self, query: Frame, feats: Features, keyframes: list[Keyframe],
                          state: MapState, timings: dict[str, float]
@@ -266,8 +286,13 @@ class P3PPoseFinder(PoseFinder):
         if votes[away][order].sum() < estimate.sample_size + 1:
             return []
         far = kf_ids[away][order].tolist()
-        found = self.find_pose(query, [PlaceCandidate(int(k), 0.0) for k in far], state)
-        return [] if found is None or not plausible(found) else [found]
+        found = self._unsettled_pose(query, [PlaceCandidate(int(k), 0.0) for k in far], state)
+        # ``plausible`` reads the inliers, the unguided evidence, the inlier threshold, the
+        # image size, the sample size and the chance probability, none of which settling
+        # (the intrinsics' verdict, the covariances) changes: so the pose is judged before
+        # it is settled, and the intrinsics test is run only for a pose that is kept.
+        return ([] if found is None or not plausible(found)
+                else [self._settled(found, state)])
 
     def _map_pool(self, state: MapState) -> tuple[LandmarkPool, RepetitionIndex, list[int]]:
         """The landmarks of every keyframe of ``state`` (:meth:`LandmarkPool.gather`), their
