@@ -12,7 +12,7 @@ from pathlib import Path
 
 from ...core.errors import StorageError
 from ...core.map import MapState
-from ..pose.map_pool import held_pool, keep_pool
+from ..pose.map_pool import held_pool, keep_pool, map_pool
 from ..pose.p3p import P3PPoseFinder
 from ..pose.repetition_store import load_index, save_index
 from .base import Relocalizer
@@ -64,16 +64,21 @@ def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | N
 
 
 def prepare_pools(relocalizer: Relocalizer, state: MapState, directory: Path | None) -> None:
-    """Make every pool ``relocalizer``'s queries over ``state`` read, with the index stored
-    in model directory ``directory`` where it fits (:func:`restore_pools`), and the rest of
-    each finder's map work (:meth:`P3PPoseFinder.prepare_map`)."""
-    for finder in pool_finders(relocalizer):
+    """Make every pool ``relocalizer``'s queries over ``state`` read, in the order its steps
+    run, with the index stored in model directory ``directory`` where it fits
+    (:func:`restore_pools`); then the rest of each finder's map work
+    (:meth:`P3PPoseFinder.prepare_map`: the keyframes' agreement with the map's camera,
+    seconds on a big map), so a query waits for the pools alone."""
+    finders = pool_finders(relocalizer)
+    for finder in finders:
         start = time.perf_counter()
         read = _restore(finder, state, directory)
-        finder.prepare_map(state)
+        map_pool(state, finder.conf.kind, finder.conf.repetition_index())
         log.debug("%s pool of %d keyframes ready in %.2f s (%s)", finder.conf.kind,
                   len(state.keyframes), time.perf_counter() - start,
                   "index read" if read else "made")
+    for finder in finders:
+        finder.prepare_map(state)
 
 
 def _restore(finder: P3PPoseFinder, state: MapState, directory: Path | None) -> bool:
