@@ -82,3 +82,26 @@ def test_the_budget_closes_a_map_its_pools_take_over(template, synthetic_scene, 
         assert residency.kept_held["alpha"] == pool_bytes
     finally:
         service.stop()
+
+
+def test_closing_a_map_gives_its_heap_pages_back(template, synthetic_scene, tmp_path,
+                                                 monkeypatch) -> None:
+    from reloc_service.service import residency as residency_module
+
+    trims: list[bool] = []
+    real = residency_module.trim_now
+    monkeypatch.setattr(residency_module, "trim_now", lambda: trims.append(real()) or True)
+    stored, pool_bytes = template
+    storage = tmp_path / "storage"
+    for name in ("alpha", "bravo"):
+        copy_map(stored, storage, name)
+    port = free_port()   # one map with its pools fits, two do not
+    service = Service(conf(port, storage, 1.5 * (stored.counted_bytes + pool_bytes) / MB)).start()
+    try:
+        for name in ("alpha", "bravo"):
+            with RelocClient(endpoint(port), map=name, timeout=30) as client:
+                assert client.relocalize(synthetic_scene.query_images[0], camera_id="cam0").ok
+        wait_until(lambda: list(service.maps) == ["bravo"], timeout=30)
+        assert trims, "no trim after the close"
+    finally:
+        service.stop()
