@@ -117,3 +117,22 @@ def _frame(scene, image):
     from reloc_service.core.frame import Frame
 
     return Frame(image=image, camera=scene.camera)
+
+
+def test_two_threads_asking_for_a_pool_at_once_share_one_build(saved, monkeypatch) -> None:
+    import dataclasses
+
+    from reloc_service.algorithms.pose.map_pool import map_pool
+
+    engine, _ = saved
+    state = dataclasses.replace(engine.map.snapshot())   # a state no pool is made for yet
+    made = count_builds(monkeypatch)
+    got: list[object] = []
+    threads = [threading.Thread(target=lambda: got.append(
+        map_pool(state, "orb", IndexConf(exact_rows=0)))) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert len(got) == 3 and got[0] is got[1] is got[2]
+    assert made == [1]

@@ -5,10 +5,8 @@ SIFT pool, not two)."""
 
 from __future__ import annotations
 
-import contextlib
 import threading
 import weakref
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 from ...core.map import MapState
@@ -43,8 +41,9 @@ class MapPool:
 #: reference's callback), so an id is never read for a later state that reuses it.
 _POOLS: dict[tuple[int, str, IndexConf], tuple[weakref.ref[MapState], MapPool]] = {}
 _LOCK = threading.Lock()
-#: A lock per pool being made, and how many threads want it.
-_MAKING: dict[tuple[int, str, IndexConf], tuple[threading.Lock, int]] = {}
+#: Pools being made; a thread that wants one of them waits for ``_MADE``.
+_MAKING: set[tuple[int, str, IndexConf]] = set()
+_MADE = threading.Condition(_LOCK)
 
 
 def map_pool(state: MapState, kind: str, conf: IndexConf) -> MapPool:
@@ -52,14 +51,21 @@ def map_pool(state: MapState, kind: str, conf: IndexConf) -> MapPool:
     that state; a request while another thread makes it waits for that one (one pool in
     memory, not two)."""
     key = (id(state), kind, conf)
-    held = held_pool(state, kind, conf)
-    if held is not None:
-        return held
-    with _making(key):
-        held = held_pool(state, kind, conf)
-        if held is not None:
-            return held
+    with _LOCK:
+        while True:
+            held = _POOLS.get(key)
+            if held is not None and held[0]() is state:
+                return held[1]
+            if key not in _MAKING:
+                _MAKING.add(key)
+                break
+            _MADE.wait()
+    try:
         return keep_pool(state, kind, conf, MapPool.make(state, kind, conf))
+    finally:
+        with _LOCK:
+            _MAKING.discard(key)
+            _MADE.notify_all()
 
 
 def held_pool(state: MapState, kind: str, conf: IndexConf) -> MapPool | None:
@@ -92,24 +98,6 @@ def pool_bytes(state: MapState) -> int:
     """Bytes held by the pools made for ``state`` (what its repetition check keeps in
     memory beside the map: about 80 MB per 1000 keyframes of SIFT landmarks)."""
     return sum(made.nbytes for _, _, made in pools_of(state))
-
-
-@contextlib.contextmanager
-def _making(key: tuple[int, str, IndexConf]) -> Iterator[None]:
-    """Held while the pool ``key`` is made: a second maker waits for the first."""
-    with _LOCK:
-        lock, users = _MAKING.get(key, (threading.Lock(), 0))
-        _MAKING[key] = (lock, users + 1)
-    try:
-        with lock:
-            yield
-    finally:
-        with _LOCK:
-            lock, users = _MAKING[key]
-            if users <= 1:
-                del _MAKING[key]
-            else:
-                _MAKING[key] = (lock, users - 1)
 
 
 def _forget(key: tuple[int, str, IndexConf]) -> None:
