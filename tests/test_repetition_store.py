@@ -58,13 +58,16 @@ def count_builds(monkeypatch) -> list[int]:
     return made
 
 
-def test_a_load_reads_the_stored_index_instead_of_building_it(saved, monkeypatch) -> None:
+def test_a_load_reads_the_stored_index_instead_of_building_it(saved, synthetic_scene,
+                                                               monkeypatch) -> None:
     engine, directory = saved
     assert stored_index(directory).is_file()
     before = held_pool(engine.map.snapshot(), "orb", IndexConf(exact_rows=0))
     assert before is not None and before.index.tree is not None
     made = count_builds(monkeypatch)
     loaded = Engine.load(directory, conf(0))
+    # A query at once waits for the pool being read rather than building one of its own.
+    loaded.relocalize(_frame(synthetic_scene, synthetic_scene.query_images[0]))
     assert loaded.prepared.wait(60)
     state = loaded.map.snapshot()
     after = held_pool(state, "orb", IndexConf(exact_rows=0))

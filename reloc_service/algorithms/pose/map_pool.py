@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import threading
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from ...core.map import MapState
@@ -46,10 +47,12 @@ _MAKING: set[tuple[int, str, IndexConf]] = set()
 _MADE = threading.Condition(_LOCK)
 
 
-def map_pool(state: MapState, kind: str, conf: IndexConf) -> MapPool:
+def map_pool(state: MapState, kind: str, conf: IndexConf,
+             make: Callable[[], MapPool] | None = None) -> MapPool:
     """The :class:`MapPool` of ``state``'s ``kind`` landmarks, made on the first request for
-    that state; a request while another thread makes it waits for that one (one pool in
-    memory, not two)."""
+    that state (by ``make``, default :meth:`MapPool.make`: a pool read from a snapshot); a
+    request while another thread makes it waits for that one (one pool in memory, not
+    two)."""
     key = (id(state), kind, conf)
     with _LOCK:
         while True:
@@ -61,7 +64,8 @@ def map_pool(state: MapState, kind: str, conf: IndexConf) -> MapPool:
                 break
             _MADE.wait()
     try:
-        return keep_pool(state, kind, conf, MapPool.make(state, kind, conf))
+        made = make() if make is not None else MapPool.make(state, kind, conf)
+        return keep_pool(state, kind, conf, made)
     finally:
         with _LOCK:
             _MAKING.discard(key)

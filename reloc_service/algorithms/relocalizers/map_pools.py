@@ -12,8 +12,9 @@ from pathlib import Path
 
 from ...core.errors import StorageError
 from ...core.map import MapState
-from ..pose.map_pool import held_pool, keep_pool, map_pool
+from ..pose.map_pool import MapPool, held_pool, map_pool
 from ..pose.p3p import P3PPoseFinder
+from ..pose.repetition_index import IndexConf
 from ..pose.repetition_store import load_index, save_index
 from .base import Relocalizer
 
@@ -58,41 +59,54 @@ def save_pools(relocalizer: Relocalizer, directory: Path, state: MapState) -> li
 
 def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | None
                   ) -> list[str]:
-    """Keep as ``state``'s pools those whose index is stored in model directory
-    ``directory`` and fits (:func:`..pose.repetition_store.load_index`); their kinds."""
-    return [f.conf.kind for f in pool_finders(relocalizer) if _restore(f, state, directory)]
+    """Make ``relocalizer``'s pools over ``state`` in the order its steps run, each with
+    the index stored in model directory ``directory`` where it fits
+    (:func:`..pose.repetition_store.load_index`), else built; the kinds whose index was
+    read."""
+    read = []
+    for finder in pool_finders(relocalizer):
+        start = time.perf_counter()
+        if _make(finder, state, directory):
+            read.append(finder.conf.kind)
+        log.debug("%s pool of %d keyframes ready in %.2f s (%s)", finder.conf.kind,
+                  len(state.keyframes), time.perf_counter() - start,
+                  "index read" if read and read[-1] == finder.conf.kind else "made")
+    return read
 
 
 def prepare_pools(relocalizer: Relocalizer, state: MapState, directory: Path | None) -> None:
-    """Make every pool ``relocalizer``'s queries over ``state`` read, in the order its steps
-    run, with the index stored in model directory ``directory`` where it fits
-    (:func:`restore_pools`); then the rest of each finder's map work
-    (:meth:`P3PPoseFinder.prepare_map`: the keyframes' agreement with the map's camera,
-    seconds on a big map), so a query waits for the pools alone."""
-    finders = pool_finders(relocalizer)
-    for finder in finders:
-        start = time.perf_counter()
-        read = _restore(finder, state, directory)
-        map_pool(state, finder.conf.kind, finder.conf.repetition_index())
-        log.debug("%s pool of %d keyframes ready in %.2f s (%s)", finder.conf.kind,
-                  len(state.keyframes), time.perf_counter() - start,
-                  "index read" if read else "made")
-    for finder in finders:
+    """Make every pool ``relocalizer``'s queries over ``state`` read (:func:`restore_pools`),
+    then the rest of each finder's map work (:meth:`P3PPoseFinder.prepare_map`: the
+    keyframes' agreement with the map's camera, seconds on a big map), so a query waits for
+    the pools alone."""
+    restore_pools(relocalizer, state, directory)
+    for finder in pool_finders(relocalizer):
         finder.prepare_map(state)
 
 
-def _restore(finder: P3PPoseFinder, state: MapState, directory: Path | None) -> bool:
-    """Whether ``finder``'s pool over ``state`` is now kept with the index stored in
-    ``directory`` (False: none stored, it does not fit, or a pool is kept already)."""
+def _make(finder: P3PPoseFinder, state: MapState, directory: Path | None) -> bool:
+    """Make ``finder``'s pool over ``state`` (unless made) through :func:`.map_pool`, so a
+    query asking for it meanwhile waits instead of building its own; whether its index was
+    read from ``directory``."""
     kind, conf = finder.conf.kind, finder.conf.repetition_index()
-    if directory is None or held_pool(state, kind, conf) is not None:
-        return False
+    read = False
+
+    def make() -> MapPool:
+        nonlocal read
+        stored = _stored(directory, state, kind, conf)
+        read = stored is not None
+        return stored if stored is not None else MapPool.make(state, kind, conf)
+
+    map_pool(state, kind, conf, make)
+    return read
+
+
+def _stored(directory: Path | None, state: MapState, kind: str, conf: IndexConf
+            ) -> MapPool | None:
+    if directory is None:
+        return None
     try:
-        made = load_index(directory, state, kind, conf)
+        return load_index(directory, state, kind, conf)
     except StorageError as exc:   # its bytes were checked at load: a bug, not damage
         log.error("%s; building the index again", exc)
-        return False
-    if made is None:
-        return False
-    keep_pool(state, kind, conf, made)
-    return True
+        return None
