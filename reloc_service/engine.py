@@ -53,7 +53,7 @@ import numpy.typing as npt
 from .algorithms.pose.map_pool import pool_bytes
 from .algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
 from .algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, create_tracker
-from .algorithms.relocalizers.map_pools import prepare_pools, restore_pools, save_pools
+from .algorithms.relocalizers.map_pools import restore_pools, save_pools
 from .algorithms.relocalizers.tracking import relocalize_with_prior
 from .core.cameras import Camera
 from .core.errors import ConfigError, MapError
@@ -444,7 +444,7 @@ class Engine:
         return engine
 
     def _start_prepare(self, models_dir: Path | None) -> None:
-        """Make the whole-map pools the queries read (:func:`.map_pools.prepare_pools`) on a
+        """Make the whole-map pools the queries read (:func:`.map_pools.restore_pools`) on a
         thread of their own, so that loading returns at once; a query that needs a pool
         still being made waits for it (:attr:`prepared` is set when all are made)."""
         with self._rw.read():
@@ -456,7 +456,7 @@ class Engine:
         def run() -> None:
             try:
                 for relocalizer, directory in work:
-                    prepare_pools(relocalizer, state, directory)
+                    restore_pools(relocalizer, state, directory)
             except Exception as exc:   # the first query makes what is missing
                 log.error("preparing the map's pools failed: %s", exc)
             finally:

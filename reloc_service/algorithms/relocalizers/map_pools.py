@@ -1,8 +1,10 @@
 """The whole-map work of a relocalizer's pose finders done when its map is loaded rather than
 by the first query: each p3p finder's landmark pool and repetition index
 (:mod:`..pose.map_pool`, read from the snapshot where it was stored with the model,
-:mod:`..pose.repetition_store`) and the keyframes' agreement with the map's camera, in the
-order the relocalizer's steps run, so the first step's pool is ready first."""
+:mod:`..pose.repetition_store`), in the order the relocalizer's steps run, so the first
+step's pool is ready first. The keyframes' agreement with the map's camera is left to the
+queries that read it (a few keyframes each; the whole map's takes seconds of CPU the first
+queries would compete with)."""
 
 from __future__ import annotations
 
@@ -72,16 +74,6 @@ def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | N
                   len(state.keyframes), time.perf_counter() - start,
                   "index read" if read and read[-1] == finder.conf.kind else "made")
     return read
-
-
-def prepare_pools(relocalizer: Relocalizer, state: MapState, directory: Path | None) -> None:
-    """Make every pool ``relocalizer``'s queries over ``state`` read (:func:`restore_pools`),
-    then the rest of each finder's map work (:meth:`P3PPoseFinder.prepare_map`: the
-    keyframes' agreement with the map's camera, seconds on a big map), so a query waits for
-    the pools alone."""
-    restore_pools(relocalizer, state, directory)
-    for finder in pool_finders(relocalizer):
-        finder.prepare_map(state)
 
 
 def _make(finder: P3PPoseFinder, state: MapState, directory: Path | None) -> bool:
