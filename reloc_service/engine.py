@@ -416,11 +416,13 @@ class Engine:
 
     @classmethod
     def load(cls, directory: str | Path, conf: EngineConf | None = None, *,
-             progress: bool = False, train: bool = True) -> Engine:
+             progress: bool = False, train: bool = True, pools: bool = True) -> Engine:
         """An engine over the map saved in ``directory``. A method with saved models is
         created over the loaded map and restores them (nothing is re-added or retrained);
         one without is fed every keyframe and trained (with ``train`` False it stays
-        untrained, as in the engine saved: a replica of it)."""
+        untrained, as in the engine saved: a replica of it). ``pools``: make the whole-map
+        pools its queries read on a thread of their own (:meth:`_start_prepare`); False for
+        an engine that answers no query."""
         state, models_dir = load_map(directory)
         engine = cls(conf)
         engine.map.replace_state(state)
@@ -434,13 +436,14 @@ class Engine:
                 if restored.relocalizer.load(path):
                     engine._live[method] = restored
                     continue
-            if path is not None:   # before training, which would build them again
+            if pools and path is not None:   # before training, which would build them again
                 restore_pools(live.relocalizer, engine._published, path)
             engine._feed(live.relocalizer, engine._published, progress=progress,
                          desc=f"{method}: keyframes")
             if train:
                 live.relocalizer.train(progress=progress)
-        engine._start_prepare(models_dir)
+        if pools:
+            engine._start_prepare(models_dir)
         return engine
 
     def _start_prepare(self, models_dir: Path | None) -> None:
@@ -466,10 +469,9 @@ class Engine:
 
     def held_bytes(self) -> int:
         """Bytes the relocalizers hold for the published map beside it: its whole-map
-        landmark pools and their indexes (:mod:`.algorithms.pose.map_pool`)."""
-        with self._rw.read():
-            state = self._published
-        return pool_bytes(state)
+        landmark pools and their indexes (:mod:`.algorithms.pose.map_pool`). Read without
+        the engine's lock (the budget's count, called under other locks)."""
+        return pool_bytes(self._published)
 
     def close(self) -> None:
         """Nothing to release (kept for backends that expect it)."""

@@ -139,3 +139,15 @@ def test_two_threads_asking_for_a_pool_at_once_share_one_build(saved, monkeypatc
         t.join(60)
     assert len(got) == 3 and got[0] is got[1] is got[2]
     assert made == [1]
+
+
+def test_an_engine_that_answers_no_query_starts_no_pool_work(saved) -> None:
+    _, directory = saved
+
+    def pool_threads() -> set[threading.Thread]:
+        return {t for t in threading.enumerate() if t.name == "map-pools"}
+
+    already = pool_threads()
+    loaded = Engine.load(directory, conf(0), pools=False)   # a service's, with worker processes
+    assert loaded.prepared.is_set()
+    assert not pool_threads() - already
