@@ -36,6 +36,7 @@ without any lock: for single-threaded tools only.
 from __future__ import annotations
 
 import functools
+import logging
 import os
 import tempfile
 import threading
@@ -49,8 +50,10 @@ from typing import Any
 
 import numpy.typing as npt
 
+from .algorithms.pose.map_pool import pool_bytes
 from .algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
 from .algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, create_tracker
+from .algorithms.relocalizers.map_pools import restore_pools, save_pools
 from .algorithms.relocalizers.tracking import relocalize_with_prior
 from .core.cameras import Camera
 from .core.errors import ConfigError, MapError
@@ -61,6 +64,8 @@ from .core.progress import progress as progress_bar
 from .core.triangulation import TriangulationConf
 from .storage.keyframe_parts import StoredParts
 from .storage.snapshot import load_map, model_dir_name, save_map
+
+log = logging.getLogger(__name__)
 
 __all__ = ["Engine", "EngineConf", "MappingConf", "MapView", "ReadWriteLock", "TriangulationConf"]
 
@@ -198,6 +203,9 @@ class Engine:
         self._journal: list[tuple[int, int]] = []  # (published version, keyframe id changed)
         self._published = self.map.snapshot()
         self._live: dict[str, _Live] = {}
+        #: Set once the pools a load prepares are made (:meth:`load`); set at once otherwise.
+        self.prepared = threading.Event()
+        self.prepared.set()
         kinds: set[str] = set()
         for method in self.conf.methods:
             live = self._create(method, self._published)
@@ -390,6 +398,7 @@ class Engine:
                 for method, live in self._live.items():
                     (Path(tmp) / model_dir_name(method)).mkdir()
                     live.relocalizer.save(Path(tmp) / model_dir_name(method))
+                    save_pools(live.relocalizer, Path(tmp) / model_dir_name(method), state)
                 methods = list(self._live)
                 reads_images = any(live.relocalizer.reads_keyframe_images
                                    for live in self._live.values())
@@ -407,11 +416,13 @@ class Engine:
 
     @classmethod
     def load(cls, directory: str | Path, conf: EngineConf | None = None, *,
-             progress: bool = False, train: bool = True) -> Engine:
+             progress: bool = False, train: bool = True, pools: bool = True) -> Engine:
         """An engine over the map saved in ``directory``. A method with saved models is
         created over the loaded map and restores them (nothing is re-added or retrained);
         one without is fed every keyframe and trained (with ``train`` False it stays
-        untrained, as in the engine saved: a replica of it)."""
+        untrained, as in the engine saved: a replica of it). ``pools``: make the whole-map
+        pools its queries read on a thread of their own (:meth:`_start_prepare`); False for
+        an engine that answers no query."""
         state, models_dir = load_map(directory)
         engine = cls(conf)
         engine.map.replace_state(state)
@@ -425,11 +436,42 @@ class Engine:
                 if restored.relocalizer.load(path):
                     engine._live[method] = restored
                     continue
+            if pools and path is not None:   # before training, which would build them again
+                restore_pools(live.relocalizer, engine._published, path)
             engine._feed(live.relocalizer, engine._published, progress=progress,
                          desc=f"{method}: keyframes")
             if train:
                 live.relocalizer.train(progress=progress)
+        if pools:
+            engine._start_prepare(models_dir)
         return engine
+
+    def _start_prepare(self, models_dir: Path | None) -> None:
+        """Make the whole-map pools the queries read (:func:`.map_pools.restore_pools`) on a
+        thread of their own, so that loading returns at once; a query that needs a pool
+        still being made waits for it (:attr:`prepared` is set when all are made)."""
+        with self._rw.read():
+            work = [(live.relocalizer, None if models_dir is None
+                     else models_dir / model_dir_name(m)) for m, live in self._live.items()]
+            state = self._published
+        self.prepared.clear()
+
+        def run() -> None:
+            try:
+                for relocalizer, directory in work:
+                    restore_pools(relocalizer, state, directory)
+            except Exception as exc:   # the first query makes what is missing
+                log.error("preparing the map's pools failed: %s", exc)
+            finally:
+                self.prepared.set()
+
+        threading.Thread(target=run, name="map-pools", daemon=True).start()
+
+    def held_bytes(self) -> int:
+        """Bytes the relocalizers hold for the published map beside it: its whole-map
+        landmark pools and their indexes (:mod:`.algorithms.pose.map_pool`). Read without
+        the engine's lock (the budget's count, called under other locks)."""
+        return pool_bytes(self._published)
 
     def close(self) -> None:
         """Nothing to release (kept for backends that expect it)."""

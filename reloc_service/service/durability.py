@@ -435,11 +435,12 @@ def journal_bytes(directory: Path) -> int:
 
 # -- opening a map directory -------------------------------------------------------------------
 
-def open_engine(directory: Path | None, conf: EngineConf) -> Engine:
+def open_engine(directory: Path | None, conf: EngineConf, *, pools: bool = True) -> Engine:
     """The engine of a map: loaded from its last snapshot if there is one, else empty.
-    Call :func:`recover_current` first so a missing ``CURRENT`` is not taken for a new map."""
+    Call :func:`recover_current` first so a missing ``CURRENT`` is not taken for a new map.
+    ``pools``: make the repetition check's pools at load (not where others answer queries)."""
     if directory is not None and (directory / "map" / CURRENT_FILE).is_file():
-        return Engine.load(directory / "map", conf)
+        return Engine.load(directory / "map", conf, pools=pools)
     return Engine(conf)
 
 

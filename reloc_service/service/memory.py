@@ -1,4 +1,5 @@
-"""Giving freed heap memory back to the system after a refused oversized payload.
+"""Giving freed heap memory back to the system after a refused oversized payload (and
+after a resident map is closed, :mod:`.residency`).
 
 Zenoh reassembles a put or query in full before the service sees it (a 300 MiB put takes
 300 MiB whatever the service then does). When that buffer is freed, glibc keeps the pages in

@@ -371,8 +371,9 @@ class MapRegistry:
         if verdict is not None and verdict.refusal is not None:
             raise StorageError(verdict.refusal)   # nothing loaded, nothing written
         recovered = None if directory is None else recover_current(directory)
-        engine = open_engine(directory, self.engine_conf)
         s = self.conf.service
+        # with worker processes the queries run on their replicas, which make their own pools
+        engine = open_engine(directory, self.engine_conf, pools=s.worker_mode != "process")
         rt = MapRuntime(name, engine, instance=self.conf.instance, limits=self.limits,
                         methods=self.methods, default_method=self.methods[0],
                         directory=directory, publish=self._publish,

@@ -7,7 +7,9 @@ budget through the load; if no map is idle within :data:`MAKE_ROOM_WAIT_S` it lo
 the idle ones are closed once they are.
 
 What a map counts is what the quotas count for it (:class:`~.quotas.MapUsage`: its keyframes'
-images as held, depth and features); the process's resident memory is a multiple of that
+images as held, depth and features) and what its relocalizers hold beside the map (the
+whole-map landmark pools of the repetition check, :meth:`~reloc_service.engine.Engine.held_bytes`,
+about 80 MB per 1000 keyframes); the process's resident memory is a multiple of that
 (docs/performance.md, "Many maps, bounded memory").
 
 A map is never closed while it is in use: a query or a write holds it (:meth:`Residency.acquire`
@@ -33,6 +35,7 @@ from reloc_client import protocol as wire
 
 from ..core.errors import StorageError
 from .durability import map_dirname, read_service_file
+from .memory import trim_now
 from .quotas import MapUsage
 
 if TYPE_CHECKING:
@@ -82,6 +85,8 @@ class Residency:
         self._pins: collections.Counter[str] = collections.Counter()
         #: The usage of each closed map (quotas on the total still count it).
         self.kept_usage: dict[str, MapUsage] = {}
+        #: What each closed map's relocalizers held beside it (its next load's estimate).
+        self.kept_held: dict[str, int] = {}
         self._load_slot = threading.Semaphore(1)   # one cold load at a time: bounded memory
         self._wake = threading.Event()
         self._stopped = threading.Event()
@@ -123,8 +128,9 @@ class Residency:
             return len(set(self.registry.maps) | self.dormant | self._loading | self._closing)
 
     def resident_bytes(self) -> int:
-        """What the resident maps count (their usage totals)."""
-        return sum(rt.usage.total for rt in list(self.registry.maps.values()))
+        """What the resident maps count: their usage totals and what their relocalizers
+        hold beside them."""
+        return sum(counted_bytes(rt) for rt in list(self.registry.maps.values()))
 
     def usages(self) -> list[MapUsage]:
         """The usage of every served map: resident ones' and closed ones' (as kept)."""
@@ -206,8 +212,10 @@ class Residency:
         the mean count of the maps known here (0 when none is)."""
         kept = self.kept_usage.get(name)
         if kept is not None:
-            return int(kept.total)
-        known = [u.total for u in self.usages()]
+            return int(kept.total) + self.kept_held.get(name, 0)
+        known = [counted_bytes(rt) for rt in list(self.registry.maps.values())]
+        known += [u.total + self.kept_held.get(n, 0) for n, u in list(self.kept_usage.items())
+                  if n not in self.registry.maps]
         return int(sum(known) / len(known)) if known else 0
 
     # -- eviction --------------------------------------------------------------------------------
@@ -286,7 +294,11 @@ class Residency:
         rt = self.registry.maps[name]
         try:
             self.kept_usage[name] = rt.usage
+            self.kept_held[name] = rt.engine.held_bytes()
             self.registry.close_resident(name, timeout=self.stop_timeout_s)
+            # A map is many small arrays: freed, their pages stay in the C heap's arenas
+            # (about 180 of the 550 MB a 1000-keyframe map takes) unless given back.
+            trim_now()
             self.evictions += 1
             log.info("map %s: closed (idle; %.1f MB resident of %.1f MB)", name,
                      self.resident_bytes() / MB, self.budget / MB)
@@ -305,6 +317,12 @@ class Residency:
             self.on_change(name, resident)
         except Exception as exc:   # a token not declared never stops loading or closing
             log.warning("map %s: residency token not updated: %s", name, exc)
+
+
+def counted_bytes(rt: MapRuntime) -> int:
+    """What resident map ``rt`` counts against the budget: its usage (what the quotas count)
+    and its relocalizers' pools (:meth:`~reloc_service.engine.Engine.held_bytes`)."""
+    return int(rt.usage.total) + rt.engine.held_bytes()
 
 
 def dormant_status(registry: MapRegistry, name: str) -> wire.StatusReply:

@@ -1,0 +1,104 @@
+"""The whole-map work of a relocalizer's pose finders done when its map is loaded rather than
+by the first query: each p3p finder's landmark pool and repetition index
+(:mod:`..pose.map_pool`, read from the snapshot where it was stored with the model,
+:mod:`..pose.repetition_store`), in the order the relocalizer's steps run, so the first
+step's pool is ready first. The keyframes' agreement with the map's camera is left to the
+queries that read it (a few keyframes each; the whole map's takes seconds of CPU the first
+queries would compete with)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+from ...core.errors import StorageError
+from ...core.map import MapState
+from ..pose.map_pool import MapPool, held_pool, map_pool
+from ..pose.p3p import P3PPoseFinder
+from ..pose.repetition_index import IndexConf
+from ..pose.repetition_store import load_index, save_index
+from .base import Relocalizer
+
+log = logging.getLogger(__name__)
+
+
+def pool_finders(relocalizer: Relocalizer) -> list[P3PPoseFinder]:
+    """The p3p pose finders of ``relocalizer`` (a chain's steps in order), one per distinct
+    feature kind and index options (two finders of one kind share a pool)."""
+    steps = getattr(relocalizer, "steps", None)
+    found: list[P3PPoseFinder] = []
+    for step in (steps if steps is not None else [relocalizer]):
+        if steps is not None:
+            found += pool_finders(step)
+            continue
+        pose = getattr(step, "pose", None)
+        if isinstance(pose, P3PPoseFinder):
+            found.append(pose)
+    seen: set[tuple[str, object]] = set()
+    unique = []
+    for finder in found:
+        key = (finder.conf.kind, finder.conf.repetition_index())
+        if key not in seen:
+            seen.add(key)
+            unique.append(finder)
+    return unique
+
+
+def save_pools(relocalizer: Relocalizer, directory: Path, state: MapState) -> list[Path]:
+    """Store beside ``relocalizer``'s model in ``directory`` the indexes of the pools made
+    for ``state`` (none is made here: a pool not made yet is built at the next load)."""
+    written = []
+    for finder in pool_finders(relocalizer):
+        conf = finder.conf.repetition_index()
+        made = held_pool(state, finder.conf.kind, conf)
+        if made is not None:
+            path = save_index(directory, finder.conf.kind, conf, made)
+            if path is not None:
+                written.append(path)
+    return written
+
+
+def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | None
+                  ) -> list[str]:
+    """Make ``relocalizer``'s pools over ``state`` in the order its steps run, each with
+    the index stored in model directory ``directory`` where it fits
+    (:func:`..pose.repetition_store.load_index`), else built; the kinds whose index was
+    read."""
+    read = []
+    for finder in pool_finders(relocalizer):
+        start = time.perf_counter()
+        if _make(finder, state, directory):
+            read.append(finder.conf.kind)
+        log.debug("%s pool of %d keyframes ready in %.2f s (%s)", finder.conf.kind,
+                  len(state.keyframes), time.perf_counter() - start,
+                  "index read" if read and read[-1] == finder.conf.kind else "made")
+    return read
+
+
+def _make(finder: P3PPoseFinder, state: MapState, directory: Path | None) -> bool:
+    """Make ``finder``'s pool over ``state`` (unless made) through :func:`.map_pool`, so a
+    query asking for it meanwhile waits instead of building its own; whether its index was
+    read from ``directory``."""
+    kind, conf = finder.conf.kind, finder.conf.repetition_index()
+    read = False
+
+    def make() -> MapPool:
+        nonlocal read
+        stored = _stored(directory, state, kind, conf)
+        read = stored is not None
+        return stored if stored is not None else MapPool.make(state, kind, conf)
+
+    map_pool(state, kind, conf, make)
+    return read
+
+
+def _stored(directory: Path | None, state: MapState, kind: str, conf: IndexConf
+            ) -> MapPool | None:
+    if directory is None:
+        return None
+    try:
+        return load_index(directory, state, kind, conf)
+    except StorageError as exc:   # its bytes were checked at load: a bug, not damage
+        log.error("%s; building the index again", exc)
+        return None

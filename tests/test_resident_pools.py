@@ -1,0 +1,107 @@
+"""A resident map counts its repetition pools (``[service] max_resident_mb``): the pools are
+made when the map is loaded, before its first query, and their bytes join the map's usage in
+what the budget weighs, so a budget that the maps' usage alone would fit closes one of them.
+Real services on loopback, real storage."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from reloc_client.client import RelocClient
+from service_support import endpoint, free_port, service_conf, wait_until
+
+from reloc_service.engine import Engine, EngineConf
+from reloc_service.service.app import Service
+from reloc_service.service.residency import MB
+from reloc_service.tools.bench.stored_map import StoredMap, copy_map, engine_from_images, stored_template
+
+METHOD = "sbi+p3p"
+
+
+def conf(port: int, storage: Path, budget_mb: float):
+    return service_conf(port, storage, methods=[METHOD], default_method=METHOD,
+                        worker_mode="thread", workers=2, snapshot_every=0,
+                        max_resident_mb=budget_mb)
+
+
+@pytest.fixture(scope="module")
+def template(synthetic_scene, tmp_path_factory) -> tuple[StoredMap, int]:
+    """A stored trained map of the scene's 6 keyframes and the bytes its pools hold once
+    it is loaded."""
+    storage = tmp_path_factory.mktemp("pools-template") / "storage"
+    engine = engine_from_images(synthetic_scene.camera, synthetic_scene.keyframe_images,
+                                synthetic_scene.keyframe_poses, EngineConf(methods=(METHOD,)))
+    stored = stored_template(storage, "template", engine)
+    loaded = Engine.load(stored.directory / "map", EngineConf(methods=(METHOD,)))
+    assert loaded.prepared.wait(60)
+    return stored, loaded.held_bytes()
+
+
+def test_a_loaded_map_counts_its_pools_before_any_query(template, tmp_path) -> None:
+    stored, pool_bytes = template
+    assert pool_bytes > 0
+    storage = tmp_path / "storage"
+    copy_map(stored, storage, "alpha")
+    port = free_port()
+    service = Service(conf(port, storage, 1000)).start()
+    try:
+        residency = service.registry.residency
+        assert residency is not None
+        with RelocClient(endpoint(port), map="alpha", timeout=30) as client:
+            client.status()
+        residency.acquire("alpha", timeout=30)   # a cold load, no query
+        residency.release("alpha")
+        rt = service.maps["alpha"]
+        assert rt.engine.prepared.wait(30)
+        assert rt.engine.held_bytes() == pool_bytes
+        assert residency.resident_bytes() == rt.usage.total + pool_bytes
+    finally:
+        service.stop()
+
+
+def test_the_budget_closes_a_map_its_pools_take_over(template, synthetic_scene, tmp_path
+                                                     ) -> None:
+    stored, pool_bytes = template
+    storage = tmp_path / "storage"
+    for name in ("alpha", "bravo"):
+        copy_map(stored, storage, name)
+    # Two maps' usage fits, two maps with their pools do not.
+    budget_mb = (2 * stored.counted_bytes + pool_bytes // 2) / MB
+    port = free_port()
+    service = Service(conf(port, storage, budget_mb)).start()
+    try:
+        residency = service.registry.residency
+        assert residency is not None
+        for name in ("alpha", "bravo"):
+            with RelocClient(endpoint(port), map=name, timeout=30) as client:
+                assert client.relocalize(synthetic_scene.query_images[0], camera_id="cam0").ok
+            assert service.maps[name].engine.prepared.wait(30)
+        wait_until(lambda: list(service.maps) == ["bravo"], timeout=30)
+        assert residency.resident_bytes() <= budget_mb * MB
+        assert residency.kept_held["alpha"] == pool_bytes
+    finally:
+        service.stop()
+
+
+def test_closing_a_map_gives_its_heap_pages_back(template, synthetic_scene, tmp_path,
+                                                 monkeypatch) -> None:
+    from reloc_service.service import residency as residency_module
+
+    trims: list[bool] = []
+    real = residency_module.trim_now
+    monkeypatch.setattr(residency_module, "trim_now", lambda: trims.append(real()) or True)
+    stored, pool_bytes = template
+    storage = tmp_path / "storage"
+    for name in ("alpha", "bravo"):
+        copy_map(stored, storage, name)
+    port = free_port()   # one map with its pools fits, two do not
+    service = Service(conf(port, storage, 1.5 * (stored.counted_bytes + pool_bytes) / MB)).start()
+    try:
+        for name in ("alpha", "bravo"):
+            with RelocClient(endpoint(port), map=name, timeout=30) as client:
+                assert client.relocalize(synthetic_scene.query_images[0], camera_id="cam0").ok
+        wait_until(lambda: list(service.maps) == ["bravo"], timeout=30)
+        assert trims, "no trim after the close"
+    finally:
+        service.stop()
