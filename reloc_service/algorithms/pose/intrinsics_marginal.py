@@ -1,0 +1,67 @@
+"""The expected squared error a pose estimated at the given intrinsics owes to them.
+
+The pose at the given camera is off by ``B theta`` (:attr:`.intrinsics.IntrinsicsCheck.pose_shift`)
+when the camera is really ``theta`` off. The pose's own correspondences estimate ``theta`` as
+``theta_hat`` with covariance ``V`` (the map's dispersion included), independently of the
+pose's noise at the given camera (the Schur complement splits the joint normal equations
+so). A stale calibration must be covered, so the calibration prior is not trusted to shrink
+that estimate: ``theta ~ N(theta_hat, V)`` and the expected squared shift is
+``B (theta_hat theta_hat^T + V) B^T``. The prior's covariance ``P`` is not added to it: ``V``
+already bounds ``theta`` from the data, whatever the calibration claimed, and the sum
+``P + V`` counted the calibration's uncertainty twice.
+
+Where the data cannot exclude other solutions (other focal starts whose cost exceeds the
+best's by less than the test's likelihood-ratio limit), the farthest of them adds its offset
+``s s^T``: a scene with little depth fits a wrong focal from a pose far away about as well.
+The tested solution is not one of those others: its offset is ``B theta_hat`` already.
+
+A stale calibration that passes is a draw the test missed, with ``theta_hat`` biased towards
+zero (:mod:`.intrinsics_power`), so the covariance is also at least the envelope
+``B (lambda_beta / 9) W B^T`` of every error the test misses more often than its
+missed-detection rate, in the Loewner order (:func:`.cluster_covariance.at_least`): a
+floor, not a further sum, since both bound the same shift.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from .cluster_covariance import at_least
+from .intrinsics import IntrinsicsCheck
+from .intrinsics_power import undetected_covariance
+
+Array = npt.NDArray[np.float64]
+
+#: Offsets (metres and radians) below which two solutions are one pose found twice.
+SAME_POSE = 1e-3
+
+
+def farthest_other_offset(check: IntrinsicsCheck) -> Array:
+    """(6,) the pose offset (twist from the pose at the given intrinsics) of the solution
+    farthest in position among those the data cannot exclude, the tested one and its
+    duplicates left out (its offset is ``B theta_hat``); zeros where there is none."""
+    best = min(check.solutions, key=lambda s: s.cost)
+    tested = check.solution
+    others = [s.twist for s in check.solutions
+              if check._likelihood_ratio(s, best) <= check._limit
+              and np.abs(s.twist - tested.twist).max() >= SAME_POSE]
+    if not others:
+        return np.zeros(6)
+    return max(others, key=lambda t: float(np.linalg.norm(t[:3])))
+
+
+def intrinsics_marginal_covariance(covariance: Array, check: IntrinsicsCheck) -> Array:
+    """(6, 6) the expected squared error of the pose at the given intrinsics whose
+    ``covariance`` ``C`` assumed them exact (module docstring):
+    ``d C + B (theta_hat theta_hat^T + V) B^T + s s^T``, at least
+    ``d C + B (lambda_beta / 9) W B^T`` (``d`` the map's dispersion, which reaches the pose
+    as it reaches ``theta``)."""
+    shift, theta = check.pose_shift, check.theta
+    own = check.dispersion * np.asarray(covariance, np.float64)
+    far = farthest_other_offset(check)
+    expected = (own + shift @ (check.covariance + np.outer(theta, theta)) @ shift.T
+                + np.outer(far, far))
+    envelope = own + shift @ undetected_covariance(check) @ shift.T
+    out = at_least(expected, envelope)
+    return np.asarray(0.5 * (out + out.T), np.float64)
