@@ -24,6 +24,7 @@ from reloc_service.algorithms.pose import map_consistency
 from reloc_service.algorithms.relocalizers import base as relocalizer_base
 from reloc_service.tools.eval import evaluate as eval_lib
 from reloc_service.tools.eval.metrics import translation_mahalanobis
+from reloc_service.tools.eval.query_camera import QueryCamera
 
 _PARTS: list[dict[str, Any]] = []
 
@@ -76,6 +77,8 @@ def main() -> None:
     parser.add_argument("dataset")
     parser.add_argument("--keyframe-sigma", default="0,0")
     parser.add_argument("--method", default="sbi+p3p:orb,sbi+p3p:sift-half,bow+p3p,sbi+p3p")
+    parser.add_argument("--query-focal-scale", type=float, default=1.0,
+                        help="the queries claim a focal this many times their camera's")
     parser.add_argument("--out", required=True)
     parser.add_argument("--json", help="also write reloc eval's JSON here")
     args = parser.parse_args()
@@ -84,7 +87,8 @@ def main() -> None:
     from reloc_service.algorithms.relocalizers import multi
     multi.result_from_estimate = _record_result(relocalizer_base.result_from_estimate)
     result = eval_lib.evaluate(args.dataset, args.method, progress=False,
-                               keyframe_sigma=(sigma[0], sigma[1]))
+                               keyframe_sigma=(sigma[0], sigma[1]),
+                               query_camera=QueryCamera(focal_scale=args.query_focal_scale))
     if args.json:
         result.write_json(args.json)
     truth = eval_lib.ground_truth_covariance((sigma[0], sigma[1]))
