@@ -53,6 +53,9 @@ def _record_result(original: Any) -> Any:
             parts = dict(getattr(estimate, "_parts", {}))
             if estimate.map_covariance is not None:
                 parts["map"] = estimate.map_covariance
+            if "measurement" in parts:  # what the answer's covariance adds to d C and the map's
+                parts["intrinsics"] = (np.asarray(result.covariance) - parts.get("map", 0.0)
+                                       - parts["measurement"] - parts["dispersion"])
             unchecked = relocalizer_base.intrinsics_unchecked(estimate, conf.max_position_sigma_m)
             _PARTS.append({"t": np.asarray(result.world_from_cam)[:3, 3].tolist(),
                            "stated": np.asarray(result.covariance).tolist(),
