@@ -1,25 +1,20 @@
-"""The expected squared error a pose estimated at the given intrinsics owes to them.
+"""The expected squared error a pose estimated at the given intrinsics owes to them, where
+the calibration is trusted within its prior.
 
 The pose at the given camera is off by ``B theta`` (:attr:`.intrinsics.IntrinsicsCheck.pose_shift`)
-when the camera is really ``theta`` off. The pose's own correspondences estimate ``theta`` as
-``theta_hat`` with covariance ``V`` (the map's dispersion included), independently of the
+when the camera is really ``theta`` off. Two pieces of information bound ``theta``: the
+calibration prior ``theta ~ N(0, P)`` and the pose's own correspondences, which estimate it
+as ``theta_hat`` with covariance ``V`` (the map's dispersion included), independently of the
 pose's noise at the given camera (the Schur complement splits the joint normal equations
-so). A stale calibration must be covered, so the calibration prior is not trusted to shrink
-that estimate: ``theta ~ N(theta_hat, V)`` and the expected squared shift is
-``B (theta_hat theta_hat^T + V) B^T``. The prior's covariance ``P`` is not added to it: ``V``
-already bounds ``theta`` from the data, whatever the calibration claimed, and the sum
-``P + V`` counted the calibration's uncertainty twice.
+so). They are two measurements of one unknown and combine by their information:
+``theta | data ~ N(m, S)``, and the expected squared shift ``B (S + m m^T) B^T`` averages to
+``B P B^T`` over queries whose calibration is as good as its prior says. Adding ``P``, ``V``
+and ``theta_hat theta_hat^T`` instead counts the data's noise twice and the prior once more.
 
-Where the data cannot exclude other solutions (other focal starts whose cost exceeds the
-best's by less than the test's likelihood-ratio limit), the farthest of them adds its offset
-``s s^T``: a scene with little depth fits a wrong focal from a pose far away about as well.
-The tested solution is not one of those others: its offset is ``B theta_hat`` already.
-
-A stale calibration that passes is a draw the test missed, with ``theta_hat`` biased towards
-zero (:mod:`.intrinsics_power`), so the covariance is also at least the envelope
-``B (lambda_beta / 9) W B^T`` of every error the test misses more often than its
-missed-detection rate, in the Loewner order (:func:`.cluster_covariance.at_least`): a
-floor, not a further sum, since both bound the same shift.
+The prior is trusted where the query claims the camera of the keyframes behind the pose: the
+map was built with that calibration. A query that claims another camera may carry a stale
+one, which the marginal covariance and its envelope of missed errors cover
+(:func:`.map_consistency.covariance_with_intrinsics`, :mod:`.intrinsics_power`).
 """
 
 from __future__ import annotations
@@ -28,44 +23,12 @@ import numpy as np
 import numpy.typing as npt
 
 from .base import PoseEstimate
-from .cluster_covariance import at_least
 from .intrinsics import IntrinsicsCheck, Solution
-from .intrinsics_power import undetected_covariance
 
 Array = npt.NDArray[np.float64]
 
 #: Offsets (metres and radians) below which two solutions are one pose found twice.
 SAME_POSE = 1e-3
-
-
-def farthest_other_offset(check: IntrinsicsCheck) -> Array:
-    """(6,) the pose offset (twist from the pose at the given intrinsics) of the solution
-    farthest in position among those the data cannot exclude, the tested one and its
-    duplicates left out (its offset is ``B theta_hat``); zeros where there is none."""
-    best = min(check.solutions, key=lambda s: s.cost)
-    tested = check.solution
-    others = [s.twist for s in check.solutions
-              if check._likelihood_ratio(s, best) <= check._limit
-              and np.abs(s.twist - tested.twist).max() >= SAME_POSE]
-    if not others:
-        return np.zeros(6)
-    return max(others, key=lambda t: float(np.linalg.norm(t[:3])))
-
-
-def intrinsics_marginal_covariance(covariance: Array, check: IntrinsicsCheck) -> Array:
-    """(6, 6) the expected squared error of the pose at the given intrinsics whose
-    ``covariance`` ``C`` assumed them exact (module docstring):
-    ``d C + B (theta_hat theta_hat^T + V) B^T + s s^T``, at least
-    ``d C + B (lambda_beta / 9) W B^T`` (``d`` the map's dispersion, which reaches the pose
-    as it reaches ``theta``)."""
-    shift, theta = check.pose_shift, check.theta
-    own = check.dispersion * np.asarray(covariance, np.float64)
-    far = farthest_other_offset(check)
-    expected = (own + shift @ (check.covariance + np.outer(theta, theta)) @ shift.T
-                + np.outer(far, far))
-    envelope = own + shift @ undetected_covariance(check) @ shift.T
-    out = at_least(expected, envelope)
-    return np.asarray(0.5 * (out + out.T), np.float64)
 
 
 def intrinsics_posterior(theta_hat: Array, data_covariance: Array, prior_covariance: Array
@@ -122,7 +85,7 @@ def checked_covariance(estimate: PoseEstimate) -> Array | None:
     """(6, 6) the covariance relative to the map of ``estimate`` whose intrinsics test passed
     or was not run: :func:`calibration_trusted_covariance` where the query claims the camera
     of the keyframes behind the pose, else its ``covariance`` (the intrinsics marginalised,
-    :func:`intrinsics_marginal_covariance`)."""
+    :func:`.map_consistency.covariance_with_intrinsics`)."""
     check, trusted = estimate.intrinsics, estimate.covariance_given_intrinsics
     if (estimate.query_camera_is_map_calibration and trusted is not None
             and check is not None and check.passed):

@@ -30,7 +30,7 @@ from ...core.triangulation import ViewObservations, keypoint_sigmas, refine_poin
 from .base import PoseEstimate
 from .guided import GuidedConf
 from .intrinsics import IntrinsicsCheck, check_intrinsics
-from .intrinsics_marginal import intrinsics_marginal_covariance
+from .intrinsics_power import blind_spot_factor, governing_covariance
 from .map_uncertainty import map_covariance
 from .pnp import PnPConf, pose_projector
 
@@ -196,15 +196,32 @@ def covariance_with_intrinsics(covariance: Array, check: IntrinsicsCheck, *,
                                trusted: bool = False) -> Array:
     """(6, 6) the expected squared error of the pose estimated at the given intrinsics, whose
     ``covariance`` assumed them exact: the pose is off by ``B theta`` for the intrinsics'
-    error ``theta``. ``trusted``: the given intrinsics trusted within the calibration prior
-    ``P``, ``d C + B P B^T`` (``d`` the map's dispersion: the map's errors reach the pose as
-    they reach ``theta``). Otherwise the prior and the data's estimate combined, the
-    solutions the data cannot exclude mixed in, and at least the envelope of what the test
-    misses (:func:`.intrinsics_marginal.intrinsics_marginal_covariance`)."""
+    error ``theta``, which the data put at ``N(theta_hat, V)`` (``V`` the model covariance
+    times the map's dispersion) and a correct calibration within the prior ``P``, so
+    ``d C + B (theta_hat theta_hat^T + V + P) B^T``, with ``d`` the dispersion (the map's
+    errors reach the pose as they reach ``theta``). ``B V B^T`` makes the focal and the
+    distortion free unknowns (the joint normal equations' pose block, by the Schur
+    complement), marginalised over what the data cannot exclude; ``B theta_hat`` is the shift
+    they say the pose has, where the test is too weak to refuse it (keypoints as coarse as
+    ORB's let a 5 % focal error pass). Beyond what the local covariance sees, the farthest
+    solution the data cannot exclude (:attr:`IntrinsicsCheck.unexcluded_twist`: a scene
+    with little depth fits a wrong focal from a pose far away about as well) adds its shift
+    ``s s^T``. A pose answered is one whose test passed, and under a stale calibration those
+    are the queries whose ``theta_hat`` noise pulled towards zero: ``V + P`` is widened by
+    ``(k - 1) W`` (:func:`.intrinsics_power.blind_spot_factor` ``k``, ``W`` the governing
+    test covariance) so that every error the test misses more often than its missed-detection
+    rate moves the pose within 3 sigma. ``trusted``: the given intrinsics trusted within the
+    prior, ``d C + B P B^T``."""
+    shift, theta = check.pose_shift, check.theta
+    intrinsics = check.prior.covariance
     if not trusted:
-        return intrinsics_marginal_covariance(covariance, check)
-    shift = check.pose_shift
-    return check.dispersion * covariance + shift @ check.prior.covariance @ shift.T
+        widening = blind_spot_factor(check) - 1.0
+        intrinsics = intrinsics + check.covariance + widening * governing_covariance(check)
+    stated = check.dispersion * covariance + shift @ intrinsics @ shift.T
+    if trusted:
+        return stated
+    far = check.unexcluded_twist
+    return stated + shift @ np.outer(theta, theta) @ shift.T + np.outer(far, far)
 
 
 def prepare_map(state: MapState, kind: str, conf: PnPConf) -> None:
