@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reloc_service.algorithms.pose import intrinsics, intrinsics_kernels
+from reloc_service.algorithms.pose import intrinsics, intrinsics_kernels, intrinsics_model
 from reloc_service.algorithms.pose.pnp import pose_projector
 from reloc_service.core.cameras import RadTanCamera
 from reloc_service.core.geometry import se3_exp
@@ -64,7 +64,7 @@ def test_normal_equations_match_the_einsum_formulation(compiled, seed, monkeypat
     else:
         monkeypatch.setattr(intrinsics_kernels, "compiled", lambda: None)
     points, px, weights = _problem(seed)
-    model = intrinsics._Model(CAMERA)
+    model = intrinsics_model.IntrinsicsModel(CAMERA)
     project = pose_projector(points, CAMERA)
     for step, theta in [(np.zeros(6), np.zeros(2)),
                         (np.array([0.002, -0.001, 0.003, 0.0005, -0.0003, 0.0004]),
@@ -83,7 +83,7 @@ def test_normal_equations_match_the_einsum_formulation(compiled, seed, monkeypat
 
 def test_model_apply_keeps_its_values():
     points, _, _ = _problem(2)
-    model = intrinsics._Model(CAMERA)
+    model = intrinsics_model.IntrinsicsModel(CAMERA)
     projected, jac = pose_projector(points, CAMERA)(np.eye(4))
     theta = np.array([0.05, -0.1])
     pixels, d_pose, d_theta = model.apply(projected, jac, theta)

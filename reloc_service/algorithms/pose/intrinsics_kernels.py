@@ -6,7 +6,7 @@ focal start, each Gauss-Newton step, each halving), each time modelling every co
 under ``theta`` and differentiating the gated ones: about twenty small numpy operations on a
 few hundred rows, whose per-call cost, not their arithmetic, is what the test spends.
 :func:`_model_residuals` and :func:`_model_jacobian` do that in one pass each, with every
-element computed by the same operations in the same order as :class:`.intrinsics._Model`'s
+element computed by the same operations in the same order as :class:`.intrinsics_model.IntrinsicsModel`'s
 numpy expressions (no fused multiply-add: numba contracts nothing without ``fastmath``), so
 the residuals, gates, Jacobians and hence the normal equations (still summed by numpy) are
 the numpy path's exactly (``tests/test_intrinsics_kernels.py`` compares both).
@@ -30,7 +30,7 @@ Array = npt.NDArray[np.float64]
 def _model_residuals(projected_px: Array, px: Array, cx: float, cy: float, radius_px: float,
                      a: float, b: float, residuals: Array, squared: Array) -> None:
     """``residuals[m] = px[m] - pixels(projected_px[m])`` under ``theta = (a, b)`` (the
-    model of :meth:`.intrinsics._Model.pixels`) and ``squared[m]`` its squared length (inf
+    model of :meth:`.intrinsics_model.IntrinsicsModel.pixels`) and ``squared[m]`` its squared length (inf
     where not finite)."""
     one_a = 1.0 + a
     for m in range(projected_px.shape[0]):
@@ -51,7 +51,7 @@ def _model_jacobian(projected_px: Array, jac: Array, rows: npt.NDArray[np.int64]
                     cy: float, radius_px: float, a: float, b: float, full: Array) -> None:
     """``full[i]`` (2, 8): the pose (from the given camera's ``jac[rows[i]]`` (2, 6)) and
     ``theta`` Jacobian of the model's pixels of correspondence ``rows[i]``
-    (:meth:`.intrinsics._Model.jacobian`)."""
+    (:meth:`.intrinsics_model.IntrinsicsModel.jacobian`)."""
     scale = 2.0 * b / radius_px
     one_a = 1.0 + a
     for i in range(rows.shape[0]):
