@@ -173,6 +173,7 @@ def test_a_damaged_file_is_refused_by_name_and_nothing_is_written(built, tmp_pat
         import_map(bad, target)
 
 
+@pytest.mark.slow
 def test_an_export_while_serving_and_taking_puts_is_consistent(synthetic_scene, tmp_path):
     """Puts stream in (snapshot every 3 records, so snapshots are taken and pruned under the
     export) while three exports run; each export imports and restores to a prefix of the puts."""

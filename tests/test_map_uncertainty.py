@@ -92,6 +92,7 @@ def test_one_keyframe_matches_monte_carlo():
     assert not _close(expected, state.keyframes[0].pose_covariance, 0.12)
 
 
+@pytest.mark.slow
 def test_keyframes_that_share_one_error_match_monte_carlo():
     """Three keyframes drawing one shared error (a drifting trajectory): the share-weighted
     mean of the moved covariances is what the solved poses show."""
@@ -107,6 +108,7 @@ def test_keyframes_that_share_one_error_match_monte_carlo():
                                                        np.diag(expected))
 
 
+@pytest.mark.slow
 def test_independent_keyframes_stay_near_it():
     """Independent keyframe errors (the assumption not made): rotations partly cancel, down
     to what three independent equal shares give (a third of the variance); translations

@@ -327,6 +327,7 @@ def test_a_map_written_by_the_previous_format_restores_and_gets_an_identity(
 
 # -- a disk-full snapshot ---------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_a_snapshot_failing_on_a_full_disk_leaves_nothing_and_puts_go_on(
         storage, synthetic_scene, monkeypatch):
     """Injected: the snapshot's write of a feature column (a part every snapshot writes)

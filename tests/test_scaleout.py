@@ -74,6 +74,7 @@ def _same_pose_covariances(state, ids) -> bool:
     return True
 
 
+@pytest.mark.slow
 def test_late_replica_bootstraps_then_follows_the_stream(synthetic_scene, tmp_path):
     scene = synthetic_scene
     port = free_port()

@@ -428,6 +428,7 @@ def test_keyframe_with_svo_features_registers_their_landmarks(served, synthetic_
 
 # -- concurrency ---------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_eight_clients_query_while_keyframes_stream_in(served, synthetic_scene):
     """Every reply is a correct pose or an explicit busy; none is wrong, none is lost."""
     _, port, client, events = served

@@ -44,6 +44,7 @@ def service():
         yield endpoint(port)
 
 
+@pytest.mark.slow
 def test_remote_eval_scores_like_in_process(scene_dataset, service):
     local = evaluate(scene_dataset, METHOD, progress=False)
     remote = evaluate(scene_dataset, METHOD, progress=False,
