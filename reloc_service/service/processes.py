@@ -136,11 +136,16 @@ def worker_main(conn: Connection, index: int) -> None:
         if kind == "query":
             conn.send(_answer(replicas, *msg[1:]))
         elif kind == "drop":   # the parent closed the map: its replica goes too
-            replicas.pop(msg[1], None)
+            dropped = replicas.pop(msg[1], None)
+            if dropped is not None:
+                dropped.engine.close()   # with the pools it still had to make
         elif kind == "load":
             _, name, base, spec, cameras = msg
             try:
                 engine = Engine.load(base, spec.engine_conf(), train=False)   # as saved
+                previous = replicas.pop(name, None)
+                if previous is not None:
+                    previous.engine.close()
                 replicas[name] = ReplicaMap(name, engine, spec, cameras)
             except Exception:
                 log.exception("worker %d: the replica of map %s did not load from %s", index,
