@@ -63,6 +63,7 @@ def test_f_tail_is_scipy_stats(dfn: float, dfd: float) -> None:
         assert _same(dist.f.sf(x, dfn, dfd), stats.f.sf(x, dfn, dfd)), (x, dfn, dfd)
 
 
+@pytest.mark.slow   # a fresh interpreter: its imports take seconds
 def test_serving_imports_no_scipy_stats() -> None:
     """What ``reloc serve`` imports to answer (the service, the default method's modules)
     leaves scipy.stats unloaded: its import alone took 2-3 s of the start-up."""

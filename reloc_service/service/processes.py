@@ -51,14 +51,10 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode
 
-from ..algorithms.pose import kernels as pose_kernels
-from ..core import hamming
 from ..core.cameras import Camera
-from ..core.frame import area_downscale
 from ..core.numeric import limit_blas_threads
 from ..engine import Engine, EngineConf, MappingConf
 from ..storage.keyframe_parts import EVERYTHING
@@ -66,6 +62,7 @@ from . import handlers
 from .codec import error_reply
 from .durability import map_dirname
 from .served import ServedMap, WriteOp
+from .warm import warm_kernels
 
 if TYPE_CHECKING:
     from .runtime import MapRuntime
@@ -119,11 +116,7 @@ def worker_main(conn: Connection, index: int) -> None:
 
     cv2.setNumThreads(1)
     limit_blas_threads(1)
-    # The compiled kernels (numba, the [jit] extra; about a second to import) load with the
-    # worker, not within its first query's answer time.
-    hamming.compiled_knn2()
-    pose_kernels.warm_up()
-    area_downscale(np.zeros((32, 32), np.uint8), 2, 2)
+    warm_kernels()   # with the worker, not within its first query's answer time
     replicas: dict[str, ReplicaMap] = {}
     while True:
         try:
