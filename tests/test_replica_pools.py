@@ -1,6 +1,7 @@
-"""The pools of an engine that answers no query (a service's, with worker processes): its
-saves carry the stored index over, so a replica's load reads it rather than building it;
-and a closed engine stops making its pools."""
+"""The whole-map pools at load: an engine that answers no query (a service's, with worker
+processes) carries their stored index over in its saves, so a replica's load reads it rather
+than building it; a closed engine stops making them; making them keeps no keyframe's
+features built."""
 
 from __future__ import annotations
 
@@ -106,3 +107,15 @@ def test_closing_an_engine_stops_its_pools_before_the_next(saved, monkeypatch) -
     state = engine.map.snapshot()
     assert held_pool(state, "sift", IndexConf(exact_rows=0)) is None
     assert np.isfinite(engine.held_bytes())
+
+
+def test_making_the_pools_leaves_no_keyframe_features_built(saved) -> None:
+    """The pools read every keyframe's features once; kept built, they would take memory
+    (about 135 MB per 1000 keyframes) that the map's budget does not count."""
+    engine = Engine.load(saved, conf())
+    assert engine.prepared.wait(60)
+    state = engine.map.snapshot()
+    for kind in ("orb", "sift"):
+        assert held_pool(state, kind, IndexConf(exact_rows=0)) is not None
+    built = {kf_id: kf.features.built_kinds for kf_id, kf in state.keyframes.items()}
+    assert not any(built.values()), built

@@ -80,7 +80,7 @@ def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | N
         start = time.perf_counter()
         if _make(finder, state, directory):
             read.append(finder.conf.kind)
-        log.debug("%s pool of %d keyframes ready in %.2f s (%s)", finder.conf.kind,
+        log.info("%s pool of %d keyframes ready in %.2f s (%s)", finder.conf.kind,
                   len(state.keyframes), time.perf_counter() - start,
                   "index read" if read and read[-1] == finder.conf.kind else "made")
     return read
