@@ -8,7 +8,6 @@ import sys
 import textwrap
 
 import pytest
-
 from service_support import ROOT
 
 pytest.importorskip("numba")
