@@ -210,6 +210,8 @@ class Engine:
         #: The models directory :meth:`load` read and the state it made of it (while that
         #: state lives): a save of that very state carries its stored pool indexes over.
         self._loaded_from: tuple[Path, weakref.ref[MapState]] | None = None
+        #: The relocalizers :meth:`load` restored, when it restored every method's model.
+        self._loaded_live: list[weakref.ref[_Live]] | None = None
         #: Feature kinds whose pool index the load read rather than built (set with
         #: :attr:`prepared`); :meth:`close` stops the pools still to be made.
         self.pools_read: list[str] = []
@@ -438,6 +440,7 @@ class Engine:
         engine.builder.add_feature_kinds(engine.builder.conf.feature_kinds)
         with engine._rw.write():
             engine._publish([])
+        restored_all = True
         for method, live in list(engine._live.items()):
             path = models_dir / model_dir_name(method) if models_dir is not None else None
             if path is not None and path.is_dir():
@@ -445,6 +448,7 @@ class Engine:
                 if restored.relocalizer.load(path):
                     engine._live[method] = restored
                     continue
+            restored_all = False
             if pools and path is not None:   # before training, which would build them again
                 engine.pools_read += restore_pools(live.relocalizer, engine._published, path)
             engine._feed(live.relocalizer, engine._published, progress=progress,
@@ -455,7 +459,22 @@ class Engine:
             engine._start_prepare(models_dir)
         if models_dir is not None:
             engine._loaded_from = (models_dir, weakref.ref(engine._published))
+            if restored_all:
+                engine._loaded_live = [weakref.ref(live) for live in engine._live.values()]
         return engine
+
+    def loaded_snapshot(self) -> Path | None:
+        """The snapshot directory :meth:`load` read, while this engine holds just what it
+        holds: the map is the state made of it and every method is the model restored from
+        it (none trained since, none added); else None."""
+        loaded, live = self._loaded_from, self._loaded_live
+        if loaded is None or live is None or loaded[1]() is not self._published:
+            return None
+        current = list(self._live.values())
+        if len(current) != len(live) or any(r() is not c for r, c in zip(live, current,
+                                                                         strict=True)):
+            return None
+        return loaded[0].parent
 
     def _loaded_models(self, method: str, state: MapState) -> Path | None:
         """The model directory of ``method`` that :meth:`load` read, if ``state`` is the

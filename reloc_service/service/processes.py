@@ -58,6 +58,7 @@ from ..core.cameras import Camera
 from ..core.numeric import limit_blas_threads
 from ..engine import Engine, EngineConf, MappingConf
 from ..storage.keyframe_parts import EVERYTHING
+from ..storage.snapshot_link import link_snapshot
 from . import handlers
 from .codec import error_reply
 from .durability import map_dirname
@@ -321,9 +322,12 @@ class ProcessWorkers:
             # named like the map's storage directory, cut short: mkdtemp adds to it, and the
             # name must fit NAME_MAX whatever the map's name
             path = Path(tempfile.mkdtemp(prefix=f"{map_dirname(rt.name)[:120]}-", dir=self._scratch))
-            # float64 geometry as the map holds it: a worker answers bit for bit as this map does
-            # and every image and depth map it holds (a copy, not a compact snapshot)
-            rt.engine.save(path, exact_geometry=True, parts=EVERYTHING)
+            # unchanged since it was loaded: the snapshot it was loaded from, linked; else
+            # float64 geometry as the map holds it (a worker answers bit for bit as this map
+            # does) and every image and depth map it holds (a copy, not a compact snapshot)
+            loaded = rt.engine.loaded_snapshot()
+            if loaded is None or not link_snapshot(loaded, path):
+                rt.engine.save(path, exact_geometry=True, parts=EVERYTHING)
             base = _Base(path, {id(h) for h in targets})
             with self._lock:
                 self._bases[id(base)] = base
