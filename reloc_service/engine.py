@@ -41,6 +41,7 @@ import os
 import tempfile
 import threading
 import time
+import weakref
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -206,6 +207,15 @@ class Engine:
         #: Set once the pools a load prepares are made (:meth:`load`); set at once otherwise.
         self.prepared = threading.Event()
         self.prepared.set()
+        #: The models directory :meth:`load` read and the state it made of it (while that
+        #: state lives): a save of that very state carries its stored pool indexes over.
+        self._loaded_from: tuple[Path, weakref.ref[MapState]] | None = None
+        #: The relocalizers :meth:`load` restored, when it restored every method's model.
+        self._loaded_live: list[weakref.ref[_Live]] | None = None
+        #: Feature kinds whose pool index the load read rather than built (set with
+        #: :attr:`prepared`); :meth:`close` stops the pools still to be made.
+        self.pools_read: list[str] = []
+        self._closed = threading.Event()
         kinds: set[str] = set()
         for method in self.conf.methods:
             live = self._create(method, self._published)
@@ -398,7 +408,8 @@ class Engine:
                 for method, live in self._live.items():
                     (Path(tmp) / model_dir_name(method)).mkdir()
                     live.relocalizer.save(Path(tmp) / model_dir_name(method))
-                    save_pools(live.relocalizer, Path(tmp) / model_dir_name(method), state)
+                    save_pools(live.relocalizer, Path(tmp) / model_dir_name(method), state,
+                               self._loaded_models(method, state))
                 methods = list(self._live)
                 reads_images = any(live.relocalizer.reads_keyframe_images
                                    for live in self._live.values())
@@ -429,6 +440,7 @@ class Engine:
         engine.builder.add_feature_kinds(engine.builder.conf.feature_kinds)
         with engine._rw.write():
             engine._publish([])
+        restored_all = True
         for method, live in list(engine._live.items()):
             path = models_dir / model_dir_name(method) if models_dir is not None else None
             if path is not None and path.is_dir():
@@ -436,15 +448,41 @@ class Engine:
                 if restored.relocalizer.load(path):
                     engine._live[method] = restored
                     continue
+            restored_all = False
             if pools and path is not None:   # before training, which would build them again
-                restore_pools(live.relocalizer, engine._published, path)
+                engine.pools_read += restore_pools(live.relocalizer, engine._published, path)
             engine._feed(live.relocalizer, engine._published, progress=progress,
                          desc=f"{method}: keyframes")
             if train:
                 live.relocalizer.train(progress=progress)
         if pools:
             engine._start_prepare(models_dir)
+        if models_dir is not None:
+            engine._loaded_from = (models_dir, weakref.ref(engine._published))
+            if restored_all:
+                engine._loaded_live = [weakref.ref(live) for live in engine._live.values()]
         return engine
+
+    def loaded_snapshot(self) -> Path | None:
+        """The snapshot directory :meth:`load` read, while this engine holds just what it
+        holds: the map is the state made of it and every method is the model restored from
+        it (none trained since, none added); else None."""
+        loaded, live = self._loaded_from, self._loaded_live
+        if loaded is None or live is None or loaded[1]() is not self._published:
+            return None
+        current = list(self._live.values())
+        if len(current) != len(live) or any(r() is not c for r, c in zip(live, current,
+                                                                         strict=True)):
+            return None
+        return loaded[0].parent
+
+    def _loaded_models(self, method: str, state: MapState) -> Path | None:
+        """The model directory of ``method`` that :meth:`load` read, if ``state`` is the
+        state it made of it (unchanged since), else None."""
+        loaded = self._loaded_from
+        if loaded is None or loaded[1]() is not state:
+            return None
+        return loaded[0] / model_dir_name(method)
 
     def _start_prepare(self, models_dir: Path | None) -> None:
         """Make the whole-map pools the queries read (:func:`.map_pools.restore_pools`) on a
@@ -459,7 +497,8 @@ class Engine:
         def run() -> None:
             try:
                 for relocalizer, directory in work:
-                    restore_pools(relocalizer, state, directory)
+                    self.pools_read += restore_pools(relocalizer, state, directory,
+                                                     self._closed.is_set)
             except Exception as exc:   # the first query makes what is missing
                 log.error("preparing the map's pools failed: %s", exc)
             finally:
@@ -474,7 +513,9 @@ class Engine:
         return pool_bytes(self._published)
 
     def close(self) -> None:
-        """Nothing to release (kept for backends that expect it)."""
+        """Stop making the pools a load prepares, before the next one (the map is closed:
+        its memory goes with the last reference, not after a build nobody will read)."""
+        self._closed.set()
 
 
 def _move_contents(source: Path, target: Path) -> None:

@@ -3,7 +3,7 @@
 W/fleet/template/template) served with a memory budget (so it is loaded by the first query,
 as at a fleet's start), one query sent as soon as the service answers.
 
-    python scripts/startup_breakdown.py TEMPLATE_DIR QUERY_IMAGE [--runs 3]
+    python scripts/startup_breakdown.py TEMPLATE_DIR QUERY_IMAGE [--runs 3] [--mode process]
 
 Prints, per run, seconds from the process start to: the service's "serving" log line
 (imports, Zenoh), the end of the map's cold load, and the first answer; then their medians.
@@ -37,10 +37,10 @@ def _stamp_of(log: Path, needle: str) -> float | None:
     return None
 
 
-def one_run(template: Path, jpeg: bytes, work: Path) -> dict[str, float | None]:
+def one_run(template: Path, jpeg: bytes, work: Path, mode: str) -> dict[str, float | None]:
     storage = work / "storage"
     copy_map(StoredMap(template, 0, 0), storage, "site000")
-    conf = FleetConf(maps=1)
+    conf = FleetConf(maps=1, worker_mode=mode)
     with serve(conf, storage, 100000.0, work / "service") as served:
         wall_start = time.time() - (time.monotonic() - served.started)
         total = first_answer(served, "site000", jpeg, 300.0)
@@ -56,6 +56,8 @@ def main() -> None:
     parser.add_argument("template", type=Path)
     parser.add_argument("query", type=Path)
     parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--mode", choices=("thread", "process"), default="thread",
+                        help="[service] worker_mode (default: thread, as the fleet bench)")
     args = parser.parse_args()
     image = cv2.imread(str(args.query), cv2.IMREAD_GRAYSCALE)
     if image is None:
@@ -64,7 +66,7 @@ def main() -> None:
     runs = []
     for _ in range(args.runs):
         with tempfile.TemporaryDirectory(prefix="startup-") as tmp:
-            runs.append(one_run(args.template, jpeg, Path(tmp)))
+            runs.append(one_run(args.template, jpeg, Path(tmp), args.mode))
         print({k: None if v is None else round(v, 2) for k, v in runs[-1].items()})
     for key in runs[0]:
         values = [r[key] for r in runs if r[key] is not None]

@@ -44,6 +44,7 @@ from .replication import Bootstrap, Peers
 from .residency import dormant_status
 from .runtime import MapRuntime
 from .transfer import Transfers
+from .warm import warm_in_background
 from .workers import Lane, WorkerPool, seconds_left, stop_on_signals
 from .writes import Writes
 from .zenoh_io import PendingQuery, QueryKind, ZenohLayer, open_session
@@ -114,6 +115,8 @@ class Service:
             self.processes = ProcessWorkers(s.workers, EngineSpec.of(
                 self.methods, self.conf.options, self.conf.mapping, self.limits))
             self.registry.processes = self.processes
+        else:   # the queries run here: their kernels load meanwhile, not in the first one
+            warm_in_background()
         self.control_pool = WorkerPool("control", workers=1, queue_size=CONTROL_QUEUE)
         self.writes.open()
         if self.registry.residency is not None:   # a map with puts queued stays resident

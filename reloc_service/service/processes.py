@@ -51,21 +51,19 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode
 
-from ..algorithms.pose import kernels as pose_kernels
-from ..core import hamming
 from ..core.cameras import Camera
-from ..core.frame import area_downscale
 from ..core.numeric import limit_blas_threads
 from ..engine import Engine, EngineConf, MappingConf
 from ..storage.keyframe_parts import EVERYTHING
+from ..storage.snapshot_link import link_snapshot
 from . import handlers
 from .codec import error_reply
 from .durability import map_dirname
 from .served import ServedMap, WriteOp
+from .warm import warm_kernels
 
 if TYPE_CHECKING:
     from .runtime import MapRuntime
@@ -119,11 +117,7 @@ def worker_main(conn: Connection, index: int) -> None:
 
     cv2.setNumThreads(1)
     limit_blas_threads(1)
-    # The compiled kernels (numba, the [jit] extra; about a second to import) load with the
-    # worker, not within its first query's answer time.
-    hamming.compiled_knn2()
-    pose_kernels.warm_up()
-    area_downscale(np.zeros((32, 32), np.uint8), 2, 2)
+    warm_kernels()   # with the worker, not within its first query's answer time
     replicas: dict[str, ReplicaMap] = {}
     while True:
         try:
@@ -136,11 +130,16 @@ def worker_main(conn: Connection, index: int) -> None:
         if kind == "query":
             conn.send(_answer(replicas, *msg[1:]))
         elif kind == "drop":   # the parent closed the map: its replica goes too
-            replicas.pop(msg[1], None)
+            dropped = replicas.pop(msg[1], None)
+            if dropped is not None:
+                dropped.engine.close()   # with the pools it still had to make
         elif kind == "load":
             _, name, base, spec, cameras = msg
             try:
                 engine = Engine.load(base, spec.engine_conf(), train=False)   # as saved
+                previous = replicas.pop(name, None)
+                if previous is not None:
+                    previous.engine.close()
                 replicas[name] = ReplicaMap(name, engine, spec, cameras)
             except Exception:
                 log.exception("worker %d: the replica of map %s did not load from %s", index,
@@ -323,9 +322,12 @@ class ProcessWorkers:
             # named like the map's storage directory, cut short: mkdtemp adds to it, and the
             # name must fit NAME_MAX whatever the map's name
             path = Path(tempfile.mkdtemp(prefix=f"{map_dirname(rt.name)[:120]}-", dir=self._scratch))
-            # float64 geometry as the map holds it: a worker answers bit for bit as this map does
-            # and every image and depth map it holds (a copy, not a compact snapshot)
-            rt.engine.save(path, exact_geometry=True, parts=EVERYTHING)
+            # unchanged since it was loaded: the snapshot it was loaded from, linked; else
+            # float64 geometry as the map holds it (a worker answers bit for bit as this map
+            # does) and every image and depth map it holds (a copy, not a compact snapshot)
+            loaded = rt.engine.loaded_snapshot()
+            if loaded is None or not link_snapshot(loaded, path):
+                rt.engine.save(path, exact_geometry=True, parts=EVERYTHING)
             base = _Base(path, {id(h) for h in targets})
             with self._lock:
                 self._bases[id(base)] = base

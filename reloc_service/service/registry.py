@@ -182,6 +182,7 @@ class MapRegistry:
         """Close resident map ``name`` (final snapshot within ``timeout``, journal, lock):
         its files are released; it is loaded again on its next use."""
         rt = self.maps.pop(name)
+        rt.engine.close()   # its pools still to be made are not
         if self.processes is not None:   # the worker processes drop their replicas
             self.processes.detach(rt)
         try:

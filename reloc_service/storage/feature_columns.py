@@ -454,6 +454,20 @@ class LazyFeatures(MutableMapping[str, Features]):
         start, stop = self._rows[kind]
         return stop - start
 
+    def peek(self, kind: str) -> Features | None:
+        """``kind``'s Features, built as ``self[kind]`` builds them but not kept when not
+        built yet (a pass over every keyframe of a map, reading each once, leaves them as
+        they were); None when this keyframe has no ``kind``."""
+        feats = self._built.get(kind)
+        if feats is not None or kind not in self._rows:
+            return feats
+        return self._columns.features(kind, *self._rows[kind])
+
+    @property
+    def built_kinds(self) -> list[str]:
+        """The kinds whose Features are built and kept (memory beside the stored rows)."""
+        return sorted(self._built)
+
     def codebook(self, kind: str) -> PQCodebook | None:
         """The codebook ``kind``'s stored descriptors decode with (None: stored in full)."""
         return self._columns.codebooks.get(kind)

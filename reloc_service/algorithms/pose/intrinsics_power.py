@@ -27,8 +27,9 @@ import functools
 
 import numpy as np
 import numpy.typing as npt
-from scipy import optimize, stats
+from scipy import optimize
 
+from ...core import distributions as stats
 from .base import PoseEstimate, total_covariance
 from .intrinsics import IntrinsicsCheck
 

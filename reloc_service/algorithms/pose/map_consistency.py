@@ -20,8 +20,8 @@ import weakref
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
+from ...core import distributions as stats
 from ...core.frame import Features
 from ...core.geometry import invert, transform_points
 from ...core.landmark_table import LandmarkColumns

@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import io
+import shutil
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -66,6 +67,22 @@ def save_index(directory: Path, kind: str, conf: IndexConf, made: MapPool) -> Pa
     path = out / f"{kind}.npz"
     path.write_bytes(buf.getvalue())
     return path
+
+
+def copy_index(source: Path, target: Path, kind: str) -> Path | None:
+    """Copy the ``kind`` index stored in model directory ``source`` into model directory
+    ``target`` (a save of the very map state ``source`` was loaded as, whose pool was not
+    made in this process); None when ``source`` holds none (or no longer exists). Whether
+    it still fits is for :func:`load_index` to say, as for any stored index."""
+    path = source / STORE_DIR / f"{kind}.npz"
+    if not path.is_file():
+        return None
+    out = target / STORE_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        return Path(shutil.copyfile(path, out / path.name))
+    except FileNotFoundError:   # pruned meanwhile: the next load builds it
+        return None
 
 
 def stored_kinds(directory: Path) -> list[str]:

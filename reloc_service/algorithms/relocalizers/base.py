@@ -22,9 +22,9 @@ import numpy as np
 import numpy.typing as npt
 from reloc_client.protocol.geometry import pose_covariance_problem
 from reloc_client.result import RelocResult, RelocStatus
-from scipy import stats
 from scipy.spatial import ConvexHull, QhullError
 
+from ...core import distributions as stats
 from ...core.cameras import Camera
 from ...core.errors import ConfigError
 from ...core.features import FeatureConf

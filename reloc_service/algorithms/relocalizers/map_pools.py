@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from ...core.errors import StorageError
@@ -17,7 +18,7 @@ from ...core.map import MapState
 from ..pose.map_pool import MapPool, held_pool, map_pool
 from ..pose.p3p import P3PPoseFinder
 from ..pose.repetition_index import IndexConf
-from ..pose.repetition_store import load_index, save_index
+from ..pose.repetition_store import copy_index, load_index, save_index
 from .base import Relocalizer
 
 log = logging.getLogger(__name__)
@@ -45,32 +46,41 @@ def pool_finders(relocalizer: Relocalizer) -> list[P3PPoseFinder]:
     return unique
 
 
-def save_pools(relocalizer: Relocalizer, directory: Path, state: MapState) -> list[Path]:
+def save_pools(relocalizer: Relocalizer, directory: Path, state: MapState,
+               stored: Path | None = None) -> list[Path]:
     """Store beside ``relocalizer``'s model in ``directory`` the indexes of the pools made
-    for ``state`` (none is made here: a pool not made yet is built at the next load)."""
+    for ``state``; a pool not made here (an engine that answers no query: a service's, with
+    worker processes) has its index copied from model directory ``stored``, where ``state``
+    was loaded from, if given (none is made here: else it is built at the next load)."""
     written = []
     for finder in pool_finders(relocalizer):
         conf = finder.conf.repetition_index()
         made = held_pool(state, finder.conf.kind, conf)
         if made is not None:
             path = save_index(directory, finder.conf.kind, conf, made)
-            if path is not None:
-                written.append(path)
+        else:
+            path = None if stored is None else copy_index(stored, directory, finder.conf.kind)
+        if path is not None:
+            written.append(path)
     return written
 
 
-def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | None
-                  ) -> list[str]:
+def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | None,
+                  cancelled: Callable[[], bool] | None = None) -> list[str]:
     """Make ``relocalizer``'s pools over ``state`` in the order its steps run, each with
     the index stored in model directory ``directory`` where it fits
     (:func:`..pose.repetition_store.load_index`), else built; the kinds whose index was
-    read."""
+    read. Stops before the next pool once ``cancelled()`` is true (the map was closed: a
+    pool made for it would only hold its memory longer)."""
     read = []
     for finder in pool_finders(relocalizer):
+        if cancelled is not None and cancelled():
+            log.debug("pools of %d keyframes: cancelled", len(state.keyframes))
+            break
         start = time.perf_counter()
         if _make(finder, state, directory):
             read.append(finder.conf.kind)
-        log.debug("%s pool of %d keyframes ready in %.2f s (%s)", finder.conf.kind,
+        log.info("%s pool of %d keyframes ready in %.2f s (%s)", finder.conf.kind,
                   len(state.keyframes), time.perf_counter() - start,
                   "index read" if read and read[-1] == finder.conf.kind else "made")
     return read

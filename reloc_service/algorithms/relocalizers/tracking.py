@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
+from ...core import distributions as stats
 from ...core import features as feature_lib
 from ...core.errors import ConfigError
 from ...core.frame import Features, Frame, Keyframe

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
+from ...core import distributions as stats
 from ...core.cameras import Camera
 from ...core.geometry import pose_error, se3_log
 from ..pose.base import PoseEstimate, Support, total_covariance

@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from scipy.stats import chi2
 
+from ...core.distributions import chi2
 from ...core.geometry import invert, pose_to_tum, rotation_angle, se3_adjoint, se3_exp, se3_log
 
 log = logging.getLogger(__name__)

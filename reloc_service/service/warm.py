@@ -1,0 +1,49 @@
+"""The compiled kernels (numba, the [jit] extra) loaded before the first query rather than
+within its answer time: numba's import and the load of about 16 kernels from its on-disk
+cache take 1.5-2 s of a fresh process, which the first query would otherwise pay. A worker
+process loads them when it starts; a service answering on threads, on a thread of its own
+from its start (while it opens Zenoh and loads its first map)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+
+from ..algorithms.pose import kernels as pose_kernels
+from ..core import hamming
+from ..core.frame import area_downscale
+
+log = logging.getLogger(__name__)
+
+#: The name of the thread :func:`warm_in_background` starts.
+THREAD_NAME = "warm-kernels"
+
+
+def warm_kernels() -> None:
+    """Load (or compile) every kernel the default method's queries call, on a few values;
+    nothing where numba is not installed."""
+    orb = np.zeros((2, 32), np.uint8)   # ORB's 256-bit descriptors, as queries match them
+    hamming.knn2(orb, orb)
+    pose_kernels.warm_up()
+    area_downscale(np.zeros((32, 32), np.uint8), 2, 2)
+
+
+def warm_in_background() -> threading.Thread:
+    """Run :func:`warm_kernels` on a daemon thread (a failure is logged: the first query
+    loads what is missing)."""
+
+    def run() -> None:
+        start = time.perf_counter()
+        try:
+            warm_kernels()
+        except Exception as exc:
+            log.warning("loading the compiled kernels ahead of the first query failed: %s", exc)
+            return
+        log.debug("compiled kernels loaded in %.2f s", time.perf_counter() - start)
+
+    thread = threading.Thread(target=run, name=THREAD_NAME, daemon=True)
+    thread.start()
+    return thread

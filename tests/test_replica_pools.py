@@ -1,0 +1,121 @@
+"""The whole-map pools at load: an engine that answers no query (a service's, with worker
+processes) carries their stored index over in its saves, so a replica's load reads it rather
+than building it; a closed engine stops making them; making them keeps no keyframe's
+features built."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from reloc_service.algorithms.pose.map_pool import held_pool
+from reloc_service.algorithms.pose.repetition_index import IndexConf, RepetitionIndex
+from reloc_service.algorithms.relocalizers import map_pools
+from reloc_service.core.mapping import MappingConf
+from reloc_service.engine import Engine, EngineConf
+from reloc_service.storage.keyframe_parts import EVERYTHING
+from reloc_service.storage.snapshot import current_snapshot, model_dir_name
+
+#: Two p3p steps of different kinds (two pools, made one after the other), one with a
+#: trained model (a load restores it, and makes the pools on a thread of their own).
+METHOD = "sbi+p3p:orb,bow+p3p"
+
+
+def conf() -> EngineConf:
+    """Every pool indexed, however small the map."""
+    return EngineConf(methods=(METHOD,), mapping=MappingConf(max_features=400),
+                      options={"p3p": {"repetition_exact_rows": 0}})
+
+
+@pytest.fixture(scope="module")
+def saved(synthetic_scene, tmp_path_factory) -> Path:
+    """A trained engine's save: its map, models and both pools' indexes."""
+    engine = Engine(conf())
+    for i, image in enumerate(synthetic_scene.keyframe_images):
+        engine.add_keyframe(i, image, synthetic_scene.camera, synthetic_scene.keyframe_poses[i])
+    engine.train()
+    directory = tmp_path_factory.mktemp("replica-pools") / "map"
+    engine.save(directory)
+    assert sorted(stored(directory)) == ["orb", "sift"]
+    return directory
+
+
+def stored(directory: Path) -> list[str]:
+    folder = current_snapshot(directory) / "models" / model_dir_name(METHOD) / "repetition"
+    return [p.stem for p in folder.glob("*.npz")]
+
+
+def count_builds(monkeypatch) -> list[int]:
+    made: list[int] = []
+    real = RepetitionIndex.build.__func__   # type: ignore[attr-defined]
+
+    def build(cls, *args, **kw):
+        made.append(1)
+        return real(cls, *args, **kw)
+
+    monkeypatch.setattr(RepetitionIndex, "build", classmethod(build))
+    return made
+
+
+def test_a_replica_of_an_engine_without_pools_reads_their_index(saved, tmp_path,
+                                                                 monkeypatch) -> None:
+    service = Engine.load(saved, conf(), pools=False)   # makes no pool
+    base = tmp_path / "base"
+    service.save(base, exact_geometry=True, parts=EVERYTHING)   # what a rebase sends
+    assert sorted(stored(base)) == ["orb", "sift"]
+    made = count_builds(monkeypatch)
+    replica = Engine.load(base, conf(), train=False)   # what a worker does with it
+    assert replica.prepared.wait(60)
+    assert not made, "the worker built an index the service's save could have carried"
+    assert sorted(replica.pools_read) == ["orb", "sift"]
+    for kind in ("orb", "sift"):
+        assert held_pool(replica.map.snapshot(), kind, IndexConf(exact_rows=0)) is not None
+
+
+def test_a_changed_map_carries_no_index_over(saved, synthetic_scene, tmp_path) -> None:
+    service = Engine.load(saved, conf(), pools=False)
+    scene = synthetic_scene
+    pose = scene.keyframe_poses[0].copy()
+    pose[:3, 3] += 0.05
+    service.add_keyframe(1000, scene.keyframe_images[0], scene.camera, pose)
+    base = tmp_path / "base"
+    service.save(base)
+    assert stored(base) == []   # its pools are for the other state: built at the next load
+
+
+def test_closing_an_engine_stops_its_pools_before_the_next(saved, monkeypatch) -> None:
+    first_started, release = threading.Event(), threading.Event()
+    real = map_pools._make
+    made: list[str] = []
+
+    def slow_make(finder, state, directory):
+        made.append(finder.conf.kind)
+        first_started.set()
+        assert release.wait(60)
+        return real(finder, state, directory)
+
+    monkeypatch.setattr(map_pools, "_make", slow_make)
+    engine = Engine.load(saved, conf())
+    assert first_started.wait(60)
+    engine.close()   # evicted while its first pool is being made
+    release.set()
+    assert engine.prepared.wait(60)
+    assert made == ["orb"], "the second pool was made for a closed map"
+    state = engine.map.snapshot()
+    assert held_pool(state, "sift", IndexConf(exact_rows=0)) is None
+    assert np.isfinite(engine.held_bytes())
+
+
+def test_making_the_pools_leaves_no_keyframe_features_built(saved) -> None:
+    """The pools read every keyframe's features once; kept built, they would take memory
+    (about 135 MB per 1000 keyframes) that the map's budget does not count."""
+    engine = Engine.load(saved, conf())
+    assert engine.prepared.wait(60)
+    state = engine.map.snapshot()
+    for kind in ("orb", "sift"):
+        assert held_pool(state, kind, IndexConf(exact_rows=0)) is not None
+    built = {kf_id: kf.features.built_kinds for kf_id, kf in state.keyframes.items()}
+    assert not any(built.values()), built
