@@ -5,6 +5,7 @@ verification)."""
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -104,16 +105,28 @@ class P3PPoseFinder(PoseFinder):
 
         When too few matches survive for a pose, the estimate is the best keyframe's pose with
         zero inliers, so the verification refuses it with the counts as the reason."""
+        found = self.find_pose_deferred(query, candidates, state)
+        if found is not None:
+            found.settle()
+        return found
+
+    def find_pose_deferred(self, query: Frame, candidates: list[PlaceCandidate],
+                           state: MapState) -> PoseEstimate | None:
+        """:meth:`find_pose` with the intrinsics test and the map's errors (:meth:`_settled`)
+        left to verification (:attr:`PoseEstimate.deferred_settling`): a pose refused for
+        its inliers' count, consensus, residuals or spread never pays for the test, whose
+        verdict those refusals do not read."""
         found = self._unsettled_pose(query, candidates, state)
-        if found is None:
-            return None
-        # Timed as its own stage: the intrinsics test is a large share of a query that
-        # otherwise shows in no stage of its timings.
+        if found is not None:
+            found.deferred_settling = functools.partial(self._timed_settle, found, state)
+        return found
+
+    def _timed_settle(self, est: PoseEstimate, state: MapState) -> None:
+        """:meth:`_settled` in place, timed as its own stage: the intrinsics test is a large
+        share of a query that otherwise shows in no stage of its timings."""
         start = time.perf_counter()
-        settled = self._settled(found, state)
-        settled.timings["settle"] = (settled.timings.get("settle", 0.0)
-                                     + time.perf_counter() - start)
-        return settled
+        self._settled(est, state)
+        est.timings["settle"] = est.timings.get("settle", 0.0) + time.perf_counter() - start
 
     def _settled(self, est: PoseEstimate, state: MapState) -> PoseEstimate:
         """``est`` with the errors it owes to the intrinsics and the map
