@@ -117,9 +117,12 @@ class P3PPoseFinder(PoseFinder):
         its inliers' count, consensus, residuals or spread never pays for the test, whose
         verdict those refusals do not read."""
         found = self._unsettled_pose(query, candidates, state)
-        if found is not None:
-            found.deferred_settling = functools.partial(self._timed_settle, found, state)
-        return found
+        return None if found is None else self._deferred(found, state)
+
+    def _deferred(self, est: PoseEstimate, state: MapState) -> PoseEstimate:
+        """``est`` with :meth:`_settled` left in its :attr:`PoseEstimate.deferred_settling`."""
+        est.deferred_settling = functools.partial(self._timed_settle, est, state)
+        return est
 
     def _timed_settle(self, est: PoseEstimate, state: MapState) -> None:
         """:meth:`_settled` in place, timed as its own stage: the intrinsics test is a large
@@ -248,7 +251,8 @@ class P3PPoseFinder(PoseFinder):
         those the twins of its landmarks support (landmarks anywhere in the map matched to
         the inliers' query keypoints as closely as Lowe's ratio allows), each grown by guided
         matching over the keyframes its twins came from and those near it; only those
-        ``plausible`` as a first pose."""
+        ``plausible`` as a first pose. Their settling (the intrinsics test) is left to their
+        verification (:attr:`PoseEstimate.deferred_settling`)."""
         feats = query.features.get(self._feature_key)
         if feats is None or estimate.inlier_keypoints is None or estimate.inlier_landmark_ids is None:
             return []
@@ -273,8 +277,7 @@ class P3PPoseFinder(PoseFinder):
             # local map, as a first pose with few inliers is (judged on its twin consensus).
             alt = self._grow(query, feats, alt, [state.keyframes[k] for k in alt.keyframe_ids],
                              state, twins[0], pool.landmark_ids[twins[1]])
-            grown.append(settle_pose_errors(alt, state, self.conf.kind, self.conf,
-                                            alt.inlier_landmark_ids))
+            grown.append(self._deferred(alt, state))
         return grown
 
     def _elsewhere(self, query: Frame, estimate: PoseEstimate, state: MapState,
@@ -303,9 +306,10 @@ class P3PPoseFinder(PoseFinder):
         # ``plausible`` reads the inliers, the unguided evidence, the inlier threshold, the
         # image size, the sample size and the chance probability, none of which settling
         # (the intrinsics' verdict, the covariances) changes: so the pose is judged before
-        # it is settled, and the intrinsics test is run only for a pose that is kept.
+        # it is settled, and the intrinsics test is left to the verification of a pose
+        # that is kept.
         return ([] if found is None or not plausible(found)
-                else [self._settled(found, state)])
+                else [self._deferred(found, state)])
 
     def _map_pool(self, state: MapState) -> tuple[LandmarkPool, RepetitionIndex, list[int]]:
         """The landmarks of every keyframe of ``state`` (:meth:`LandmarkPool.gather`), their
