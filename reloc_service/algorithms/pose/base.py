@@ -102,7 +102,8 @@ class PoseEstimate:
     #: map's errors, :meth:`PoseFinder.find_pose_deferred`): verification runs it only once
     #: the cheaper tests that do not read its outcome have passed. None: settled, or nothing
     #: to settle.
-    deferred_settling: Callable[[], None] | None = field(default=None, repr=False)
+    deferred_settling: Callable[[], None] | None = field(default=None, repr=False,
+                                                         compare=False)
 
     def settle(self) -> None:
         """Run :attr:`deferred_settling`, once (nothing when there is none)."""
