@@ -98,6 +98,18 @@ class PoseEstimate:
     #: map's calibration, as a drone whose camera built the map), which is what a view
     #: that cannot check the intrinsics may trust; None where not known (not trusted).
     query_camera_is_map_calibration: bool | None = None
+    #: The settling a pose finder left for verification to run (the intrinsics test and the
+    #: map's errors, :meth:`PoseFinder.find_pose_deferred`): verification runs it only once
+    #: the cheaper tests that do not read its outcome have passed. None: settled, or nothing
+    #: to settle.
+    deferred_settling: Callable[[], None] | None = field(default=None, repr=False,
+                                                         compare=False)
+
+    def settle(self) -> None:
+        """Run :attr:`deferred_settling`, once (nothing when there is none)."""
+        pending, self.deferred_settling = self.deferred_settling, None
+        if pending is not None:
+            pending()
 
 
 @dataclass(frozen=True, eq=False)
@@ -174,6 +186,13 @@ class PoseFinder(abc.ABC):
     def find_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
                   ) -> PoseEstimate | None:
         """Best estimate from ``candidates`` (best first) in map ``state``; None if none."""
+
+    def find_pose_deferred(self, query: Frame, candidates: list[PlaceCandidate],
+                           state: MapState) -> PoseEstimate | None:
+        """:meth:`find_pose`, with whatever settling of the estimate only verification reads
+        left in :attr:`PoseEstimate.deferred_settling` (for a caller that verifies every
+        estimate at once: most fail a cheaper test first). Default: :meth:`find_pose`."""
+        return self.find_pose(query, candidates, state)
 
     def support(self, query: Frame, world_from_cam: Array, state: MapState) -> Support | None:
         """The query keypoints the map around ``world_from_cam`` explains

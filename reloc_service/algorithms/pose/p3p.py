@@ -5,6 +5,7 @@ verification)."""
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -104,16 +105,31 @@ class P3PPoseFinder(PoseFinder):
 
         When too few matches survive for a pose, the estimate is the best keyframe's pose with
         zero inliers, so the verification refuses it with the counts as the reason."""
+        found = self.find_pose_deferred(query, candidates, state)
+        if found is not None:
+            found.settle()
+        return found
+
+    def find_pose_deferred(self, query: Frame, candidates: list[PlaceCandidate],
+                           state: MapState) -> PoseEstimate | None:
+        """:meth:`find_pose` with the intrinsics test and the map's errors (:meth:`_settled`)
+        left to verification (:attr:`PoseEstimate.deferred_settling`): a pose refused for
+        its inliers' count, consensus, residuals or spread never pays for the test, whose
+        verdict those refusals do not read."""
         found = self._unsettled_pose(query, candidates, state)
-        if found is None:
-            return None
-        # Timed as its own stage: the intrinsics test is a large share of a query that
-        # otherwise shows in no stage of its timings.
+        return None if found is None else self._deferred(found, state)
+
+    def _deferred(self, est: PoseEstimate, state: MapState) -> PoseEstimate:
+        """``est`` with :meth:`_settled` left in its :attr:`PoseEstimate.deferred_settling`."""
+        est.deferred_settling = functools.partial(self._timed_settle, est, state)
+        return est
+
+    def _timed_settle(self, est: PoseEstimate, state: MapState) -> None:
+        """:meth:`_settled` in place, timed as its own stage: the intrinsics test is a large
+        share of a query that otherwise shows in no stage of its timings."""
         start = time.perf_counter()
-        settled = self._settled(found, state)
-        settled.timings["settle"] = (settled.timings.get("settle", 0.0)
-                                     + time.perf_counter() - start)
-        return settled
+        self._settled(est, state)
+        est.timings["settle"] = est.timings.get("settle", 0.0) + time.perf_counter() - start
 
     def _settled(self, est: PoseEstimate, state: MapState) -> PoseEstimate:
         """``est`` with the errors it owes to the intrinsics and the map
@@ -235,7 +251,8 @@ class P3PPoseFinder(PoseFinder):
         those the twins of its landmarks support (landmarks anywhere in the map matched to
         the inliers' query keypoints as closely as Lowe's ratio allows), each grown by guided
         matching over the keyframes its twins came from and those near it; only those
-        ``plausible`` as a first pose."""
+        ``plausible`` as a first pose. Their settling (the intrinsics test) is left to their
+        verification (:attr:`PoseEstimate.deferred_settling`)."""
         feats = query.features.get(self._feature_key)
         if feats is None or estimate.inlier_keypoints is None or estimate.inlier_landmark_ids is None:
             return []
@@ -260,8 +277,7 @@ class P3PPoseFinder(PoseFinder):
             # local map, as a first pose with few inliers is (judged on its twin consensus).
             alt = self._grow(query, feats, alt, [state.keyframes[k] for k in alt.keyframe_ids],
                              state, twins[0], pool.landmark_ids[twins[1]])
-            grown.append(settle_pose_errors(alt, state, self.conf.kind, self.conf,
-                                            alt.inlier_landmark_ids))
+            grown.append(self._deferred(alt, state))
         return grown
 
     def _elsewhere(self, query: Frame, estimate: PoseEstimate, state: MapState,
@@ -290,9 +306,10 @@ class P3PPoseFinder(PoseFinder):
         # ``plausible`` reads the inliers, the unguided evidence, the inlier threshold, the
         # image size, the sample size and the chance probability, none of which settling
         # (the intrinsics' verdict, the covariances) changes: so the pose is judged before
-        # it is settled, and the intrinsics test is run only for a pose that is kept.
+        # it is settled, and the intrinsics test is left to the verification of a pose
+        # that is kept.
         return ([] if found is None or not plausible(found)
-                else [self._settled(found, state)])
+                else [self._deferred(found, state)])
 
     def _map_pool(self, state: MapState) -> tuple[LandmarkPool, RepetitionIndex, list[int]]:
         """The landmarks of every keyframe of ``state`` (:meth:`LandmarkPool.gather`), their

@@ -185,6 +185,7 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
     if patch is not None and patch < min_patch:
         return False, (f"inliers lie on one small planar patch ({patch:.0%} of the image < "
                        f"{min_patch:.0%}): a copy of it elsewhere would fit as well"), 0.0
+    est.settle()  # the intrinsics test, left until the cheaper tests above have passed
     if est.intrinsics is not None and not est.intrinsics.passed:
         return False, est.intrinsics.reason, 0.0
     if intrinsics_unchecked(est, conf.max_position_sigma_m):
