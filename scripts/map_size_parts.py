@@ -2,11 +2,13 @@
 maps, train, stop with SIGTERM, then list the storage by part and by snapshot file.
 
     .venv/bin/python scripts/map_size_parts.py /work/data/room --out /tmp/size \\
-        [--set descriptor_codec='"pq"'] [--files]
+        [--set 'descriptor_codec = "pq"'] [--set 'stop_timeout_s = 280.0'] [--files]
 
 The dataset's ``truth_depth.txt`` is sent as its ``depth.txt`` (a rendered set's depth maps,
 as an RGB-D user would send them) unless it has its own. ``--set KEY=VALUE`` adds a line to
-the service's ``[service]`` table (TOML value). Prints one JSON object: keyframes, total kB a
+the service's ``[service]`` table (TOML value): a loaded machine may need a longer
+``stop_timeout_s`` for the final snapshot (past it the map stays in its journal, and the
+script says so by listing no snapshot file). Prints one JSON object: keyframes, total kB a
 keyframe, kB a keyframe per part (``reloc map info``'s kinds) and, with ``--files``, per
 snapshot file (models and feature columns by name)."""
 
@@ -78,6 +80,7 @@ def upload_and_stop(dataset: Path, work: Path, settings: list[str]) -> None:
     finally:
         proc.send_signal(signal.SIGTERM)
         _, stderr = proc.communicate(timeout=300)
+    (work / "serve.stderr").write_text(stderr)
     if proc.returncode != 0:
         raise RuntimeError(f"serve exited {proc.returncode}: {stderr[-800:]}")
 
@@ -86,6 +89,8 @@ def file_sizes(map_dir: Path) -> dict[str, int]:
     """Bytes of each file of the current snapshot, by path relative to it (models and
     feature columns named; images, depth and thumbnails summed by folder)."""
     snap_root = map_dir / "map"
+    if not (snap_root / "CURRENT").is_file():
+        return {}   # no snapshot: the map is all journal (the stop did not snapshot it)
     current = (snap_root / "CURRENT").read_text().strip()
     snapshot = snap_root / current
     sizes: dict[str, int] = {}
