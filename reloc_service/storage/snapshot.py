@@ -42,14 +42,15 @@ load (format 7, :mod:`.packed_columns`).
 Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the images too,
 decoded by the keyframe on first use): loading rebuilds nothing but each kind's landmark ids
 (one scatter of the observations) and the landmark integer columns stored narrower than they
-are held (one vectorised copy each; float32 points and sigmas stay mapped, their float64 rows
+are held (one vectorised copy each; float32 points and sigmas stay mapped unless packed, their float64 rows
 decoded on read), the arrays stay on disk until a query touches them (each keyframe's features
 are built from the shared columns on first use), and a change after loading copies what it
 changes (copy on write; the snapshot files are never written again). Each file's SHA-256 is
 checked at load (streamed, so a check does not hold the file in memory). Snapshots of format
-version 6 (every column a ``.npy``), 5 (every keypoint, SIFT descriptors, keypoints and angles in full), 4 (every image and
-depth map, depth raw), 3 (float64 landmark points, float32 ORB keypoints and angles), 2
-(every feature field in full, PNG images) and 1 (PNG images, one
+version 6 (every column a ``.npy``), 5 (every keypoint, SIFT descriptors, keypoints and
+angles in full), 4 (every image and depth map, depth raw), 3 (float64 landmark points,
+float32 ORB keypoints and angles), 2 (every feature field in full, PNG images) and 1 (PNG
+images, one
 ``.npz`` per keyframe and kind) are still read.
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
