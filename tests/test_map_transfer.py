@@ -236,3 +236,16 @@ def test_import_into_a_storage_a_service_holds_is_refused(built, tmp_path, capsy
     with DirectoryLock(held, what="storage").acquire("reloc serve"):
         assert reloc(["map", "import", str(file), "--storage", str(held), "--name", "x"]) == 1
     assert "is in use by" in capsys.readouterr().err and not (held / "x").exists()
+
+
+def test_map_info_counts_the_landmarks_of_a_snapshot_with_packed_ids(built):
+    """Format 7 may store the landmark ids compressed: the count comes from the manifest."""
+    from reloc_service.service.map_transfer import map_info
+    from reloc_service.storage.snapshot import load_map
+
+    storage, _ = built
+    map_dir = next(d for d in storage.iterdir() if (d / "service.json").is_file())
+    state, _ = load_map(map_dir / "map")
+    info = map_info(map_dir)
+    assert info["format_version"] == 7
+    assert info["landmarks"] is not None and info["landmarks"] >= len(state.landmarks) > 0

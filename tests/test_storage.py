@@ -511,7 +511,14 @@ V2_MAP = Path(__file__).parent / "data" / "map_v2"
 
 
 def _snapshot_npy(snapshot: Path, rel: str) -> np.ndarray:
-    return np.load(snapshot / rel, allow_pickle=False)
+    """The column ``rel`` (``<stem>.npy``) as stored: raw, or packed by format 7."""
+    from reloc_service.storage.packed_columns import DELTA_PACKED, SUFFIXES, unpack
+
+    stem = rel.removesuffix(".npy")
+    path = next(snapshot / (stem + s) for s in SUFFIXES if (snapshot / (stem + s)).is_file())
+    if path.name.endswith(".zlib"):
+        return unpack(path.read_bytes(), str(path), delta=path.name.endswith(DELTA_PACKED))
+    return np.load(path, allow_pickle=False)
 
 
 def test_format_4_stores_narrow_columns_and_no_derived_points(tmp_path, rich_state):

@@ -150,8 +150,11 @@ def _snapshot_parts(view: MapView, map_dir: Path, name: str) -> None:
     view.snapshot_seq = int(manifest.get("store", {}).get("last_seq", 0))
     view.snapshot_keyframe_ids = [int(kf["id"]) for kf in manifest["keyframes"]]
     view.keyframe_ids = list(view.snapshot_keyframe_ids)
+    count = manifest.get("landmarks", {}).get("count")
     ids = manifest["files"].get("landmarks/ids.npy")
-    if ids is not None:   # the .npy header is 128 bytes: 8-byte ids after it (int32 or int64)
+    if isinstance(count, int):   # format 7 names it (its ids may be stored compressed)
+        view.landmarks = count
+    elif ids is not None:   # the .npy header is 128 bytes: 8-byte ids after it (int32 or int64)
         view.landmarks = _npy_length(snap_dir / "landmarks" / "ids.npy")
 
 

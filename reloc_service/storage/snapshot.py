@@ -1,6 +1,6 @@
 """Map persistence: a whole map saved as an immutable snapshot directory, switched atomically.
 
-Layout of a map directory ``MAP`` (format version 6)::
+Layout of a map directory ``MAP`` (format version 7)::
 
     MAP/CURRENT                     names the current snapshot: ``snapshots/000012``
     MAP/snapshots/000012/
@@ -34,17 +34,23 @@ Layout of a map directory ``MAP`` (format version 6)::
                                     :mod:`.landmark_codec`), else float64
         models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote
 
+A column of ``features/`` or ``landmarks/`` that zlib shrinks to a quarter or less (ids,
+observation offsets, kinds and keyframes, pyramid levels, constant sigmas) is stored as
+``<column>.npy.zlib`` or ``<column>.delta.npy.zlib`` instead of ``.npy`` and decompressed at
+load (format 7, :mod:`.packed_columns`).
+
 Every array is a plain ``.npy`` that :func:`load_map` memory-maps read-only (the images too,
 decoded by the keyframe on first use): loading rebuilds nothing but each kind's landmark ids
 (one scatter of the observations) and the landmark integer columns stored narrower than they
-are held (one vectorised copy each; float32 points and sigmas stay mapped, their float64 rows
+are held (one vectorised copy each; float32 points and sigmas stay mapped unless packed, their float64 rows
 decoded on read), the arrays stay on disk until a query touches them (each keyframe's features
 are built from the shared columns on first use), and a change after loading copies what it
 changes (copy on write; the snapshot files are never written again). Each file's SHA-256 is
 checked at load (streamed, so a check does not hold the file in memory). Snapshots of format
-version 5 (every keypoint, SIFT descriptors, keypoints and angles in full), 4 (every image and
-depth map, depth raw), 3 (float64 landmark points, float32 ORB keypoints and angles), 2
-(every feature field in full, PNG images) and 1 (PNG images, one
+version 6 (every column a ``.npy``), 5 (every keypoint, SIFT descriptors, keypoints and
+angles in full), 4 (every image and depth map, depth raw), 3 (float64 landmark points,
+float32 ORB keypoints and angles), 2 (every feature field in full, PNG images) and 1 (PNG
+images, one
 ``.npz`` per keyframe and kind) are still read.
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
@@ -113,6 +119,7 @@ from .landmark_rows import (
     renumber_observations,
     row_masks,
 )
+from .packed_columns import packed_file, read_column, stored_as
 from .snapshot_files import (
     CURRENT_FILE,
     MANIFEST_FILE,
@@ -128,9 +135,9 @@ from .snapshot_files import (
 )
 
 FORMAT = "reloc map"
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 #: Older format versions this reloc still reads.
-READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7)
 MODELS_DIR = "models"
 
 FEATURE_FIELDS = ("keypoints_px", "levels", "sizes", "angles", "descriptors", "landmark_ids",
@@ -243,7 +250,7 @@ def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: Ma
         keep = [masks.get((kf_id, kind)) for kf_id, _, _ in owners]
         for name, column in kind_columns(kind, owners, state.landmarks, landmarks,
                                          codebook, keep, compact=codec == "pq").items():
-            writer.write(f"features/{kind}.{name}.npy", _npy_bytes(column))
+            writer.write(*packed_file(f"features/{kind}.{name}", column))
 
 
 def _write_thumbnails(writer: SnapshotWriter, keyframes: list[Keyframe], compact: bool
@@ -272,10 +279,10 @@ def _write_landmarks(writer: SnapshotWriter, columns: LandmarkColumns,
     type, points and sigmas float32 where :func:`encode_geometry` allows (never if ``exact``)."""
     for name in LANDMARK_INTEGERS:
         column = narrowest(np.asarray(getattr(columns, name)), LANDMARK_NARROWER[name])
-        writer.write(f"landmarks/{name}.npy", _npy_bytes(column))
+        writer.write(*packed_file(f"landmarks/{name}", column))
     for name, column in encode_geometry(columns, keyframes, exact=exact).items():
-        writer.write(f"landmarks/{name}.npy", _npy_bytes(column))
-    return {"dir": "landmarks", "kinds": list(columns.kinds)}
+        writer.write(*packed_file(f"landmarks/{name}", column))
+    return {"dir": "landmarks", "kinds": list(columns.kinds), "count": len(columns.ids)}
 
 
 def save_map(state: MapState, directory: str | Path, *,
@@ -511,16 +518,17 @@ class _FeatureColumns:
         for kind in kinds:
             listed = {f for f in (*DERIVABLE_FIELDS, LEVEL_PIXELS, DESCRIPTOR_CODES,
                                   EIGHTH_PIXELS)
-                      if f"features/{kind}.{f}.npy" in manifest["files"]}
+                      if stored_as(manifest["files"], f"features/{kind}.{f}") is not None}
             stored = [f for f in STORED_FIELDS
                       if not (f == "keypoints_px" and listed & {LEVEL_PIXELS, EIGHTH_PIXELS})
                       and not (f == "descriptors" and DESCRIPTOR_CODES in listed)
                       and not (f == "angles" and manifest["format_version"] >= 6
-                               and f"features/{kind}.angles.npy" not in manifest["files"])
+                               and stored_as(manifest["files"], f"features/{kind}.angles")
+                               is None)
                       and not (f == "angles" and manifest["format_version"] >= 4
                                and kind in ANGLELESS_KINDS)]
             fields = [*stored, *sorted(listed)]
-            cols = {f: reader.npy(f"features/{kind}.{f}.npy")
+            cols = {f: read_column(reader, f"features/{kind}.{f}")
                     for f in (fields if self.lazy else FEATURE_FIELDS)}
             if self.lazy and "sizes" not in cols:
                 tables[kind] = _size_table(reader, f"features/{kind}.{SIZE_TABLE}.npy")
@@ -666,11 +674,11 @@ def _read_landmark_columns(reader: SnapshotReader, manifest: Mapping[str, Any],
                            keyframes: Mapping[int, Keyframe]) -> LandmarkColumns:
     meta = manifest["landmarks"]
     where = reader.root / "landmarks"
-    anchored = f"landmarks/{ANCHORED_POINTS}.npy" in manifest["files"]
-    a = {name: _widened(reader.npy(f"landmarks/{name}.npy"), LANDMARK_DTYPES.get(name))
+    anchored = stored_as(manifest["files"], f"landmarks/{ANCHORED_POINTS}") is not None
+    a = {name: _widened(read_column(reader, f"landmarks/{name}"), LANDMARK_DTYPES.get(name))
          for name in LANDMARK_COLUMNS if not (anchored and name == "points_world")}
     if anchored:
-        a["points_world"] = reader.npy(f"landmarks/{ANCHORED_POINTS}.npy")
+        a["points_world"] = read_column(reader, f"landmarks/{ANCHORED_POINTS}")
         if a["points_world"].dtype != np.float32:
             raise StorageError(f"{where}/{ANCHORED_POINTS}.npy: expected float32, got "
                                f"{a['points_world'].dtype}")
