@@ -34,6 +34,7 @@ from ...core.methods import MethodStep
 from ...core.plugins import Registry
 from ..pose.base import PoseEstimate, log10_false_alarms, total_covariance
 from ..pose.intrinsics import REFUSAL as INTRINSICS_REFUSAL
+from ..pose.intrinsics_marginal import checked_covariance
 
 Array = npt.NDArray[np.float64]
 
@@ -363,16 +364,15 @@ def intrinsics_unchecked(estimate: PoseEstimate, max_position_sigma_m: float) ->
 
 
 def stated_covariance(estimate: PoseEstimate, max_position_sigma_m: float) -> Array | None:
-    """The covariance ``estimate`` answers with, relative to the world: its own (the
-    intrinsics marginalised, :func:`..pose.map_consistency.covariance_with_intrinsics`),
-    except where its view cannot check them (:func:`intrinsics_unchecked`): the
-    calibration's then (its prior alone); plus the keyframe poses' errors
-    (:func:`..pose.base.total_covariance`). A weakness: where the intrinsics go unchecked (a
-    plane: :attr:`VerifyConf.trust_unchecked_intrinsics`) a stale calibration passes, with
-    the calibration's covariance."""
+    """The covariance ``estimate`` answers with, relative to the world: its own
+    (:func:`..pose.intrinsics_marginal.checked_covariance`), except where its view cannot
+    check the intrinsics (:func:`intrinsics_unchecked`): the calibration's (its prior alone);
+    plus the keyframe poses' errors (:func:`..pose.base.total_covariance`). A weakness: where
+    the intrinsics go unchecked (a plane: :attr:`VerifyConf.trust_unchecked_intrinsics`) a
+    stale calibration passes, with the calibration's covariance."""
     if intrinsics_unchecked(estimate, max_position_sigma_m):
         return total_covariance(estimate, estimate.covariance_given_intrinsics)
-    return total_covariance(estimate)
+    return total_covariance(estimate, checked_covariance(estimate))
 
 
 def largest_eigenvalue_sym3(a: list[list[float]]) -> float:
