@@ -33,7 +33,9 @@ from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
 from ...core.plugins import Registry
 from ..pose.base import PoseEstimate, log10_false_alarms, total_covariance
+from ..pose.decision_covariance import decision_covariance
 from ..pose.intrinsics import REFUSAL as INTRINSICS_REFUSAL
+from ..pose.intrinsics_marginal import checked_covariance
 
 Array = npt.NDArray[np.float64]
 
@@ -188,11 +190,14 @@ def _verify_geometric(est: PoseEstimate, conf: VerifyConf) -> tuple[bool, str, f
     est.settle()  # the intrinsics test, left until the cheaper tests above have passed
     if est.intrinsics is not None and not est.intrinsics.passed:
         return False, est.intrinsics.reason, 0.0
-    if intrinsics_unchecked(est, conf.max_position_sigma_m):
+    unchecked = intrinsics_unchecked(est, conf.max_position_sigma_m)
+    if unchecked:
         refusal = _untrusted_calibration(est, conf)
         if refusal:
             return False, refusal, 0.0
-    sigma = position_sigma_m(stated_covariance(est, conf.max_position_sigma_m))
+    # Judged by the decision's covariance, not the (tighter) one the answer states: see
+    # :mod:`..pose.decision_covariance`.
+    sigma = position_sigma_m(decision_covariance(est, intrinsics_unchecked=unchecked))
     if sigma > conf.max_position_sigma_m:
         return False, f"position too uncertain ({sigma:.3f} m > {conf.max_position_sigma_m})", 0.0
     # Each factor saturates: many inliers, a clear majority, a small RMS.
@@ -364,16 +369,16 @@ def intrinsics_unchecked(estimate: PoseEstimate, max_position_sigma_m: float) ->
 
 
 def stated_covariance(estimate: PoseEstimate, max_position_sigma_m: float) -> Array | None:
-    """The covariance ``estimate`` answers with, relative to the world: its own (the
-    intrinsics marginalised, :func:`..pose.map_consistency.covariance_with_intrinsics`),
-    except where its view cannot check them (:func:`intrinsics_unchecked`): the
-    calibration's then (its prior alone); plus the keyframe poses' errors
-    (:func:`..pose.base.total_covariance`). A weakness: where the intrinsics go unchecked (a
-    plane: :attr:`VerifyConf.trust_unchecked_intrinsics`) a stale calibration passes, with
-    the calibration's covariance."""
+    """The covariance ``estimate`` answers with, relative to the world: its own
+    (:func:`..pose.intrinsics_marginal.checked_covariance`), except where its view cannot
+    check the intrinsics (:func:`intrinsics_unchecked`): the calibration's (its prior alone);
+    plus the keyframe poses' errors (:func:`..pose.base.total_covariance`). A weakness: where
+    the intrinsics go unchecked (a plane: :attr:`VerifyConf.trust_unchecked_intrinsics`) a
+    stale calibration passes, with the calibration's covariance. What the answer states
+    only: :func:`verify` judges by :func:`..pose.decision_covariance.decision_covariance`."""
     if intrinsics_unchecked(estimate, max_position_sigma_m):
         return total_covariance(estimate, estimate.covariance_given_intrinsics)
-    return total_covariance(estimate)
+    return total_covariance(estimate, checked_covariance(estimate))
 
 
 def largest_eigenvalue_sym3(a: list[list[float]]) -> float:
