@@ -39,6 +39,7 @@ from .base import (
     register,
     result_from_estimate,
 )
+from .confirmation import leave_refused
 from .overlap import run_beside
 
 
@@ -272,6 +273,7 @@ class MultiRelocalizer(Relocalizer):
             results.append(result)
             estimates.append(estimate if result.ok else None)
             if refuses_the_query(result) and not any(r.ok for r in results):
+                leave_refused(query, estimate)  # for a chain: the test that refused
                 break  # the query's camera: every other group would meet it too
             if (self.conf.look_ahead and not result.ok and len(results) < len(groups)
                     and not any(r.ok for r in results)):
