@@ -26,6 +26,7 @@ from reloc_service.algorithms.relocalizers.base import (
 )
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
 from reloc_service.algorithms.relocalizers.confirmation import REFUSED
+from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
 from reloc_service.core.frame import Frame
 from reloc_service.core.map import KeyframeMap
 from reloc_service.tools.eval.query_camera import QueryCamera
@@ -123,15 +124,17 @@ class _Refusing(Relocalizer):
 
 
 class _Answering(Relocalizer):
-    """A SIFT step answering every query with ``estimate``'s pose, left for the chain."""
+    """A SIFT step answering every query with ``estimate``'s pose, left for the chain, with
+    the multi relocalizer's options (``confirm``: its ``confirm_intrinsics``)."""
 
     name = "answering"
     method = "answering:sift"
     required_features = frozenset({"sift"})
 
-    def __init__(self, kmap: KeyframeMap, estimate) -> None:
+    def __init__(self, kmap: KeyframeMap, estimate, confirm: bool) -> None:
         super().__init__(kmap)
         self.estimate = estimate
+        self.conf = MultiRelocalizer.Conf(confirm_intrinsics=confirm)
 
     def add_keyframe(self, keyframe) -> None:
         pass
@@ -146,9 +149,10 @@ class _Answering(Relocalizer):
                            covariance=self.estimate.covariance, confidence=0.5)
 
 
-def _chain(refusal: IntrinsicsCheck, estimate) -> RelocResult:
+def _chain(refusal: IntrinsicsCheck, estimate, confirm: bool = True) -> RelocResult:
     kmap = KeyframeMap()
-    chain = ChainRelocalizer(kmap, [_Refusing(kmap, refusal), _Answering(kmap, estimate)])
+    chain = ChainRelocalizer(kmap, [_Refusing(kmap, refusal),
+                                    _Answering(kmap, estimate, confirm)])
     return chain.relocalize(Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), STALE))
 
 
@@ -160,6 +164,9 @@ def test_a_later_pose_without_the_power_leaves_the_refusal_standing(stale_refusa
     assert not result.ok and result.method == "refusing:orb"
     assert result.reason.startswith(REFUSAL)
     assert "answering:sift cannot confirm the given intrinsics" in result.reason
+    # Without confirm_intrinsics (the default), any verified pose overrules the refusal.
+    assert _chain(stale_refusal, weak, confirm=False).ok
+    assert not MultiRelocalizer.Conf().confirm_intrinsics
 
 
 def test_a_later_pose_with_the_power_overrules_the_refusal(stale_refusal):

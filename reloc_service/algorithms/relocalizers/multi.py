@@ -77,6 +77,13 @@ class MultiRelocalizer(Relocalizer):
         #: identical object elsewhere verifies as well as the true pose does. Off: the first
         #: verified group answers (faster, and wrong wherever the scene repeats).
         unique: bool = True
+        #: In a fallback chain, let this step's verified pose overrule an earlier step's
+        #: refusal of the query's intrinsics only where its own intrinsics test could have
+        #: seen the error the refusal estimated (:mod:`.confirmation`); elsewhere the
+        #: refusal stands. Off: any verified pose of a step with other features overrules it.
+        #: Off by default: with the right camera a refusal's focal estimate can be biased
+        #: while the later pose is right and weakly tested (room-hard, 1 of 69 queries).
+        confirm_intrinsics: bool = False
 
         def __post_init__(self) -> None:
             if self.num_candidates < 1 or self.max_groups < 1:
