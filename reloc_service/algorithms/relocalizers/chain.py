@@ -24,6 +24,7 @@ from .base import (
     narrow_support,
     refuses_the_query,
 )
+from .confirmation import REFUSED, Refusal, refusal_of, standing_refusal
 from .overlap import Ahead, run_ahead
 
 
@@ -31,8 +32,10 @@ class ChainRelocalizer(Relocalizer):
     """Asks each step in turn; the first verified answer wins (its ``method`` names the step),
     with the timings of every step tried summed; a step's refusal of the query itself
     (:func:`.base.refuses_the_query`: its intrinsics disagree) ends the chain, unless a later
-    step matches other features: then that step's verified pose overrules it, and the
-    refusal stands where none verifies. Features a
+    step matches other features: then that step's verified pose overrules it (with
+    ``confirm_intrinsics`` on that step, only where its own intrinsics test could have seen
+    the error the refusal estimated: :mod:`.confirmation`), and the refusal stands where
+    none verifies. Features a
     step extracts are cached on the query frame, so a later step of the same kind does not
     extract them again."""
 
@@ -102,7 +105,8 @@ class ChainRelocalizer(Relocalizer):
         reasons: list[str] = []
         map_version = self.map.version
         contender: Contender | None = None
-        refusal: RelocResult | None = None
+        contender_step: Relocalizer = self.steps[0]
+        refusals: list[Refusal] = []
         try:
             for i, step in enumerate(self.steps):
                 result = self._ask(query, i, prior, hypotheses, reasons)
@@ -112,35 +116,35 @@ class ChainRelocalizer(Relocalizer):
                     timings[stage] = timings.get(stage, 0.0) + seconds
                 map_version = result.map_version
                 answered = query.cache.pop(ANSWERED, None)
+                refused = query.cache.pop(REFUSED, None)
                 if refuses_the_query(result):
                     if not self._other_features_after(i):
                         result.timings = timings
                         return result
-                    refusal = refusal or result
+                    refusals.append(refusal_of(result, refused))
                     reasons.append(f"{step.method}: {result.reason}")
                     continue
                 if contender is not None and contender.weighed:
-                    result.timings = timings
-                    return result  # the contender weighed: the winner, or "ambiguous"
+                    # the contender weighed: the winner, or "ambiguous"
+                    return _confirmed(step, result, answered, refusals, timings)
                 if contender is not None and result.ok:
                     break  # a step that cannot weigh it does not overrule it
                 if result.ok and contender is None and i + 1 < len(self.steps) \
                         and (_narrow(step, answered) or self._underpowered(i, answered)):
-                    contender = Contender(result, answered)
+                    contender, contender_step = Contender(result, answered), step
                     query.cache[CONTENDER] = contender
                     continue
                 if result.ok:
-                    result.timings = timings
-                    return result
+                    return _confirmed(step, result, answered, refusals, timings)
                 reasons.append(f"{step.method}: {result.reason}")
         finally:
             query.cache.pop(CONTENDER, None)
         if contender is not None:
-            contender.result.timings = timings
-            return contender.result
-        if refusal is not None:  # no later step found a pose to overrule it
-            refusal.timings = timings
-            return refusal
+            return _confirmed(contender_step, contender.result, contender.estimate, refusals,
+                              timings)
+        if refusals:  # no later step found a pose to overrule them
+            refusals[0].result.timings = timings
+            return refusals[0].result
         return RelocResult.failure(self.method, "; ".join(reasons), timings=timings,
                                    map_version=map_version)
 
@@ -214,6 +218,19 @@ def extract_ahead(query: Frame, step: Relocalizer) -> Ahead[None] | None:
         for kind in confs:
             query.expect_features(kind, ahead)
     return ahead
+
+
+def _confirmed(step: Relocalizer, result: RelocResult, estimate: PoseEstimate | None,
+               refusals: list[Refusal], timings: dict[str, float]) -> RelocResult:
+    """``result`` (``step``'s answer) with the chain's ``timings``; or, where ``step``
+    asks for it (its ``conf.confirm_intrinsics``) and ``result`` is a verified pose after
+    earlier steps' refusals of the query's intrinsics that its own test (of ``estimate``)
+    cannot overrule (:func:`.confirmation.standing_refusal`), the first such refusal."""
+    if result.ok and getattr(getattr(step, "conf", None), "confirm_intrinsics", False):
+        result = next((r for r in (standing_refusal(refusal, result, estimate)
+                                   for refusal in refusals) if r is not None), result)
+    result.timings = timings
+    return result
 
 
 def _narrow(step: Relocalizer, estimate: PoseEstimate | None) -> bool:

@@ -40,6 +40,7 @@ from .base import (
     register,
     result_from_estimate,
 )
+from .confirmation import leave_refused
 from .overlap import run_beside
 
 #: Suffix of a place finder's saved model: its msgpack state, zlib-compressed.
@@ -80,6 +81,13 @@ class MultiRelocalizer(Relocalizer):
         #: identical object elsewhere verifies as well as the true pose does. Off: the first
         #: verified group answers (faster, and wrong wherever the scene repeats).
         unique: bool = True
+        #: In a fallback chain, let this step's verified pose overrule an earlier step's
+        #: refusal of the query's intrinsics only where its own intrinsics test could have
+        #: seen the error the refusal estimated (:mod:`.confirmation`); elsewhere the
+        #: refusal stands. Off: any verified pose of a step with other features overrules it.
+        #: Off by default: with the right camera a refusal's focal estimate can be biased
+        #: while the later pose is right and weakly tested (room-hard, 1 of 69 queries).
+        confirm_intrinsics: bool = False
 
         def __post_init__(self) -> None:
             if self.num_candidates < 1 or self.max_groups < 1:
@@ -281,6 +289,7 @@ class MultiRelocalizer(Relocalizer):
             results.append(result)
             estimates.append(estimate if result.ok else None)
             if refuses_the_query(result) and not any(r.ok for r in results):
+                leave_refused(query, estimate)  # for a chain: the test that refused
                 break  # the query's camera: every other group would meet it too
             if (self.conf.look_ahead and not result.ok and len(results) < len(groups)
                     and not any(r.ok for r in results)):

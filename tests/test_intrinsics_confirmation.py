@@ -1,0 +1,189 @@
+"""A passing intrinsics test confirms the given camera against an error another test estimated
+only with the power to see it; a chain step's pose after an earlier step's refusal of the
+query's intrinsics answers only then."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from test_pose_intrinsics import ROOM, correspondences
+
+from reloc_service.algorithms.pose.intrinsics import REFUSAL, IntrinsicsCheck
+from reloc_service.algorithms.pose.intrinsics_confirmation import (
+    confirms,
+    detection_power,
+    refused_theta,
+)
+from reloc_service.algorithms.pose.map_consistency import covariance_with_intrinsics
+from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp_indexed
+from reloc_service.algorithms.relocalizers.base import (
+    ANSWERED,
+    Relocalizer,
+    RelocResult,
+    RelocStatus,
+)
+from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
+from reloc_service.algorithms.relocalizers.confirmation import REFUSED
+from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
+from reloc_service.core.frame import Frame
+from reloc_service.core.map import KeyframeMap
+from reloc_service.tools.eval.query_camera import QueryCamera
+
+#: The camera a stale calibration claims: the focal 1.3 times the one that took the images.
+STALE = QueryCamera(focal_scale=1.3).claimed(ROOM)
+
+
+def judged(px, points, camera):
+    """The pose of ``px`` on ``points`` through ``camera``, with its intrinsics test settled
+    as a pose finder settles it (on a map whose keyframes agree with their camera)."""
+    solved = solve_pnp_indexed(px, points, camera, PnPConf())
+    assert solved is not None
+    est = solved[0]
+    check = est.intrinsics_test()
+    assert check is not None and est.covariance is not None
+    est.intrinsics = check
+    est.covariance_given_intrinsics = covariance_with_intrinsics(est.covariance, check,
+                                                                 trusted=True)
+    est.covariance = covariance_with_intrinsics(est.covariance, check)
+    return est
+
+
+@pytest.fixture(scope="module")
+def stale_refusal() -> IntrinsicsCheck:
+    """300 sharp keypoints over the whole image, claimed through the stale camera: refused,
+    the focal estimated 1 / 1.3 of the claimed one."""
+    check = judged(*correspondences(ROOM, 300, 0.5, np.random.default_rng(0)), STALE).intrinsics
+    assert check is not None and not check.passed
+    assert 1.0 + refused_theta(check)[0] == pytest.approx(1 / 1.3, abs=0.01)
+    return check
+
+
+def weak_pass(camera, rng: np.random.Generator):
+    """A pose from 20 coarse keypoints (3 px) on the central 40 % of the image whose test
+    passes: where the camera is stale, such views pass (a focal 30 % off fits nearly as well
+    from a pose moved along the axis)."""
+    for _ in range(10):
+        est = judged(*correspondences(ROOM, 20, 3.0, rng, spread=0.4), camera)
+        if est.intrinsics.passed:
+            return est
+    raise AssertionError("no passing view in 10 draws")
+
+
+def test_a_weak_pass_under_a_stale_focal_cannot_confirm_it(stale_refusal):
+    """The weak view's test passes the stale camera: its data is too coarse to see the
+    refused error (at it, its statistic would exceed the level less than half the time)."""
+    est = weak_pass(STALE, np.random.default_rng(0))
+    power = detection_power(est.intrinsics, refused_theta(stale_refusal))
+    assert power < 0.5
+    assert not confirms(est.intrinsics, stale_refusal)
+
+
+def test_a_sharp_pass_at_the_true_focal_confirms_it(stale_refusal):
+    """400 sharp keypoints at the true camera: the test would refuse a focal 23 % off
+    almost surely, so its pass overrules the refusal (a biased estimate of the refusing
+    step's)."""
+    est = judged(*correspondences(ROOM, 400, 0.3, np.random.default_rng(1)), ROOM)
+    assert est.intrinsics.passed
+    assert detection_power(est.intrinsics, refused_theta(stale_refusal)) > 0.99
+    assert confirms(est.intrinsics, stale_refusal)
+    # A refused test confirms nothing, whatever its power.
+    assert not confirms(stale_refusal, stale_refusal)
+
+
+def test_power_grows_with_the_error_and_is_the_level_at_none(stale_refusal):
+    est = judged(*correspondences(ROOM, 400, 0.3, np.random.default_rng(1)), ROOM)
+    check = est.intrinsics
+    powers = [detection_power(check, np.array([a, 0.0])) for a in (0.0, 0.005, 0.02, 0.1)]
+    assert powers[0] <= check.prior.false_refusal * 1.0001
+    assert np.all(np.diff(powers) > 0) and powers[-1] > 0.99
+
+
+class _Refusing(Relocalizer):
+    """An ORB step refusing every query's intrinsics with ``check``, left on the query as
+    the multi relocalizer leaves it."""
+
+    name = "refusing"
+    method = "refusing:orb"
+    required_features = frozenset({"orb"})
+
+    def __init__(self, kmap: KeyframeMap, check: IntrinsicsCheck) -> None:
+        super().__init__(kmap)
+        self.check = check
+
+    def add_keyframe(self, keyframe) -> None:
+        pass
+
+    def remove_keyframe(self, keyframe) -> None:
+        pass
+
+    def relocalize(self, query, *, prior=None, hypotheses=1) -> RelocResult:
+        query.cache[REFUSED] = self.check
+        return RelocResult.failure(self.method, self.check.reason)
+
+
+class _Answering(Relocalizer):
+    """A SIFT step answering every query with ``estimate``'s pose, left for the chain, with
+    the multi relocalizer's options (``confirm``: its ``confirm_intrinsics``)."""
+
+    name = "answering"
+    method = "answering:sift"
+    required_features = frozenset({"sift"})
+
+    def __init__(self, kmap: KeyframeMap, estimate, confirm: bool) -> None:
+        super().__init__(kmap)
+        self.estimate = estimate
+        self.conf = MultiRelocalizer.Conf(confirm_intrinsics=confirm)
+
+    def add_keyframe(self, keyframe) -> None:
+        pass
+
+    def remove_keyframe(self, keyframe) -> None:
+        pass
+
+    def relocalize(self, query, *, prior=None, hypotheses=1) -> RelocResult:
+        query.cache[ANSWERED] = self.estimate
+        return RelocResult(status=RelocStatus.OK, method=self.method,
+                           world_from_cam=self.estimate.world_from_cam,
+                           covariance=self.estimate.covariance, confidence=0.5)
+
+
+def _chain(refusal: IntrinsicsCheck, estimate, confirm: bool = True) -> RelocResult:
+    kmap = KeyframeMap()
+    chain = ChainRelocalizer(kmap, [_Refusing(kmap, refusal),
+                                    _Answering(kmap, estimate, confirm)])
+    return chain.relocalize(Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), STALE))
+
+
+def test_a_later_pose_without_the_power_leaves_the_refusal_standing(stale_refusal):
+    """Under the stale camera, the later step's weakly tested pose does not overrule the
+    earlier refusal: the chain refuses, naming both steps."""
+    weak = weak_pass(STALE, np.random.default_rng(0))
+    result = _chain(stale_refusal, weak)
+    assert not result.ok and result.method == "refusing:orb"
+    assert result.reason.startswith(REFUSAL)
+    assert "answering:sift cannot confirm the given intrinsics" in result.reason
+    # Without confirm_intrinsics (the default), any verified pose overrules the refusal.
+    assert _chain(stale_refusal, weak, confirm=False).ok
+    assert not MultiRelocalizer.Conf().confirm_intrinsics
+
+
+def test_a_later_pose_with_the_power_overrules_the_refusal(stale_refusal):
+    sharp = judged(*correspondences(ROOM, 400, 0.3, np.random.default_rng(1)), ROOM)
+    result = _chain(stale_refusal, sharp)
+    assert result.ok and result.method == "answering:sift"
+    assert np.allclose(result.world_from_cam, sharp.world_from_cam)
+
+
+def test_a_guided_pass_is_judged_by_its_unguided_matches_too(stale_refusal):
+    """Matches found around a pose's projections agree with its focal by construction: a
+    precise guided set whose unguided matches are too coarse to see the refused error does
+    not confirm the camera."""
+    sharp = judged(*correspondences(ROOM, 400, 0.3, np.random.default_rng(1)), ROOM).intrinsics
+    weak = weak_pass(STALE, np.random.default_rng(0)).intrinsics
+    grown = dataclasses.replace(sharp, unguided=weak)
+    assert grown.passed and confirms(sharp, stale_refusal)
+    theta = refused_theta(stale_refusal)
+    assert detection_power(grown, theta) == pytest.approx(detection_power(weak, theta))
+    assert not confirms(grown, stale_refusal)
