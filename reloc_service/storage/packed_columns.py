@@ -75,10 +75,9 @@ def stored_as(files: Container[str], stem: str) -> str | None:
 def read_column(reader: SnapshotReader, stem: str) -> np.ndarray:
     """The checked column ``stem`` as stored (raw: memory-mapped; packed: decompressed,
     read-only); StorageError naming the file when it is missing or not what it claims."""
-    relpath = stored_as(reader.files, stem)
-    if relpath is None:
-        raise StorageError(f"{reader.root / stem}{RAW}: missing from the snapshot (expected "
-                           f"one of {', '.join(SUFFIXES)})")
+    # A column the manifest lists under none of its forms is asked for raw: the reader then
+    # names what is wrong as for any other file (not listed with a checksum, missing).
+    relpath = stored_as(reader.files, stem) or stem + RAW
     if relpath.endswith(RAW) and not relpath.endswith(PACKED):
         return reader.npy(relpath)
     return unpack(reader.read(relpath), str(reader.root / relpath),
