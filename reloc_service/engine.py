@@ -194,7 +194,8 @@ class Engine:
         self.conf = conf or EngineConf()
         #: The map the builder writes (may be ahead of what relocalizers see: :meth:`status`);
         #: written only under ``_writer``, read by anyone through ``snapshot()``.
-        self.map = KeyframeMap(default_pose_covariance=self.conf.mapping.default_pose_covariance())
+        self.map = KeyframeMap(default_pose_covariance=self.conf.mapping.default_pose_covariance(),
+                               calibration_covariance=self.conf.mapping.calibration_covariance())
         self._rw = ReadWriteLock()                # relocalizers, their views, _live
         self._writer = threading.Lock()           # serialises map changes
         self._save_lock = threading.Lock()        # one save at a time

@@ -7,9 +7,12 @@ adds to it (``(d - 1) C``), what the intrinsics add (``covariance_with_intrinsic
 keyframe poses' part (``map_covariance``). The output lists each answered query's errors,
 stated covariance and parts, so a change to one part can be scored offline: the Mahalanobis
 length of the position error under the stated covariance minus a part tells whether that
-part makes it too wide.
+part makes it too wide. It also records the covariance the answer would state under the
+intrinsics test's own prior instead of the map's stated calibration accuracy
+(``stated_test_prior``), and prints the cov scale of both.
 
-    python scripts/covariance_parts.py DATASET [--keyframe-sigma T_M,R_DEG] --out OUT.json [--json EVAL.json]
+    python scripts/covariance_parts.py DATASET [--keyframe-sigma T_M,R_DEG]
+        [--calibration-sigma FOCAL_REL,RADIAL_PX] --out OUT.json [--json EVAL.json]
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ import numpy as np
 from reloc_service.algorithms.pose import map_consistency
 from reloc_service.algorithms.relocalizers import base as relocalizer_base
 from reloc_service.tools.eval import evaluate as eval_lib
-from reloc_service.tools.eval.metrics import translation_mahalanobis
+from reloc_service.tools.eval.metrics import covariance_scale, translation_mahalanobis
 from reloc_service.tools.eval.query_camera import QueryCamera
 
 _PARTS: list[dict[str, Any]] = []
@@ -57,8 +60,16 @@ def _record_result(original: Any) -> Any:
                 parts["intrinsics"] = (np.asarray(result.covariance) - parts.get("map", 0.0)
                                        - parts["measurement"] - parts["dispersion"])
             unchecked = relocalizer_base.intrinsics_unchecked(estimate, conf.max_position_sigma_m)
+            # The covariance the answer would state under the intrinsics test's own prior
+            # (no calibration accuracy stated by the map): the stated covariance before the
+            # map stated one, from the same run.
+            stated_calibration = estimate.calibration_covariance
+            estimate.calibration_covariance = None
+            test_prior = relocalizer_base.stated_covariance(estimate, conf.max_position_sigma_m)
+            estimate.calibration_covariance = stated_calibration
             _PARTS.append({"t": np.asarray(result.world_from_cam)[:3, 3].tolist(),
                            "stated": np.asarray(result.covariance).tolist(),
+                           "stated_test_prior": np.asarray(test_prior).tolist(),
                            "unchecked": bool(unchecked), "inliers": estimate.inliers,
                            "dispersion": float(estimate.intrinsics.dispersion)
                            if estimate.intrinsics is not None else None,
@@ -79,6 +90,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dataset")
     parser.add_argument("--keyframe-sigma", default="0,0")
+    parser.add_argument("--calibration-sigma", default=None,
+                        help="FOCAL_REL,RADIAL_PX: the calibration accuracy the map states "
+                        "(reloc eval --calibration-sigma); default: the mapping config's")
     parser.add_argument("--method", default="sbi+p3p:orb,sbi+p3p:sift-half,bow+p3p,sbi+p3p")
     parser.add_argument("--query-focal-scale", type=float, default=1.0,
                         help="the queries claim a focal this many times their camera's")
@@ -86,12 +100,16 @@ def main() -> None:
     parser.add_argument("--json", help="also write reloc eval's JSON here")
     args = parser.parse_args()
     sigma = tuple(float(v) for v in args.keyframe_sigma.split(","))
+    calibration = (None if args.calibration_sigma is None else
+                   tuple(float(v) for v in args.calibration_sigma.split(",")))
     map_consistency.settle_intrinsics = _record_settle(map_consistency.settle_intrinsics)
     from reloc_service.algorithms.relocalizers import multi
     multi.result_from_estimate = _record_result(relocalizer_base.result_from_estimate)
     result = eval_lib.evaluate(args.dataset, args.method, progress=False,
                                keyframe_sigma=(sigma[0], sigma[1]),
-                               query_camera=QueryCamera(focal_scale=args.query_focal_scale))
+                               query_camera=QueryCamera(focal_scale=args.query_focal_scale),
+                               calibration_sigma=None if calibration is None
+                               else (calibration[0], calibration[1]))
     if args.json:
         result.write_json(args.json)
     truth = eval_lib.ground_truth_covariance((sigma[0], sigma[1]))
@@ -105,7 +123,13 @@ def main() -> None:
         queries.append({"image": rec.image_path, "t_err_m": rec.t_err_m, "r_err_deg": rec.r_err_deg,
                         "gt": gt.tolist(), "est": est.tolist(), "truth": truth.tolist(),
                         "mahalanobis": translation_mahalanobis(est, gt, match["stated"], truth),
+                        "mahalanobis_test_prior": translation_mahalanobis(
+                            est, gt, match["stated_test_prior"], truth),
                         **match})
+    for key in ("mahalanobis", "mahalanobis_test_prior"):
+        lengths = [q[key] for q in queries]
+        print(f"cov scale ({key.replace('mahalanobis', 'stated')}): "
+              f"{covariance_scale(lengths, [True] * len(lengths)):.3f} over {len(lengths)}")
     with open(args.out, "w") as fh:
         json.dump(queries, fh)
 

@@ -379,6 +379,33 @@ def test_answers_carry_the_keyframes_pose_covariance(synthetic_scene):
         assert position_sigma_m(a.covariance) < 0.045 < position_sigma_m(b.covariance)
 
 
+def test_the_maps_calibration_accuracy_changes_the_stated_covariance_not_the_answer(
+        synthetic_scene):
+    """A map whose calibration is stated exact and one whose calibration is stated loose
+    (``[mapping] calibration_*``) give every query the same answer (status, pose, inliers),
+    the loose one with a wider covariance: the calibration's part of what the answer states,
+    which no decision reads."""
+    pytest.importorskip("reloc_service.algorithms.pose.p3p")
+    from reloc_service.algorithms.relocalizers.base import position_sigma_m
+
+    exact_kf = {"keyframe_position_sigma_m": 0.0, "keyframe_rotation_sigma_deg": 0.0}
+    engines = [Engine(EngineConf(methods=("sbi+p3p",), mapping={
+        **exact_kf, "calibration_focal_sigma_rel": focal, "calibration_radial_sigma_px": radial}))
+        for focal, radial in ((0.0, 0.0), (0.02, 4.0))]
+    for engine in engines:
+        _add(engine, synthetic_scene, range(6))
+        engine.train()
+    wider = 0
+    for image in synthetic_scene.query_images:
+        a, b = (engine.relocalize(Frame(image, synthetic_scene.camera)) for engine in engines)
+        assert a.ok and b.ok and (a.status, a.inliers, a.method) == (b.status, b.inliers, b.method)
+        np.testing.assert_array_equal(a.world_from_cam, b.world_from_cam)
+        assert a.covariance is not None and b.covariance is not None
+        assert np.linalg.eigvalsh(b.covariance - a.covariance).min() > -1e-12
+        wider += position_sigma_m(b.covariance) > 1.05 * position_sigma_m(a.covariance)
+    assert wider >= 1
+
+
 # -- the lock discipline with the real methods -------------------------------------------------
 REAL_METHODS = ("sbi+p3p", "bow+p3p", "ferns")
 REAL_OPTIONS = {"bow": {"branching": 6, "depth": 3},

@@ -316,6 +316,40 @@ def test_keyframe_sigma_argument():
             parser.parse_args(["d", "--keyframe-sigma", bad])
 
 
+def test_calibration_sigma_is_the_maps_stated_calibration_accuracy(tmp_path, fake_remote):
+    """``--calibration-sigma 0,0``: the map's mapping options state the calibration exact
+    (other mapping options kept), recorded with the result's options; none given leaves the
+    options as they were; a negative or non-finite value is a ConfigError."""
+    root = _tiny_dataset(tmp_path / "toy")
+    spec = ev.RemoteSpec("tcp/127.0.0.1:1", "toy")
+    result = ev.evaluate(root, "a", progress=False, remote=spec, calibration_sigma=(0.0, 0.0),
+                         options={"mapping": {"neighbours": 3}, "p3p": {"seed": 1}})
+    assert result.options["mapping"] == {"neighbours": 3, "calibration_focal_sigma_rel": 0.0,
+                                         "calibration_radial_sigma_px": 0.0}
+    assert result.options["p3p"] == {"seed": 1}
+    assert ev.with_calibration_sigma(None, None) is None
+    assert ev.with_calibration_sigma({"p3p": {}}, (0.002, 0.5)) == {"p3p": {}, "mapping": {
+        "calibration_focal_sigma_rel": 0.002, "calibration_radial_sigma_px": 0.5}}
+    for bad in ((-0.1, 1.0), (0.0, float("nan"))):
+        with pytest.raises(ConfigError, match="calibration sigma"):
+            ev.evaluate(root, "a", progress=False, remote=spec, calibration_sigma=bad)
+
+
+def test_calibration_sigma_argument():
+    import argparse
+
+    from reloc_service.cli import eval as eval_cli
+
+    parser = argparse.ArgumentParser()
+    eval_cli.add_arguments(parser)
+    assert parser.parse_args(["d", "--calibration-sigma", "0.005,2"]).calibration_sigma == (
+        0.005, 2.0)
+    assert parser.parse_args(["d"]).calibration_sigma is None
+    for bad in ("0.005", "a,b", "-1,0", "inf,1"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["d", "--calibration-sigma", bad])
+
+
 def test_evaluate_errors(tmp_path, fake_remote):
     root = _tiny_dataset(tmp_path / "toy")
     with pytest.raises(ConfigError, match="more than once"):

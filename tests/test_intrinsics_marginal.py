@@ -9,6 +9,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy import stats
 from test_pose_intrinsics import POSE, ROOM, correspondences
 
 from reloc_service.algorithms.pose.intrinsics_marginal import intrinsics_posterior
@@ -115,3 +116,66 @@ def test_map_calibration_answers_are_covered_as_stated():
     scale = metrics.covariance_scale(lengths, [True] * len(lengths))
     assert 0.67 <= scale <= 1.5, scale
     assert np.count_nonzero(np.array(lengths) > 3.0) <= 2
+
+
+def _exact_calibration_lengths(calibration: np.ndarray, seed: int) -> list[float]:
+    """Mahalanobis lengths of 50 poses solved with the exact camera (keypoint noise 1 px,
+    exact landmarks), the query claiming the map's calibration stated as ``calibration``."""
+    rng = np.random.default_rng(seed)
+    lengths = []
+    for _ in range(50):
+        est, check = _solved(ROOM, 200, 1.0, rng)
+        if not check.passed:
+            continue
+        settled = _settled(est, check, map_calibration=True)
+        settled.calibration_covariance = calibration
+        lengths.append(metrics.translation_mahalanobis(
+            est.world_from_cam, POSE, stated_covariance(settled, 0.2)))
+    assert len(lengths) >= 45
+    return lengths
+
+
+def test_an_exact_calibration_states_the_pose_at_the_given_camera_alone():
+    """A map that states its calibration exact (``P = 0``): the answer's covariance is the
+    pose's at the given intrinsics (``d C``), no calibration part and no other solution
+    mixed in; a stated prior adds ``B (S + m m^T) B^T``, whatever the test allowed."""
+    est, check = _solved(ROOM, 200, 0.5, np.random.default_rng(3))
+    own = check.dispersion * est.covariance
+    settled = _settled(est, check, map_calibration=True)
+    settled.calibration_covariance = np.zeros((2, 2))
+    np.testing.assert_allclose(stated_covariance(settled, 0.2), own, rtol=1e-9, atol=1e-15)
+    loose = np.diag([0.02**2, 4.0**2])
+    settled.calibration_covariance = loose
+    m, s = intrinsics_posterior(check.theta, check.covariance, loose)
+    b = check.pose_shift
+    np.testing.assert_allclose(stated_covariance(settled, 0.2),
+                               own + b @ (s + np.outer(m, m)) @ b.T, rtol=1e-9, atol=1e-15)
+
+
+def test_exact_calibration_answers_are_covered_as_stated():
+    """Poses solved with the exact camera (exact truth): under the exact calibration the map
+    states, the position errors look like draws from the stated covariance (cov scale
+    between 0.67 and 1.5; beyond 3 sigma no more often than the binomial 99.9 % quantile of
+    Gaussian errors' chi-square(3) tail allows); the routine calibration prior (0.5 % focal)
+    stated instead widens the covariance beyond what the errors show."""
+    exact = _exact_calibration_lengths(np.zeros((2, 2)), seed=5)
+    scale = metrics.covariance_scale(exact, [True] * len(exact))
+    assert 0.67 <= scale <= 1.5, scale
+    tail = float(stats.chi2.sf(9.0, 3))
+    assert np.count_nonzero(np.array(exact) > 3.0) <= stats.binom.ppf(0.999, len(exact), tail)
+    routine = _exact_calibration_lengths(np.diag([0.005**2, 2.0**2]), seed=5)
+    assert metrics.covariance_scale(routine, [True] * len(routine)) < scale
+
+
+def test_the_gain_form_posterior_equals_the_information_form():
+    """``m = P (P + V)^-1 theta_hat``, ``S = P - P (P + V)^-1 P`` equal the information
+    form ``S = (P^-1 + V^-1)^-1``, ``m = S V^-1 theta_hat`` where both exist."""
+    prior = np.diag([0.005**2, 2.0**2])
+    data = np.array([[0.004**2, 0.5 * 0.004 * 1.5], [0.5 * 0.004 * 1.5, 1.5**2]])
+    theta_hat = np.array([0.003, -1.0])
+    m, s = intrinsics_posterior(theta_hat, data, prior)
+    s_info = np.linalg.inv(np.linalg.inv(prior) + np.linalg.inv(data))
+    np.testing.assert_allclose(s, s_info, rtol=1e-9)
+    np.testing.assert_allclose(m, s_info @ np.linalg.solve(data, theta_hat), rtol=1e-9)
+    m0, s0 = intrinsics_posterior(theta_hat, data, np.zeros((2, 2)))
+    assert not m0.any() and not s0.any()

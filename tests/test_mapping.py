@@ -228,6 +228,24 @@ def test_mapping_conf_from_options():
         MappingConf(feature_kinds=("surf",))
 
 
+def test_the_calibration_accuracy_is_a_mapping_option_the_map_states():
+    """``[mapping] calibration_focal_sigma_rel`` / ``calibration_radial_sigma_px``: the
+    map's stated calibration covariance (0.5 % and 2 px by default; 0: exact); negative or
+    non-finite values are refused, and so is a map given a covariance that is not one."""
+    assert np.allclose(MappingConf().calibration_covariance(), np.diag([0.005**2, 4.0]))
+    conf = MappingConf.from_options({"calibration_focal_sigma_rel": 0.0,
+                                     "calibration_radial_sigma_px": 0.5})
+    kmap = KeyframeMap(calibration_covariance=conf.calibration_covariance())
+    assert np.array_equal(kmap.snapshot().calibration_covariance, np.diag([0.0, 0.25]))
+    for name in ("calibration_focal_sigma_rel", "calibration_radial_sigma_px"):
+        for bad in (-0.1, float("nan"), "1"):
+            with pytest.raises(ConfigError, match=f"mapping.{name}: expected"):
+                MappingConf.from_options({name: bad})
+    for bad_cov in (np.eye(3), np.diag([-1.0, 1.0]), np.array([[1.0, 2.0], [0.0, 1.0]])):
+        with pytest.raises(MapError, match="calibration_covariance: expected"):
+            KeyframeMap(calibration_covariance=bad_cov)
+
+
 def test_max_features_one_number_or_a_table_per_kind():
     assert MappingConf.from_options({"max_features": 1500}).features_for("orb") == 1500
     table = MappingConf.from_options({"max_features": {"orb": 700}})

@@ -51,6 +51,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "covariance, and each query's ground truth is taken as that uncertain "
                         "where its error is weighed by the stated covariance ('cov scale'); "
                         "default 0,0: exact")
+    parser.add_argument("--calibration-sigma", metavar="FOCAL_REL,RADIAL_PX",
+                        type=_calibration_sigma, default=None,
+                        help="1-sigma accuracy of the dataset's camera calibration: the "
+                        "focal, relative, and the radial distortion, pixels at the farthest "
+                        "image corner (e.g. 0.005,2): the map states it (mapping."
+                        "calibration_focal_sigma_rel / _radial_sigma_px) and the answers' "
+                        "covariance carries it; it changes no answer. 0,0: exact (a rendered "
+                        "dataset's cameras); default: the mapping configuration's (0.005,2 "
+                        "unless --options sets it)")
     parser.add_argument("--query-focal-scale", type=float, default=1.0, metavar="S",
                         help="the queries claim a focal S times their camera's (images "
                         "unchanged, like a stale calibration; the map keeps the dataset's)")
@@ -97,6 +106,21 @@ def _keyframe_sigma(text: str) -> tuple[float, float]:
     if not (math.isfinite(t_m) and math.isfinite(r_deg) and t_m >= 0 and r_deg >= 0):
         raise argparse.ArgumentTypeError(f"expected finite metres and degrees >= 0, got {text!r}")
     return t_m, r_deg
+
+
+def _calibration_sigma(text: str) -> tuple[float, float]:
+    """``"FOCAL_REL,RADIAL_PX"`` -> (relative focal, pixels), both finite and >= 0."""
+    parts = text.split(",")
+    try:
+        focal_rel, radial_px = (float(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected FOCAL_REL,RADIAL_PX (e.g. 0.005,2), got {text!r}") from None
+    if not (math.isfinite(focal_rel) and math.isfinite(radial_px) and focal_rel >= 0
+            and radial_px >= 0):
+        raise argparse.ArgumentTypeError(f"expected a finite relative focal and pixels >= 0, "
+                                         f"got {text!r}")
+    return focal_rel, radial_px
 
 
 def _usage_problem(args: argparse.Namespace) -> str | None:
@@ -159,7 +183,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     result = evaluate(args.dataset, args.method, options=options, landmarks=args.landmarks,
                       progress=not args.no_progress, remote=remote,
                       keyframe_sigma=args.keyframe_sigma, query_camera=claimed,
-                      round_trip=args.round_trip)
+                      round_trip=args.round_trip, calibration_sigma=args.calibration_sigma)
     print(report.format_header(result))
     print()
     print(report.format_markdown(result) if args.markdown else report.format_table(result))

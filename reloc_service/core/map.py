@@ -32,13 +32,17 @@ class MapState:
     """An immutable view of the map at one version. ``landmarks`` is a
     :class:`LandmarkTable` (a plain mapping given here is converted).
     ``default_pose_covariance`` (6, 6) is the covariance of a keyframe put without one (the
-    map's configuration); None: such keyframes are taken as exact."""
+    map's configuration); None: such keyframes are taken as exact. ``calibration_covariance``
+    (2, 2) is how well the map's camera calibration is known (relative focal, radial pixels
+    at the farthest image corner: :class:`.mapping.MappingConf`), what a relocalized pose
+    states it owes to the calibration; None: the pose finders' own prior."""
 
     keyframes: Mapping[int, Keyframe] = field(default_factory=lambda: MappingProxyType({}))
     landmarks: LandmarkTable = field(default_factory=LandmarkTable)
     version: int = 0
     next_landmark_id: int = 0
     default_pose_covariance: Array | None = field(default=None, compare=False)
+    calibration_covariance: Array | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.landmarks, LandmarkTable):
@@ -112,11 +116,16 @@ class KeyframeMap:
     the current state, copies and publishes it, so two concurrent writers would lose one's
     change. Only one thread may write at a time (the engine's writer mutex guarantees it)."""
 
-    def __init__(self, *, default_pose_covariance: npt.ArrayLike | None = None) -> None:
+    def __init__(self, *, default_pose_covariance: npt.ArrayLike | None = None,
+                 calibration_covariance: npt.ArrayLike | None = None) -> None:
         self._default_pose_covariance = (
             None if default_pose_covariance is None
             else check_pose_covariance(default_pose_covariance, name="default_pose_covariance"))
-        self._state = MapState(default_pose_covariance=self._default_pose_covariance)
+        self._calibration_covariance = (
+            None if calibration_covariance is None
+            else _check_calibration_covariance(calibration_covariance))
+        self._state = MapState(default_pose_covariance=self._default_pose_covariance,
+                               calibration_covariance=self._calibration_covariance)
 
     # -- readers -------------------------------------------------------------------------------
     def snapshot(self) -> MapState:
@@ -246,15 +255,28 @@ class KeyframeMap:
 
     def replace_state(self, state: MapState) -> None:
         """Install a whole state (used when loading a saved map), under this map's default
-        pose covariance (a configuration, not part of what was saved)."""
-        self._state = replace(state, default_pose_covariance=self._default_pose_covariance)
+        pose covariance and calibration covariance (configuration, not part of what was
+        saved)."""
+        self._state = replace(state, default_pose_covariance=self._default_pose_covariance,
+                              calibration_covariance=self._calibration_covariance)
 
     def _publish(self, keyframes: dict[int, Keyframe], landmarks: LandmarkEditor,
                  next_landmark_id: int) -> MapState:
         self._state = MapState(MappingProxyType(keyframes), landmarks.commit(),
                                self._state.version + 1, next_landmark_id,
-                               self._default_pose_covariance)
+                               self._default_pose_covariance, self._calibration_covariance)
         return self._state
+
+
+def _check_calibration_covariance(covariance: npt.ArrayLike) -> Array:
+    """A calibration covariance: (2, 2), finite, symmetric, positive semi-definite; else
+    MapError saying so."""
+    out = np.asarray(covariance, np.float64)
+    if (out.shape != (2, 2) or not np.isfinite(out).all() or not np.allclose(out, out.T)
+            or np.linalg.eigvalsh(out).min() < 0):
+        raise MapError(f"calibration_covariance: expected a finite, symmetric, positive "
+                       f"semi-definite 2x2 matrix, got {out.tolist()!r}")
+    return out
 
 
 def _drop_observations(keyframe: Keyframe, landmarks: LandmarkEditor) -> None:

@@ -59,6 +59,15 @@ class MappingConf:
     #: with. 0 takes such keyframes as exact.
     keyframe_position_sigma_m: float = 0.02
     keyframe_rotation_sigma_deg: float = 0.5
+    #: How well the map's camera calibration is known, 1 sigma: the focal, relative, and the
+    #: radial distortion, as the pixels it moves the image's farthest corner. A relocalized
+    #: pose whose query claims this camera states what that uncertainty does to it
+    #: (:mod:`~reloc_service.algorithms.pose.intrinsics_marginal`); it changes no answer
+    #: (the intrinsics test allows its own ``[options.p3p]`` prior). The default is a
+    #: routine checkerboard calibration's; 0 takes the calibration as exact (a rendered
+    #: dataset, a camera calibrated much better than routine).
+    calibration_focal_sigma_rel: float = 0.005
+    calibration_radial_sigma_px: float = 2.0
 
     def __post_init__(self) -> None:
         if isinstance(self.triangulation, Mapping):   # a nested config table
@@ -77,7 +86,8 @@ class MappingConf:
         if not 0 < self.max_view_angle_deg <= 180:
             raise ConfigError(f"mapping.max_view_angle_deg must be in (0, 180], got "
                               f"{self.max_view_angle_deg}")
-        for name in ("keyframe_position_sigma_m", "keyframe_rotation_sigma_deg"):
+        for name in ("keyframe_position_sigma_m", "keyframe_rotation_sigma_deg",
+                     "calibration_focal_sigma_rel", "calibration_radial_sigma_px"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float) or not (
                     math.isfinite(value) and value >= 0):
@@ -95,6 +105,14 @@ class MappingConf:
         independent."""
         return pose_covariance_from_sigmas(self.keyframe_position_sigma_m,
                                            math.radians(self.keyframe_rotation_sigma_deg))
+
+    def calibration_covariance(self) -> Array:
+        """(2, 2) covariance of the calibration's error ``theta = (a, b)`` (relative focal,
+        radial pixels at the farthest image corner; :mod:`~reloc_service.algorithms.pose.
+        intrinsics`): ``calibration_focal_sigma_rel`` and ``calibration_radial_sigma_px``,
+        independent."""
+        return np.diag([self.calibration_focal_sigma_rel**2,
+                        self.calibration_radial_sigma_px**2]).astype(np.float64)
 
     def features_for(self, kind: str) -> int:
         """Strongest keypoints of ``kind`` kept per keyframe."""

@@ -94,6 +94,12 @@ class PoseEstimate:
     #: solver cannot.
     intrinsics_test: Callable[[], IntrinsicsCheck | None] | None = field(default=None,
                                                                           repr=False)
+    #: (2, 2) how well the map states its camera calibration is known (the map's
+    #: :attr:`~reloc_service.core.map.MapState.calibration_covariance`, set where the
+    #: estimate is settled against the map): what the answer's covariance trusts the
+    #: calibration within (:mod:`.intrinsics_marginal`); None: the intrinsics test's prior.
+    #: Read by the stated covariance only, never by a decision.
+    calibration_covariance: Array | None = None
     #: Whether the query claims exactly the camera of the keyframes behind the pose (the
     #: map's calibration, as a drone whose camera built the map), which is what a view
     #: that cannot check the intrinsics may trust; None where not known (not trusted).

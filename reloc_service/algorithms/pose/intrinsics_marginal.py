@@ -11,6 +11,13 @@ so). They are two measurements of one unknown and combine by their information:
 ``B P B^T`` over queries whose calibration is as good as its prior says. Adding ``P``, ``V``
 and ``theta_hat theta_hat^T`` instead counts the data's noise twice and the prior once more.
 
+The prior ``P`` here is the map's stated calibration accuracy
+(:attr:`.base.PoseEstimate.calibration_covariance`, the map's configuration), not the
+tolerance the intrinsics test allows (:attr:`.intrinsics.IntrinsicsCheck.prior`): a map of a
+camera calibrated exactly (a rendered dataset) states ``P = 0`` and the pose at the given
+intrinsics with no calibration part, while its test keeps refusing what it refused. Only
+what an answer states reads it.
+
 The prior is trusted where the query claims the camera of the keyframes behind the pose: the
 map was built with that calibration. A query that claims another camera may carry a stale
 one, which the marginal covariance and its envelope of missed errors cover
@@ -37,41 +44,68 @@ def intrinsics_posterior(theta_hat: Array, data_covariance: Array, prior_covaria
     estimate ``theta_hat`` (covariance ``data_covariance``, V) and a trusted calibration
     prior ``N(0, prior_covariance)`` (P): two measurements of one unknown, combined by
     their information, ``S = (P^-1 + V^-1)^-1``, ``m = S V^-1 theta_hat`` (Gelman et al.,
-    Bayesian Data Analysis, 3.5)."""
-    data_info = np.linalg.inv(data_covariance)
-    posterior = np.linalg.inv(np.linalg.inv(prior_covariance) + data_info)
-    return posterior @ data_info @ np.asarray(theta_hat, np.float64), posterior
+    Bayesian Data Analysis, 3.5), computed in the equivalent gain form ``G = P (P + V)^-1``,
+    ``m = G theta_hat``, ``S = P - G P``, which holds for an exact calibration too
+    (``P = 0``: ``m = 0``, ``S = 0``)."""
+    prior = np.asarray(prior_covariance, np.float64)
+    gain = np.linalg.solve((prior + np.asarray(data_covariance, np.float64)).T, prior.T).T
+    posterior = prior - gain @ prior
+    mean = np.asarray(gain @ np.asarray(theta_hat, np.float64), np.float64)
+    return mean, np.asarray(0.5 * (posterior + posterior.T), np.float64)
 
 
-def calibration_trusted_covariance(trusted_covariance: Array, check: IntrinsicsCheck) -> Array:
+def calibration_prior(estimate: PoseEstimate, check: IntrinsicsCheck) -> Array:
+    """(2, 2) the calibration covariance ``estimate``'s answer trusts: the map's stated one
+    where known, else the prior the intrinsics test allowed."""
+    stated = estimate.calibration_covariance
+    return check.prior.covariance if stated is None else np.asarray(stated, np.float64)
+
+
+def calibration_trusted_covariance(trusted_covariance: Array, check: IntrinsicsCheck,
+                                   calibration: Array | None = None) -> Array:
     """(6, 6) the expected squared error of a pose at the given intrinsics where the
-    calibration is trusted within its prior ``P`` (the query claims the camera of the
-    keyframes behind the pose, which the map vouches for) and the test passed:
-    ``trusted_covariance`` is ``d C + B P B^T``; the prior and the data's estimate combine
-    (:func:`intrinsics_posterior`) into ``d C + B (S + m m^T) B^T``. No stale-calibration
-    envelope: the map was built with this calibration. The solutions the data cannot
-    exclude mix in by their posterior weights, likelihood times prior
-    (:func:`trusted_solution_weights`): a focal several prior sigmas off drops out."""
+    calibration is trusted within ``calibration`` ``P`` (2, 2; default the test's prior)
+    (the query claims the camera of the keyframes behind the pose, which the map vouches
+    for) and the test passed: ``trusted_covariance`` is ``d C + B P_t B^T`` (``P_t`` the
+    test's prior); the prior and the data's estimate combine (:func:`intrinsics_posterior`)
+    into ``d C + B (S + m m^T) B^T``. No stale-calibration envelope: the map was built with
+    this calibration. The solutions the data cannot exclude mix in by their posterior
+    weights, likelihood times prior (:func:`trusted_solution_weights`): a focal several
+    prior sigmas off drops out."""
     shift = check.pose_shift
-    prior = check.prior.covariance
+    prior = check.prior.covariance if calibration is None else calibration
+    own = own_covariance(trusted_covariance, check)
     m, s = intrinsics_posterior(check.theta, check.covariance, prior)
-    own = np.asarray(trusted_covariance, np.float64) - shift @ prior @ shift.T
     tested = check.solution
     offsets = np.zeros((6, 6))
-    for solution, weight in trusted_solution_weights(check):
+    for solution, weight in trusted_solution_weights(check, prior):
         offset = shift @ m if solution is tested else solution.twist
         offsets += weight * np.outer(offset, offset)
     out = own + shift @ s @ shift.T + offsets
     return np.asarray(0.5 * (out + out.T), np.float64)
 
 
-def trusted_solution_weights(check: IntrinsicsCheck) -> list[tuple[Solution, float]]:
+def own_covariance(trusted_covariance: Array, check: IntrinsicsCheck) -> Array:
+    """(6, 6) ``d C``: the pose's covariance at exact intrinsics (the map's dispersion
+    ``d`` included), ``trusted_covariance`` (``d C + B P_t B^T``) without the test's
+    prior ``P_t``."""
+    shift = check.pose_shift
+    return np.asarray(trusted_covariance, np.float64) - shift @ check.prior.covariance @ shift.T
+
+
+def trusted_solution_weights(check: IntrinsicsCheck, prior: Array | None = None
+                             ) -> list[tuple[Solution, float]]:
     """The tested solution and the others the data cannot exclude (duplicates of the tested
-    one left out), each with its normalised posterior weight under the calibration prior:
-    ``exp(-LR / 2 - theta^T P^-1 theta / 2)`` (LR the likelihood ratio against the best)."""
-    best = min(check.solutions, key=lambda s: s.cost)
+    one left out), each with its normalised posterior weight under the calibration prior
+    ``prior`` (2, 2; default the test's): ``exp(-LR / 2 - theta^T P^-1 theta / 2)`` (LR the
+    likelihood ratio against the best). A prior exact along some direction gives no weight
+    to a solution off the given camera: the tested one alone."""
     tested = check.solution
-    info = np.linalg.inv(check.prior.covariance)
+    prior = check.prior.covariance if prior is None else np.asarray(prior, np.float64)
+    if np.linalg.matrix_rank(prior) < len(prior):
+        return [(tested, 1.0)]
+    best = min(check.solutions, key=lambda s: s.cost)
+    info = np.linalg.inv(prior)
     kept = [s for s in check.solutions if s is tested or (
         check._likelihood_ratio(s, best) <= check._limit
         and np.abs(s.twist - tested.twist).max() >= SAME_POSE)]
@@ -81,13 +115,27 @@ def trusted_solution_weights(check: IntrinsicsCheck) -> list[tuple[Solution, flo
     return list(zip(kept, (weights / weights.sum()).tolist(), strict=True))
 
 
+def given_calibration_covariance(estimate: PoseEstimate) -> Array | None:
+    """(6, 6) the covariance relative to the map of ``estimate`` at the given intrinsics
+    trusted within the map's stated calibration alone (no data on them: a view that cannot
+    check them), ``d C + B P B^T``; ``estimate.covariance_given_intrinsics`` (the test's
+    prior) where no calibration is stated or no test ran."""
+    trusted, check = estimate.covariance_given_intrinsics, estimate.intrinsics
+    if trusted is None or check is None or estimate.calibration_covariance is None:
+        return trusted
+    shift = check.pose_shift
+    out = own_covariance(trusted, check) + shift @ calibration_prior(estimate, check) @ shift.T
+    return np.asarray(0.5 * (out + out.T), np.float64)
+
+
 def checked_covariance(estimate: PoseEstimate) -> Array | None:
     """(6, 6) the covariance relative to the map of ``estimate`` whose intrinsics test passed
-    or was not run: :func:`calibration_trusted_covariance` where the query claims the camera
-    of the keyframes behind the pose, else its ``covariance`` (the intrinsics marginalised,
+    or was not run: :func:`calibration_trusted_covariance` (under the map's stated
+    calibration accuracy) where the query claims the camera of the keyframes behind the
+    pose, else its ``covariance`` (the intrinsics marginalised,
     :func:`.map_consistency.covariance_with_intrinsics`)."""
     check, trusted = estimate.intrinsics, estimate.covariance_given_intrinsics
     if (estimate.query_camera_is_map_calibration and trusted is not None
             and check is not None and check.passed):
-        return calibration_trusted_covariance(trusted, check)
+        return calibration_trusted_covariance(trusted, check, calibration_prior(estimate, check))
     return estimate.covariance

@@ -183,10 +183,12 @@ def settle_intrinsics(estimate: PoseEstimate, state: MapState, kind: str, conf: 
 def settle_pose_errors(estimate: PoseEstimate, state: MapState, kind: str, conf: PnPConf,
                        landmark_ids: npt.ArrayLike | None) -> PoseEstimate:
     """``estimate`` with both the errors it owes to others: the intrinsics' (judged,
-    :func:`settle_intrinsics`) and the keyframe poses' behind its inliers' ``landmark_ids``
+    :func:`settle_intrinsics`; the map's stated calibration accuracy noted for the answer's
+    covariance) and the keyframe poses' behind its inliers' ``landmark_ids``
     (:func:`.map_uncertainty.map_covariance`), the latter only where it has a covariance to
     add them to."""
     settle_intrinsics(estimate, state, kind, conf)
+    estimate.calibration_covariance = state.calibration_covariance
     if landmark_ids is not None and estimate.covariance is not None:
         estimate.map_covariance = map_covariance(estimate.world_from_cam, state, landmark_ids)
     return estimate

@@ -35,7 +35,7 @@ from ...core.plugins import Registry
 from ..pose.base import PoseEstimate, log10_false_alarms, total_covariance
 from ..pose.decision_covariance import decision_covariance
 from ..pose.intrinsics import REFUSAL as INTRINSICS_REFUSAL
-from ..pose.intrinsics_marginal import checked_covariance
+from ..pose.intrinsics_marginal import checked_covariance, given_calibration_covariance
 
 Array = npt.NDArray[np.float64]
 
@@ -371,13 +371,14 @@ def intrinsics_unchecked(estimate: PoseEstimate, max_position_sigma_m: float) ->
 def stated_covariance(estimate: PoseEstimate, max_position_sigma_m: float) -> Array | None:
     """The covariance ``estimate`` answers with, relative to the world: its own
     (:func:`..pose.intrinsics_marginal.checked_covariance`), except where its view cannot
-    check the intrinsics (:func:`intrinsics_unchecked`): the calibration's (its prior alone);
+    check the intrinsics (:func:`intrinsics_unchecked`): the calibration's (the map's stated
+    calibration accuracy alone, :func:`..pose.intrinsics_marginal.given_calibration_covariance`);
     plus the keyframe poses' errors (:func:`..pose.base.total_covariance`). A weakness: where
     the intrinsics go unchecked (a plane: :attr:`VerifyConf.trust_unchecked_intrinsics`) a
     stale calibration passes, with the calibration's covariance. What the answer states
     only: :func:`verify` judges by :func:`..pose.decision_covariance.decision_covariance`."""
     if intrinsics_unchecked(estimate, max_position_sigma_m):
-        return total_covariance(estimate, estimate.covariance_given_intrinsics)
+        return total_covariance(estimate, given_calibration_covariance(estimate))
     return total_covariance(estimate, checked_covariance(estimate))
 
 

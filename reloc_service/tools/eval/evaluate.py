@@ -224,7 +224,8 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
              progress: bool = True, remote: RemoteSpec | None = None,
              keyframe_sigma: tuple[float, float] = (0.0, 0.0),
              query_camera: QueryCamera | None = None,
-             round_trip: bool = False) -> EvalResult:
+             round_trip: bool = False,
+             calibration_sigma: tuple[float, float] | None = None) -> EvalResult:
     """Build the map of ``dataset_root``, train, and score every query with each method.
 
     Args:
@@ -247,6 +248,11 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
         round_trip: query the map as a service restores it: saved after training as a
             service's snapshot stores it by default (:class:`.keyframe_parts.StoredParts`:
             no depth, landmark keypoints only, ...) and loaded back (in-process only).
+        calibration_sigma: (relative focal, radial pixels at the farthest image corner), the
+            1-sigma accuracy of the dataset's camera calibration, which the map states and
+            its answers' covariance carries (``options["mapping"]``'s
+            ``calibration_focal_sigma_rel`` / ``calibration_radial_sigma_px``); (0, 0): exact
+            (a rendered dataset); None: the mapping options' (their default 0.005, 2).
     """
     methods = _method_list(method)
     claimed = query_camera or QueryCamera()
@@ -254,6 +260,7 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
     truth_covariance = ground_truth_covariance(keyframe_sigma)
     dataset = read_dataset(dataset_root)
     _check_dataset(dataset, source)
+    options = with_calibration_sigma(options, calibration_sigma)
     backend = _make_backend(methods, dict(options or {}), source, remote)
     try:
         build_s = _build_map(backend, dataset, source, progress, truth_covariance)
@@ -275,6 +282,26 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
                       options=_json_safe(dict(options or {})),
                       created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
                       ground_truth_sigma=(float(keyframe_sigma[0]), float(keyframe_sigma[1])))
+
+
+def with_calibration_sigma(options: Mapping[str, Any] | None,
+                           calibration_sigma: tuple[float, float] | None
+                           ) -> Mapping[str, Any] | None:
+    """``options`` with ``calibration_sigma`` (relative focal, radial pixels) set as the
+    mapping table's calibration accuracy (unchanged when None); ConfigError unless both are
+    finite and >= 0."""
+    if calibration_sigma is None:
+        return options
+    focal_rel, radial_px = (float(v) for v in calibration_sigma)
+    if not (math.isfinite(focal_rel) and math.isfinite(radial_px) and focal_rel >= 0
+            and radial_px >= 0):
+        raise ConfigError(f"calibration sigma: expected a finite relative focal and pixels "
+                          f">= 0, got {calibration_sigma!r}")
+    out = dict(options or {})
+    out["mapping"] = {**dict(out.get("mapping") or {}),
+                      "calibration_focal_sigma_rel": focal_rel,
+                      "calibration_radial_sigma_px": radial_px}
+    return out
 
 
 def ground_truth_covariance(keyframe_sigma: tuple[float, float]) -> Array:
