@@ -446,3 +446,34 @@ def test_main_dataset_also_fills_a_plain_parser() -> None:
     add_dataset_arguments(parser)
     args = parser.parse_args(["check", "somewhere"])
     assert args.func is main_dataset and args.dataset == "somewhere"
+
+
+# -- calibration.json ------------------------------------------------------------------------
+
+def test_calibration_sigma_round_trip_and_stale_file_removed(tmp_path: Path) -> None:
+    cams = {"cam": CAMERAS["pinhole"]}
+    entry = DatasetEntry("a.png", "cam", np.eye(4))
+    write_dataset(tmp_path, cams, [entry], [])
+    assert read_dataset(tmp_path).calibration_sigma is None
+    write_dataset(tmp_path, cams, [entry], [], calibration_sigma=(0.002, 0.5))
+    assert read_dataset(tmp_path).calibration_sigma == (0.002, 0.5)
+    write_dataset(tmp_path, cams, [entry], [])
+    assert not (tmp_path / "calibration.json").exists()
+    for bad in ((-0.1, 1.0), (0.0, float("nan"))):
+        with pytest.raises(DatasetError, match="focal_sigma_rel"):
+            write_dataset(tmp_path, cams, [entry], [], calibration_sigma=bad)
+
+
+@pytest.mark.parametrize("text", [
+    "not json",
+    "[0.1, 0.2]",
+    '{"focal_sigma_rel": 0.1}',
+    '{"focal_sigma_rel": 0.1, "radial_sigma_px": -1}',
+    '{"focal_sigma_rel": true, "radial_sigma_px": 1}',
+    '{"focal_sigma_rel": 0.1, "radial_sigma_px": 1, "k1": 0}',
+])
+def test_malformed_calibration_file_names_it(tmp_path: Path, text: str) -> None:
+    root = write_files(tmp_path)
+    (root / "calibration.json").write_text(text)
+    with pytest.raises(DatasetError, match=r"calibration\.json.*focal_sigma_rel"):
+        read_dataset(root)

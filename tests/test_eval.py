@@ -335,6 +335,25 @@ def test_calibration_sigma_is_the_maps_stated_calibration_accuracy(tmp_path, fak
             ev.evaluate(root, "a", progress=False, remote=spec, calibration_sigma=bad)
 
 
+def test_the_datasets_stated_calibration_is_the_default(tmp_path, fake_remote):
+    """A dataset's ``calibration.json`` is what the map states when neither the caller nor the
+    mapping options say otherwise; either of those wins over it."""
+    root = _tiny_dataset(tmp_path / "toy")
+    (root / "calibration.json").write_text('{"focal_sigma_rel": 0.001, "radial_sigma_px": 0.25}')
+    spec = ev.RemoteSpec("tcp/127.0.0.1:1", "toy")
+    keys = ("calibration_focal_sigma_rel", "calibration_radial_sigma_px")
+
+    def stated(**kwargs):
+        mapping = ev.evaluate(root, "a", progress=False, remote=spec, **kwargs).options["mapping"]
+        return tuple(mapping[k] for k in keys)
+
+    assert stated() == (0.001, 0.25)
+    assert stated(calibration_sigma=(0.0, 0.0)) == (0.0, 0.0)
+    options = {"mapping": {"calibration_focal_sigma_rel": 0.01}}
+    result = ev.evaluate(root, "a", progress=False, remote=spec, options=options)
+    assert result.options["mapping"] == {"calibration_focal_sigma_rel": 0.01}
+
+
 def test_calibration_sigma_argument():
     import argparse
 

@@ -185,6 +185,8 @@ def test_dataset_files_and_metadata(desk: Path) -> None:
     assert len(data.map_entries) == 3 and len(data.query_entries) == 2
     # a monocular preset: exact depth for scoring only, no sensor depth for the map builder
     assert data.depth == {} and not (desk / "depth.txt").exists()
+    # rendered through the very cameras it writes: their calibration is stated exact
+    assert data.calibration_sigma == (0.0, 0.0)
     for entry in data.map_entries + data.query_entries:
         assert data.load_image(entry).shape == (120, 160)
         assert data.load_depth(entry) is None

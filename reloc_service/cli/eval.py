@@ -58,7 +58,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "image corner (e.g. 0.005,2): the map states it (mapping."
                         "calibration_focal_sigma_rel / _radial_sigma_px) and the answers' "
                         "covariance carries it; it changes no answer. 0,0: exact (a rendered "
-                        "dataset's cameras); default: the mapping configuration's (0.005,2 "
+                        "dataset's cameras); default: the dataset's calibration.json "
+                        "(reloc synth writes 0,0), else the mapping configuration's (0.005,2 "
                         "unless --options sets it)")
     parser.add_argument("--query-focal-scale", type=float, default=1.0, metavar="S",
                         help="the queries claim a focal S times their camera's (images "

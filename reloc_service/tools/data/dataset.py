@@ -8,10 +8,16 @@ Layout of a dataset folder ``DATASET``::
     queries.txt   same layout, the pose is ground truth used only for scoring (optional)
     depth.txt     <image path> <16-bit depth png> <metres per unit>  (optional)
     truth_depth.txt  same layout (optional)
+    calibration.json  {"focal_sigma_rel": F, "radial_sigma_px": R}  (optional)
 
 ``depth.txt`` is sensor depth the user has (an RGB-D camera): the map builder may use it.
 ``truth_depth.txt`` is ground-truth depth used only for scoring (landmark accuracy), never to
 build the map (a synthetic monocular or stereo dataset has it, but no ``depth.txt``).
+
+``calibration.json`` is how accurate whoever made the dataset says ``cameras.json``'s
+intrinsics are, 1 sigma: the focal length relative to itself, and the radial distortion as
+pixels at the farthest image corner; ``reloc synth`` writes 0, 0 (rendered through the exact
+camera). Absent: not stated, and readers assume the map configuration's default.
 
 Poses are ``world_from_cam`` (camera x right, y down, z forward), quaternions Hamilton x y z w.
 ``#`` at the start of a line or of a whitespace-separated token starts a comment; blank lines
@@ -46,6 +52,8 @@ MAP_FILE = "map.txt"
 QUERIES_FILE = "queries.txt"
 DEPTH_FILE = "depth.txt"
 TRUTH_DEPTH_FILE = "truth_depth.txt"
+CALIBRATION_FILE = "calibration.json"
+CALIBRATION_KEYS = ("focal_sigma_rel", "radial_sigma_px")
 
 POSE_LINE = "<image path> <camera id> tx ty tz qx qy qz qw"
 DEPTH_LINE = "<image path> <depth png path> <metres per unit>"
@@ -87,6 +95,9 @@ class Dataset:
     query_entries: list[DatasetEntry] = field(default_factory=list)
     depth: dict[str, tuple[str, float]] = field(default_factory=dict)
     truth_depth: dict[str, tuple[str, float]] = field(default_factory=dict)
+    #: (relative focal, radial pixels at the farthest corner), 1 sigma, from
+    #: ``calibration.json``; None when the dataset does not state it.
+    calibration_sigma: tuple[float, float] | None = None
 
     def camera(self, entry: DatasetEntry) -> Camera:
         """The camera that took ``entry``'s image."""
@@ -336,7 +347,38 @@ def read_dataset(root: str | Path) -> Dataset:
     depth, truth_depth = ((read_depth_file(root / name, image_paths=image_paths)
                            if (root / name).is_file() else {})
                           for name in (DEPTH_FILE, TRUTH_DEPTH_FILE))
-    return Dataset(root, cameras, map_entries, query_entries, depth, truth_depth)
+    calibration = (read_calibration_sigma(root / CALIBRATION_FILE)
+                   if (root / CALIBRATION_FILE).is_file() else None)
+    return Dataset(root, cameras, map_entries, query_entries, depth, truth_depth, calibration)
+
+
+def read_calibration_sigma(path: str | Path) -> tuple[float, float]:
+    """``calibration.json``'s (relative focal, radial pixels) 1-sigma calibration accuracy;
+    DatasetError naming the file unless it is an object with exactly those two finite,
+    non-negative numbers."""
+    path = Path(path)
+    try:
+        data = json.loads(_read_text(path))
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{path}: not JSON ({exc}); {_CALIBRATION_EXPECTED}") from None
+    if not isinstance(data, dict) or sorted(data) != sorted(CALIBRATION_KEYS):
+        raise DatasetError(f"{path}: {_CALIBRATION_EXPECTED}, got {data!r}")
+    return _checked_calibration([data[key] for key in CALIBRATION_KEYS], str(path))
+
+
+_CALIBRATION_EXPECTED = ('expected {"focal_sigma_rel": <relative focal, >= 0>, '
+                         '"radial_sigma_px": <pixels at the farthest corner, >= 0>}')
+
+
+def _checked_calibration(values: Iterable[object], where: str) -> tuple[float, float]:
+    """(relative focal, radial pixels) as floats; DatasetError unless both are finite numbers
+    >= 0 (a boolean is not a number here)."""
+    items = list(values)
+    if len(items) != 2 or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+            and v >= 0 for v in items):
+        raise DatasetError(f"{where}: {_CALIBRATION_EXPECTED}, got {items!r}")
+    return float(items[0]), float(items[1])  # type: ignore[arg-type]
 
 
 # -- writing ---------------------------------------------------------------------------------
@@ -369,16 +411,20 @@ def write_depth_file(path: str | Path, depth: Mapping[str, tuple[str, float]], *
 def write_dataset(root: str | Path, cameras: Mapping[str, Camera],
                   map_entries: Iterable[DatasetEntry], query_entries: Iterable[DatasetEntry],
                   depth: Mapping[str, tuple[str, float]] | None = None, *,
-                  truth_depth: Mapping[str, tuple[str, float]] | None = None) -> None:
+                  truth_depth: Mapping[str, tuple[str, float]] | None = None,
+                  calibration_sigma: tuple[float, float] | None = None) -> None:
     """Validate, then write ``cameras.json``, ``map.txt``, ``queries.txt``, ``depth.txt``
-    (sensor depth) and ``truth_depth.txt`` (ground truth for scoring only) under ``root``,
-    each atomically; a depth file whose mapping is empty is removed (a stale one would not
-    match). Images and depth PNGs are the caller's."""
+    (sensor depth), ``truth_depth.txt`` (ground truth for scoring only) and
+    ``calibration.json`` (the intrinsics' stated accuracy) under ``root``, each atomically;
+    a depth file whose mapping is empty, or a calibration file when ``calibration_sigma`` is
+    None, is removed (a stale one would not match). Images and depth PNGs are the caller's."""
     root = Path(root)
     map_entries, query_entries = list(map_entries), list(query_entries)
     depth, truth_depth = dict(depth or {}), dict(truth_depth or {})
     _check_for_writing(cameras, map_entries, query_entries,
                        {DEPTH_FILE: depth, TRUTH_DEPTH_FILE: truth_depth})
+    if calibration_sigma is not None:
+        calibration_sigma = _checked_calibration(calibration_sigma, CALIBRATION_FILE)
     root.mkdir(parents=True, exist_ok=True)
     camera_lines = [f"  {json.dumps(cid)}: {json.dumps(camera.to_dict())}"
                     for cid, camera in cameras.items()]
@@ -392,6 +438,11 @@ def write_dataset(root: str | Path, cameras: Mapping[str, Camera],
             write_depth_file(root / name, maps, title=title)
         else:
             (root / name).unlink(missing_ok=True)  # a stale depth file would not match
+    if calibration_sigma is None:
+        (root / CALIBRATION_FILE).unlink(missing_ok=True)
+    else:
+        atomic_write(root / CALIBRATION_FILE, json.dumps(
+            dict(zip(CALIBRATION_KEYS, calibration_sigma, strict=True))) + "\n")
 
 
 def _check_for_writing(cameras: Mapping[str, Camera], map_entries: list[DatasetEntry],

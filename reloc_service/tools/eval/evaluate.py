@@ -251,8 +251,9 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
         calibration_sigma: (relative focal, radial pixels at the farthest image corner), the
             1-sigma accuracy of the dataset's camera calibration, which the map states and
             its answers' covariance carries (``options["mapping"]``'s
-            ``calibration_focal_sigma_rel`` / ``calibration_radial_sigma_px``); (0, 0): exact
-            (a rendered dataset); None: the mapping options' (their default 0.005, 2).
+            ``calibration_focal_sigma_rel`` / ``calibration_radial_sigma_px``); (0, 0): exact;
+            None: the dataset's own ``calibration.json`` (``reloc synth`` states 0, 0), else
+            the mapping options' (their default 0.005, 2).
     """
     methods = _method_list(method)
     claimed = query_camera or QueryCamera()
@@ -260,7 +261,8 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
     truth_covariance = ground_truth_covariance(keyframe_sigma)
     dataset = read_dataset(dataset_root)
     _check_dataset(dataset, source)
-    options = with_calibration_sigma(options, calibration_sigma)
+    options = with_calibration_sigma(options, _calibration_sigma(calibration_sigma, options,
+                                                                 dataset.calibration_sigma))
     backend = _make_backend(methods, dict(options or {}), source, remote)
     try:
         build_s = _build_map(backend, dataset, source, progress, truth_covariance)
@@ -284,6 +286,21 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
                       ground_truth_sigma=(float(keyframe_sigma[0]), float(keyframe_sigma[1])))
 
 
+#: The mapping options that state the map's calibration accuracy.
+CALIBRATION_OPTION_KEYS = ("calibration_focal_sigma_rel", "calibration_radial_sigma_px")
+
+
+def _calibration_sigma(given: tuple[float, float] | None, options: Mapping[str, Any] | None,
+                       dataset_states: tuple[float, float] | None
+                       ) -> tuple[float, float] | None:
+    """The calibration accuracy the map states, first found of: the caller's, the mapping
+    options' own (None: they stand), the dataset's ``calibration.json``."""
+    mapping = dict((options or {}).get("mapping") or {})
+    if given is not None or any(key in mapping for key in CALIBRATION_OPTION_KEYS):
+        return given
+    return dataset_states
+
+
 def with_calibration_sigma(options: Mapping[str, Any] | None,
                            calibration_sigma: tuple[float, float] | None
                            ) -> Mapping[str, Any] | None:
@@ -299,8 +316,7 @@ def with_calibration_sigma(options: Mapping[str, Any] | None,
                           f">= 0, got {calibration_sigma!r}")
     out = dict(options or {})
     out["mapping"] = {**dict(out.get("mapping") or {}),
-                      "calibration_focal_sigma_rel": focal_rel,
-                      "calibration_radial_sigma_px": radial_px}
+                      **dict(zip(CALIBRATION_OPTION_KEYS, (focal_rel, radial_px), strict=True))}
     return out
 
 

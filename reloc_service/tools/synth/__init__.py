@@ -75,7 +75,9 @@ def render_dataset(preset: str | Preset, out: Path, *, seed: int = 0, workers: i
     truth = {job.image_path: (job.truth_depth_path, DEPTH_METRES_PER_UNIT) for job in jobs}
     sensor = ({job.image_path: (job.sensor_depth_path, preset.depth_sensor.metres_per_unit)
                for job in jobs} if preset.depth_sensor is not None else {})
-    write_dataset(out, cameras, entries["map"], entries["query"], sensor, truth_depth=truth)
+    # Rendered through the exact cameras written: their calibration is exact.
+    write_dataset(out, cameras, entries["map"], entries["query"], sensor, truth_depth=truth,
+                  calibration_sigma=(0.0, 0.0))
     _write_json(out / SYNTH_FILE, _synth_record(preset, cameras, seed, scale, jobs))
     return out
 
