@@ -69,7 +69,7 @@ def compare(root: Path, draws: int, seed: int, keyframe_sigma: tuple[float, floa
             image, camera = dataset.load_image(entry), dataset.camera(entry)
             gt = np.array(entry.world_from_cam)
             priors = [gt] + [prior_bench.good_prior(gt, rng) for _ in range(draws)]
-            row = {"query": q, "image": str(entry.image),
+            row = {"query": q, "image": entry.image_path,
                    "chain": describe(engine.relocalize(Frame(image, camera), method=method), gt),
                    "track": [describe(tracker.relocalize(
                        Frame(image, camera), prior=Prior(p, covariance=covariance)), gt)
