@@ -206,3 +206,42 @@ def test_a_tight_prior_leaves_the_intrinsics_test_fewer_focal_starts(
     assert method.relocalize(_query(synthetic_scene, 0)).ok
     assert starts and all(s == FOCAL_STARTS for s in starts)
 
+
+
+def _stated_uncertain(state, sigma_m=0.01, sigma_deg=0.3):
+    """``state`` with every keyframe's pose stated accurate to ``sigma_m`` / ``sigma_deg``."""
+    import dataclasses
+
+    return dataclasses.replace(state, default_pose_covariance=pose_covariance_from_sigmas(
+        sigma_m, np.deg2rad(sigma_deg)))
+
+
+def test_landmarks_of_keyframes_with_pose_errors_are_less_certain(synthetic_scene, synthetic_map):
+    from reloc_service.algorithms.pose.landmark_pool import LandmarkPool
+    from reloc_service.algorithms.relocalizers.tracking import _landmark_uncertainty
+
+    near = synthetic_map.nearest_keyframes(synthetic_scene.query_poses[0], 10, 60.0)
+    keyframes = [synthetic_map.keyframes[k] for k in near]
+    pool = LandmarkPool.gather(keyframes, "sift")
+    exact = _landmark_uncertainty(pool, synthetic_map, near, keyframes).depth_sigmas_m
+    uncertain = _landmark_uncertainty(pool, _stated_uncertain(synthetic_map), near,
+                                      keyframes).depth_sigmas_m
+    finite = np.isfinite(exact) & (exact > 0)
+    assert finite.sum() > 20
+    # 0.3 deg at the scene's focal is several pixels against the keypoints' half pixel.
+    assert np.all(uncertain[finite] > 3.0 * exact[finite])
+
+
+def test_a_good_prior_is_still_tracked_on_a_map_of_uncertain_keyframes(synthetic_scene,
+                                                                      synthetic_map):
+    tracker = create_tracker(_map_of(_stated_uncertain(synthetic_map)))
+    rng = np.random.default_rng(0)
+    answered = 0
+    for i, gt in enumerate(synthetic_scene.query_poses):
+        prior = Prior(_perturbed(gt, rng), covariance=COVARIANCE)
+        result = tracker.relocalize(_query(synthetic_scene, i), prior=prior)
+        if result.ok:
+            answered += 1
+            dt, dr = pose_error(result.world_from_cam, gt)
+            assert dt < 0.03 and dr < np.deg2rad(1.0)
+    assert answered >= len(synthetic_scene.query_poses) - 1

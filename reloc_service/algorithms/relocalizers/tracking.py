@@ -32,6 +32,7 @@ from ..pose.base import PoseEstimate
 from ..pose.cluster_covariance import at_least, cluster_robust_covariance
 from ..pose.guided import GuidedConf
 from ..pose.intrinsics import IntrinsicsCheck
+from ..pose.landmark_keyframe_errors import keyframe_pose_sigmas, widen_for_keyframe_errors
 from ..pose.landmark_pool import LandmarkPool
 from ..pose.map_consistency import settle_pose_errors
 from ..pose.pnp import PnPConf, PointUncertainty, solve_pnp_indexed
@@ -153,8 +154,7 @@ class TrackingRelocalizer(Relocalizer):
         pool = LandmarkPool.gather(keyframes, kind)
         if len(pool.landmark_ids) == 0:
             return self._refuse("no keyframe near the prior sees what it sees", timings, state)
-        rows_all = np.arange(len(pool.landmark_ids))
-        uncertainty = pool.uncertainty(state, keyframes, rows_all)
+        uncertainty = _landmark_uncertainty(pool, state, near, keyframes)
         gate = float(stats.chi2.ppf(self.conf.gate_probability, 2))
         sigmas = pixel_sigmas(uncertainty, prior.world_from_cam, pool.points_world,
                               query.camera, self.conf.keypoint_sigma_px)
@@ -295,6 +295,19 @@ def _union(first_q: IntArray, first_rows: IntArray, second_q: IntArray, second_r
     keep = np.sort(np.unique(q, return_index=True)[1])
     keep = np.sort(keep[np.unique(rows[keep], return_index=True)[1]])
     return q[keep], rows[keep]
+
+
+def _landmark_uncertainty(pool: LandmarkPool, state: MapState, keyframe_ids: list[int],
+                          keyframes: list[Keyframe]) -> PointUncertainty:
+    """The depth uncertainty of every pool landmark, widened by its keyframe's pose error
+    (:mod:`..pose.landmark_keyframe_errors`): the landmarks are pooled from several
+    keyframes, so a depth that the keypoints alone fix well but a keyframe's pose error
+    moves would pull the pooled pose towards that keyframe's error."""
+    rows = np.arange(len(pool.landmark_ids))
+    rot, pos = keyframe_pose_sigmas(state, keyframe_ids)
+    focal = np.array([kf.camera.fx for kf in keyframes], np.float64)
+    return widen_for_keyframe_errors(pool.uncertainty(state, keyframes, rows),
+                                     pool.points_world, pool.keyframe_rows, rot, pos, focal)
 
 
 def _local_kind(keyframes: list[Keyframe]) -> str | None:
