@@ -257,7 +257,8 @@ def test_worker_processes_drop_the_replica_of_a_closed_map(template, synthetic_s
     map_bytes = template.counted_bytes
     storage = stored_maps(template, tmp_path / "storage", names=("alpha", "bravo"))
     port = free_port()
-    service = Service(conf(port, storage, max_resident_mb=1.5 * map_bytes / MB,
+    # one map fits (held twice: the service's and the worker's replica), two do not
+    service = Service(conf(port, storage, max_resident_mb=3 * map_bytes / MB,
                            worker_mode="process", workers=1)).start()
     try:
         processes = service.processes

@@ -213,6 +213,7 @@ class _Base:
 
     path: Path
     waiting: set[int]
+    name: str = ""   # the map it holds
 
 
 @dataclass(frozen=True)
@@ -270,6 +271,7 @@ class ProcessWorkers:
         self._maps: dict[str, MapRuntime] = {}
         self._bases: dict[int, _Base] = {}            # id -> base (several may be in flight)
         self._started = False
+        self._starting = False                        # a start_in_background thread runs
         self._closed = False
         self._token = 0
         self._in_flight = 0
@@ -328,7 +330,7 @@ class ProcessWorkers:
             loaded = rt.engine.loaded_snapshot()
             if loaded is None or not link_snapshot(loaded, path):
                 rt.engine.save(path, exact_geometry=True, parts=EVERYTHING)
-            base = _Base(path, {id(h) for h in targets})
+            base = _Base(path, {id(h) for h in targets}, rt.name)
             with self._lock:
                 self._bases[id(base)] = base
             msg = ("load", rt.name, path, self.spec, rt.cameras())
@@ -366,6 +368,73 @@ class ProcessWorkers:
                 self._give_back(handle)
         return _internal("two worker processes in a row were gone before they got this query; "
                          "retry")
+
+    def replica_ready(self, name: str) -> bool:
+        """Whether the workers hold map ``name`` now: started, and every worker its latest
+        base was sent to has loaded it. Until then the service answers its queries itself
+        (:meth:`.app.Service.relocalize_payload`): the same answers, without waiting for the
+        workers' start and their load of the map."""
+        self._read_acks()
+        with self._lock:
+            if not self._started or self._closed or name not in self._maps:
+                return False
+            if not any(not h.dead for h in self._handles):
+                return False
+            return not any(base.name == name for base in self._bases.values())
+
+    def _read_acks(self) -> None:
+        """Read the "loaded" acknowledgements the idle workers sent (an idle worker holds
+        no query, so its pipe holds nothing else), without blocking."""
+        with self._idle_ready:
+            idle, self._idle = self._idle, []
+        done: list[tuple[str, _Handle]] = []
+        try:
+            for handle in idle:
+                try:
+                    while not handle.dead and handle.conn.poll(0):
+                        msg = handle.conn.recv()
+                        if msg[0] == "loaded":
+                            done.append((msg[1], handle))
+                        else:
+                            log.error("idle worker %d sent %r", handle.process.pid, msg[0])
+                except (EOFError, OSError):
+                    handle.dead = True
+        finally:
+            with self._idle_ready:
+                self._idle.extend(idle)
+                self._idle_ready.notify_all()
+        for path, handle in done:
+            self._base_done(path, handle)
+
+    def start_in_background(self) -> None:
+        """On a thread of its own: :meth:`start` the workers, or replace the idle ones found
+        dead (each with fresh bases); nothing if neither is needed or one such thread runs."""
+        with self._lock:
+            if self._closed or self._starting:
+                return
+            if self._started and all(not h.dead for h in self._handles):
+                return
+            self._starting = True
+        threading.Thread(target=self._start_or_revive, name="start-workers",
+                         daemon=True).start()
+
+    def _start_or_revive(self) -> None:
+        try:
+            self._ensure_started()
+            with self._idle_ready:
+                dead = [h for h in self._idle if h.dead or not h.process.is_alive()]
+                for handle in dead:
+                    self._idle.remove(handle)
+            for handle in dead:
+                try:
+                    handle = self._replace(handle)
+                finally:
+                    self._give_back(handle)
+        except Exception as exc:   # the next query tries again
+            log.error("starting the relocalize worker processes failed: %s", exc)
+        finally:
+            with self._lock:
+                self._starting = False
 
     @property
     def in_flight(self) -> int:

@@ -197,7 +197,12 @@ class Residency:
         try:
             with self._load_slot:
                 if not self._stopped.is_set():
-                    self.make_room(self.expected_bytes(name))
+                    expected = self.expected_bytes(name)
+                    if self.budget and expected > self.budget:
+                        log.warning("map %s alone counts %.1f MB (%d copies), over the budget "
+                                    "of %.1f MB: it is closed whenever it is idle", name,
+                                    expected / MB, self.copies, self.budget / MB)
+                    self.make_room(expected)
                     self.registry.load_resident(name)
         finally:
             with self._lock:
