@@ -24,7 +24,10 @@ How a replica stays current (the parent's :class:`~.runtime.MapRuntime` is the o
 
 Queries go through the service's bounded :class:`~.workers.WorkerPool` (same busy reply);
 each pool thread borrows one idle process, sends the request bytes as received (compressed
-image: decoded in the worker) and gets back the reply bytes. A worker that dies (kill -9)
+image: decoded in the worker) and gets back the reply bytes. Until the workers hold a map
+(:meth:`ProcessWorkers.replica_ready`: after the service's start, a cold load, a worker's
+replacement) the service answers its queries on its own map, the same answers, rather than
+waiting seconds for their start and load. A worker that dies (kill -9)
 gives the query it held an INTERNAL error reply and is replaced (new process, fresh bases).
 
 Processes are forked from a ``forkserver`` (a clean single-threaded server started by exec,
