@@ -65,6 +65,7 @@ from ..storage.snapshot_link import link_snapshot
 from . import handlers
 from .codec import error_reply
 from .durability import map_dirname
+from .memory import trim_now
 from .served import ServedMap, WriteOp
 from .warm import warm_kernels
 
@@ -136,6 +137,8 @@ def worker_main(conn: Connection, index: int) -> None:
             dropped = replicas.pop(msg[1], None)
             if dropped is not None:
                 dropped.engine.close()   # with the pools it still had to make
+                del dropped
+                trim_now()   # its pages back to the system, as the parent does (residency)
         elif kind == "load":
             _, name, base, spec, cameras = msg
             try:
