@@ -77,6 +77,11 @@ log = logging.getLogger(__name__)
 #: Seconds a worker gets to exit after "stop" before it is terminated, then killed.
 STOP_GRACE_S = 3.0
 
+#: Seconds a worker waits, when it drops a replica, for the whole-map pool being made to
+#: stop (its map is freed then); the queries queued behind wait too, but meanwhile the
+#: service answers them itself (the map they go to next is not loaded here yet).
+DROP_WAIT_S = 30.0
+
 
 @dataclass(frozen=True)
 class EngineSpec:
@@ -137,8 +142,11 @@ def worker_main(conn: Connection, index: int) -> None:
             dropped = replicas.pop(msg[1], None)
             if dropped is not None:
                 dropped.engine.close()   # with the pools it still had to make
+                # the pool being made holds the map until it ends; then the pages go back
+                # to the system, as the service's do when it closes a map (residency)
+                dropped.engine.prepared.wait(DROP_WAIT_S)
                 del dropped
-                trim_now()   # its pages back to the system, as the parent does (residency)
+                trim_now()
         elif kind == "load":
             _, name, base, spec, cameras = msg
             try:
