@@ -5,8 +5,9 @@ as at a fleet's start), one query sent as soon as the service answers.
 
     python scripts/startup_breakdown.py TEMPLATE_DIR QUERY_IMAGE [--runs 3] [--mode process]
 
-Prints, per run, seconds from the process start to: the service's "serving" log line
-(imports, Zenoh), the end of the map's cold load, and the first answer; then their medians.
+Prints, per run, seconds from the process start to: the service's first log line (its
+imports), its "serving" log line (Zenoh open), the end of the map's cold load, the first
+whole-map pool made (the first step's), and the first answer; then their medians.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ _STAMP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ")
 
 
 def _stamp_of(log: Path, needle: str) -> float | None:
-    """Wall-clock seconds of the first log line holding ``needle``."""
+    """Wall-clock seconds of the first log line holding ``needle`` ("": the first line)."""
     for line in log.read_text(errors="replace").splitlines():
         m = _STAMP.match(line)
         if m and needle in line:
@@ -44,10 +45,11 @@ def one_run(template: Path, jpeg: bytes, work: Path, mode: str) -> dict[str, flo
     with serve(conf, storage, 100000.0, work / "service") as served:
         wall_start = time.time() - (time.monotonic() - served.started)
         total = first_answer(served, "site000", jpeg, 300.0)
-        serving = _stamp_of(served.log, "reloc service")
-        loaded = _stamp_of(served.log, "loaded on demand")
-    return {"serving_s": None if serving is None else serving - wall_start,
-            "loaded_s": None if loaded is None else loaded - wall_start,
+        stamps = {"first_log_s": _stamp_of(served.log, ""),
+                  "serving_s": _stamp_of(served.log, "reloc service"),
+                  "loaded_s": _stamp_of(served.log, "loaded on demand"),
+                  "first_pool_s": _stamp_of(served.log, "pool of")}
+    return {**{k: None if v is None else v - wall_start for k, v in stamps.items()},
             "first_answer_s": total}
 
 

@@ -124,6 +124,9 @@ def test_fleet_flags_choose_the_sizes_and_bad_ones_exit_2(capsys):
     assert (conf.maps, conf.keyframes, conf.budget_mb) == (200, 1000, 1000.0)
     quick = fleet_conf(parser.parse_args(["--quick", "--fleet-maps", "5"]))
     assert quick.maps == 5 and quick.keyframes == fleet.QUICK_FLEET.keyframes
+    assert conf.worker_mode == "thread"
+    assert fleet_conf(parser.parse_args(["--fleet-worker-mode", "process"])).worker_mode == \
+        "process"
     assert main(parser.parse_args(["--only", "fleet", "--fleet-maps", "0"])) == 2
     assert "expected maps, keyframes and queries >= 1" in capsys.readouterr().err
 

@@ -30,7 +30,7 @@ from reloc_service.core.errors import ConfigError
 from reloc_service.engine import EngineConf
 from reloc_service.service.app import Service
 from reloc_service.service.config import parse_config
-from reloc_service.service.residency import MB
+from reloc_service.service.residency import MB, counted_bytes
 from reloc_service.service.workers import Lane
 from reloc_service.tools.bench.stored_map import (
     StoredMap,
@@ -257,7 +257,8 @@ def test_worker_processes_drop_the_replica_of_a_closed_map(template, synthetic_s
     map_bytes = template.counted_bytes
     storage = stored_maps(template, tmp_path / "storage", names=("alpha", "bravo"))
     port = free_port()
-    service = Service(conf(port, storage, max_resident_mb=1.5 * map_bytes / MB,
+    # one map fits (held twice: the service's and the worker's replica), two do not
+    service = Service(conf(port, storage, max_resident_mb=3 * map_bytes / MB,
                            worker_mode="process", workers=1)).start()
     try:
         processes = service.processes
@@ -273,6 +274,33 @@ def test_worker_processes_drop_the_replica_of_a_closed_map(template, synthetic_s
             answer = processes.relocalize("alpha", request, 0.0)
             assert answer.error and b"has no replica" in answer.payload
             np.testing.assert_allclose(pose_of(alpha, synthetic_scene, 2), first, atol=1e-9)
+    finally:
+        service.stop()
+
+
+def test_worker_processes_replicas_count_against_the_budget(template, synthetic_scene,
+                                                            tmp_path):
+    """With worker processes each resident map is held twice (the service's map, the
+    worker's replica): the budget counts both, so fewer maps stay resident than one copy
+    each would allow."""
+    map_bytes = template.counted_bytes
+    storage = stored_maps(template, tmp_path / "storage")
+    port = free_port()
+    budget_mb = 4.5 * map_bytes / MB   # three maps fit once each (pools included), not twice
+    service = Service(conf(port, storage, max_resident_mb=budget_mb, worker_mode="process",
+                           workers=1)).start()
+    residency = service.registry.residency
+    assert residency is not None and residency.copies == 2
+    try:
+        for name in NAMES:
+            with RelocClient(endpoint(port), map=name, timeout=60) as client:
+                pose_of(client, synthetic_scene, 1)
+        wait_until(lambda: residency.resident_bytes() <= budget_mb * MB, timeout=30)
+        one_copy = [counted_bytes(rt) for rt in service.maps.values()]
+        assert len(NAMES) * max(one_copy) <= budget_mb * MB   # one copy each would all fit
+        assert len(service.maps) < len(NAMES)
+        assert residency.resident_bytes() == 2 * sum(one_copy)
+        assert residency.peak_bytes <= budget_mb * MB   # each load made room for both copies
     finally:
         service.stop()
 

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 import pytest
 
-from reloc_service.core.numeric import limit_blas_threads, top_k, zncc
+from reloc_service.core.numeric import compile_once, limit_blas_threads, top_k, zncc
 
 
 def test_zncc_of_related_and_unrelated_images():
@@ -89,3 +92,32 @@ def test_blas_threads_are_limited_and_restored():
             limit_blas_threads(-2)
     assert [lib["num_threads"] for lib in threadpool_info()
             if lib["user_api"] == "blas"] == before
+
+
+def test_compile_once_runs_its_factory_once_for_concurrent_first_calls() -> None:
+    """Two threads asking at once (as a service's warm-kernels thread and its first query
+    do): the factory runs once and both get its result (``functools.cache`` ran it twice)."""
+    calls: list[int] = []
+    asking = threading.Event()
+
+    def factory() -> object:
+        calls.append(1)
+        assert asking.wait(30)
+        time.sleep(0.2)   # lets the second caller reach the factory, or the lock before it
+        return object()
+
+    once = compile_once(factory)
+    results: list[object] = []
+
+    def second() -> None:
+        asking.set()
+        results.append(once())
+
+    threads = [threading.Thread(target=lambda: results.append(once())),
+               threading.Thread(target=second)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert len(calls) == 1 and len(results) == 2 and results[0] is results[1]
+    assert once() is results[0]

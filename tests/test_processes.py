@@ -74,6 +74,8 @@ def served(synthetic_scene):
     service.start_workers_in_background()   # as `reloc serve` and the demo do
     # started before any query: the first one does not pay for spawning the workers
     wait_until(lambda: len(service.processes.pids()) == 2, timeout=60)
+    # and holding the map: the queries below go to them (before, the service answers)
+    wait_until(lambda: service.processes.replica_ready(MAP), timeout=60)
     try:
         yield service, port, synthetic_scene
     finally:
@@ -180,6 +182,28 @@ def test_a_query_after_an_applied_put_sees_it(served):
             sub.undeclare()
 
 
+def test_queries_before_the_workers_hold_the_map_are_answered_by_the_service(synthetic_scene):
+    """A service whose worker processes have not started (or not loaded the map yet) answers
+    a query itself, at once, and starts them in the background; once they hold the map they
+    answer, with the same pose."""
+    service = _serve(service_conf(free_port(), "", maps=(MAP,), workers=1, queue_size=8),
+                     synthetic_scene)
+    try:
+        procs, rt = service.processes, service.maps[MAP]
+        assert procs is not None and procs.pids() == [] and not procs.replica_ready(MAP)
+        payload = _request(synthetic_scene.query_images[0])
+        first = _pose(service.relocalize_payload(rt, payload, 0.0))
+        assert rt.stats.counters["relocalize_in_service"] == 1
+        assert first[0] == "ok"
+        wait_until(lambda: procs.replica_ready(MAP), timeout=60)   # started meanwhile
+        again = _pose(service.relocalize_payload(rt, payload, 0.0))
+        assert rt.stats.counters["relocalize_in_service"] == 1   # the worker answered
+        assert len(procs.pids()) == 1 and again[0] == first[0]
+        np.testing.assert_allclose(again[1], first[1], rtol=0, atol=1e-9)
+    finally:
+        service.stop(final_snapshot=False)
+
+
 def test_killed_worker_is_replaced_and_its_query_answered(served):
     """kill -9 of both workers while each holds a query (stopped first, so they hold it for
     sure): each of those queries gets one INTERNAL error reply naming the signal, and the
@@ -203,11 +227,13 @@ def test_killed_worker_is_replaced_and_its_query_answered(served):
             assert len(replies) == 1 and replies[0].err is not None, replies
             error = wire.decode_error_reply(replies[0].err.payload.to_bytes())
             assert error.code is ErrorCode.INTERNAL and "SIGKILL" in error.message, error
+        # answered at once (by the service while the new workers start and load the map)
         after = _get_all(session, key, payloads)
     assert [[kind for kind, _ in r] for r in after] == [["ok"]] * 4, after
     assert all(_pose(r[0][1])[0] in ("ok", "not_relocalized") for r in after)
+    wait_until(lambda: len(procs.pids()) == 2 and procs.replica_ready(MAP), timeout=60)
     now = procs.pids()
-    assert len(now) == 2 and not set(now) & set(before)
+    assert not set(now) & set(before)
     for pid in before:
         assert not _alive(pid)
 

@@ -12,14 +12,13 @@ returns None where it is not installed.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from .numeric import numba_or_none
+from .numeric import compile_once, numba_or_none
 
 Knn2 = tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]
 
@@ -148,7 +147,7 @@ def _knn2_rows(words_a: npt.NDArray[np.uint64], cols_b: npt.NDArray[np.uint64],
         out_i[i, 0], out_i[i, 1] = first & mask, second & mask
 
 
-@functools.cache
+@compile_once
 def compiled_knn2() -> Callable[..., None] | None:
     """:func:`_knn2_rows` compiled by numba (cached on disk by numba after the first
     compile), or None where numba is not installed."""

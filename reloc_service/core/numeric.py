@@ -3,7 +3,10 @@ switch of the optional compiled kernels, and the thread count of the BLAS NumPy 
 
 from __future__ import annotations
 
-from typing import Any
+import functools
+import threading
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -84,6 +87,31 @@ def _top_k_rows(scores: npt.NDArray[np.floating], k: int) -> IntArray:
     if len(exhausted):
         out[exhausted] = np.argsort(-scores[exhausted], axis=1, kind="stable")[:, :k]
     return out
+
+
+_T = TypeVar("_T")
+
+
+def compile_once(make: Callable[[], _T]) -> Callable[[], _T]:
+    """``make`` run once, its result kept, like ``functools.cache`` but under a lock: a
+    kernel factory that rebinds module helpers to their compiled form (``helper =
+    numba.njit(...)(helper)``) must not run twice at once. A service warms its kernels on
+    a thread of its own while its first query may ask for them; two concurrent first calls
+    under ``functools.cache`` both run the factory, and the second one's ``njit`` of an
+    already compiled helper raises (numba: "A jit decorator was called on an already jitted
+    function")."""
+    lock = threading.Lock()
+    made: list[_T] = []
+
+    @functools.wraps(make)
+    def once() -> _T:
+        if not made:
+            with lock:
+                if not made:
+                    made.append(make())
+        return made[0]
+
+    return once
 
 
 def numba_or_none() -> Any:

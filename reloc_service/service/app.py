@@ -115,8 +115,9 @@ class Service:
             self.processes = ProcessWorkers(s.workers, EngineSpec.of(
                 self.methods, self.conf.options, self.conf.mapping, self.limits))
             self.registry.processes = self.processes
-        else:   # the queries run here: their kernels load meanwhile, not in the first one
-            warm_in_background()
+        # the queries run here (with worker processes, those before the workers hold their
+        # map): their kernels load meanwhile, not in the first one
+        warm_in_background()
         self.control_pool = WorkerPool("control", workers=1, queue_size=CONTROL_QUEUE)
         self.writes.open()
         if self.registry.residency is not None:   # a map with puts queued stays resident
@@ -428,6 +429,13 @@ class Service:
         (ProtocolError with the worker's code). Called from a relocalize pool thread (Zenoh
         queries, the ROS 2 bridge)."""
         if self.processes is None:
+            return handlers.relocalize(rt, payload, queued_s=queued_s)
+        if not self.processes.replica_ready(rt.name):
+            # Answered here, as a worker's replica would answer it (:mod:`.served`), rather
+            # than after the workers' start and their own load of the map: seconds after a
+            # start or a cold load.
+            self.processes.start_in_background()
+            rt.stats.count("relocalize_in_service")
             return handlers.relocalize(rt, payload, queued_s=queued_s)
         answer = self.processes.relocalize(rt.name, payload, queued_s)
         if answer.error:

@@ -24,7 +24,10 @@ How a replica stays current (the parent's :class:`~.runtime.MapRuntime` is the o
 
 Queries go through the service's bounded :class:`~.workers.WorkerPool` (same busy reply);
 each pool thread borrows one idle process, sends the request bytes as received (compressed
-image: decoded in the worker) and gets back the reply bytes. A worker that dies (kill -9)
+image: decoded in the worker) and gets back the reply bytes. Until the workers hold a map
+(:meth:`ProcessWorkers.replica_ready`: after the service's start, a cold load, a worker's
+replacement) the service answers its queries on its own map, the same answers, rather than
+waiting seconds for their start and load. A worker that dies (kill -9)
 gives the query it held an INTERNAL error reply and is replaced (new process, fresh bases).
 
 Processes are forked from a ``forkserver`` (a clean single-threaded server started by exec,
@@ -62,6 +65,7 @@ from ..storage.snapshot_link import link_snapshot
 from . import handlers
 from .codec import error_reply
 from .durability import map_dirname
+from .memory import trim_now
 from .served import ServedMap, WriteOp
 from .warm import warm_kernels
 
@@ -72,6 +76,11 @@ log = logging.getLogger(__name__)
 
 #: Seconds a worker gets to exit after "stop" before it is terminated, then killed.
 STOP_GRACE_S = 3.0
+
+#: Seconds a worker waits, when it drops a replica, for the whole-map pool being made to
+#: stop (its map is freed then); the queries queued behind wait too, but meanwhile the
+#: service answers them itself (the map they go to next is not loaded here yet).
+DROP_WAIT_S = 30.0
 
 
 @dataclass(frozen=True)
@@ -133,6 +142,11 @@ def worker_main(conn: Connection, index: int) -> None:
             dropped = replicas.pop(msg[1], None)
             if dropped is not None:
                 dropped.engine.close()   # with the pools it still had to make
+                # the pool being made holds the map until it ends; then the pages go back
+                # to the system, as the service's do when it closes a map (residency)
+                dropped.engine.prepared.wait(DROP_WAIT_S)
+                del dropped
+                trim_now()
         elif kind == "load":
             _, name, base, spec, cameras = msg
             try:
@@ -213,6 +227,7 @@ class _Base:
 
     path: Path
     waiting: set[int]
+    name: str = ""   # the map it holds
 
 
 @dataclass(frozen=True)
@@ -270,6 +285,7 @@ class ProcessWorkers:
         self._maps: dict[str, MapRuntime] = {}
         self._bases: dict[int, _Base] = {}            # id -> base (several may be in flight)
         self._started = False
+        self._starting = False                        # a start_in_background thread runs
         self._closed = False
         self._token = 0
         self._in_flight = 0
@@ -328,7 +344,7 @@ class ProcessWorkers:
             loaded = rt.engine.loaded_snapshot()
             if loaded is None or not link_snapshot(loaded, path):
                 rt.engine.save(path, exact_geometry=True, parts=EVERYTHING)
-            base = _Base(path, {id(h) for h in targets})
+            base = _Base(path, {id(h) for h in targets}, rt.name)
             with self._lock:
                 self._bases[id(base)] = base
             msg = ("load", rt.name, path, self.spec, rt.cameras())
@@ -366,6 +382,73 @@ class ProcessWorkers:
                 self._give_back(handle)
         return _internal("two worker processes in a row were gone before they got this query; "
                          "retry")
+
+    def replica_ready(self, name: str) -> bool:
+        """Whether the workers hold map ``name`` now: started, and every worker its latest
+        base was sent to has loaded it. Until then the service answers its queries itself
+        (:meth:`.app.Service.relocalize_payload`): the same answers, without waiting for the
+        workers' start and their load of the map."""
+        self._read_acks()
+        with self._lock:
+            if not self._started or self._closed or name not in self._maps:
+                return False
+            if not any(not h.dead for h in self._handles):
+                return False
+            return not any(base.name == name for base in self._bases.values())
+
+    def _read_acks(self) -> None:
+        """Read the "loaded" acknowledgements the idle workers sent (an idle worker holds
+        no query, so its pipe holds nothing else), without blocking."""
+        with self._idle_ready:
+            idle, self._idle = self._idle, []
+        done: list[tuple[str, _Handle]] = []
+        try:
+            for handle in idle:
+                try:
+                    while not handle.dead and handle.conn.poll(0):
+                        msg = handle.conn.recv()
+                        if msg[0] == "loaded":
+                            done.append((msg[1], handle))
+                        else:
+                            log.error("idle worker %d sent %r", handle.process.pid, msg[0])
+                except (EOFError, OSError):
+                    handle.dead = True
+        finally:
+            with self._idle_ready:
+                self._idle.extend(idle)
+                self._idle_ready.notify_all()
+        for path, handle in done:
+            self._base_done(path, handle)
+
+    def start_in_background(self) -> None:
+        """On a thread of its own: :meth:`start` the workers, or replace the idle ones found
+        dead (each with fresh bases); nothing if neither is needed or one such thread runs."""
+        with self._lock:
+            if self._closed or self._starting:
+                return
+            if self._started and all(not h.dead for h in self._handles):
+                return
+            self._starting = True
+        threading.Thread(target=self._start_or_revive, name="start-workers",
+                         daemon=True).start()
+
+    def _start_or_revive(self) -> None:
+        try:
+            self._ensure_started()
+            with self._idle_ready:
+                dead = [h for h in self._idle if h.dead or not h.process.is_alive()]
+                for handle in dead:
+                    self._idle.remove(handle)
+            for handle in dead:
+                try:
+                    handle = self._replace(handle)
+                finally:
+                    self._give_back(handle)
+        except Exception as exc:   # the next query tries again
+            log.error("starting the relocalize worker processes failed: %s", exc)
+        finally:
+            with self._lock:
+                self._starting = False
 
     @property
     def in_flight(self) -> int:

@@ -35,7 +35,7 @@ from .durability import (
     stored_map_names,
 )
 from .quotas import MapUsage, Quotas
-from .residency import Residency
+from .residency import Residency, resident_copies
 from .restore_verdict import judge
 from .runtime import MapRuntime, Publish
 from .workers import seconds_left
@@ -84,7 +84,9 @@ class MapRegistry:
         self.residency: Residency | None = None
         if conf.service.max_resident_mb > 0:
             self.residency = Residency(self, budget_mb=conf.service.max_resident_mb,
-                                       stop_timeout_s=conf.service.stop_timeout_s)
+                                       stop_timeout_s=conf.service.stop_timeout_s,
+                                       copies=resident_copies(conf.service.worker_mode,
+                                                              conf.service.workers))
         self._lock = threading.Lock()
         self._loading: set[str] = set()      # being restored: not declared yet
         self._ready = threading.Event()      # every stored and configured map is up (or failed)

@@ -10,7 +10,9 @@ What a map counts is what the quotas count for it (:class:`~.quotas.MapUsage`: i
 images as held, depth and features) and what its relocalizers hold beside the map (the
 whole-map landmark pools of the repetition check, :meth:`~reloc_service.engine.Engine.held_bytes`,
 about 80 MB per 1000 keyframes); the process's resident memory is a multiple of that
-(docs/performance.md, "Many maps, bounded memory").
+(docs/performance.md, "Many maps, bounded memory"). With ``worker_mode = "process"`` every
+worker process holds a replica of each resident map (its own engine, loaded from the same
+snapshot, pools included), so a resident map counts once per copy: ``1 + workers`` times.
 
 A map is never closed while it is in use: a query or a write holds it (:meth:`Residency.acquire`
 ... :meth:`Residency.release`), puts wait in its writer lane, a training job, snapshot or
@@ -70,9 +72,14 @@ class Residency:
     under it only by single dict operations."""
 
     def __init__(self, registry: MapRegistry, *, budget_mb: float, stop_timeout_s: float,
-                 pending_writes: Callable[[str], int] | None = None) -> None:
+                 copies: int = 1, pending_writes: Callable[[str], int] | None = None) -> None:
+        if copies < 1:
+            raise ValueError(f"expected copies >= 1 of each resident map, got {copies}")
         self.registry = registry
         self.budget = int(budget_mb * MB)
+        #: How many processes hold each resident map: the service's, and one replica per
+        #: worker process (worker_mode "process"); each copy counts against the budget.
+        self.copies = copies
         self.stop_timeout_s = stop_timeout_s
         #: Jobs queued in a map's writer lane (the service sets it once its writers exist).
         self.pending_writes = pending_writes
@@ -129,8 +136,8 @@ class Residency:
 
     def resident_bytes(self) -> int:
         """What the resident maps count: their usage totals and what their relocalizers
-        hold beside them."""
-        return sum(counted_bytes(rt) for rt in list(self.registry.maps.values()))
+        hold beside them, once per process holding them (:attr:`copies`)."""
+        return self.copies * sum(counted_bytes(rt) for rt in list(self.registry.maps.values()))
 
     def usages(self) -> list[MapUsage]:
         """The usage of every served map: resident ones' and closed ones' (as kept)."""
@@ -190,7 +197,12 @@ class Residency:
         try:
             with self._load_slot:
                 if not self._stopped.is_set():
-                    self.make_room(self.expected_bytes(name))
+                    expected = self.expected_bytes(name)
+                    if self.budget and expected > self.budget:
+                        log.warning("map %s alone counts %.1f MB (%d copies), over the budget "
+                                    "of %.1f MB: it is closed whenever it is idle", name,
+                                    expected / MB, self.copies, self.budget / MB)
+                    self.make_room(expected)
                     self.registry.load_resident(name)
         finally:
             with self._lock:
@@ -208,15 +220,15 @@ class Residency:
             self._wake.set()
 
     def expected_bytes(self, name: str) -> int:
-        """What map ``name`` will count once loaded: its count when it was last closed, else
-        the mean count of the maps known here (0 when none is)."""
+        """What map ``name`` will count once loaded (all its :attr:`copies`): its count when
+        it was last closed, else the mean count of the maps known here (0 when none is)."""
         kept = self.kept_usage.get(name)
         if kept is not None:
-            return int(kept.total) + self.kept_held.get(name, 0)
+            return self.copies * (int(kept.total) + self.kept_held.get(name, 0))
         known = [counted_bytes(rt) for rt in list(self.registry.maps.values())]
         known += [u.total + self.kept_held.get(n, 0) for n, u in list(self.kept_usage.items())
                   if n not in self.registry.maps]
-        return int(sum(known) / len(known)) if known else 0
+        return self.copies * int(sum(known) / len(known)) if known else 0
 
     # -- eviction --------------------------------------------------------------------------------
     def make_room(self, incoming: int) -> int:
@@ -317,6 +329,12 @@ class Residency:
             self.on_change(name, resident)
         except Exception as exc:   # a token not declared never stops loading or closing
             log.warning("map %s: residency token not updated: %s", name, exc)
+
+
+def resident_copies(worker_mode: str, workers: int) -> int:
+    """How many processes hold each resident map: the service's own, plus one replica in each
+    worker process with ``worker_mode = "process"`` (:mod:`.processes`)."""
+    return 1 + workers if worker_mode == "process" else 1
 
 
 def counted_bytes(rt: MapRuntime) -> int:

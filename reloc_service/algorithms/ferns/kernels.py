@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ...core.numeric import numba_or_none
+from ...core.numeric import compile_once, numba_or_none
 
 
 def negligible_log_ratio(num_classes: int) -> float:
@@ -170,7 +170,7 @@ def _fill_unscored(cols: npt.NDArray[np.int64]) -> None:
         nxt += 1
 
 
-@functools.cache
+@compile_once
 def compiled_classify_rows() -> Callable[..., None] | None:
     """:func:`_classify_rows` compiled by numba (cached on disk by numba after the first
     compile), or None where numba is not installed."""

@@ -14,7 +14,6 @@ use and returns None where it is not installed.
 
 from __future__ import annotations
 
-import functools
 import math
 from typing import Any, NamedTuple
 
@@ -22,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core.hamming import _popcount64
-from ...core.numeric import numba_or_none
+from ...core.numeric import compile_once, numba_or_none
 
 Array = npt.NDArray[np.float64]
 
@@ -110,7 +109,7 @@ class GuidedKernels(NamedTuple):
     hamming_histogram: Any
 
 
-@functools.cache
+@compile_once
 def compiled() -> GuidedKernels | None:
     """The kernels compiled by numba (cached on disk by numba after the first compile), or
     None where numba is not installed."""

@@ -29,7 +29,6 @@ numpy path then runs).
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -37,7 +36,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from ...core.numeric import numba_or_none
+from ...core.numeric import compile_once, numba_or_none
 from . import guided_kernels, intrinsics_kernels
 
 Array = npt.NDArray[np.float64]
@@ -435,7 +434,7 @@ class Kernels(NamedTuple):
     spd_inverse: Callable[..., bool]
 
 
-@functools.cache
+@compile_once
 def compiled() -> Kernels | None:
     """The kernels compiled by numba (cached on disk by numba after the first compile), or
     None where numba is not installed."""

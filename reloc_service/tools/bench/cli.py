@@ -77,6 +77,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fleet-queries", metavar="N", type=int, default=None,
                         help="fleet section: maps picked at random, each queried twice "
                              "(default 200, 16 with --quick)")
+    parser.add_argument("--fleet-worker-mode", choices=("thread", "process"), default=None,
+                        help="fleet section: [service] worker_mode of both services (default "
+                             "thread; with process, each worker's replica of a resident map "
+                             "counts against the budget too)")
     parser.add_argument("--fleet-template", metavar="DIR", type=Path, default=None,
                         help="fleet section: serve copies of this template map, stored by an "
                              "earlier fleet run with --workdir (WORKDIR/fleet/template/"
@@ -259,7 +263,8 @@ def fleet_conf(args: argparse.Namespace) -> Any:
     given = {"maps": getattr(args, "fleet_maps", None),
              "keyframes": getattr(args, "fleet_keyframes", None),
              "budget_mb": getattr(args, "fleet_budget_mb", None),
-             "queries": getattr(args, "fleet_queries", None)}
+             "queries": getattr(args, "fleet_queries", None),
+             "worker_mode": getattr(args, "fleet_worker_mode", None)}
     return dataclasses.replace(conf, **{k: v for k, v in given.items() if v is not None})
 
 
