@@ -14,6 +14,8 @@ from reloc_service.algorithms.pose.intrinsics import REFUSAL, IntrinsicsCheck
 from reloc_service.algorithms.pose.intrinsics_confirmation import (
     confirms,
     detection_power,
+    excludes,
+    exclusion_p_value,
     refused_theta,
 )
 from reloc_service.algorithms.pose.map_consistency import covariance_with_intrinsics
@@ -87,9 +89,46 @@ def test_a_sharp_pass_at_the_true_focal_confirms_it(stale_refusal):
     est = judged(*correspondences(ROOM, 400, 0.3, np.random.default_rng(1)), ROOM)
     assert est.intrinsics.passed
     assert detection_power(est.intrinsics, refused_theta(stale_refusal)) > 0.99
+    assert excludes(est.intrinsics, refused_theta(stale_refusal))
     assert confirms(est.intrinsics, stale_refusal)
     # A refused test confirms nothing, whatever its power.
     assert not confirms(stale_refusal, stale_refusal)
+
+
+def near_pass_and_refusal() -> tuple[IntrinsicsCheck, IntrinsicsCheck]:
+    """A refusal estimating the focal 2.8 % short (300 sharp keypoints, the focal claimed 3 %
+    long) and a pass estimating it 1.4 % short (300 keypoints of 1 px, claimed 1.5 % long):
+    the pass has the precision to see the refused error but its own estimate lies near it."""
+    refusal = judged(*correspondences(ROOM, 300, 0.5, np.random.default_rng(0)),
+                     QueryCamera(focal_scale=1.03).claimed(ROOM)).intrinsics
+    near = judged(*correspondences(ROOM, 300, 1.0, np.random.default_rng(1)),
+                  QueryCamera(focal_scale=1.015).claimed(ROOM)).intrinsics
+    assert not refusal.passed and near.passed
+    return near, refusal
+
+
+def test_a_pass_near_the_refused_error_does_not_exclude_it_and_cannot_confirm():
+    """Failing to reject the given camera is not excluding the refused one: a pass whose
+    test would see the refused error almost surely, but whose estimate lies within its
+    noise of that error, leaves the refusal standing (the validation room under a focal
+    30 % long: a pass at -19 % against a refusal at -23 %, power 0.99, pose 1.2 m off)."""
+    near, refusal = near_pass_and_refusal()
+    theta = refused_theta(refusal)
+    assert detection_power(near, theta) > 0.9
+    assert exclusion_p_value(near, theta) > near.prior.false_refusal
+    assert not excludes(near, theta)
+    assert not confirms(near, refusal)
+
+
+def test_exclusion_is_certain_far_from_the_estimate_and_absent_at_it():
+    near, _ = near_pass_and_refusal()
+    assert exclusion_p_value(near, near.theta) == pytest.approx(1.0)
+    assert excludes(near, near.theta + np.array([0.2, 0.0]))
+    # The unguided matches must exclude it too: coarse ones that cannot, keep it.
+    weak = weak_pass(STALE, np.random.default_rng(0)).intrinsics
+    far = near.theta + np.array([0.2, 0.0])
+    assert not excludes(weak, far)
+    assert not excludes(dataclasses.replace(near, unguided=weak), far)
 
 
 def test_power_grows_with_the_error_and_is_the_level_at_none(stale_refusal):
@@ -167,6 +206,18 @@ def test_a_later_pose_without_the_power_leaves_the_refusal_standing(stale_refusa
     # Without confirm_intrinsics (the default), any verified pose overrules the refusal.
     assert _chain(stale_refusal, weak, confirm=False).ok
     assert not MultiRelocalizer.Conf().confirm_intrinsics
+
+
+def test_a_later_pose_near_the_refused_error_leaves_the_refusal_standing():
+    near, refusal = near_pass_and_refusal()
+    kmap = KeyframeMap()
+    est = judged(*correspondences(ROOM, 300, 1.0, np.random.default_rng(1)),
+                 QueryCamera(focal_scale=1.015).claimed(ROOM))
+    assert est.intrinsics.passed
+    chain = ChainRelocalizer(kmap, [_Refusing(kmap, refusal), _Answering(kmap, est, True)])
+    result = chain.relocalize(Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), STALE))
+    assert not result.ok and result.method == "refusing:orb"
+    assert "its data reject it at p = " in result.reason
 
 
 def test_a_later_pose_with_the_power_overrules_the_refusal(stale_refusal):

@@ -1,5 +1,5 @@
 """Whether a passing intrinsics test confirms the given camera against the error another test
-estimated: its power to detect that error.
+estimated: its power to detect that error, and its data excluding it.
 
 Two tests of one query's intrinsics may disagree: one refuses (its correspondences estimate a
 focal ``theta_r`` off the given one), another, on other features, passes. The pass speaks for
@@ -15,13 +15,21 @@ produced too, and cannot overrule the refusal (the criterion by which
 That is the precision of the data, not the power of the test as a whole, which refuses
 only where its cluster-robust component (a sandwich over at most 16 grid cells) rejects too:
 with few occupied cells that component sees almost no error, and a pass is judged by what the
-correspondences measure. It is not enough: a pass whose own matches estimate nearly the
-refused error, let through by the robust component, has that precision too (measured on the
-validation room under a focal 30 % long: power 0.99, pose 1.2 m off).
+correspondences measure.
+
+Power is not enough: a pass whose own matches estimate nearly the refused error, let
+through by the robust component, has that precision too (the validation room under a focal
+30 % long: power 0.99, its unguided matches at -19 % against a refusal at -23 %, pose 1.2 m
+off). It has only failed to reject the given camera, not shown the refused one wrong. So a
+pass confirms the given camera only where its data also exclude the refused error
+(:func:`excludes`): Hotelling's statistic of ``theta_hat - theta_r`` under the same
+covariance exceeds the quantile at the test's own false-refusal rate. The two hypotheses
+are treated alike: the refused camera is set aside only at the level at which the given one
+would be; between the two (neither excluded) the refusal stands.
 
 Where the passing test also tested the matches found without the pose
-(:attr:`.intrinsics.IntrinsicsCheck.unguided`), its power is that of the weaker of the two:
-matches found in windows around a pose's projections agree with its intrinsics by
+(:attr:`.intrinsics.IntrinsicsCheck.unguided`), its power and its exclusion are those of the
+weaker of the two: matches found in windows around a pose's projections agree with its intrinsics by
 construction, so the guided set's precision overstates what it could see of a wrong focal.
 """
 
@@ -52,12 +60,29 @@ def detection_power(check: IntrinsicsCheck, theta: Array) -> float:
     return min(_power(c, theta) for c in checks)
 
 
+def exclusion_p_value(check: IntrinsicsCheck, theta: Array) -> float:
+    """P-value of "the camera is ``theta`` (2,) off the given one" on ``check``'s data: the
+    model-based component's Hotelling statistic of ``theta_hat - theta`` (``F(2, dof)``,
+    covariance as :func:`detection_power` takes it); the larger of its whole-set and
+    unguided tests' (each must exclude ``theta``)."""
+    checks = [check] if check.unguided is None else [check, check.unguided]
+    return max(_exclusion_p(c, theta) for c in checks)
+
+
+def excludes(check: IntrinsicsCheck, theta: Array) -> bool:
+    """Whether ``check``'s data exclude a camera ``theta`` (2,) off the given one at the
+    test's false-refusal rate (:func:`exclusion_p_value`)."""
+    return exclusion_p_value(check, theta) < check.prior.false_refusal
+
+
 def confirms(check: IntrinsicsCheck, refused: IntrinsicsCheck) -> bool:
     """Whether ``check``, a passing test, confirms the given camera against the error the
     refusing test ``refused`` estimated: it would have refused that error with probability
-    at least ``1 - missed_detection``."""
-    power = detection_power(check, refused_theta(refused))
-    return check.passed and power >= 1.0 - check.prior.missed_detection
+    at least ``1 - missed_detection``, and its data exclude it (:func:`excludes`)."""
+    theta = refused_theta(refused)
+    power = detection_power(check, theta)
+    return (check.passed and power >= 1.0 - check.prior.missed_detection
+            and excludes(check, theta))
 
 
 def _power(check: IntrinsicsCheck, theta: Array) -> float:
@@ -70,6 +95,21 @@ def _power(check: IntrinsicsCheck, theta: Array) -> float:
     would leave every pass without a say (see the module docstring)."""
     return _f_power(theta, check.covariance + check.prior.covariance, check.solution.dof,
                     1.0, check.prior.false_refusal)
+
+
+def _exclusion_p(check: IntrinsicsCheck, theta: Array) -> float:
+    """P-value of ``theta`` as the true error on ``check``'s own estimate (1 without
+    evidence: a singular covariance or no residual degrees of freedom)."""
+    covariance = check.covariance + check.prior.covariance
+    try:
+        diff = np.asarray(check.theta, np.float64) - theta
+        t2 = float(diff @ np.linalg.solve(covariance, diff))
+    except np.linalg.LinAlgError:
+        return 1.0
+    dof = check.solution.dof
+    if not np.isfinite(t2) or dof < 1:
+        return 1.0
+    return float(special.fdtrc(2, dof, t2 / 2.0))
 
 
 def _f_power(theta: Array, covariance: Array, dof: int, scale: float, level: float) -> float:

@@ -7,8 +7,8 @@ focal the given one cannot explain); a later step, matching other features, veri
 whose test passes. Either the refusal's estimate is biased (ORB's pyramid-quantised corners
 bias a focal estimate) and the later pose is right, or the camera is stale and the later
 test lacked the power to see it: the later pose then rests on the wrong focal. Its pass tells
-them apart only where it would have refused the estimated error; elsewhere the refusal
-stands, saying which step could not confirm the camera.
+them apart only where it would have refused the estimated error and its own data exclude
+that error; elsewhere the refusal stands, saying which step could not confirm the camera.
 """
 
 from __future__ import annotations
@@ -18,7 +18,12 @@ from dataclasses import dataclass
 from ...core.frame import Frame
 from ..pose.base import PoseEstimate
 from ..pose.intrinsics import IntrinsicsCheck
-from ..pose.intrinsics_confirmation import confirms, detection_power, refused_theta
+from ..pose.intrinsics_confirmation import (
+    confirms,
+    detection_power,
+    exclusion_p_value,
+    refused_theta,
+)
 from .base import RelocResult
 
 #: Key of ``query.cache`` where a relocalizer that refuses the query's intrinsics leaves the
@@ -61,8 +66,10 @@ def standing_refusal(refusal: Refusal, answer: RelocResult,
     if check is None:
         why = "its pose was not tested against the intrinsics"
     else:
-        power = detection_power(check, refused_theta(refusal.check))
-        why = f"its test detects that error with probability {power:.2f}"
+        theta = refused_theta(refusal.check)
+        why = (f"its test detects that error with probability "
+               f"{detection_power(check, theta):.2f} and its data reject it at "
+               f"p = {exclusion_p_value(check, theta):.1e}")
     first = refusal.result
     return RelocResult.failure(
         first.method, f"{first.reason} by {first.method}; {answer.method} cannot confirm "

@@ -83,10 +83,11 @@ class MultiRelocalizer(Relocalizer):
         unique: bool = True
         #: In a fallback chain, let this step's verified pose overrule an earlier step's
         #: refusal of the query's intrinsics only where its own intrinsics test could have
-        #: seen the error the refusal estimated (:mod:`.confirmation`); elsewhere the
-        #: refusal stands. Off: any verified pose of a step with other features overrules it.
-        #: Off by default: with the right camera a refusal's focal estimate can be biased
-        #: while the later pose is right and weakly tested (room-hard, 1 of 69 queries).
+        #: seen the error the refusal estimated and its data exclude that error
+        #: (:mod:`.confirmation`); elsewhere the refusal stands. Off: any verified pose of a
+        #: step with other features overrules it. Off by default: with the right camera a
+        #: refusal's focal estimate can be biased while the later pose is right and weakly
+        #: tested (room-hard and repeated-hard, 1 of 69 queries each).
         confirm_intrinsics: bool = False
 
         def __post_init__(self) -> None:
