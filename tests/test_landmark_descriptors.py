@@ -35,6 +35,20 @@ def test_shared_index_gives_each_row_its_landmarks_first_row():
     # stored rows: 5, -1, 3, -1, 7 -> ranks 0..4
     assert shared_index(ids).tolist() == [0, 1, 2, 0, 2, 3, 4, 0]
     assert shared_index(np.zeros(0, np.int64)).tolist() == []
+    assert shared_index(np.full(3, -1)).tolist() == [0, 1, 2]
+
+
+def test_shared_index_agrees_with_a_sort_on_random_ids():
+    ids = np.random.default_rng(0).integers(-1, 500, 5000)
+    has = np.flatnonzero(ids >= 0)
+    _, at, inverse = np.unique(ids[has], return_index=True, return_inverse=True)
+    first = ids < 0
+    first[has[at]] = True
+    rank = np.cumsum(first) - 1
+    expected = rank.copy()
+    expected[has] = rank[has[at]][inverse]
+    assert np.array_equal(first_rows(ids), first)
+    assert np.array_equal(shared_index(ids), expected)
 
 
 def _rows_in_snapshot_order(state: MapState, kind: str):

@@ -29,28 +29,38 @@ SHARED_OF = {"descriptors": SHARED_DESCRIPTORS, DESCRIPTOR_CODES: SHARED_CODES}
 ROW_OF = {shared: row for row, shared in SHARED_OF.items()}
 
 
+def _first_row_of_each(landmark_ids: npt.NDArray[np.integer]
+                       ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """(rows with a landmark, the first row of each row's landmark): a scatter of the rows'
+    minimum by id, not a sort (1.6 M rows: 0.1 s against 0.5 s for ``np.unique``, paid at
+    the first read of a loaded map's features)."""
+    ids = np.asarray(landmark_ids)
+    rows = np.flatnonzero(ids >= 0)
+    if not len(rows):
+        return rows, rows
+    first_of_id = np.full(int(ids[rows].max()) + 1, len(ids), np.int64)
+    np.minimum.at(first_of_id, ids[rows], rows)
+    return rows, first_of_id[ids[rows]]
+
+
 def first_rows(landmark_ids: npt.NDArray[np.integer]) -> npt.NDArray[np.bool_]:
     """(N,) mask of the rows whose descriptor is stored: each landmark's first row in
     ``landmark_ids`` order, and every row without a landmark (id < 0)."""
-    ids = np.asarray(landmark_ids)
-    first = ids < 0
-    has = np.flatnonzero(~first)
-    _, at = np.unique(ids[has], return_index=True)   # first occurrence of each id
-    first[has[at]] = True
+    first = np.asarray(landmark_ids) < 0
+    _, first_of_row = _first_row_of_each(landmark_ids)
+    first[first_of_row] = True
     return first
 
 
 def shared_index(landmark_ids: npt.NDArray[np.integer]) -> npt.NDArray[np.int64]:
     """(N,) row of the shared column each row reads: its landmark's first row's rank among
     the :func:`first_rows` (its own rank when it has no landmark)."""
-    ids = np.asarray(landmark_ids)
-    first = first_rows(ids)
+    first = np.asarray(landmark_ids) < 0
+    rows, first_of_row = _first_row_of_each(landmark_ids)
+    first[first_of_row] = True
     rank = np.cumsum(first, dtype=np.int64) - 1
-    has = np.flatnonzero(ids >= 0)
-    _, at, inverse = np.unique(ids[has], return_index=True, return_inverse=True)
-    out = rank
-    out[has] = rank[has[at]][inverse.ravel()]
-    return out
+    rank[rows] = rank[first_of_row]
+    return rank
 
 
 def share_descriptors(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
