@@ -2,7 +2,8 @@
 maps, train, stop with SIGTERM, then list the storage by part and by snapshot file.
 
     .venv/bin/python scripts/map_size_parts.py /work/data/room --out /tmp/size \\
-        [--set 'descriptor_codec = "pq"'] [--set 'stop_timeout_s = 280.0'] [--files]
+        [--set 'descriptor_codec = "pq"'] [--set 'keyframe_descriptors = "per-landmark"']
+        [--set 'stop_timeout_s = 280.0'] [--files]
 
 The dataset's ``truth_depth.txt`` is sent as its ``depth.txt`` (a rendered set's depth maps,
 as an RGB-D user would send them) unless it has its own. ``--set KEY=VALUE`` adds a line to

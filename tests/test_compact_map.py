@@ -68,7 +68,7 @@ def test_a_compact_snapshot_stores_no_depth_nor_images_and_loads_the_same_map(
         kf.small_blurry_image()   # as the sbi place finder leaves them
     save_map(depth_state, tmp_path, parts=StoredParts())
     manifest = _manifest(tmp_path)
-    assert manifest["format_version"] == FORMAT_VERSION == 7
+    assert manifest["format_version"] == FORMAT_VERSION == 8
     assert not [f for f in manifest["files"] if f.startswith(("images/", "depth/"))]
     state, _ = load_map(tmp_path)
     _assert_same_relocalization_data(depth_state, state)

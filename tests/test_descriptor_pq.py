@@ -93,7 +93,7 @@ def test_a_compact_snapshot_stores_sift_codes_and_loads_them_decoded(
     codes = pq["features/sift.descriptors_pq.npy"] + pq["features/sift.pq_codebook.npy"]
     assert codes < full["features/sift.descriptors.npy"] / 3
     manifest = json.loads((current_snapshot(tmp_path / "pq") / "manifest.json").read_text())
-    assert manifest["format_version"] == FORMAT_VERSION == 7
+    assert manifest["format_version"] == FORMAT_VERSION == 8
     state, _ = load_map(tmp_path / "pq")
     for k, kf in fresh_map.keyframes.items():
         a, b = kf.features["sift"], state.keyframes[k].features["sift"]

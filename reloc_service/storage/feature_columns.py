@@ -48,6 +48,7 @@ from .descriptor_pq import (
     seeded_rows,
     train_codebook,
 )
+from .landmark_descriptors import ROW_OF, check_shared_count, share_descriptors, shared_index
 from .landmark_rows import keep_rows
 
 Array = npt.NDArray[np.float64]
@@ -225,7 +226,7 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
                  table: LandmarkTable, landmarks: LandmarkColumns,
                  codebook: PQCodebook | None = None,
                  keep: Sequence[npt.NDArray[np.bool_] | None] | None = None,
-                 compact: bool = False) -> dict[str, np.ndarray]:
+                 compact: bool = False, shared: bool = False) -> dict[str, np.ndarray]:
     """The columns a snapshot stores for ``kind`` (name -> array): ``owners`` are (keyframe
     id, first row, features) of every keyframe holding ``kind``, in row order; rows narrowed
     where lossless, and the derivable fields only where they are not what load derives
@@ -233,7 +234,8 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     With a ``codebook`` the descriptors are stored as its codes (:data:`DESCRIPTOR_CODES`);
     ``keep``: per owner, the mask of its rows stored (None: all; :mod:`.landmark_rows`);
     ``compact``: keypoints in eighths of a pixel, sizes float16, no angles (read by nothing
-    once extracted: a descriptor is already steered by its keypoint's angle)."""
+    once extracted: a descriptor is already steered by its keypoint's angle); ``shared``: one
+    descriptor per landmark (:mod:`.landmark_descriptors`)."""
     # a part is the rows as a loaded snapshot stored them (never built since), or Features
     parts: list[Features | dict[str, np.ndarray]] = [
         _stored_rows(features, kind) or features[kind] for _, _, features in owners]
@@ -249,6 +251,8 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     columns["descriptors" if codebook is None else DESCRIPTOR_CODES] = _concat(codes)
     if keep is not None:
         columns = keep_rows(columns, keep, [len(c) for c in codes])
+    if shared:
+        columns = share_descriptors(columns)
     sizes = sizes_by_level(columns["levels"], columns["sizes"])
     if sizes is not None:
         del columns["sizes"]
@@ -344,6 +348,10 @@ class FeatureColumns:
         #: kind -> (level, scale) table of the kinds whose keypoints are stored as level pixels
         self.scales = dict(scales or {})
         self.landmarks: LandmarkColumns | None = None
+        #: kind -> (N,) row of its shared descriptor column each row reads (made on first
+        #: read, from the landmark ids: :func:`.landmark_descriptors.shared_index`)
+        self._shared_index: dict[str, npt.NDArray[np.int64]] = {}
+        self._shared_lock = threading.Lock()
 
     def attach_landmarks(self, landmarks: LandmarkColumns,
                          starts: Mapping[str, tuple[npt.NDArray[np.int64],
@@ -366,6 +374,10 @@ class FeatureColumns:
                                f"observations")
             ids.flags.writeable = False
             cols["landmark_ids"] = ids
+        for kind, cols in self.columns.items():
+            for shared in ROW_OF.keys() & cols.keys():
+                check_shared_count(f"features/{kind}.{shared}", len(cols[shared]),
+                                   cols["landmark_ids"])
 
     def length(self, kind: str) -> int:
         return len(self.columns[kind]["levels"])
@@ -373,7 +385,9 @@ class FeatureColumns:
     def raw(self, kind: str, start: int, stop: int) -> dict[str, np.ndarray]:
         """Rows ``start:stop`` of ``kind``'s columns as stored (no copy), sizes and
         keypoints from their tables where not stored (float32); no derived points."""
-        out = {f: c[start:stop] for f, c in self.columns[kind].items()}
+        out = {f: c[start:stop] for f, c in self.columns[kind].items() if f not in ROW_OF}
+        for shared in ROW_OF.keys() & self.columns[kind].keys():
+            out[ROW_OF[shared]] = self.columns[kind][shared][self._shared_rows(kind)[start:stop]]
         if "sizes" not in out:
             out["sizes"] = sizes_from_table(self.tables[kind], out["levels"])
         if "angles" not in out:
@@ -384,6 +398,17 @@ class FeatureColumns:
             out["keypoints_px"] = pixels_from_levels(out.pop(LEVEL_PIXELS), out["levels"],
                                                      self.scales[kind])
         return out
+
+    def _shared_rows(self, kind: str) -> npt.NDArray[np.int64]:
+        """(N,) row of ``kind``'s shared descriptor column each of its rows reads (once)."""
+        index = self._shared_index.get(kind)
+        if index is None:
+            if "landmark_ids" not in self.columns[kind]:
+                raise MapError(f"{kind} descriptors read before the landmark ids were loaded")
+            index = shared_index(self.columns[kind]["landmark_ids"])
+            with self._shared_lock:
+                index = self._shared_index.setdefault(kind, index)
+        return index
 
     def features(self, kind: str, start: int, stop: int) -> Features:
         """Rows ``start:stop`` of ``kind`` as :class:`Features` in its canonical dtypes

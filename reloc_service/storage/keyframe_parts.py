@@ -12,8 +12,10 @@ stores anyway. So by default (:class:`StoredParts`) a snapshot keeps:
 - images: ``"needed"`` (only when a method of the map reads them, else an
   :class:`..core.absent_image.AbsentImage`: size and CRC-32 of the pixels, no file) or
   ``"always"``;
-- features: ``"all"`` or ``"landmarks"`` (the rows of keypoints that carry a landmark, where every method
-  of the map is trained and none reads other keypoints: :mod:`.landmark_rows`);
+- features: ``"all"``, ``"landmarks"`` (the rows of keypoints that carry a landmark, where
+  every method of the map is trained and none reads other keypoints: :mod:`.landmark_rows`)
+  or ``"per-landmark"`` (those rows, with one descriptor a landmark shared by its rows:
+  :mod:`.landmark_descriptors`);
 - SIFT descriptors: ``"none"`` (in full) or ``"pq"`` (product-quantization codes, 32 bytes
   instead of 128, decoded when a keyframe's features are first read: :mod:`.descriptor_pq`).
 

@@ -20,7 +20,9 @@ from ..core.frame import Features, Keyframe
 from ..core.landmark_rows import holds_landmark_rows_only
 from ..core.landmark_table import LandmarkColumns
 
-ROW_MODES = ("all", "landmarks")
+#: "per-landmark" keeps the rows "landmarks" keeps, with one descriptor a landmark
+#: (:mod:`.landmark_descriptors`)
+ROW_MODES = ("all", "landmarks", "per-landmark")
 
 #: (keyframe id, kind) -> mask of the rows kept (None: every row kept)
 RowMasks = dict[tuple[int, str], npt.NDArray[np.bool_] | None]
@@ -28,15 +30,15 @@ RowMasks = dict[tuple[int, str], npt.NDArray[np.bool_] | None]
 
 def row_masks(keyframes: Sequence[Keyframe], mode: str) -> RowMasks:
     """The rows a snapshot keeps of each keyframe's features under ``mode``: with
-    ``"landmarks"`` the keypoints with a landmark (None where that is every row). A keyframe
-    without any landmark of a kind keeps all its keypoints of that kind: it is not mapped
-    yet (a map's first keyframe, one whose neighbours are still to come), and the keyframes
-    that will see its keypoints make their landmarks from them."""
+    ``"landmarks"`` (or ``"per-landmark"``) the keypoints with a landmark (None where that is
+    every row). A keyframe without any landmark of a kind keeps all its keypoints of that
+    kind: it is not mapped yet (a map's first keyframe, one whose neighbours are still to
+    come), and the keyframes that will see its keypoints make their landmarks from them."""
     masks: RowMasks = {}
     for kf in keyframes:
         for kind in kf.features:
             keep = None
-            if mode == "landmarks":
+            if mode != "all":
                 keep = _landmark_ids(kf.features, kind) >= 0
                 keep = None if keep.all() or not keep.any() else keep
             masks[(kf.id, kind)] = keep

@@ -1,6 +1,6 @@
 """Map persistence: a whole map saved as an immutable snapshot directory, switched atomically.
 
-Layout of a map directory ``MAP`` (format version 7)::
+Layout of a map directory ``MAP`` (format version 8)::
 
     MAP/CURRENT                     names the current snapshot: ``snapshots/000012``
     MAP/snapshots/000012/
@@ -24,7 +24,9 @@ Layout of a map directory ``MAP`` (format version 7)::
                                     :mod:`.descriptor_pq`), and a keyframe's
                                     keypoints with a landmark only where it asks and the map's
                                     methods allow (its entry says ``landmark_rows_only``:
-                                    :mod:`.landmark_rows`)
+                                    :mod:`.landmark_rows`), and one descriptor (or code) a
+                                    landmark where it asks (``landmark_descriptors``, format
+                                    8: :mod:`.landmark_descriptors`)
         thumbnails/<key>.npy        small blurry images already computed (one row a keyframe;
                                     float16 in a compact save, format 6)
         landmarks/<column>.npy      landmark ids, points, depth sigmas, observations (CSR):
@@ -47,11 +49,10 @@ decoded on read), the arrays stay on disk until a query touches them (each keyfr
 are built from the shared columns on first use), and a change after loading copies what it
 changes (copy on write; the snapshot files are never written again). Each file's SHA-256 is
 checked at load (streamed, so a check does not hold the file in memory). Snapshots of format
-version 6 (every column a ``.npy``), 5 (every keypoint, SIFT descriptors, keypoints and
-angles in full), 4 (every image and depth map, depth raw), 3 (float64 landmark points,
-float32 ORB keypoints and angles), 2 (every feature field in full, PNG images) and 1 (PNG
-images, one
-``.npz`` per keyframe and kind) are still read.
+version 7 (one descriptor a keypoint), 6 (every column a ``.npy``), 5 (every keypoint, SIFT
+descriptors, keypoints and angles in full), 4 (every image and depth map, depth raw), 3
+(float64 landmark points, float32 ORB keypoints and angles), 2 (every feature field in full,
+PNG images) and 1 (PNG images, one ``.npz`` per keyframe and kind) are still read.
 
 A save writes a new snapshot (every file fsynced, the manifest last), then replaces
 ``CURRENT`` with :func:`os.replace` and prunes the snapshots it was built from (keeping the
@@ -112,6 +113,7 @@ from .keyframe_parts import (
     read_lossless_depth,
 )
 from .landmark_codec import ANCHORED_POINTS, WidenedColumn, anchored_points, encode_geometry
+from .landmark_descriptors import ROW_OF, SHARED_CODES
 from .landmark_rows import (
     RowMasks,
     kept_count,
@@ -135,9 +137,9 @@ from .snapshot_files import (
 )
 
 FORMAT = "reloc map"
-FORMAT_VERSION = 7
+FORMAT_VERSION = 8
 #: Older format versions this reloc still reads.
-READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7)
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8)
 MODELS_DIR = "models"
 
 FEATURE_FIELDS = ("keypoints_px", "levels", "sizes", "angles", "descriptors", "landmark_ids",
@@ -237,9 +239,10 @@ def _feature_rows(keyframes: list[Keyframe], masks: RowMasks
 def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: MapState,
                     landmarks: LandmarkColumns,
                     rows: Mapping[int, Mapping[str, tuple[int, int]]], codec: str,
-                    masks: RowMasks) -> None:
+                    masks: RowMasks, shared: bool) -> None:
     """One ``.npy`` per kind and stored column (:func:`.feature_columns.kind_columns`; the
-    rows ``masks`` keeps), and the codebook of a kind whose descriptors are PQ codes."""
+    rows ``masks`` keeps; ``shared``: one descriptor per landmark), and the codebook of a
+    kind whose descriptors are PQ codes."""
     for kind in sorted({k for kf in keyframes for k in kf.features}):
         owners = [(kf.id, rows[kf.id][kind][0], kf.features)
                   for kf in keyframes if kind in kf.features]
@@ -249,7 +252,8 @@ def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: Ma
             writer.write(f"features/{kind}.{CODEBOOK}.npy", _npy_bytes(codebook.centroids))
         keep = [masks.get((kf_id, kind)) for kf_id, _, _ in owners]
         for name, column in kind_columns(kind, owners, state.landmarks, landmarks,
-                                         codebook, keep, compact=codec == "pq").items():
+                                         codebook, keep, compact=codec == "pq",
+                                         shared=shared).items():
             writer.write(*packed_file(f"features/{kind}.{name}", column))
 
 
@@ -327,7 +331,8 @@ def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelW
         if only:
             entry["landmark_rows_only"] = True
     columns = renumber_observations(state.landmarks.columns(), masks)
-    _write_features(writer, kfs, state, columns, rows, parts.descriptor_codec, masks)
+    _write_features(writer, kfs, state, columns, rows, parts.descriptor_codec, masks,
+                    shared=parts.descriptors == "per-landmark")
     thumbnails = _write_thumbnails(writer, kfs, compact=parts.descriptor_codec == "pq")
     landmarks = _write_landmarks(writer, columns, state.keyframes, exact=exact_geometry)
     model_dirs: dict[str, str] = {}
@@ -517,11 +522,11 @@ class _FeatureColumns:
         codebooks: dict[str, PQCodebook] = {}
         for kind in kinds:
             listed = {f for f in (*DERIVABLE_FIELDS, LEVEL_PIXELS, DESCRIPTOR_CODES,
-                                  EIGHTH_PIXELS)
+                                  EIGHTH_PIXELS, *ROW_OF)
                       if stored_as(manifest["files"], f"features/{kind}.{f}") is not None}
             stored = [f for f in STORED_FIELDS
                       if not (f == "keypoints_px" and listed & {LEVEL_PIXELS, EIGHTH_PIXELS})
-                      and not (f == "descriptors" and DESCRIPTOR_CODES in listed)
+                      and not (f == "descriptors" and listed & {DESCRIPTOR_CODES, *ROW_OF})
                       and not (f == "angles" and manifest["format_version"] >= 6
                                and stored_as(manifest["files"], f"features/{kind}.angles")
                                is None)
@@ -538,9 +543,11 @@ class _FeatureColumns:
                     raise StorageError(f"{reader.root}/features/{kind}.{LEVEL_PIXELS}.npy: "
                                        f"expected (N, 2) int16, got {cols[LEVEL_PIXELS].shape} "
                                        f"{cols[LEVEL_PIXELS].dtype}")
-            if DESCRIPTOR_CODES in cols:
-                codebooks[kind] = _codebook(reader, kind, cols[DESCRIPTOR_CODES])
-            lengths = {f: len(c) for f, c in cols.items()}
+            codes = cols.get(DESCRIPTOR_CODES, cols.get(SHARED_CODES))
+            if codes is not None:
+                codebooks[kind] = _codebook(reader, kind, codes)
+            # a shared descriptor column has a row per landmark, not per keypoint
+            lengths = {f: len(c) for f, c in cols.items() if f not in ROW_OF}
             if len(set(lengths.values())) != 1:
                 raise StorageError(f"{reader.root}/features/{kind}.*.npy: columns of different "
                                    f"lengths {lengths}; expected one row per keypoint")
