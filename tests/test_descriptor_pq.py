@@ -16,7 +16,7 @@ from reloc_service.service.config import ServiceConf, ServiceSection
 from reloc_service.storage import descriptor_pq
 from reloc_service.storage.descriptor_pq import PQCodebook, seeded_rows, train_codebook
 from reloc_service.storage.keyframe_parts import EVERYTHING, StoredParts
-from reloc_service.storage.snapshot import FORMAT_VERSION, load_map, save_map
+from reloc_service.storage.snapshot import UNSHARED_FORMAT_VERSION, load_map, save_map
 from reloc_service.storage.snapshot_files import current_snapshot
 
 #: the codec alone: every keypoint kept (tests/test_landmark_rows.py drops those without one)
@@ -93,7 +93,7 @@ def test_a_compact_snapshot_stores_sift_codes_and_loads_them_decoded(
     codes = pq["features/sift.descriptors_pq.npy"] + pq["features/sift.pq_codebook.npy"]
     assert codes < full["features/sift.descriptors.npy"] / 3
     manifest = json.loads((current_snapshot(tmp_path / "pq") / "manifest.json").read_text())
-    assert manifest["format_version"] == FORMAT_VERSION == 8
+    assert manifest["format_version"] == UNSHARED_FORMAT_VERSION == 7
     state, _ = load_map(tmp_path / "pq")
     for k, kf in fresh_map.keyframes.items():
         a, b = kf.features["sift"], state.keyframes[k].features["sift"]

@@ -27,7 +27,7 @@ from reloc_service.storage.packed_columns import (
     undelta,
     unpack,
 )
-from reloc_service.storage.snapshot import FORMAT_VERSION, load_map, save_map
+from reloc_service.storage.snapshot import UNSHARED_FORMAT_VERSION, load_map, save_map
 from reloc_service.storage.snapshot_files import current_snapshot
 
 DATA = Path(__file__).parent / "data"
@@ -86,7 +86,7 @@ def test_a_saved_map_packs_its_repetitive_columns_and_loads_the_same(tmp_path, s
     # exact geometry: float64 points, so every loaded value can be compared for equality
     save_map(synthetic_map, tmp_path, parts=EVERYTHING, exact_geometry=True)
     manifest = json.loads((current_snapshot(tmp_path) / "manifest.json").read_text())
-    assert manifest["format_version"] == FORMAT_VERSION == 8
+    assert manifest["format_version"] == UNSHARED_FORMAT_VERSION == 7
     files = manifest["files"]
     assert "landmarks/ids" + DELTA_PACKED in files and "landmarks/ids.npy" not in files
     assert "landmarks/obs_offsets" + DELTA_PACKED in files

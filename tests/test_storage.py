@@ -527,7 +527,7 @@ def test_format_4_stores_narrow_columns_and_no_derived_points(tmp_path, rich_sta
     landmark points are float32 offsets from their anchor keyframes."""
     snap = save_map(rich_state, tmp_path)
     manifest = json.loads((snap / "manifest.json").read_text())
-    assert manifest["format_version"] == storage.FORMAT_VERSION   # format 4's columns and more
+    assert manifest["format_version"] == storage.UNSHARED_FORMAT_VERSION  # format 4's and more
     for kind in ("sift", "orb"):
         for derived in ("points_world", "landmark_ids"):
             assert f"features/{kind}.{derived}.npy" not in manifest["files"]
@@ -644,7 +644,8 @@ def test_format_2_snapshots_are_read(tmp_path):
         assert "sbi:40x30:2.5" in state.keyframes[k].cache
     assert sorted(state.landmarks) == sorted(v1.landmarks)
     snap = save_map(state, tmp_path)
-    assert json.loads((snap / "manifest.json").read_text())["format_version"] == storage.FORMAT_VERSION
+    manifest = json.loads((snap / "manifest.json").read_text())
+    assert manifest["format_version"] == storage.UNSHARED_FORMAT_VERSION
     again, _ = load_map(tmp_path)
     _assert_states_equal(state, again)
 
@@ -666,7 +667,8 @@ def test_format_3_snapshots_are_read(tmp_path):
     # written before keyframes had a pose covariance: none, the map's default applies
     assert all(kf.pose_covariance is None for kf in state.keyframes.values())
     snap = save_map(state, tmp_path)
-    assert json.loads((snap / "manifest.json").read_text())["format_version"] == storage.FORMAT_VERSION
+    manifest = json.loads((snap / "manifest.json").read_text())
+    assert manifest["format_version"] == storage.UNSHARED_FORMAT_VERSION
     _assert_states_equal(state, load_map(tmp_path)[0])
 
 

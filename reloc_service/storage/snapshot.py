@@ -1,6 +1,7 @@
 """Map persistence: a whole map saved as an immutable snapshot directory, switched atomically.
 
-Layout of a map directory ``MAP`` (format version 8)::
+Layout of a map directory ``MAP`` (format version 8; a snapshot that shares no descriptor
+between a landmark's rows is written as format 7, which it then is)::
 
     MAP/CURRENT                     names the current snapshot: ``snapshots/000012``
     MAP/snapshots/000012/
@@ -138,6 +139,9 @@ from .snapshot_files import (
 
 FORMAT = "reloc map"
 FORMAT_VERSION = 8
+#: What a snapshot without shared (per-landmark) descriptors is written as: nothing in it
+#: needs format 8, so a reloc that reads up to format 7 still loads it.
+UNSHARED_FORMAT_VERSION = 7
 #: Older format versions this reloc still reads.
 READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8)
 MODELS_DIR = "models"
@@ -331,8 +335,9 @@ def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelW
         if only:
             entry["landmark_rows_only"] = True
     columns = renumber_observations(state.landmarks.columns(), masks)
+    shared = parts.descriptors == "per-landmark"
     _write_features(writer, kfs, state, columns, rows, parts.descriptor_codec, masks,
-                    shared=parts.descriptors == "per-landmark")
+                    shared=shared)
     thumbnails = _write_thumbnails(writer, kfs, compact=parts.descriptor_codec == "pq")
     landmarks = _write_landmarks(writer, columns, state.keyframes, exact=exact_geometry)
     model_dirs: dict[str, str] = {}
@@ -342,7 +347,8 @@ def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelW
         write_model(snapshot / rel)
         writer.record_tree(rel)
         model_dirs[method] = rel
-    manifest = {"format": FORMAT, "format_version": FORMAT_VERSION,
+    manifest = {"format": FORMAT,
+                "format_version": FORMAT_VERSION if shared else UNSHARED_FORMAT_VERSION,
                 "map_version": int(state.version), "next_landmark_id": int(state.next_landmark_id),
                 "keyframes": keyframes, "landmarks": landmarks, "thumbnails": thumbnails,
                 "models": model_dirs, "store": dict(store),
