@@ -14,8 +14,9 @@ import pytest
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.core.geometry import pose_error
 from reloc_service.tools.bench import scaling
-from reloc_service.tools.bench.cli import add_arguments, headline_lines
+from reloc_service.tools.bench.cli import add_arguments
 from reloc_service.tools.bench.peers import PlainMap, PlainOpenCVPipeline
+from reloc_service.tools.bench.report import headline_lines
 from reloc_service.tools.bench.samples import QuerySet
 from reloc_service.tools.bench.suite import QUICK, SECTIONS, SuiteConf, failed_sections
 from reloc_service.tools.synth.planar import keyframe_grid, planar_scene, query_pose

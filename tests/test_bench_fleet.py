@@ -18,8 +18,9 @@ from service_support import endpoint, free_port, service_conf
 from reloc_service.engine import EngineConf
 from reloc_service.service.app import Service
 from reloc_service.tools.bench import fleet
-from reloc_service.tools.bench.cli import fleet_conf, render_markdown
+from reloc_service.tools.bench.cli import fleet_conf
 from reloc_service.tools.bench.fleet_memory import ResidencyLog, tree_rss_mb
+from reloc_service.tools.bench.report import render_markdown
 from reloc_service.tools.bench.samples import QuerySet
 from reloc_service.tools.bench.stored_map import (
     copies,

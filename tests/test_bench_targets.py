@@ -8,7 +8,7 @@ import copy
 
 import pytest
 
-from reloc_service.tools.bench import cli
+from reloc_service.tools.bench import cli, report
 from reloc_service.tools.bench.targets import markdown_lines, targets
 
 
@@ -143,7 +143,7 @@ def test_targets_table_in_the_markdown_is_the_computed_one():
     rss = next(line for line in lines if "resident memory" in line)
     assert "| 300 MB | **not met** |" in rss
     assert lines[-2] == f"{len(rows) - 2} of {len(rows)} met; 1 not measured in this run."
-    md = cli.render_markdown({"targets": copy.deepcopy(rows), "suite": "full",
+    md = report.render_markdown({"targets": copy.deepcopy(rows), "suite": "full",
                               "created_utc": "now", "duration_s": 60.0, "machine": {}})
     assert "## Targets" in md and rss in md
 
