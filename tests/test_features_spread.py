@@ -84,3 +84,19 @@ def test_grid_conf_errors_and_key():
         FeatureConf("sift", 500, grid=4)
     with pytest.raises(ConfigError, match="grid"):
         FeatureConf("orb", 500, grid=0)
+
+
+def test_p3p_query_grid_names_and_extracts_spread_features(clustered):
+    """The pose finder's ``query_grid`` reaches the extraction, under its own cache key, and
+    is refused for SIFT."""
+    from reloc_service.algorithms.pose import p3p  # noqa: F401 (registers "p3p")
+    from reloc_service.algorithms.pose.base import create_pose_finder
+
+    finder = create_pose_finder({"name": "p3p", "kind": "orb", "max_features": 500,
+                                 "query_grid": 4})
+    (key, conf), = finder.feature_confs().items()
+    assert key == "orb#4" and conf.grid == 4
+    spread = extract(clustered, FeatureConf("orb", 500, grid=4))
+    assert np.array_equal(extract(clustered, conf).keypoints_px, spread.keypoints_px)
+    with pytest.raises(ConfigError, match="grid"):
+        create_pose_finder({"name": "p3p", "kind": "sift", "query_grid": 4})
