@@ -20,11 +20,14 @@ class FeatureConf:
     """Detector settings. ``max_features`` caps the strongest keypoints kept. ``scale`` below
     1 detects on the image reduced by that factor (area averaging) and reports keypoints in
     the full image's pixels: where blur has removed the fine scales, the reduced image holds
-    the same keypoints at a fraction of the cost."""
+    the same keypoints at a fraction of the cost. ``grid`` above 1 (ORB only) spreads the
+    keypoints over a ``grid`` x ``grid`` partition of the image (:func:`spread_over_grid`)
+    instead of keeping the strongest wherever they are."""
 
     kind: str = "sift"
     max_features: int = 2000
     scale: float = 1.0
+    grid: int = 1
 
     def __post_init__(self) -> None:
         if self.kind not in FEATURE_KINDS:
@@ -33,12 +36,17 @@ class FeatureConf:
             raise ConfigError(f"max_features must be positive, got {self.max_features}")
         if not 0 < self.scale <= 1:
             raise ConfigError(f"feature scale must be in (0, 1], got {self.scale}")
+        if self.grid < 1 or (self.grid > 1 and self.kind != "orb"):
+            raise ConfigError(f"feature grid must be 1, or above 1 for ORB only; got "
+                              f"{self.grid} for {self.kind}")
 
     @property
     def key(self) -> str:
         """The name a frame caches these features under: the kind, with the scale when the
-        image is reduced (``"sift@0.5"``), so full-size features of the kind stay apart."""
-        return self.kind if self.scale == 1 else f"{self.kind}@{self.scale:g}"
+        image is reduced (``"sift@0.5"``) and the grid when they are spread (``"orb#4"``), so
+        features of the kind found otherwise stay apart."""
+        key = self.kind if self.scale == 1 else f"{self.kind}@{self.scale:g}"
+        return key if self.grid == 1 else f"{key}#{self.grid}"
 
 
 #: Scale step between ORB's pyramid levels (ORB-SLAM's).
@@ -87,8 +95,78 @@ def extract(image: npt.NDArray[np.uint8], conf: FeatureConf | None = None, *,
     conf = conf or FeatureConf()
     if conf.scale != 1:
         return _extract_reduced(image, conf, mask)
+    if conf.grid > 1:
+        return _extract_spread(image, conf, mask)
     keypoints, descriptors = _create(conf).detectAndCompute(image, mask)
     return _features_from_cv(conf.kind, list(keypoints), descriptors)
+
+
+#: Candidates detected per keypoint kept when keypoints are spread over a grid: enough that
+#: a cell of the grid whose corners are weaker than elsewhere's still holds candidates.
+SPREAD_OVERSAMPLING = 4
+
+
+def _extract_spread(image: npt.NDArray[np.uint8], conf: FeatureConf,
+                    mask: npt.NDArray[np.uint8] | None) -> Features:
+    """ORB keypoints spread over the image: ``SPREAD_OVERSAMPLING`` times
+    ``conf.max_features`` candidates detected, ``conf.max_features`` of them kept by
+    :func:`spread_over_grid`, and only those described."""
+    wide = FeatureConf(conf.kind, conf.max_features * SPREAD_OVERSAMPLING)
+    candidates = list(_create(wide).detect(image, mask))
+    if not candidates:
+        return _features_from_cv(conf.kind, [], None)
+    n = len(candidates)
+    pts = np.asarray(cv2.KeyPoint.convert(candidates), np.float64).reshape(-1, 2)
+    levels = np.fromiter((k.octave for k in candidates), np.int64, n)
+    response = np.fromiter((k.response for k in candidates), np.float64, n)
+    keep = spread_over_grid(pts, levels, response, image.shape[:2], grid=conf.grid,
+                            level_quota=orb_level_quota(conf.max_features))
+    keypoints, descriptors = _create(conf).compute(image, [candidates[i] for i in keep])
+    return _features_from_cv(conf.kind, list(keypoints), descriptors)
+
+
+def orb_level_quota(count: int, levels: int = 8) -> npt.NDArray[np.int64]:
+    """(levels,) keypoints OpenCV's ORB keeps at each pyramid level out of ``count``: a
+    geometric series of ratio ``1 / ORB_SCALE_FACTOR`` (a level's share of the image area
+    falls by the square, of its perimeter by the factor: ORB's compromise), the remainder at
+    the coarsest level."""
+    ratio = 1.0 / ORB_SCALE_FACTOR
+    first = count * (1 - ratio) / (1 - ratio ** levels)
+    quota = np.round(first * ratio ** np.arange(levels)).astype(np.int64)
+    quota[-1] = max(0, count - int(quota[:-1].sum()))
+    return quota
+
+
+def spread_over_grid(points_px: npt.NDArray[np.float64], levels: npt.NDArray[np.int64],
+                     response: npt.NDArray[np.float64], shape: tuple[int, int], *, grid: int,
+                     level_quota: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    """Indices of the keypoints kept so that each pyramid level keeps ``level_quota[level]``
+    of them, shared equally between the ``grid`` x ``grid`` cells of the (H, W) image
+    ``shape`` (strongest ``response`` first in each cell), the share a cell cannot fill given
+    to the level's strongest remaining keypoints. Corners cluster where the texture is
+    sharpest (under motion blur one textured object holds most of them); a pose resting on
+    one cluster is weakly conditioned, and the verification refuses inliers covering too
+    little of the image, so the keypoints are spread first, as ORB-SLAM's grid does."""
+    h, w = shape
+    cx = np.clip((points_px[:, 0] * grid / w).astype(np.int64), 0, grid - 1)
+    cy = np.clip((points_px[:, 1] * grid / h).astype(np.int64), 0, grid - 1)
+    lev = np.clip(levels, 0, len(level_quota) - 1)
+    group = lev * grid * grid + cy * grid + cx
+    share = -(-level_quota // (grid * grid))  # ceil: a level's share of one cell
+    order = np.lexsort((-response, group))
+    first = _rank_within(group[order]) < share[lev[order]]
+    # each level: its cells' shares first, then its strongest others, up to its quota
+    order = order[np.lexsort((-response[order], ~first, lev[order]))]
+    kept = order[_rank_within(lev[order]) < level_quota[lev[order]]]
+    return np.sort(kept)
+
+
+def _rank_within(sorted_keys: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    """Each element's position within its run of equal values of the sorted ``sorted_keys``."""
+    n = len(sorted_keys)
+    starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
+    run_start = np.repeat(starts, np.diff(np.r_[starts, n]))
+    return np.arange(n) - run_start
 
 
 def _extract_reduced(image: npt.NDArray[np.uint8], conf: FeatureConf,

@@ -74,6 +74,10 @@ class P3PPoseFinder(PoseFinder):
         #: (:class:`~reloc_service.core.features.FeatureConf` ``scale``); each keypoint is then
         #: located to ``1 / query_scale`` full-image pixels, which its weight carries.
         query_scale: float = 1.0
+        #: Spread the query's keypoints over a ``query_grid`` x ``query_grid`` partition of
+        #: the image (ORB only; :func:`~reloc_service.core.features.spread_over_grid`); 1
+        #: keeps the strongest wherever they are.
+        query_grid: int = 1
         #: The repetition check's whole-map pool is scanned in full up to this many landmarks,
         #: searched in an index above (:class:`~.repetition_index.IndexConf` ``exact_rows``).
         repetition_exact_rows: int = IndexConf.exact_rows
@@ -81,7 +85,7 @@ class P3PPoseFinder(PoseFinder):
         def __post_init__(self) -> None:
             super().__post_init__()
             feature_lib.FeatureConf(kind=self.kind, max_features=self.max_features,
-                                    scale=self.query_scale)
+                                    scale=self.query_scale, grid=self.query_grid)
             if not 0 < self.ratio <= 1:
                 raise ConfigError(f"p3p: ratio must be in (0, 1], got {self.ratio}")
             if self.first_pool_keyframes is not None and self.first_pool_keyframes < 1:
@@ -361,7 +365,7 @@ class P3PPoseFinder(PoseFinder):
 
     def feature_confs(self) -> dict[str, feature_lib.FeatureConf]:
         conf = feature_lib.FeatureConf(kind=self.conf.kind, max_features=self.conf.max_features,
-                                       scale=self.conf.query_scale)
+                                       scale=self.conf.query_scale, grid=self.conf.query_grid)
         return {conf.key: conf}
 
     def prepare_candidates(self, query: Frame, candidates: list[PlaceCandidate],
