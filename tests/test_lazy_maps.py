@@ -8,6 +8,7 @@ waiting or a training job is never closed. Real services on loopback, real stora
 from __future__ import annotations
 
 import os
+import re
 import threading
 from pathlib import Path
 
@@ -30,6 +31,7 @@ from reloc_service.core.errors import ConfigError
 from reloc_service.engine import EngineConf
 from reloc_service.service.app import Service
 from reloc_service.service.config import parse_config
+from reloc_service.service.memory import rss_bytes
 from reloc_service.service.residency import MB, counted_bytes
 from reloc_service.service.workers import Lane
 from reloc_service.tools.bench.stored_map import (
@@ -79,6 +81,23 @@ def open_paths(directory: Path) -> set[str]:
     return out
 
 
+#: A budget no test process's own memory reaches: the tests below then give the maps their
+#: share, derived from the baseline the service measured (:func:`limit_maps`).
+AMPLE_MB = 1_000_000
+
+
+def limit_maps(service: Service, maps_bytes: float) -> None:
+    """Make ``service``'s budget its measured baseline (its process's, and its worker
+    processes' once they started) plus ``maps_bytes`` for the maps, as if configured so."""
+    residency = service.registry.residency
+    assert residency is not None and residency.baseline_service > 0
+    if service.processes is not None:
+        service.processes.start()
+        assert residency.baseline_workers > 0
+    residency.total_budget = residency.baseline + int(maps_bytes)
+    residency.budget = int(maps_bytes)
+
+
 def pose_of(client: RelocClient, scene, i: int) -> np.ndarray:
     result = client.relocalize(scene.query_images[i], camera_id="cam0")
     assert result.ok, result.reason
@@ -89,7 +108,7 @@ def test_start_registers_stored_maps_without_loading_them(template, synthetic_sc
                                                           tmp_path):
     storage = stored_maps(template, tmp_path / "storage")
     port = free_port()
-    service = Service(conf(port, storage, max_resident_mb=1000)).start()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB)).start()
     try:
         assert service.maps == {}   # nothing loaded at start
         assert not open_paths(storage / "alpha")   # no journal or lock of a map open
@@ -118,7 +137,8 @@ def test_a_query_that_cannot_wait_gets_busy_with_a_retry_hint(template, syntheti
                                                               tmp_path):
     storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
     port = free_port()
-    service = Service(conf(port, storage, max_resident_mb=1000, cold_load_wait_s=0)).start()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB,
+                           cold_load_wait_s=0)).start()
     try:
         with RelocClient(endpoint(port), map="alpha", timeout=30) as client:
             with pytest.raises(ServiceBusy, match="loaded from storage.*retry"):
@@ -135,7 +155,8 @@ def test_small_budget_keeps_recent_maps_and_reloads_the_others(template, synthet
     storage = stored_maps(template, tmp_path / "storage")
     port = free_port()
     budget_mb = 1.5 * map_bytes / MB   # one map fits, two do not
-    service = Service(conf(port, storage, max_resident_mb=budget_mb)).start()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB)).start()
+    limit_maps(service, budget_mb * MB)
     residency = service.registry.residency
     assert residency is not None
     counted_after_load: list[int] = []
@@ -178,13 +199,13 @@ def test_a_map_with_puts_waiting_or_training_is_not_closed(template, synthetic_s
     map_bytes = template.counted_bytes
     storage = stored_maps(template, tmp_path / "storage", names=("alpha", "bravo"))
     port = free_port()
-    service = Service(conf(port, storage, max_resident_mb=1000)).start()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB)).start()
     residency = service.registry.residency
     assert residency is not None and service.writes.pool is not None
     small = int(1.5 * map_bytes)   # one map fits, two do not
 
     def load_both_alpha_oldest() -> None:
-        residency.budget = 1000 * MB
+        residency.budget = AMPLE_MB * MB
         for name in ("alpha", "bravo"):
             assert residency.acquire(name, 30) is not None
             residency.release(name)
@@ -258,9 +279,10 @@ def test_worker_processes_drop_the_replica_of_a_closed_map(template, synthetic_s
     storage = stored_maps(template, tmp_path / "storage", names=("alpha", "bravo"))
     port = free_port()
     # one map fits (held twice: the service's and the worker's replica), two do not
-    service = Service(conf(port, storage, max_resident_mb=3 * map_bytes / MB,
-                           worker_mode="process", workers=1)).start()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB, worker_mode="process",
+                           workers=1)).start()
     try:
+        limit_maps(service, 3 * map_bytes)
         processes = service.processes
         assert processes is not None
         with RelocClient(endpoint(port), map="alpha", timeout=60) as alpha, \
@@ -287,11 +309,12 @@ def test_worker_processes_replicas_count_against_the_budget(template, synthetic_
     storage = stored_maps(template, tmp_path / "storage")
     port = free_port()
     budget_mb = 4.5 * map_bytes / MB   # three maps fit once each (pools included), not twice
-    service = Service(conf(port, storage, max_resident_mb=budget_mb, worker_mode="process",
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB, worker_mode="process",
                            workers=1)).start()
     residency = service.registry.residency
     assert residency is not None and residency.copies == 2
     try:
+        limit_maps(service, budget_mb * MB)
         for name in NAMES:
             with RelocClient(endpoint(port), map=name, timeout=60) as client:
                 pose_of(client, synthetic_scene, 1)
@@ -301,6 +324,61 @@ def test_worker_processes_replicas_count_against_the_budget(template, synthetic_
         assert len(service.maps) < len(NAMES)
         assert residency.resident_bytes() == 2 * sum(one_copy)
         assert residency.peak_bytes <= budget_mb * MB   # each load made room for both copies
+    finally:
+        service.stop()
+
+
+def test_a_budget_below_the_services_own_memory_refuses_to_start(template, tmp_path):
+    storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
+    own_mb = rss_bytes() / MB   # this process, before the service adds to it
+    with pytest.raises(ConfigError) as refused:
+        Service(conf(free_port(), storage, max_resident_mb=1)).start()
+    message = str(refused.value)
+    assert "service.max_resident_mb = 1 MB" in message
+    measured = re.search(r"resident memory with no map, (\d+) MB", message)
+    assert measured is not None and int(measured[1]) >= int(own_mb)
+    # refused, it let go of the storage: a service with a budget above it starts there
+    service = Service(conf(free_port(), storage, max_resident_mb=AMPLE_MB)).start()
+    service.stop()
+
+
+def test_the_maps_get_the_budget_minus_the_measured_baseline(template, synthetic_scene,
+                                                             tmp_path):
+    storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
+    port = free_port()
+    before = rss_bytes()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB)).start()
+    try:
+        residency = service.registry.residency
+        assert residency is not None
+        assert before <= residency.baseline_service <= rss_bytes()   # measured at start
+        assert residency.baseline_workers == 0   # thread mode: no worker process
+        assert residency.budget == AMPLE_MB * MB - residency.baseline_service
+        with RelocClient(endpoint(port), map="alpha", timeout=30) as client:
+            pose_of(client, synthetic_scene, 0)
+        report = residency.memory_report()
+        assert report["budget_mb"] == AMPLE_MB
+        assert report["baseline_mb"] == residency.baseline_service / MB
+        assert report["maps_budget_mb"] == AMPLE_MB - report["baseline_mb"]
+        assert report["maps_mb"] == counted_bytes(service.maps["alpha"]) / MB > 0
+    finally:
+        service.stop()
+
+
+def test_worker_processes_own_memory_counts_against_the_budget(template, tmp_path):
+    storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
+    service = Service(conf(free_port(), storage, max_resident_mb=AMPLE_MB,
+                           worker_mode="process", workers=1)).start()
+    try:
+        residency, processes = service.registry.residency, service.processes
+        assert residency is not None and processes is not None
+        assert residency.baseline_workers == 0   # not started yet
+        processes.start()
+        # the worker and the forkserver it was forked from, at least the worker's own
+        worker_rss = rss_bytes(processes.pids()[0])
+        assert residency.baseline_workers > 0 and worker_rss > 0
+        assert residency.budget == (AMPLE_MB * MB - residency.baseline_service
+                                    - residency.baseline_workers)
     finally:
         service.stop()
 

@@ -31,6 +31,7 @@ from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode, EventKind, ProtocolError
 
 from ..algorithms.relocalizers.overlap import close_helpers
+from ..core.errors import ConfigError
 from ..core.numeric import limit_blas_threads
 from ..engine import EngineConf, MappingConf
 from ..storage.lock import LockHeld
@@ -115,6 +116,8 @@ class Service:
             self.processes = ProcessWorkers(s.workers, EngineSpec.of(
                 self.methods, self.conf.options, self.conf.mapping, self.limits))
             self.registry.processes = self.processes
+            if self.registry.residency is not None:   # their own memory counts too
+                self.processes.on_started = self.registry.residency.count_workers_baseline
         # the queries run here (with worker processes, those before the workers hold their
         # map): their kernels load meanwhile, not in the first one
         warm_in_background()
@@ -144,7 +147,11 @@ class Service:
                                              writer_for=self.writes.writer_for)
                 self.watch.start()
         elif self.registry.residency is not None:   # each map loads on its first use
-            self.registry.register_lazily(names)
+            try:
+                self.registry.register_lazily(names)   # counts the process's own memory
+            except ConfigError:
+                self.stop(final_snapshot=False)   # the budget cannot hold this process
+                raise
         else:
             self.registry.load_in_background(names)
             if wait_ready:

@@ -14,6 +14,13 @@ about 80 MB per 1000 keyframes); the process's resident memory is a multiple of 
 worker process holds a replica of each resident map (its own engine, loaded from the same
 snapshot, pools included), so a resident map counts once per copy: ``1 + workers`` times.
 
+The processes' own memory counts too: the budget is the whole service's (its process and its
+worker processes). When the maps are declared, the service's resident memory with no map
+(``VmRSS``: interpreter, OpenCV, Zenoh) is measured as its *baseline*, and with
+``worker_mode = "process"`` the forkserver's and the workers' once they start; the maps get
+``max_resident_mb`` minus the baseline. A budget the baseline alone fills refuses to start
+(ConfigError naming both).
+
 A map is never closed while it is in use: a query or a write holds it (:meth:`Residency.acquire`
 ... :meth:`Residency.release`), puts wait in its writer lane, a training job, snapshot or
 journal replay runs, or it journaled puts it has not applied. Closing takes its final
@@ -35,9 +42,9 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from reloc_client import protocol as wire
 
-from ..core.errors import StorageError
+from ..core.errors import ConfigError, StorageError
 from .durability import map_dirname, read_service_file
-from .memory import trim_now
+from .memory import rss_bytes, total_rss_bytes, trim_now
 from .quotas import MapUsage
 
 if TYPE_CHECKING:
@@ -76,7 +83,14 @@ class Residency:
         if copies < 1:
             raise ValueError(f"expected copies >= 1 of each resident map, got {copies}")
         self.registry = registry
-        self.budget = int(budget_mb * MB)
+        #: ``max_resident_mb``: the whole service's budget (processes and maps), bytes.
+        self.total_budget = int(budget_mb * MB)
+        #: The resident memory of the service's process with no map, and of its worker
+        #: processes and their forkserver once they start (bytes; 0 until measured).
+        self.baseline_service = 0
+        self.baseline_workers = 0
+        #: What the resident maps may count: the total budget minus the baseline.
+        self.budget = self.total_budget
         #: How many processes hold each resident map: the service's, and one replica per
         #: worker process (worker_mode "process"); each copy counts against the budget.
         self.copies = copies
@@ -115,6 +129,51 @@ class Residency:
         for name in names:
             declare(name)
         self._evictor.start()
+
+    # -- the processes' own memory ----------------------------------------------------------------
+    @property
+    def baseline(self) -> int:
+        """The processes' own resident memory, counted against the budget (bytes)."""
+        return self.baseline_service + self.baseline_workers
+
+    def count_service_baseline(self) -> None:
+        """Measure this process's resident memory (no map resident yet) and count it;
+        ConfigError naming both numbers when it alone fills the budget."""
+        self.baseline_service = rss_bytes()
+        if self.baseline >= self.total_budget:
+            raise ConfigError(
+                f"service.max_resident_mb = {self.total_budget / MB:.0f} MB: expected more "
+                f"than the service's own resident memory with no map, "
+                f"{self.baseline / MB:.0f} MB (the budget counts the whole service)")
+        self._set_maps_budget()
+
+    def count_workers_baseline(self, pids: list[int]) -> None:
+        """Measure the worker processes' (and their forkserver's) resident memory ``pids``
+        as they start, and count it. Past the budget the service runs on (it is already
+        serving): every idle map is closed, and the error is logged."""
+        self.baseline_workers = total_rss_bytes(pids)
+        if self.baseline >= self.total_budget:
+            log.error("service.max_resident_mb = %.0f MB is filled by the processes' own "
+                      "resident memory with no map, %.0f MB (service %.0f MB, %d worker "
+                      "processes %.0f MB): every idle map is closed", self.total_budget / MB,
+                      self.baseline / MB, self.baseline_service / MB, len(pids),
+                      self.baseline_workers / MB)
+        self._set_maps_budget()
+        self._wake.set()
+
+    def _set_maps_budget(self) -> None:
+        # at least one byte: a budget of 0 would mean "no budget" to the checks below
+        self.budget = max(1, self.total_budget - self.baseline)
+        log.info("memory budget %.1f MB: processes' baseline %.1f MB (service %.1f MB, workers "
+                 "%.1f MB), maps %.1f MB", self.total_budget / MB, self.baseline / MB,
+                 self.baseline_service / MB, self.baseline_workers / MB, self.budget / MB)
+
+    def memory_report(self) -> dict[str, float]:
+        """The budget, the processes' baseline and the maps' count and share, in MB."""
+        return {"budget_mb": self.total_budget / MB, "baseline_mb": self.baseline / MB,
+                "baseline_service_mb": self.baseline_service / MB,
+                "baseline_workers_mb": self.baseline_workers / MB,
+                "maps_budget_mb": self.budget / MB, "maps_mb": self.resident_bytes() / MB}
 
     def close(self) -> None:
         """Stop closing maps (the registry closes the resident ones)."""
