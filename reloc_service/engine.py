@@ -56,6 +56,7 @@ from .algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
 from .algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, create_tracker
 from .algorithms.relocalizers.map_pools import restore_pools, save_pools
 from .algorithms.relocalizers.tracking import relocalize_with_prior
+from .core.background import start_background
 from .core.cameras import Camera
 from .core.errors import ConfigError, MapError
 from .core.frame import EncodedImage, Frame, Keyframe
@@ -505,7 +506,7 @@ class Engine:
             finally:
                 self.prepared.set()
 
-        threading.Thread(target=run, name="map-pools", daemon=True).start()
+        start_background(run, "map-pools", self._closed)   # ended before the interpreter
 
     def held_bytes(self) -> int:
         """Bytes the relocalizers hold for the published map beside it: its whole-map

@@ -24,7 +24,7 @@ import msgpack
 import numpy as np
 import zenoh
 from reloc_client import protocol as wire
-from reloc_client.client import NoReplyError, RelocClient
+from reloc_client.client import NoReplyError, RelocClient, ServiceBusy
 
 from reloc_service.service.app import Service
 from reloc_service.service.config import ServiceConf, load_config, parse_config, with_overrides
@@ -202,7 +202,7 @@ class ServiceProcess:
             if self.client is None:  # a client-mode session needs the service listening
                 self.client = RelocClient(endpoint(self.port), map=MAP, timeout=30)
             return not self.client.status(timeout=1).replaying
-        except (ConnectionError, NoReplyError):
+        except (ConnectionError, NoReplyError, ServiceBusy):   # busy: retry, as it asks
             return False
 
     def kill9(self) -> None:

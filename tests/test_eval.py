@@ -335,23 +335,26 @@ def test_calibration_sigma_is_the_maps_stated_calibration_accuracy(tmp_path, fak
             ev.evaluate(root, "a", progress=False, remote=spec, calibration_sigma=bad)
 
 
-def test_the_datasets_stated_calibration_is_the_default(tmp_path, fake_remote):
+def test_the_datasets_stated_calibration_is_the_default_in_process():
     """A dataset's ``calibration.json`` is what the map states when neither the caller nor the
     mapping options say otherwise; either of those wins over it."""
-    root = _tiny_dataset(tmp_path / "toy")
-    (root / "calibration.json").write_text('{"focal_sigma_rel": 0.001, "radial_sigma_px": 0.25}')
-    spec = ev.RemoteSpec("tcp/127.0.0.1:1", "toy")
-    keys = ("calibration_focal_sigma_rel", "calibration_radial_sigma_px")
-
-    def stated(**kwargs):
-        mapping = ev.evaluate(root, "a", progress=False, remote=spec, **kwargs).options["mapping"]
-        return tuple(mapping[k] for k in keys)
-
-    assert stated() == (0.001, 0.25)
-    assert stated(calibration_sigma=(0.0, 0.0)) == (0.0, 0.0)
+    dataset = (0.001, 0.25)
+    assert ev.calibration_to_state(None, None, dataset) == dataset
+    assert ev.calibration_to_state(None, {"p3p": {}}, dataset) == dataset
+    assert ev.calibration_to_state((0.0, 0.0), None, dataset) == (0.0, 0.0)
     options = {"mapping": {"calibration_focal_sigma_rel": 0.01}}
-    result = ev.evaluate(root, "a", progress=False, remote=spec, options=options)
-    assert result.options["mapping"] == {"calibration_focal_sigma_rel": 0.01}
+    assert ev.calibration_to_state(None, options, dataset) is None   # the options' own stand
+    assert ev.calibration_to_state(None, None, None) is None
+
+
+def test_a_remote_services_maps_keep_their_configured_calibration(tmp_path, fake_remote):
+    """Through a service, the dataset's ``calibration.json`` adds no mapping options (the
+    service's configuration sets them, and refuses options from a client)."""
+    root = _tiny_dataset(tmp_path / "toy")
+    (root / "calibration.json").write_text('{"focal_sigma_rel": 0.0, "radial_sigma_px": 0.0}')
+    result = ev.evaluate(root, "a", progress=False, remote=ev.RemoteSpec("tcp/127.0.0.1:1",
+                                                                          "toy"))
+    assert "mapping" not in result.options
 
 
 def test_calibration_sigma_argument():

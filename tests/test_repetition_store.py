@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from engine_support import saved_trained_engine
 
 from reloc_service.algorithms.pose.map_pool import held_pool
 from reloc_service.algorithms.pose.repetition_index import IndexConf, RepetitionIndex
@@ -29,13 +30,8 @@ def conf(exact_rows: int) -> EngineConf:
 @pytest.fixture(scope="module")
 def saved(synthetic_scene, tmp_path_factory) -> tuple[Engine, Path]:
     """An engine over the scene's keyframes, trained (its pool indexed), saved."""
-    engine = Engine(conf(0))
-    for i, image in enumerate(synthetic_scene.keyframe_images):
-        engine.add_keyframe(i, image, synthetic_scene.camera, synthetic_scene.keyframe_poses[i])
-    engine.train()
-    directory = tmp_path_factory.mktemp("pool-store") / "map"
-    engine.save(directory)
-    return engine, directory
+    return saved_trained_engine(synthetic_scene, conf(0),
+                                tmp_path_factory.mktemp("pool-store") / "map")
 
 
 def stored_index(directory: Path) -> Path:

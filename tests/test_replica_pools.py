@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from engine_support import saved_trained_engine
 
 from reloc_service.algorithms.pose.map_pool import held_pool
 from reloc_service.algorithms.pose.repetition_index import IndexConf, RepetitionIndex
@@ -33,12 +34,8 @@ def conf() -> EngineConf:
 @pytest.fixture(scope="module")
 def saved(synthetic_scene, tmp_path_factory) -> Path:
     """A trained engine's save: its map, models and both pools' indexes."""
-    engine = Engine(conf())
-    for i, image in enumerate(synthetic_scene.keyframe_images):
-        engine.add_keyframe(i, image, synthetic_scene.camera, synthetic_scene.keyframe_poses[i])
-    engine.train()
-    directory = tmp_path_factory.mktemp("replica-pools") / "map"
-    engine.save(directory)
+    _, directory = saved_trained_engine(synthetic_scene, conf(),
+                                        tmp_path_factory.mktemp("replica-pools") / "map")
     assert sorted(stored(directory)) == ["orb", "sift"]
     return directory
 

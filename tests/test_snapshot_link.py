@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from engine_support import saved_trained_engine
 
 from reloc_service.core.frame import Frame
 from reloc_service.core.mapping import MappingConf
@@ -25,13 +26,8 @@ def conf() -> EngineConf:
 
 @pytest.fixture(scope="module")
 def saved(synthetic_scene, tmp_path_factory) -> Path:
-    engine = Engine(conf())
-    for i, image in enumerate(synthetic_scene.keyframe_images):
-        engine.add_keyframe(i, image, synthetic_scene.camera, synthetic_scene.keyframe_poses[i])
-    engine.train()
-    directory = tmp_path_factory.mktemp("linked") / "map"
-    engine.save(directory)
-    return directory
+    return saved_trained_engine(synthetic_scene, conf(),
+                                tmp_path_factory.mktemp("linked") / "map")[1]
 
 
 def test_a_linked_snapshot_loads_as_the_original_without_a_copy(saved, synthetic_scene,

@@ -96,32 +96,27 @@ def run(args: argparse.Namespace) -> int:
         return 1
 
 
-def _keyframe_sigma(text: str) -> tuple[float, float]:
-    """``"T_M,R_DEG"`` -> (metres, degrees), both finite and >= 0."""
-    parts = text.split(",")
+def _nonnegative_pair(text: str, layout: str, example: str) -> tuple[float, float]:
+    """``"A,B"`` -> (A, B), both finite and >= 0; an argparse error naming ``layout``."""
     try:
-        t_m, r_deg = (float(p) for p in parts)
+        a, b = (float(p) for p in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"expected T_M,R_DEG (e.g. 0.02,0.5), got {text!r}") from None
-    if not (math.isfinite(t_m) and math.isfinite(r_deg) and t_m >= 0 and r_deg >= 0):
-        raise argparse.ArgumentTypeError(f"expected finite metres and degrees >= 0, got {text!r}")
-    return t_m, r_deg
+            f"expected {layout} (e.g. {example}), got {text!r}") from None
+    if not (math.isfinite(a) and math.isfinite(b) and a >= 0 and b >= 0):
+        raise argparse.ArgumentTypeError(f"expected {layout}, both finite and >= 0, got "
+                                         f"{text!r}")
+    return a, b
+
+
+def _keyframe_sigma(text: str) -> tuple[float, float]:
+    """``"T_M,R_DEG"`` -> (metres, degrees), both finite and >= 0."""
+    return _nonnegative_pair(text, "T_M,R_DEG", "0.02,0.5")
 
 
 def _calibration_sigma(text: str) -> tuple[float, float]:
     """``"FOCAL_REL,RADIAL_PX"`` -> (relative focal, pixels), both finite and >= 0."""
-    parts = text.split(",")
-    try:
-        focal_rel, radial_px = (float(p) for p in parts)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected FOCAL_REL,RADIAL_PX (e.g. 0.005,2), got {text!r}") from None
-    if not (math.isfinite(focal_rel) and math.isfinite(radial_px) and focal_rel >= 0
-            and radial_px >= 0):
-        raise argparse.ArgumentTypeError(f"expected a finite relative focal and pixels >= 0, "
-                                         f"got {text!r}")
-    return focal_rel, radial_px
+    return _nonnegative_pair(text, "FOCAL_REL,RADIAL_PX", "0.005,2")
 
 
 def _usage_problem(args: argparse.Namespace) -> str | None:

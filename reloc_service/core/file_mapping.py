@@ -93,7 +93,10 @@ def map_file(fh: IO[bytes], size: int) -> MappedFile:
         raise OSError(errno, os.strerror(errno))
     region = (ctypes.c_ubyte * size).from_address(address)
     # Unmapped once nothing views the region: every array made from it keeps ``region``.
-    weakref.finalize(region, _LIBC.munmap, address, size)
+    # Not at exit: weakref's exit hook runs finalizers still pending, and a thread still
+    # reading the map then (a pool being made) would fault on the unmapped pages; the
+    # process's end unmaps everything anyway.
+    weakref.finalize(region, _LIBC.munmap, address, size).atexit = False
     array = np.frombuffer(memoryview(region).cast("B"), np.uint8)
     array.flags.writeable = False  # the pages are PROT_READ: a write would fault
     return MappedFile(array, address, None)

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..algorithms.pose import kernels as pose_kernels
 from ..core import hamming
+from ..core.background import start_background
 from ..core.frame import area_downscale
 
 log = logging.getLogger(__name__)
@@ -32,8 +33,8 @@ def warm_kernels() -> None:
 
 
 def warm_in_background() -> threading.Thread:
-    """Run :func:`warm_kernels` on a daemon thread (a failure is logged: the first query
-    loads what is missing)."""
+    """Run :func:`warm_kernels` on a background thread (:mod:`..core.background`: exit waits
+    for it; a failure is logged: the first query loads what is missing)."""
 
     def run() -> None:
         start = time.perf_counter()
@@ -44,6 +45,4 @@ def warm_in_background() -> threading.Thread:
             return
         log.debug("compiled kernels loaded in %.2f s", time.perf_counter() - start)
 
-    thread = threading.Thread(target=run, name=THREAD_NAME, daemon=True)
-    thread.start()
-    return thread
+    return start_background(run, THREAD_NAME)   # exit waits: no compile under teardown

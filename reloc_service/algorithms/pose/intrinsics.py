@@ -42,6 +42,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy import special
 
+from ...core import distributions as stats
 from ...core.cameras import Camera
 from ...core.geometry import invert, se3_exp, se3_log
 from .intrinsics_model import IntrinsicsModel
@@ -194,7 +195,7 @@ class IntrinsicsCheck:
     def data_statistic(self) -> float:
         """``theta^T V^-1 theta`` under the model covariance alone (no prior, no dispersion):
         chi-square with 2 degrees of freedom where the model's noise is the whole story."""
-        return _t2(self.theta, self.model_covariance)
+        return hotelling_t2(self.theta, self.model_covariance)
 
     @property
     def p_value(self) -> float:
@@ -204,13 +205,13 @@ class IntrinsicsCheck:
         cells: ``T^2 (G - 2) / (2 (G - 1)) ~ F(2, G - 2)``): each allows for what the other
         misses (a map bent everywhere, noise shared by one region)."""
         chosen = self.solution
-        p_model = _p_value_f(_t2(chosen.theta, self.covariance + self.prior.covariance),
+        p_model = hotelling_p_value(hotelling_t2(chosen.theta, self.covariance + self.prior.covariance),
                              chosen.dof)
         if chosen.robust_covariance is None:
             return p_model
         g = chosen.clusters
-        t2 = _t2(chosen.theta, chosen.robust_covariance + self.prior.covariance)
-        return max(p_model, _p_value_f(t2 * (g - 2) / (g - 1), g - 2))
+        t2 = hotelling_t2(chosen.theta, chosen.robust_covariance + self.prior.covariance)
+        return max(p_model, hotelling_p_value(t2 * (g - 2) / (g - 1), g - 2))
 
     @property
     def passed(self) -> bool:
@@ -415,14 +416,18 @@ def _cluster_robust(eq: _Equations, inverse: Array, camera: Camera) -> tuple[Arr
     return sandwich[6:, 6:], g
 
 
-def _p_value_f(t2_over_one: float, dof: int) -> float:
-    """``P(F(2, dof) > t2 / 2)``; 1 where the statistic is not finite (no evidence)."""
-    if not np.isfinite(t2_over_one) or dof < 1:
+def hotelling_p_value(t2: float, dof: int) -> float:
+    """``P(F(2, dof) > t2 / 2)``, Hotelling's test of a two-parameter error with ``dof``
+    residual degrees of freedom; 1 where there is no evidence (a statistic that is not
+    finite, as from a singular covariance, or no residual degree of freedom)."""
+    if not np.isfinite(t2) or dof < 1:
         return 1.0
-    return float(special.fdtrc(2, dof, t2_over_one / 2.0))  # stats.f.sf, without its overhead
+    return stats.f.sf(t2 / 2.0, 2, dof)
 
 
-def _t2(theta: Array, covariance: Array) -> float:
+def hotelling_t2(theta: Array, covariance: Array) -> float:
+    """``theta^T covariance^-1 theta``; infinite for a singular covariance (no evidence,
+    which :func:`hotelling_p_value` turns into a p-value of 1)."""
     try:
         return float(theta @ np.linalg.solve(covariance, theta))
     except np.linalg.LinAlgError:

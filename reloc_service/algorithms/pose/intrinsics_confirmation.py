@@ -39,7 +39,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy import special
 
-from .intrinsics import IntrinsicsCheck
+from .intrinsics import IntrinsicsCheck, hotelling_p_value, hotelling_t2
 
 Array = npt.NDArray[np.float64]
 
@@ -100,26 +100,16 @@ def _power(check: IntrinsicsCheck, theta: Array) -> float:
 def _exclusion_p(check: IntrinsicsCheck, theta: Array) -> float:
     """P-value of ``theta`` as the true error on ``check``'s own estimate (1 without
     evidence: a singular covariance or no residual degrees of freedom)."""
-    covariance = check.covariance + check.prior.covariance
-    try:
-        diff = np.asarray(check.theta, np.float64) - theta
-        t2 = float(diff @ np.linalg.solve(covariance, diff))
-    except np.linalg.LinAlgError:
-        return 1.0
-    dof = check.solution.dof
-    if not np.isfinite(t2) or dof < 1:
-        return 1.0
-    return float(special.fdtrc(2, dof, t2 / 2.0))
+    diff = np.asarray(check.theta, np.float64) - theta
+    return hotelling_p_value(hotelling_t2(diff, check.covariance + check.prior.covariance),
+                             check.solution.dof)
 
 
 def _f_power(theta: Array, covariance: Array, dof: int, scale: float, level: float) -> float:
     """``P(F > f_level)`` for ``F = scale T^2 / 2`` noncentral ``F(2, dof)`` of noncentrality
     ``scale theta^T covariance^-1 theta`` (0 without residual degrees of freedom or with a
     singular covariance)."""
-    try:
-        lam = float(theta @ np.linalg.solve(covariance, theta))
-    except np.linalg.LinAlgError:
-        return 0.0
+    lam = hotelling_t2(theta, covariance)
     if not np.isfinite(lam) or dof < 1:
         return 0.0
     limit = float(special.fdtri(2, dof, 1.0 - level))

@@ -31,7 +31,7 @@ from scipy import optimize
 
 from ...core import distributions as stats
 from .base import PoseEstimate, total_covariance
-from .intrinsics import IntrinsicsCheck
+from .intrinsics import IntrinsicsCheck, hotelling_p_value, hotelling_t2
 
 Array = npt.NDArray[np.float64]
 
@@ -116,10 +116,4 @@ def estimate_underpowered(estimate: PoseEstimate) -> bool:
 def _p_value(theta: Array, covariance: Array, dof: int, scale: float) -> float:
     """P-value of ``theta`` under ``covariance`` as the test computes it (Hotelling's ``F(2,
     dof)`` of ``scale T^2 / 2``); 1 without evidence."""
-    try:
-        t2 = float(theta @ np.linalg.solve(covariance, theta))
-    except np.linalg.LinAlgError:
-        return 1.0
-    if not np.isfinite(t2) or dof < 1:
-        return 1.0
-    return float(stats.f.sf(scale * t2 / 2.0, 2, dof))
+    return hotelling_p_value(scale * hotelling_t2(theta, covariance), dof)

@@ -51,6 +51,8 @@ MAP_NAME = "soak"
 CAMERA_ID = "cam0"
 #: First id of a streamed keyframe (the scene's own keyframes are 0..n-1).
 STREAM_FIRST_ID = 1000
+#: Pause before asking again after a "busy" reply (a journal replay takes about a second).
+BUSY_RETRY_S = 0.2
 
 
 @dataclass(frozen=True)
@@ -354,11 +356,20 @@ def seed_map(client: Any, scene: SoakScene, images: Sequence[Any], ledger: Ledge
 
 
 def held_keyframes(runner: ServiceRunner, timeout_s: float = 60.0) -> list[int]:
-    """Ids of the keyframes the service lists (with repeats, if any)."""
-    from reloc_client.client import RelocClient
+    """Ids of the keyframes the service lists (with repeats, if any). "Busy" is retried, as
+    its reply asks, until ``timeout_s``: a restarted service answers queries while it still
+    replays its journal, and refuses a listing until the replay is done."""
+    from reloc_client.client import RelocClient, ServiceBusy
 
+    deadline = time.monotonic() + timeout_s
     with RelocClient(runner.endpoint, map=MAP_NAME, timeout=timeout_s) as client:
-        return [info.id for info in client.keyframes(timeout=timeout_s)]
+        while True:
+            try:
+                return [info.id for info in client.keyframes(timeout=timeout_s)]
+            except ServiceBusy:
+                if time.monotonic() >= deadline:
+                    raise
+                time.sleep(BUSY_RETRY_S)
 
 
 def keyframe_count(ledger: Ledger, base: int, held: Sequence[int],

@@ -252,8 +252,9 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
             1-sigma accuracy of the dataset's camera calibration, which the map states and
             its answers' covariance carries (``options["mapping"]``'s
             ``calibration_focal_sigma_rel`` / ``calibration_radial_sigma_px``); (0, 0): exact;
-            None: the dataset's own ``calibration.json`` (``reloc synth`` states 0, 0), else
-            the mapping options' (their default 0.005, 2).
+            None: the dataset's own ``calibration.json`` (``reloc synth`` states 0, 0) in
+            process, else the mapping options' (their default 0.005, 2); a remote service's
+            maps state what its configuration says.
     """
     methods = _method_list(method)
     claimed = query_camera or QueryCamera()
@@ -261,8 +262,10 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
     truth_covariance = ground_truth_covariance(keyframe_sigma)
     dataset = read_dataset(dataset_root)
     _check_dataset(dataset, source)
-    options = with_calibration_sigma(options, _calibration_sigma(calibration_sigma, options,
-                                                                 dataset.calibration_sigma))
+    # A service's maps take their mapping options from its own configuration, not from here.
+    stated = None if remote is not None else dataset.calibration_sigma
+    options = with_calibration_sigma(options, calibration_to_state(calibration_sigma, options,
+                                                                   stated))
     backend = _make_backend(methods, dict(options or {}), source, remote)
     try:
         build_s = _build_map(backend, dataset, source, progress, truth_covariance)
@@ -290,7 +293,7 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
 CALIBRATION_OPTION_KEYS = ("calibration_focal_sigma_rel", "calibration_radial_sigma_px")
 
 
-def _calibration_sigma(given: tuple[float, float] | None, options: Mapping[str, Any] | None,
+def calibration_to_state(given: tuple[float, float] | None, options: Mapping[str, Any] | None,
                        dataset_states: tuple[float, float] | None
                        ) -> tuple[float, float] | None:
     """The calibration accuracy the map states, first found of: the caller's, the mapping
