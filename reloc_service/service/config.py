@@ -187,7 +187,8 @@ class ServiceSection:
     #: systemd's TimeoutStopSec (60 s in deploy/), which kills -9 after.
     stop_timeout_s: float = 20.0
     #: Memory budget of the whole service, in MB: the processes' own resident memory with
-    #: no map (measured at start) plus what the resident maps count (as the quotas count
+    #: no map (measured once each process has warmed up; status counters ``memory_*``) plus
+    #: what the resident maps count (as the quotas count
     #: them: images, depth, features, and the relocalizers' pools); 0: unlimited, every
     #: stored map is restored at start and stays resident. Above 0, maps are opened on
     #: first use and the least recently used idle ones are closed past the budget

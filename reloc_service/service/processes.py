@@ -64,7 +64,7 @@ from . import worker_process
 from .durability import map_dirname
 from .memory import descendants
 from .served import WriteOp
-from .worker_process import EngineSpec, ReplicaMap, worker_main
+from .worker_process import EngineSpec, ReplicaMap, wait_ready, worker_main
 
 if TYPE_CHECKING:
     from .runtime import MapRuntime
@@ -401,15 +401,19 @@ class ProcessWorkers:
                 if self._started or self._closed:
                     return
                 self._started = True
+            handles = [self._start_process() for _ in range(self.count)]   # warm in parallel
             try:
-                handles = [self._new_process() for _ in range(self.count)]
+                for handle in handles:
+                    wait_ready(handle.process, handle.conn)
             except BaseException:
+                for handle in handles:
+                    _terminate(handle)
                 with self._lock:
                     self._started = False   # the next query tries again
                 raise
             with self._lock:
                 self._handles.extend(handles)
-        if self.on_started is not None:   # before any replica is sent: no map in them
+        if self.on_started is not None:   # warmed up, before any replica: no map in them
             self.on_started(descendants())
         for rt in self._attached():
             self.rebase(rt, handles)
@@ -437,6 +441,16 @@ class ProcessWorkers:
             return list(self._maps.values())
 
     def _new_process(self) -> _Handle:
+        """A new worker process, warmed up (:func:`.worker_process.wait_ready`)."""
+        handle = self._start_process()
+        try:
+            wait_ready(handle.process, handle.conn)
+        except BaseException:
+            _terminate(handle)
+            raise
+        return handle
+
+    def _start_process(self) -> _Handle:
         parent_end, child_end = self._ctx.Pipe()
         with self._lock:
             index = len(self._handles)
@@ -499,3 +513,4 @@ def _terminate(handle: _Handle) -> None:
         process.kill()
         process.join(1.0)
     handle.conn.close()
+

@@ -79,6 +79,7 @@ def worker_main(conn: Connection, index: int) -> None:
     cv2.setNumThreads(1)
     limit_blas_threads(1)
     warm_kernels()   # with the worker, not within its first query's answer time
+    conn.send(("ready", os.getpid()))   # warmed up, no replica yet: its baseline memory
     replicas: dict[str, ReplicaMap] = {}
     while True:
         try:
@@ -137,3 +138,19 @@ def _answer(replicas: dict[str, ReplicaMap], token: int, name: str, payload: byt
         return ("result", token, reply, ok, total)
     except Exception as exc:
         return ("error", token, error_reply(exc))
+
+def wait_ready(process: Any, conn: Connection) -> None:
+    """Wait for a new worker's "ready" (its imports and kernels loaded, no replica yet: what
+    it holds then is its baseline memory); RuntimeError if it exits first. No time limit: a
+    first start on an installation compiles the kernels, about a minute."""
+    while not conn.poll(1.0):
+        if not process.is_alive():
+            raise RuntimeError(f"worker process {process.pid} exited with status "
+                               f"{process.exitcode} before it was ready")
+    try:
+        msg = conn.recv()
+    except (EOFError, OSError) as exc:
+        raise RuntimeError(f"worker process {process.pid} exited before it was ready") from exc
+    if msg[0] != "ready":
+        raise RuntimeError(f"worker process {process.pid}: expected 'ready' first, got "
+                           f"{msg[0]!r}")
