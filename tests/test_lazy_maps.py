@@ -432,8 +432,10 @@ def test_put_on_a_closed_map_loads_it_and_survives_kill_9(big_template, syntheti
     map_bytes = big_template.counted_bytes
     stored_maps(big_template, tmp_path / "storage", names=("lab", "other"))
     port = free_port()
+    # a query waits for its map's cold load up to the client's timeout: the first one waits
+    # for the service's warm-up too, which took more than the default 5 s beside other tests
     settings = {"worker_mode": "thread", "methods": [METHOD], "default_method": METHOD,
-                "snapshot_every": 0}
+                "snapshot_every": 0, "cold_load_wait_s": 25.0}
     # the budget: what `reloc serve` measures as its own memory (its status says, once a
     # query has settled it), plus one and a half maps
     probe = ServiceProcess(write_config(tmp_path, port, max_resident_mb=AMPLE_MB, **settings),

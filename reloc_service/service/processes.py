@@ -402,17 +402,19 @@ class ProcessWorkers:
                     return
                 self._started = True
             handles = [self._start_process() for _ in range(self.count)]   # warm in parallel
+            with self._lock:   # listed at once (pids, changes forwarded: read once warm)
+                self._handles.extend(handles)
             try:
                 for handle in handles:
                     wait_ready(handle.process, handle.conn)
             except BaseException:
-                for handle in handles:
-                    _terminate(handle)
                 with self._lock:
                     self._started = False   # the next query tries again
+                    for handle in handles:
+                        self._handles.remove(handle)
+                for handle in handles:
+                    _terminate(handle)
                 raise
-            with self._lock:
-                self._handles.extend(handles)
         if self.on_started is not None:   # warmed up, before any replica: no map in them
             self.on_started(descendants())
         for rt in self._attached():
