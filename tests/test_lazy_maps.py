@@ -440,10 +440,12 @@ def test_put_on_a_closed_map_loads_it_and_survives_kill_9(big_template, syntheti
     # query has settled it), plus one and a half maps
     probe = ServiceProcess(write_config(tmp_path, port, max_resident_mb=AMPLE_MB, **settings),
                            port, tmp_path / "log0.txt")
-    assert probe.client is not None
-    pose_of(probe.client, synthetic_scene, 0)
-    baseline = probe.client.status().counters["memory_baseline_bytes"]
-    assert probe.terminate() == 0
+    try:
+        assert probe.client is not None
+        pose_of(probe.client, synthetic_scene, 0)
+        baseline = probe.client.status().counters["memory_baseline_bytes"]
+    finally:
+        assert probe.terminate() == 0
     config = write_config(tmp_path, port, max_resident_mb=(baseline + 1.5 * map_bytes) / MB,
                           **settings)
     service = ServiceProcess(config, port, tmp_path / "log1.txt")
