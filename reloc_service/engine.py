@@ -506,7 +506,9 @@ class Engine:
             finally:
                 self.prepared.set()
 
-        start_background(run, "map-pools", self._closed)   # ended before the interpreter
+        # ended before the interpreter; below the queries' priority: a query on this map
+        # waits for its pools anyway, those on the other maps should not
+        start_background(run, "map-pools", self._closed, yield_to_queries=True)
 
     def held_bytes(self) -> int:
         """Bytes the relocalizers hold for the published map beside it: its whole-map

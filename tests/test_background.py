@@ -4,13 +4,14 @@ a thread still reading it while the process exits."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import textwrap
 import threading
 from pathlib import Path
 
-from reloc_service.core.background import start_background, stop_background
+from reloc_service.core.background import LOWER_PRIORITY, start_background, stop_background
 
 
 def test_stop_asks_background_work_to_end_and_waits_for_it() -> None:
@@ -65,3 +66,21 @@ def test_a_thread_reading_a_mapped_file_does_not_crash_the_exit(tmp_path: Path) 
         run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                              timeout=120)
         assert (run.returncode, run.stdout.strip()) == (0, "main done"), run.stderr[-2000:]
+
+
+def test_work_that_yields_to_queries_runs_at_a_lower_priority_than_the_rest() -> None:
+    """The thread's own nice value is raised; the process's other threads keep theirs."""
+    seen: dict[str, int] = {}
+
+    def nice_of_this_thread() -> int:
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    def work(key: str) -> None:
+        seen[key] = nice_of_this_thread()
+
+    ours = nice_of_this_thread()
+    start_background(lambda: work("yields"), "test-yields", yield_to_queries=True).join(10)
+    start_background(lambda: work("plain"), "test-plain").join(10)
+    # at most 19: a process already at nice > 9 (a bench under `nice -n 10`) stops there
+    assert seen == {"yields": min(19, ours + LOWER_PRIORITY), "plain": ours}
+    assert nice_of_this_thread() == ours

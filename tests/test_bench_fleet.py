@@ -60,7 +60,9 @@ def test_copies_share_the_snapshot_and_each_serves_under_its_name(synthetic_scen
     port = free_port()
     service = Service(service_conf(port, storage, methods=[METHOD], default_method=METHOD,
                                    worker_mode="thread", snapshot_every=0,
-                                   max_resident_mb=100)).start()
+                                   # the whole service's budget: this test process's
+                                   # own memory (about 300 MB) counts against it
+                                   max_resident_mb=100_000)).start()
     try:
         for name in ("alpha", "bravo"):
             with RelocClient(endpoint(port), map=name, timeout=30) as client:

@@ -8,6 +8,7 @@ waiting or a training job is never closed. Real services on loopback, real stora
 from __future__ import annotations
 
 import os
+import re
 import threading
 from pathlib import Path
 
@@ -30,6 +31,7 @@ from reloc_service.core.errors import ConfigError
 from reloc_service.engine import EngineConf
 from reloc_service.service.app import Service
 from reloc_service.service.config import parse_config
+from reloc_service.service.memory import rss_bytes, trim_now
 from reloc_service.service.residency import MB, counted_bytes
 from reloc_service.service.workers import Lane
 from reloc_service.tools.bench.stored_map import (
@@ -59,6 +61,24 @@ def template(synthetic_scene, tmp_path_factory) -> StoredMap:
     return stored_template(storage, "template", engine)
 
 
+#: How many times :func:`big_template` holds each of the scene's keyframes: a map then counts
+#: about 2.2 MB (0.55 MB each time), ten times what a service's baseline varies by between
+#: two starts (0.2 MB, after its warm-up and a heap trim), so a budget derived from a probe
+#: service's baseline holds the number of maps a test asks for.
+REPEATS = 4
+
+
+@pytest.fixture(scope="module")
+def big_template(synthetic_scene, tmp_path_factory) -> StoredMap:
+    """A stored map as :func:`template`, with each keyframe held :data:`REPEATS` times (ids
+    0..6 x REPEATS - 1, same images and poses): the budget tests' map."""
+    storage = tmp_path_factory.mktemp("lazy-big-template") / "storage"
+    engine = engine_from_images(synthetic_scene.camera, synthetic_scene.keyframe_images * REPEATS,
+                                synthetic_scene.keyframe_poses * REPEATS,
+                                EngineConf(methods=(METHOD,)))
+    return stored_template(storage, "template", engine)
+
+
 def stored_maps(template: StoredMap, storage: Path, names=NAMES) -> Path:
     """``storage`` holding a copy of the template map under each of ``names``."""
     for name in names:
@@ -79,6 +99,41 @@ def open_paths(directory: Path) -> set[str]:
     return out
 
 
+#: A budget no test process's own memory reaches: a service starts with it, then the test
+#: gives its maps their share of the baseline it measured (:func:`limit_maps`).
+AMPLE_MB = 1_000_000
+
+
+def limit_maps(service: Service, maps_bytes: float) -> None:
+    """Give ``service``'s maps ``maps_bytes``: its budget made the baseline it measured (its
+    process's once warmed up; its worker processes', started here, once they are) plus
+    ``maps_bytes``, as if configured so. In the test's process the baseline is the whole
+    pytest process, which grows by more than a map between two starts: a budget configured
+    from a probe's measure would not leave the maps what the test asks."""
+    residency = service.registry.residency
+    assert residency is not None and residency.baseline_settled.wait(60)
+    if service.processes is not None:
+        service.processes.start()
+    residency.set_total_budget((residency.baseline + maps_bytes) / MB)
+    assert residency.budget == int(residency.total_budget - residency.baseline)
+
+
+#: How far a `reloc serve`'s baseline may move between a probe's start and the test's (two
+#: and a half times the 0.2 MB measured between its starts, after its warm-up and a heap
+#: trim); a fifth of a :func:`big_template` map.
+BASELINE_MOVES = 0.5 * MB
+
+
+def maps_budget(client: RelocClient, requested: float) -> int:
+    """The maps' share of the budget as the status says (once a query settled it), checked
+    to be within :data:`BASELINE_MOVES` of the ``requested`` bytes."""
+    share = client.status().counters["memory_maps_budget_bytes"]
+    assert abs(share - requested) < BASELINE_MOVES, (
+        f"the maps' share is {share / MB:.2f} MB, {requested / MB:.2f} MB asked: the baseline "
+        "moved between the probe and this start by more than the test allows")
+    return share
+
+
 def pose_of(client: RelocClient, scene, i: int) -> np.ndarray:
     result = client.relocalize(scene.query_images[i], camera_id="cam0")
     assert result.ok, result.reason
@@ -89,7 +144,7 @@ def test_start_registers_stored_maps_without_loading_them(template, synthetic_sc
                                                           tmp_path):
     storage = stored_maps(template, tmp_path / "storage")
     port = free_port()
-    service = Service(conf(port, storage, max_resident_mb=1000)).start()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB)).start()
     try:
         assert service.maps == {}   # nothing loaded at start
         assert not open_paths(storage / "alpha")   # no journal or lock of a map open
@@ -118,7 +173,8 @@ def test_a_query_that_cannot_wait_gets_busy_with_a_retry_hint(template, syntheti
                                                               tmp_path):
     storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
     port = free_port()
-    service = Service(conf(port, storage, max_resident_mb=1000, cold_load_wait_s=0)).start()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB,
+                           cold_load_wait_s=0)).start()
     try:
         with RelocClient(endpoint(port), map="alpha", timeout=30) as client:
             with pytest.raises(ServiceBusy, match="loaded from storage.*retry"):
@@ -134,8 +190,9 @@ def test_small_budget_keeps_recent_maps_and_reloads_the_others(template, synthet
     map_bytes = template.counted_bytes
     storage = stored_maps(template, tmp_path / "storage")
     port = free_port()
-    budget_mb = 1.5 * map_bytes / MB   # one map fits, two do not
-    service = Service(conf(port, storage, max_resident_mb=budget_mb)).start()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB)).start()
+    share = 1.5 * map_bytes   # one map fits, two do not
+    limit_maps(service, share)
     residency = service.registry.residency
     assert residency is not None
     counted_after_load: list[int] = []
@@ -154,7 +211,7 @@ def test_small_budget_keeps_recent_maps_and_reloads_the_others(template, synthet
         for name in NAMES:
             first[name] = pose_of(clients[name], synthetic_scene, 1)
             wait_until(lambda name=name: list(service.maps) == [name], timeout=30)
-            assert residency.resident_bytes() <= budget_mb * MB
+            assert residency.resident_bytes() <= share
         assert not open_paths(storage / "alpha")   # closed: journal and lock released
         assert not clients["alpha"].status().resident
         wait_until(lambda: clients["alpha"].resident_maps() == [(service.instance, "charlie")])
@@ -165,7 +222,7 @@ def test_small_budget_keeps_recent_maps_and_reloads_the_others(template, synthet
         assert residency.evictions >= 3 and residency.loads == 4
         # Each cold load closed the idle map before it loaded: never two maps counted at once.
         assert len(counted_after_load) == 4
-        assert max(counted_after_load) <= budget_mb * MB
+        assert max(counted_after_load) <= share
         assert residency.peak_bytes == max(counted_after_load)
         for client in clients.values():
             client.close()
@@ -178,13 +235,13 @@ def test_a_map_with_puts_waiting_or_training_is_not_closed(template, synthetic_s
     map_bytes = template.counted_bytes
     storage = stored_maps(template, tmp_path / "storage", names=("alpha", "bravo"))
     port = free_port()
-    service = Service(conf(port, storage, max_resident_mb=1000)).start()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB)).start()
     residency = service.registry.residency
     assert residency is not None and service.writes.pool is not None
     small = int(1.5 * map_bytes)   # one map fits, two do not
 
     def load_both_alpha_oldest() -> None:
-        residency.budget = 1000 * MB
+        residency.budget = AMPLE_MB * MB
         for name in ("alpha", "bravo"):
             assert residency.acquire(name, 30) is not None
             residency.release(name)
@@ -258,9 +315,10 @@ def test_worker_processes_drop_the_replica_of_a_closed_map(template, synthetic_s
     storage = stored_maps(template, tmp_path / "storage", names=("alpha", "bravo"))
     port = free_port()
     # one map fits (held twice: the service's and the worker's replica), two do not
-    service = Service(conf(port, storage, max_resident_mb=3 * map_bytes / MB,
-                           worker_mode="process", workers=1)).start()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB, worker_mode="process",
+                           workers=1)).start()
     try:
+        limit_maps(service, 3 * map_bytes)
         processes = service.processes
         assert processes is not None
         with RelocClient(endpoint(port), map="alpha", timeout=60) as alpha, \
@@ -286,39 +344,116 @@ def test_worker_processes_replicas_count_against_the_budget(template, synthetic_
     map_bytes = template.counted_bytes
     storage = stored_maps(template, tmp_path / "storage")
     port = free_port()
-    budget_mb = 4.5 * map_bytes / MB   # three maps fit once each (pools included), not twice
-    service = Service(conf(port, storage, max_resident_mb=budget_mb, worker_mode="process",
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB, worker_mode="process",
                            workers=1)).start()
     residency = service.registry.residency
     assert residency is not None and residency.copies == 2
     try:
+        share = 4.5 * map_bytes   # three maps fit once each (pools included), not twice
+        limit_maps(service, share)
         for name in NAMES:
             with RelocClient(endpoint(port), map=name, timeout=60) as client:
                 pose_of(client, synthetic_scene, 1)
-        wait_until(lambda: residency.resident_bytes() <= budget_mb * MB, timeout=30)
+        wait_until(lambda: residency.resident_bytes() <= share, timeout=30)
         one_copy = [counted_bytes(rt) for rt in service.maps.values()]
-        assert len(NAMES) * max(one_copy) <= budget_mb * MB   # one copy each would all fit
+        assert len(NAMES) * max(one_copy) <= share   # one copy each would all fit
         assert len(service.maps) < len(NAMES)
         assert residency.resident_bytes() == 2 * sum(one_copy)
-        assert residency.peak_bytes <= budget_mb * MB   # each load made room for both copies
+        assert residency.peak_bytes <= share   # each load made room for both copies
     finally:
         service.stop()
 
 
-@pytest.mark.slow   # two service processes: about 10 s
-def test_put_on_a_closed_map_loads_it_and_survives_kill_9(template, synthetic_scene,
-                                                          tmp_path):
-    map_bytes = template.counted_bytes
-    stored_maps(template, tmp_path / "storage", names=("lab", "other"))
+def test_a_budget_below_the_services_own_memory_refuses_to_start(template, tmp_path):
+    storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
+    trim_now()   # as the service measures: the heap's free pages given back first
+    own_mb = rss_bytes() / MB   # this process, before the service adds to it
+    with pytest.raises(ConfigError) as refused:
+        Service(conf(free_port(), storage, max_resident_mb=1)).start()
+    message = str(refused.value)
+    assert "service.max_resident_mb = 1 MB" in message
+    measured = re.search(r"resident memory with no map, (\d+) MB", message)
+    assert measured is not None and int(measured[1]) >= int(own_mb)
+    # refused, it let go of the storage: a service with a budget above it starts there
+    service = Service(conf(free_port(), storage, max_resident_mb=AMPLE_MB)).start()
+    service.stop()
+
+
+def test_the_maps_get_the_budget_minus_the_measured_baseline(template, synthetic_scene,
+                                                             tmp_path):
+    storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
     port = free_port()
-    config = write_config(tmp_path, port, worker_mode="thread", methods=[METHOD],
-                          default_method=METHOD, snapshot_every=0,
-                          max_resident_mb=1.5 * map_bytes / MB)
+    trim_now()   # as the service measures: the heap's free pages given back first
+    before = rss_bytes()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB)).start()
+    try:
+        with RelocClient(endpoint(port), map="alpha", timeout=30) as client:
+            pose_of(client, synthetic_scene, 0)   # the first load waits for the baseline
+            memory = client.status().counters
+            counted = counted_bytes(service.maps["alpha"])
+        assert memory["memory_budget_bytes"] == AMPLE_MB * MB
+        # this process's own memory, measured before the map was loaded
+        assert before <= memory["memory_baseline_service_bytes"] <= rss_bytes()
+        assert memory["memory_baseline_workers_bytes"] == 0   # thread mode: no worker process
+        assert memory["memory_baseline_bytes"] == memory["memory_baseline_service_bytes"]
+        assert memory["memory_maps_budget_bytes"] == (AMPLE_MB * MB
+                                                      - memory["memory_baseline_bytes"])
+        assert memory["memory_maps_bytes"] == counted > 0
+    finally:
+        service.stop()
+
+
+def test_worker_processes_own_memory_counts_against_the_budget(template, synthetic_scene,
+                                                               tmp_path):
+    storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
+    port = free_port()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB, worker_mode="process",
+                           workers=1)).start()
+    try:
+        with RelocClient(endpoint(port), map="alpha", timeout=60) as client:
+            assert client.status().counters["memory_baseline_workers_bytes"] == 0   # none yet
+            pose_of(client, synthetic_scene, 0)   # starts the worker (answered meanwhile here)
+            # the worker and the forkserver it was forked from, once it has warmed up and
+            # before it holds a replica
+            wait_until(lambda: client.status().counters["memory_baseline_workers_bytes"] > 0,
+                       timeout=60)
+            memory = client.status().counters
+        assert memory["memory_baseline_bytes"] == (memory["memory_baseline_service_bytes"]
+                                                   + memory["memory_baseline_workers_bytes"])
+        assert memory["memory_maps_budget_bytes"] == (AMPLE_MB * MB
+                                                      - memory["memory_baseline_bytes"])
+    finally:
+        service.stop()
+
+
+@pytest.mark.slow   # three service processes: about 15 s
+def test_put_on_a_closed_map_loads_it_and_survives_kill_9(big_template, synthetic_scene,
+                                                          tmp_path):
+    map_bytes = big_template.counted_bytes
+    stored_maps(big_template, tmp_path / "storage", names=("lab", "other"))
+    port = free_port()
+    # a query waits for its map's cold load up to the client's timeout: the first one waits
+    # for the service's warm-up too, which took more than the default 5 s beside other tests
+    settings = {"worker_mode": "thread", "methods": [METHOD], "default_method": METHOD,
+                "snapshot_every": 0, "cold_load_wait_s": 25.0}
+    # the budget: what `reloc serve` measures as its own memory (its status says, once a
+    # query has settled it), plus one and a half maps
+    probe = ServiceProcess(write_config(tmp_path, port, max_resident_mb=AMPLE_MB, **settings),
+                           port, tmp_path / "log0.txt")
+    try:
+        assert probe.client is not None
+        pose_of(probe.client, synthetic_scene, 0)
+        baseline = probe.client.status().counters["memory_baseline_bytes"]
+    finally:
+        assert probe.terminate() == 0
+    config = write_config(tmp_path, port, max_resident_mb=(baseline + 1.5 * map_bytes) / MB,
+                          **settings)
     service = ServiceProcess(config, port, tmp_path / "log1.txt")
     try:
         assert service.client is not None
         lab = service.client
         pose_of(lab, synthetic_scene, 0)   # lab resident
+        maps_budget(lab, 1.5 * map_bytes)
         with RelocClient(endpoint(port), map="other", timeout=30) as other:
             pose_of(other, synthetic_scene, 0)   # other resident, lab closed
         wait_until(lambda: not lab.status().resident, timeout=30)
@@ -326,7 +461,7 @@ def test_put_on_a_closed_map_loads_it_and_survives_kill_9(template, synthetic_sc
         lab.add_keyframe(77, synthetic_scene.query_images[2], synthetic_scene.query_poses[2],
                          camera_id="cam0")
         events.wait("keyframe_added", id=77, timeout=60)
-        assert lab.status().resident and lab.status().keyframes == 7
+        assert lab.status().resident and lab.status().keyframes == 6 * REPEATS + 1
         service.kill9()
     finally:
         service.close()

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import atexit
 import logging
+import os
 import threading
 from collections.abc import Callable
 
@@ -21,17 +22,30 @@ log = logging.getLogger(__name__)
 #: its cancel event between units of a few hundred milliseconds ends well within it.
 EXIT_WAIT_S = 30.0
 
+#: How much lower a background thread's CPU priority is than the queries' when it asks to be
+#: (``nice``): Linux's scheduler weighs a thread at nice +10 at 110 against 1024 at nice 0,
+#: so next to a query's thread on the same core it gets about a tenth of it, and all of it
+#: when no query runs. A loaded map's pools take 1-3 s of CPU per 1000 keyframes (fleet
+#: bench), which the queries on the maps already resident otherwise share a core with.
+#: Threads it starts inherit the value (the pools' work starts none: numpy and single-
+#: threaded kernels).
+LOWER_PRIORITY = 10
+
 _lock = threading.Lock()
 _running: dict[threading.Thread, threading.Event | None] = {}
 
 
 def start_background(target: Callable[[], None], name: str,
-                     cancel: threading.Event | None = None) -> threading.Thread:
+                     cancel: threading.Event | None = None, *,
+                     yield_to_queries: bool = False) -> threading.Thread:
     """Run ``target`` on a daemon thread named ``name`` that exit waits for; ``cancel``: the
-    event ``target`` checks to stop early, set at exit."""
+    event ``target`` checks to stop early, set at exit. With ``yield_to_queries``, the
+    thread runs :data:`LOWER_PRIORITY` nice levels below the process's other threads."""
 
     def run() -> None:
         try:
+            if yield_to_queries:
+                lower_priority(LOWER_PRIORITY)
             target()
         finally:
             with _lock:
@@ -61,6 +75,18 @@ def stop_background(timeout_s: float = EXIT_WAIT_S) -> list[str]:
     if late:
         log.warning("background work still running at exit: %s", ", ".join(late))
     return late
+
+
+def lower_priority(levels: int) -> bool:
+    """Raise the calling thread's nice value by ``levels`` (Linux schedules threads one by
+    one: the process's other threads keep theirs); False where that is not possible."""
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + levels)
+    except (AttributeError, OSError) as exc:   # not Linux, or not allowed
+        log.debug("background thread priority not lowered: %s", exc)
+        return False
+    return True
 
 
 atexit.register(stop_background)

@@ -31,6 +31,7 @@ from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode, EventKind, ProtocolError
 
 from ..algorithms.relocalizers.overlap import close_helpers
+from ..core.errors import ConfigError
 from ..core.numeric import limit_blas_threads
 from ..engine import EngineConf, MappingConf
 from ..storage.lock import LockHeld
@@ -115,9 +116,12 @@ class Service:
             self.processes = ProcessWorkers(s.workers, EngineSpec.of(
                 self.methods, self.conf.options, self.conf.mapping, self.limits))
             self.registry.processes = self.processes
+            if self.registry.residency is not None:   # their own memory counts too
+                self.processes.on_started = self.registry.residency.count_workers_baseline
         # the queries run here (with worker processes, those before the workers hold their
         # map): their kernels load meanwhile, not in the first one
-        warm_in_background()
+        residency = self.registry.residency   # its baseline is measured after the warm-up
+        warm_in_background(None if residency is None else residency.settle_service_baseline)
         self.control_pool = WorkerPool("control", workers=1, queue_size=CONTROL_QUEUE)
         self.writes.open()
         if self.registry.residency is not None:   # a map with puts queued stays resident
@@ -144,7 +148,11 @@ class Service:
                                              writer_for=self.writes.writer_for)
                 self.watch.start()
         elif self.registry.residency is not None:   # each map loads on its first use
-            self.registry.register_lazily(names)
+            try:
+                self.registry.register_lazily(names)   # counts the process's own memory
+            except ConfigError:
+                self.stop(final_snapshot=False)   # the budget cannot hold this process
+                raise
         else:
             self.registry.load_in_background(names)
             if wait_ready:
@@ -396,11 +404,16 @@ class Service:
         finally:
             residency.release(map_name)
 
+    def _memory_counters(self) -> dict[str, int]:
+        """The memory budget's figures every status carries (``max_resident_mb`` > 0)."""
+        residency = self.registry.residency
+        return {} if residency is None else residency.memory_counters()
+
     def _dormant_status(self, map_name: str, kind: QueryKind, query: PendingQuery) -> None:
         try:
             rt = self.maps.get(map_name)   # loaded meanwhile: its own status
-            query.reply(rt.status().encode() if rt is not None
-                        else dormant_status(self.registry, map_name).encode())
+            reply = rt.status() if rt is not None else dormant_status(self.registry, map_name)
+            query.reply(handlers.with_counters(reply, self._memory_counters()).encode())
         except Exception as exc:
             query.reply_err(error_reply(exc))
         finally:
@@ -466,7 +479,7 @@ class Service:
         try:
             if kind is QueryKind.STATUS:
                 query.reply(handlers.status(rt, query.payload, content_hash=_flag(
-                    query.parameters, "content_hash")))
+                    query.parameters, "content_hash"), counters=self._memory_counters()))
             elif kind is QueryKind.TRAIN:
                 query.reply(handlers.train(rt, query.payload))
             elif kind is QueryKind.KEYFRAMES:

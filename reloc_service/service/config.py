@@ -186,10 +186,13 @@ class ServiceSection:
     #: start), the final snapshot is taken only within what is left. Keep it well under
     #: systemd's TimeoutStopSec (60 s in deploy/), which kills -9 after.
     stop_timeout_s: float = 20.0
-    #: Memory budget of the resident maps, in MB of what their keyframes count (as the
-    #: quotas count them: images, depth, features); 0: unlimited, every stored map is
-    #: restored at start and stays resident. Above 0, maps are opened on first use and the
-    #: least recently used idle ones are closed past the budget (:mod:`.residency`).
+    #: Memory budget of the whole service, in MB: the processes' own resident memory with
+    #: no map (measured once each process has warmed up; status counters ``memory_*``) plus
+    #: what the resident maps count (as the quotas count
+    #: them: images, depth, features, and the relocalizers' pools); 0: unlimited, every
+    #: stored map is restored at start and stays resident. Above 0, maps are opened on
+    #: first use and the least recently used idle ones are closed past the budget
+    #: (:mod:`.residency`).
     max_resident_mb: float = 0.0
     #: Seconds a query on a stored map that is not resident waits for it to load; past
     #: that it is answered "busy" with a retry hint (the load goes on).

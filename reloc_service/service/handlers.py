@@ -9,6 +9,7 @@ calls the map's runtime and encodes the answer; the Zenoh layer sends a failure 
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from dataclasses import replace
 from typing import TYPE_CHECKING, Protocol
 
@@ -125,11 +126,19 @@ def train(rt: MapRuntime, payload: bytes) -> bytes:
     return wire.TrainReply(accepted=True, job_id=job_id, reason=reason).encode()
 
 
-def status(rt: MapRuntime, payload: bytes, *, content_hash: bool = False) -> bytes:
-    """Empty payload -> StatusReply bytes (with the map's content hash if asked)."""
+def status(rt: MapRuntime, payload: bytes, *, content_hash: bool = False,
+           counters: Mapping[str, int] | None = None) -> bytes:
+    """Empty payload -> StatusReply bytes (with the map's content hash if asked, and the
+    service-wide ``counters`` beside the map's own: its memory budget's)."""
     if payload:
         wire.unpack_message(payload, rt.limits)  # a payload is not expected, but a valid one is OK
-    return rt.status(content_hash=content_hash).encode()
+    return with_counters(rt.status(content_hash=content_hash), counters).encode()
+
+
+def with_counters(reply: wire.StatusReply, counters: Mapping[str, int] | None
+                  ) -> wire.StatusReply:
+    """``reply`` with ``counters`` added to its own."""
+    return reply if not counters else replace(reply, counters={**reply.counters, **counters})
 
 
 # -- map copying ------------------------------------------------------------------------------

@@ -17,8 +17,10 @@ import ctypes
 import ctypes.util
 import functools
 import logging
+import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from pathlib import Path
 
 log = logging.getLogger(__name__)
 
@@ -78,3 +80,40 @@ class Trimmer:
             pending, self._pending = self._pending, None
         if pending is not None:
             pending.cancel()
+
+
+def rss_bytes(pid: int | None = None) -> int:
+    """The resident memory (``VmRSS`` of ``/proc/<pid>/status``) of process ``pid`` (None:
+    this one) in bytes; 0 when it is gone or ``/proc`` is not there."""
+    path = Path(f"/proc/{os.getpid() if pid is None else pid}/status")
+    try:
+        for line in path.read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024   # reported in kB
+    except (OSError, ValueError, IndexError):
+        return 0
+    return 0
+
+
+def descendants(pid: int | None = None) -> list[int]:
+    """The process ids of every descendant of ``pid`` (None: this process): with worker
+    processes, the forkserver and the workers it forked."""
+    root = os.getpid() if pid is None else pid
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        children.setdefault(ppid, []).append(int(stat.parent.name))
+    found, todo = [], list(children.get(root, []))
+    while todo:
+        child = todo.pop()
+        found.append(child)
+        todo += children.get(child, [])
+    return found
+
+
+def total_rss_bytes(pids: Iterable[int]) -> int:
+    """The sum of :func:`rss_bytes` over ``pids``."""
+    return sum(rss_bytes(p) for p in pids)

@@ -1,5 +1,6 @@
-"""Relocalize workers as processes (``service.worker_mode = "process"``): each holds a
-read-only replica of every served map, kept in the parent's journal order.
+"""Relocalize workers as processes (``service.worker_mode = "process"``), the service's
+side (the worker's own loop is :mod:`.worker_process`): each holds a read-only replica of
+every served map, kept in the parent's journal order.
 
 Why processes: a worker thread holds the GIL outside OpenCV (decoding the request, matching
 bookkeeping, RANSAC set-up), so 8 clients on 2 threads got 1.28x one client on 2 cores.
@@ -48,7 +49,7 @@ import signal
 import tempfile
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -57,17 +58,13 @@ from typing import TYPE_CHECKING, Any
 from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode
 
-from ..core.cameras import Camera
-from ..core.numeric import limit_blas_threads
-from ..engine import Engine, EngineConf, MappingConf
 from ..storage.keyframe_parts import EVERYTHING
 from ..storage.snapshot_link import link_snapshot
-from . import handlers
-from .codec import error_reply
+from . import worker_process
 from .durability import map_dirname
-from .memory import trim_now
-from .served import ServedMap, WriteOp
-from .warm import warm_kernels
+from .memory import descendants
+from .served import WriteOp
+from .worker_process import EngineSpec, ReplicaMap, wait_ready, worker_main
 
 if TYPE_CHECKING:
     from .runtime import MapRuntime
@@ -77,117 +74,9 @@ log = logging.getLogger(__name__)
 #: Seconds a worker gets to exit after "stop" before it is terminated, then killed.
 STOP_GRACE_S = 3.0
 
-#: Seconds a worker waits, when it drops a replica, for the whole-map pool being made to
-#: stop (its map is freed then); the queries queued behind wait too, but meanwhile the
-#: service answers them itself (the map they go to next is not loaded here yet).
-DROP_WAIT_S = 30.0
+__all__ = ["EngineSpec", "ProcessWorkers", "RemoteAnswer", "ReplicaMap", "SCRATCH_PREFIX",
+           "remove_stale_scratch"]
 
-
-@dataclass(frozen=True)
-class EngineSpec:
-    """What a worker needs to build the engine of a replica (plain data: it is pickled)."""
-
-    methods: tuple[str, ...]
-    options: dict[str, dict[str, Any]]
-    mapping: dict[str, Any]
-    limits: wire.Limits
-
-    @classmethod
-    def of(cls, methods: tuple[str, ...], options: Mapping[str, Mapping[str, Any]],
-           mapping: Mapping[str, Any], limits: wire.Limits) -> EngineSpec:
-        return cls(tuple(methods), {k: dict(v) for k, v in options.items()}, dict(mapping),
-                   limits)
-
-    def engine_conf(self) -> EngineConf:
-        return EngineConf(methods=self.methods, options=self.options,
-                          mapping=MappingConf.from_options(self.mapping))
-
-
-# -- the worker process -----------------------------------------------------------------------
-
-class ReplicaMap(ServedMap):
-    """A map as a worker sees it: what :func:`handlers.relocalize_reply` needs of a runtime
-    (the :class:`~.served.ServedMap` the parent's map shares), read-only except for the
-    changes forwarded (:meth:`~.served.ServedMap.apply_change`: same input, same order)."""
-
-    def __init__(self, name: str, engine: Engine, spec: EngineSpec,
-                 cameras: dict[str, Camera]) -> None:
-        super().__init__(name, engine, limits=spec.limits, methods=spec.methods,
-                         default_method=spec.methods[0], cameras=cameras)
-
-
-def worker_main(conn: Connection, index: int) -> None:
-    """A worker process: apply bases and changes, answer queries, in pipe order, until "stop"
-    or the parent is gone (EOF). A change that does not apply exits the process (status 3):
-    its replica would differ from the parent's map, and the replacement starts from a fresh
-    base."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C stops the parent, which stops us
-    import cv2
-
-    cv2.setNumThreads(1)
-    limit_blas_threads(1)
-    warm_kernels()   # with the worker, not within its first query's answer time
-    replicas: dict[str, ReplicaMap] = {}
-    while True:
-        try:
-            msg = conn.recv()
-        except (EOFError, OSError):
-            return                                 # the parent is gone
-        kind = msg[0]
-        if kind == "stop":
-            return
-        if kind == "query":
-            conn.send(_answer(replicas, *msg[1:]))
-        elif kind == "drop":   # the parent closed the map: its replica goes too
-            dropped = replicas.pop(msg[1], None)
-            if dropped is not None:
-                dropped.engine.close()   # with the pools it still had to make
-                # the pool being made holds the map until it ends; then the pages go back
-                # to the system, as the service's do when it closes a map (residency)
-                dropped.engine.prepared.wait(DROP_WAIT_S)
-                del dropped
-                trim_now()
-        elif kind == "load":
-            _, name, base, spec, cameras = msg
-            try:
-                engine = Engine.load(base, spec.engine_conf(), train=False)   # as saved
-                previous = replicas.pop(name, None)
-                if previous is not None:
-                    previous.engine.close()
-                replicas[name] = ReplicaMap(name, engine, spec, cameras)
-            except Exception:
-                log.exception("worker %d: the replica of map %s did not load from %s", index,
-                              name, base)
-                os._exit(3)
-            conn.send(("loaded", str(base)))
-        else:
-            _, name, *args = msg
-            replica = replicas.get(name)
-            if replica is None:
-                continue   # its base comes later and includes this change
-            try:
-                replica.apply_change(WriteOp(kind), *args)
-            except Exception:
-                log.exception("worker %d: change %s on map %s did not apply", index, kind, name)
-                os._exit(3)
-
-
-def _answer(replicas: dict[str, ReplicaMap], token: int, name: str, payload: bytes,
-            queued_s: float) -> tuple[Any, ...]:
-    """("result", token, reply bytes, ok, total seconds) or ("error", token, error bytes)."""
-    replica = replicas.get(name)
-    try:
-        if replica is None:
-            raise wire.ProtocolError(ErrorCode.INTERNAL,
-                                     f"map {name!r} has no replica in worker process "
-                                     f"{os.getpid()}; retry")
-        reply, ok, total = handlers.relocalize_reply(replica, payload, queued_s=queued_s)
-        return ("result", token, reply, ok, total)
-    except Exception as exc:
-        return ("error", token, error_reply(exc))
-
-
-# -- the parent side --------------------------------------------------------------------------
 
 @dataclass
 class _Handle:
@@ -276,7 +165,7 @@ class ProcessWorkers:
         self.count = count
         self.spec = spec
         self._ctx = multiprocessing.get_context("forkserver")
-        self._ctx.set_forkserver_preload([__name__])
+        self._ctx.set_forkserver_preload([worker_process.__name__])
         self._lock = threading.Lock()                 # handles, idle list, bases, maps
         self._start_lock = threading.Lock()           # the first start of the workers
         self._handles: list[_Handle] = []
@@ -289,6 +178,9 @@ class ProcessWorkers:
         self._closed = False
         self._token = 0
         self._in_flight = 0
+        #: Told the pids of the forkserver and the workers once they first start (the
+        #: residency counts their own memory against the service's budget).
+        self.on_started: Callable[[list[int]], None] | None = None
         remove_stale_scratch(Path(tempfile.gettempdir()))
         self._scratch = Path(tempfile.mkdtemp(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-"))
 
@@ -509,14 +401,22 @@ class ProcessWorkers:
                 if self._started or self._closed:
                     return
                 self._started = True
+            handles = [self._start_process() for _ in range(self.count)]   # warm in parallel
+            with self._lock:   # listed at once (pids, changes forwarded: read once warm)
+                self._handles.extend(handles)
             try:
-                handles = [self._new_process() for _ in range(self.count)]
+                for handle in handles:
+                    wait_ready(handle.process, handle.conn)
             except BaseException:
                 with self._lock:
                     self._started = False   # the next query tries again
+                    for handle in handles:
+                        self._handles.remove(handle)
+                for handle in handles:
+                    _terminate(handle)
                 raise
-            with self._lock:
-                self._handles.extend(handles)
+        if self.on_started is not None:   # warmed up, before any replica: no map in them
+            self.on_started(descendants())
         for rt in self._attached():
             self.rebase(rt, handles)
         with self._idle_ready:
@@ -543,6 +443,16 @@ class ProcessWorkers:
             return list(self._maps.values())
 
     def _new_process(self) -> _Handle:
+        """A new worker process, warmed up (:func:`.worker_process.wait_ready`)."""
+        handle = self._start_process()
+        try:
+            wait_ready(handle.process, handle.conn)
+        except BaseException:
+            _terminate(handle)
+            raise
+        return handle
+
+    def _start_process(self) -> _Handle:
         parent_end, child_end = self._ctx.Pipe()
         with self._lock:
             index = len(self._handles)
@@ -605,3 +515,4 @@ def _terminate(handle: _Handle) -> None:
         process.kill()
         process.join(1.0)
     handle.conn.close()
+

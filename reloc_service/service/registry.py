@@ -141,6 +141,7 @@ class MapRegistry:
     def register_lazily(self, names: list[str]) -> None:
         """Declare ``names`` served without loading them (each loads on first use)."""
         assert self.residency is not None
+        self.residency.count_service_baseline()   # before any map is loaded
         self.residency.register(names, self._declare)
         self._ready.set()
 

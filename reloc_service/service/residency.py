@@ -14,6 +14,17 @@ about 80 MB per 1000 keyframes); the process's resident memory is a multiple of 
 worker process holds a replica of each resident map (its own engine, loaded from the same
 snapshot, pools included), so a resident map counts once per copy: ``1 + workers`` times.
 
+The processes' own memory counts too: the budget is the whole service's (its process and its
+worker processes). The service's resident memory with no map (``VmRSS``: interpreter, OpenCV,
+Zenoh, and the compiled kernels its warm-up loads: numba and LLVM, about 100 MB more than
+before it) is its *baseline*: measured when the maps are declared, and again once the
+warm-up has ended (the larger counts); the first cold load waits for that second measure, so
+no map is in it. With ``worker_mode = "process"`` the forkserver's and the workers' count
+too, measured once each worker has warmed up and before it holds any replica. The maps get
+``max_resident_mb`` minus the baseline. A budget the baseline at declaration fills refuses to
+start (ConfigError naming both); one that only the warmed-up baseline fills is logged as an
+error, and every idle map is closed.
+
 A map is never closed while it is in use: a query or a write holds it (:meth:`Residency.acquire`
 ... :meth:`Residency.release`), puts wait in its writer lane, a training job, snapshot or
 journal replay runs, or it journaled puts it has not applied. Closing takes its final
@@ -35,9 +46,9 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from reloc_client import protocol as wire
 
-from ..core.errors import StorageError
+from ..core.errors import ConfigError, StorageError
 from .durability import map_dirname, read_service_file
-from .memory import trim_now
+from .memory import rss_bytes, total_rss_bytes, trim_now
 from .quotas import MapUsage
 
 if TYPE_CHECKING:
@@ -76,7 +87,14 @@ class Residency:
         if copies < 1:
             raise ValueError(f"expected copies >= 1 of each resident map, got {copies}")
         self.registry = registry
-        self.budget = int(budget_mb * MB)
+        #: ``max_resident_mb``: the whole service's budget (processes and maps), bytes.
+        self.total_budget = int(budget_mb * MB)
+        #: The resident memory of the service's process with no map, and of its worker
+        #: processes and their forkserver once they start (bytes; 0 until measured).
+        self.baseline_service = 0
+        self.baseline_workers = 0
+        #: What the resident maps may count: the total budget minus the baseline.
+        self.budget = self.total_budget
         #: How many processes hold each resident map: the service's, and one replica per
         #: worker process (worker_mode "process"); each copy counts against the budget.
         self.copies = copies
@@ -95,6 +113,10 @@ class Residency:
         #: What each closed map's relocalizers held beside it (its next load's estimate).
         self.kept_held: dict[str, int] = {}
         self._load_slot = threading.Semaphore(1)   # one cold load at a time: bounded memory
+        #: Set once the service's baseline is measured after its warm-up (loads wait for it).
+        self.baseline_settled = threading.Event()
+        self._declared = False   # count_service_baseline ran (the maps are declared)
+        self._warmed = False     # settle_service_baseline ran (the warm-up ended)
         self._wake = threading.Event()
         self._stopped = threading.Event()
         self._evictor = threading.Thread(target=self._evict_loop, name="map-evictor",
@@ -115,6 +137,92 @@ class Residency:
         for name in names:
             declare(name)
         self._evictor.start()
+
+    # -- the processes' own memory ----------------------------------------------------------------
+    @property
+    def baseline(self) -> int:
+        """The processes' own resident memory, counted against the budget (bytes)."""
+        return self.baseline_service + self.baseline_workers
+
+    def count_service_baseline(self) -> None:
+        """Measure this process's resident memory (no map resident yet) and count it;
+        ConfigError naming both numbers when it alone fills the budget. The larger of this
+        and :meth:`settle_service_baseline`'s measure counts (both are with no map)."""
+        with self._lock:
+            self.baseline_service = max(self.baseline_service, _settled_rss())
+            self._declared = True
+            if self._warmed:
+                self.baseline_settled.set()
+        if self.baseline >= self.total_budget:
+            raise ConfigError(
+                f"service.max_resident_mb = {self.total_budget / MB:.0f} MB: expected more "
+                f"than the service's own resident memory with no map, "
+                f"{self.baseline / MB:.0f} MB (the budget counts the whole service)")
+        self._set_maps_budget()
+
+    def settle_service_baseline(self) -> None:
+        """The service's warm-up has ended (the compiled kernels it loaded are part of what
+        it holds with no map): measure its resident memory again and count the larger
+        measure. Cold loads wait until both this and :meth:`count_service_baseline` ran
+        (:attr:`baseline_settled`), so no map is in either. Past the budget the service runs
+        on (it is serving already): the error is logged."""
+        with self._lock:
+            self._warmed = True
+            if self.registry.maps:   # cannot happen: loads wait for the baseline
+                log.warning("the service's baseline is not measured after its warm-up: a map "
+                            "is resident already")
+            else:
+                self.baseline_service = max(self.baseline_service, _settled_rss())
+            if self._declared:
+                self.baseline_settled.set()
+        if self.baseline >= self.total_budget:
+            log.error("service.max_resident_mb = %.0f MB is filled by the service's own "
+                      "resident memory with no map after its warm-up, %.0f MB: every idle map "
+                      "is closed", self.total_budget / MB, self.baseline / MB)
+        self._set_maps_budget()
+
+    def count_workers_baseline(self, pids: list[int]) -> None:
+        """Measure the worker processes' (and their forkserver's) resident memory ``pids``
+        as they start, and count it. Past the budget the service runs on (it is already
+        serving): every idle map is closed, and the error is logged."""
+        self.baseline_workers = total_rss_bytes(pids)
+        if self.baseline >= self.total_budget:
+            log.error("service.max_resident_mb = %.0f MB is filled by the processes' own "
+                      "resident memory with no map, %.0f MB (service %.0f MB, %d worker "
+                      "processes %.0f MB): every idle map is closed", self.total_budget / MB,
+                      self.baseline / MB, self.baseline_service / MB, len(pids),
+                      self.baseline_workers / MB)
+        self._set_maps_budget()
+        self._wake.set()
+
+    def set_total_budget(self, budget_mb: float) -> None:
+        """Make the whole service's budget ``budget_mb``, as ``service.max_resident_mb``
+        does at start: the maps get it minus the measured baseline; idle maps past it close."""
+        if not budget_mb > 0:
+            raise ValueError(f"expected a budget > 0 MB, got {budget_mb}")
+        self.total_budget = int(budget_mb * MB)
+        self._set_maps_budget()
+        self._wake.set()
+
+    def _set_maps_budget(self) -> None:
+        # at least one byte: a budget of 0 would mean "no budget" to the checks below
+        self.budget = max(1, self.total_budget - self.baseline)
+        log.info("memory budget %.1f MB: processes' baseline %.1f MB (service %.1f MB, workers "
+                 "%.1f MB), maps %.1f MB", self.total_budget / MB, self.baseline / MB,
+                 self.baseline_service / MB, self.baseline_workers / MB, self.budget / MB)
+
+    def memory_counters(self) -> dict[str, int]:
+        """The budget, the processes' baseline and the maps' count and share, in bytes, as
+        every map's status counters carry them:
+        ``memory_budget_bytes`` (``max_resident_mb``), ``memory_baseline_bytes`` (the
+        processes' own, with its ``_service`` and ``_workers`` parts),
+        ``memory_maps_budget_bytes`` (the maps' share) and ``memory_maps_bytes`` (what the
+        resident maps count)."""
+        return {"memory_budget_bytes": self.total_budget, "memory_baseline_bytes": self.baseline,
+                "memory_baseline_service_bytes": self.baseline_service,
+                "memory_baseline_workers_bytes": self.baseline_workers,
+                "memory_maps_budget_bytes": self.budget,
+                "memory_maps_bytes": self.resident_bytes()}
 
     def close(self) -> None:
         """Stop closing maps (the registry closes the resident ones)."""
@@ -196,6 +304,9 @@ class Residency:
         start = time.perf_counter()
         try:
             with self._load_slot:
+                # the service's baseline is measured once its warm-up ends, with no map in it
+                while not self._stopped.is_set() and not self.baseline_settled.wait(1.0):
+                    pass
                 if not self._stopped.is_set():
                     expected = self.expected_bytes(name)
                     if self.budget and expected > self.budget:
@@ -204,6 +315,9 @@ class Residency:
                                     expected / MB, self.copies, self.budget / MB)
                     self.make_room(expected)
                     self.registry.load_resident(name)
+                    # what the load read and decoded on its way (snapshot files, buffers)
+                    # is freed now, but stays in the heap's arenas unless given back
+                    trim_now()
         finally:
             with self._lock:
                 self._loading.discard(name)
@@ -329,6 +443,13 @@ class Residency:
             self.on_change(name, resident)
         except Exception as exc:   # a token not declared never stops loading or closing
             log.warning("map %s: residency token not updated: %s", name, exc)
+
+
+def _settled_rss() -> int:
+    """This process's resident memory once the heap's free pages are given back (what it
+    holds, not what its start-up freed: the measure then varies less between starts)."""
+    trim_now()
+    return rss_bytes()
 
 
 def resident_copies(worker_mode: str, workers: int) -> int:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -32,17 +33,20 @@ def warm_kernels() -> None:
     area_downscale(np.zeros((32, 32), np.uint8), 2, 2)
 
 
-def warm_in_background() -> threading.Thread:
+def warm_in_background(done: Callable[[], None] | None = None) -> threading.Thread:
     """Run :func:`warm_kernels` on a background thread (:mod:`..core.background`: exit waits
-    for it; a failure is logged: the first query loads what is missing)."""
+    for it; a failure is logged: the first query loads what is missing), then ``done`` (the
+    residency measures the service's baseline memory then), whether it succeeded or not."""
 
     def run() -> None:
         start = time.perf_counter()
         try:
             warm_kernels()
+            log.debug("compiled kernels loaded in %.2f s", time.perf_counter() - start)
         except Exception as exc:
             log.warning("loading the compiled kernels ahead of the first query failed: %s", exc)
-            return
-        log.debug("compiled kernels loaded in %.2f s", time.perf_counter() - start)
+        finally:
+            if done is not None:
+                done()
 
     return start_background(run, THREAD_NAME)   # exit waits: no compile under teardown
