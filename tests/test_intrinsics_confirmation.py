@@ -205,9 +205,9 @@ def test_a_later_pose_without_the_power_leaves_the_refusal_standing(stale_refusa
     assert not result.ok and result.method == "refusing:orb"
     assert result.reason.startswith(REFUSAL)
     assert "answering:sift cannot confirm the given intrinsics" in result.reason
-    # Without confirm_intrinsics (the default), any verified pose overrules the refusal.
+    # With confirm_intrinsics off (on by default), any verified pose overrules the refusal.
     assert _chain(stale_refusal, weak, confirm=False).ok
-    assert not MultiRelocalizer.Conf().confirm_intrinsics
+    assert MultiRelocalizer.Conf().confirm_intrinsics
 
 
 def test_a_later_pose_near_the_refused_error_leaves_the_refusal_standing():
