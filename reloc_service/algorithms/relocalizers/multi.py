@@ -85,10 +85,9 @@ class MultiRelocalizer(Relocalizer):
         #: refusal of the query's intrinsics only where its own intrinsics test could have
         #: seen the error the refusal estimated and its data exclude that error
         #: (:mod:`.confirmation`); elsewhere the refusal stands. Off: any verified pose of a
-        #: step with other features overrules it. Off by default: with the right camera a
-        #: refusal's focal estimate can be biased while the later pose is right and weakly
-        #: tested (room-hard and repeated-hard, 1 of 69 queries each).
-        confirm_intrinsics: bool = False
+        #: step with other features overrules it (a stale focal's pose too, where an
+        #: earlier step saw the error and the later one could not).
+        confirm_intrinsics: bool = True
 
         def __post_init__(self) -> None:
             if self.num_candidates < 1 or self.max_groups < 1:
