@@ -73,6 +73,7 @@ def _record_result(original: Any) -> Any:
                            "unchecked": bool(unchecked), "inliers": estimate.inliers,
                            "dispersion": float(estimate.intrinsics.dispersion)
                            if estimate.intrinsics is not None else None,
+                           "stated_dispersion": estimate.stated_dispersion,
                            "parts": {k: np.asarray(v).tolist() for k, v in parts.items()}})
         return result
     return wrapper

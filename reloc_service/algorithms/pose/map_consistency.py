@@ -12,6 +12,19 @@ the spread of those estimates beyond their model covariance is the map's. The st
 the quasi-likelihood dispersion (McCullagh & Nelder 1989, 9.2): the median over keyframes of
 ``T^2 = theta^T V^-1 theta`` over the median of chi-square with 2 degrees of freedom (the
 median, so that a keyframe with a gross error does not set it), at least 1.
+
+On repeated texture some held-out landmarks are mis-associated: their residual in the held-out
+keyframe is that of a wrong correspondence (a few pixels, inside the consensus threshold),
+not extra noise of the map, and ``T^2`` grows with them although a query's own consensus
+keeps such outliers out of its pose. The dispersion an answer states
+(``robust=True``, :attr:`.base.PoseEstimate.stated_dispersion`) therefore estimates each
+keyframe's ``T^2`` on its inliers of a chi-square gate: the held-out residuals' squared
+lengths in units of their keypoint sigmas, over their robust scale (median over the median
+of chi-square with 2 degrees of freedom, so the outliers do not set it), beyond the
+``1 - HELD_OUT_FALSE_ALARM`` quantile are outliers and left out. The gate truncates the noise
+and the a-posteriori variance of the test alike, so ``T^2`` needs no truncation correction
+(both shrink by the same factor, about 5 % at a 1 % false-alarm rate). The verification's
+decisions keep the plain dispersion: only the stated covariance reads the robust one.
 """
 
 from __future__ import annotations
@@ -46,20 +59,29 @@ CHI2_2_MEDIAN = float(stats.chi2.median(2))
 MIN_HELD_OUT = 30
 MAX_HELD_OUT = 300
 
-#: Per keyframe features, the statistic of that keyframe (None: too few held-out landmarks):
+#: The share of honest held-out residuals the robust statistic's gate leaves out (its
+#: false-alarm rate).
+HELD_OUT_FALSE_ALARM = 0.01
+
+#: Per keyframe features, the plain and the gated (robust) statistics of that keyframe
+#: (None: too few held-out landmarks):
 #: features are replaced, not changed in place, when their landmarks change, so an entry lives
 #: as long as the landmarks it was computed on (other keyframes' later observations of them
 #: refine it a little; the median over keyframes does not hang on one).
-_STATISTICS: weakref.WeakKeyDictionary[Features, tuple[float | None]] = (
+_STATISTICS: weakref.WeakKeyDictionary[Features, tuple[float | None, float | None]] = (
     weakref.WeakKeyDictionary())
 
 
-def map_dispersion(state: MapState, kind: str, keyframe_ids: list[int], conf: PnPConf) -> float:
+def map_dispersion(state: MapState, kind: str, keyframe_ids: list[int], conf: PnPConf, *,
+                   robust: bool = False) -> float:
     """The dispersion of ``kind`` intrinsics estimates over ``keyframe_ids`` (module
-    docstring): at least 1, and 1 where fewer than 3 keyframes give a statistic."""
+    docstring): at least 1, and 1 where fewer than 3 keyframes give a statistic. ``robust``:
+    each keyframe's statistic on its held-out residuals' chi-square inliers (what an answer
+    states), else on all within the consensus threshold (what decisions weigh)."""
     columns = _Columns(state)
     values = [t2 for k in keyframe_ids if k in state.keyframes
-              and (t2 := keyframe_statistic(state, k, kind, conf, columns)) is not None]
+              and (t2 := keyframe_statistic(state, k, kind, conf, columns, robust=robust))
+              is not None]
     if len(values) < 3:
         return 1.0
     return max(1.0, float(np.median(values)) / CHI2_2_MEDIAN)
@@ -80,27 +102,29 @@ class _Columns:
 
 
 def keyframe_statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf,
-                       columns: _Columns | None = None) -> float | None:
+                       columns: _Columns | None = None, *, robust: bool = False) -> float | None:
     """``T^2`` of keyframe ``kf_id``'s intrinsics estimate on its ``kind`` landmarks
     re-triangulated without it (cached with its features); None where fewer than
-    :data:`MIN_HELD_OUT` of them are observed by two other keyframes."""
+    :data:`MIN_HELD_OUT` of them are observed by two other keyframes (or, ``robust``,
+    pass the gate of :func:`gated_inliers`)."""
     feats = state.keyframes[kf_id].features.get(kind)
     if feats is None:
         return None
     cached = _STATISTICS.get(feats)
     if cached is None:
-        cached = (_statistic(state, kf_id, kind, conf, columns or _Columns(state)),)
+        cached = _statistic(state, kf_id, kind, conf, columns or _Columns(state))
         _STATISTICS[feats] = cached
-    return cached[0]
+    return cached[1] if robust else cached[0]
 
 
 def _statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: _Columns
-               ) -> float | None:
+               ) -> tuple[float | None, float | None]:
+    """The plain and the gated ``T^2`` of keyframe ``kf_id`` (:func:`keyframe_statistic`)."""
     keyframe = state.keyframes[kf_id]
     feats = keyframe.features[kind]
     cols = columns.get()
     if kind not in cols.kinds:
-        return None
+        return None, None
     observed = np.flatnonzero(feats.landmark_ids >= 0)
     rows = cols.rows(feats.landmark_ids[observed])
     observed, rows = observed[rows >= 0], rows[rows >= 0]
@@ -113,7 +137,7 @@ def _statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: _
     observed, rows = observed[keep], rows[keep]
     points, held = _held_out_points(state, cols, rows, kf_id, kind)
     if held.sum() < MIN_HELD_OUT:
-        return None
+        return None, None
     px = feats.keypoints_px[observed[held]].astype(np.float64)
     points = points[held]
     project = pose_projector(points, keyframe.camera)
@@ -121,15 +145,45 @@ def _statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: _
     with np.errstate(invalid="ignore"):
         inliers = np.flatnonzero(np.linalg.norm(px - projected, axis=1) < conf.max_reproj_error_px)
     weights = 1.0 / keypoint_sigmas(feats)[observed[held]] ** 2
-    depths = transform_points(invert(keyframe.world_from_cam), points[inliers])[:, 2]
-    check = check_intrinsics(keyframe.world_from_cam, px, inliers, weights, keyframe.camera,
-                             project, depth_m=float(np.median(depths)) if len(depths) else 1.0,
-                             focal_starts=(),  # a keyframe's camera is the map's: no search
-                             threshold_px=conf.max_reproj_error_px,
-                             min_sigma_px=conf.min_sigma_px, prior=conf.intrinsics_prior)
-    if check is None or check.inliers < MIN_HELD_OUT:
-        return None
-    return check.data_statistic
+    gated = gated_inliers(np.sum((px - projected) ** 2, axis=1) * weights, inliers)
+
+    def statistic(use: IntArray, subset: bool) -> float | None:
+        # ``subset``: only the correspondences ``use`` are given to the test, which re-gates
+        # at the consensus threshold as it refines and would take gated ones back.
+        rows = np.arange(len(use)) if subset else use
+        given = use if subset else np.arange(len(px))
+        depths = transform_points(invert(keyframe.world_from_cam), points[use])[:, 2]
+        check = check_intrinsics(keyframe.world_from_cam, px[given], rows, weights[given],
+                                 keyframe.camera,
+                                 pose_projector(points[given], keyframe.camera) if subset
+                                 else project,
+                                 depth_m=float(np.median(depths)) if len(depths) else 1.0,
+                                 focal_starts=(),  # a keyframe's camera is the map's: no search
+                                 threshold_px=conf.max_reproj_error_px,
+                                 min_sigma_px=conf.min_sigma_px, prior=conf.intrinsics_prior)
+        if check is None or check.inliers < MIN_HELD_OUT:
+            return None
+        return check.data_statistic
+
+    plain = statistic(inliers, subset=False)
+    if len(gated) == len(inliers):
+        return plain, plain
+    if len(gated) < MIN_HELD_OUT:
+        return plain, None
+    return plain, statistic(gated, subset=True)
+
+
+def gated_inliers(squared: Array, inliers: IntArray,
+                  false_alarm: float = HELD_OUT_FALSE_ALARM) -> IntArray:
+    """The ``inliers`` whose weighted squared residuals ``squared`` (N,) (chi-square with 2
+    degrees of freedom times an unknown scale, for honest ones) lie within the
+    ``1 - false_alarm`` quantile of that distribution, the scale estimated robustly from the
+    inliers' median (the median of chi-square 2 its consistency factor)."""
+    values = squared[inliers]
+    if len(values) == 0:
+        return inliers
+    scale = float(np.median(values)) / CHI2_2_MEDIAN
+    return inliers[values <= scale * float(stats.chi2.isf(false_alarm, 2))]
 
 
 def _held_out_points(state: MapState, cols: LandmarkColumns, rows: IntArray, kf_id: int,
@@ -173,6 +227,7 @@ def settle_intrinsics(estimate: PoseEstimate, state: MapState, kind: str, conf: 
     near = state.nearest_keyframes(estimate.world_from_cam, guided.local_keyframes,
                                    guided.max_view_angle_deg)
     check = check.with_dispersion(map_dispersion(state, kind, near, conf))
+    estimate.stated_dispersion = map_dispersion(state, kind, near, conf, robust=True)
     estimate.intrinsics = check
     if check.passed:
         estimate.covariance_given_intrinsics = covariance_with_intrinsics(
