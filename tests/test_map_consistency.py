@@ -44,7 +44,6 @@ def test_the_robust_dispersion_ignores_mis_associated_landmarks(synthetic_map):
              map_dispersion(wrong, "sift", ids, conf))
     robust = (map_dispersion(synthetic_map, "sift", ids, conf, robust=True),
               map_dispersion(wrong, "sift", ids, conf, robust=True))
-    print(plain, robust)
     assert plain[1] > 2.0 * plain[0]
     assert robust[1] < 1.5 * robust[0]
 
