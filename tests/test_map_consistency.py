@@ -9,7 +9,11 @@ from types import MappingProxyType
 
 import numpy as np
 
-from reloc_service.algorithms.pose.map_consistency import gated_inliers, map_dispersion
+from reloc_service.algorithms.pose.map_consistency import (
+    excess_exclusion,
+    gated_inliers,
+    map_dispersion,
+)
 from reloc_service.algorithms.pose.pnp import PnPConf
 from reloc_service.core import distributions as stats
 from reloc_service.core.map import MapState
@@ -56,3 +60,33 @@ def test_the_gate_keeps_honest_residuals_at_its_false_alarm_rate():
     outliers = np.concatenate([squared, np.full(2000, 4.0 * stats.chi2.isf(1e-4, 2))])
     kept = gated_inliers(outliers, np.arange(len(outliers)), false_alarm=0.01)
     assert kept.max() < len(squared)  # every outlier left out
+
+
+def _flag_rate(rng: np.random.Generator, share: float, keyframes: int = 1000,
+               held_out: int = 300) -> float:
+    """The share of simulated keyframes (``held_out`` residuals each, ``share`` of them
+    mis-associated: beyond the gate) whose gate :func:`excess_exclusion` flags."""
+    limit = stats.chi2.isf(0.01, 2)
+    flags = []
+    for _ in range(keyframes):
+        squared = rng.chisquare(2, held_out)
+        wrong = int(share * held_out)
+        squared[:wrong] = rng.uniform(2.0 * limit, 10.0 * limit, wrong)
+        kept = gated_inliers(squared, np.arange(held_out))
+        flags.append(excess_exclusion(held_out - len(kept), held_out))
+    return float(np.mean(flags))
+
+
+def test_the_exclusion_test_flags_honest_keyframes_near_its_false_alarm_rate():
+    # 1 % nominal; the scale estimated from the same residuals adds a little.
+    assert _flag_rate(np.random.default_rng(1), share=0.0) < 0.03
+
+
+def test_the_exclusion_test_flags_keyframes_with_mis_associated_landmarks():
+    assert _flag_rate(np.random.default_rng(2), share=0.05, keyframes=200) > 0.95
+
+
+def test_the_exclusion_test_keeps_the_nominal_count():
+    assert not excess_exclusion(3, 300)   # the gate's expected count at 1 %
+    assert not excess_exclusion(0, 300)
+    assert excess_exclusion(15, 300)      # 5 %: P(X >= 15) is about 1e-6
