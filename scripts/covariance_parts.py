@@ -9,10 +9,15 @@ stated covariance and parts, so a change to one part can be scored offline: the 
 length of the position error under the stated covariance minus a part tells whether that
 part makes it too wide. It also records the covariance the answer would state under the
 intrinsics test's own prior instead of the map's stated calibration accuracy
-(``stated_test_prior``), and prints the cov scale of both.
+(``stated_test_prior``), the one main states with the decision's map dispersion
+(``stated_plain``: differs where ``--robust-stated-dispersion`` is given), and for the
+keyframe poses' part the alternative where their errors are independent between keyframes
+(``map_independent``, ``sum_k w_k^2 A_k S_k A_k^T``, and ``keyframes_effective``,
+``1 / sum_k w_k^2``), and prints the cov scale of each stated covariance.
 
     python scripts/covariance_parts.py DATASET [--keyframe-sigma T_M,R_DEG]
-        [--calibration-sigma FOCAL_REL,RADIAL_PX] --out OUT.json [--json EVAL.json]
+        [--calibration-sigma FOCAL_REL,RADIAL_PX] [--robust-stated-dispersion]
+        --out OUT.json [--json EVAL.json]
 """
 
 from __future__ import annotations
@@ -30,6 +35,24 @@ from reloc_service.tools.eval.metrics import covariance_scale, translation_mahal
 from reloc_service.tools.eval.query_camera import QueryCamera
 
 _PARTS: list[dict[str, Any]] = []
+#: id of a map covariance returned -> (the same with the keyframes' errors taken as
+#: independent, the effective number of keyframes ``1 / sum w_k^2``)
+_MAP_ALTERNATIVES: dict[int, tuple[np.ndarray, float]] = {}
+
+
+def _record_map_covariance(original: Any) -> Any:
+    from reloc_service.algorithms.pose import map_uncertainty
+
+    def wrapper(world_from_cam: Any, state: Any, landmark_ids: Any) -> Any:
+        out = original(world_from_cam, state, landmark_ids)
+        if out is not None:
+            kf_ids, shares = map_uncertainty.keyframe_shares(state, landmark_ids)
+            poses = np.stack([state.keyframes[k].world_from_cam for k in kf_ids.tolist()])
+            independent = map_uncertainty.transported_covariance(
+                world_from_cam, poses, state.pose_covariances(kf_ids.tolist()), shares ** 2)
+            _MAP_ALTERNATIVES[id(out)] = (independent, float(1.0 / np.sum(shares ** 2)))
+        return out
+    return wrapper
 
 
 def _record_settle(original: Any) -> Any:
@@ -67,12 +90,24 @@ def _record_result(original: Any) -> Any:
             estimate.calibration_covariance = None
             test_prior = relocalizer_base.stated_covariance(estimate, conf.max_position_sigma_m)
             estimate.calibration_covariance = stated_calibration
+            # The covariance main states: the decision's dispersion throughout.
+            stated_dispersion = estimate.stated_dispersion
+            estimate.stated_dispersion = None
+            plain = relocalizer_base.stated_covariance(estimate, conf.max_position_sigma_m)
+            estimate.stated_dispersion = stated_dispersion
+            alternative = _MAP_ALTERNATIVES.get(id(estimate.map_covariance))
             _PARTS.append({"t": np.asarray(result.world_from_cam)[:3, 3].tolist(),
                            "stated": np.asarray(result.covariance).tolist(),
                            "stated_test_prior": np.asarray(test_prior).tolist(),
+                           "stated_plain": np.asarray(plain).tolist(),
+                           "map_independent": None if alternative is None
+                           else alternative[0].tolist(),
+                           "keyframes_effective": None if alternative is None
+                           else alternative[1],
                            "unchecked": bool(unchecked), "inliers": estimate.inliers,
                            "dispersion": float(estimate.intrinsics.dispersion)
                            if estimate.intrinsics is not None else None,
+                           "stated_dispersion": estimate.stated_dispersion,
                            "parts": {k: np.asarray(v).tolist() for k, v in parts.items()}})
         return result
     return wrapper
@@ -96,6 +131,10 @@ def main() -> None:
     parser.add_argument("--method", default="sbi+p3p:orb,sbi+p3p:sift-half,bow+p3p,sbi+p3p")
     parser.add_argument("--query-focal-scale", type=float, default=1.0,
                         help="the queries claim a focal this many times their camera's")
+    parser.add_argument("--robust-stated-dispersion", action="store_true",
+                        help="state the map's dispersion robust to mis-associated landmarks "
+                        "([options.p3p] robust_stated_dispersion); 'stated_plain' is the "
+                        "covariance stated without it, from the same run")
     parser.add_argument("--out", required=True)
     parser.add_argument("--json", help="also write reloc eval's JSON here")
     args = parser.parse_args()
@@ -103,9 +142,12 @@ def main() -> None:
     calibration = (None if args.calibration_sigma is None else
                    tuple(float(v) for v in args.calibration_sigma.split(",")))
     map_consistency.settle_intrinsics = _record_settle(map_consistency.settle_intrinsics)
+    map_consistency.map_covariance = _record_map_covariance(map_consistency.map_covariance)
     from reloc_service.algorithms.relocalizers import multi
     multi.result_from_estimate = _record_result(relocalizer_base.result_from_estimate)
-    result = eval_lib.evaluate(args.dataset, args.method, progress=False,
+    options = ({"p3p": {"robust_stated_dispersion": True}} if args.robust_stated_dispersion
+               else None)
+    result = eval_lib.evaluate(args.dataset, args.method, progress=False, options=options,
                                keyframe_sigma=(sigma[0], sigma[1]),
                                query_camera=QueryCamera(focal_scale=args.query_focal_scale),
                                calibration_sigma=None if calibration is None
@@ -126,7 +168,10 @@ def main() -> None:
                         "mahalanobis_test_prior": translation_mahalanobis(
                             est, gt, match["stated_test_prior"], truth),
                         **match})
-    for key in ("mahalanobis", "mahalanobis_test_prior"):
+    for q in queries:
+        q["mahalanobis_plain"] = translation_mahalanobis(q["est"], q["gt"], q["stated_plain"],
+                                                         truth)
+    for key in ("mahalanobis", "mahalanobis_plain", "mahalanobis_test_prior"):
         lengths = [q[key] for q in queries]
         print(f"cov scale ({key.replace('mahalanobis', 'stated')}): "
               f"{covariance_scale(lengths, [True] * len(lengths)):.3f} over {len(lengths)}")

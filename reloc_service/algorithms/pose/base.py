@@ -100,6 +100,11 @@ class PoseEstimate:
     #: calibration within (:mod:`.intrinsics_marginal`); None: the intrinsics test's prior.
     #: Read by the stated covariance only, never by a decision.
     calibration_covariance: Array | None = None
+    #: The map's dispersion around the pose robust to mis-associated landmarks
+    #: (:func:`.map_consistency.map_dispersion` with ``robust``), which the stated covariance
+    #: scales the pose's own part by in place of the decision's (``intrinsics.dispersion``);
+    #: None: the decision's. Read by the stated covariance only, never by a decision.
+    stated_dispersion: float | None = None
     #: Whether the query claims exactly the camera of the keyframes behind the pose (the
     #: map's calibration, as a drone whose camera built the map), which is what a view
     #: that cannot check the intrinsics may trust; None where not known (not trusted).

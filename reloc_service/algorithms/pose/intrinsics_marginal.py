@@ -123,6 +123,7 @@ def given_calibration_covariance(estimate: PoseEstimate) -> Array | None:
     trusted, check = estimate.covariance_given_intrinsics, estimate.intrinsics
     if trusted is None or check is None or estimate.calibration_covariance is None:
         return trusted
+    trusted, check = stated_dispersion_parts(estimate, trusted, check)
     shift = check.pose_shift
     out = own_covariance(trusted, check) + shift @ calibration_prior(estimate, check) @ shift.T
     return np.asarray(0.5 * (out + out.T), np.float64)
@@ -137,5 +138,20 @@ def checked_covariance(estimate: PoseEstimate) -> Array | None:
     check, trusted = estimate.intrinsics, estimate.covariance_given_intrinsics
     if (estimate.query_camera_is_map_calibration and trusted is not None
             and check is not None and check.passed):
+        trusted, check = stated_dispersion_parts(estimate, trusted, check)
         return calibration_trusted_covariance(trusted, check, calibration_prior(estimate, check))
     return estimate.covariance
+
+
+def stated_dispersion_parts(estimate: PoseEstimate, trusted: Array, check: IntrinsicsCheck
+                            ) -> tuple[Array, IntrinsicsCheck]:
+    """``trusted`` (``d C + B P_t B^T``) and ``check`` with the decision's dispersion ``d``
+    replaced by the one the answer states (:attr:`.base.PoseEstimate.stated_dispersion`,
+    robust to mis-associated map landmarks): ``d_s C + B P_t B^T`` and ``V`` scaled by
+    ``d_s``; both unchanged where none is set."""
+    if estimate.stated_dispersion is None:
+        return trusted, check
+    stated = check.with_dispersion(estimate.stated_dispersion)
+    ratio = stated.dispersion / check.dispersion
+    out = trusted + (ratio - 1.0) * own_covariance(trusted, check)
+    return np.asarray(0.5 * (out + out.T), np.float64), stated
