@@ -112,7 +112,7 @@ def own_rows(descriptors: np.ndarray, landmark_ids: npt.NDArray[np.integer], *,
     distances = np.concatenate([
         _distances(desc[rows[i:i + _CHUNK]], desc[first[i:i + _CHUNK]])
         for i in range(0, len(rows), _CHUNK)])
-    own[rows[distances > noise_threshold(distances, desc)]] = True
+    own[rows[distances > noise_threshold(distances, desc, rate=rate)]] = True
     return own
 
 
