@@ -46,12 +46,16 @@ class InProcessBackend:
 
     def __init__(self, methods: Sequence[str], options: Mapping[str, Any],
                  landmark_source: LandmarkSource) -> None:
+        from ...core.plugins import make_conf
         from ...engine import Engine
+        from ...service.config import ServiceSection
 
-        self.engine = Engine(engine_conf(methods, options, landmark_source))
         #: ``options["service"]``: the service settings a round trip saves with (its
-        #: ``stored_parts``), e.g. ``keyframe_descriptors``; default: the service's defaults
-        self._service = dict(options.get("service") or {})
+        #: ``stored_parts``), e.g. ``keyframe_descriptors``; default: the service's defaults.
+        #: Checked here, before a map is built: a ConfigError names a key unknown or wrong.
+        self._service = make_conf(ServiceSection, dict(options.get("service") or {}),
+                                  owner="options: [service]")
+        self.engine = Engine(engine_conf(methods, options, landmark_source))
         self._snapshot_dir: tempfile.TemporaryDirectory[str] | None = None
 
     def add_keyframe(self, kf_id: int, image: npt.NDArray[np.uint8], camera: Camera,
@@ -68,14 +72,10 @@ class InProcessBackend:
         or as the ``[service]`` options given say
         (:meth:`~reloc_service.service.config.ServiceSection.stored_parts`), and go on with the
         engine loaded from it (its files stay until :meth:`close`: it reads them lazily)."""
-        from ...core.plugins import make_conf
         from ...engine import Engine
-        from ...service.config import ServiceSection
 
-        # a ConfigError naming the key where one is unknown or of the wrong type
-        service = make_conf(ServiceSection, self._service, owner="options: [service]")
         self._snapshot_dir = tempfile.TemporaryDirectory(prefix="reloc-eval-")
-        self.engine.save(self._snapshot_dir.name, parts=service.stored_parts())
+        self.engine.save(self._snapshot_dir.name, parts=self._service.stored_parts())
         self.engine = Engine.load(self._snapshot_dir.name, self.engine.conf)
 
     def relocalize(self, image: npt.NDArray[np.uint8], camera: Camera, *, method: str,
