@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from stored_maps import V4_MAP
 
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer
 from reloc_service.core.absent_image import AbsentImage
@@ -21,7 +22,6 @@ from reloc_service.storage.keyframe_parts import EVERYTHING, StoredParts
 from reloc_service.storage.snapshot import UNSHARED_FORMAT_VERSION, load_map, save_map
 from reloc_service.storage.snapshot_files import current_snapshot
 
-V4_MAP = Path(__file__).parent / "data" / "map_v4"
 KEEP_IMAGES = 'keyframe_images = "always"'
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from stored_maps import V4_MAP, V5_MAP
 
 from reloc_service.core.errors import ConfigError, StorageError
 from reloc_service.core.map import MapState
@@ -21,9 +22,6 @@ from reloc_service.storage.snapshot_files import current_snapshot
 
 #: the codec alone: every keypoint kept (tests/test_landmark_rows.py drops those without one)
 PQ = StoredParts(descriptor_codec="pq")
-V4_MAP = Path(__file__).parent / "data" / "map_v4"
-#: written by the format-5 code from map_v4 (depth kept losslessly, SIFT descriptors in full)
-V5_MAP = Path(__file__).parent / "data" / "map_v5"
 
 
 @pytest.fixture

@@ -3,22 +3,34 @@ snapshot (compact by default), not the one built in memory."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
+import pytest
 
 from reloc_service.cli import main as cli_main
+from reloc_service.core.errors import ConfigError
 from reloc_service.core.landmark_rows import holds_landmark_rows_only
 from reloc_service.storage.feature_columns import LazyFeatures
+from reloc_service.storage.landmark_descriptors import SHARED_DESCRIPTORS
+from reloc_service.storage.snapshot_files import current_snapshot
 from reloc_service.tools.eval.backends import LandmarkSource
 from reloc_service.tools.eval.inprocess import InProcessBackend
 
 
-def test_a_round_trip_queries_the_map_loaded_from_a_default_snapshot(synthetic_scene):
-    backend = InProcessBackend(["sbi+p3p"], {}, LandmarkSource.TRIANGULATE)
-    scene = synthetic_scene
+def _trained(scene, options) -> InProcessBackend:
+    backend = InProcessBackend(["sbi+p3p"], options, LandmarkSource.TRIANGULATE)
     for i, (image, pose) in enumerate(zip(scene.keyframe_images, scene.keyframe_poses,
                                           strict=True)):
         backend.add_keyframe(i, image, scene.camera, pose, depth=None)
     backend.train(progress=False)
+    return backend
+
+
+def test_a_round_trip_queries_the_map_loaded_from_a_default_snapshot(synthetic_scene):
+    scene = synthetic_scene
+    backend = _trained(scene, {})
     built = backend.engine
     backend.round_trip()
     try:
@@ -40,3 +52,23 @@ def test_a_round_trip_through_a_remote_service_is_a_usage_error(capsys):
     assert cli_main.main(["eval", "somewhere", "--remote", "tcp/127.0.0.1:1", "--map", "m",
                           "--round-trip"]) == 2
     assert "--round-trip evaluates in-process" in capsys.readouterr().err
+
+
+def test_a_round_trip_stores_what_the_service_table_of_the_options_says(synthetic_scene):
+    backend = _trained(synthetic_scene, {"service": {"keyframe_descriptors": "per-landmark"}})
+    try:
+        backend.round_trip()
+        assert backend._snapshot_dir is not None
+        snap = current_snapshot(Path(backend._snapshot_dir.name))
+        files = json.loads((snap / "manifest.json").read_text())["files"]
+        assert f"features/sift.{SHARED_DESCRIPTORS}.npy" in files
+        assert "features/sift.descriptors.npy" not in files
+    finally:
+        backend.close()
+
+
+def test_an_unknown_service_option_is_refused_by_name_before_a_map_is_built():
+    with pytest.raises(ConfigError, match=r"options: \[service\]: unknown option\(s\) "
+                                          r"\['keyframe_descriptor'\]"):
+        InProcessBackend(["sbi+p3p"], {"service": {"keyframe_descriptor": "per-landmark"}},
+                         LandmarkSource.TRIANGULATE)

@@ -12,6 +12,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
+from stored_maps import V5_MAP, V6_MAP
 
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer
 from reloc_service.algorithms.relocalizers.multi import PACKED_MODEL
@@ -29,11 +30,6 @@ from reloc_service.storage.packed_columns import (
 )
 from reloc_service.storage.snapshot import UNSHARED_FORMAT_VERSION, load_map, save_map
 from reloc_service.storage.snapshot_files import current_snapshot
-
-DATA = Path(__file__).parent / "data"
-#: written by the format-6 code: map_v5 loaded and saved with lossless depth and every image
-V6_MAP = DATA / "map_v6"
-V5_MAP = DATA / "map_v5"
 
 
 def _unpacked(path: str, data: bytes) -> np.ndarray:

@@ -35,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(schema: docs/eval_schema.md)")
     parser.add_argument("--plots", metavar="DIR", help="write the thesis's figures as PNGs to DIR")
     parser.add_argument("--options", metavar="FILE", help="TOML or JSON file: plugin name -> "
-                        "options table (e.g. [p3p] / [sbi]); [mapping] configures map building")
+                        "options table (e.g. [p3p] / [sbi]); [mapping] configures map building, "
+                        "[service] what --round-trip stores (e.g. keyframe_descriptors)")
     parser.add_argument("--landmarks", choices=["auto", "triangulate", "depth"], default="auto",
                         help="auto (default): keypoints lifted with the dataset's depth maps "
                         "where a keyframe has one, the rest triangulated; triangulate: ignore "

@@ -48,7 +48,13 @@ from .descriptor_pq import (
     seeded_rows,
     train_codebook,
 )
-from .landmark_descriptors import ROW_OF, check_shared_count, share_descriptors, shared_index
+from .landmark_descriptors import (
+    OWN_ROWS,
+    ROW_OF,
+    check_shared_count,
+    share_descriptors,
+    shared_index,
+)
 from .landmark_rows import keep_rows
 
 Array = npt.NDArray[np.float64]
@@ -252,7 +258,7 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     if keep is not None:
         columns = keep_rows(columns, keep, [len(c) for c in codes])
     if shared:
-        columns = share_descriptors(columns)
+        columns = share_descriptors(columns, codebook)
     sizes = sizes_by_level(columns["levels"], columns["sizes"])
     if sizes is not None:
         del columns["sizes"]
@@ -377,7 +383,7 @@ class FeatureColumns:
         for kind, cols in self.columns.items():
             for shared in ROW_OF.keys() & cols.keys():
                 check_shared_count(f"features/{kind}.{shared}", len(cols[shared]),
-                                   cols["landmark_ids"])
+                                   cols["landmark_ids"], self._own(kind))
 
     def length(self, kind: str) -> int:
         return len(self.columns[kind]["levels"])
@@ -385,7 +391,8 @@ class FeatureColumns:
     def raw(self, kind: str, start: int, stop: int) -> dict[str, np.ndarray]:
         """Rows ``start:stop`` of ``kind``'s columns as stored (no copy), sizes and
         keypoints from their tables where not stored (float32); no derived points."""
-        out = {f: c[start:stop] for f, c in self.columns[kind].items() if f not in ROW_OF}
+        out = {f: c[start:stop] for f, c in self.columns[kind].items()
+               if f not in ROW_OF and f != OWN_ROWS}
         for shared in ROW_OF.keys() & self.columns[kind].keys():
             out[ROW_OF[shared]] = self.columns[kind][shared][self._shared_rows(kind)[start:stop]]
         if "sizes" not in out:
@@ -405,10 +412,15 @@ class FeatureColumns:
         if index is None:
             if "landmark_ids" not in self.columns[kind]:
                 raise MapError(f"{kind} descriptors read before the landmark ids were loaded")
-            index = shared_index(self.columns[kind]["landmark_ids"])
+            index = shared_index(self.columns[kind]["landmark_ids"], self._own(kind))
             with self._shared_lock:
                 index = self._shared_index.setdefault(kind, index)
         return index
+
+    def _own(self, kind: str) -> npt.NDArray[np.bool_] | None:
+        """``kind``'s rows that keep their own shared-column descriptor (None: none do)."""
+        own = self.columns[kind].get(OWN_ROWS)
+        return None if own is None else np.asarray(own) != 0
 
     def features(self, kind: str, start: int, stop: int) -> Features:
         """Rows ``start:stop`` of ``kind`` as :class:`Features` in its canonical dtypes

@@ -46,8 +46,15 @@ class InProcessBackend:
 
     def __init__(self, methods: Sequence[str], options: Mapping[str, Any],
                  landmark_source: LandmarkSource) -> None:
+        from ...core.plugins import make_conf
         from ...engine import Engine
+        from ...service.config import ServiceSection
 
+        #: ``options["service"]``: the service settings a round trip saves with (its
+        #: ``stored_parts``), e.g. ``keyframe_descriptors``; default: the service's defaults.
+        #: Checked here, before a map is built: a ConfigError names a key unknown or wrong.
+        self._service = make_conf(ServiceSection, dict(options.get("service") or {}),
+                                  owner="options: [service]")
         self.engine = Engine(engine_conf(methods, options, landmark_source))
         self._snapshot_dir: tempfile.TemporaryDirectory[str] | None = None
 
@@ -61,14 +68,14 @@ class InProcessBackend:
         self.engine.train(progress=progress)
 
     def round_trip(self) -> None:
-        """Save the map and its trained models as a service's snapshot stores them by default
-        (:meth:`~reloc_service.service.config.ServiceSection.stored_parts`) and go on with the
+        """Save the map and its trained models as a service's snapshot stores them by default,
+        or as the ``[service]`` options given say
+        (:meth:`~reloc_service.service.config.ServiceSection.stored_parts`), and go on with the
         engine loaded from it (its files stay until :meth:`close`: it reads them lazily)."""
         from ...engine import Engine
-        from ...service.config import ServiceSection
 
         self._snapshot_dir = tempfile.TemporaryDirectory(prefix="reloc-eval-")
-        self.engine.save(self._snapshot_dir.name, parts=ServiceSection().stored_parts())
+        self.engine.save(self._snapshot_dir.name, parts=self._service.stored_parts())
         self.engine = Engine.load(self._snapshot_dir.name, self.engine.conf)
 
     def relocalize(self, image: npt.NDArray[np.uint8], camera: Camera, *, method: str,
@@ -113,9 +120,10 @@ class InProcessBackend:
 def engine_conf(methods: Sequence[str], options: Mapping[str, Any],
                 landmark_source: LandmarkSource) -> Any:
     """The :class:`~reloc_service.engine.EngineConf` for ``methods``; ``options["mapping"]``
-    (if any) configures the map building, the other keys are plugin options."""
+    (if any) configures the map building, ``options["service"]`` a round trip's snapshot
+    (:meth:`InProcessBackend.round_trip`), the other keys are plugin options."""
     from ...engine import EngineConf, MappingConf
 
-    plugin_options = {k: v for k, v in options.items() if k != "mapping"}
+    plugin_options = {k: v for k, v in options.items() if k not in ("mapping", "service")}
     mapping = MappingConf.from_options(options.get("mapping"))
     return EngineConf(methods=tuple(methods), options=plugin_options, mapping=mapping)
