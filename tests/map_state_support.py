@@ -1,11 +1,9 @@
 """Helpers shared by the snapshot tests (not a test module): a map state compared with its
 saved-and-loaded copy, field by field (landmark points within the rounding the snapshot's
-codec allows), the synthetic map enriched with a depth map and ORB features, the synthetic
-map cut to its first keyframes, and the snapshots earlier format versions wrote."""
+codec allows), the synthetic map enriched with a depth map and ORB features and the synthetic
+map cut to its first keyframes."""
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 
@@ -13,14 +11,6 @@ from reloc_service.core.map import KeyframeMap, MapState
 from reloc_service.storage.feature_columns import ANGLELESS_KINDS, NO_ANGLE
 from reloc_service.storage.landmark_codec import ROUNDING_SHARE, anchors, position_sigmas
 from reloc_service.storage.snapshot import FEATURE_FIELDS
-
-#: Snapshots written by the code of earlier format versions, kept to check they still load.
-STORED_MAPS = Path(__file__).parent / "data"
-
-
-def stored_map(version: int) -> Path:
-    """The map directory of a snapshot written in format ``version`` (tests/data/map_vN)."""
-    return STORED_MAPS / f"map_v{version}"
 
 
 def assert_states_equal(a: MapState, b: MapState) -> None:

@@ -17,3 +17,8 @@ V7_MAP = DATA / "map_v7"
 #: written by the format-8 code: map_v7 loaded and saved with lossless depth, every image and
 #: one descriptor per landmark (no row keeping its own)
 V8_MAP = DATA / "map_v8"
+
+
+def stored_map(version: int) -> Path:
+    """The map directory of a snapshot written in format ``version`` (tests/data/map_vN)."""
+    return DATA / f"map_v{version}"

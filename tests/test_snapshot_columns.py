@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from map_state_support import assert_states_equal, enriched_state, stored_map, tiny_state
+from map_state_support import assert_states_equal, enriched_state, tiny_state
+from stored_maps import stored_map
 
 from reloc_service.core.errors import StorageError
 from reloc_service.core.frame import EncodedImage, Keyframe
