@@ -1,5 +1,5 @@
 """The few distribution functions the answer path reads (chi-square, normal, binomial,
-noncentral chi-square and F quantiles and tails), with the ``scipy.stats`` names and answers
+noncentral chi-square, F and noncentral F quantiles and tails), with the ``scipy.stats`` names and answers
 but through ``scipy.special``: importing ``scipy.stats`` takes 2-3 s of a service's start-up.
 
 Each function calls the very ``scipy.special`` ufunc ``scipy.stats`` calls for it (scipy's
@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 
 from scipy import special
-from scipy.special import _ufuncs as _scu  # the Boost binomial scipy.stats calls
+from scipy.special import _ufuncs as _scu  # the Boost binomial and ncf scipy.stats calls
 
 
 def _nan_unless(valid: bool) -> float | None:
@@ -115,8 +115,25 @@ class _F:
         return float(special.fdtrc(dfn, dfd, x))
 
 
+class _Ncf:
+    """The noncentral F with ``dfn`` and ``dfd`` degrees of freedom and noncentrality ``nc``
+    (``scipy.stats.ncf``: Boost's, which stays finite where ``special.ncfdtr`` returns NaN
+    for noncentralities of a few thousand)."""
+
+    @staticmethod
+    def sf(x: float, dfn: float, dfd: float, nc: float) -> float:
+        if (bad := _nan_unless(dfn > 0 and dfd > 0 and nc >= 0)) is not None:
+            return bad
+        if x <= 0.0:
+            return 1.0
+        if x == math.inf:
+            return 0.0
+        return float(_scu._ncf_sf(x, dfn, dfd, nc))
+
+
 chi2 = _Chi2()
 norm = _Norm()
 binom = _Binom()
 ncx2 = _Ncx2()
 f = _F()
+ncf = _Ncf()

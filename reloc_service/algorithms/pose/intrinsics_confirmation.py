@@ -49,6 +49,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy import special
 
+from ...core import distributions as stats
 from .intrinsics import IntrinsicsCheck, hotelling_p_value, hotelling_t2
 
 Array = npt.NDArray[np.float64]
@@ -167,4 +168,4 @@ def _f_power(theta: Array, covariance: Array, dof: int, scale: float, level: flo
     if not np.isfinite(lam) or dof < 1:
         return 0.0
     limit = float(special.fdtri(2, dof, 1.0 - level))
-    return float(1.0 - special.ncfdtr(2, dof, scale * max(lam, 0.0), limit))
+    return stats.ncf.sf(limit, 2, dof, scale * max(lam, 0.0))
