@@ -28,6 +28,7 @@ from reloc_client.client import NoReplyError, RelocClient, ServiceBusy
 
 from reloc_service.service.app import Service
 from reloc_service.service.config import ServiceConf, load_config, parse_config, with_overrides
+from reloc_service.service.residency import MB
 from reloc_service.storage.journal import Journal
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,6 +63,25 @@ def service_conf(port: int, storage: Path | str = "", *, maps: tuple[str, ...] =
                   **(zenoh or {})},
         "service": {"instance": "test", "storage": str(storage), **service},
         "limits": limits or {}, "maps": {m: {} for m in maps}})
+
+
+#: A budget no test process's own memory reaches: a service starts with it, then the test
+#: gives its maps their share of the baseline it measured (:func:`limit_maps`).
+AMPLE_MB = 1_000_000
+
+
+def limit_maps(service: Service, maps_bytes: float) -> None:
+    """Give ``service``'s maps ``maps_bytes``: its budget made the baseline it measured (its
+    process's once warmed up; its worker processes', started here, once they are) plus
+    ``maps_bytes``, as if configured so. In the test's process the baseline is the whole
+    pytest process, which grows by more than a map between two starts: a budget configured
+    from a probe's measure would not leave the maps what the test asks."""
+    residency = service.registry.residency
+    assert residency is not None and residency.baseline_settled.wait(60)
+    if service.processes is not None:
+        service.processes.start()
+    residency.set_total_budget((residency.baseline + maps_bytes) / MB)
+    assert residency.budget == int(residency.total_budget - residency.baseline)
 
 
 def raw_session(port: int, mode: str = "client") -> zenoh.Session:

@@ -17,11 +17,13 @@ import pytest
 from reloc_client import protocol as wire
 from reloc_client.client import RelocClient, ServiceBusy, to_wire_image
 from service_support import (
+    AMPLE_MB,
     Events,
     ServiceProcess,
     durable_keyframe_ids,
     endpoint,
     free_port,
+    limit_maps,
     service_conf,
     wait_until,
     write_config,
@@ -97,25 +99,6 @@ def open_paths(directory: Path) -> set[str]:
         if target.startswith(str(directory)):
             out.add(target)
     return out
-
-
-#: A budget no test process's own memory reaches: a service starts with it, then the test
-#: gives its maps their share of the baseline it measured (:func:`limit_maps`).
-AMPLE_MB = 1_000_000
-
-
-def limit_maps(service: Service, maps_bytes: float) -> None:
-    """Give ``service``'s maps ``maps_bytes``: its budget made the baseline it measured (its
-    process's once warmed up; its worker processes', started here, once they are) plus
-    ``maps_bytes``, as if configured so. In the test's process the baseline is the whole
-    pytest process, which grows by more than a map between two starts: a budget configured
-    from a probe's measure would not leave the maps what the test asks."""
-    residency = service.registry.residency
-    assert residency is not None and residency.baseline_settled.wait(60)
-    if service.processes is not None:
-        service.processes.start()
-    residency.set_total_budget((residency.baseline + maps_bytes) / MB)
-    assert residency.budget == int(residency.total_budget - residency.baseline)
 
 
 #: How far a `reloc serve`'s baseline may move between a probe's start and the test's (two
