@@ -114,7 +114,8 @@ class Service:
                                           queue_size=s.queue_size)
         if s.worker_mode == "process":
             self.processes = ProcessWorkers(s.workers, EngineSpec.of(
-                self.methods, self.conf.options, self.conf.mapping, self.limits))
+                self.methods, self.conf.options, self.conf.mapping, self.limits,
+                {name: self.conf.mapping_for(name) for name in self.registry.map_engine_confs}))
             self.registry.processes = self.processes
             if self.registry.residency is not None:   # their own memory counts too
                 self.processes.on_started = self.registry.residency.count_workers_baseline

@@ -7,7 +7,8 @@ Layout (every section and key optional; the embedded default equals ``config/def
     [service]   instance, prefix, storage, workers, worker_mode, queue_size, methods, ...
     [limits]    max_payload_bytes, max_image_pixels, max_features, max_hypotheses
     [quotas]    max_maps, max_keyframes_per_map, max_map_bytes, max_total_bytes
-    [maps.NAME] maps served from the start (a table, possibly empty, per map)
+    [maps.NAME] maps served from the start (a table, possibly empty, per map; it may set
+                the map's own calibration_focal_sigma_rel / calibration_radial_sigma_px)
     [options.PLUGIN]  plugin options (``[options.sbi]``, ``[options.p3p]``, ``[options.verify]``)
     [mapping]   map-building options (the engine's MappingConf)
     [ros2]      each map as a ROS 2 node on rmw_zenoh (off by default; ros2/conf.py)
@@ -18,6 +19,7 @@ An unknown section or key is a :class:`ConfigError` naming it and the allowed on
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import socket
 import tomllib
@@ -296,9 +298,30 @@ def _check_servable(method: str) -> None:
                               f"which needs ground truth and is for evaluation only")
 
 
+#: The ``[mapping]`` keys a ``[maps.NAME]`` table may set for that map alone.
+MAP_MAPPING_KEYS = ("calibration_focal_sigma_rel", "calibration_radial_sigma_px")
+
+
 @dataclass(frozen=True)
 class MapConf:
-    """A map served from the start (``[maps.NAME]``); nothing to set yet besides its name."""
+    """A map served from the start (``[maps.NAME]``). It may state its own camera's
+    calibration accuracy (the ``[mapping]`` keys of the same name; unset: the service-wide
+    value): a service holding maps from a calibrated camera and a rough one states, for each
+    map's answers, the covariance its own calibration warrants. No answer changes."""
+
+    calibration_focal_sigma_rel: float | None = None
+    calibration_radial_sigma_px: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in MAP_MAPPING_KEYS:
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"{name}: expected a finite number >= 0 (1 sigma; 0: exact), "
+                                  f"got {value!r}")
+
+    def mapping_overrides(self) -> dict[str, float]:
+        """The ``[mapping]`` keys this map sets for itself."""
+        return {k: v for k in MAP_MAPPING_KEYS if (v := getattr(self, k)) is not None}
 
 
 @dataclass(frozen=True)
@@ -325,6 +348,13 @@ class ServiceConf:
         host = "".join(c if c.isalnum() or c in "-_." else "-" for c in socket.gethostname())
         return f"{host or 'reloc'}-{os.getpid()}"
 
+    def mapping_for(self, name: str) -> Mapping[str, Any]:
+        """The map-building options of map ``name``: ``[mapping]`` with what its
+        ``[maps.NAME]`` table sets on top."""
+        map_conf = self.maps.get(name)
+        overrides = {} if map_conf is None else map_conf.mapping_overrides()
+        return MappingProxyType({**self.mapping, **overrides})
+
     @property
     def storage_path(self) -> Path | None:
         """The storage directory, or None when maps are kept in memory only."""
@@ -348,8 +378,7 @@ def parse_config(data: Mapping[str, Any], *, source: str = "config") -> ServiceC
         name: make_conf(cls, _table(data.get(name, {}), f"{source}: [{name}]"),
                         owner=f"{source}: [{name}]")
         for name, cls in _SECTIONS.items()}
-    maps = {name: make_conf(MapConf, _table(t, f"{source}: [maps.{name}]"),
-                            owner=f"{source}: [maps.{name}]")
+    maps = {name: _map_conf(t, f"{source}: [maps.{name}]")
             for name, t in _table(data.get("maps", {}), f"{source}: [maps]").items()}
     _check_names(None, None, maps=list(maps))
     options = {name: MappingProxyType(dict(_table(t, f"{source}: [options.{name}]")))
@@ -406,6 +435,16 @@ def with_overrides(conf: ServiceConf, *, mode: str | None = None,
             z[key] = tuple(z[key])
     return dataclasses.replace(conf, zenoh=dataclasses.replace(conf.zenoh, **z),
                                service=dataclasses.replace(conf.service, **s))
+
+
+def _map_conf(table: Any, where: str) -> MapConf:
+    """A ``[maps.NAME]`` table; a ConfigError names the map's table and the key."""
+    try:
+        return make_conf(MapConf, _table(table, where), owner=where)
+    except ConfigError as exc:
+        if str(exc).startswith(where):
+            raise
+        raise ConfigError(f"{where}.{exc}") from None
 
 
 def _table(value: Any, where: str) -> Mapping[str, Any]:

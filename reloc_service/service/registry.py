@@ -10,6 +10,7 @@ The registry knows nothing of Zenoh: the service gives it the callables that dec
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -21,7 +22,7 @@ from reloc_client import protocol as wire
 from reloc_client.protocol import ErrorCode, EventKind
 
 from ..core.errors import ConfigError, StorageError
-from ..engine import Engine, EngineConf
+from ..engine import Engine, EngineConf, MappingConf
 from ..storage.lock import DirectoryLock
 from .config import ServiceConf
 from .durability import (
@@ -65,6 +66,12 @@ class MapRegistry:
         self.conf = conf
         self.storage = conf.storage_path
         self.engine_conf = engine_conf
+        #: The engine configuration of each map whose ``[maps.NAME]`` table sets its own
+        #: calibration accuracy (the others have ``engine_conf``'s).
+        self.map_engine_confs = {
+            name: dataclasses.replace(engine_conf, mapping=MappingConf.from_options(
+                conf.mapping_for(name)))
+            for name, map_conf in conf.maps.items() if map_conf.mapping_overrides()}
         self.methods = methods
         self.limits = limits
         self._stopped = stopped
@@ -377,11 +384,13 @@ class MapRegistry:
         recovered = None if directory is None else recover_current(directory)
         s = self.conf.service
         # with worker processes the queries run on their replicas, which make their own pools
-        engine = open_engine(directory, self.engine_conf, pools=s.worker_mode != "process")
+        engine_conf = self.map_engine_confs.get(name, self.engine_conf)
+        engine = open_engine(directory, engine_conf, pools=s.worker_mode != "process")
         rt = MapRuntime(name, engine, instance=self.conf.instance, limits=self.limits,
                         methods=self.methods, default_method=self.methods[0],
                         directory=directory, publish=self._publish,
-                        snapshot_every=s.snapshot_every, fsync=s.fsync, quotas=self.quotas)
+                        snapshot_every=s.snapshot_every, fsync=s.fsync, quotas=self.quotas,
+                        calibration_sigma=self.calibration_sigma(name))
         if directory is not None:
             check_storage(directory)
             rt.begin_restore(verdict)
@@ -390,6 +399,15 @@ class MapRegistry:
         if self.processes is not None:
             self.processes.attach(rt)
         return rt
+
+    def calibration_sigma(self, name: str) -> dict[str, float]:
+        """The calibration accuracy map ``name`` states, as its status shows it, when its
+        ``[maps.NAME]`` table sets its own; empty: the service-wide ``[mapping]`` values."""
+        engine_conf = self.map_engine_confs.get(name)
+        if engine_conf is None:
+            return {}
+        return {"focal_rel": engine_conf.mapping.calibration_focal_sigma_rel,
+                "radial_px": engine_conf.mapping.calibration_radial_sigma_px}
 
     # -- stop ------------------------------------------------------------------------------------
     def close(self, *, final_snapshot: bool, deadline: float) -> None:

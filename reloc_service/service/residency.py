@@ -76,6 +76,8 @@ class MapRegistry(Protocol):
 
     def close_resident(self, name: str, *, timeout: float) -> None: ...
 
+    def calibration_sigma(self, name: str) -> dict[str, float]: ...
+
 
 class Residency:
     """The resident and dormant maps of a :class:`~.registry.MapRegistry` (see module
@@ -476,4 +478,4 @@ def dormant_status(registry: MapRegistry, name: str) -> wire.StatusReply:
         landmarks=0, trained=False, map_version=int(meta.get("map_version", 0)),
         methods=methods, default_method=methods[0],
         cameras=tuple(sorted(meta.get("cameras", {}))), map_id=str(meta.get("map_id") or ""),
-        resident=False)
+        resident=False, calibration_sigma=registry.calibration_sigma(name))

@@ -15,7 +15,7 @@ import logging
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -107,10 +107,14 @@ class MapRuntime(ServedMap):
     def __init__(self, name: str, engine: Engine, *, instance: str, limits: wire.Limits,
                  methods: tuple[str, ...], default_method: str, directory: Path | None,
                  publish: Publish, snapshot_every: int = 200, fsync: bool = True,
-                 quotas: Quotas | None = None) -> None:
+                 quotas: Quotas | None = None,
+                 calibration_sigma: Mapping[str, float] | None = None) -> None:
         super().__init__(name, engine, limits=limits, methods=methods,
                          default_method=default_method)
         self.instance = instance
+        #: The calibration accuracy the map states when it sets its own (``[maps.NAME]``),
+        #: as its status says it; empty: the service-wide ``[mapping]`` values.
+        self.calibration_sigma = dict(calibration_sigma or {})
         self.stats = Stats()
         self.started_at = time.monotonic()
         self._publish = publish
@@ -179,7 +183,7 @@ class MapRuntime(ServedMap):
             counters={**counters, **self._replay_progress()}, latency_s=latency,
             degraded=self.degraded(), replaying=self.replaying, map_id=self.map_id or "",
             content_hash=self.content.of(self.map_state()) if content_hash else "",
-            diverged=self.diverged)
+            diverged=self.diverged, calibration_sigma=self.calibration_sigma)
 
     @property
     def map_id(self) -> str | None:

@@ -14,7 +14,7 @@ import logging
 import os
 import signal
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -45,16 +45,22 @@ class EngineSpec:
     options: dict[str, dict[str, Any]]
     mapping: dict[str, Any]
     limits: wire.Limits
+    #: Map name -> its own map-building options, for the maps that set some (``[maps.NAME]``
+    #: calibration accuracy); the others use ``mapping``.
+    map_mapping: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     @classmethod
     def of(cls, methods: tuple[str, ...], options: Mapping[str, Mapping[str, Any]],
-           mapping: Mapping[str, Any], limits: wire.Limits) -> EngineSpec:
+           mapping: Mapping[str, Any], limits: wire.Limits,
+           map_mapping: Mapping[str, Mapping[str, Any]] | None = None) -> EngineSpec:
         return cls(tuple(methods), {k: dict(v) for k, v in options.items()}, dict(mapping),
-                   limits)
+                   limits, {k: dict(v) for k, v in (map_mapping or {}).items()})
 
-    def engine_conf(self) -> EngineConf:
+    def engine_conf(self, name: str | None = None) -> EngineConf:
+        """The engine configuration of map ``name``'s replica (None: the service-wide)."""
+        mapping = self.map_mapping.get(name, self.mapping) if name is not None else self.mapping
         return EngineConf(methods=self.methods, options=self.options,
-                          mapping=MappingConf.from_options(self.mapping))
+                          mapping=MappingConf.from_options(mapping))
 
 
 class ReplicaMap(ServedMap):
@@ -103,7 +109,7 @@ def worker_main(conn: Connection, index: int) -> None:
         elif kind == "load":
             _, name, base, spec, cameras = msg
             try:
-                engine = Engine.load(base, spec.engine_conf(), train=False)   # as saved
+                engine = Engine.load(base, spec.engine_conf(name), train=False)   # as saved
                 previous = replicas.pop(name, None)
                 if previous is not None:
                     previous.engine.close()

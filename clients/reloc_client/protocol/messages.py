@@ -149,6 +149,11 @@ class StatusReply(Message):
     #: while idle (``max_resident_mb``): its keyframes, version and cameras are then those
     #: its storage records, landmarks 0 and trained false until it is loaded.
     resident: bool = True
+    #: The calibration accuracy the map's answers state in their covariance, 1 sigma:
+    #: ``focal_rel`` (relative) and ``radial_px`` (px at the farthest image corner); sent
+    #: only when the map sets its own (``[maps.NAME]``), else empty (the service-wide
+    #: ``[mapping]`` values).
+    calibration_sigma: Mapping[str, float] = field(default_factory=dict)
 
     def to_wire(self) -> dict[str, Any]:
         # the optional fields only when set: a client that predates them reads a healthy
@@ -161,6 +166,8 @@ class StatusReply(Message):
                 "counters": dict(self.counters), "latency_s": dict(self.latency_s),
                 **({"replaying": True} if self.replaying else {}),
                 **({} if self.resident else {"resident": False}),
+                **({"calibration_sigma": dict(self.calibration_sigma)}
+                   if self.calibration_sigma else {}),
                 **{k: v for k, v in (("degraded", self.degraded), ("map_id", self.map_id),
                                      ("content_hash", self.content_hash),
                                      ("diverged", self.diverged)) if v}}
@@ -189,7 +196,9 @@ class StatusReply(Message):
             map_id=f.opt("map_id", _hex_digest, ""),
             content_hash=f.opt("content_hash", _hex_digest, ""),
             diverged=f.opt("diverged", lambda v, p: _str(v, p, limits), ""),
-            resident=f.opt("resident", _bool, True))
+            resident=f.opt("resident", _bool, True),
+            calibration_sigma=f.opt("calibration_sigma",
+                                    lambda v, p: _timings(v, p, limits), {}))
         f.done()
         return out
 
