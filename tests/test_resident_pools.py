@@ -44,7 +44,7 @@ def test_a_loaded_map_counts_its_pools_before_any_query(template, tmp_path) -> N
     storage = tmp_path / "storage"
     copy_map(stored, storage, "alpha")
     port = free_port()
-    service = Service(conf(port, storage, 1000)).start()
+    service = Service(conf(port, storage, AMPLE_MB)).start()
     try:
         residency = service.registry.residency
         assert residency is not None

@@ -104,7 +104,7 @@ def test_a_cold_loaded_map_reaches_the_workers_without_a_save(saved, synthetic_s
     port = free_port()
     service = Service(service_conf(port, tmp_path / "storage", methods=[METHOD],
                                    default_method=METHOD, worker_mode="process", workers=1,
-                                   snapshot_every=0, max_resident_mb=1000)).start()
+                                   snapshot_every=0, max_resident_mb=100_000)).start()
     try:
         with RelocClient(endpoint(port), map="alpha", timeout=120) as client:
             answer = client.relocalize(scene.query_images[0], camera_id="cam0")
