@@ -15,26 +15,13 @@ from typing import Any
 
 import numpy as np
 
+from ...service.memory import descendants, total_rss_bytes
+
 
 def tree_rss_mb(pid: int) -> float:
     """Resident memory (MiB) of process ``pid`` and its descendants (worker processes,
     their forkserver): the sum of their ``VmRSS``; 0 once they are gone."""
-    children: dict[int, list[int]] = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-        except (OSError, IndexError, ValueError):
-            continue
-        children.setdefault(ppid, []).append(int(stat.parent.name))
-    total, todo = 0.0, [pid]
-    while todo:
-        p = todo.pop()
-        todo += children.get(p, [])
-        with contextlib.suppress(OSError, ValueError, IndexError):
-            for line in Path(f"/proc/{p}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    total += int(line.split()[1]) / 1024
-    return total
+    return total_rss_bytes([pid, *descendants(pid)]) / (1024 * 1024)
 
 
 @dataclass(eq=False)
