@@ -152,6 +152,15 @@ def test_compiled_background_distance_is_the_numpy_quantile(monkeypatch):
             assert compiled == pytest.approx(plain, rel=1e-12, abs=1e-12)
 
 
+def test_keypoint_tree_is_built_once_per_features():
+    from reloc_service.algorithms.pose.guided import keypoint_tree
+
+    px = np.random.default_rng(3).uniform(0, 100, (50, 2))
+    feats = Features.create("sift", px, np.zeros((50, 128), np.uint8))
+    assert keypoint_tree(feats) is keypoint_tree(feats)
+    assert keypoint_tree(feats).n == 50
+
+
 def test_histogram_quantile_is_numpys_quantile():
     from reloc_service.algorithms.pose.guided import _histogram_quantile
 

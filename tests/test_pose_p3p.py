@@ -466,3 +466,24 @@ def test_level_scales_weigh_coarse_keypoints_less():
             assert solved is not None
             errors[weighted].append(pose_error(solved[0].world_from_cam, TRUE_POSE)[0])
     assert np.median(errors[True]) < 0.85 * np.median(errors[False])
+
+
+def test_support_is_searched_once_per_pose_and_map_state(scene):
+    """The repetition search and the uniqueness check ask for one pose's support: the second
+    answer is the first's, equal to a fresh search; another pose searches anew."""
+    from reloc_service.algorithms.pose.support import explained_keypoints
+
+    finder = create_pose_finder({"name": "p3p"})
+    gt = query_pose(0)
+    query = Frame(scene.render(gt), scene.camera)
+    state = scene.map.snapshot()
+    est = finder.find_pose(query, candidates_near(scene, gt, 3), state)
+    first = finder.support(query, est.world_from_cam, state)
+    assert first is not None and len(first) > 50
+    assert finder.support(query, est.world_from_cam.copy(), state) is first
+    (key, _), = finder.feature_confs().items()
+    fresh = explained_keypoints(query.features[key], query.camera, est.world_from_cam, state,
+                                "sift", radius_px=2.0 * finder.conf.max_reproj_error_px)
+    assert np.array_equal(fresh.keypoints, first.keypoints) and fresh.predicted == first.predicted
+    moved = est.world_from_cam @ se3_exp_small(np.random.default_rng(1))
+    assert finder.support(query, moved, state) is not first

@@ -5,6 +5,7 @@ similar descriptors no longer hide the right match from a global ratio test."""
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,6 +26,12 @@ IntArray = npt.NDArray[np.int64]
 _WINDOW_NEIGHBOURS = 8
 #: Descriptor pairs sampled to estimate the distance distribution of unrelated features.
 _BACKGROUND_SAMPLE = 256
+
+#: The KD-tree of each keypoint set's positions, built on first use: one query's keypoints
+#: are searched by guided matching, by the support of each hypothesis and by the repetition
+#: search, from every candidate group and fallback step with that feature kind (features
+#: are frozen, so the tree stays theirs; it goes when they do).
+_TREES: weakref.WeakKeyDictionary[Features, cKDTree] = weakref.WeakKeyDictionary()
 
 
 @dataclass(frozen=True)
@@ -108,13 +115,22 @@ def search_by_projection(feats: Features, camera: Camera, world_from_cam: Array,
     px, visible = project_into(camera, world_from_cam, points_world)
     rows = np.flatnonzero(visible)
     k = min(_WINDOW_NEIGHBOURS, len(feats))
-    _, near = cKDTree(feats.keypoints_px).query(px[rows], k=k, distance_upper_bound=radius_px)
+    _, near = keypoint_tree(feats).query(px[rows], k=k, distance_upper_bound=radius_px)
     near = near.reshape(len(rows), k).astype(np.int64, copy=False)
     best, second, first = _window_best(feats.descriptors, map_desc[rows], near)
     limit = background_distance(feats.descriptors, map_desc, conf.background_quantile)
     ok = np.isfinite(best) & (best < conf.window_ratio * second) & (best < limit)
     query_idx = near[np.flatnonzero(ok), first[ok]]
     return _one_to_one(query_idx, rows[ok].astype(np.int64), best[ok])
+
+
+def keypoint_tree(feats: Features) -> cKDTree:
+    """The KD-tree of ``feats.keypoints_px`` (built once per features, see :data:`_TREES`)."""
+    tree = _TREES.get(feats)
+    if tree is None:
+        tree = cKDTree(feats.keypoints_px)
+        _TREES[feats] = tree
+    return tree
 
 
 def _window_best(query_desc: npt.NDArray[Any], landmark_desc: npt.NDArray[Any], near: IntArray

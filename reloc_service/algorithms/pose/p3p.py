@@ -15,6 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core import features as feature_lib
+from ...core.cameras import Camera
 from ...core.errors import ConfigError
 from ...core.frame import Features, Frame, Keyframe
 from ...core.map import MapState
@@ -243,9 +244,19 @@ class P3PPoseFinder(PoseFinder):
         if feats is None:
             return None
         conf = GuidedConf(local_keyframes=self.conf.guided_keyframes)
-        return explained_keypoints(feats, query.camera, world_from_cam, state, self.conf.kind,
-                                   radius_px=conf.window_factor * self.conf.max_reproj_error_px,
-                                   conf=conf)
+        radius = conf.window_factor * self.conf.max_reproj_error_px
+        # The repetition search asks for the first verified pose's support and the
+        # uniqueness check asks again (and a later chain step with these features may ask
+        # for the same pose): one search per pose, features and map state.
+        key = _support_key(self._feature_key, self.conf.kind, radius, conf, world_from_cam)
+        cached = query.cache.get(key)
+        if (cached is not None and cached.state is state and cached.features is feats
+                and cached.camera is query.camera):
+            return cached.support
+        support = explained_keypoints(feats, query.camera, world_from_cam, state,
+                                      self.conf.kind, radius_px=radius, conf=conf)
+        query.cache[key] = _CachedSupport(support, feats, state, query.camera)
+        return support
 
     def alternatives(self, query: Frame, estimate: PoseEstimate, state: MapState, *,
                      plausible: Callable[[PoseEstimate], bool] = lambda _: True
@@ -411,6 +422,25 @@ class _PreparedPool:
     pool: LandmarkPool
     uncertainty: PointUncertainty
     state: MapState
+
+
+@dataclass(frozen=True)
+class _CachedSupport:
+    """A pose's :class:`~.base.Support`, with the features, the map state and the camera
+    it was computed with (a hit needs all three to be the same objects)."""
+
+    support: Support
+    features: Features
+    state: MapState
+    camera: Camera
+
+
+def _support_key(feature_key: str, kind: str, radius_px: float, conf: GuidedConf,
+                 world_from_cam: Array) -> str:
+    """The ``query.cache`` key of the support of the pose ``world_from_cam`` (its exact
+    bytes) for these features and search settings."""
+    pose = np.ascontiguousarray(world_from_cam, np.float64).tobytes().hex()
+    return f"p3p:support:{feature_key}:{kind}:{radius_px!r}:{conf!r}:{pose}"
 
 
 def _pool_key(kind: str, keyframes: list[Keyframe], state: MapState) -> str:
