@@ -70,15 +70,16 @@ def blas_threads_record() -> dict[str, int]:
             for lib in threadpool_info() if lib["user_api"] == "blas"}
 
 
-def rss_mb(field: str = "VmRSS") -> float | None:
-    """This process's resident memory (``VmRSS``) or its peak (``VmHWM``) in MiB, from
-    ``/proc/self/status``; None where there is no such file."""
+def rss_mb(field: str = "VmRSS", pid: int | None = None) -> float | None:
+    """The resident memory (``VmRSS``) or its peak (``VmHWM``) in MiB of process ``pid``
+    (this process when None), from ``/proc/PID/status``; None where the process is gone or
+    there is no such file."""
     try:
-        with open("/proc/self/status", encoding="ascii") as f:
+        with open(f"/proc/{'self' if pid is None else pid}/status", encoding="ascii") as f:
             for line in f:
                 if line.startswith(field + ":"):
                     return int(line.split()[1]) / 1024.0
-    except OSError:
+    except (OSError, ValueError):
         pass
     return None
 

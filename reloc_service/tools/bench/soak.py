@@ -24,10 +24,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
-import signal
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -41,13 +37,12 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core.cameras import Camera
-from .loopback import free_port, service_doc, toml_text
-from .machine import load_average
+from .machine import load_average, rss_mb
 from .samples import JPEG_QUALITY, QuerySet, json_safe
 from .soak_ledger import Ledger, Outcomes, Phase
 from .soak_report import STOP_KINDS, query_summary, restart_summary, rss_summary
+from .soak_service import MAP_NAME, ServiceRunner
 
-MAP_NAME = "soak"
 CAMERA_ID = "cam0"
 #: First id of a streamed keyframe (the scene's own keyframes are 0..n-1).
 STREAM_FIRST_ID = 1000
@@ -125,74 +120,6 @@ def render_scene(conf: SoakConf, tmp: Path) -> SoakScene:
         [ds.load_image(e) for e in ds.query_entries],
         preset=conf.preset, scale=conf.scale, seed=conf.seed,
         image=f"{camera.width}x{camera.height}")
-
-
-# -- the service process ---------------------------------------------------------------------
-
-class ServiceRunner:
-    """``reloc serve`` on one port and one storage folder, started and stopped many times."""
-
-    def __init__(self, conf: SoakConf, folder: Path) -> None:
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.folder = folder
-        doc = service_doc(self.endpoint, folder / "storage", [conf.method], {},
-                          map_name=MAP_NAME, workers=conf.workers, queue_size=conf.queue_size)
-        doc["service"].update(snapshot_every=conf.snapshot_every, fsync=conf.fsync,
-                              allow_new_maps=False, instance="soak")
-        self.config = folder / "service.toml"
-        self.config.write_text(toml_text(doc))
-        self.proc: subprocess.Popen[bytes] | None = None
-        self.started_at = math.nan
-        self.runs = 0
-
-    @property
-    def pid(self) -> int | None:
-        proc = self.proc
-        return proc.pid if proc is not None and proc.poll() is None else None
-
-    def start(self) -> None:
-        self.runs += 1
-        log = open(self.folder / f"service-{self.runs:02d}.log", "wb")  # noqa: SIM115
-        self.started_at = time.monotonic()
-        self.proc = subprocess.Popen([sys.executable, "-m", "reloc_service.cli.main", "serve",
-                                      "--config", str(self.config)],
-                                     stdout=log, stderr=subprocess.STDOUT)
-        log.close()  # the child holds its own descriptor
-
-    def stop(self, kind: str, timeout_s: float) -> dict[str, Any]:
-        """Stop by ``kind`` (``kill9`` or ``sigterm``; a SIGTERM that takes longer than
-        ``timeout_s`` is followed by kill -9). Returns how it went."""
-        assert self.proc is not None
-        start = time.monotonic()
-        self.proc.send_signal(signal.SIGKILL if kind == "kill9" else signal.SIGTERM)
-        escalated = False
-        try:
-            self.proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            escalated = True
-            self.proc.kill()
-            self.proc.wait()
-        return {"kind": kind, "stop_s": time.monotonic() - start,
-                "exit_code": self.proc.returncode, "killed_after_timeout": escalated}
-
-    def exited(self) -> int | None:
-        return None if self.proc is None else self.proc.poll()
-
-    def log_tail(self, chars: int = 2000) -> str:
-        path = self.folder / f"service-{self.runs:02d}.log"
-        return path.read_text(errors="replace")[-chars:] if path.exists() else ""
-
-
-def rss_mb(pid: int) -> float | None:
-    """Resident memory of process ``pid`` in MB (None if it is gone)."""
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024
-    except (OSError, ValueError):
-        return None
-    return None
 
 
 def classify(exc: BaseException) -> str:
@@ -274,7 +201,7 @@ def rss_loop(runner: ServiceRunner, phase: Phase, samples: list[list[Any]],
     """Sample the service's resident memory every ``period_s`` (None while it is down)."""
     while not phase.stop.wait(period_s):
         pid = runner.pid
-        samples.append([round(phase.now(), 2), None if pid is None else rss_mb(pid)])
+        samples.append([round(phase.now(), 2), None if pid is None else rss_mb(pid=pid)])
 
 
 # -- restarts ----------------------------------------------------------------------------------
