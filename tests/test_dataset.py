@@ -27,8 +27,8 @@ from reloc_service.tools.data.dataset import (
     DatasetEntry,
     read_camera_json,
     read_dataset,
-    write_dataset,
 )
+from reloc_service.tools.data.dataset_write import write_dataset
 
 CAMERAS = {
     "pinhole": PinholeCamera(32, 24, 30.0, 31.0, 15.5, 11.5),

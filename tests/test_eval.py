@@ -15,7 +15,8 @@ from reloc_service.algorithms.relocalizers.base import RelocResult, RelocStatus
 from reloc_service.core.cameras import PinholeCamera
 from reloc_service.core.errors import ConfigError, DatasetError
 from reloc_service.core.geometry import look_at, pose_to_tum, se3_exp
-from reloc_service.tools.data.dataset import DatasetEntry, write_dataset
+from reloc_service.tools.data.dataset import DatasetEntry
+from reloc_service.tools.data.dataset_write import write_dataset
 from reloc_service.tools.eval import evaluate as ev
 from reloc_service.tools.eval import metrics, plots, report
 

@@ -13,7 +13,8 @@ from service_support import endpoint, free_port, service_conf
 
 from reloc_service.cli.main import main as reloc_main
 from reloc_service.service.app import Service
-from reloc_service.tools.data.dataset import DatasetEntry, write_dataset
+from reloc_service.tools.data.dataset import DatasetEntry
+from reloc_service.tools.data.dataset_write import write_dataset
 from reloc_service.tools.eval.evaluate import RemoteSpec, evaluate
 
 METHOD = "sbi+p3p"

@@ -13,9 +13,9 @@ _EXPORTS = {
     "Dataset": "dataset",
     "DatasetEntry": "dataset",
     "read_dataset": "dataset",
-    "write_dataset": "dataset",
+    "write_dataset": "dataset_write",
     "read_pose_file": "dataset",
-    "write_pose_file": "dataset",
+    "write_pose_file": "dataset_write",
     "read_cameras": "dataset",
     "read_camera_json": "dataset",
     "convert_tum": "tum",
@@ -43,9 +43,8 @@ if TYPE_CHECKING:
         read_cameras,
         read_dataset,
         read_pose_file,
-        write_dataset,
-        write_pose_file,
     )
+    from .dataset_write import write_dataset, write_pose_file
     from .euroc import convert_euroc
     from .tum import convert_tum
 

@@ -14,7 +14,8 @@ from scipy.spatial.transform import Rotation
 from ...core.cameras import Camera
 from ...core.errors import DatasetError
 from ...core.progress import progress
-from .dataset import Dataset, DatasetEntry, read_dataset, write_dataset
+from .dataset import Dataset, DatasetEntry, read_dataset
+from .dataset_write import write_dataset
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.intp]

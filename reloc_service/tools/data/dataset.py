@@ -1,5 +1,5 @@
 """Reloc dataset v1: ``cameras.json``, ``map.txt``, ``queries.txt``, ``depth.txt``,
-``truth_depth.txt``; strict reading that names file and line, atomic writing.
+``truth_depth.txt``; strict reading that names file and line (:mod:`.dataset_write` writes it).
 
 Layout of a dataset folder ``DATASET``::
 
@@ -37,11 +37,10 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from reloc_client.protocol.geometry import quat_xyzw_to_rotation, rotation_to_quat_xyzw_array
+from reloc_client.protocol.geometry import quat_xyzw_to_rotation
 
 from ...core.cameras import Camera, camera_from_dict
 from ...core.errors import CameraError, DatasetError, GeometryError
-from ...core.fileio import atomic_write
 from ...core.geometry import check_pose
 
 Array = npt.NDArray[np.float64]
@@ -363,14 +362,14 @@ def read_calibration_sigma(path: str | Path) -> tuple[float, float]:
         raise DatasetError(f"{path}: not JSON ({exc}); {_CALIBRATION_EXPECTED}") from None
     if not isinstance(data, dict) or sorted(data) != sorted(CALIBRATION_KEYS):
         raise DatasetError(f"{path}: {_CALIBRATION_EXPECTED}, got {data!r}")
-    return _checked_calibration([data[key] for key in CALIBRATION_KEYS], str(path))
+    return checked_calibration([data[key] for key in CALIBRATION_KEYS], str(path))
 
 
 _CALIBRATION_EXPECTED = ('expected {"focal_sigma_rel": <relative focal, >= 0>, '
                          '"radial_sigma_px": <pixels at the farthest corner, >= 0>}')
 
 
-def _checked_calibration(values: Iterable[object], where: str) -> tuple[float, float]:
+def checked_calibration(values: Iterable[object], where: str) -> tuple[float, float]:
     """(relative focal, radial pixels) as floats; DatasetError unless both are finite numbers
     >= 0 (a boolean is not a number here)."""
     items = list(values)
@@ -379,99 +378,6 @@ def _checked_calibration(values: Iterable[object], where: str) -> tuple[float, f
             and v >= 0 for v in items):
         raise DatasetError(f"{where}: {_CALIBRATION_EXPECTED}, got {items!r}")
     return float(items[0]), float(items[1])  # type: ignore[arg-type]
-
-
-# -- writing ---------------------------------------------------------------------------------
-
-def format_pose_lines(entries: list[DatasetEntry]) -> list[str]:
-    """``map.txt`` lines; ``repr`` floats round-trip each pose to ~1e-16."""
-    if not entries:
-        return []
-    poses = np.stack([e.world_from_cam for e in entries])
-    quats = rotation_to_quat_xyzw_array(poses[:, :3, :3])  # w >= 0
-    table = np.column_stack([poses[:, :3, 3], quats]).tolist()
-    return [f"{e.image_path} {e.camera_id} " + " ".join(map(repr, row))
-            for e, row in zip(entries, table, strict=True)]
-
-
-def write_pose_file(path: str | Path, entries: Iterable[DatasetEntry], *, title: str = "") -> None:
-    """Write ``map.txt`` / ``queries.txt`` atomically."""
-    header = f"# {FORMAT}: {title + ', ' if title else ''}world_from_cam\n# {POSE_LINE}\n"
-    lines = format_pose_lines(list(entries))
-    atomic_write(Path(path), header + "".join(f"{line}\n" for line in lines))
-
-
-def write_depth_file(path: str | Path, depth: Mapping[str, tuple[str, float]], *,
-                     title: str = "depth maps") -> None:
-    """Write ``depth.txt`` (or ``truth_depth.txt``) atomically."""
-    lines = [f"{image} {png} {float(mpu)!r}\n" for image, (png, mpu) in depth.items()]
-    atomic_write(Path(path), f"# {FORMAT}: {title}\n# {DEPTH_LINE}\n" + "".join(lines))
-
-
-def write_dataset(root: str | Path, cameras: Mapping[str, Camera],
-                  map_entries: Iterable[DatasetEntry], query_entries: Iterable[DatasetEntry],
-                  depth: Mapping[str, tuple[str, float]] | None = None, *,
-                  truth_depth: Mapping[str, tuple[str, float]] | None = None,
-                  calibration_sigma: tuple[float, float] | None = None) -> None:
-    """Validate, then write ``cameras.json``, ``map.txt``, ``queries.txt``, ``depth.txt``
-    (sensor depth), ``truth_depth.txt`` (ground truth for scoring only) and
-    ``calibration.json`` (the intrinsics' stated accuracy) under ``root``, each atomically;
-    a depth file whose mapping is empty, or a calibration file when ``calibration_sigma`` is
-    None, is removed (a stale one would not match). Images and depth PNGs are the caller's."""
-    root = Path(root)
-    map_entries, query_entries = list(map_entries), list(query_entries)
-    depth, truth_depth = dict(depth or {}), dict(truth_depth or {})
-    _check_for_writing(cameras, map_entries, query_entries,
-                       {DEPTH_FILE: depth, TRUTH_DEPTH_FILE: truth_depth})
-    if calibration_sigma is not None:
-        calibration_sigma = _checked_calibration(calibration_sigma, CALIBRATION_FILE)
-    root.mkdir(parents=True, exist_ok=True)
-    camera_lines = [f"  {json.dumps(cid)}: {json.dumps(camera.to_dict())}"
-                    for cid, camera in cameras.items()]
-    atomic_write(root / CAMERAS_FILE, "{\n" + ",\n".join(camera_lines) + "\n}\n")
-    write_pose_file(root / MAP_FILE, map_entries, title="map keyframes")
-    write_pose_file(root / QUERIES_FILE, query_entries, title="queries, ground-truth poses")
-    for name, maps, title in ((DEPTH_FILE, depth, "sensor depth maps"),
-                              (TRUTH_DEPTH_FILE, truth_depth,
-                               "ground-truth depth maps, for scoring only")):
-        if maps:
-            write_depth_file(root / name, maps, title=title)
-        else:
-            (root / name).unlink(missing_ok=True)  # a stale depth file would not match
-    if calibration_sigma is None:
-        (root / CALIBRATION_FILE).unlink(missing_ok=True)
-    else:
-        atomic_write(root / CALIBRATION_FILE, json.dumps(
-            dict(zip(CALIBRATION_KEYS, calibration_sigma, strict=True))) + "\n")
-
-
-def _check_for_writing(cameras: Mapping[str, Camera], map_entries: list[DatasetEntry],
-                       query_entries: list[DatasetEntry],
-                       depth_files: Mapping[str, dict[str, tuple[str, float]]]) -> None:
-    for camera_id, camera in cameras.items():
-        problem = camera_id_problem(camera_id)
-        if problem or not isinstance(camera, Camera):
-            raise DatasetError(f"cameras: {problem or f'{camera_id!r} is not a Camera'}")
-    for name, entries in ((MAP_FILE, map_entries), (QUERIES_FILE, query_entries)):
-        seen: set[str] = set()
-        for entry in entries:
-            if entry.camera_id not in cameras:
-                raise DatasetError(f"{name}: {entry.image_path!r} has unknown camera id "
-                                   f"{entry.camera_id!r}; expected one of {sorted(cameras)}")
-            if entry.image_path in seen:
-                raise DatasetError(f"{name}: duplicate image path {entry.image_path!r}")
-            seen.add(entry.image_path)
-    known = {e.image_path for e in map_entries + query_entries}
-    for name, depth in depth_files.items():
-        for image_path, (depth_path, metres_per_unit) in depth.items():
-            problem = image_path_problem(depth_path)
-            if image_path not in known:
-                problem = f"{image_path!r} is not a map or query image"
-            if problem:
-                raise DatasetError(f"{name}: {problem}")
-            if not (math.isfinite(metres_per_unit) and metres_per_unit > 0):
-                raise DatasetError(f"{name}: metres per unit of {image_path!r} is "
-                                   f"{metres_per_unit}; expected a positive number")
 
 
 # -- helpers ---------------------------------------------------------------------------------

@@ -25,7 +25,8 @@ from ...core.cameras import Camera, PinholeCamera, camera_from_dict
 from ...core.errors import CameraError, DatasetError
 from ...service.ros2 import convert
 from ...service.ros2.conf import Ros2Conf
-from .dataset import Dataset, DatasetEntry, camera_id_problem, read_dataset, write_dataset
+from .dataset import Dataset, DatasetEntry, camera_id_problem, read_dataset
+from .dataset_write import write_dataset
 from .rosbag_images import ImageWriter, image_size
 from .rosbag_select import Selection, select_frames
 from .rosbag_topics import (

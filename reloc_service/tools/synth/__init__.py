@@ -50,7 +50,8 @@ def render_dataset(preset: str | Preset, out: Path, *, seed: int = 0, workers: i
     shrinks the images (and the camera) for quick tests; ``workers`` processes render frames
     in parallel (1: in this process). The workers are spawned, so a script that calls this
     with ``workers > 1`` needs the usual ``if __name__ == "__main__":`` guard."""
-    from ..data.dataset import DatasetEntry, write_dataset
+    from ..data.dataset import DatasetEntry
+    from ..data.dataset_write import write_dataset
     from .scenes import build_scene
     from .trajectories import make_trajectories
 
