@@ -11,19 +11,15 @@ import numpy as np
 import pytest
 from ros2_standin import (
     HASH,
-    ROSOUT_HASH,
-    ROSOUT_QOS,
-    LatchingStandIn,
     camera_info,
     compressed_image,
     odometry,
     parse_attachment,
-    read_diagnostic_array,
-    read_log,
     read_pose,
     read_trigger_response,
     rosbags_hash,
 )
+from ros2_standin_latched import ROSOUT_HASH, ROSOUT_QOS, LatchingStandIn, read_diagnostic_array, read_log
 from ros2_support import CIMG, body_from_cam, feed_map, pngs, stamp, start_service
 from service_support import endpoint, free_port, open_router, wait_until
 
