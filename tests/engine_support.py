@@ -5,7 +5,24 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from reloc_service.core.frame import Frame
+from reloc_service.core.mapping import MappingConf
 from reloc_service.engine import Engine, EngineConf
+
+#: Few features per keyframe: engine tests exercise the engine, not the features' accuracy.
+FAST_MAPPING = MappingConf(max_features=400)
+
+
+def add_keyframes(engine: Engine, scene, ids) -> None:
+    """Keyframes ``ids`` of ``scene`` into ``engine``, at their poses, stamped by their id."""
+    for i in ids:
+        engine.add_keyframe(i, scene.keyframe_images[i], scene.camera, scene.keyframe_poses[i],
+                            timestamp=float(i))
+
+
+def query_frame(scene, i: int = 0) -> Frame:
+    """Query ``i`` of ``scene`` as a frame of the scene's camera."""
+    return Frame(scene.query_images[i], scene.camera)
 
 
 def trained_engine(scene, conf: EngineConf) -> Engine:

@@ -3,10 +3,7 @@ swaps in without blocking queries, lazy methods, feature kinds, persistence."""
 
 from __future__ import annotations
 
-import functools
 import json
-import linecache
-import sys
 import threading
 import time
 from collections.abc import Mapping
@@ -15,8 +12,8 @@ from typing import Any
 
 import numpy as np
 import pytest
+from engine_support import FAST_MAPPING, add_keyframes, query_frame
 
-import reloc_service
 from reloc_service.algorithms.relocalizers.base import (
     RELOCALIZERS,
     Prior,
@@ -27,7 +24,6 @@ from reloc_service.algorithms.relocalizers.base import (
 from reloc_service.core.errors import ConfigError, MapError, NotTrainedError
 from reloc_service.core.frame import Frame, Keyframe
 from reloc_service.core.map import KeyframeMap, MapState
-from reloc_service.core.mapping import MappingConf
 from reloc_service.core.methods import MethodStep
 from reloc_service.engine import Engine, EngineConf, MapView, ReadWriteLock
 
@@ -121,31 +117,18 @@ for _name in ("probe", "probe_slow", "probe_orb"):
 TRAIN_GATE = threading.Event()
 TRAIN_GATE.set()
 OPTIONS = {"probe_slow": {"gated": True}, "probe_orb": {"kinds": ["orb"]}}
-FAST = MappingConf(max_features=400)
-
-
 def _engine(methods=("probe",), **kw) -> Engine:
-    return Engine(EngineConf(methods=methods, options=OPTIONS, mapping=FAST), **kw)
-
-
-def _add(engine: Engine, scene, ids) -> None:
-    for i in ids:
-        engine.add_keyframe(i, scene.keyframe_images[i], scene.camera, scene.keyframe_poses[i],
-                            timestamp=float(i))
-
-
-def _query(scene, i=0) -> Frame:
-    return Frame(scene.query_images[i], scene.camera)
+    return Engine(EngineConf(methods=methods, options=OPTIONS, mapping=FAST_MAPPING), **kw)
 
 
 def test_engine_basics(synthetic_scene):
     engine = _engine()
     assert engine.status()["keyframes"] == 0
-    _add(engine, synthetic_scene, range(3))
+    add_keyframes(engine, synthetic_scene, range(3))
     with pytest.raises(NotTrainedError):
-        engine.relocalize(_query(synthetic_scene))
+        engine.relocalize(query_frame(synthetic_scene))
     engine.train()
-    result = engine.relocalize(_query(synthetic_scene))
+    result = engine.relocalize(query_frame(synthetic_scene))
     assert result.ok and result.matched_keyframe_ids == [0, 1, 2]
     assert result.map_version == engine.map.version
     assert {"engine_wait", "engine_total", "place"} <= set(result.timings)
@@ -157,13 +140,13 @@ def test_engine_basics(synthetic_scene):
                                            "map_version": engine.map.version}}
     removed = engine.remove_keyframe(1)
     assert removed.id == 1
-    result = engine.relocalize(_query(synthetic_scene))
+    result = engine.relocalize(query_frame(synthetic_scene))
     assert result.ok and result.matched_keyframe_ids == [0, 2]
     with pytest.raises(MapError):
         engine.remove_keyframe(1)
     # Replacing a keyframe: the relocalizer forgets the old one and learns the new one.
-    _add(engine, synthetic_scene, [2])
-    assert engine.relocalize(_query(synthetic_scene)).matched_keyframe_ids == [0, 2]
+    add_keyframes(engine, synthetic_scene, [2])
+    assert engine.relocalize(query_frame(synthetic_scene)).matched_keyframe_ids == [0, 2]
 
 
 def test_engine_conf_validation():
@@ -179,7 +162,7 @@ def test_engine_conf_validation():
 def test_feature_kinds_are_the_union_of_methods_and_mapping(synthetic_scene):
     engine = _engine(methods=("probe", "probe_orb"))
     assert engine.builder.conf.feature_kinds == ("sift", "orb")
-    _add(engine, synthetic_scene, range(2))
+    add_keyframes(engine, synthetic_scene, range(2))
     kf = engine.map.snapshot().keyframes[1]
     assert set(kf.features) == {"sift", "orb"}
     assert engine.map.snapshot().landmark_count("orb") > 0
@@ -187,9 +170,9 @@ def test_feature_kinds_are_the_union_of_methods_and_mapping(synthetic_scene):
 
 def test_lazy_method_is_built_fed_and_trained(synthetic_scene):
     engine = _engine()
-    _add(engine, synthetic_scene, range(3))
+    add_keyframes(engine, synthetic_scene, range(3))
     engine.train()
-    result = engine.relocalize(_query(synthetic_scene), method="probe_orb")
+    result = engine.relocalize(query_frame(synthetic_scene), method="probe_orb")
     assert result.ok and result.matched_keyframe_ids == [0, 1, 2]
     assert "engine_build" in result.timings
     assert engine.methods == ["probe", "probe_orb"]
@@ -198,10 +181,10 @@ def test_lazy_method_is_built_fed_and_trained(synthetic_scene):
     state = engine.map.snapshot()
     assert all("orb" in kf.features for kf in state.keyframes.values())
     assert state.landmark_count("orb") > 0
-    again = engine.relocalize(_query(synthetic_scene), method="probe_orb")
+    again = engine.relocalize(query_frame(synthetic_scene), method="probe_orb")
     assert "engine_build" not in again.timings
     with pytest.raises(ConfigError):
-        engine.relocalize(_query(synthetic_scene), method="nope")
+        engine.relocalize(query_frame(synthetic_scene), method="nope")
 
 
 def test_concurrent_queries_see_consistent_map_versions(synthetic_scene):
@@ -209,7 +192,7 @@ def test_concurrent_queries_see_consistent_map_versions(synthetic_scene):
     every answer was computed on one published map version, whose keyframes the relocalizer
     had all learnt (the probe refuses otherwise)."""
     engine = _engine()
-    _add(engine, synthetic_scene, [0])
+    add_keyframes(engine, synthetic_scene, [0])
     engine.train()
     published = {engine.map.version: [0]}
     stop = threading.Event()
@@ -217,7 +200,7 @@ def test_concurrent_queries_see_consistent_map_versions(synthetic_scene):
     errors: list[BaseException] = []
 
     def query_loop(i: int) -> None:
-        frame = _query(synthetic_scene, i % 3)
+        frame = query_frame(synthetic_scene, i % 3)
         try:
             while not stop.is_set():
                 results.append(engine.relocalize(frame))
@@ -229,7 +212,7 @@ def test_concurrent_queries_see_consistent_map_versions(synthetic_scene):
         t.start()
     try:
         for i in range(1, 6):
-            _add(engine, synthetic_scene, [i])
+            add_keyframes(engine, synthetic_scene, [i])
             published[engine.map.version] = engine.map.snapshot().keyframe_ids()
             if i == 3:
                 engine.remove_keyframe(1)
@@ -249,7 +232,7 @@ def test_concurrent_queries_see_consistent_map_versions(synthetic_scene):
 
 def test_train_swaps_in_without_blocking_queries(synthetic_scene):
     engine = _engine(methods=("probe_slow",))
-    _add(engine, synthetic_scene, range(2))
+    add_keyframes(engine, synthetic_scene, range(2))
     engine.train()
     old = engine.relocalizer("probe_slow")
     TRAIN_GATE.clear()
@@ -260,10 +243,10 @@ def test_train_swaps_in_without_blocking_queries(synthetic_scene):
         time.sleep(0.005)
     assert engine.status()["building"] == ["probe_slow"]
     # While it trains: keyframes come and go, queries are answered by the old relocalizer.
-    _add(engine, synthetic_scene, [2, 3])
+    add_keyframes(engine, synthetic_scene, [2, 3])
     engine.remove_keyframe(0)
     try:
-        result = engine.relocalize(_query(synthetic_scene))
+        result = engine.relocalize(query_frame(synthetic_scene))
         assert trainer.is_alive()
         assert result.ok and result.matched_keyframe_ids == [1, 2, 3]
         assert engine.relocalizer("probe_slow") is old
@@ -273,7 +256,7 @@ def test_train_swaps_in_without_blocking_queries(synthetic_scene):
     new = engine.relocalizer("probe_slow")
     assert new is not old and new.train_calls == 1
     assert sorted(new.index) == [1, 2, 3]              # replayed changes made during training
-    result = engine.relocalize(_query(synthetic_scene))
+    result = engine.relocalize(query_frame(synthetic_scene))
     assert result.ok and result.matched_keyframe_ids == [1, 2, 3]
     assert engine.status()["building"] == []
     assert isinstance(new.map, MapView)
@@ -283,18 +266,18 @@ def test_train_swaps_in_without_blocking_queries(synthetic_scene):
 
 def test_save_and_load(tmp_path, synthetic_scene):
     engine = _engine()
-    _add(engine, synthetic_scene, range(3))
+    add_keyframes(engine, synthetic_scene, range(3))
     engine.train()
     snapshot = engine.save(tmp_path / "map")
     assert (snapshot / "models" / "probe" / "probe.json").is_file()
     loaded = Engine.load(tmp_path / "map", EngineConf(methods=("probe", "probe_slow"), options={},
-                                                      mapping=FAST))
+                                                      mapping=FAST_MAPPING))
     assert loaded.status()["keyframes"] == 3
     assert loaded.map.snapshot().landmarks.keys() == engine.map.snapshot().landmarks.keys()
     assert loaded.relocalizer("probe").loaded == [0, 1, 2]          # models restored
     assert loaded.relocalizer("probe").train_calls == 0
     assert loaded.relocalizer("probe_slow").train_calls == 1        # nothing saved: trained
-    result = loaded.relocalize(_query(synthetic_scene))
+    result = loaded.relocalize(query_frame(synthetic_scene))
     assert result.ok and result.matched_keyframe_ids == [0, 1, 2]
     assert result.map_version == engine.map.version
 
@@ -349,7 +332,7 @@ def test_sbi_p3p_smoke(synthetic_scene):
     from reloc_service.core.geometry import pose_error
 
     engine = Engine(EngineConf(methods=("sbi+p3p",)))
-    _add(engine, synthetic_scene, range(6))
+    add_keyframes(engine, synthetic_scene, range(6))
     engine.train()
     for image, pose in zip(synthetic_scene.query_images, synthetic_scene.query_poses, strict=True):
         result = engine.relocalize(Frame(image, synthetic_scene.camera))
@@ -370,7 +353,7 @@ def test_answers_carry_the_keyframes_pose_covariance(synthetic_scene):
     loose = Engine(EngineConf(methods=("sbi+p3p",), mapping={
         "keyframe_position_sigma_m": 0.05, "keyframe_rotation_sigma_deg": 1.0}))
     for engine in (exact, loose):
-        _add(engine, synthetic_scene, range(6))
+        add_keyframes(engine, synthetic_scene, range(6))
         engine.train()
     for image in synthetic_scene.query_images:
         a = exact.relocalize(Frame(image, synthetic_scene.camera))
@@ -393,7 +376,7 @@ def test_the_maps_calibration_accuracy_changes_the_stated_covariance_not_the_ans
         **exact_kf, "calibration_focal_sigma_rel": focal, "calibration_radial_sigma_px": radial}))
         for focal, radial in ((0.0, 0.0), (0.02, 4.0))]
     for engine in engines:
-        _add(engine, synthetic_scene, range(6))
+        add_keyframes(engine, synthetic_scene, range(6))
         engine.train()
     wider = 0
     for image in synthetic_scene.query_images:
@@ -404,173 +387,3 @@ def test_the_maps_calibration_accuracy_changes_the_stated_covariance_not_the_ans
         assert np.linalg.eigvalsh(b.covariance - a.covariance).min() > -1e-12
         wider += position_sigma_m(b.covariance) > 1.05 * position_sigma_m(a.covariance)
     assert wider >= 1
-
-
-# -- the lock discipline with the real methods -------------------------------------------------
-REAL_METHODS = ("sbi+p3p", "bow+p3p", "ferns")
-REAL_OPTIONS = {"bow": {"branching": 6, "depth": 3},
-                "ferns": {"num_ferns": 40, "num_tests": 10, "num_warps": 10, "workers": 2}}
-
-
-def _real_engine(scene, ids) -> Engine:
-    engine = Engine(EngineConf(methods=REAL_METHODS, options=REAL_OPTIONS, mapping=FAST))
-    _add(engine, scene, ids)
-    engine.train()
-    return engine
-
-
-def test_only_the_engine_creates_locks(synthetic_scene, monkeypatch):
-    """The engine is the one place that locks: building, mapping, training and querying the
-    real methods creates no lock in the map, the indexes or the relocalizers, and a query
-    creates none at all."""
-    root = str(Path(reloc_service.__file__).parent)
-    sites: list[str] = []
-
-    def counting(name: str):
-        real = getattr(threading, name)
-
-        def make(*args: Any, **kwargs: Any) -> Any:
-            caller = sys._getframe(1)
-            path = caller.f_code.co_filename
-            # Our own creations only: a library's lock (numpy's random generators, a thread
-            # pool's) is attributed to the line of ours that called the library.
-            if path.startswith(root) and f"{name}(" in linecache.getline(path, caller.f_lineno):
-                sites.append(f"{Path(path).relative_to(root)}:{caller.f_lineno}")
-            return real(*args, **kwargs)
-        return make
-
-    for name in ("Lock", "RLock", "Condition"):
-        monkeypatch.setattr(threading, name, counting(name))
-    engine = _real_engine(synthetic_scene, range(3))
-    engine.remove_keyframe(2)
-    assert sites and {s.split(":")[0] for s in sites} == {"engine.py"}, sites
-    built = len(sites)
-    for method in REAL_METHODS:
-        engine.relocalize(_query(synthetic_scene), method=method)
-    assert len(sites) == built, f"locks created by queries: {sites[built:]}"
-
-
-def test_concurrent_queries_on_real_methods_while_mapping_and_training(synthetic_scene):
-    """Threads query sbi+p3p, bow+p3p and ferns non-stop while keyframes are added, replaced
-    and removed and two methods are retrained: no exception, every answer is a correct pose
-    or NOT_RELOCALIZED, and each was computed on one published map version, matching only
-    keyframes of that version. Afterwards every index holds exactly the map's keyframes.
-    (The engine's exclusion itself is proven by the probe of
-    ``test_concurrent_queries_see_consistent_map_versions``: the real methods pin a map
-    snapshot per query and would hide a missing read lock most of the time.)"""
-    from reloc_service.core.geometry import pose_error
-
-    scene = synthetic_scene
-    engine = _real_engine(scene, range(4))
-    published = {engine.map.version: set(engine.map.snapshot().keyframes)}
-    stop = threading.Event()
-    answers: list[tuple[str, int, RelocResult]] = []
-    errors: list[BaseException] = []
-
-    def guarded(work) -> None:
-        try:
-            work()
-        except BaseException as exc:  # noqa: BLE001 - the test reports it
-            errors.append(exc)
-
-    def query_loop(first: int) -> None:
-        i = first
-        while not stop.is_set():
-            method, q = REAL_METHODS[i % len(REAL_METHODS)], i % 3
-            answers.append((method, q, engine.relocalize(_query(scene, q), method=method)))
-            i += 1
-
-    def retrain() -> None:
-        engine.train(["bow+p3p"])
-        engine.train(["ferns"])
-
-    threads = [threading.Thread(target=guarded, args=(functools.partial(query_loop, k),))
-               for k in range(3)]
-    trainer = threading.Thread(target=guarded, args=(retrain,))
-    for t in [*threads, trainer]:
-        t.start()
-    try:
-        for change in (("add", 4), ("remove", 1), ("add", 5), ("add", 2), ("remove", 0),
-                       ("add", 1)):   # ("add", 2): a replaced keyframe
-            if change[0] == "add":
-                _add(engine, scene, [change[1]])
-            else:
-                engine.remove_keyframe(change[1])
-            published[engine.map.version] = set(engine.map.snapshot().keyframes)
-        trainer.join()
-    finally:
-        stop.set()
-        for t in threads:
-            t.join()
-    assert not errors, errors
-    assert {m for m, _, _ in answers} == set(REAL_METHODS)
-    for method, q, r in answers:
-        assert r.method == method and r.map_version in published
-        assert set(r.matched_keyframe_ids) <= published[r.map_version], (method, r)
-        if r.ok:
-            dist, angle = pose_error(r.world_from_cam, scene.query_poses[q])
-            assert dist < 0.05 and np.degrees(angle) < 1.0, (method, q, dist, r.reason)
-        else:
-            assert r.reason, (method, q)
-    _assert_indexes_match_map(engine)
-
-
-def _assert_indexes_match_map(engine: Engine) -> None:
-    """Every relocalizer learnt exactly the published map (no lost or doubled update)."""
-    state = engine.map.snapshot()
-    ids = state.keyframe_ids()
-    assert engine.status()["map_version"] == state.version
-    assert len(engine.relocalizer("sbi+p3p").place) == len(ids)
-    assert engine.relocalizer("bow+p3p").place.indexed_keyframe_ids() == ids
-    ferns = engine.relocalizer("ferns")
-    observed = {(lm.id, o[0], o[2]) for lm in state.landmarks.values() for o in lm.observations
-                if o[1] == "sift"}
-    assert ferns.trained_observations() <= observed
-    assert {kf for _, kf, _ in ferns.trained_observations()} == {kf for _, kf, _ in observed}
-
-
-def _answer(result: RelocResult) -> tuple[Any, ...]:
-    """What a query answered, bit for bit."""
-    pose = None if result.world_from_cam is None else result.world_from_cam.tobytes()
-    return (result.ok, result.reason, result.inliers, result.num_matches, pose,
-            tuple(result.matched_keyframe_ids), result.map_version)
-
-
-@pytest.mark.slow
-def test_concurrent_queries_answer_as_sequential_ones(synthetic_scene):
-    """Queries share a relocalizer under the read lock, so ``relocalize`` must not change
-    what another query reads: queries started together right after a map change (bow's
-    inverted file and ferns' landmark table are stale, so the racing queries rebuild them)
-    answer bit for bit what the same queries answer one after another."""
-    scene = synthetic_scene
-    engine = _real_engine(scene, range(3))
-    _add(engine, scene, [3])
-    work = [(m, q) for m in REAL_METHODS for q in range(3)]
-    start = threading.Barrier(3)
-    answers: dict[int, dict[tuple[str, int], tuple[Any, ...]]] = {k: {} for k in range(3)}
-    errors: list[BaseException] = []
-
-    def queries(k: int) -> None:
-        try:
-            start.wait(10)
-            for method, q in work[k:] + work[:k]:   # each thread in another order
-                result = engine.relocalize(_query(scene, q), method=method)
-                answers[k][method, q] = _answer(result)
-        except BaseException as exc:  # noqa: BLE001 - the test reports it
-            errors.append(exc)
-
-    interval = sys.getswitchinterval()
-    sys.setswitchinterval(1e-5)   # switch threads often: interleave the queries finely
-    try:
-        threads = [threading.Thread(target=queries, args=(k,)) for k in range(3)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-    finally:
-        sys.setswitchinterval(interval)
-    assert not errors, errors
-    sequential = {(m, q): _answer(engine.relocalize(_query(scene, q), method=m)) for m, q in work}
-    assert sum(a[0] for a in sequential.values()) >= len(work) - 2   # mostly relocalized
-    for k in range(3):
-        assert answers[k] == sequential, k
