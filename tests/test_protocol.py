@@ -225,8 +225,10 @@ def test_camera_models_match_the_service():
     assert {n: tuple(c.n_distortion) for n, c in CAMERA_MODELS.items()} == P.CAMERA_MODELS
 
 
-def test_protocol_imports_no_heavy_modules():
+def test_protocol_and_client_errors_import_no_heavy_modules():
     code = ("import sys; import reloc_client.protocol; "
+            "from reloc_client import ServiceBusy, ServiceError; "
+            "assert issubclass(ServiceBusy, ServiceError); "
             "print(','.join(m for m in ('cv2', 'scipy', 'poselib', 'zenoh') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={"PYTHONPATH": str(ROOT / "clients"), "PATH": "/usr/bin:/bin"})

@@ -13,13 +13,14 @@ from typing import TYPE_CHECKING, Any
 from .protocol import PROTOCOL_VERSION, ErrorCode, ProtocolError
 
 if TYPE_CHECKING:
-    from .client import NoReplyError, RelocClient, ServiceBusy, ServiceError, ServiceGone
+    from .client import RelocClient
+    from .errors import NoReplyError, ServiceBusy, ServiceError, ServiceGone
     from .outbox import Outbox
     from .result import RelocResult, RelocStatus, reply_from_result, result_from_reply
 
 __version__ = "0.1.0"
 
-_CLIENT_NAMES = {"RelocClient", "ServiceError", "ServiceBusy", "NoReplyError", "ServiceGone"}
+_ERROR_NAMES = {"ServiceError", "ServiceBusy", "NoReplyError", "ServiceGone"}
 _RESULT_NAMES = {"RelocResult", "RelocStatus", "reply_from_result", "result_from_reply"}
 
 __all__ = ["PROTOCOL_VERSION", "ErrorCode", "ProtocolError", "NoReplyError", "RelocClient",
@@ -36,8 +37,12 @@ def __getattr__(name: str) -> Any:
         from . import result
 
         return getattr(result, name)
-    if name in _CLIENT_NAMES:
-        from . import client
+    if name in _ERROR_NAMES:
+        from . import errors
 
-        return getattr(client, name)
+        return getattr(errors, name)
+    if name == "RelocClient":
+        from .client import RelocClient
+
+        return RelocClient
     raise AttributeError(f"module 'reloc_client' has no attribute {name!r}")

@@ -145,7 +145,7 @@ def cmd_upload(client: Any, args: argparse.Namespace) -> int:
     """Each camera and keyframe waits for the service's acknowledgement (journaled): a
     service that is down or stops answering ends the upload with exit status 3 and says
     which keyframe was the first not stored; a refused keyframe is reported and skipped."""
-    from .client import ServiceError
+    from .errors import ServiceError
 
     data = read_dataset(args.dataset)
     rejected: list[wire.Event] = []
@@ -184,7 +184,7 @@ def _cameras_confirmed(client: Any, cameras: dict[str, wire.WireCamera],
                        patience_s: float = 3.0) -> bool:
     """True once the service lists every camera (keyframes can then refer to them by id);
     False if it does not in time: keyframes then carry their camera inline."""
-    from .client import NoReplyError
+    from .errors import NoReplyError
 
     deadline = time.monotonic() + patience_s
     while time.monotonic() < deadline:

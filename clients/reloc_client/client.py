@@ -36,32 +36,14 @@ from .convert import (
     to_wire_image,
     to_wire_pose,
 )
+from .errors import NoReplyError, ServiceBusy, ServiceError, ServiceGone
 from .protocol import ErrorCode, ProtocolError
 from .result import RelocResult, RelocStatus, result_from_reply
 
 log = logging.getLogger(__name__)
 
-
-class ServiceError(RuntimeError):
-    """The service answered with an error reply: ``code`` and the service's ``message``."""
-
-    def __init__(self, code: ErrorCode, message: str) -> None:
-        super().__init__(f"{ErrorCode(code).value}: {message}")
-        self.code = ErrorCode(code)
-        self.message = message
-
-
-class ServiceBusy(ServiceError):
-    """The service is at capacity (status ``busy`` or error ``BUSY``); retry later."""
-
-
-class NoReplyError(TimeoutError):
-    """No service answered (none serves the map, or the reply did not come in time)."""
-
-
-class ServiceGone(NoReplyError):
-    """The service instances serving the map went away (their liveliness tokens) while a
-    client waited for one of their jobs: the job is lost."""
+__all__ = ["NoReplyError", "RelocClient", "ServiceBusy", "ServiceError", "ServiceGone",
+           "make_config"]
 
 
 # -- the client -------------------------------------------------------------------------------

@@ -63,7 +63,7 @@ def file_sha256(path: Path) -> str:
 def download_export(client: RelocClient, file: Path, *, chunk_size: int = MAX_CHUNK,
                     progress: Progress | None = None) -> Transferred:
     """Export ``client.map`` from its service into ``file`` (see module docstring)."""
-    from .client import ServiceError
+    from .errors import ServiceError
 
     partial = file.with_name(file.name + ".partial")
     state_path = file.with_name(file.name + ".partial.json")
@@ -114,7 +114,7 @@ def _export_chunk(client: RelocClient, key: str, request: ExportRequest) -> Expo
 
 def _finish_download(partial: Path, state_path: Path, file: Path, last: ExportChunk,
                      resumed_from: int) -> Transferred:
-    from .client import ServiceError
+    from .errors import ServiceError
 
     digest = file_sha256(partial)
     if partial.stat().st_size != last.total_size or digest != last.sha256:
