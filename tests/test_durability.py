@@ -7,15 +7,11 @@ import pytest
 from reloc_service.core.cameras import PinholeCamera
 from reloc_service.core.errors import StorageError
 from reloc_service.engine import Engine, EngineConf
-from reloc_service.service.durability import (
+from reloc_service.service.durability import SERVICE_FILE, MapStore, RestoreReport, ServiceMeta, open_engine
+from reloc_service.service.map_dirs import (
     MAP_NAME_FILE,
-    SERVICE_FILE,
-    MapStore,
-    RestoreReport,
-    ServiceMeta,
     map_dirname,
     map_name_of,
-    open_engine,
     record_map_name,
     stored_map_names,
 )

@@ -14,7 +14,7 @@ from reloc_client.client import RelocClient
 from service_support import endpoint, free_port, service_conf
 
 from reloc_service.service.app import Service
-from reloc_service.service.durability import MAP_NAME_FILE, map_dirname
+from reloc_service.service.map_dirs import MAP_NAME_FILE, map_dirname
 
 LONG_NAMES = ("\ud55c" * 30, "\U0001f681" * 64, "%" * 128)
 OLD_STYLE = "caf\u00e9-1"

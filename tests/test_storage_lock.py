@@ -31,7 +31,7 @@ from service_support import (
 
 from reloc_service.cli.main import main as reloc_main
 from reloc_service.service.app import Service
-from reloc_service.service.durability import map_dirname
+from reloc_service.service.map_dirs import map_dirname
 from reloc_service.storage.lock import LOCK_FILE, DirectoryLock, LockHeld, holder_if_locked
 
 #: A process that takes the lock of the directory in argv[1], says so, then waits.

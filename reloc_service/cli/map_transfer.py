@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _map_dir(source: str, storage: str | None) -> Path | None:
-    from ..service.durability import map_dirname
+    from ..service.map_dirs import map_dirname
     from ..service.storage_check import is_map_dir
 
     path = Path(storage) / map_dirname(source) if storage else Path(source)
@@ -91,7 +91,7 @@ def _import(args: argparse.Namespace) -> int:
 
 
 def _ls(storage: Path, as_json: bool) -> int:
-    from ..service.durability import map_dirname, stored_map_names
+    from ..service.map_dirs import map_dirname, stored_map_names
     from ..service.map_transfer import map_info
 
     if not storage.is_dir():

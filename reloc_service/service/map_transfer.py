@@ -52,14 +52,8 @@ from ..storage.map_archive import (
 )
 from ..storage.snapshot import load_map
 from ..storage.snapshot_files import MANIFEST_FILE, fsync_tree
-from .durability import (
-    MAP_NAME_FILE,
-    SERVICE_FILE,
-    map_dirname,
-    map_name_of,
-    read_service_file,
-    stored_map_name,
-)
+from .durability import SERVICE_FILE, read_service_file
+from .map_dirs import MAP_NAME_FILE, map_dirname, map_name_of, stored_map_name
 from .restore_verdict import judge
 
 log = logging.getLogger(__name__)

@@ -61,7 +61,7 @@ from reloc_client.protocol import ErrorCode
 from ..storage.keyframe_parts import EVERYTHING
 from ..storage.snapshot_link import link_snapshot
 from . import worker_process
-from .durability import map_dirname
+from .map_dirs import map_dirname
 from .memory import descendants
 from .served import WriteOp
 from .worker_process import EngineSpec, ReplicaMap, wait_ready, worker_main

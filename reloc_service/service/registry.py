@@ -25,16 +25,8 @@ from ..core.errors import ConfigError, StorageError
 from ..engine import Engine, EngineConf, MappingConf
 from ..storage.lock import DirectoryLock
 from .config import ServiceConf
-from .durability import (
-    RestoreInterrupted,
-    check_storage,
-    journal_bytes,
-    map_dirname,
-    open_engine,
-    record_map_name,
-    recover_current,
-    stored_map_names,
-)
+from .durability import RestoreInterrupted, check_storage, journal_bytes, open_engine, recover_current
+from .map_dirs import map_dirname, record_map_name, stored_map_names
 from .quotas import MapUsage, Quotas
 from .residency import Residency, resident_copies
 from .restore_verdict import judge

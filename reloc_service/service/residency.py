@@ -47,7 +47,8 @@ from typing import TYPE_CHECKING, Any, Protocol
 from reloc_client import protocol as wire
 
 from ..core.errors import ConfigError, StorageError
-from .durability import map_dirname, read_service_file
+from .durability import read_service_file
+from .map_dirs import map_dirname
 from .memory import rss_bytes, total_rss_bytes, trim_now
 from .quotas import MapUsage
 

@@ -33,7 +33,7 @@ from reloc_client.protocol.transfer import (
 
 from ..core.errors import StorageError
 from ..storage.map_archive import file_sha256
-from .durability import map_dirname
+from .map_dirs import map_dirname
 from .map_transfer import export_map, import_map
 from .registry import MapRegistry
 from .zenoh_io import PendingQuery

@@ -60,7 +60,8 @@ def stored_template(storage: Path, name: str, engine: Engine,
     ``storage`` (see module docstring). ``cameras``: the registered cameras by id (default:
     the first keyframe's as :data:`CAMERA_ID`); ``camera_of``: each keyframe's camera id
     (default: the only camera's). FileExistsError if ``name`` is stored there already."""
-    from ...service.durability import MapStore, ServiceMeta, map_dirname, record_map_name
+    from ...service.durability import MapStore, ServiceMeta
+    from ...service.map_dirs import map_dirname, record_map_name
 
     keyframes = engine.map.snapshot().keyframes
     if cameras is None:
@@ -103,7 +104,7 @@ def copy_map(template: StoredMap, storage: Path, name: str, *, link: bool = True
     """``template`` stored again as map ``name`` in ``storage`` (see module docstring):
     snapshot files hard-linked when ``link`` (copied where the file system refuses a link),
     everything else copied; directory locks are not copied. The new map directory."""
-    from ...service.durability import MAP_NAME_FILE, map_dirname
+    from ...service.map_dirs import MAP_NAME_FILE, map_dirname
 
     target = storage / map_dirname(name)
 

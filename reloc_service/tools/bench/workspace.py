@@ -224,7 +224,7 @@ def prepare(conf: SuiteConf, tmp: Path, cache: Path | None = None) -> Workspace:
 
 def _save_for_service(engine: Engine, storage: Path) -> Path:
     """Save ``engine`` where a service with ``storage`` finds map :data:`MAP_NAME`."""
-    from ...service.durability import map_dirname
+    from ...service.map_dirs import map_dirname
 
     engine.save(storage / map_dirname(MAP_NAME) / "map")
     return storage

@@ -50,7 +50,7 @@ def two_snapshot_storage(arena: Arena, name: str) -> tuple[AttackService, Path]:
 
 
 def map_directory(storage: Path, name: str) -> Path:
-    from ....service.durability import map_dirname
+    from ....service.map_dirs import map_dirname
 
     return storage / map_dirname(name)
 
