@@ -19,6 +19,7 @@ from reloc_service.tools.data.dataset import DatasetEntry
 from reloc_service.tools.data.dataset_write import write_dataset
 from reloc_service.tools.eval import evaluate as ev
 from reloc_service.tools.eval import metrics, plots, report
+from reloc_service.tools.eval import results as er
 
 CAMERA = PinholeCamera(width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5)
 
@@ -68,7 +69,7 @@ def test_record_from_failure_has_no_error():
     assert rec.reason == "too few inliers" and rec.matched_keyframe_ids == [1]
 
 
-def _records() -> list[ev.QueryRecord]:
+def _records() -> list[er.QueryRecord]:
     """Five queries: errors 1 cm, 10 cm, 30 cm, 1 m (wrong), and one not relocalized; the
     first three state a 5 cm position sigma, the fourth no covariance."""
     gt = _pose(0.0)
@@ -99,16 +100,16 @@ def test_summarize_by_hand():
     assert s.latency_p99_ms == pytest.approx(40.0 + 0.96 * 10.0)
 
 
-def _result(records=None) -> ev.EvalResult:
+def _result(records=None) -> er.EvalResult:
     records = records if records is not None else _records()
-    map_info = ev.MapInfo(keyframes=2, landmarks=10, landmark_source="triangulate",
+    map_info = er.MapInfo(keyframes=2, landmarks=10, landmark_source="triangulate",
                           build_time_s=0.5, train_time_s=0.1, median_landmark_error_m=None,
                           keyframe_ids=[0, 1],
                           keyframe_positions_world=[[0.0, 0.0, 1.0], [0.5, 0.1, 1.0]])
-    return ev.EvalResult(dataset={"root": "/x/toy", "name": "toy", "map_frames": 2,
+    return er.EvalResult(dataset={"root": "/x/toy", "name": "toy", "map_frames": 2,
                                   "query_frames": len(records), "depth_frames": 0,
                                   "cameras": {}},
-                         map=map_info, methods=[ev.MethodResult("fake", ev.summarize(records),
+                         map=map_info, methods=[er.MethodResult("fake", ev.summarize(records),
                                                                 records)],
                          machine=ev.machine_info(), backend="in-process", options={},
                          created_utc="2026-01-01T00:00:00+00:00")
@@ -118,15 +119,15 @@ def test_json_is_strict_and_round_trips(tmp_path):
     result = _result()
     path = result.write_json(tmp_path / "sub" / "out.json")
     data = json.loads(path.read_text())
-    assert data["schema_version"] == ev.SCHEMA_VERSION
+    assert data["schema_version"] == er.SCHEMA_VERSION
     summary = data["methods"][0]["summary"]
     assert summary["recall"]["5cm_5deg"] == pytest.approx(0.2)
     assert data["methods"][0]["queries"][4]["t_err_m"] is None  # not NaN: strict JSON
-    back = ev.EvalResult.from_dict(data)
+    back = er.EvalResult.from_dict(data)
     assert back.methods[0].summary == result.methods[0].summary
     assert back.methods[0].queries == result.methods[0].queries
     with pytest.raises(ConfigError, match="schema_version"):
-        ev.EvalResult.from_dict({**data, "schema_version": 99})
+        er.EvalResult.from_dict({**data, "schema_version": 99})
 
 
 def test_schema_document_names_every_field():
@@ -162,7 +163,7 @@ def test_failure_reasons_are_grouped_by_their_words():
     gt = _pose(0.0)
     reasons = ["ncc 0.32 < 0.85", "ncc 0.41 < 0.85", "too few inliers (3 < 20)"]
     recs = [ev.record_from_result("q.png", RelocResult.failure("m", r), gt, 1.0) for r in reasons]
-    method = ev.MethodResult("m", ev.summarize(recs), recs)
+    method = er.MethodResult("m", ev.summarize(recs), recs)
     assert report.format_failures(method).splitlines() == [
         "   2  e.g. ncc 0.32 < 0.85", "   1  too few inliers (3 < 20)"]
 
@@ -297,7 +298,7 @@ def test_keyframe_sigma_puts_the_keyframes_with_it_and_weighs_the_truth_by_it(tm
     before = exact.method("a").queries[0].t_err_mahalanobis
     after = uncertain.method("a").queries[0].t_err_mahalanobis
     assert before == pytest.approx(2.0) and after == pytest.approx(0.2 / np.sqrt(0.02))
-    back = ev.EvalResult.from_dict(json.loads(json.dumps(uncertain.to_dict())))
+    back = er.EvalResult.from_dict(json.loads(json.dumps(uncertain.to_dict())))
     assert back.ground_truth_sigma == (0.1, 2.0)
     with pytest.raises(ConfigError, match="keyframe sigma"):
         ev.evaluate(root, "a", progress=False, remote=spec, keyframe_sigma=(-0.1, 1.0))
@@ -462,7 +463,7 @@ def test_eval_cli_end_to_end_gt_none(small_desk, tmp_path, capsys):
     assert status == 0, stdout
     assert "gt+none" in stdout and "@5cm/5deg" in stdout and "plot: " in stdout
     data = json.loads(out.read_text())
-    assert data["schema_version"] == ev.SCHEMA_VERSION
+    assert data["schema_version"] == er.SCHEMA_VERSION
     assert (data["dataset"]["map_frames"], data["dataset"]["query_frames"]) == (10, 10)
     assert data["map"]["keyframes"] == 10 and data["map"]["landmarks"] > 0
     assert data["map"]["landmark_source"] == "auto"

@@ -38,8 +38,8 @@ from ...algorithms.relocalizers.base import RelocResult, RelocStatus
 from ...core.methods import MethodSpec, parse_method
 from ...core.numeric import limit_blas_threads
 from ...core.progress import progress
+from ..eval.results import json_safe
 from .limit import LIMIT_ORB_FEATURES, limit_summary, measure_limit, over_limit
-from .samples import json_safe
 from .workspace import say
 
 #: reloc's methods in every table, besides the service's default method.

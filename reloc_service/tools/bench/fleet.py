@@ -46,10 +46,11 @@ from ...algorithms.relocalizers.factory import DEFAULT_METHOD
 from ...core.cameras import Camera
 from ...core.geometry import pose_error
 from ..eval import metrics
+from ..eval.results import json_safe
 from .fleet_memory import ResidencyLog, RssSampler
 from .fleet_pool import repetition_pool
 from .fleet_service import first_answer, serve
-from .samples import QuerySet, json_safe, pct_ms
+from .samples import QuerySet, pct_ms
 from .stored_map import CAMERA_ID, StoredMap, copies, disk_bytes
 
 MB = 1024 * 1024

@@ -30,8 +30,8 @@ from ...algorithms.relocalizers.tracking import TRACK
 from ...core.frame import Frame
 from ...core.geometry import pose_covariance_from_sigmas, pose_error, se3_exp
 from ..eval.metrics import WRONG_THRESHOLD, covariance_scale, translation_mahalanobis
+from ..eval.results import json_safe
 from .limit import LIMIT_ORB_FEATURES, limit_summary, measure_limit
-from .samples import json_safe
 
 Array = npt.NDArray[np.float64]
 

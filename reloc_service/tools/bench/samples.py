@@ -143,18 +143,3 @@ def summarize_plain(samples: Sequence[tuple[int, Any]], queries: QuerySet) -> di
                        [queries.gts[i] for i, _ in samples])}
 
 
-def json_safe(value: Any) -> Any:
-    """``value`` with NumPy scalars as Python numbers and NaN/inf as None (strict JSON)."""
-    if isinstance(value, float | np.floating):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    if isinstance(value, Mapping):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [json_safe(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return json_safe(value.tolist())
-    return value

@@ -343,7 +343,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     result = probe_map(args.map, args.queries, json.loads(args.methods),
                        json.loads(args.options), repeats=args.repeats,
                        plain_queries=args.plain_queries)
-    from .samples import json_safe
+    from ..eval.results import json_safe
 
     print(json.dumps(json_safe(result), allow_nan=False))
     return 0

@@ -37,8 +37,9 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core.cameras import Camera
+from ..eval.results import json_safe
 from .machine import load_average, rss_mb
-from .samples import JPEG_QUALITY, QuerySet, json_safe
+from .samples import JPEG_QUALITY, QuerySet
 from .soak_ledger import Ledger, Outcomes, Phase
 from .soak_report import STOP_KINDS, query_summary, restart_summary, rss_summary
 from .soak_service import MAP_NAME, ServiceRunner

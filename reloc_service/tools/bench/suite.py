@@ -50,12 +50,12 @@ from ...core.frame import Frame
 from ...core.numeric import limit_blas_threads
 from ...core.progress import progress
 from ...engine import EngineConf
+from ..eval.results import json_safe
 from .limit import limit_summary, measure_limit
 from .machine import code_record, load_average, machine_record
 from .samples import (
     JPEG_QUALITY,
     decode_jpeg,
-    json_safe,
     pct_ms,
     relocalize_jpeg,
     stage_medians_ms,

@@ -17,7 +17,7 @@ import numpy as np
 from ...core.errors import ConfigError
 
 if TYPE_CHECKING:
-    from .evaluate import EvalResult, MapInfo, MethodResult
+    from .results import EvalResult, MapInfo, MethodResult
 
 _AXES = "xyz"
 

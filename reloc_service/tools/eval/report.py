@@ -1,4 +1,4 @@
-"""Human-readable tables of an :class:`~reloc_service.tools.eval.evaluate.EvalResult` (one row per
+"""Human-readable tables of an :class:`~reloc_service.tools.eval.results.EvalResult` (one row per
 method), for the terminal and for Markdown notes."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 from .metrics import OFF_THRESHOLD, RECALL_THRESHOLDS, WRONG_THRESHOLD, threshold_key
 
 if TYPE_CHECKING:
-    from .evaluate import EvalResult, MethodResult
+    from .results import EvalResult, MethodResult
 
 _NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
 

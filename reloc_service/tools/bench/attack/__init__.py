@@ -124,7 +124,7 @@ def shorten(text: str, limit: int = 200) -> str:
 
 def run_into(result: dict[str, Any], workdir: Path | None, say: Callable[[str], None]) -> None:
     """Run every case into ``result["attack"]`` (an ``{"error": ...}`` if the run failed)."""
-    from ..samples import json_safe
+    from ...eval.results import json_safe
 
     try:
         result["attack"] = json_safe(run_attack(workdir=workdir and workdir / "attack",
