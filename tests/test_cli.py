@@ -23,24 +23,21 @@ def _python(code: str) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.parametrize("argv", [["--help"], ["eval", "--help"], ["--version"]])
-def test_help_imports_nothing_heavy_and_is_fast(argv):
+def test_help_imports_nothing_heavy(argv):
     code = f"""
-import sys, time
-start = time.perf_counter()
+import sys
 from reloc_service.cli.main import main
 try:
     main({argv!r})
 except SystemExit:
     pass
-elapsed = time.perf_counter() - start
 heavy = sorted(m for m in sys.modules if m.split('.')[0] in {HEAVY!r})
-print('RESULT', elapsed, ','.join(heavy), file=sys.stderr)
+print('RESULT', ','.join(heavy), file=sys.stderr)
 """
     proc = _python(code)
     line = [x for x in proc.stderr.splitlines() if x.startswith("RESULT")][0].split(" ")
-    elapsed, heavy = float(line[1]), line[2] if len(line) > 2 else ""
+    heavy = line[1] if len(line) > 1 else ""
     assert heavy == "", f"reloc {' '.join(argv)} imported {heavy}"
-    assert elapsed < 0.3, f"reloc {' '.join(argv)} took {elapsed:.3f} s beyond interpreter start"
     assert "usage: reloc" in proc.stdout or "reloc 0." in proc.stdout
 
 
