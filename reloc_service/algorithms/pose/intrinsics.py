@@ -344,9 +344,11 @@ def _cluster_robust(eq: Equations, inverse: Array, camera: Camera) -> tuple[Arra
                   CLUSTER_GRID - 1)
     cell = row * CLUSTER_GRID + col
     scores_per_point = np.einsum("mik,mi->mk", eq.jac, eq.residuals) * eq.weights[:, None]
-    scores = np.zeros((CLUSTER_GRID**2, 8))
-    np.add.at(scores, cell, scores_per_point)
-    occupied = np.unique(cell)
+    # Per-cell sums in the points' order (np.add.at's), in one bincount over (cell, column).
+    scores = np.bincount((cell[:, None] * 8 + np.arange(8)).ravel(),
+                         weights=scores_per_point.ravel(),
+                         minlength=8 * CLUSTER_GRID**2).reshape(CLUSTER_GRID**2, 8)
+    occupied = np.flatnonzero(np.bincount(cell, minlength=CLUSTER_GRID**2))
     g = len(occupied)
     if g < 3 or not np.all(np.isfinite(inverse)):
         return None, g
