@@ -1,6 +1,6 @@
 """The intrinsics test's Gauss-Newton run from every start at once, against the start-by-start
 loop it replaces (the same steps, halvings and stopping rule): the same rows and estimates to
-rounding, compiled and numpy; and its batched model and twist maps against the single ones."""
+rounding, compiled and numpy; and its batched twist maps against the single ones."""
 
 from __future__ import annotations
 
@@ -103,20 +103,6 @@ def test_the_starts_together_follow_each_start_alone(compiled, seed, focal_scale
         np.testing.assert_allclose(eq.normal, want_eq.normal, rtol=1e-9,
                                    atol=1e-9 * np.abs(want_eq.normal).max())
         np.testing.assert_allclose(eq.cost, want_eq.cost, rtol=1e-9)
-
-
-def test_the_batched_model_is_the_single_one_bit_for_bit(monkeypatch):
-    monkeypatch.setattr(intrinsics_kernels, "compiled", lambda: None)
-    problem, pose, _ = _scene(3, 1.05)
-    projected, points_cam = problem.project.pixels(pose)
-    jac = problem.project.jacobian(points_cam)
-    model, theta = problem.model, np.array([0.03, -1.5])
-    residuals, squared = model.residuals_many(projected[None], problem.px, theta[None, None])
-    want_residuals, want_squared = model.residuals(projected, problem.px, theta)
-    np.testing.assert_array_equal(residuals[0], want_residuals)
-    np.testing.assert_array_equal(squared[0], want_squared)
-    np.testing.assert_array_equal(model.jacobian_many(projected, jac, theta),
-                                  model.jacobian(projected, jac, theta))
 
 
 def test_the_batched_twist_maps_are_the_single_ones():

@@ -1,7 +1,8 @@
 """The intrinsics test's joint Gauss-Newton on the pose and ``theta`` (:mod:`.intrinsics`),
-run from every start at once: each round projects, gates and costs the trial of every start
-still running in one pass of K x N arrays and builds the normal equations of the trials
-taken as one batched product, instead of a few dozen small numpy calls per start and step.
+run from every start at once: each round takes the steps of every start still running in
+one batched solve and exponential, projects their trials in one pass, and builds the normal
+equations of the trials taken from one pass of pose Jacobians, instead of a few dozen small
+numpy calls per start and step; each start's equations are kept, not rebuilt at the end.
 
 Each start follows the serial algorithm exactly (the same steps, halvings and stopping
 rule); the batched sums round differently from per-start ones, so estimates agree with a
@@ -168,10 +169,13 @@ def _new_steps(state: _State, starts: npt.NDArray[np.int64]) -> npt.NDArray[np.i
 
 def _gate(world_from_cams: Array, thetas: Array, problem: Problem) -> tuple[BoolArray, Array]:
     """(K, N) correspondences within the threshold of their modelled pixels at each of K
-    poses and ``theta``, and (K,) the weighted truncated squared errors (MSAC)."""
+    poses and ``theta``, and (K,) the weighted truncated squared errors (MSAC). The
+    projections are one batched pass; the model runs per estimate (one compiled pass each
+    where numba is installed: faster than numpy's temporaries over K x N rows)."""
     projected, _ = problem.project.pixels_many(world_from_cams)
-    with np.errstate(invalid="ignore", over="ignore"):  # points behind the camera: inf
-        _, squared = problem.model.residuals_many(projected, problem.px, thetas[:, None])
+    squared = np.empty(projected.shape[:2])
+    for k, theta in enumerate(thetas):
+        squared[k] = problem.model.residuals(projected[k], problem.px, theta)[1]
     limit = problem.threshold_px**2
     return squared < limit, (problem.weights * np.minimum(squared, limit)).sum(axis=1)
 
@@ -179,22 +183,21 @@ def _gate(world_from_cams: Array, thetas: Array, problem: Problem) -> tuple[Bool
 def _normal_equations(world_from_cams: Array, thetas: Array, masks: BoolArray, costs: Array,
                       problem: Problem) -> list[Equations]:
     """The :class:`Equations` of K estimates (poses, ``theta``, (K, N) gated rows and (K,)
-    costs): the rows of all K differentiated together, then summed per estimate (one
-    product over each one's contiguous block of rows)."""
+    costs): the projections and the pose Jacobians of all gated rows in one pass each, the
+    model and the products per estimate."""
     projected, points_cam = problem.project.pixels_many(world_from_cams)
     which, rows = np.nonzero(masks)  # grouped by estimate
-    theta, gated = thetas[which], projected[which, rows]
-    residuals, _ = problem.model.residuals_many(gated, problem.px[rows], theta)
-    full = problem.model.jacobian_many(gated, problem.project.jacobian(points_cam[which, rows]),
-                                       theta)
-    weights = problem.weights[rows]
+    jac = problem.project.jacobian(points_cam[which, rows])
     bounds = np.concatenate([[0], np.cumsum(masks.sum(axis=1))])
     out = []
     for k, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
-        flat = full[lo:hi].reshape(-1, 8)
-        weighted = flat * np.repeat(weights[lo:hi], 2)[:, None]
-        out.append(Equations(rows[lo:hi], weighted.T @ flat,
-                             weighted.T @ residuals[lo:hi].ravel(), residuals[lo:hi],
-                             full[lo:hi], weights[lo:hi], problem.px[rows[lo:hi]],
-                             float(costs[k])))
+        mine = rows[lo:hi]
+        residuals = problem.model.residuals(projected[k, mine], problem.px[mine], thetas[k])[0]
+        full = problem.model.jacobian_of(projected[k, mine], jac[lo:hi],
+                                         np.arange(hi - lo), thetas[k])  # (M, 2, 8)
+        weights = problem.weights[mine]
+        flat = full.reshape(-1, 8)
+        weighted = flat * np.repeat(weights, 2)[:, None]
+        out.append(Equations(mine, weighted.T @ flat, weighted.T @ residuals.ravel(),
+                             residuals, full, weights, problem.px[mine], float(costs[k])))
     return out

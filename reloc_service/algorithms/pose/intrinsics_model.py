@@ -104,38 +104,3 @@ class IntrinsicsModel:
         np.multiply(u, r2[:, None], out=full[:, :, 7])
         return full
 
-    def residuals_many(self, projected_px: Array, px: Array, theta: Array
-                       ) -> tuple[Array, Array]:
-        """:meth:`residuals` under many ``theta`` at once: the given camera's pixels
-        ``(..., 2)`` (e.g. (K, N, 2)), query pixels and ``theta`` broadcasting to them (e.g.
-        (N, 2) and (K, 1, 2)): residuals ``(..., 2)`` and squared lengths ``(...)`` (inf
-        where not finite). Components written out: numpy reduces a length-2 axis slowly."""
-        a, b = theta[..., 0], theta[..., 1]
-        v0, v1 = projected_px[..., 0] - self.centre[0], projected_px[..., 1] - self.centre[1]
-        u0, u1 = v0 / self.radius_px, v1 / self.radius_px
-        r2 = u0 * u0 + u1 * u1
-        residuals = np.empty(projected_px.shape)
-        residuals[..., 0] = px[:, 0] - ((self.centre[0] + (1.0 + a) * v0) + b * (u0 * r2))
-        residuals[..., 1] = px[:, 1] - ((self.centre[1] + (1.0 + a) * v1) + b * (u1 * r2))
-        squared = residuals[..., 0] ** 2 + residuals[..., 1] ** 2
-        return residuals, np.where(np.isfinite(squared), squared, np.inf)
-
-    def jacobian_many(self, projected_px: Array, jac: Array, theta: Array) -> Array:
-        """:meth:`jacobian` under many ``theta`` at once: ``(..., 2, 8)`` from the given
-        camera's pixels ``(..., 2)``, their pose Jacobians ``(..., 2, 6)`` and ``theta``
-        broadcasting to them (as :meth:`residuals_many`)."""
-        a, b = theta[..., 0], theta[..., 1]
-        v0, v1 = projected_px[..., 0] - self.centre[0], projected_px[..., 1] - self.centre[1]
-        u0, u1 = v0 / self.radius_px, v1 / self.radius_px
-        r2 = u0 * u0 + u1 * u1
-        # d pixels / d v = (1 + a) I + b (|u|^2 I + 2 u u^T) / R, as in :meth:`jacobian`.
-        scale = 2.0 * b / self.radius_px
-        diagonal = 1.0 + a + b * r2 / self.radius_px
-        d00, d01 = scale * u0 * u0 + diagonal, scale * u0 * u1
-        d10, d11 = scale * u1 * u0, scale * u1 * u1 + diagonal
-        full = np.empty((*v0.shape, 2, 8))
-        full[..., 0, :6] = d00[..., None] * jac[..., 0, :] + d01[..., None] * jac[..., 1, :]
-        full[..., 1, :6] = d10[..., None] * jac[..., 0, :] + d11[..., None] * jac[..., 1, :]
-        full[..., 0, 6], full[..., 1, 6] = v0, v1
-        full[..., 0, 7], full[..., 1, 7] = u0 * r2, u1 * r2
-        return full
