@@ -103,4 +103,3 @@ class IntrinsicsModel:
         full[:, :, 6] = v
         np.multiply(u, r2[:, None], out=full[:, :, 7])
         return full
-
