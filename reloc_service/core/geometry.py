@@ -225,6 +225,53 @@ def se3_exp(xi: npt.ArrayLike) -> Array:
     return out
 
 
+def _left_jacobians(omega: Array) -> Array:
+    """(K, 3, 3) :func:`_left_jacobian` of (K, 3) rotation vectors: ``I + (1 - cos t) / t^2 K
+    + (t - sin t) / t^3 K^2``, and ``I + K / 2`` for a rotation too small for those
+    quotients."""
+    theta = np.sqrt((omega * omega).sum(axis=1))
+    k = np.zeros((len(omega), 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -omega[:, 2], omega[:, 1], -omega[:, 0]
+    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = omega[:, 2], -omega[:, 1], omega[:, 0]
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    c1 = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)
+    c2 = np.where(small, 0.0, (safe - np.sin(safe)) / safe**3)
+    out: Array = np.eye(3) + c1[:, None, None] * k + c2[:, None, None] * (k @ k)
+    return out
+
+
+def se3_exp_many(xi: npt.ArrayLike) -> Array:
+    """(K, 6) twists ``(rho, omega)`` to (K, 4, 4) poses: :func:`se3_exp` of each row (the
+    same formula vectorised, so equal to rounding)."""
+    v = np.asarray(xi, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 6:
+        raise GeometryError(f"twists: expected shape (K, 6), got {v.shape}")
+    out = np.zeros((len(v), 4, 4))
+    out[:, :3, :3] = Rotation.from_rotvec(v[:, 3:]).as_matrix()
+    out[:, :3, 3] = np.einsum("kij,kj->ki", _left_jacobians(v[:, 3:]), v[:, :3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def se3_log_many(poses: npt.ArrayLike) -> Array:
+    """(K, 4, 4) poses to their (K, 6) twists: :func:`se3_log` of each (the rotation vectors
+    the same, the translations equal to rounding), in one call of SciPy's compiled rotation
+    functions where it has them (one ``Rotation`` costs more than the arithmetic)."""
+    p = np.asarray(poses, dtype=np.float64)
+    if p.ndim != 3 or p.shape[1:] != (4, 4):
+        raise GeometryError(f"poses: expected shape (K, 4, 4), got {p.shape}")
+    if len(p) == 0:
+        return np.zeros((0, 6))
+    rotations = np.ascontiguousarray(p[:, :3, :3])
+    if _rotation_kernels is not None:
+        omega = np.asarray(_rotation_kernels.as_rotvec(_rotation_kernels.from_matrix(rotations)))
+    else:
+        omega = Rotation.from_matrix(rotations).as_rotvec()
+    rho = np.linalg.solve(_left_jacobians(omega), p[:, :3, 3, None])[:, :, 0]
+    return np.concatenate([rho, omega], axis=1)
+
+
 def se3_log(pose: npt.ArrayLike) -> Array:
     """(4, 4) pose to its twist ``(rho, omega)`` (6,); inverse of :func:`se3_exp`."""
     p = np.asarray(pose, dtype=np.float64)

@@ -35,7 +35,6 @@ with the intrinsics marginalised: :func:`.map_consistency.covariance_with_intrin
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,14 +43,13 @@ from scipy import special
 
 from ...core import distributions as stats
 from ...core.cameras import Camera
-from ...core.geometry import invert, se3_exp, se3_log
+from ...core.geometry import invert, se3_log_many
+from .intrinsics_gauss_newton import Equations, Problem, Projector, joint_estimates
 from .intrinsics_model import IntrinsicsModel
 
 Array = npt.NDArray[np.float64]
 
-#: Projection of every correspondence's point at a pose: (N, 2) pixels through the given
-#: camera and their (N, 2, 6) Jacobian w.r.t. a right perturbation of ``world_from_cam``.
-Projector = Callable[[Array], tuple[Array, Array]]
+
 
 #: How every refusal of this test begins: relocalizers stop at it (the same camera would meet
 #: any other place or method), and callers may recognise it.
@@ -61,9 +59,6 @@ REFUSAL = "intrinsics disagree"
 #: ratio 1.15 from 0.66 to 1.52, so that any focal in between is within 7.5 % of a start
 #: (Gauss-Newton converges from there on a scene with depth).
 FOCAL_STARTS = tuple(float(1.15**k) for k in (-3, -2, -1, 1, 2, 3))
-
-#: Halvings of a Gauss-Newton step before the estimate is taken as converged.
-_MAX_HALVINGS = 8
 
 #: Cells per side of the grid whose cells are the clusters of the robust covariance (the
 #: verification's coverage grid: inliers in one cell share the landmarks' local errors).
@@ -274,47 +269,17 @@ def check_intrinsics(world_from_cam: Array, px: Array, inliers: npt.NDArray[np.i
     model = IntrinsicsModel(camera)
     given = _normal_equations(world_from_cam, np.zeros(2), px, weights, model, project,
                               threshold_px, rows=inliers)
-    found = [_estimate_from(world_from_cam, np.zeros(2), given, px, weights, model, project,
-                            threshold_px, iterations)]
-    for factor in focal_starts:
-        start = world_from_cam @ _along_axis(-(factor - 1.0) * depth_m)
-        theta = np.array([factor - 1.0, 0.0])
-        eq = _normal_equations(start, theta, px, weights, model, project, threshold_px)
-        if len(eq.rows) >= 8:
-            found.append(_estimate_from(start, theta, eq, px, weights, model, project,
-                                        threshold_px, iterations))
-    cam_from_world = invert(world_from_cam)
-    solutions = tuple(_solution(eq, theta, se3_log(cam_from_world @ pose), camera,
-                                min_sigma_px) for pose, theta, eq in found)
+    starts = [world_from_cam] + [world_from_cam @ _along_axis(-(factor - 1.0) * depth_m)
+                                 for factor in focal_starts]
+    thetas = np.array([[0.0, 0.0]] + [[factor - 1.0, 0.0] for factor in focal_starts])
+    poses, thetas, found = joint_estimates(
+        np.stack(starts), thetas, inliers, Problem(px, weights, model, project, threshold_px),
+        iterations)
+    twists = se3_log_many(invert(world_from_cam)[None] @ poses)
+    solutions = tuple(_solution(eq, theta, twist, camera, min_sigma_px)
+                      for theta, twist, eq in zip(thetas, twists, found, strict=True))
     return IntrinsicsCheck(solutions=solutions, prior=prior, focal_given_px=float(camera.fx),
                            pose_shift=_pose_shift(given.normal))
-
-
-def _estimate_from(world_from_cam: Array, theta: Array, eq: _Equations, px: Array,
-                   weights: Array, model: IntrinsicsModel, project: Projector, threshold_px: float,
-                   iterations: int) -> tuple[Array, Array, _Equations]:
-    """Gauss-Newton on the pose and ``theta`` from ``world_from_cam``, ``theta`` (whose
-    equations are ``eq``), the inliers re-gated at each step: (pose, theta, equations)."""
-    pose = world_from_cam
-    for _ in range(iterations):
-        step = _solve(eq.normal, eq.rhs)
-        if step is None:
-            break
-        # Gauss-Newton from the given camera may overshoot a large error (the first inliers
-        # lie near the centre): halve the step until the truncated (MSAC) cost falls.
-        for _ in range(_MAX_HALVINGS):
-            trial_pose, trial_theta = pose @ se3_exp(step[:6]), theta + step[6:]
-            trial = _normal_equations(trial_pose, trial_theta, px, weights, model, project,
-                                      threshold_px)
-            if trial.cost < eq.cost and len(trial.rows) >= 8:
-                break
-            step = step / 2.0
-        else:
-            break
-        pose, theta, eq = trial_pose, trial_theta, trial
-        if np.abs(step[6:] / [1e-4, 1e-2]).max() < 1.0 and np.abs(step[:6]).max() < 1e-6:
-            break
-    return pose, theta, eq
 
 
 def _along_axis(distance_m: float) -> Array:
@@ -324,48 +289,23 @@ def _along_axis(distance_m: float) -> Array:
     return out
 
 
-@dataclass(frozen=True, eq=False)
-class _Equations:
-    """The weighted normal equations of the pose and ``theta`` (8 unknowns, order pose
-    twist then ``a``, ``b``) on ``rows``, with what the covariances need: the (M, 2) residuals,
-    the (M, 2, 8) Jacobian and the (M,) weights of the rows, and their pixels; ``cost``, the
-    weighted truncated squared error of every correspondence (MSAC: ``w min(|r|^2, t^2)``,
-    whose descent direction on the inliers is the weighted Gauss-Newton step's)."""
-
-    rows: npt.NDArray[np.int64]
-    normal: Array
-    rhs: Array
-    residuals: Array
-    jac: Array
-    weights: Array
-    px: Array
-    cost: float
-
-
 def _normal_equations(world_from_cam: Array, theta: Array, px: Array, weights: Array,
                       model: IntrinsicsModel, project: Projector, threshold_px: float, *,
-                      rows: npt.NDArray[np.int64] | None = None) -> _Equations:
-    """:class:`_Equations` at ``world_from_cam`` and ``theta`` on ``rows`` or (None) on the
+                      rows: npt.NDArray[np.int64] | None = None) -> Equations:
+    """:class:`Equations` at ``world_from_cam`` and ``theta`` on ``rows`` or (None) on the
     correspondences within ``threshold_px`` of their modelled pixels."""
-    projected, jac = project(world_from_cam)
+    projected, points_cam = project.pixels(world_from_cam)
     residuals, squared = model.residuals(projected, px, theta)
     if rows is None:
         rows = np.flatnonzero(squared < threshold_px**2)
     cost = float((weights * np.minimum(squared, threshold_px**2)).sum())
-    full = model.jacobian_of(projected, jac, rows, theta)  # (M, 2, 8)
+    jac = project.jacobian(points_cam[rows])  # each row's Jacobian is its own point's
+    full = model.jacobian_of(projected[rows], jac, np.arange(len(rows)), theta)  # (M, 2, 8)
     w = weights[rows]
     flat = full.reshape(-1, 8)
     weighted = flat * np.repeat(w, 2)[:, None]
-    return _Equations(rows, weighted.T @ flat, weighted.T @ residuals[rows].ravel(),
+    return Equations(rows, weighted.T @ flat, weighted.T @ residuals[rows].ravel(),
                       residuals[rows], full, w, px[rows], cost)
-
-
-def _solve(normal: Array, rhs: Array) -> Array | None:
-    try:
-        step = np.asarray(np.linalg.solve(normal, rhs), np.float64)
-    except np.linalg.LinAlgError:
-        return None
-    return step if np.all(np.isfinite(step)) else None
 
 
 def _pose_shift(normal: Array) -> Array:
@@ -377,7 +317,7 @@ def _pose_shift(normal: Array) -> Array:
         return np.full((6, 2), np.inf)
 
 
-def _solution(eq: _Equations, theta: Array, twist: Array, camera: Camera,
+def _solution(eq: Equations, theta: Array, twist: Array, camera: Camera,
               min_sigma_px: float) -> Solution:
     """The :class:`Solution` of the normal equations ``eq`` at a joint estimate: the model
     covariance ``sigma^2 [N^-1]_theta`` (the Schur complement of the pose; sigma from the
@@ -394,7 +334,7 @@ def _solution(eq: _Equations, theta: Array, twist: Array, camera: Camera,
                     inliers=len(eq.rows), cost=eq.cost, twist=twist)
 
 
-def _cluster_robust(eq: _Equations, inverse: Array, camera: Camera) -> tuple[Array | None, int]:
+def _cluster_robust(eq: Equations, inverse: Array, camera: Camera) -> tuple[Array | None, int]:
     """The (2, 2) cluster-robust covariance of ``theta`` (sandwich ``N^-1 M N^-1`` with
     ``M`` the sum over grid cells of each cell's outer product of its score ``J^T W r``,
     times ``G / (G - 1)``) and the number ``G`` of occupied cells; None when ``G < 3``."""
@@ -404,9 +344,11 @@ def _cluster_robust(eq: _Equations, inverse: Array, camera: Camera) -> tuple[Arr
                   CLUSTER_GRID - 1)
     cell = row * CLUSTER_GRID + col
     scores_per_point = np.einsum("mik,mi->mk", eq.jac, eq.residuals) * eq.weights[:, None]
-    scores = np.zeros((CLUSTER_GRID**2, 8))
-    np.add.at(scores, cell, scores_per_point)
-    occupied = np.unique(cell)
+    # Per-cell sums in the points' order (np.add.at's), in one bincount over (cell, column).
+    scores = np.bincount((cell[:, None] * 8 + np.arange(8)).ravel(),
+                         weights=scores_per_point.ravel(),
+                         minlength=8 * CLUSTER_GRID**2).reshape(CLUSTER_GRID**2, 8)
+    occupied = np.flatnonzero(np.bincount(cell, minlength=CLUSTER_GRID**2))
     g = len(occupied)
     if g < 3 or not np.all(np.isfinite(inverse)):
         return None, g

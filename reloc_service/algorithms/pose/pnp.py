@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -271,17 +270,44 @@ def _check_intrinsics(fit: _Fit, px: Array, points_world: Array, camera: Camera,
                             focal_starts=focal_starts)
 
 
-def pose_projector(points_world: Array, camera: Camera
-                   ) -> Callable[[Array], tuple[Array, Array]]:
-    """The projection of (N, 3) ``points_world`` through ``camera`` at a ``world_from_cam``:
-    (N, 2) pixels and their (N, 2, 6) Jacobian w.r.t. a right perturbation of the pose (what
-    :func:`.intrinsics.check_intrinsics` differentiates)."""
+def pose_projector(points_world: Array, camera: Camera) -> PoseProjector:
+    """The projection of (N, 3) ``points_world`` through ``camera`` at a ``world_from_cam``
+    (what :func:`.intrinsics.check_intrinsics` differentiates): called, (N, 2) pixels and
+    their (N, 2, 6) Jacobian w.r.t. a right perturbation of the pose."""
+    return PoseProjector(points_world, camera)
 
-    def project(world_from_cam: Array) -> tuple[Array, Array]:
-        view = _View.at(world_from_cam, points_world, camera)
-        return view.px, _pose_jacobian(camera, view.points_cam).reshape(-1, 2, 6)
 
-    return project
+@dataclass(frozen=True, eq=False)
+class PoseProjector:
+    """(N, 3) ``points_world`` projected through ``camera`` at a pose: the pixels of all of
+    them (:meth:`pixels`) and the Jacobian of some (:meth:`jacobian`), apart, because the
+    intrinsics test's Gauss-Newton tries steps on every point and differentiates only the
+    gated points of the steps it takes (each row's values are its own row's either way)."""
+
+    points_world: Array
+    camera: Camera
+
+    def __call__(self, world_from_cam: Array) -> tuple[Array, Array]:
+        px, points_cam = self.pixels(world_from_cam)
+        return px, self.jacobian(points_cam)
+
+    def pixels(self, world_from_cam: Array) -> tuple[Array, Array]:
+        """(N, 2) pixels and (N, 3) camera-frame points at ``world_from_cam``."""
+        view = _View.at(world_from_cam, self.points_world, self.camera)
+        return view.px, view.points_cam
+
+    def pixels_many(self, world_from_cams: Array) -> tuple[Array, Array]:
+        """(K, N, 2) pixels and (K, N, 3) camera-frame points at each of K poses (K, 4, 4)
+        at once (as :meth:`pixels`, equal to rounding)."""
+        rotation, position = world_from_cams[:, :3, :3], world_from_cams[:, None, :3, 3]
+        points_cam = (self.points_world[None] - position) @ rotation  # R^T (p - t) per row
+        px = project_cam(self.camera, points_cam.reshape(-1, 3))
+        return px.reshape(*points_cam.shape[:2], 2), points_cam
+
+    def jacobian(self, points_cam: Array) -> Array:
+        """(M, 2, 6) pixel Jacobian of (M, 3) camera-frame points w.r.t. a right perturbation
+        of ``world_from_cam``."""
+        return _pose_jacobian(self.camera, points_cam).reshape(-1, 2, 6)
 
 
 def level_scales(levels: npt.NDArray[np.integer], scale_factor: float) -> Array:

@@ -116,6 +116,7 @@ def render_markdown(result: Mapping[str, Any], *, plots_dir: Path | None = None)
     for name, fn in (("scene", _scene), ("latency", _latency), ("peers", _peers),
                      ("accuracy", _accuracy), ("throughput", _throughput),
                      ("scaling", _scaling), ("ferns", _ferns), ("planar", _planar),
+                     ("intrinsics", _intrinsics),
                      ("prior", _prior), ("soak", _soak), ("fleet", _fleet)):
         section = result.get(name)
         if not section:
@@ -388,6 +389,19 @@ def _ferns(f: Mapping[str, Any]) -> list[str]:
                f"{add['new_observations']} observations to a {add['model_landmarks']}-landmark "
                f"model: {fmt(add['add_seconds'], 3)} s (remove {fmt(add['remove_seconds'], 3)} "
                "s).", ""])
+
+
+def _intrinsics(p: Mapping[str, Any]) -> list[str]:
+    header = ["correspondences", "focal scale", "p50 ms (1 BLAS thread)", "CPU p50 ms",
+              f"p50 ms ({p['cores']} BLAS threads)", "passed"]
+    rows = [[str(r["correspondences"]), fmt(r["focal_scale"], 2),
+             fmt(r["one_blas_thread"]["p50_ms"]), fmt(r["one_blas_thread"]["cpu_p50_ms"]),
+             fmt(r["blas_threads_per_core"]["p50_ms"]), str(r["one_blas_thread"]["passed"])]
+            for r in p["rows"]]
+    return (["## Intrinsics test", "",
+             "`reloc_service.tools.bench.intrinsics_bench`: one intrinsics test on the "
+             f"correspondences of a PnP pose ({p['camera']}, {fmt(100 * p['outlier_share'], 0)} % "
+             "outliers), the query's focal given or 8 % off:", ""] + _table(header, rows) + [""])
 
 
 def _planar(p: Mapping[str, Any]) -> list[str]:

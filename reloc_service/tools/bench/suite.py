@@ -17,7 +17,9 @@ its trained engines, the run's sizes; measurement helpers in :mod:`.samples`):
 - ``scaling``: maps of 10, 100, 1000 keyframes (:mod:`.scaling`);
 - ``ferns``: the ferns classifier (:mod:`.ferns_bench`);
 - ``planar``: micro-benchmarks of the multi relocalizer on a textured plane
-  (:mod:`.multi_bench`, full run only).
+  (:mod:`.multi_bench`, full run only);
+- ``intrinsics``: the intrinsics test alone on synthetic correspondences
+  (:mod:`.intrinsics_bench`).
 
 The CLI adds ``accuracy`` (:mod:`.accuracy`: the presets and the real sets, run by every
 whole run) and, only when named with ``--only``, ``soak``, the reliability soak run with
@@ -313,6 +315,13 @@ def bench_planar(conf: SuiteConf) -> dict[str, Any]:
     return multi_bench.run(quick=conf.name != "full")
 
 
+def bench_intrinsics(conf: SuiteConf) -> dict[str, Any]:
+    """:func:`intrinsics_bench.run`: the intrinsics test alone, per correspondence count."""
+    from . import intrinsics_bench
+
+    return intrinsics_bench.run(repeats=10 if conf.name == "quick" else 30)
+
+
 # -- the whole run -----------------------------------------------------------------------------
 
 def headline(result: Mapping[str, Any]) -> dict[str, Any]:
@@ -390,7 +399,8 @@ def run_suite(conf: SuiteConf, *, command: str = "", workdir: Path | None = None
             "throughput": lambda: bench_throughput(ws),  # type: ignore[arg-type]
             "scaling": lambda: bench_scaling(ws),  # type: ignore[arg-type]
             "ferns": lambda: bench_ferns(conf),
-            "planar": lambda: bench_planar(conf)}
+            "planar": lambda: bench_planar(conf),
+            "intrinsics": lambda: bench_intrinsics(conf)}
         for name in conf.sections:
             if name in needs_scene and ws is None:
                 result[name] = {"error": "skipped: the scene could not be prepared"}

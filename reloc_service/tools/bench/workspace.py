@@ -20,7 +20,7 @@ from ...core.progress import progress
 from ...engine import Engine, EngineConf, MappingConf
 from .samples import JPEG_QUALITY, QuerySet
 
-SECTIONS = ("latency", "peers", "throughput", "scaling", "ferns", "planar")
+SECTIONS = ("latency", "peers", "throughput", "scaling", "ferns", "planar", "intrinsics")
 #: Label of the service's default method (:data:`DEFAULT_METHOD`) in every table.
 DEFAULT_LABEL = "default"
 #: Name of the map the loopback services serve, and the camera id queries name.
