@@ -88,6 +88,12 @@ class MultiRelocalizer(Relocalizer):
         #: step with other features overrules it (a stale focal's pose too, where an
         #: earlier step saw the error and the later one could not).
         confirm_intrinsics: bool = True
+        #: In a fallback chain, refuse this step's verified pose where its intrinsics
+        #: estimate disagrees with an earlier step's that matched the same kind of keypoints
+        #: (one that refused the query's intrinsics, or answered a pose the chain held as a
+        #: contender): a two-sample test at the intrinsics test's false-refusal rate
+        #: (:mod:`..pose.intrinsics_agreement`). Off: each step's test alone judges it.
+        compare_intrinsics: bool = True
 
         def __post_init__(self) -> None:
             if self.num_candidates < 1 or self.max_groups < 1:
