@@ -3,6 +3,8 @@ refuses a pose whose estimate disagrees with an earlier step's on the same keypo
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from test_intrinsics_confirmation import STALE, judged
@@ -12,6 +14,7 @@ from reloc_service.algorithms.pose.intrinsics import IntrinsicsCheck
 from reloc_service.algorithms.pose.intrinsics_agreement import (
     disagreement_p_value,
     first_disagreement,
+    guided_bend_p_value,
 )
 from reloc_service.algorithms.relocalizers.base import (
     ANSWERED,
@@ -57,6 +60,24 @@ def test_estimates_of_two_cameras_disagree(stale_refusal):
     assert first_disagreement(right, []) is None
 
 
+def with_unguided(whole: IntrinsicsCheck, camera, seed: int) -> IntrinsicsCheck:
+    """``whole`` with an unguided test on 60 coarser keypoints (1 px) seen through
+    ``camera``: fewer and less precise than the whole set, as unguided matches are."""
+    alone = judged(*correspondences(ROOM, 60, 1.0, np.random.default_rng(seed)), camera)
+    return dataclasses.replace(whole, unguided=alone.intrinsics)
+
+
+def test_guided_matching_bent_the_focal_where_the_unguided_matches_see_another():
+    whole = sharp(ROOM, 1).intrinsics
+    assert guided_bend_p_value(whole) == 1.0  # no unguided test: no evidence
+    agreeing = with_unguided(whole, ROOM, 4)
+    assert guided_bend_p_value(agreeing) > whole.prior.false_refusal
+    bent = with_unguided(whole, STALE, 4)
+    assert guided_bend_p_value(bent) < 1e-6
+    # The other way round (the "unguided" test the more precise) there is nothing to test.
+    assert guided_bend_p_value(dataclasses.replace(bent.unguided, unguided=whole)) == 1.0
+
+
 class _Refusing(Relocalizer):
     """A step on SIFT of the half-size query (as the default chain's sift-half) that refuses
     every query's intrinsics with ``check``, left on the query as the multi relocalizer
@@ -100,10 +121,12 @@ class _Answering(Relocalizer):
     method = "answering:sift"
     required_features = frozenset({"sift"})
 
-    def __init__(self, kmap: KeyframeMap, estimate, compare: bool) -> None:
+    def __init__(self, kmap: KeyframeMap, estimate, compare: bool, guided: bool = False
+                 ) -> None:
         super().__init__(kmap)
         self.estimate = estimate
-        self.conf = MultiRelocalizer.Conf(compare_intrinsics=compare)
+        self.conf = MultiRelocalizer.Conf(compare_intrinsics=compare,
+                                          compare_guided_focal=guided)
 
     def feature_confs(self) -> dict[str, FeatureConf]:
         return {"sift": FeatureConf(kind="sift")}
@@ -153,3 +176,17 @@ def test_an_earlier_refusal_on_other_keypoints_is_left_to_the_confirmation(stale
     result = _chain(stale_refusal, "orb", passing)
     assert result.ok and np.allclose(result.world_from_cam, passing.world_from_cam)
 
+
+
+def test_a_pose_whose_guided_matches_bent_the_focal_is_refused_on_request():
+    """A pass whose unguided matches estimate another focal: refused where the step asks
+    (``compare_guided_focal``, off by default), answered otherwise."""
+    bent = sharp(ROOM, 1)
+    bent.intrinsics = with_unguided(bent.intrinsics, STALE, 4)
+    kmap = KeyframeMap()
+    query = Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), ROOM)
+    chain = ChainRelocalizer(kmap, [_Answering(kmap, bent, True, guided=True)])
+    result = chain.relocalize(query)
+    assert not result.ok and "guided matching bent it" in result.reason
+    assert ChainRelocalizer(kmap, [_Answering(kmap, bent, True)]).relocalize(query).ok
+    assert not MultiRelocalizer.Conf().compare_guided_focal

@@ -246,7 +246,9 @@ def _confirmed(step: Relocalizer, result: RelocResult, estimate: PoseEstimate | 
         result = next((r for r in (standing_refusal(refusal, result, estimate)
                                    for refusal in refusals) if r is not None), result)
     if result.ok and getattr(conf, "compare_intrinsics", False):
-        result = disagreeing_steps(result, estimate, step.required_features, earlier) or result
+        result = disagreeing_steps(result, estimate, step.required_features, earlier,
+                                   guided=getattr(conf, "compare_guided_focal", False)
+                                   ) or result
     result.timings = timings
     return result
 

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 from ...core.frame import Frame
 from ..pose.base import PoseEstimate
-from ..pose.intrinsics import IntrinsicsCheck
-from ..pose.intrinsics_agreement import first_disagreement, focal_text
+from ..pose.intrinsics import REFUSAL, IntrinsicsCheck
+from ..pose.intrinsics_agreement import first_disagreement, focal_text, guided_bend_p_value
 from ..pose.intrinsics_confirmation import (
     confirms,
     detection_power,
@@ -99,15 +99,24 @@ def standing_refusal(refusal: Refusal, answer: RelocResult,
 
 
 def disagreeing_steps(answer: RelocResult, estimate: PoseEstimate | None,
-                      features: frozenset[str], earlier: list[StepEstimate]
-                      ) -> RelocResult | None:
+                      features: frozenset[str], earlier: list[StepEstimate], *,
+                      guided: bool = False) -> RelocResult | None:
     """A refusal of ``answer`` (a verified pose, ``estimate`` its estimate, from a step
     matching landmarks of the kinds ``features``) where its intrinsics estimate disagrees
     with an ``earlier`` step's of the same kinds (:func:`..pose.intrinsics_agreement.
-    first_disagreement`); None where they agree, or where ``answer`` was not tested."""
+    first_disagreement`), or, with ``guided``, where guided matching bent its own focal
+    estimate (:func:`..pose.intrinsics_agreement.guided_bend_p_value`, at the false-refusal
+    rate); None where they agree, or where ``answer`` was not tested."""
     check = None if estimate is None else estimate.intrinsics
     if check is None:
         return None
+    if guided and check.unguided is not None:
+        p = guided_bend_p_value(check)
+        if p < check.prior.false_refusal:
+            return _refusal(answer, (
+                f"{REFUSAL}: {answer.method}'s matches found without the pose estimate the "
+                f"focal {focal_text(check.unguided)} off the given one, the whole set grown "
+                f"around the pose {focal_text(check)} (p = {p:.1e}): guided matching bent it"))
     # A contender answering after a later step weighed it: its own step's keypoints.
     features = next((e.features for e in earlier if e.check is check), features)
     same = [e for e in earlier if e.features == features and e.check is not check]
@@ -119,6 +128,11 @@ def disagreeing_steps(answer: RelocResult, estimate: PoseEstimate | None,
     reason = (f"{REFUSAL_BETWEEN_STEPS}: {answer.method} estimates the focal "
               f"{focal_text(check)} off the given one, {other.method} {focal_text(other.check)}"
               f" (p = {p:.1e}); one of the two poses absorbed a focal error")
+    return _refusal(answer, reason)
+
+
+def _refusal(answer: RelocResult, reason: str) -> RelocResult:
+    """``answer``'s step refusing the query with ``reason``."""
     return RelocResult.failure(answer.method, reason, timings=answer.timings,
                                map_version=answer.map_version,
                                matched_keyframe_ids=answer.matched_keyframe_ids)

@@ -94,6 +94,12 @@ class MultiRelocalizer(Relocalizer):
         #: contender): a two-sample test at the intrinsics test's false-refusal rate
         #: (:mod:`..pose.intrinsics_agreement`). Off: each step's test alone judges it.
         compare_intrinsics: bool = True
+        #: With ``compare_intrinsics``, also refuse this step's pose where guided matching
+        #: bent its focal estimate: its unguided matches' estimate disagrees with its whole
+        #: set's (Hausman's test of the focal at the false-refusal rate,
+        #: :func:`..pose.intrinsics_agreement.guided_bend_p_value`). Off until measured on
+        #: every set with the right camera.
+        compare_guided_focal: bool = False
 
         def __post_init__(self) -> None:
             if self.num_candidates < 1 or self.max_groups < 1:
