@@ -12,6 +12,7 @@ from ...core.features import FeatureConf
 from ...core.frame import Frame, Keyframe
 from ...core.map import KeyframeMap
 from ..pose.base import PoseEstimate
+from ..pose.intrinsics import IntrinsicsCheck
 from ..pose.intrinsics_power import estimate_underpowered
 from .base import (
     ANSWERED,
@@ -24,7 +25,14 @@ from .base import (
     narrow_support,
     refuses_the_query,
 )
-from .confirmation import REFUSED, Refusal, refusal_of, standing_refusal
+from .confirmation import (
+    REFUSED,
+    Refusal,
+    StepEstimate,
+    disagreeing_steps,
+    refusal_of,
+    standing_refusal,
+)
 from .overlap import Ahead, run_ahead
 
 
@@ -107,6 +115,7 @@ class ChainRelocalizer(Relocalizer):
         contender: Contender | None = None
         contender_step: Relocalizer = self.steps[0]
         refusals: list[Refusal] = []
+        earlier: list[StepEstimate] = []  # the intrinsics tests of refusals and contenders
         try:
             for i, step in enumerate(self.steps):
                 result = self._ask(query, i, prior, hypotheses, reasons)
@@ -122,26 +131,28 @@ class ChainRelocalizer(Relocalizer):
                         result.timings = timings
                         return result
                     refusals.append(refusal_of(result, refused))
+                    _note_estimate(earlier, step, refusals[-1].check)
                     reasons.append(f"{step.method}: {result.reason}")
                     continue
                 if contender is not None and contender.weighed:
                     # the contender weighed: the winner, or "ambiguous"
-                    return _confirmed(step, result, answered, refusals, timings)
+                    return _confirmed(step, result, answered, refusals, earlier, timings)
                 if contender is not None and result.ok:
                     break  # a step that cannot weigh it does not overrule it
                 if result.ok and contender is None and i + 1 < len(self.steps) \
                         and (_narrow(step, answered) or self._underpowered(i, answered)):
                     contender, contender_step = Contender(result, answered), step
                     query.cache[CONTENDER] = contender
+                    _note_estimate(earlier, step, answered.intrinsics)
                     continue
                 if result.ok:
-                    return _confirmed(step, result, answered, refusals, timings)
+                    return _confirmed(step, result, answered, refusals, earlier, timings)
                 reasons.append(f"{step.method}: {result.reason}")
         finally:
             query.cache.pop(CONTENDER, None)
         if contender is not None:
             return _confirmed(contender_step, contender.result, contender.estimate, refusals,
-                              timings)
+                              earlier, timings)
         if refusals:  # no later step found a pose to overrule them
             refusals[0].result.timings = timings
             return refusals[0].result
@@ -221,16 +232,32 @@ def extract_ahead(query: Frame, step: Relocalizer) -> Ahead[None] | None:
 
 
 def _confirmed(step: Relocalizer, result: RelocResult, estimate: PoseEstimate | None,
-               refusals: list[Refusal], timings: dict[str, float]) -> RelocResult:
+               refusals: list[Refusal], earlier: list[StepEstimate],
+               timings: dict[str, float]) -> RelocResult:
     """``result`` (``step``'s answer) with the chain's ``timings``; or, where ``step``
     asks for it (its ``conf.confirm_intrinsics``) and ``result`` is a verified pose after
     earlier steps' refusals of the query's intrinsics that its own test (of ``estimate``)
-    cannot overrule (:func:`.confirmation.standing_refusal`), the first such refusal."""
-    if result.ok and getattr(getattr(step, "conf", None), "confirm_intrinsics", False):
+    cannot overrule (:func:`.confirmation.standing_refusal`), the first such refusal; or,
+    where ``step`` asks for it (``conf.compare_intrinsics``) and its estimate of the
+    intrinsics disagrees with an ``earlier`` step's of the same keypoints
+    (:func:`.confirmation.disagreeing_steps`), that refusal."""
+    conf = getattr(step, "conf", None)
+    if result.ok and getattr(conf, "confirm_intrinsics", False):
         result = next((r for r in (standing_refusal(refusal, result, estimate)
                                    for refusal in refusals) if r is not None), result)
+    if result.ok and getattr(conf, "compare_intrinsics", False):
+        result = disagreeing_steps(result, estimate, step.required_features, earlier,
+                                   guided=getattr(conf, "compare_guided_focal", False)
+                                   ) or result
     result.timings = timings
     return result
+
+
+def _note_estimate(earlier: list[StepEstimate], step: Relocalizer,
+                   check: IntrinsicsCheck | None) -> None:
+    """Keep ``step``'s intrinsics test ``check`` (if any) for the later steps' answers."""
+    if check is not None:
+        earlier.append(StepEstimate(step.method, step.required_features, check))
 
 
 def _narrow(step: Relocalizer, estimate: PoseEstimate | None) -> bool:

@@ -9,6 +9,11 @@ bias a focal estimate) and the later pose is right, or the camera is stale and t
 test lacked the power to see it: the later pose then rests on the wrong focal. Its pass tells
 them apart only where it would have refused the estimated error and its own data exclude
 that error; elsewhere the refusal stands, saying which step could not confirm the camera.
+
+Steps that match the same kind of keypoints estimate the same camera without the bias one
+kind's localisation puts on another's: where the answering step's estimate disagrees with
+an earlier such step's (a refusal, or a contender the chain held), the answer is refused
+too (:mod:`..pose.intrinsics_agreement`), whether or not its own test passed.
 """
 
 from __future__ import annotations
@@ -17,7 +22,8 @@ from dataclasses import dataclass
 
 from ...core.frame import Frame
 from ..pose.base import PoseEstimate
-from ..pose.intrinsics import IntrinsicsCheck
+from ..pose.intrinsics import REFUSAL, IntrinsicsCheck
+from ..pose.intrinsics_agreement import first_disagreement, focal_text, guided_bend_p_value
 from ..pose.intrinsics_confirmation import (
     confirms,
     detection_power,
@@ -30,6 +36,10 @@ from .base import RelocResult
 #: refusing test (:class:`..pose.intrinsics.IntrinsicsCheck`) for the chain that asked.
 REFUSED = "relocalizer:refused-intrinsics"
 
+#: How a refusal by :func:`disagreeing_steps` begins (an intrinsics refusal: it begins as
+#: :data:`..pose.intrinsics.REFUSAL` does).
+REFUSAL_BETWEEN_STEPS = "intrinsics disagree between steps"
+
 
 @dataclass(frozen=True)
 class Refusal:
@@ -38,6 +48,17 @@ class Refusal:
 
     result: RelocResult
     check: IntrinsicsCheck | None
+
+
+@dataclass(frozen=True)
+class StepEstimate:
+    """An earlier chain step's intrinsics test of the query (``method`` the step's, matching
+    landmarks of the kinds ``features``): where it refused, or where it answered a pose
+    the chain held as a contender."""
+
+    method: str
+    features: frozenset[str]
+    check: IntrinsicsCheck
 
 
 def refusal_of(result: RelocResult, check: object) -> Refusal:
@@ -75,3 +96,43 @@ def standing_refusal(refusal: Refusal, answer: RelocResult,
         first.method, f"{first.reason} by {first.method}; {answer.method} cannot confirm "
         f"the given intrinsics ({why})", timings=first.timings, map_version=first.map_version,
         matched_keyframe_ids=first.matched_keyframe_ids)
+
+
+def disagreeing_steps(answer: RelocResult, estimate: PoseEstimate | None,
+                      features: frozenset[str], earlier: list[StepEstimate], *,
+                      guided: bool = False) -> RelocResult | None:
+    """A refusal of ``answer`` (a verified pose, ``estimate`` its estimate, from a step
+    matching landmarks of the kinds ``features``) where its intrinsics estimate disagrees
+    with an ``earlier`` step's of the same kinds (:func:`..pose.intrinsics_agreement.
+    first_disagreement`), or, with ``guided``, where guided matching bent its own focal
+    estimate (:func:`..pose.intrinsics_agreement.guided_bend_p_value`, at the false-refusal
+    rate); None where they agree, or where ``answer`` was not tested."""
+    check = None if estimate is None else estimate.intrinsics
+    if check is None:
+        return None
+    if guided and check.unguided is not None:
+        p = guided_bend_p_value(check)
+        if p < check.prior.false_refusal:
+            return _refusal(answer, (
+                f"{REFUSAL}: {answer.method}'s matches found without the pose estimate the "
+                f"focal {focal_text(check.unguided)} off the given one, the whole set grown "
+                f"around the pose {focal_text(check)} (p = {p:.1e}): guided matching bent it"))
+    # A contender answering after a later step weighed it: its own step's keypoints.
+    features = next((e.features for e in earlier if e.check is check), features)
+    same = [e for e in earlier if e.features == features and e.check is not check]
+    found = first_disagreement(check, [e.check for e in same])
+    if found is None:
+        return None
+    index, p = found
+    other = same[index]
+    reason = (f"{REFUSAL_BETWEEN_STEPS}: {answer.method} estimates the focal "
+              f"{focal_text(check)} off the given one, {other.method} {focal_text(other.check)}"
+              f" (p = {p:.1e}); one of the two poses absorbed a focal error")
+    return _refusal(answer, reason)
+
+
+def _refusal(answer: RelocResult, reason: str) -> RelocResult:
+    """``answer``'s step refusing the query with ``reason``."""
+    return RelocResult.failure(answer.method, reason, timings=answer.timings,
+                               map_version=answer.map_version,
+                               matched_keyframe_ids=answer.matched_keyframe_ids)

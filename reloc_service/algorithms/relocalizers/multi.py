@@ -88,6 +88,19 @@ class MultiRelocalizer(Relocalizer):
         #: step with other features overrules it (a stale focal's pose too, where an
         #: earlier step saw the error and the later one could not).
         confirm_intrinsics: bool = True
+        #: In a fallback chain, refuse this step's verified pose where its intrinsics
+        #: estimate disagrees with an earlier step's that matched the same kind of keypoints
+        #: (one that refused the query's intrinsics, or answered a pose the chain held as a
+        #: contender): a two-sample test at the intrinsics test's false-refusal rate
+        #: (:mod:`..pose.intrinsics_agreement`). Off: each step's test alone judges it.
+        compare_intrinsics: bool = True
+        #: With ``compare_intrinsics``, also refuse this step's pose where guided matching
+        #: bent its focal estimate: its unguided matches' estimate disagrees with its whole
+        #: set's (Hausman's test of the focal at the false-refusal rate,
+        #: :func:`..pose.intrinsics_agreement.guided_bend_p_value`). Off: with the right
+        #: camera it refused two correct poses of about 400 (room-hard query 33,
+        #: repeated-hard query 30), more than its level predicts.
+        compare_guided_focal: bool = False
 
         def __post_init__(self) -> None:
             if self.num_candidates < 1 or self.max_groups < 1:

@@ -1,0 +1,192 @@
+"""Two intrinsics tests of one query agree where they estimate the same camera, and a chain
+refuses a pose whose estimate disagrees with an earlier step's on the same keypoints."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from test_intrinsics_confirmation import STALE, judged
+from test_pose_intrinsics import ROOM, correspondences
+
+from reloc_service.algorithms.pose.intrinsics import IntrinsicsCheck
+from reloc_service.algorithms.pose.intrinsics_agreement import (
+    disagreement_p_value,
+    first_disagreement,
+    guided_bend_p_value,
+)
+from reloc_service.algorithms.relocalizers.base import (
+    ANSWERED,
+    Relocalizer,
+    RelocResult,
+    RelocStatus,
+)
+from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
+from reloc_service.algorithms.relocalizers.confirmation import REFUSAL_BETWEEN_STEPS, REFUSED
+from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
+from reloc_service.core.features import FeatureConf
+from reloc_service.core.frame import Frame
+from reloc_service.core.map import KeyframeMap
+
+
+def sharp(camera, seed: int):
+    """A pose from 300 sharp keypoints (0.5 px) over the whole image through ``camera``."""
+    return judged(*correspondences(ROOM, 300, 0.5, np.random.default_rng(seed)), camera)
+
+
+@pytest.fixture(scope="module")
+def stale_refusal() -> IntrinsicsCheck:
+    check = sharp(STALE, 0).intrinsics
+    assert check is not None and not check.passed
+    return check
+
+
+def test_independent_estimates_of_one_camera_agree(stale_refusal):
+    right = [sharp(ROOM, seed).intrinsics for seed in (1, 2)]
+    assert disagreement_p_value(right[0], right[1]) > right[0].prior.false_refusal
+    # Under the stale camera both estimate the same error (-23 %): they agree too.
+    other_stale = sharp(STALE, 3).intrinsics
+    assert disagreement_p_value(stale_refusal, other_stale) > stale_refusal.prior.false_refusal
+    assert first_disagreement(right[0], [right[1]]) is None
+
+
+def test_estimates_of_two_cameras_disagree(stale_refusal):
+    right = sharp(ROOM, 1).intrinsics
+    p = disagreement_p_value(right, stale_refusal)
+    assert p < 1e-6
+    assert disagreement_p_value(stale_refusal, right) == pytest.approx(p)  # symmetric
+    assert first_disagreement(right, [sharp(ROOM, 2).intrinsics, stale_refusal]) == (1, p)
+    assert first_disagreement(right, []) is None
+
+
+def with_unguided(whole: IntrinsicsCheck, camera, seed: int) -> IntrinsicsCheck:
+    """``whole`` with an unguided test on 60 coarser keypoints (1 px) seen through
+    ``camera``: fewer and less precise than the whole set, as unguided matches are."""
+    alone = judged(*correspondences(ROOM, 60, 1.0, np.random.default_rng(seed)), camera)
+    return dataclasses.replace(whole, unguided=alone.intrinsics)
+
+
+def test_guided_matching_bent_the_focal_where_the_unguided_matches_see_another():
+    whole = sharp(ROOM, 1).intrinsics
+    assert guided_bend_p_value(whole) == 1.0  # no unguided test: no evidence
+    agreeing = with_unguided(whole, ROOM, 4)
+    assert guided_bend_p_value(agreeing) > whole.prior.false_refusal
+    bent = with_unguided(whole, STALE, 4)
+    assert guided_bend_p_value(bent) < 1e-6
+    # The other way round (the "unguided" test the more precise) there is nothing to test.
+    assert guided_bend_p_value(dataclasses.replace(bent.unguided, unguided=whole)) == 1.0
+
+
+class _Refusing(Relocalizer):
+    """A step on SIFT of the half-size query (as the default chain's sift-half) that refuses
+    every query's intrinsics with ``check``, left on the query as the multi relocalizer
+    leaves it."""
+
+    name = "refusing"
+    method = "refusing:sift"
+    required_features = frozenset({"sift"})
+
+    def __init__(self, kmap: KeyframeMap, check: IntrinsicsCheck) -> None:
+        super().__init__(kmap)
+        self.check = check
+
+    def feature_confs(self) -> dict[str, FeatureConf]:
+        conf = FeatureConf(kind=next(iter(self.required_features)), scale=0.5)
+        return {conf.key: conf}
+
+    def add_keyframe(self, keyframe) -> None:
+        pass
+
+    def remove_keyframe(self, keyframe) -> None:
+        pass
+
+    def relocalize(self, query, *, prior=None, hypotheses=1) -> RelocResult:
+        query.cache[REFUSED] = self.check
+        return RelocResult.failure(self.method, self.check.reason)
+
+
+class _RefusingOrb(_Refusing):
+    """The same on ORB keypoints."""
+
+    method = "refusing:orb"
+    required_features = frozenset({"orb"})
+
+
+class _Answering(Relocalizer):
+    """A SIFT step answering every query with ``estimate``'s pose, with the multi
+    relocalizer's options (``compare``: its ``compare_intrinsics``)."""
+
+    name = "answering"
+    method = "answering:sift"
+    required_features = frozenset({"sift"})
+
+    def __init__(self, kmap: KeyframeMap, estimate, compare: bool, guided: bool = False
+                 ) -> None:
+        super().__init__(kmap)
+        self.estimate = estimate
+        self.conf = MultiRelocalizer.Conf(compare_intrinsics=compare,
+                                          compare_guided_focal=guided)
+
+    def feature_confs(self) -> dict[str, FeatureConf]:
+        return {"sift": FeatureConf(kind="sift")}
+
+    def add_keyframe(self, keyframe) -> None:
+        pass
+
+    def remove_keyframe(self, keyframe) -> None:
+        pass
+
+    def relocalize(self, query, *, prior=None, hypotheses=1) -> RelocResult:
+        query.cache[ANSWERED] = self.estimate
+        return RelocResult(status=RelocStatus.OK, method=self.method,
+                           world_from_cam=self.estimate.world_from_cam,
+                           covariance=self.estimate.covariance, confidence=0.5)
+
+
+def _chain(refusal: IntrinsicsCheck, features: str, estimate, compare: bool = True
+           ) -> RelocResult:
+    kmap = KeyframeMap()
+    first = (_RefusingOrb if features == "orb" else _Refusing)(kmap, refusal)
+    chain = ChainRelocalizer(kmap, [first,
+                                    _Answering(kmap, estimate, compare)])
+    return chain.relocalize(Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), STALE))
+
+
+def test_a_pass_that_disagrees_with_an_earlier_step_on_the_same_keypoints_is_refused(
+        stale_refusal):
+    """A sharp pose whose test passes the given camera, after a SIFT step whose SIFT
+    correspondences estimated another: the two cannot both be right, so the chain refuses,
+    naming both estimates (it answered before: the pass has the power to see the refused
+    error and its data exclude it)."""
+    passing = sharp(ROOM, 1)
+    assert passing.intrinsics.passed
+    result = _chain(stale_refusal, "sift", passing)
+    assert not result.ok and result.method == "answering:sift"
+    assert result.reason.startswith(REFUSAL_BETWEEN_STEPS)
+    assert "refusing:sift -23." in result.reason
+    assert _chain(stale_refusal, "sift", passing, compare=False).ok
+    assert MultiRelocalizer.Conf().compare_intrinsics
+
+
+def test_an_earlier_refusal_on_other_keypoints_is_left_to_the_confirmation(stale_refusal):
+    """ORB's estimate carries its pyramid's bias: a SIFT pass that confirms the given camera
+    against it (:mod:`..intrinsics_confirmation`) answers."""
+    passing = sharp(ROOM, 1)
+    result = _chain(stale_refusal, "orb", passing)
+    assert result.ok and np.allclose(result.world_from_cam, passing.world_from_cam)
+
+
+
+def test_a_pose_whose_guided_matches_bent_the_focal_is_refused_on_request():
+    """A pass whose unguided matches estimate another focal: refused where the step asks
+    (``compare_guided_focal``, off by default), answered otherwise."""
+    bent = sharp(ROOM, 1)
+    bent.intrinsics = with_unguided(bent.intrinsics, STALE, 4)
+    kmap = KeyframeMap()
+    query = Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), ROOM)
+    chain = ChainRelocalizer(kmap, [_Answering(kmap, bent, True, guided=True)])
+    result = chain.relocalize(query)
+    assert not result.ok and "guided matching bent it" in result.reason
+    assert ChainRelocalizer(kmap, [_Answering(kmap, bent, True)]).relocalize(query).ok
+    assert not MultiRelocalizer.Conf().compare_guided_focal
