@@ -10,13 +10,13 @@ length of the position error under the stated covariance minus a part tells whet
 part makes it too wide. It also records the covariance the answer would state under the
 intrinsics test's own prior instead of the map's stated calibration accuracy
 (``stated_test_prior``), the one main states with the decision's map dispersion
-(``stated_plain``: differs where ``--robust-stated-dispersion`` is given), and for the
+(``stated_plain``: differs unless ``--plain-stated-dispersion`` is given), and for the
 keyframe poses' part the alternative where their errors are independent between keyframes
 (``map_independent``, ``sum_k w_k^2 A_k S_k A_k^T``, and ``keyframes_effective``,
 ``1 / sum_k w_k^2``), and prints the cov scale of each stated covariance.
 
     python scripts/covariance_parts.py DATASET [--keyframe-sigma T_M,R_DEG]
-        [--calibration-sigma FOCAL_REL,RADIAL_PX] [--robust-stated-dispersion]
+        [--calibration-sigma FOCAL_REL,RADIAL_PX] [--plain-stated-dispersion]
         --out OUT.json [--json EVAL.json]
 """
 
@@ -131,10 +131,11 @@ def main() -> None:
     parser.add_argument("--method", default="sbi+p3p:orb,sbi+p3p:sift-half,bow+p3p,sbi+p3p")
     parser.add_argument("--query-focal-scale", type=float, default=1.0,
                         help="the queries claim a focal this many times their camera's")
-    parser.add_argument("--robust-stated-dispersion", action="store_true",
-                        help="state the map's dispersion robust to mis-associated landmarks "
-                        "([options.p3p] robust_stated_dispersion); 'stated_plain' is the "
-                        "covariance stated without it, from the same run")
+    parser.add_argument("--plain-stated-dispersion", action="store_true",
+                        help="state the decision's map dispersion ([options.p3p] "
+                        "robust_stated_dispersion = false); by default the answer states the "
+                        "one robust to mis-associated landmarks and 'stated_plain' is the "
+                        "covariance stated with the decision's, from the same run")
     parser.add_argument("--out", required=True)
     parser.add_argument("--json", help="also write reloc eval's JSON here")
     args = parser.parse_args()
@@ -145,7 +146,7 @@ def main() -> None:
     map_consistency.map_covariance = _record_map_covariance(map_consistency.map_covariance)
     from reloc_service.algorithms.relocalizers import multi
     multi.result_from_estimate = _record_result(relocalizer_base.result_from_estimate)
-    options = ({"p3p": {"robust_stated_dispersion": True}} if args.robust_stated_dispersion
+    options = ({"p3p": {"robust_stated_dispersion": False}} if args.plain_stated_dispersion
                else None)
     result = eval_lib.evaluate(args.dataset, args.method, progress=False, options=options,
                                keyframe_sigma=(sigma[0], sigma[1]),

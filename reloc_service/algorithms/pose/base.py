@@ -105,6 +105,13 @@ class PoseEstimate:
     #: scales the pose's own part by in place of the decision's (``intrinsics.dispersion``);
     #: None: the decision's. Read by the stated covariance only, never by a decision.
     stated_dispersion: float | None = None
+    #: The cluster-robust covariance of the pose over the coverage grid's cells and their
+    #: number (:func:`.cell_sandwich.cell_sandwich`), computed when the answer's covariance
+    #: is stated, which widens its measurement part where it exceeds it
+    #: (:func:`.cell_sandwich.widened`); None where the solver gives none. Read by the stated
+    #: covariance only, never by a decision.
+    measurement_sandwich: Callable[[], tuple[Array, int] | None] | None = field(
+        default=None, repr=False, compare=False)
     #: Whether the query claims exactly the camera of the keyframes behind the pose (the
     #: map's calibration, as a drone whose camera built the map), which is what a view
     #: that cannot check the intrinsics may trust; None where not known (not trusted).

@@ -30,6 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .base import PoseEstimate
+from .cell_sandwich import widened
 from .intrinsics import IntrinsicsCheck, Solution
 
 Array = npt.NDArray[np.float64]
@@ -148,10 +149,16 @@ def stated_dispersion_parts(estimate: PoseEstimate, trusted: Array, check: Intri
     """``trusted`` (``d C + B P_t B^T``) and ``check`` with the decision's dispersion ``d``
     replaced by the one the answer states (:attr:`.base.PoseEstimate.stated_dispersion`,
     robust to mis-associated map landmarks): ``d_s C + B P_t B^T`` and ``V`` scaled by
-    ``d_s``; both unchanged where none is set."""
-    if estimate.stated_dispersion is None:
-        return trusted, check
-    stated = check.with_dispersion(estimate.stated_dispersion)
-    ratio = stated.dispersion / check.dispersion
-    out = trusted + (ratio - 1.0) * own_covariance(trusted, check)
-    return np.asarray(0.5 * (out + out.T), np.float64), stated
+    ``d_s``; then ``d_s C`` widened to the spread the inliers show over the image's cells
+    where it exceeds it (:attr:`.base.PoseEstimate.measurement_sandwich`,
+    :func:`.cell_sandwich.widened`); unchanged where neither applies."""
+    if estimate.stated_dispersion is not None:
+        stated = check.with_dispersion(estimate.stated_dispersion)
+        ratio = stated.dispersion / check.dispersion
+        trusted = trusted + (ratio - 1.0) * own_covariance(trusted, check)
+        check = stated
+    sandwich = None if estimate.measurement_sandwich is None else estimate.measurement_sandwich()
+    if sandwich is not None:
+        own = own_covariance(trusted, check)
+        trusted = trusted + widened(own, *sandwich) - own
+    return np.asarray(0.5 * (trusted + trusted.T), np.float64), check

@@ -18,7 +18,7 @@ keyframe is that of a wrong correspondence (a few pixels, inside the consensus t
 not extra noise of the map, and ``T^2`` grows with them although a query's own consensus
 keeps such outliers out of its pose. The dispersion an answer may state (``robust=True``,
 :attr:`.base.PoseEstimate.stated_dispersion`, where ``[options.p3p]
-robust_stated_dispersion`` asks for it; off by default) therefore estimates each
+robust_stated_dispersion`` asks for it, as by default) therefore estimates each
 keyframe's ``T^2`` on its inliers of a chi-square gate: the held-out residuals' squared
 lengths in units of their keypoint sigmas, over their robust scale (median over the median
 of chi-square with 2 degrees of freedom, so the outliers do not set it), beyond the
@@ -30,10 +30,13 @@ ones explain (:func:`excess_exclusion`: a binomial test of the count left out ag
 gate's nominal rate, at a ``MIS_ASSOCIATION_FALSE_ALARM`` rate): elsewhere the tail beyond
 the gate is the map's own noise, which a query's pose sees as well, and the plain statistic
 stands. The verification's decisions keep the plain dispersion: only the stated covariance
-reads the robust one. A weakness, why it is off: the keyframes of degraded images (blur,
-noise) fail the test as well, with a few per cent of their held-out residuals beyond the
-gate's 99.9 % quantile, and there the plain dispersion was what covered the queries' own
-outliers, which the measurement part does not (room-hard's cov scale 1.27 -> 1.45).
+reads the robust one. A weakness: the keyframes of degraded images (blur, noise) fail the
+test as well, with a few per cent of their held-out residuals beyond the gate's 99.9 %
+quantile, and there the plain dispersion was what covered the queries' own correlated errors,
+which the model covariance does not (room-hard's cov scale 1.27 -> 1.45 with the robust
+dispersion alone); the answer's measurement part is widened to its inliers' spread over the
+image's cells for them (:mod:`.cell_sandwich`), without which the robust dispersion would
+make degraded sets too confident.
 """
 
 from __future__ import annotations
