@@ -26,8 +26,10 @@ from reloc_service.tools.eval import evaluate as ev
 
 def kb_per_part(snapshot_root: str, keyframes: int) -> dict[str, float]:
     sizes: dict[str, int] = {}
+    seen: set[tuple[int, int]] = set()   # a model file equal to another method's: a hard link
     for f in Path(snapshot_root).rglob("*"):
-        if f.is_file():
+        if f.is_file() and (f.stat().st_dev, f.stat().st_ino) not in seen:
+            seen.add((f.stat().st_dev, f.stat().st_ino))
             rel = f.relative_to(snapshot_root).parts
             key = rel[2] if len(rel) > 3 else "other"
             if key == "features":

@@ -36,7 +36,7 @@ def saved(synthetic_scene, tmp_path_factory) -> tuple[Engine, Path]:
 
 def stored_index(directory: Path) -> Path:
     return current_snapshot(directory) / "models" / model_dir_name(METHOD) / "repetition" / \
-        "orb.npz"
+        "orb.leaves.npz"
 
 
 def count_builds(monkeypatch) -> list[int]:
@@ -108,7 +108,7 @@ def test_a_damaged_stored_index_is_refused_by_name(saved, tmp_path) -> None:
     raw = bytearray(path.read_bytes())
     raw[len(raw) // 2] ^= 0xFF
     path.write_bytes(bytes(raw))
-    with pytest.raises(StorageError, match="repetition/orb.npz"):
+    with pytest.raises(StorageError, match="repetition/orb.leaves.npz"):
         Engine.load(copy, conf(0))
 
 

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 from engine_support import saved_trained_engine
 
-from reloc_service.algorithms.pose.map_pool import held_pool
+from reloc_service.algorithms.pose.map_pool import MapPool, held_pool
 from reloc_service.algorithms.pose.repetition_index import IndexConf, RepetitionIndex
+from reloc_service.algorithms.pose.repetition_store import STORE_DIR, load_index, stored_kinds
 from reloc_service.algorithms.relocalizers import map_pools
 from reloc_service.core.mapping import MappingConf
 from reloc_service.engine import Engine, EngineConf
@@ -41,8 +42,7 @@ def saved(synthetic_scene, tmp_path_factory) -> Path:
 
 
 def stored(directory: Path) -> list[str]:
-    folder = current_snapshot(directory) / "models" / model_dir_name(METHOD) / "repetition"
-    return [p.stem for p in folder.glob("*.npz")]
+    return stored_kinds(current_snapshot(directory) / "models" / model_dir_name(METHOD))
 
 
 def count_builds(monkeypatch) -> list[int]:
@@ -116,3 +116,29 @@ def test_making_the_pools_leaves_no_keyframe_features_built(saved) -> None:
         assert held_pool(state, kind, IndexConf(exact_rows=0)) is not None
     built = {kf_id: kf.features.built_kinds for kf_id, kf in state.keyframes.items()}
     assert not any(built.values()), built
+
+
+def test_an_index_stored_as_leaves_is_the_filing_a_build_makes(saved, tmp_path) -> None:
+    """The stored leaf of each row gives back the order and offsets of the index as built
+    (seeded: a build again makes the same), and an index saved before leaves were stored
+    (``<kind>.npz``: order and offsets themselves) is still read, to the same filing."""
+    models = current_snapshot(saved) / "models" / model_dir_name(METHOD)
+    state = Engine.load(saved, conf(), pools=False).map.snapshot()
+    index_conf = IndexConf(exact_rows=0)
+    for kind in ("orb", "sift"):
+        stored_pool = load_index(models, state, kind, index_conf)
+        assert stored_pool is not None
+        built = MapPool.make(state, kind, index_conf).index
+        assert np.array_equal(stored_pool.index.order, built.order)
+        assert np.array_equal(stored_pool.index.offsets, built.offsets)
+        leaves = np.load(models / STORE_DIR / f"{kind}.leaves.npz")["leaves"]
+        assert leaves.dtype.itemsize <= 2 < built.order.dtype.itemsize
+        old = tmp_path / kind
+        (old / STORE_DIR).mkdir(parents=True)
+        with np.load(models / STORE_DIR / f"{kind}.leaves.npz") as npz:
+            arrays = {k: npz[k] for k in npz.files if k != "leaves"}
+        np.savez(old / STORE_DIR / f"{kind}.npz", order=built.order, offsets=built.offsets,
+                 **arrays)
+        assert stored_kinds(old) == [kind]
+        read = load_index(old, state, kind, index_conf)
+        assert read is not None and np.array_equal(read.index.order, built.order)

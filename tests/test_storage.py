@@ -178,6 +178,31 @@ def test_truncated_file_is_named(tmp_path, saved_two):
         load_map(tmp_path)
 
 
+def test_equal_model_files_of_two_methods_are_stored_once(tmp_path, rich_state):
+    """Two methods holding the same trained model (bytes equal) share its file: one inode,
+    each method's path reads its bytes, the manifest still lists both with their checksum."""
+    def writer(data: bytes):
+        def write(directory: Path) -> None:
+            (directory / "place.bin").write_bytes(data)
+            (directory / "own.bin").write_bytes(data[::-1] + directory.name.encode())
+        return write
+
+    same = bytes(range(256)) * 40
+    models = {"bow+p3p": writer(same), "sbi+p3p,bow+p3p": writer(same), "other": writer(b"x" * 99)}
+    save_map(rich_state, tmp_path / "map", models=models)
+    state, root = load_map(tmp_path / "map")            # every checksum verified
+    assert root is not None
+    paths = {m: p / "place.bin" for m, p in saved_models(tmp_path / "map").items()}
+    first, second, other = (os.stat(paths[m]) for m in models)
+    assert first.st_ino == second.st_ino and first.st_nlink == 2
+    assert other.st_ino != first.st_ino and other.st_nlink == 1
+    assert paths["sbi+p3p,bow+p3p"].read_bytes() == same
+    owns = {os.stat(p.parent / "own.bin").st_ino for p in paths.values()}
+    assert len(owns) == 3                                # different bytes: stored apart
+    manifest = json.loads((current_snapshot(tmp_path / "map") / "manifest.json").read_text())
+    assert sum(rel.endswith("/place.bin") for rel in manifest["files"]) == 3
+
+
 def test_checksum_mismatch_is_named(tmp_path, saved_two):
     snap = _saved(tmp_path, saved_two)
     path = snap / "landmarks" / "anchored_points_world.npy"

@@ -35,7 +35,9 @@ between a landmark's rows is written as format 7, which it then is)::
                                     offsets from an observing keyframe where the rounding is
                                     far below each landmark's uncertainty (see
                                     :mod:`.landmark_codec`), else float64
-        models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote
+        models/<method>/...         whatever each relocalizer's ``save(dir)`` wrote; a file
+                                    equal to another method's (the same trained model) is a
+                                    hard link to it: its bytes are on disk once
 
 A column of ``features/`` or ``landmarks/`` that zlib shrinks to a quarter or less (ids,
 observation offsets, kinds and keyframes, pyramid levels, constant sigmas) is stored as

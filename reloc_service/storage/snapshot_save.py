@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import shutil
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -233,6 +234,7 @@ def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelW
         write_model(snapshot / rel)
         writer.record_tree(rel)
         model_dirs[method] = rel
+    link_duplicate_models(snapshot, writer.files)
     manifest = {"format": FORMAT,
                 "format_version": _format_version(shared, writer.files),
                 "map_version": int(state.version), "next_landmark_id": int(state.next_landmark_id),
@@ -242,6 +244,32 @@ def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelW
     writer.write(MANIFEST_FILE, json.dumps(manifest, indent=1).encode("utf-8"))
     fsync_tree(snapshot)
     fsync_path(snapshot.parent)
+
+
+def link_duplicate_models(snapshot: Path, files: Mapping[str, Mapping[str, Any]]) -> int:
+    """Make each model file of ``snapshot`` whose bytes equal an earlier one's (two methods
+    holding the same trained model: the default chain's bow step and ``bow+p3p`` train the
+    same seeded vocabulary on the same map) a hard link to it, so the disk holds those bytes
+    once; every method still reads its own path and the manifest (sizes, SHA-256) is as
+    written. ``files``: the manifest's entries. Returns the bytes no longer stored twice
+    (0 where the file system makes no hard links: the copies stay)."""
+    first: dict[tuple[str, int], Path] = {}
+    saved = 0
+    for rel, entry in sorted(files.items()):
+        if not rel.startswith(MODELS_DIR + "/") or entry["size"] == 0:
+            continue
+        key, path = (entry["sha256"], entry["size"]), snapshot / rel
+        if key not in first:
+            first[key] = path
+            continue
+        link = path.with_name(path.name + ".link")
+        try:
+            os.link(first[key], link)
+        except OSError:
+            continue
+        os.replace(link, path)
+        saved += entry["size"]
+    return saved
 
 
 def _format_version(shared: bool, files: Mapping[str, Any]) -> int:

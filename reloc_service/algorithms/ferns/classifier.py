@@ -314,14 +314,16 @@ class FernClassifier(FernTests):
         return fern[order], leaf[order], label[order], c.data.astype(np.int64)[order]
 
     def to_arrays(self) -> dict[str, npt.NDArray[Any]]:
-        """The model as plain arrays (tests, classes, CSR counts in the smallest unsigned
-        type that holds them) for ``np.savez``."""
+        """The model as plain arrays (tests, classes, CSR counts) for ``np.savez``: counts,
+        class columns and row offsets each in the smallest unsigned type that holds them
+        (class columns below a region's 1-2 thousand classes: 2 bytes, not 4; offsets below
+        2^32: 4 bytes, not 8), exactly; :meth:`from_arrays` widens them back."""
         self._flush()
         c = self._count_matrix()
         return {"off_a": self.off_a, "off_b": self.off_b, "class_ids": self._class_ids,
-                "class_counts": self._class_counts, "indptr": c.indptr.astype(np.int64),
-                "indices": c.indices.astype(np.int32),
-                "counts": c.data.astype(np.min_scalar_type(int(c.data.max(initial=0))))}
+                "class_counts": self._class_counts, "indptr": _narrowest(c.indptr),
+                "indices": _narrowest(c.indices, len(self._class_ids)),
+                "counts": _narrowest(c.data)}
 
     @classmethod
     def from_arrays(cls, conf: FernConf, arrays: dict[str, npt.NDArray[Any]]) -> FernClassifier:
@@ -346,3 +348,10 @@ class FernClassifier(FernTests):
         clf._column = {int(lab): i for i, lab in enumerate(ids.tolist())}
         clf._log = clf._encode(counts)
         return clf
+
+
+def _narrowest(values: npt.NDArray[Any], bound: int | None = None) -> npt.NDArray[Any]:
+    """Non-negative integer ``values`` in the smallest unsigned type that holds them (and
+    every value below ``bound`` where given, so a model's arrays keep one type)."""
+    top = int(values.max(initial=0)) if bound is None else max(bound - 1, 0)
+    return values.astype(np.min_scalar_type(top))

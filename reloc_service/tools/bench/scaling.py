@@ -200,10 +200,9 @@ def part_bytes_per_keyframe(map_dir: Path, keyframes: int) -> dict[str, float]:
 
     snapshot = current_snapshot(map_dir)
     sizes: dict[str, int] = {}
-    for path in snapshot.rglob("*"):
-        if path.is_file():
-            kind = part_kind(f"map/snapshots/{snapshot.name}/{path.relative_to(snapshot)}")
-            sizes[kind] = sizes.get(kind, 0) + path.stat().st_size
+    for path in _stored_once(snapshot):
+        kind = part_kind(f"map/snapshots/{snapshot.name}/{path.relative_to(snapshot)}")
+        sizes[kind] = sizes.get(kind, 0) + path.stat().st_size
     per = {kind: size / max(keyframes, 1) for kind, size in sorted(sizes.items())}
     return {**per, "total": sum(per.values())}
 
@@ -325,8 +324,23 @@ def _probe_plain(engine: Any, queries: Any, count: int) -> dict[str, Any]:
 
 
 def tree_mb(path: Path) -> float:
-    """Size of the files under ``path``, MiB."""
-    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) / 2**20
+    """Size of the files under ``path`` on disk, MiB (hard links to one file counted once)."""
+    return sum(f.stat().st_size for f in _stored_once(path)) / 2**20
+
+
+def _stored_once(root: Path) -> list[Path]:
+    """The files under ``root``, one path per stored file: a snapshot's model file equal to
+    another method's is a hard link to it (:func:`..storage.snapshot_save.link_duplicate_models`),
+    its bytes on disk once."""
+    seen: set[tuple[int, int]] = set()
+    once = []
+    for path in sorted(root.rglob("*")):
+        if path.is_file():
+            stat = path.stat()
+            if (stat.st_dev, stat.st_ino) not in seen:
+                seen.add((stat.st_dev, stat.st_ino))
+                once.append(path)
+    return once
 
 
 def main(argv: Sequence[str] | None = None) -> int:
