@@ -267,3 +267,17 @@ def test_a_tracker_answers_from_its_kept_local_map_as_a_fresh_one_does(synthetic
         kmap.remove_keyframe(kf_id)
     after = tracker.relocalize(_query(synthetic_scene, 0), prior=prior)
     assert not gone & set(after.matched_keyframe_ids or [])
+
+
+def test_the_regated_growth_tracks_a_good_prior_and_an_unknown_growth_is_refused(
+        synthetic_scene, synthetic_map):
+    tracker = create_relocalizer("track", _map_of(synthetic_map),
+                                 options={"track": {"growth": "regated"}})
+    gt = synthetic_scene.query_poses[2]
+    prior = Prior(_perturbed(gt, np.random.default_rng(7)), covariance=COVARIANCE)
+    result = tracker.relocalize(_query(synthetic_scene, 2), prior=prior)
+    assert result.ok, result.reason
+    dt, dr = pose_error(result.world_from_cam, gt)
+    assert dt < 0.03 and dr < np.deg2rad(1.0)
+    with pytest.raises(ConfigError, match="growth"):
+        create_relocalizer("track", _map_of(synthetic_map), options={"track": {"growth": "x"}})
