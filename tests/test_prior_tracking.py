@@ -245,3 +245,39 @@ def test_a_good_prior_is_still_tracked_on_a_map_of_uncertain_keyframes(synthetic
             dt, dr = pose_error(result.world_from_cam, gt)
             assert dt < 0.03 and dr < np.deg2rad(1.0)
     assert answered >= len(synthetic_scene.query_poses) - 1
+
+
+def test_a_tracker_answers_from_its_kept_local_map_as_a_fresh_one_does(synthetic_scene,
+                                                                       synthetic_map):
+    kmap = _map_of(synthetic_map)
+    tracker = create_tracker(kmap)
+    gt = synthetic_scene.query_poses[0]
+    prior = Prior(_perturbed(gt, np.random.default_rng(5)), covariance=COVARIANCE)
+    first = tracker.relocalize(_query(synthetic_scene, 0), prior=prior)
+    again = tracker.relocalize(_query(synthetic_scene, 0), prior=prior)
+    fresh = create_tracker(kmap).relocalize(_query(synthetic_scene, 0), prior=prior)
+    assert first.ok and again.ok and fresh.ok, (first.reason, again.reason, fresh.reason)
+    for other in (again, fresh):
+        assert np.array_equal(other.world_from_cam, first.world_from_cam)
+        assert np.array_equal(other.covariance, first.covariance)
+        assert other.inliers == first.inliers
+    # A map edit pools the local map afresh: the keyframes removed give no inlier.
+    gone = set(first.matched_keyframe_ids)
+    for kf_id in gone:
+        kmap.remove_keyframe(kf_id)
+    after = tracker.relocalize(_query(synthetic_scene, 0), prior=prior)
+    assert not gone & set(after.matched_keyframe_ids or [])
+
+
+def test_the_regated_growth_tracks_a_good_prior_and_an_unknown_growth_is_refused(
+        synthetic_scene, synthetic_map):
+    tracker = create_relocalizer("track", _map_of(synthetic_map),
+                                 options={"track": {"growth": "regated"}})
+    gt = synthetic_scene.query_poses[2]
+    prior = Prior(_perturbed(gt, np.random.default_rng(7)), covariance=COVARIANCE)
+    result = tracker.relocalize(_query(synthetic_scene, 2), prior=prior)
+    assert result.ok, result.reason
+    dt, dr = pose_error(result.world_from_cam, gt)
+    assert dt < 0.03 and dr < np.deg2rad(1.0)
+    with pytest.raises(ConfigError, match="growth"):
+        create_relocalizer("track", _map_of(synthetic_map), options={"track": {"growth": "x"}})

@@ -236,6 +236,19 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
     if world_from_cam is None:
         return None
     scales = None if keypoint_scales is None else np.asarray(keypoint_scales, np.float64)
+    return refined_estimate(world_from_cam, px, pts, camera, conf, uncertainty, scales,
+                            start=start)
+
+
+def refined_estimate(world_from_cam: Array, px: Array, pts: Array, camera: Camera,
+                     conf: PnPConf, uncertainty: PointUncertainty | None = None,
+                     scales: Array | None = None, *, start: float | None = None
+                     ) -> tuple[PoseEstimate, npt.NDArray[np.int64]] | None:
+    """What :func:`solve_pnp_indexed` returns for the hypothesis ``world_from_cam`` of the
+    (N, 2) pixels ``px`` and (N, 3) world points ``pts``: refined (:func:`_refine`), its
+    estimate with covariance, chance and intrinsics test, and its (I,) inlier indices; None
+    with fewer than 4 inliers. ``start``: ``time.perf_counter()`` when the solve began."""
+    start = time.perf_counter() if start is None else start
     fit = _refine(world_from_cam, px, pts, camera, conf, uncertainty, scales)
     if len(fit.inliers) < 4:
         return None
