@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from reloc_service.algorithms.pose import intrinsics, intrinsics_kernels, intrinsics_model
-from reloc_service.algorithms.pose.pnp import pose_projector
+from reloc_service.algorithms.pose.projection import pose_projector
 from reloc_service.core.cameras import RadTanCamera
 from reloc_service.core.geometry import se3_exp
 

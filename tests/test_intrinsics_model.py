@@ -9,7 +9,7 @@ import pytest
 from test_pose_intrinsics import POSE, ROOM, correspondences
 
 from reloc_service.algorithms.pose.intrinsics_model import IntrinsicsModel
-from reloc_service.algorithms.pose.pnp import pose_projector
+from reloc_service.algorithms.pose.projection import pose_projector
 from reloc_service.core.geometry import se3_exp
 
 

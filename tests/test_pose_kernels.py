@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reloc_service.algorithms.pose import chance, guided, guided_kernels, kernels, p3p, pnp
+from reloc_service.algorithms.pose import chance, guided, guided_kernels, kernels, p3p, pnp, projection
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.core.cameras import Camera, camera_from_dict
 from reloc_service.core.frame import Frame
@@ -44,6 +44,7 @@ def _points_cam(n: int = 400) -> np.ndarray:
 
 def _numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(pnp, "compiled", lambda: None)
+    monkeypatch.setattr(projection, "compiled", lambda: None)
     monkeypatch.setattr(p3p, "compiled", lambda: None)
     monkeypatch.setattr(chance, "compiled", lambda: None)
     monkeypatch.setattr(guided, "compiled", lambda: None)
@@ -53,9 +54,9 @@ def _numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_projection_and_jacobian_are_the_numpy_values(index, monkeypatch):
     camera, pts = _cameras()[index], _points_cam()
     assert kernels.compiled() is not None
-    fast_px, fast_jac = pnp.project_cam(camera, pts), pnp._pose_jacobian(camera, pts[6:])
+    fast_px, fast_jac = projection.project_cam(camera, pts), projection.pose_jacobian(camera, pts[6:])
     _numpy_path(monkeypatch)
-    slow_px, slow_jac = pnp.project_cam(camera, pts), pnp._pose_jacobian(camera, pts[6:])
+    slow_px, slow_jac = projection.project_cam(camera, pts), projection.pose_jacobian(camera, pts[6:])
     assert np.array_equal(fast_px, slow_px, equal_nan=True)
     assert np.array_equal(fast_px, camera.project(pts), equal_nan=True)
     assert np.isnan(fast_px[:6]).all() and np.isfinite(fast_px[6:]).all()
@@ -68,9 +69,9 @@ def test_undistortion_is_the_numpy_value(index, monkeypatch):
     rng = np.random.default_rng(6)
     px = np.vstack([rng.uniform([-40, -40], [camera.width + 40, camera.height + 40], (500, 2)),
                     [[np.nan, 3.0]]])
-    fast = pnp._undistort_pixels(camera, px)
+    fast = projection.undistort_pixels(camera, px)
     _numpy_path(monkeypatch)
-    assert np.array_equal(fast, pnp._undistort_pixels(camera, px), equal_nan=True)
+    assert np.array_equal(fast, projection.undistort_pixels(camera, px), equal_nan=True)
     assert np.array_equal(fast, camera.undistort_pixels(px), equal_nan=True)
 
 
@@ -189,7 +190,7 @@ def _correspondences(camera: Camera, uncertain: bool, scaled: bool):
     world_from_cam = pnp.se3_exp(np.array([0.3, -0.2, 0.1, 0.05, -0.1, 0.02]))
     pts_cam = _points_cam()
     pts_cam[5] = [0.1, 0.1, 2.0]  # _points_cam's NaN point: a finite one, the NaN is a pixel
-    px = pnp.project_cam(camera, pts_cam) + rng.normal(0.0, 1.5, (len(pts_cam), 2))
+    px = projection.project_cam(camera, pts_cam) + rng.normal(0.0, 1.5, (len(pts_cam), 2))
     px[6:60] = rng.uniform([0, 0], [640, 480], (54, 2))
     px[61] = np.nan
     pts = pts_cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]

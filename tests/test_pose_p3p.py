@@ -97,7 +97,7 @@ def test_jacobian_matches_finite_differences(model):
 def test_poselib_camera_projects_exactly_as_ours(model):
     """The refinement's Jacobian comes from PoseLib's camera model: it must be our model,
     parameter for parameter, over the whole image."""
-    from reloc_service.algorithms.pose.pnp import poselib_camera
+    from reloc_service.algorithms.pose.projection import poselib_camera
 
     camera = make_camera(model.split("-")[0])
     if model == "radtan-k3":
@@ -115,7 +115,7 @@ def test_poselib_camera_projects_exactly_as_ours(model):
 def test_numpy_pixel_jacobian_equals_poselibs(model):
     """Pinhole and radtan Jacobians are written out in numpy (faster than converting
     PoseLib's list of 2x2 arrays): the same values as PoseLib's analytic ones."""
-    from reloc_service.algorithms.pose.pnp import _pixel_jacobian, poselib_camera
+    from reloc_service.algorithms.pose.projection import pixel_jacobian, poselib_camera
 
     camera = make_camera(model.split("-")[0])
     if model == "radtan-k3":
@@ -123,11 +123,11 @@ def test_numpy_pixel_jacobian_equals_poselibs(model):
                                                                       0.02]})
     xy = np.random.default_rng(8).uniform(-0.7, 0.7, (300, 2))
     theirs = np.asarray(poselib_camera(camera).project_with_jac(xy)[1]).reshape(-1, 2, 2)
-    np.testing.assert_allclose(_pixel_jacobian(camera, xy), theirs, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(pixel_jacobian(camera, xy), theirs, rtol=1e-12, atol=1e-9)
 
 
 def test_fov_has_no_poselib_camera():
-    from reloc_service.algorithms.pose.pnp import poselib_camera
+    from reloc_service.algorithms.pose.projection import poselib_camera
 
     assert poselib_camera(make_camera("fov")) is None
 

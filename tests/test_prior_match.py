@@ -9,8 +9,8 @@ import pytest
 
 from reloc_service.algorithms.pose import prior_match
 from reloc_service.algorithms.pose.cluster_covariance import at_least, cluster_robust_covariance
-from reloc_service.algorithms.pose.pnp import pose_projector
 from reloc_service.algorithms.pose.prior_windows import Windows, match_in_windows
+from reloc_service.algorithms.pose.projection import pose_projector
 from reloc_service.core.cameras import PinholeCamera
 from reloc_service.core.frame import Features
 

@@ -18,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core.cameras import Camera
-from .pnp import pose_projector
+from .projection import pose_projector
 
 Array = npt.NDArray[np.float64]
 
@@ -26,7 +26,7 @@ Array = npt.NDArray[np.float64]
 def cluster_robust_covariance(world_from_cam: Array, px: Array, points_world: Array,
                               camera: Camera, clusters: npt.NDArray[np.int64]) -> Array | None:
     """(6, 6) sandwich covariance of ``world_from_cam`` (twist convention of
-    :func:`.pnp.pose_projector`) fitted to (N, 2) pixels ``px`` of (N, 3) ``points_world``,
+    :func:`.projection.pose_projector`) fitted to (N, 2) pixels ``px`` of (N, 3) ``points_world``,
     the residuals correlated within each of the (N,) ``clusters``; None with fewer than two
     clusters (no spread between groups to measure) or a singular fit."""
     labels, group = np.unique(np.asarray(clusters), return_inverse=True)

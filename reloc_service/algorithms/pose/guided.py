@@ -17,7 +17,7 @@ from ...core.cameras import Camera
 from ...core.frame import Features, is_binary_descriptor
 from ...core.geometry import invert, transform_points
 from .guided_kernels import compiled
-from .pnp import project_cam
+from .projection import project_cam
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

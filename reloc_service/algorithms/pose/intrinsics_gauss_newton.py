@@ -37,7 +37,7 @@ _POSE_TOLERANCE = 1e-6
 
 class Projector(Protocol):
     """Projection of every correspondence's point at a pose through the given camera
-    (:func:`.pnp.pose_projector`): the pixels of all, the Jacobian of those asked for."""
+    (:func:`.projection.pose_projector`): the pixels of all, the Jacobian of those asked for."""
 
     def pixels(self, world_from_cam: Array) -> tuple[Array, Array]:
         """(N, 2) pixels and (N, 3) camera-frame points at ``world_from_cam``."""

@@ -9,7 +9,7 @@ each on arrays of a few hundred values, so the calls, not the arithmetic, cost t
 each point's values come from one loop iteration. Every expression below is the numpy path's
 (:meth:`~reloc_service.core.cameras.Camera.project`, :meth:`RadTanCamera.distort
 <reloc_service.core.cameras.RadTanCamera.distort>`, ``RadTanCamera._jacobian``,
-:func:`~reloc_service.algorithms.pose.pnp._pose_jacobian`) with its operations in the same order (Python
+:func:`~reloc_service.algorithms.pose.projection.pose_jacobian`) with its operations in the same order (Python
 evaluates ``2 * p1 * x * y`` as ``((2 * p1) * x) * y``, and so does numba; numba contracts no
 multiply-add into an FMA without ``fastmath``), so the results are the same to the bit:
 ``tests/test_pose_kernels.py`` compares both paths on the points of real queries.
@@ -104,7 +104,7 @@ def _point_jacobian(px: float, py: float, pz: float, params: Array, distorted: b
 
 
 def _pose_jacobian(points_cam: Array, params: Array, distorted: bool, out: Array) -> None:
-    """:func:`~reloc_service.algorithms.pose.pnp._pose_jacobian` of (N, 3) camera-frame points into
+    """:func:`~reloc_service.algorithms.pose.projection.pose_jacobian` of (N, 3) camera-frame points into
     ``out`` (2N, 6) (:func:`_point_jacobian` of each)."""
     for i in range(points_cam.shape[0]):
         _point_jacobian(points_cam[i, 0], points_cam[i, 1], points_cam[i, 2], params, distorted,

@@ -57,7 +57,8 @@ from .guided import GuidedConf
 from .intrinsics import IntrinsicsCheck, check_intrinsics
 from .intrinsics_power import blind_spot_factor, governing_covariance
 from .map_uncertainty import map_covariance
-from .pnp import PnPConf, pose_projector
+from .pnp import PnPConf
+from .projection import pose_projector
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

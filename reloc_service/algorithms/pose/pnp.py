@@ -19,26 +19,17 @@ import numpy as np
 import numpy.typing as npt
 import poselib
 
-from ...core.cameras import CV_UNDISTORT_CRITERIA, UNDISTORT_NEWTON_ITERS, Camera, RadTanCamera
+from ...core.cameras import Camera
 from ...core.errors import ConfigError, GeometryError
 from ...core.geometry import invert, se3_exp, transform_points
 from .base import PoseEstimate
 from .cell_sandwich import cell_sandwich, grid_cells
 from .chance import chance_agreement
 from .intrinsics import CLUSTER_GRID, FOCAL_STARTS, IntrinsicsCheck, IntrinsicsPrior, check_intrinsics
-from .kernels import camera_params, compiled
+from .kernels import compiled
+from .projection import kernel_camera, pose_jacobian, pose_projector, project_cam, undistort_pixels
 
 Array = npt.NDArray[np.float64]
-
-#: PoseLib's camera model with the same projection as each of ours (parameters fx fy cx cy,
-#: then our distortion values in the same order; tests/test_pose_p3p.py projects through both).
-#: A 5-value radtan (k3) is PoseLib's FULL_OPENCV with k4 = k5 = k6 = 0.
-_POSELIB_MODELS = {"pinhole": "PINHOLE", "radtan": "OPENCV", "equidistant": "OPENCV_FISHEYE"}
-
-#: Step of the central differences of the fov distortion's Jacobian (normalised coordinates):
-#: PoseLib 2.0.5 has no FOV model (``poselib.Camera("FOV", ...)`` is its NULL model).
-_DISTORT_STEP = 1e-6
-
 
 @dataclass(frozen=True)
 class PnPConf:
@@ -207,7 +198,7 @@ class _View:
         """(M, 2) residuals ``px - projection`` of points ``rows`` (``px`` their pixels) and
         their (2M, 6) Jacobian w.r.t. a right perturbation ``world_from_cam @ exp(xi)``,
         ``xi = (rho, omega)``."""
-        return px - self.px[rows], _pose_jacobian(camera, self.points_cam[rows])
+        return px - self.px[rows], pose_jacobian(camera, self.points_cam[rows])
 
 
 def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Camera,
@@ -228,7 +219,7 @@ def solve_pnp_indexed(query_px: npt.ArrayLike, points_world: npt.ArrayLike, came
     if len(px) != len(pts):
         raise GeometryError(f"solve_pnp: expected as many points as pixels, "
                             f"got {len(pts)} and {len(px)}")
-    ideal_px = _undistort_pixels(camera, px)
+    ideal_px = undistort_pixels(camera, px)
     usable = np.flatnonzero(np.isfinite(ideal_px).all(1) & np.isfinite(pts).all(1))
     if len(usable) < 4:
         return None
@@ -277,7 +268,7 @@ def _measurement_sandwich(fit: _Fit, px: Array, points_world: Array, camera: Cam
     weights = _weights(fit.world_from_cam, points_world, rows, camera, conf, uncertainty,
                        keypoint_scales)
     points_cam = transform_points(invert(fit.world_from_cam), points_world[rows])
-    jac = _pose_jacobian(camera, points_cam).reshape(-1, 2, 6)
+    jac = pose_jacobian(camera, points_cam).reshape(-1, 2, 6)
     scores = np.einsum("nki,nk->ni", jac, px[rows] - fit.projected_px) * weights[:, None]
     return cell_sandwich(_normal_inverse(fit.normal), scores,
                          grid_cells(px[rows], camera.size, CLUSTER_GRID))
@@ -304,46 +295,6 @@ def _check_intrinsics(fit: _Fit, px: Array, points_world: Array, camera: Camera,
                             threshold_px=conf.max_reproj_error_px,
                             min_sigma_px=conf.min_sigma_px, prior=conf.intrinsics_prior,
                             focal_starts=focal_starts)
-
-
-def pose_projector(points_world: Array, camera: Camera) -> PoseProjector:
-    """The projection of (N, 3) ``points_world`` through ``camera`` at a ``world_from_cam``
-    (what :func:`.intrinsics.check_intrinsics` differentiates): called, (N, 2) pixels and
-    their (N, 2, 6) Jacobian w.r.t. a right perturbation of the pose."""
-    return PoseProjector(points_world, camera)
-
-
-@dataclass(frozen=True, eq=False)
-class PoseProjector:
-    """(N, 3) ``points_world`` projected through ``camera`` at a pose: the pixels of all of
-    them (:meth:`pixels`) and the Jacobian of some (:meth:`jacobian`), apart, because the
-    intrinsics test's Gauss-Newton tries steps on every point and differentiates only the
-    gated points of the steps it takes (each row's values are its own row's either way)."""
-
-    points_world: Array
-    camera: Camera
-
-    def __call__(self, world_from_cam: Array) -> tuple[Array, Array]:
-        px, points_cam = self.pixels(world_from_cam)
-        return px, self.jacobian(points_cam)
-
-    def pixels(self, world_from_cam: Array) -> tuple[Array, Array]:
-        """(N, 2) pixels and (N, 3) camera-frame points at ``world_from_cam``."""
-        view = _View.at(world_from_cam, self.points_world, self.camera)
-        return view.px, view.points_cam
-
-    def pixels_many(self, world_from_cams: Array) -> tuple[Array, Array]:
-        """(K, N, 2) pixels and (K, N, 3) camera-frame points at each of K poses (K, 4, 4)
-        at once (as :meth:`pixels`, equal to rounding)."""
-        rotation, position = world_from_cams[:, :3, :3], world_from_cams[:, None, :3, 3]
-        points_cam = (self.points_world[None] - position) @ rotation  # R^T (p - t) per row
-        px = project_cam(self.camera, points_cam.reshape(-1, 3))
-        return px.reshape(*points_cam.shape[:2], 2), points_cam
-
-    def jacobian(self, points_cam: Array) -> Array:
-        """(M, 2, 6) pixel Jacobian of (M, 3) camera-frame points w.r.t. a right perturbation
-        of ``world_from_cam``."""
-        return _pose_jacobian(self.camera, points_cam).reshape(-1, 2, 6)
 
 
 def level_scales(levels: npt.NDArray[np.integer], scale_factor: float) -> Array:
@@ -425,7 +376,7 @@ def _fit_at(world_from_cam: Array, px: Array, points_world: Array, camera: Camer
     """:class:`_Fit` of ``world_from_cam``: compiled in one pass for pinhole and radtan
     cameras where numba is installed (:func:`.kernels._fit`, the same values to rounding),
     else :func:`_fit_numpy`."""
-    kernels, params = compiled(), _kernel_camera(camera)
+    kernels, params = compiled(), kernel_camera(camera)
     if kernels is None or params is None:
         return _fit_numpy(world_from_cam, px, points_world, camera, conf, uncertainty,
                           keypoint_scales)
@@ -473,7 +424,7 @@ def _refine(world_from_cam: Array, px: Array, points_world: Array, camera: Camer
 
     Not ``poselib.refine_absolute_pose``: with a TRIVIAL loss it reaches the same pose
     unweighted, but PoseLib 2.0.5 takes no per-residual weights, and the landmarks' depth
-    uncertainty needs them. The Jacobian is PoseLib's camera model's (:func:`_pixel_jacobian`)."""
+    uncertainty needs them. The Jacobian is PoseLib's camera model's (:func:`.projection.pixel_jacobian`)."""
     fit = _fit_at(world_from_cam, px, points_world, camera, conf, uncertainty, keypoint_scales)
     for _ in range(conf.refine_iterations):
         if len(fit.inliers) < 4:
@@ -502,97 +453,6 @@ def _gauss_newton_update(fit: _Fit) -> tuple[Array, Array]:
     except np.linalg.LinAlgError:
         solved = np.linalg.lstsq(fit.normal, fit.rhs, rcond=None)[0]
     return np.asarray(solved, np.float64), fit.world_from_cam @ se3_exp(solved)
-
-
-@functools.lru_cache(maxsize=64)
-def _kernel_camera(camera: Camera) -> tuple[Array, bool] | None:
-    """:func:`.kernels.camera_params` of ``camera`` (made once per camera)."""
-    return camera_params(camera)
-
-
-def project_cam(camera: Camera, points_cam: Array) -> Array:
-    """``camera.project`` of (N, 3) camera-frame points: compiled for pinhole and radtan
-    cameras where numba is installed (:mod:`.kernels`, the same values)."""
-    kernels, params = compiled(), _kernel_camera(camera)
-    if kernels is None or params is None:
-        return camera.project(points_cam)
-    out = np.empty((len(points_cam), 2))
-    kernels.project(np.ascontiguousarray(points_cam, np.float64), params[0], params[1], out)
-    return out
-
-
-def _undistort_pixels(camera: Camera, px: Array) -> Array:
-    """``camera.undistort_pixels`` of (N, 2) pixels: for radtan compiled where numba is
-    installed (:mod:`.kernels`: OpenCV's start and the Newton iterations, the same values)."""
-    kernels, params = compiled(), _kernel_camera(camera)
-    if kernels is None or params is None or not params[1] or not isinstance(camera, RadTanCamera):
-        return camera.undistort_pixels(px)
-    out = np.empty((len(px), 2))
-    kernels.undistort_pixels(np.ascontiguousarray(px, np.float64), params[0],
-                             CV_UNDISTORT_CRITERIA[1], UNDISTORT_NEWTON_ITERS, out)
-    return out
-
-
-def _pose_jacobian(camera: Camera, points_cam: Array) -> Array:
-    """(2N, 6) Jacobian of the pixels of (N, 3) camera-frame points w.r.t. a right
-    perturbation of ``world_from_cam`` (see :meth:`_View.residuals_and_jacobian`); compiled
-    like :func:`project_cam`."""
-    kernels, params = compiled(), _kernel_camera(camera)
-    if kernels is not None and params is not None:
-        out = np.empty((2 * len(points_cam), 6))
-        kernels.pose_jacobian(np.ascontiguousarray(points_cam, np.float64), params[0],
-                              params[1], out)
-        return out
-    d_px = _projection_jacobian(camera, points_cam)  # (N, 2, 3)
-    # cam_from_world becomes exp(-xi) @ cam_from_world, so p_cam moves by -rho + [p_cam]x omega:
-    # d px / d rho = -d_px, d px / d omega = d_px @ [p_cam]x (columns written out).
-    x, y, z = (points_cam[:, None, i] for i in range(3))
-    a0, a1, a2 = d_px[:, :, 0], d_px[:, :, 1], d_px[:, :, 2]
-    jac = np.stack([-a0, -a1, -a2, a1 * z - a2 * y, a2 * x - a0 * z, a0 * y - a1 * x], axis=2)
-    return jac.reshape(-1, 6)
-
-
-def _projection_jacobian(camera: Camera, points_cam: Array) -> Array:
-    """(N, 2, 3) derivative of pixels w.r.t. camera-frame points: K * distortion * pinhole."""
-    inv_z = 1.0 / points_cam[:, 2]
-    xy = points_cam[:, :2] * inv_z[:, None]
-    d_xy = _pixel_jacobian(camera, xy)  # (N, 2, 2) d px / d xy
-    # d xy / d p = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
-    d_dz = -np.einsum("nij,nj->ni", d_xy, xy)
-    return np.concatenate([d_xy, d_dz[:, :, None]], axis=2) * inv_z[:, None, None]
-
-
-def _pixel_jacobian(camera: Camera, xy: Array) -> Array:
-    """(N, 2, 2) derivative of pixels w.r.t. normalised coordinates ``xy`` (N, 2): PoseLib's
-    analytic Jacobian of the same camera model (written out in numpy for pinhole and radtan:
-    PoseLib returns a list of 2x2 arrays whose conversion costs more than the maths), or
-    central differences for fov."""
-    if isinstance(camera, RadTanCamera):
-        dxx, dxy, dyx, dyy = camera._jacobian(xy[:, 0], xy[:, 1])
-        jac = np.empty((len(xy), 2, 2))
-        jac[:, 0, 0], jac[:, 0, 1] = camera.fx * dxx, camera.fx * dxy
-        jac[:, 1, 0], jac[:, 1, 1] = camera.fy * dyx, camera.fy * dyy
-        return jac
-    if camera.model == "pinhole":
-        return np.broadcast_to(np.diag([camera.fx, camera.fy]), (len(xy), 2, 2)).copy()
-    model = poselib_camera(camera)
-    if model is not None:
-        return np.asarray(model.project_with_jac(np.ascontiguousarray(xy))[1]).reshape(-1, 2, 2)
-    h = _DISTORT_STEP
-    d_dx = (camera.distort(xy + [h, 0.0]) - camera.distort(xy - [h, 0.0])) / (2 * h)  # (N, 2)
-    d_dy = (camera.distort(xy + [0.0, h]) - camera.distort(xy - [0.0, h])) / (2 * h)
-    return np.stack([d_dx, d_dy], axis=2) * np.array([camera.fx, camera.fy])[None, :, None]
-
-
-@functools.lru_cache(maxsize=64)
-def poselib_camera(camera: Camera) -> poselib.Camera | None:
-    """PoseLib's camera with the same projection as ``camera``; None for fov (not in
-    PoseLib 2.0.5)."""
-    params = [camera.fx, camera.fy, camera.cx, camera.cy, *camera.distortion]
-    name = _POSELIB_MODELS.get(camera.model)
-    if camera.model == "radtan" and len(camera.distortion) == 5:
-        name, params = "FULL_OPENCV", [*params, 0.0, 0.0, 0.0]
-    return None if name is None else poselib.Camera(name, params, camera.width, camera.height)
 
 
 def _estimate(fit: _Fit, px: Array, points_world: Array, camera: Camera, conf: PnPConf,

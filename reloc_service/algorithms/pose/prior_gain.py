@@ -30,7 +30,7 @@ import numpy.typing as npt
 
 from ...core.cameras import Camera
 from ...core.geometry import invert, transform_points
-from .pnp import _pose_jacobian
+from .projection import pose_jacobian
 
 Array = npt.NDArray[np.float64]
 
@@ -42,7 +42,7 @@ def image_information(camera: Camera, world_from_cam: Array, points_world: Array
     points_cam = points_cam[points_cam[:, 2] > 0]
     if len(points_cam) == 0:
         return np.zeros((6, 6))
-    jac = _pose_jacobian(camera, points_cam)  # (2N, 6)
+    jac = pose_jacobian(camera, points_cam)  # (2N, 6)
     return jac.T @ jac
 
 

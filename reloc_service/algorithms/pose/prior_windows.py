@@ -18,8 +18,9 @@ from ...core.cameras import Camera
 from ...core.frame import Features
 from ...core.geometry import invert, transform_points
 from .guided import _one_to_one, background_distance, project_into
-from .pnp import PointUncertainty, _pose_jacobian
+from .pnp import PointUncertainty
 from .prior_match import gated_best
+from .projection import pose_jacobian
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -53,7 +54,7 @@ def predict_windows(camera: Camera, world_from_cam: Array, covariance: Array,
     rows = np.flatnonzero(visible)
     if len(rows):
         points_cam = transform_points(invert(world_from_cam), points_world[rows])
-        jac = _pose_jacobian(camera, points_cam).reshape(len(rows), 2, 6)
+        jac = pose_jacobian(camera, points_cam).reshape(len(rows), 2, 6)
         cov = jac @ covariance @ jac.transpose(0, 2, 1)
         cov[:, 0, 0] += pixel_sigmas[rows] ** 2
         cov[:, 1, 1] += pixel_sigmas[rows] ** 2

@@ -21,7 +21,8 @@ import numpy.typing as npt
 from ...core.cameras import Camera
 from ...core.geometry import se3_exp
 from .base import PoseEstimate
-from .pnp import PnPConf, PointUncertainty, _pose_jacobian, _View, _weights, refined_estimate
+from .pnp import PnPConf, PointUncertainty, _View, _weights, refined_estimate
+from .projection import pose_jacobian
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -56,7 +57,7 @@ def regated_pose(world_from_cam: Array, covariance: Array, sigma2_px: float, px:
     kept: IntArray | None = None
     for _ in range(rounds):
         view = _View.at(pose, points_world, camera)
-        jac = _pose_jacobian(camera, view.points_cam).reshape(-1, 2, 6)
+        jac = pose_jacobian(camera, view.points_cam).reshape(-1, 2, 6)
         w = _weights(pose, points_world, rows_all, camera, conf, uncertainty, view=view)
         residuals = px - view.px
         rows = covariance_gated(residuals, jac, sigma2 / w, cov, gate_chi2)
