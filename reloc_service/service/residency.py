@@ -16,14 +16,16 @@ snapshot, pools included), so a resident map counts once per copy: ``1 + workers
 
 The processes' own memory counts too: the budget is the whole service's (its process and its
 worker processes). The service's resident memory with no map (``VmRSS``: interpreter, OpenCV,
-Zenoh, and the compiled kernels its warm-up loads: numba and LLVM, about 100 MB more than
-before it) is its *baseline*: measured when the maps are declared, and again once the
-warm-up has ended (the larger counts); the first cold load waits for that second measure, so
-no map is in it. With ``worker_mode = "process"`` the forkserver's and the workers' count
-too, measured once each worker has warmed up and before it holds any replica. The maps get
-``max_resident_mb`` minus the baseline. A budget the baseline at declaration fills refuses to
-start (ConfigError naming both); one that only the warmed-up baseline fills is logged as an
-error, and every idle map is closed.
+Zenoh, and the compiled kernels its warm-up loads: numba and LLVM, about 106 MB) is its
+*baseline*: measured when the maps are declared, before the warm-up starts, plus what the
+warm-up will add (:func:`.warm.expected_growth`: its last clean measure, else a measured
+reserve), so no cold load waits for the warm-up. When the warm-up ends with no map resident
+or loading, the baseline is measured again and that measure replaces the estimate (and the
+growth is recorded for the next start); else the estimate stays. With ``worker_mode =
+"process"`` the forkserver's and the workers' count too, measured once each worker has warmed
+up and before it holds any replica. The maps get ``max_resident_mb`` minus the baseline. A
+budget the baseline at declaration fills refuses to start (ConfigError naming both); one that
+only the warmed-up baseline fills is logged as an error, and every idle map is closed.
 
 A map is never closed while it is in use: a query or a write holds it (:meth:`Residency.acquire`
 ... :meth:`Residency.release`), puts wait in its writer lane, a training job, snapshot or
@@ -48,8 +50,9 @@ from reloc_client import protocol as wire
 
 from ..core.errors import ConfigError, StorageError
 from .durability import map_dirname, read_service_file
-from .memory import rss_bytes, total_rss_bytes, trim_now
+from .memory import release_memory, rss_bytes, total_rss_bytes, trim_now
 from .quotas import MapUsage
+from .warm import record_growth
 
 if TYPE_CHECKING:
     from .config import ServiceConf
@@ -115,10 +118,15 @@ class Residency:
         #: What each closed map's relocalizers held beside it (its next load's estimate).
         self.kept_held: dict[str, int] = {}
         self._load_slot = threading.Semaphore(1)   # one cold load at a time: bounded memory
-        #: Set once the service's baseline is measured after its warm-up (loads wait for it).
+        #: Set once the service's warm-up has ended (its baseline measured, or estimated
+        #: when a map was resident then); loads do not wait for it.
         self.baseline_settled = threading.Event()
         self._declared = False   # count_service_baseline ran (the maps are declared)
         self._warmed = False     # settle_service_baseline ran (the warm-up ended)
+        #: The service's resident memory when the maps were declared (before its warm-up).
+        self.declared_rss = 0
+        #: What the service's warm-up was expected to add to its memory at declaration (bytes).
+        self.growth_estimate = 0
         self._wake = threading.Event()
         self._stopped = threading.Event()
         self._evictor = threading.Thread(target=self._evict_loop, name="map-evictor",
@@ -146,12 +154,15 @@ class Residency:
         """The processes' own resident memory, counted against the budget (bytes)."""
         return self.baseline_service + self.baseline_workers
 
-    def count_service_baseline(self) -> None:
-        """Measure this process's resident memory (no map resident yet) and count it;
-        ConfigError naming both numbers when it alone fills the budget. The larger of this
-        and :meth:`settle_service_baseline`'s measure counts (both are with no map)."""
+    def count_service_baseline(self, warm_up_growth: int = 0) -> None:
+        """Measure this process's resident memory (no map resident yet) and count it, with
+        ``warm_up_growth`` (bytes) if its warm-up has not ended: what that will add
+        (:func:`.warm.expected_growth`). ConfigError naming both numbers when that alone
+        fills the budget."""
         with self._lock:
-            self.baseline_service = max(self.baseline_service, _settled_rss())
+            self.declared_rss = _settled_rss()
+            self.growth_estimate = 0 if self._warmed else max(0, warm_up_growth)
+            self.baseline_service = self.declared_rss + self.growth_estimate
             self._declared = True
             if self._warmed:
                 self.baseline_settled.set()
@@ -163,25 +174,30 @@ class Residency:
         self._set_maps_budget()
 
     def settle_service_baseline(self) -> None:
-        """The service's warm-up has ended (the compiled kernels it loaded are part of what
-        it holds with no map): measure its resident memory again and count the larger
-        measure. Cold loads wait until both this and :meth:`count_service_baseline` ran
-        (:attr:`baseline_settled`), so no map is in either. Past the budget the service runs
-        on (it is serving already): the error is logged."""
+        """The service's warm-up has ended. With no map resident or loading, its resident
+        memory is measured again and replaces the estimate (the growth, when a fresh
+        warm-up's, is recorded in the storage for the next start: :func:`.warm.record_growth`);
+        with one, the estimate stays (the measure would count the map). Past the budget the
+        service runs on (it is serving already): the error is logged."""
+        growth = None
         with self._lock:
             self._warmed = True
-            if self.registry.maps:   # cannot happen: loads wait for the baseline
-                log.warning("the service's baseline is not measured after its warm-up: a map "
-                            "is resident already")
-            else:
-                self.baseline_service = max(self.baseline_service, _settled_rss())
-            if self._declared:
-                self.baseline_settled.set()
+            if self._declared and not self.registry.maps and not self._loading:
+                self.baseline_service = _settled_rss()
+                growth = self.baseline_service - self.declared_rss
+            elif self._declared:
+                log.info("the warm-up ended with a map resident: its memory is counted as "
+                         "estimated, %.1f MB", self.growth_estimate / MB)
+        if growth is not None and self.growth_estimate and self.registry.storage is not None:
+            record_growth(self.registry.storage, growth)
+        if self._declared:
+            self.baseline_settled.set()
         if self.baseline >= self.total_budget:
             log.error("service.max_resident_mb = %.0f MB is filled by the service's own "
                       "resident memory with no map after its warm-up, %.0f MB: every idle map "
                       "is closed", self.total_budget / MB, self.baseline / MB)
         self._set_maps_budget()
+        self._wake.set()
 
     def count_workers_baseline(self, pids: list[int]) -> None:
         """Measure the worker processes' (and their forkserver's) resident memory ``pids``
@@ -306,9 +322,6 @@ class Residency:
         start = time.perf_counter()
         try:
             with self._load_slot:
-                # the service's baseline is measured once its warm-up ends, with no map in it
-                while not self._stopped.is_set() and not self.baseline_settled.wait(1.0):
-                    pass
                 if not self._stopped.is_set():
                     expected = self.expected_bytes(name)
                     if self.budget and expected > self.budget:
@@ -423,10 +436,14 @@ class Residency:
         try:
             self.kept_usage[name] = rt.usage
             self.kept_held[name] = rt.engine.held_bytes()
+            prepared = rt.engine.prepared
             self.registry.close_resident(name, timeout=self.stop_timeout_s)
-            # A map is many small arrays: freed, their pages stay in the C heap's arenas
-            # (about 180 of the 550 MB a 1000-keyframe map takes) unless given back.
-            trim_now()
+            del rt   # this frame's reference: the map is freed below, not when _close returns
+            # a pool being made holds the map until it ends (it stops before the next one)
+            prepared.wait(self.stop_timeout_s)
+            # the map's objects are in reference cycles, and its arrays' freed pages stay in
+            # the C heap's arenas unless given back (memory.release_memory)
+            release_memory()
             self.evictions += 1
             log.info("map %s: closed (idle; %.1f MB resident of %.1f MB)", name,
                      self.resident_bytes() / MB, self.budget / MB)
