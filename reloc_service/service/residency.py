@@ -8,11 +8,12 @@ the idle ones are closed once they are.
 
 What a map counts is what the quotas count for it (:class:`~.quotas.MapUsage`: its keyframes'
 images as held, depth and features) and what its relocalizers hold beside the map (the
-whole-map landmark pools of the repetition check, :meth:`~reloc_service.engine.Engine.held_bytes`,
-about 80 MB per 1000 keyframes); the process's resident memory is a multiple of that
-(docs/performance.md, "Many maps, bounded memory"). With ``worker_mode = "process"`` every
-worker process holds a replica of each resident map (its own engine, loaded from the same
-snapshot, pools included), so a resident map counts once per copy: ``1 + workers`` times.
+whole-map landmark pools, :meth:`~reloc_service.engine.Engine.held_bytes`, about 80 MB per
+1000 keyframes), those from its load on (:meth:`Residency.counted`). A 1000-keyframe map
+counts 343 MB; its resident memory is 258 MB once its pools are made, 272 MB after queries,
+at most 350 MB while the pools are made (docs/performance.md). With ``worker_mode =
+"process"`` every worker process holds a replica of each resident map (its own engine, pools
+included), so a resident map counts once per copy: ``1 + workers`` times.
 
 The processes' own memory counts too: the budget is the whole service's (its process and its
 worker processes). The service's resident memory with no map (``VmRSS``: interpreter, OpenCV,
@@ -117,6 +118,9 @@ class Residency:
         self.kept_usage: dict[str, MapUsage] = {}
         #: What each closed map's relocalizers held beside it (its next load's estimate).
         self.kept_held: dict[str, int] = {}
+        #: What each resident map was expected to count (one copy) when its load began: it
+        #: counts at least that until its pools are made (:meth:`counted`).
+        self._expected: dict[str, int] = {}
         self._load_slot = threading.Semaphore(1)   # one cold load at a time: bounded memory
         #: Set once the service's warm-up has ended (its baseline measured, or estimated
         #: when a map was resident then); loads do not wait for it.
@@ -263,7 +267,17 @@ class Residency:
     def resident_bytes(self) -> int:
         """What the resident maps count: their usage totals and what their relocalizers
         hold beside them, once per process holding them (:attr:`copies`)."""
-        return self.copies * sum(counted_bytes(rt) for rt in list(self.registry.maps.values()))
+        return self.copies * sum(self.counted(n, rt)
+                                 for n, rt in list(self.registry.maps.items()))
+
+    def counted(self, name: str, rt: MapRuntime) -> int:
+        """What one copy of resident map ``name`` counts: :func:`counted_bytes`, and while
+        its pools are being made, at least what its load expected it to count with them. A
+        loaded map's pools come a few seconds after its load (80 MB per 1000 keyframes):
+        counted only once made, they let the next load in over the budget (the fleet bench
+        had three 1000-keyframe maps resident in a share that holds two)."""
+        now = counted_bytes(rt)
+        return now if rt.engine.prepared.is_set() else max(now, self._expected.get(name, 0))
 
     def usages(self) -> list[MapUsage]:
         """The usage of every served map: resident ones' and closed ones' (as kept)."""
@@ -329,6 +343,7 @@ class Residency:
                                     "of %.1f MB: it is closed whenever it is idle", name,
                                     expected / MB, self.copies, self.budget / MB)
                     self.make_room(expected)
+                    self._expected[name] = expected // self.copies
                     self.registry.load_resident(name)
                     # what the load read and decoded on its way (snapshot files, buffers)
                     # is freed now, but stays in the heap's arenas unless given back
@@ -354,7 +369,7 @@ class Residency:
         kept = self.kept_usage.get(name)
         if kept is not None:
             return self.copies * (int(kept.total) + self.kept_held.get(name, 0))
-        known = [counted_bytes(rt) for rt in list(self.registry.maps.values())]
+        known = [self.counted(n, rt) for n, rt in list(self.registry.maps.items())]
         known += [u.total + self.kept_held.get(n, 0) for n, u in list(self.kept_usage.items())
                   if n not in self.registry.maps]
         return self.copies * int(sum(known) / len(known)) if known else 0
@@ -436,6 +451,7 @@ class Residency:
         try:
             self.kept_usage[name] = rt.usage
             self.kept_held[name] = rt.engine.held_bytes()
+            self._expected.pop(name, None)
             prepared = rt.engine.prepared
             self.registry.close_resident(name, timeout=self.stop_timeout_s)
             del rt   # this frame's reference: the map is freed below, not when _close returns
