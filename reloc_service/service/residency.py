@@ -403,8 +403,20 @@ class Residency:
             self._wake.clear()
             try:
                 self.enforce_budget()
+                self.trim_excess()
             except Exception as exc:   # never stops evicting for one map's failure
                 log.error("closing idle maps failed: %s", exc)
+
+    def trim_excess(self) -> bool:
+        """Give the free heap pages back when this process holds more than it counts (its
+        baseline and one copy of each resident map); whether it trimmed. Making a map's
+        pools frees about 90 MB per 1000 keyframes and queries free more, all kept in the
+        C heap's arenas otherwise: the fleet bench's service held 1040 MB with two maps
+        resident, which count 687 MB with its 210 MB baseline."""
+        counted = self.baseline_service + self.resident_bytes() // self.copies
+        if rss_bytes() <= counted:
+            return False
+        return trim_now()
 
     def enforce_budget(self) -> int:
         """Close idle maps, least recently used first, until the resident ones fit the
