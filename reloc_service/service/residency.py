@@ -462,9 +462,12 @@ class Residency:
         rt = self.registry.maps[name]
         try:
             self.kept_usage[name] = rt.usage
-            self.kept_held[name] = rt.engine.held_bytes()
-            self._expected.pop(name, None)
             prepared = rt.engine.prepared
+            held = rt.engine.held_bytes()
+            if not prepared.is_set():   # closed before its pools were made: as expected
+                held = max(held, self._expected.get(name, 0) - int(rt.usage.total))
+            self.kept_held[name] = held
+            self._expected.pop(name, None)
             self.registry.close_resident(name, timeout=self.stop_timeout_s)
             del rt   # this frame's reference: the map is freed below, not when _close returns
             # a pool being made holds the map until it ends (it stops before the next one)
