@@ -325,8 +325,8 @@ class Residency:
             if self._pins[name] <= 0:
                 del self._pins[name]
                 self._changed.notify_all()   # a cold load may be waiting to close it
-        if self.budget and self.resident_bytes() > self.budget:
-            self._wake.set()
+        # the evictor closes what is over the budget and gives back what the query freed
+        self._wake.set()
 
     def loading(self, name: str) -> bool:
         return name in self._loading
