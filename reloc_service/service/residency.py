@@ -2,7 +2,7 @@
 declared at start without being loaded, opened on first use (a cold load: snapshot, then its
 journal backlog), and closed again when the resident maps count more than the budget, least
 recently used first. A cold load first makes room for the map it brings (what the map counted
-when it was last closed, else the mean of the maps known so far), so the count stays under the
+when it was last closed, else the largest of the maps known so far), so the count stays under the
 budget through the load; if no map is idle within :data:`MAKE_ROOM_WAIT_S` it loads anyway and
 the idle ones are closed once they are.
 
@@ -365,14 +365,16 @@ class Residency:
 
     def expected_bytes(self, name: str) -> int:
         """What map ``name`` will count once loaded (all its :attr:`copies`): its count when
-        it was last closed, else the mean count of the maps known here (0 when none is)."""
+        it was last closed, else the largest count of the maps known here (0 when none is).
+        The largest, not the mean: maps closed before their pools were made count without
+        them, and their mean let three 1000-keyframe maps into a share that holds two."""
         kept = self.kept_usage.get(name)
         if kept is not None:
             return self.copies * (int(kept.total) + self.kept_held.get(name, 0))
         known = [self.counted(n, rt) for n, rt in list(self.registry.maps.items())]
         known += [u.total + self.kept_held.get(n, 0) for n, u in list(self.kept_usage.items())
                   if n not in self.registry.maps]
-        return self.copies * int(sum(known) / len(known)) if known else 0
+        return self.copies * int(max(known)) if known else 0
 
     # -- eviction --------------------------------------------------------------------------------
     def make_room(self, incoming: int) -> int:
