@@ -45,7 +45,7 @@ from .replication import Bootstrap, Peers
 from .residency import dormant_status
 from .runtime import MapRuntime
 from .transfer import Transfers
-from .warm import warm_in_background
+from .warm import expected_growth, warm_in_background
 from .workers import Lane, WorkerPool, seconds_left, stop_on_signals
 from .writes import Writes
 from .zenoh_io import PendingQuery, QueryKind, ZenohLayer, open_session
@@ -120,9 +120,11 @@ class Service:
             if self.registry.residency is not None:   # their own memory counts too
                 self.processes.on_started = self.registry.residency.count_workers_baseline
         # the queries run here (with worker processes, those before the workers hold their
-        # map): their kernels load meanwhile, not in the first one
-        residency = self.registry.residency   # its baseline is measured after the warm-up
-        warm_in_background(None if residency is None else residency.settle_service_baseline)
+        # map): their kernels load meanwhile, not in the first one; with a memory budget,
+        # once the service's own memory before it is measured (:meth:`_start_lazily`)
+        residency = self.registry.residency
+        if residency is None:
+            warm_in_background()
         self.control_pool = WorkerPool("control", workers=1, queue_size=CONTROL_QUEUE)
         self.writes.open()
         if self.registry.residency is not None:   # a map with puts queued stays resident
@@ -148,12 +150,8 @@ class Service:
                                              self.maps, interval_s=s.replica_check_s,
                                              writer_for=self.writes.writer_for)
                 self.watch.start()
-        elif self.registry.residency is not None:   # each map loads on its first use
-            try:
-                self.registry.register_lazily(names)   # counts the process's own memory
-            except ConfigError:
-                self.stop(final_snapshot=False)   # the budget cannot hold this process
-                raise
+        elif residency is not None:   # each map loads on its first use
+            self._start_lazily(names)
         else:
             self.registry.load_in_background(names)
             if wait_ready:
@@ -164,6 +162,20 @@ class Service:
                  f"serving {sorted(self.maps) or 'no map yet'}" if self.registry.ready
                  else f"restoring {len(names)} maps, each served once ready")
         return self
+
+    def _start_lazily(self, names: list[str]) -> None:
+        """Declare ``names`` without loading them, counting the process's own memory before
+        the warm-up and what the warm-up will add; then start the warm-up (measured again
+        at its end: :meth:`.residency.Residency.settle_service_baseline`)."""
+        residency = self.registry.residency
+        assert residency is not None
+        try:
+            self.registry.register_lazily(names,
+                                          warm_up_growth=expected_growth(self.storage))
+        except ConfigError:
+            self.stop(final_snapshot=False)   # the budget cannot hold this process
+            raise
+        warm_in_background(residency.settle_service_baseline)
 
     def _bootstrap(self, names: list[str]) -> None:
         """Restore ``names``, copy the peers' maps into them, then declare them. Subscribed

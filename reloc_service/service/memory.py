@@ -1,5 +1,5 @@
 """Giving freed heap memory back to the system after a refused oversized payload (and
-after a resident map is closed, :mod:`.residency`).
+after a resident map is closed, :mod:`.residency`: :func:`release_memory`).
 
 Zenoh reassembles a put or query in full before the service sees it (a 300 MiB put takes
 300 MiB whatever the service then does). When that buffer is freed, glibc keeps the pages in
@@ -16,6 +16,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
+import gc
 import logging
 import os
 import threading
@@ -48,6 +49,16 @@ def trim_now() -> bool:
         return False
     trim(0)
     return True
+
+
+def release_memory() -> None:
+    """Free what nothing references any more, reference cycles included, and give the free
+    heap pages back (:func:`trim_now`). A closed map's objects refer to each other (about
+    6000 of them in cycles): on a 1000-keyframe map, 248 of the 272 MB it added stayed
+    resident after it was closed and trimmed until the cyclic collector ran, which a service
+    that allocates little may not do for minutes."""
+    gc.collect()
+    trim_now()
 
 
 class Trimmer:

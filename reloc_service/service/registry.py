@@ -137,10 +137,12 @@ class MapRegistry:
             return self.residency.served_count()
         return len(self.maps)
 
-    def register_lazily(self, names: list[str]) -> None:
-        """Declare ``names`` served without loading them (each loads on first use)."""
+    def register_lazily(self, names: list[str], *, warm_up_growth: int = 0) -> None:
+        """Declare ``names`` served without loading them (each loads on first use); the
+        service's own memory is counted first, with ``warm_up_growth`` (bytes) for the
+        warm-up still to come (:meth:`.residency.Residency.count_service_baseline`)."""
         assert self.residency is not None
-        self.residency.count_service_baseline()   # before any map is loaded
+        self.residency.count_service_baseline(warm_up_growth)   # before any map is loaded
         self.residency.register(names, self._declare)
         self._ready.set()
 

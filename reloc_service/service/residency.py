@@ -2,28 +2,31 @@
 declared at start without being loaded, opened on first use (a cold load: snapshot, then its
 journal backlog), and closed again when the resident maps count more than the budget, least
 recently used first. A cold load first makes room for the map it brings (what the map counted
-when it was last closed, else the mean of the maps known so far), so the count stays under the
+when it was last closed, else the largest of the maps known so far), so the count stays under the
 budget through the load; if no map is idle within :data:`MAKE_ROOM_WAIT_S` it loads anyway and
 the idle ones are closed once they are.
 
 What a map counts is what the quotas count for it (:class:`~.quotas.MapUsage`: its keyframes'
 images as held, depth and features) and what its relocalizers hold beside the map (the
-whole-map landmark pools of the repetition check, :meth:`~reloc_service.engine.Engine.held_bytes`,
-about 80 MB per 1000 keyframes); the process's resident memory is a multiple of that
-(docs/performance.md, "Many maps, bounded memory"). With ``worker_mode = "process"`` every
-worker process holds a replica of each resident map (its own engine, loaded from the same
-snapshot, pools included), so a resident map counts once per copy: ``1 + workers`` times.
+whole-map landmark pools, :meth:`~reloc_service.engine.Engine.held_bytes`, about 80 MB per
+1000 keyframes), those from its load on (:meth:`Residency.counted`). A 1000-keyframe map
+counts 343 MB; its resident memory is 258 MB once its pools are made, 272 MB after queries,
+at most 350 MB while the pools are made (docs/performance.md). With ``worker_mode =
+"process"`` every worker process holds a replica of each resident map (its own engine, pools
+included), so a resident map counts once per copy: ``1 + workers`` times.
 
 The processes' own memory counts too: the budget is the whole service's (its process and its
 worker processes). The service's resident memory with no map (``VmRSS``: interpreter, OpenCV,
-Zenoh, and the compiled kernels its warm-up loads: numba and LLVM, about 100 MB more than
-before it) is its *baseline*: measured when the maps are declared, and again once the
-warm-up has ended (the larger counts); the first cold load waits for that second measure, so
-no map is in it. With ``worker_mode = "process"`` the forkserver's and the workers' count
-too, measured once each worker has warmed up and before it holds any replica. The maps get
-``max_resident_mb`` minus the baseline. A budget the baseline at declaration fills refuses to
-start (ConfigError naming both); one that only the warmed-up baseline fills is logged as an
-error, and every idle map is closed.
+Zenoh, and the compiled kernels its warm-up loads: numba and LLVM, about 106 MB) is its
+*baseline*: measured when the maps are declared, before the warm-up starts, plus what the
+warm-up will add (:func:`.warm.expected_growth`: its last clean measure, else a measured
+reserve), so no cold load waits for the warm-up. When the warm-up ends with no map resident
+or loading, the baseline is measured again and that measure replaces the estimate (and the
+growth is recorded for the next start); else the estimate stays. With ``worker_mode =
+"process"`` the forkserver's and the workers' count too, measured once each worker has warmed
+up and before it holds any replica. The maps get ``max_resident_mb`` minus the baseline. A
+budget the baseline at declaration fills refuses to start (ConfigError naming both); one that
+only the warmed-up baseline fills is logged as an error, and every idle map is closed.
 
 A map is never closed while it is in use: a query or a write holds it (:meth:`Residency.acquire`
 ... :meth:`Residency.release`), puts wait in its writer lane, a training job, snapshot or
@@ -49,8 +52,9 @@ from reloc_client import protocol as wire
 from ..core.errors import ConfigError, StorageError
 from .durability import read_service_file
 from .map_dirs import map_dirname
-from .memory import rss_bytes, total_rss_bytes, trim_now
+from .memory import release_memory, rss_bytes, total_rss_bytes, trim_now
 from .quotas import MapUsage
+from .warm import record_growth
 
 if TYPE_CHECKING:
     from .config import ServiceConf
@@ -115,11 +119,19 @@ class Residency:
         self.kept_usage: dict[str, MapUsage] = {}
         #: What each closed map's relocalizers held beside it (its next load's estimate).
         self.kept_held: dict[str, int] = {}
+        #: What each resident map was expected to count (one copy) when its load began: it
+        #: counts at least that until its pools are made (:meth:`counted`).
+        self._expected: dict[str, int] = {}
         self._load_slot = threading.Semaphore(1)   # one cold load at a time: bounded memory
-        #: Set once the service's baseline is measured after its warm-up (loads wait for it).
+        #: Set once the service's warm-up has ended (its baseline measured, or estimated
+        #: when a map was resident then); loads do not wait for it.
         self.baseline_settled = threading.Event()
         self._declared = False   # count_service_baseline ran (the maps are declared)
         self._warmed = False     # settle_service_baseline ran (the warm-up ended)
+        #: The service's resident memory when the maps were declared (before its warm-up).
+        self.declared_rss = 0
+        #: What the service's warm-up was expected to add to its memory at declaration (bytes).
+        self.growth_estimate = 0
         self._wake = threading.Event()
         self._stopped = threading.Event()
         self._evictor = threading.Thread(target=self._evict_loop, name="map-evictor",
@@ -147,12 +159,15 @@ class Residency:
         """The processes' own resident memory, counted against the budget (bytes)."""
         return self.baseline_service + self.baseline_workers
 
-    def count_service_baseline(self) -> None:
-        """Measure this process's resident memory (no map resident yet) and count it;
-        ConfigError naming both numbers when it alone fills the budget. The larger of this
-        and :meth:`settle_service_baseline`'s measure counts (both are with no map)."""
+    def count_service_baseline(self, warm_up_growth: int = 0) -> None:
+        """Measure this process's resident memory (no map resident yet) and count it, with
+        ``warm_up_growth`` (bytes) if its warm-up has not ended: what that will add
+        (:func:`.warm.expected_growth`). ConfigError naming both numbers when that alone
+        fills the budget."""
         with self._lock:
-            self.baseline_service = max(self.baseline_service, _settled_rss())
+            self.declared_rss = _settled_rss()
+            self.growth_estimate = 0 if self._warmed else max(0, warm_up_growth)
+            self.baseline_service = self.declared_rss + self.growth_estimate
             self._declared = True
             if self._warmed:
                 self.baseline_settled.set()
@@ -164,25 +179,30 @@ class Residency:
         self._set_maps_budget()
 
     def settle_service_baseline(self) -> None:
-        """The service's warm-up has ended (the compiled kernels it loaded are part of what
-        it holds with no map): measure its resident memory again and count the larger
-        measure. Cold loads wait until both this and :meth:`count_service_baseline` ran
-        (:attr:`baseline_settled`), so no map is in either. Past the budget the service runs
-        on (it is serving already): the error is logged."""
+        """The service's warm-up has ended. With no map resident or loading, its resident
+        memory is measured again and replaces the estimate (the growth, when a fresh
+        warm-up's, is recorded in the storage for the next start: :func:`.warm.record_growth`);
+        with one, the estimate stays (the measure would count the map). Past the budget the
+        service runs on (it is serving already): the error is logged."""
+        growth = None
         with self._lock:
             self._warmed = True
-            if self.registry.maps:   # cannot happen: loads wait for the baseline
-                log.warning("the service's baseline is not measured after its warm-up: a map "
-                            "is resident already")
-            else:
-                self.baseline_service = max(self.baseline_service, _settled_rss())
-            if self._declared:
-                self.baseline_settled.set()
+            if self._declared and not self.registry.maps and not self._loading:
+                self.baseline_service = _settled_rss()
+                growth = self.baseline_service - self.declared_rss
+            elif self._declared:
+                log.info("the warm-up ended with a map resident: its memory is counted as "
+                         "estimated, %.1f MB", self.growth_estimate / MB)
+        if growth is not None and self.growth_estimate and self.registry.storage is not None:
+            record_growth(self.registry.storage, growth)
+        if self._declared:
+            self.baseline_settled.set()
         if self.baseline >= self.total_budget:
             log.error("service.max_resident_mb = %.0f MB is filled by the service's own "
                       "resident memory with no map after its warm-up, %.0f MB: every idle map "
                       "is closed", self.total_budget / MB, self.baseline / MB)
         self._set_maps_budget()
+        self._wake.set()
 
     def count_workers_baseline(self, pids: list[int]) -> None:
         """Measure the worker processes' (and their forkserver's) resident memory ``pids``
@@ -248,7 +268,17 @@ class Residency:
     def resident_bytes(self) -> int:
         """What the resident maps count: their usage totals and what their relocalizers
         hold beside them, once per process holding them (:attr:`copies`)."""
-        return self.copies * sum(counted_bytes(rt) for rt in list(self.registry.maps.values()))
+        return self.copies * sum(self.counted(n, rt)
+                                 for n, rt in list(self.registry.maps.items()))
+
+    def counted(self, name: str, rt: MapRuntime) -> int:
+        """What one copy of resident map ``name`` counts: :func:`counted_bytes`, and while
+        its pools are being made, at least what its load expected it to count with them. A
+        loaded map's pools come a few seconds after its load (80 MB per 1000 keyframes):
+        counted only once made, they let the next load in over the budget (the fleet bench
+        had three 1000-keyframe maps resident in a share that holds two)."""
+        now = counted_bytes(rt)
+        return now if rt.engine.prepared.is_set() else max(now, self._expected.get(name, 0))
 
     def usages(self) -> list[MapUsage]:
         """The usage of every served map: resident ones' and closed ones' (as kept)."""
@@ -296,8 +326,8 @@ class Residency:
             if self._pins[name] <= 0:
                 del self._pins[name]
                 self._changed.notify_all()   # a cold load may be waiting to close it
-        if self.budget and self.resident_bytes() > self.budget:
-            self._wake.set()
+        # the evictor closes what is over the budget and gives back what the query freed
+        self._wake.set()
 
     def loading(self, name: str) -> bool:
         return name in self._loading
@@ -307,9 +337,6 @@ class Residency:
         start = time.perf_counter()
         try:
             with self._load_slot:
-                # the service's baseline is measured once its warm-up ends, with no map in it
-                while not self._stopped.is_set() and not self.baseline_settled.wait(1.0):
-                    pass
                 if not self._stopped.is_set():
                     expected = self.expected_bytes(name)
                     if self.budget and expected > self.budget:
@@ -317,6 +344,7 @@ class Residency:
                                     "of %.1f MB: it is closed whenever it is idle", name,
                                     expected / MB, self.copies, self.budget / MB)
                     self.make_room(expected)
+                    self._expected[name] = expected // self.copies
                     self.registry.load_resident(name)
                     # what the load read and decoded on its way (snapshot files, buffers)
                     # is freed now, but stays in the heap's arenas unless given back
@@ -338,14 +366,16 @@ class Residency:
 
     def expected_bytes(self, name: str) -> int:
         """What map ``name`` will count once loaded (all its :attr:`copies`): its count when
-        it was last closed, else the mean count of the maps known here (0 when none is)."""
+        it was last closed, else the largest count of the maps known here (0 when none is).
+        The largest, not the mean: maps closed before their pools were made count without
+        them, and their mean let three 1000-keyframe maps into a share that holds two."""
         kept = self.kept_usage.get(name)
         if kept is not None:
             return self.copies * (int(kept.total) + self.kept_held.get(name, 0))
-        known = [counted_bytes(rt) for rt in list(self.registry.maps.values())]
+        known = [self.counted(n, rt) for n, rt in list(self.registry.maps.items())]
         known += [u.total + self.kept_held.get(n, 0) for n, u in list(self.kept_usage.items())
                   if n not in self.registry.maps]
-        return self.copies * int(sum(known) / len(known)) if known else 0
+        return self.copies * int(max(known)) if known else 0
 
     # -- eviction --------------------------------------------------------------------------------
     def make_room(self, incoming: int) -> int:
@@ -376,8 +406,20 @@ class Residency:
             self._wake.clear()
             try:
                 self.enforce_budget()
+                self.trim_excess()
             except Exception as exc:   # never stops evicting for one map's failure
                 log.error("closing idle maps failed: %s", exc)
+
+    def trim_excess(self) -> bool:
+        """Give the free heap pages back when this process holds more than it counts (its
+        baseline and one copy of each resident map); whether it trimmed. Making a map's
+        pools frees about 90 MB per 1000 keyframes and queries free more, all kept in the
+        C heap's arenas otherwise: the fleet bench's service held 1040 MB with two maps
+        resident, which count 687 MB with its 210 MB baseline."""
+        counted = self.baseline_service + self.resident_bytes() // self.copies
+        if rss_bytes() <= counted:
+            return False
+        return trim_now()
 
     def enforce_budget(self) -> int:
         """Close idle maps, least recently used first, until the resident ones fit the
@@ -423,11 +465,19 @@ class Residency:
         rt = self.registry.maps[name]
         try:
             self.kept_usage[name] = rt.usage
-            self.kept_held[name] = rt.engine.held_bytes()
+            prepared = rt.engine.prepared
+            held = rt.engine.held_bytes()
+            if not prepared.is_set():   # closed before its pools were made: as expected
+                held = max(held, self._expected.get(name, 0) - int(rt.usage.total))
+            self.kept_held[name] = held
+            self._expected.pop(name, None)
             self.registry.close_resident(name, timeout=self.stop_timeout_s)
-            # A map is many small arrays: freed, their pages stay in the C heap's arenas
-            # (about 180 of the 550 MB a 1000-keyframe map takes) unless given back.
-            trim_now()
+            del rt   # this frame's reference: the map is freed below, not when _close returns
+            # a pool being made holds the map until it ends (it stops before the next one)
+            prepared.wait(self.stop_timeout_s)
+            # the map's objects are in reference cycles, and its arrays' freed pages stay in
+            # the C heap's arenas unless given back (memory.release_memory)
+            release_memory()
             self.evictions += 1
             log.info("map %s: closed (idle; %.1f MB resident of %.1f MB)", name,
                      self.resident_bytes() / MB, self.budget / MB)

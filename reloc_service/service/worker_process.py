@@ -26,7 +26,7 @@ from ..core.numeric import limit_blas_threads
 from ..engine import Engine, EngineConf, MappingConf
 from . import handlers
 from .codec import error_reply
-from .memory import trim_now
+from .memory import release_memory
 from .served import ServedMap, WriteOp
 from .warm import warm_kernels
 
@@ -105,7 +105,7 @@ def worker_main(conn: Connection, index: int) -> None:
                 # to the system, as the service's do when it closes a map (residency)
                 dropped.engine.prepared.wait(DROP_WAIT_S)
                 del dropped
-                trim_now()
+                release_memory()   # its objects are in reference cycles: collected now
         elif kind == "load":
             _, name, base, spec, cameras = msg
             try:

@@ -259,8 +259,9 @@ def score(answers: list[tuple[int, Any]], queries: QuerySet) -> dict[str, Any]:
 def run_baseline(conf: FleetConf, template: StoredMap, queries: QuerySet, work: Path
                  ) -> dict[str, Any]:
     """One copy, resident from its first query on (a budget no map reaches): warm queries
-    alone, and the processes' own memory the service measured (``memory_baseline_bytes``
-    of its status, once warmed up: its first load waits for that measure)."""
+    alone, and the processes' own memory the service counts (``memory_baseline_bytes``
+    of its status: measured before its warm-up, plus the warm-up's growth, measured at its
+    end with no map resident, else as recorded or estimated: its first load does not wait)."""
     from reloc_client.client import RelocClient
 
     storage = work / "baseline-storage"
