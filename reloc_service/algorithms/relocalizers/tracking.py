@@ -12,9 +12,7 @@ covariance and falls back to that method when tracking does not verify."""
 from __future__ import annotations
 
 import functools
-import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
@@ -136,9 +134,10 @@ class TrackingRelocalizer(Relocalizer):
         # The local maps of the last few keyframe sets: a tracked camera sees the same
         # keyframes for many frames, and pooling their landmarks and weighing them costs as
         # much as matching them. Keyed by map version, so an edited map is pooled afresh.
-        self._local_maps: OrderedDict[tuple[int, tuple[int, ...], str],
-                                      tuple[LandmarkPool, PointUncertainty]] = OrderedDict()
-        self._local_lock = threading.Lock()
+        # Replaced whole, never changed in place: concurrent queries read it without a lock
+        # (only the engine locks), and a race only pools a set once more.
+        self._local_maps: dict[tuple[int, tuple[int, ...], str],
+                               tuple[LandmarkPool, PointUncertainty]] = {}
 
     @classmethod
     def from_options(cls, step: MethodStep, kmap: KeyframeMap,
@@ -291,17 +290,13 @@ class TrackingRelocalizer(Relocalizer):
         uncertainty (:func:`_landmark_uncertainty`), kept for the last
         :data:`LOCAL_MAPS_KEPT` keyframe sets of the map's version."""
         key = (state.version, tuple(near), kind)
-        with self._local_lock:
-            kept = self._local_maps.get(key)
-            if kept is not None:
-                self._local_maps.move_to_end(key)
-                return kept
+        kept = self._local_maps.get(key)
+        if kept is not None:
+            return kept
         pool = LandmarkPool.gather(keyframes, kind)
         made = pool, _landmark_uncertainty(pool, state, near, keyframes)
-        with self._local_lock:
-            self._local_maps[key] = made
-            while len(self._local_maps) > LOCAL_MAPS_KEPT:
-                self._local_maps.popitem(last=False)
+        # the last LOCAL_MAPS_KEPT sets made, oldest first
+        self._local_maps = dict([*self._local_maps.items(), (key, made)][-LOCAL_MAPS_KEPT:])
         return made
 
     @staticmethod
