@@ -7,7 +7,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from test_intrinsics_confirmation import STALE, judged
+from test_intrinsics_confirmation import STALE, RefusingOrb, judged
 from test_pose_intrinsics import ROOM, correspondences
 
 from reloc_service.algorithms.pose.intrinsics import IntrinsicsCheck
@@ -23,7 +23,7 @@ from reloc_service.algorithms.relocalizers.base import (
     RelocStatus,
 )
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
-from reloc_service.algorithms.relocalizers.confirmation import REFUSAL_BETWEEN_STEPS, REFUSED
+from reloc_service.algorithms.relocalizers.confirmation import REFUSAL_BETWEEN_STEPS
 from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
 from reloc_service.core.features import FeatureConf
 from reloc_service.core.frame import Frame
@@ -78,39 +78,15 @@ def test_guided_matching_bent_the_focal_where_the_unguided_matches_see_another()
     assert guided_bend_p_value(dataclasses.replace(bent.unguided, unguided=whole)) == 1.0
 
 
-class _Refusing(Relocalizer):
-    """A step on SIFT of the half-size query (as the default chain's sift-half) that refuses
-    every query's intrinsics with ``check``, left on the query as the multi relocalizer
-    leaves it."""
+class _RefusingSiftHalf(RefusingOrb):
+    """The same on SIFT of the half-size query (as the default chain's sift-half)."""
 
-    name = "refusing"
     method = "refusing:sift"
     required_features = frozenset({"sift"})
 
-    def __init__(self, kmap: KeyframeMap, check: IntrinsicsCheck) -> None:
-        super().__init__(kmap)
-        self.check = check
-
     def feature_confs(self) -> dict[str, FeatureConf]:
-        conf = FeatureConf(kind=next(iter(self.required_features)), scale=0.5)
+        conf = FeatureConf(kind="sift", scale=0.5)
         return {conf.key: conf}
-
-    def add_keyframe(self, keyframe) -> None:
-        pass
-
-    def remove_keyframe(self, keyframe) -> None:
-        pass
-
-    def relocalize(self, query, *, prior=None, hypotheses=1) -> RelocResult:
-        query.cache[REFUSED] = self.check
-        return RelocResult.failure(self.method, self.check.reason)
-
-
-class _RefusingOrb(_Refusing):
-    """The same on ORB keypoints."""
-
-    method = "refusing:orb"
-    required_features = frozenset({"orb"})
 
 
 class _Answering(Relocalizer):
@@ -147,7 +123,7 @@ class _Answering(Relocalizer):
 def _chain(refusal: IntrinsicsCheck, features: str, estimate, compare: bool = True
            ) -> RelocResult:
     kmap = KeyframeMap()
-    first = (_RefusingOrb if features == "orb" else _Refusing)(kmap, refusal)
+    first = (RefusingOrb if features == "orb" else _RefusingSiftHalf)(kmap, refusal)
     chain = ChainRelocalizer(kmap, [first,
                                     _Answering(kmap, estimate, compare)])
     return chain.relocalize(Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), STALE))

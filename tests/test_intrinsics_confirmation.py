@@ -141,7 +141,7 @@ def test_power_grows_with_the_error_and_is_the_level_at_none(stale_refusal):
     assert np.all(np.diff(powers) > 0) and powers[-1] > 0.99
 
 
-class _Refusing(Relocalizer):
+class RefusingOrb(Relocalizer):
     """An ORB step refusing every query's intrinsics with ``check``, left on the query as
     the multi relocalizer leaves it."""
 
@@ -192,7 +192,7 @@ class _Answering(Relocalizer):
 
 def _chain(refusal: IntrinsicsCheck, estimate, confirm: bool = True) -> RelocResult:
     kmap = KeyframeMap()
-    chain = ChainRelocalizer(kmap, [_Refusing(kmap, refusal),
+    chain = ChainRelocalizer(kmap, [RefusingOrb(kmap, refusal),
                                     _Answering(kmap, estimate, confirm)])
     return chain.relocalize(Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), STALE))
 
@@ -216,7 +216,7 @@ def test_a_later_pose_near_the_refused_error_leaves_the_refusal_standing():
     est = judged(*correspondences(ROOM, 300, 1.0, np.random.default_rng(1)),
                  QueryCamera(focal_scale=1.015).claimed(ROOM))
     assert est.intrinsics.passed
-    chain = ChainRelocalizer(kmap, [_Refusing(kmap, refusal), _Answering(kmap, est, True)])
+    chain = ChainRelocalizer(kmap, [RefusingOrb(kmap, refusal), _Answering(kmap, est, True)])
     result = chain.relocalize(Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), STALE))
     assert not result.ok and result.method == "refusing:orb"
     assert "its data reject it at p = " in result.reason
