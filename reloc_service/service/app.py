@@ -241,7 +241,10 @@ class Service:
         try:
             self.processes.start()
         except Exception as exc:   # the first query tries again and reports it
-            log.error("starting the relocalize worker processes failed: %s", exc)
+            if self._stopped.is_set():   # stopped meanwhile: its maps' files went with it
+                log.debug("worker processes not started, the service is stopping: %s", exc)
+            else:
+                log.error("starting the relocalize worker processes failed: %s", exc)
 
     def __enter__(self) -> Service:
         return self.start()

@@ -337,7 +337,10 @@ class ProcessWorkers:
                 finally:
                     self._give_back(handle)
         except Exception as exc:   # the next query tries again
-            log.error("starting the relocalize worker processes failed: %s", exc)
+            if self._closed:   # the service stopped meanwhile: its maps' files went with it
+                log.debug("worker processes not started, the service is stopping: %s", exc)
+            else:
+                log.error("starting the relocalize worker processes failed: %s", exc)
         finally:
             with self._lock:
                 self._starting = False
