@@ -7,7 +7,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-from test_intrinsics_confirmation import STALE, RefusingOrb, judged
+from chain_steps import AnsweringStep, RefusingOrb
+from test_intrinsics_confirmation import STALE, judged
 from test_pose_intrinsics import ROOM, correspondences
 
 from reloc_service.algorithms.pose.intrinsics import IntrinsicsCheck
@@ -17,10 +18,7 @@ from reloc_service.algorithms.pose.intrinsics_agreement import (
     guided_bend_p_value,
 )
 from reloc_service.algorithms.relocalizers.base import (
-    ANSWERED,
-    Relocalizer,
     RelocResult,
-    RelocStatus,
 )
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
 from reloc_service.algorithms.relocalizers.confirmation import REFUSAL_BETWEEN_STEPS
@@ -89,35 +87,9 @@ class _RefusingSiftHalf(RefusingOrb):
         return {conf.key: conf}
 
 
-class _Answering(Relocalizer):
-    """A SIFT step answering every query with ``estimate``'s pose, with the multi
-    relocalizer's options (``compare``: its ``compare_intrinsics``)."""
-
-    name = "answering"
-    method = "answering:sift"
-    required_features = frozenset({"sift"})
-
-    def __init__(self, kmap: KeyframeMap, estimate, compare: bool, guided: bool = False
-                 ) -> None:
-        super().__init__(kmap)
-        self.estimate = estimate
-        self.conf = MultiRelocalizer.Conf(compare_intrinsics=compare,
-                                          compare_guided_focal=guided)
-
-    def feature_confs(self) -> dict[str, FeatureConf]:
-        return {"sift": FeatureConf(kind="sift")}
-
-    def add_keyframe(self, keyframe) -> None:
-        pass
-
-    def remove_keyframe(self, keyframe) -> None:
-        pass
-
-    def relocalize(self, query, *, prior=None, hypotheses=1) -> RelocResult:
-        query.cache[ANSWERED] = self.estimate
-        return RelocResult(status=RelocStatus.OK, method=self.method,
-                           world_from_cam=self.estimate.world_from_cam,
-                           covariance=self.estimate.covariance, confidence=0.5)
+def _compare(compare: bool, guided: bool = False) -> MultiRelocalizer.Conf:
+    """The multi relocalizer's options with ``compare_intrinsics`` and ``compare_guided_focal``."""
+    return MultiRelocalizer.Conf(compare_intrinsics=compare, compare_guided_focal=guided)
 
 
 def _chain(refusal: IntrinsicsCheck, features: str, estimate, compare: bool = True
@@ -125,7 +97,7 @@ def _chain(refusal: IntrinsicsCheck, features: str, estimate, compare: bool = Tr
     kmap = KeyframeMap()
     first = (RefusingOrb if features == "orb" else _RefusingSiftHalf)(kmap, refusal)
     chain = ChainRelocalizer(kmap, [first,
-                                    _Answering(kmap, estimate, compare)])
+                                    AnsweringStep(kmap, estimate, conf=_compare(compare))])
     return chain.relocalize(Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), STALE))
 
 
@@ -161,8 +133,9 @@ def test_a_pose_whose_guided_matches_bent_the_focal_is_refused_on_request():
     bent.intrinsics = with_unguided(bent.intrinsics, STALE, 4)
     kmap = KeyframeMap()
     query = Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), ROOM)
-    chain = ChainRelocalizer(kmap, [_Answering(kmap, bent, True, guided=True)])
+    chain = ChainRelocalizer(kmap, [AnsweringStep(kmap, bent, conf=_compare(True, guided=True))])
     result = chain.relocalize(query)
     assert not result.ok and "guided matching bent it" in result.reason
-    assert ChainRelocalizer(kmap, [_Answering(kmap, bent, True)]).relocalize(query).ok
+    chain = ChainRelocalizer(kmap, [AnsweringStep(kmap, bent, conf=_compare(True))])
+    assert chain.relocalize(query).ok
     assert not MultiRelocalizer.Conf().compare_guided_focal

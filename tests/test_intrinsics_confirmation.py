@@ -8,6 +8,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from chain_steps import AnsweringStep, RefusingOrb
 from test_pose_intrinsics import ROOM, correspondences
 
 from reloc_service.algorithms.pose.intrinsics import REFUSAL, IntrinsicsCheck
@@ -24,13 +25,9 @@ from reloc_service.algorithms.pose.intrinsics_confirmation import (
 from reloc_service.algorithms.pose.map_consistency import covariance_with_intrinsics
 from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp_indexed
 from reloc_service.algorithms.relocalizers.base import (
-    ANSWERED,
-    Relocalizer,
     RelocResult,
-    RelocStatus,
 )
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
-from reloc_service.algorithms.relocalizers.confirmation import REFUSED
 from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
 from reloc_service.core.frame import Frame
 from reloc_service.core.map import KeyframeMap
@@ -141,59 +138,15 @@ def test_power_grows_with_the_error_and_is_the_level_at_none(stale_refusal):
     assert np.all(np.diff(powers) > 0) and powers[-1] > 0.99
 
 
-class RefusingOrb(Relocalizer):
-    """An ORB step refusing every query's intrinsics with ``check``, left on the query as
-    the multi relocalizer leaves it."""
-
-    name = "refusing"
-    method = "refusing:orb"
-    required_features = frozenset({"orb"})
-
-    def __init__(self, kmap: KeyframeMap, check: IntrinsicsCheck) -> None:
-        super().__init__(kmap)
-        self.check = check
-
-    def add_keyframe(self, keyframe) -> None:
-        pass
-
-    def remove_keyframe(self, keyframe) -> None:
-        pass
-
-    def relocalize(self, query, *, prior=None, hypotheses=1) -> RelocResult:
-        query.cache[REFUSED] = self.check
-        return RelocResult.failure(self.method, self.check.reason)
-
-
-class _Answering(Relocalizer):
-    """A SIFT step answering every query with ``estimate``'s pose, left for the chain, with
-    the multi relocalizer's options (``confirm``: its ``confirm_intrinsics``)."""
-
-    name = "answering"
-    method = "answering:sift"
-    required_features = frozenset({"sift"})
-
-    def __init__(self, kmap: KeyframeMap, estimate, confirm: bool) -> None:
-        super().__init__(kmap)
-        self.estimate = estimate
-        self.conf = MultiRelocalizer.Conf(confirm_intrinsics=confirm)
-
-    def add_keyframe(self, keyframe) -> None:
-        pass
-
-    def remove_keyframe(self, keyframe) -> None:
-        pass
-
-    def relocalize(self, query, *, prior=None, hypotheses=1) -> RelocResult:
-        query.cache[ANSWERED] = self.estimate
-        return RelocResult(status=RelocStatus.OK, method=self.method,
-                           world_from_cam=self.estimate.world_from_cam,
-                           covariance=self.estimate.covariance, confidence=0.5)
+def _confirm(confirm: bool) -> MultiRelocalizer.Conf:
+    """The multi relocalizer's options with ``confirm_intrinsics``."""
+    return MultiRelocalizer.Conf(confirm_intrinsics=confirm)
 
 
 def _chain(refusal: IntrinsicsCheck, estimate, confirm: bool = True) -> RelocResult:
     kmap = KeyframeMap()
     chain = ChainRelocalizer(kmap, [RefusingOrb(kmap, refusal),
-                                    _Answering(kmap, estimate, confirm)])
+                                    AnsweringStep(kmap, estimate, conf=_confirm(confirm))])
     return chain.relocalize(Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), STALE))
 
 
@@ -216,7 +169,8 @@ def test_a_later_pose_near_the_refused_error_leaves_the_refusal_standing():
     est = judged(*correspondences(ROOM, 300, 1.0, np.random.default_rng(1)),
                  QueryCamera(focal_scale=1.015).claimed(ROOM))
     assert est.intrinsics.passed
-    chain = ChainRelocalizer(kmap, [RefusingOrb(kmap, refusal), _Answering(kmap, est, True)])
+    chain = ChainRelocalizer(kmap, [RefusingOrb(kmap, refusal),
+                                    AnsweringStep(kmap, est, conf=_confirm(True))])
     result = chain.relocalize(Frame(np.zeros((ROOM.height, ROOM.width), np.uint8), STALE))
     assert not result.ok and result.method == "refusing:orb"
     assert "its data reject it at p = " in result.reason

@@ -9,6 +9,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from chain_steps import AnsweringStep
 from scipy import stats
 from test_pose_intrinsics import ROOM, correspondences
 
@@ -22,10 +23,8 @@ from reloc_service.algorithms.pose.intrinsics_power import (
 from reloc_service.algorithms.pose.map_consistency import covariance_with_intrinsics
 from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp_indexed
 from reloc_service.algorithms.relocalizers.base import (
-    ANSWERED,
     Relocalizer,
     RelocResult,
-    RelocStatus,
     VerifyConf,
     inlier_cells,
     intrinsics_unchecked,
@@ -113,37 +112,6 @@ def weakly_checked_estimate(rng: np.random.Generator):
     raise AssertionError("no underpowered view in 10 draws")
 
 
-class _Answering(Relocalizer):
-    """A step matching ``kind`` features that answers every query with ``estimate``'s pose
-    and leaves the estimate for the chain, as the multi relocalizer does."""
-
-    name = "answering"
-
-    def __init__(self, kmap: KeyframeMap, estimate, kind: str = "orb") -> None:
-        super().__init__(kmap)
-        self.estimate, self.kind = estimate, kind
-
-    @property
-    def method(self) -> str:
-        return f"answering:{self.kind}"
-
-    @property
-    def required_features(self) -> frozenset[str]:
-        return frozenset({self.kind})
-
-    def add_keyframe(self, keyframe) -> None:
-        pass
-
-    def remove_keyframe(self, keyframe) -> None:
-        pass
-
-    def relocalize(self, query, *, prior=None, hypotheses=1) -> RelocResult:
-        query.cache[ANSWERED] = self.estimate
-        return RelocResult(status=RelocStatus.OK, method=self.method,
-                           world_from_cam=self.estimate.world_from_cam,
-                           covariance=self.estimate.covariance, confidence=0.5)
-
-
 class _RefusingSift(Relocalizer):
     """A SIFT step that refuses every query's intrinsics."""
 
@@ -173,17 +141,18 @@ def test_an_underpowered_answer_is_left_to_a_step_with_other_features():
     rng = np.random.default_rng(4)
     weak = weakly_checked_estimate(rng)
     kmap = KeyframeMap()
-    result = ChainRelocalizer(kmap, [_Answering(kmap, weak), _RefusingSift(kmap)]).relocalize(
+    result = ChainRelocalizer(kmap, [AnsweringStep(kmap, weak, kind="orb"),
+                                     _RefusingSift(kmap)]).relocalize(
         query_frame())
     assert not result.ok and result.method == "refusing:sift"
     assert result.reason.startswith(REFUSAL)
     # With the same features after it, the step's own test is all there is: it answers.
-    same = ChainRelocalizer(kmap, [_Answering(kmap, weak, kind="sift"), _RefusingSift(kmap)])
+    same = ChainRelocalizer(kmap, [AnsweringStep(kmap, weak, kind="sift"), _RefusingSift(kmap)])
     assert same.relocalize(query_frame()).ok
     # A test with the power to vouch for the pose: the ORB answer stands.
     strong_est = settled(*judged(*correspondences(ROOM, 400, 0.3, rng), ROOM))
     assert not estimate_underpowered(strong_est)
-    result = ChainRelocalizer(kmap, [_Answering(kmap, strong_est),
+    result = ChainRelocalizer(kmap, [AnsweringStep(kmap, strong_est, kind="orb"),
                                      _RefusingSift(kmap)]).relocalize(query_frame())
     assert result.ok and result.method == "answering:orb"
 
