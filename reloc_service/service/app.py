@@ -73,6 +73,7 @@ class Service:
                                       mapping=MappingConf.from_options(conf.mapping),
                                       stored=conf.service.stored_parts())
         self._stopped = threading.Event()
+        self._starter: threading.Thread | None = None
         self.registry = MapRegistry(conf, self.engine_conf, self.methods, limits=self.limits,
                                     stopped=self._stopped, publish=self._publish_event,
                                     declare=self._declare,
@@ -215,7 +216,9 @@ class Service:
             if pool is not None:           # queued queries finish; new ones get "busy"
                 pool.close(timeout=seconds_left(deadline, share=0.5))
         if self.processes is not None:
-            self.processes.close()
+            self.processes.close()   # a start after this returns at once
+        if self._starter is not None:   # its last log line is written before serve's exit
+            self._starter.join(timeout=seconds_left(deadline, share=0.25))
         # the queries are done: their helper threads (thread-mode workers) end here
         close_helpers(timeout=seconds_left(deadline, share=0.25))
         self.transfers.close()
@@ -232,11 +235,14 @@ class Service:
         every map is restored (each worker loads them all), so that the first query does not
         wait for them; without this they start with the first query. No-op in thread mode."""
         if self.processes is not None:
-            threading.Thread(target=self._start_workers, name="start-workers",
-                             daemon=True).start()
+            self._starter = threading.Thread(target=self._start_workers, name="start-workers",
+                                             daemon=True)
+            self._starter.start()
 
     def _start_workers(self) -> None:
-        self.wait_ready()
+        while not self.wait_ready(timeout=0.2):   # a stop during the restore ends the wait
+            if self._stopped.is_set():
+                return
         assert self.processes is not None
         try:
             self.processes.start()
