@@ -15,14 +15,12 @@ its threads and 300 maps need no more threads than one: :mod:`.writes`).
 Stopping is bounded by ``service.stop_timeout_s``: puts still queued are validated and
 journaled without being applied (the replay at the next start applies them), a final snapshot
 is taken only within what is left of the budget, and the process exits without waiting for
-threads that may still be inside native code (see :func:`serve`).
+threads that may still be inside native code (see :func:`.serve.serve`).
 """
 
 from __future__ import annotations
 
 import logging
-import os
-import sys
 import threading
 import time
 from typing import Any
@@ -34,8 +32,7 @@ from ..algorithms.relocalizers.overlap import close_helpers
 from ..core.errors import ConfigError
 from ..core.numeric import limit_blas_threads
 from ..engine import EngineConf, MappingConf
-from ..storage.lock import LockHeld
-from . import handlers, open_files
+from . import handlers
 from .codec import error_reply
 from .config import ServiceConf
 from .divergence import DivergenceWatch
@@ -525,52 +522,3 @@ class Service:
 def _flag(parameters: Any, name: str) -> bool:
     """Whether a query's selector parameter ``name`` is set (true, 1 or yes)."""
     return str(parameters.get(name, "false")).lower() in ("true", "1", "yes")
-
-
-def serve(conf: ServiceConf) -> int:
-    """Run a service for ``conf`` until SIGINT/SIGTERM; the exit status. The signal handlers
-    are installed first, so a signal during start-up (restoring maps) still stops cleanly.
-
-    Once stopped (everything journaled and closed), a thread still running (a training job
-    inside OpenCV, a snapshot past the budget) would be killed by the interpreter's exit in
-    native code, which aborts the process ("exception not rethrown"): the process then
-    leaves with ``os._exit`` instead."""
-    stop = stop_on_signals()
-    # Two files per served map: systemd's soft limit of 1024 holds about 380 of them.
-    open_files.raise_limit(max(conf.quotas.max_maps, len(conf.maps)))
-    service = Service(conf)
-    try:
-        service.start(wait_ready=False)   # small maps are served while big ones replay
-    except LockHeld:   # another process owns the storage: nothing was started or written
-        raise
-    except BaseException:
-        service.stop(final_snapshot=False)
-        raise
-    service.start_workers_in_background()   # the first query does not wait for them
-    service.run_forever(stop)
-    # a restore stops at its next journal record; a snapshot load cannot: left to os._exit
-    if not service.wait_ready(timeout=conf.service.stop_timeout_s):
-        log.warning("a map restore was still running at exit")
-    _exit_if_threads_linger(0)
-    return 0
-
-
-def _exit_if_threads_linger(code: int) -> None:
-    """``os._exit(code)`` (after flushing logs and stdio) if a Python thread still runs (ours,
-    or zenoh-python's callback threads, which block inside Rust)."""
-    lingering = [t.name for t in threading.enumerate()
-                 if t is not threading.current_thread() and t.is_alive()
-                 and not isinstance(t, threading._DummyThread)]  # type: ignore[attr-defined]
-    if not lingering:
-        return
-    ours = [name for name in lingering if "pyo3" not in name]
-    log.log(logging.WARNING if ours else logging.DEBUG, "exiting without waiting for %s",
-            ", ".join(sorted(lingering)))
-    logging.shutdown()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):
-            pass
-    os._exit(code)
-

@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
         if args.print_config:
             print(json.dumps(_as_plain(conf), indent=2))
             return 0
-        from .app import serve
+        from .serve import serve
 
         return serve(conf)
     except RelocError as exc:
