@@ -176,6 +176,7 @@ class ProcessWorkers:
         self._started = False
         self._starting = False                        # a start_in_background thread runs
         self._closed = False
+        self._reviver: threading.Thread | None = None   # start_in_background's thread
         self._token = 0
         self._in_flight = 0
         #: Told the pids of the forkserver and the workers once they first start (the
@@ -321,8 +322,9 @@ class ProcessWorkers:
             if self._started and all(not h.dead for h in self._handles):
                 return
             self._starting = True
-        threading.Thread(target=self._start_or_revive, name="start-workers",
-                         daemon=True).start()
+            self._reviver = threading.Thread(target=self._start_or_revive, name="revive-workers",
+                                             daemon=True)
+            self._reviver.start()
 
     def _start_or_revive(self) -> None:
         try:
@@ -436,7 +438,12 @@ class ProcessWorkers:
     def _spawn_one(self) -> _Handle:
         handle = self._new_process()
         with self._lock:
-            self._handles.append(handle)
+            closed = self._closed
+            if not closed:
+                self._handles.append(handle)
+        if closed:   # close() has stopped the workers it listed: this one is not among them
+            _terminate(handle)
+            raise RuntimeError("the service is stopping")
         for rt in self._attached():
             self.rebase(rt, [handle])
         return handle
@@ -495,12 +502,15 @@ class ProcessWorkers:
             self._closed = True
             handles = list(self._handles)
             self._handles.clear()
+            reviver = self._reviver
         for handle in handles:
             handle.send(("stop",))
         deadline = time.monotonic() + STOP_GRACE_S
         for handle in handles:
             handle.process.join(max(0.0, deadline - time.monotonic()))
             _terminate(handle)
+        if reviver is not None:   # a replacement it is starting is terminated by itself
+            reviver.join(max(0.0, deadline - time.monotonic()) + STOP_GRACE_S)
         shutil.rmtree(self._scratch, ignore_errors=True)
 
 
