@@ -52,6 +52,7 @@ from ..storage.map_archive import (
 )
 from ..storage.snapshot import load_map
 from ..storage.snapshot_files import MANIFEST_FILE, fsync_tree
+from ..storage.snapshot_link import copy_tree_keeping_links
 from .durability import SERVICE_FILE, read_service_file
 from .map_dirs import MAP_NAME_FILE, map_dirname, map_name_of, stored_map_name
 from .restore_verdict import judge
@@ -304,7 +305,7 @@ def _place(staged: Path, storage: Path, dirname: str, replace: bool) -> Path:
     hidden = storage / f".import-{uuid.uuid4().hex}"
     aside = storage / f".replaced-{uuid.uuid4().hex}"
     try:
-        shutil.copytree(staged, hidden)
+        copy_tree_keeping_links(staged, hidden)   # an export's linked parts stay one file
         for path in hidden.rglob("*"):
             if path.is_file():
                 fsync_path(path)
