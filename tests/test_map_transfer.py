@@ -24,7 +24,7 @@ from storage_support import fill_map, keyframe_put, listing, query_poses
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.cli.main import main as reloc
 from reloc_service.service.app import Service
-from reloc_service.service.map_transfer import export_map, import_map, take_view
+from reloc_service.service.map_transfer import export_map, import_map, map_info, take_view
 from reloc_service.storage.map_archive import MANIFEST, MANIFEST_DIGEST, ArchiveError
 
 KEYFRAMES = 6
@@ -282,3 +282,6 @@ def test_a_model_two_methods_share_travels_and_lands_once(synthetic_scene, tmp_p
     for p, q in zip(files, landed, strict=True):
         assert q.read_bytes() == p.read_bytes()
     assert len({q.stat().st_ino for q in landed}) == len(inodes)
+    # `reloc map info` counts the bytes on disk: a shared model once
+    models = {p.stat().st_ino: p.stat().st_size for p in files if "models" in p.parts}
+    assert map_info(storage / MAP)["bytes"]["models"] == sum(models.values())

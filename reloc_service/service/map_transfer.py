@@ -48,6 +48,7 @@ from ..storage.map_archive import (
     extract_archive,
     file_sha256,
     part_kind,
+    same_as,
     write_archive,
 )
 from ..storage.snapshot import load_map
@@ -331,8 +332,11 @@ def map_info(map_dir: Path) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="reloc-info-") as tmp:
         view = take_view(map_dir, Path(tmp)) if meta.get("map_id") else None
     sizes: dict[str, int] = {}
-    for p in view.parts if view is not None else []:
-        sizes[part_kind(p.path)] = sizes.get(part_kind(p.path), 0) + p.size
+    parts = view.parts if view is not None else []
+    linked = same_as(parts)   # a file two methods share is on disk once
+    for p in parts:
+        if p.path not in linked:
+            sizes[part_kind(p.path)] = sizes.get(part_kind(p.path), 0) + p.size
     version = None
     if view is not None and view.snapshot is not None:
         manifest = json.loads((map_dir / "map" / "snapshots" / view.snapshot /
