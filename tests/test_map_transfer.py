@@ -21,9 +21,10 @@ from reloc_client.client import RelocClient
 from service_support import MAP, endpoint, free_port, service_conf
 from storage_support import fill_map, keyframe_put, listing, query_poses
 
+from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.cli.main import main as reloc
 from reloc_service.service.app import Service
-from reloc_service.service.map_transfer import export_map, import_map, take_view
+from reloc_service.service.map_transfer import export_map, import_map, map_info, take_view
 from reloc_service.storage.map_archive import MANIFEST, MANIFEST_DIGEST, ArchiveError
 
 KEYFRAMES = 6
@@ -141,7 +142,7 @@ def _fix_digest(src: Path, dst: Path) -> None:
     ("flip-journal", r"part journal/\d+\.journal: checksum mismatch"),
     ("flip-manifest", r"part manifest.json: checksum mismatch"),
     ("truncate", r"truncated"),
-    ("version", r"unknown export format version 99; this reloc reads version\(s\) 1"),
+    ("version", r"unknown export format version 99; this reloc reads version\(s\) 1, 2"),
 ])
 def test_a_damaged_file_is_refused_by_name_and_nothing_is_written(built, tmp_path, damage,
                                                                   expected, capsys):
@@ -249,3 +250,38 @@ def test_map_info_counts_the_landmarks_of_a_snapshot_with_packed_ids(built):
     info = map_info(map_dir)
     assert info["format_version"] == 7   # nothing in it needs format 8 (shared descriptors)
     assert info["landmarks"] is not None and info["landmarks"] >= len(state.landmarks) > 0
+
+
+def test_a_model_two_methods_share_travels_and_lands_once(synthetic_scene, tmp_path):
+    """The default chain's bag-of-words step and ``bow+p3p`` train one model, which the
+    snapshot holds once (hard-linked): the export carries its bytes once and the import
+    lands it as one file again."""
+    storage, port = tmp_path / "a", free_port()
+    service = Service(service_conf(port, storage, maps=(MAP,),
+                                   methods=[DEFAULT_METHOD, "bow+p3p"]))
+    service.start()
+    try:
+        fill_map(service, synthetic_scene, range(KEYFRAMES))
+        with RelocClient(endpoint(port), map=MAP, timeout=120) as client:
+            client.train(wait=True, timeout=120)
+    finally:
+        service.stop()
+    current = storage / MAP / "map" / (storage / MAP / "map" / "CURRENT").read_text().strip()
+    files = [p for p in current.rglob("*") if p.is_file()]
+    inodes = {p.stat().st_ino for p in files}
+    linked = sorted(p for p in files if sum(q.stat().st_ino == p.stat().st_ino for q in files) > 1)
+    assert any(p.name.startswith("place_bow") for p in linked), linked
+    file = tmp_path / "lab.relocmap"
+    manifest, _ = export_map(storage / MAP, file)
+    assert manifest["format_version"] == 2
+    names = set(tarfile.open(file).getnames())
+    rel = [str(p.relative_to(storage / MAP)) for p in files]
+    assert sum(r in names for r in rel) == len(inodes) < len(files)
+    done = import_map(file, tmp_path / "b")
+    landed = [done.directory / r for r in rel]
+    for p, q in zip(files, landed, strict=True):
+        assert q.read_bytes() == p.read_bytes()
+    assert len({q.stat().st_ino for q in landed}) == len(inodes)
+    # `reloc map info` counts the bytes on disk: a shared model once
+    models = {p.stat().st_ino: p.stat().st_size for p in files if "models" in p.parts}
+    assert map_info(storage / MAP)["bytes"]["models"] == sum(models.values())

@@ -66,9 +66,9 @@ def test_format_4_stores_narrow_columns_and_no_derived_points(tmp_path, rich_sta
     assert not (snap / "features" / "orb.keypoints_px.npy").exists()
     assert _snapshot_npy(snap, "features/orb.keypoints_level_px.npy").dtype == np.int16
     assert _snapshot_npy(snap, "features/orb.keypoint_scales_by_level.npy").shape == (8, 2)
-    # ORB's angles: read by nothing after extraction, not saved, loaded as OpenCV's "none"
+    # angles: read by nothing after extraction, not saved, loaded as OpenCV's "none"
     assert not (snap / "features" / "orb.angles.npy").exists()
-    assert (snap / "features" / "sift.angles.npy").is_file()
+    assert not (snap / "features" / "sift.angles.npy").exists()
     landmark_dtypes = {"obs_offsets": np.int32, "obs_keyframe": np.int16, "obs_kind": np.int8,
                        "obs_keypoint": np.int16, "ids": np.int32, "anchored_points_world":
                        np.float32, "depth_sigmas_m": np.float32}
@@ -82,8 +82,9 @@ def test_format_4_stores_narrow_columns_and_no_derived_points(tmp_path, rich_sta
     assert (snap / "features" / "sift.sizes.npy").is_file()
     state, _ = load_map(tmp_path)
     assert_states_equal(rich_state, state)
-    assert np.all(state.keyframes[1].features["orb"].angles == -1.0)
-    assert np.any(rich_state.keyframes[1].features["orb"].angles != -1.0)
+    for kind in ("orb", "sift"):
+        assert np.all(state.keyframes[1].features[kind].angles == -1.0)
+        assert np.any(rich_state.keyframes[1].features[kind].angles != -1.0)
     feats = state.keyframes[1].features["sift"]
     has = feats.landmark_ids >= 0
     assert has.any() and np.isnan(feats.points_world[~has]).all()

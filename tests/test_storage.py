@@ -372,8 +372,7 @@ def test_loaded_arrays_are_read_only_memory_maps(tmp_path, rich_state):
     # stored in their own dtype: views of the files; narrowed or derived (keypoints float32
     # on disk, ids and points from the landmarks, ORB sizes from the levels): read-only
     # arrays made for this keyframe only
-    arrays = [*(kf.features[k].descriptors for k in kf.features), kf.features["sift"].angles,
-              kf.features["sift"].sizes,
+    arrays = [*(kf.features[k].descriptors for k in kf.features), kf.features["sift"].sizes,
               kf.cache["sbi:40x30:2.5"]]
     for a in arrays:
         assert _maps_a_file(a), type(a)

@@ -48,10 +48,12 @@ from ..storage.map_archive import (
     extract_archive,
     file_sha256,
     part_kind,
+    same_as,
     write_archive,
 )
 from ..storage.snapshot import load_map
 from ..storage.snapshot_files import MANIFEST_FILE, fsync_tree
+from ..storage.snapshot_link import copy_tree_keeping_links
 from .durability import SERVICE_FILE, read_service_file
 from .map_dirs import MAP_NAME_FILE, map_dirname, map_name_of, stored_map_name
 from .restore_verdict import judge
@@ -304,7 +306,7 @@ def _place(staged: Path, storage: Path, dirname: str, replace: bool) -> Path:
     hidden = storage / f".import-{uuid.uuid4().hex}"
     aside = storage / f".replaced-{uuid.uuid4().hex}"
     try:
-        shutil.copytree(staged, hidden)
+        copy_tree_keeping_links(staged, hidden)   # an export's linked parts stay one file
         for path in hidden.rglob("*"):
             if path.is_file():
                 fsync_path(path)
@@ -330,8 +332,11 @@ def map_info(map_dir: Path) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="reloc-info-") as tmp:
         view = take_view(map_dir, Path(tmp)) if meta.get("map_id") else None
     sizes: dict[str, int] = {}
-    for p in view.parts if view is not None else []:
-        sizes[part_kind(p.path)] = sizes.get(part_kind(p.path), 0) + p.size
+    parts = view.parts if view is not None else []
+    linked = same_as(parts)   # a file two methods share is on disk once
+    for p in parts:
+        if p.path not in linked:
+            sizes[part_kind(p.path)] = sizes.get(part_kind(p.path), 0) + p.size
     version = None
     if view is not None and view.snapshot is not None:
         manifest = json.loads((map_dir / "map" / "snapshots" / view.snapshot /

@@ -18,9 +18,10 @@ concatenated. What a column holds is exactly what the map held, in fewer bytes:
 - ``keypoints_px`` that are integer pixels of their pyramid level times the level's float32
   scale (OpenCV's ORB) are stored as int16 level pixels and one (level, scale) table per kind
   (:func:`level_pixels`; format 4), when every keypoint of the kind is exactly that;
-- ORB's ``angles`` are not stored (format 4): nothing reads a map keypoint's angle after
-  extraction (its descriptor is already steered by it), so a loaded ORB keypoint has
-  :data:`NO_ANGLE`, OpenCV's "no orientation", as a client-given keypoint has.
+- ``angles`` are not stored (ORB's since format 4; no kind's in a snapshot this reloc
+  writes, which every reader of format 6 or later loads): nothing reads a map keypoint's
+  angle after extraction (its descriptor is already steered by it), so a loaded keypoint
+  has :data:`NO_ANGLE`, OpenCV's "no orientation", as a client-given keypoint has.
 
 Loaded keyframes get a :class:`LazyFeatures` mapping: the canonical dtypes of
 :class:`Features` (float64 keypoints, int64 ids, the points) are made per keyframe and kind
@@ -65,7 +66,8 @@ DERIVABLE_FIELDS = ("sizes", "landmark_ids", "points_world")
 DERIVED_FIELD = "points_world"
 #: The (K, 2) float32 table (level, size) a kind's sizes are read from when not stored.
 SIZE_TABLE = "sizes_by_level"
-#: Kinds whose keypoint angles a snapshot does not store, and the angle they load with.
+#: Kinds whose keypoint angles a snapshot of format 4 or 5 does not store (one this reloc
+#: writes stores no kind's), and the angle they load with.
 ANGLELESS_KINDS = ("orb",)
 NO_ANGLE = -1.0
 #: The (N, 2) int16 pixels of each keypoint on its pyramid level, and the (K, 2) float32 table
@@ -239,8 +241,7 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     (sizes from a level table, ids from ``landmarks``' observations, points from ``table``).
     With a ``codebook`` the descriptors are stored as its codes (:data:`DESCRIPTOR_CODES`);
     ``keep``: per owner, the mask of its rows stored (None: all; :mod:`.landmark_rows`);
-    ``compact``: keypoints in eighths of a pixel, sizes float16, no angles (read by nothing
-    once extracted: a descriptor is already steered by its keypoint's angle); ``shared``: one
+    ``compact``: keypoints in eighths of a pixel, sizes float16; ``shared``: one
     descriptor per landmark (:mod:`.landmark_descriptors`)."""
     # a part is the rows as a loaded snapshot stored them (never built since), or Features
     parts: list[Features | dict[str, np.ndarray]] = [
@@ -269,9 +270,9 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     ids = ids_from_observations(landmarks, kind, len(columns["landmark_ids"]), kf_ids, starts)
     if ids is not None and np.array_equal(ids, columns["landmark_ids"]):
         del columns["landmark_ids"]
-    out = {name: narrow(name, column) for name, column in columns.items()}
-    if kind in ANGLELESS_KINDS or compact:
-        del out["angles"]
+    # no angles: read by nothing once extracted (a descriptor is already steered by its
+    # keypoint's angle), so the answers are the same without them
+    out = {name: narrow(name, column) for name, column in columns.items() if name != "angles"}
     if kind == "orb":
         found = level_pixels(out["keypoints_px"], out["levels"], level_scale_factor(kind))
         if found is not None:

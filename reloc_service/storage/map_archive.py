@@ -1,12 +1,20 @@
 """One file that carries a map directory: a plain (uncompressed) tar whose first member is a
 JSON manifest, the second the manifest's SHA-256, then every part of the map directory.
 
-Layout of an export file (format version 1)::
+Layout of an export file (format version 2; one without a linked part is written as version
+1, which it then is)::
 
     manifest.json        format, format version, the map's name and identity (map UUID, last
                          sequence number), keyframe ids, and per part: path, size, SHA-256
     manifest.sha256      SHA-256 of manifest.json (so a damaged manifest is named as such)
     service.json, map_name, map/CURRENT, map/snapshots/<n>/..., journal/<n>.journal
+
+A snapshot file equal to an earlier one (the same trained model under two methods, which the
+snapshot holds as one file hard-linked: :mod:`.snapshot_save`) is not a member a second
+time: its manifest entry names the earlier part (``same_as``), and the import hard-links it
+to that part (a copy where a link cannot be made), so its bytes travel and land once. Only
+snapshot files are linked: they are never written again, whereas a journal segment is
+appended to.
 
 A tar because the standard library reads and writes it, ``tar tvf`` lists it, it streams
 (written and verified part by part, never held in memory) and it adds nothing to compress:
@@ -26,6 +34,7 @@ import hashlib
 import io
 import json
 import os
+import shutil
 import tarfile
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -36,9 +45,16 @@ from ..core.errors import StorageError
 from ..core.fileio import fsync_path
 
 FORMAT = "reloc map export"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: What an export without a linked part (``same_as``) is written as: nothing in it needs a
+#: later version, so a reloc that reads version 1 still imports it.
+UNLINKED_FORMAT_VERSION = 1
 #: Export format versions this reloc reads.
-READABLE_VERSIONS = (1,)
+READABLE_VERSIONS = (1, 2)
+#: Manifest key of a part stored once under another path (version 2).
+SAME_AS = "same_as"
+#: Parts that may be linked to an equal earlier part: files of a snapshot, never rewritten.
+LINKABLE_PREFIX = "map/snapshots/"
 MANIFEST = "manifest.json"
 MANIFEST_DIGEST = "manifest.sha256"
 #: Largest manifest read (a 10000-keyframe map's manifest is about 1 MB).
@@ -70,6 +86,25 @@ class Part:
         return {"path": self.path, "size": self.size, "sha256": self.sha256,
                 "kind": part_kind(self.path)}
 
+    @property
+    def linkable(self) -> bool:
+        return not isinstance(self.source, bytes) and self.path.startswith(LINKABLE_PREFIX)
+
+
+def same_as(parts: list[Part]) -> dict[str, str]:
+    """Path of each linkable part -> the first earlier linkable part of the same size and
+    SHA-256 (its bytes are written once)."""
+    first: dict[tuple[int, str], str] = {}
+    links = {}
+    for part in parts:
+        if part.linkable:
+            key = (part.size, part.sha256)
+            if key in first:
+                links[part.path] = first[key]
+            else:
+                first[key] = part.path
+    return links
+
 
 def bytes_part(path: str, data: bytes) -> Part:
     return Part(path, len(data), hashlib.sha256(data).hexdigest(), data)
@@ -95,8 +130,11 @@ def write_archive(out: Path, manifest: dict[str, Any], parts: Iterable[Part]
     A file part is checked against its SHA-256 while copied: PartChanged if it differs or is
     gone (nothing is left at ``out`` then)."""
     parts = list(parts)
-    manifest = {**manifest, "format": FORMAT, "format_version": FORMAT_VERSION,
-                "parts": [p.entry() for p in parts]}
+    links = same_as(parts)
+    manifest = {**manifest, "format": FORMAT,
+                "format_version": FORMAT_VERSION if links else UNLINKED_FORMAT_VERSION,
+                "parts": [p.entry() | ({SAME_AS: links[p.path]} if p.path in links else {})
+                          for p in parts]}
     text = json.dumps(manifest, indent=1).encode("utf-8")
     tmp = out.with_name(out.name + ".partial")
     try:
@@ -104,7 +142,8 @@ def write_archive(out: Path, manifest: dict[str, Any], parts: Iterable[Part]
             _add_bytes(tar, MANIFEST, text)
             _add_bytes(tar, MANIFEST_DIGEST, hashlib.sha256(text).hexdigest().encode())
             for part in parts:
-                _add_part(tar, part)
+                if part.path not in links:
+                    _add_part(tar, part)
         fsync_path(tmp)
         os.replace(tmp, out)
         fsync_path(out.parent)
@@ -178,7 +217,7 @@ def extract_archive(path: Path, dest: Path) -> dict[str, Any]:
                            f"{exc}); expected a file written by `reloc map export`") from exc
     with tar:
         manifest = _read_manifest(path, tar)
-        expected = {p["path"]: p for p in manifest["parts"]}
+        expected = {p["path"]: p for p in manifest["parts"] if SAME_AS not in p}
         done: set[str] = set()
         while True:
             member = _next(path, tar, sorted(set(expected) - done))
@@ -195,7 +234,20 @@ def extract_archive(path: Path, dest: Path) -> dict[str, Any]:
         raise ArchiveError(f"{path}: truncated: {len(missing)} of {len(expected)} parts missing "
                            f"(first: {missing[0]}); the file ends early or a tar header is "
                            f"damaged")
+    for entry in manifest["parts"]:
+        if SAME_AS in entry:
+            _link_part(dest / entry["path"], dest / entry[SAME_AS])
     return manifest
+
+
+def _link_part(target: Path, source: Path) -> None:
+    """``target`` as a hard link to the extracted part ``source`` (a copy where the file
+    system cannot link)."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(source, target)
+    except OSError:
+        shutil.copyfile(source, target)
 
 
 def _next(path: Path, tar: tarfile.TarFile, pending: list[str]) -> tarfile.TarInfo | None:
@@ -260,9 +312,27 @@ def _check_fields(path: Path, manifest: dict[str, Any]) -> None:
             and isinstance(p.get("size"), int) and isinstance(p.get("sha256"), str)
             for p in parts):
         problems.append("parts (relative paths with size and sha256)")
+    elif not _links_resolve(parts):
+        problems.append(f"{SAME_AS} (an earlier snapshot part of the same size and sha256)")
     if problems:
         raise ArchiveError(f"{path}: manifest lacks or has a malformed "
                            + ", ".join(problems))
+
+
+def _links_resolve(parts: list[dict[str, Any]]) -> bool:
+    """Every ``same_as`` names an earlier stored (not itself linked) snapshot part of the
+    same size and SHA-256, and only snapshot parts are linked."""
+    stored: dict[str, dict[str, Any]] = {}
+    for p in parts:
+        if SAME_AS not in p:
+            stored[p["path"]] = p
+            continue
+        first = stored.get(p[SAME_AS]) if isinstance(p[SAME_AS], str) else None
+        if first is None or p["path"] in stored or not all(
+                q.startswith(LINKABLE_PREFIX) for q in (p["path"], first["path"])) or (
+                first["size"], first["sha256"]) != (p["size"], p["sha256"]):
+            return False
+    return True
 
 
 def _safe(rel: str) -> bool:

@@ -18,10 +18,11 @@ between a landmark's rows is written as format 7, which it then is)::
                                     manifest order (each keyframe names its row range); narrow
                                     where lossless, no field load can derive exactly (points
                                     and ids from the landmarks, ORB sizes from the levels, ORB
-                                    keypoints from int16 pixels of their level; ORB angles,
-                                    read by nothing, not at all): see :mod:`.feature_columns`;
+                                    keypoints from int16 pixels of their level; keypoint
+                                    angles, read by nothing, not at all): see
+                                    :mod:`.feature_columns`;
                                     SIFT descriptors as PQ codes + codebook, keypoints in
-                                    1/8 px, no angles where the owner asks (format 6,
+                                    1/8 px where the owner asks (format 6,
                                     :mod:`.descriptor_pq`), and a keyframe's
                                     keypoints with a landmark only where it asks and the map's
                                     methods allow (its entry says ``landmark_rows_only``:

@@ -28,6 +28,25 @@ def link_snapshot(snapshot: Path, target: Path) -> bool:
     return True
 
 
+def copy_tree_keeping_links(source: Path, target: Path) -> None:
+    """Copy directory ``source`` to ``target`` (which must not exist) with files that are
+    hard links to one another in ``source`` hard links to one another in ``target`` too (a
+    snapshot's model file shared by two methods stays one file on disk)."""
+    copied: dict[tuple[int, int], str] = {}
+
+    def copy(src: str, dst: str) -> str:
+        st = os.stat(src)
+        key = (st.st_dev, st.st_ino)
+        if st.st_nlink > 1 and key in copied:
+            os.link(copied[key], dst)
+        else:
+            shutil.copy2(src, dst)
+            copied[key] = dst
+        return dst
+
+    shutil.copytree(source, target, copy_function=copy)
+
+
 def _empty(directory: Path) -> None:
     for child in directory.iterdir() if directory.is_dir() else []:
         if child.is_dir():
