@@ -46,12 +46,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--map", dest="map_name", metavar="NAME",
                         help="map name on the service (with --remote)")
     parser.add_argument("--keyframe-sigma", metavar="T_M,R_DEG", type=_keyframe_sigma,
-                        default=(0.0, 0.0),
+                        default=None,
                         help="1-sigma accuracy per axis of the dataset's poses, metres and "
                         "degrees (e.g. 0.02,0.5): the keyframes are put with that pose "
                         "covariance, and each query's ground truth is taken as that uncertain "
                         "where its error is weighed by the stated covariance ('cov scale'); "
-                        "default 0,0: exact")
+                        "0,0: exact; default: the keyframes are put without one, the map "
+                        "states its [mapping] default (measured from the map itself unless "
+                        "the options set keyframe_position_sigma_m / _rotation_sigma_deg) "
+                        "and the queries' ground truth is taken as exact")
     parser.add_argument("--calibration-sigma", metavar="FOCAL_REL,RADIAL_PX",
                         type=_calibration_sigma, default=None,
                         help="1-sigma accuracy of the dataset's camera calibration: the "
