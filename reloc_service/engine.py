@@ -51,6 +51,7 @@ from typing import Any
 
 import numpy.typing as npt
 
+from .algorithms.pose.keyframe_disagreement import KeyframePoseSigma, keyframe_pose_sigma
 from .algorithms.pose.map_pool import pool_bytes
 from .algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
 from .algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, create_tracker
@@ -205,6 +206,9 @@ class Engine:
         self._building: dict[str, int] = {}       # method -> base version of builds in flight
         self._journal: list[tuple[int, int]] = []  # (published version, keyframe id changed)
         self._published = self.map.snapshot()
+        #: The keyframe pose uncertainty last measured from the map (``mapping`` sigmas
+        #: ``"auto"``: at each :meth:`train` and :meth:`load`), its default pose covariance.
+        self.keyframe_pose_sigma: KeyframePoseSigma | None = None
         self._live: dict[str, _Live] = {}
         #: Set once the pools a load prepares are made (:meth:`load`); set at once otherwise.
         self.prepared = threading.Event()
@@ -311,6 +315,8 @@ class Engine:
         return {"keyframes": len(state.keyframes), "landmarks": len(state.landmarks),
                 "map_version": state.version, "default_method": self.conf.default_method,
                 "methods": methods, "building": building,
+                "keyframe_pose_sigma": (None if self.keyframe_pose_sigma is None
+                                        else self.keyframe_pose_sigma.as_dict()),
                 "feature_kinds": list(self.builder.conf.feature_kinds)}
 
     @property
@@ -328,8 +334,25 @@ class Engine:
     def train(self, methods: Sequence[str] | None = None, *, progress: bool = False) -> None:
         """(Re)build and train ``methods`` (default: every live one) from the current map
         without blocking queries; each is swapped in when ready."""
+        if self._measures_keyframe_sigma(self._published):
+            measured = keyframe_pose_sigma(self._published)
+            with self._writer, self._rw.write():
+                self._set_keyframe_sigma(measured)
+                self._publish([])
         for method in (methods if methods is not None else list(self._live)):
             self._build_and_swap(method.strip(), progress=progress, only_if_missing=False)
+
+    def _measures_keyframe_sigma(self, state: MapState) -> bool:
+        """Whether the map measures its keyframes' pose uncertainty: the mapping sigmas are
+        ``"auto"`` and some keyframe of ``state`` was put without a covariance."""
+        return self.conf.mapping.keyframe_sigma_auto and any(
+            kf.pose_covariance is None for kf in state.keyframes.values())
+
+    def _set_keyframe_sigma(self, measured: KeyframePoseSigma | None) -> None:
+        """Under the writer lock: ``measured`` (None: too few keyframes to tell, taken as
+        exact) becomes the map's default keyframe pose covariance."""
+        self.keyframe_pose_sigma = measured
+        self.map.set_default_pose_covariance(None if measured is None else measured.covariance())
 
     def _method_lock(self, method: str) -> threading.Lock:
         with self._meta:
@@ -439,6 +462,8 @@ class Engine:
         state, models_dir = load_map(directory)
         engine = cls(conf)
         engine.map.replace_state(state)
+        if engine._measures_keyframe_sigma(state):
+            engine._set_keyframe_sigma(keyframe_pose_sigma(engine.map.snapshot()))
         engine.builder.add_feature_kinds(engine.builder.conf.feature_kinds)
         with engine._rw.write():
             engine._publish([])

@@ -111,11 +111,17 @@ def test_evaluate_orchestrates_a_backend(tmp_path, fake_remote):
 def test_keyframe_sigma_puts_the_keyframes_with_it_and_weighs_the_truth_by_it(tmp_path,
                                                                               fake_remote):
     """``--keyframe-sigma 0.1,2``: every keyframe is put with a 10 cm / 2 deg covariance, and
-    each query's ground truth is as uncertain, so the 0.2 m errors weigh less."""
+    each query's ground truth is as uncertain, so the 0.2 m errors weigh less; none given
+    puts them as exact; None puts them without one (the map's default)."""
     root = _tiny_dataset(tmp_path / "toy")
     spec = ev.RemoteSpec("tcp/127.0.0.1:1", "toy")
+    plain = ev.evaluate(root, "a", progress=False, remote=spec, keyframe_sigma=None)
+    assert all(c is None for c in fake_remote.pose_covariances.values())
+    assert plain.ground_truth_sigma == (0.0, 0.0)
     exact = ev.evaluate(root, "a", progress=False, remote=spec)
     assert all(np.array_equal(c, np.zeros((6, 6))) for c in fake_remote.pose_covariances.values())
+    assert (plain.method("a").queries[0].t_err_mahalanobis
+            == exact.method("a").queries[0].t_err_mahalanobis)
     uncertain = ev.evaluate(root, "a", progress=False, remote=spec, keyframe_sigma=(0.1, 2.0))
     expected = np.diag([0.01] * 3 + [np.radians(2.0) ** 2] * 3)
     assert all(np.allclose(c, expected) for c in fake_remote.pose_covariances.values())
@@ -138,6 +144,7 @@ def test_keyframe_sigma_argument():
     eval_cli.add_arguments(parser)
     assert parser.parse_args(["d", "--keyframe-sigma", "0.02,0.5"]).keyframe_sigma == (0.02, 0.5)
     assert parser.parse_args(["d"]).keyframe_sigma == (0.0, 0.0)
+    assert parser.parse_args(["d", "--keyframe-sigma", "map"]).keyframe_sigma is None
     for bad in ("0.02", "a,b", "-1,0", "nan,1"):
         with pytest.raises(SystemExit):
             parser.parse_args(["d", "--keyframe-sigma", bad])

@@ -72,6 +72,9 @@ def all_messages() -> list[P.Message]:
                       ("cam0",), True, 3.5, {"relocalize_ok": 3}, {"p50": 0.04, "p99": 0.1}),
         P.StatusReply("phone", "drone1", 3, 90, True, 4,
                       calibration_sigma={"focal_rel": 0.02, "radial_px": 6.0}),
+        P.StatusReply("lab", "drone1", 10, 2000, True, 12,
+                      keyframe_pose_sigma={"position_m": 0.004, "rotation_deg": 0.2,
+                                           "keyframes": 27.0}),
         P.ErrorReply(E.BAD_POSE, "relocalize.prior.world_from_cam.q: expected a unit quaternion"),
     ]
 

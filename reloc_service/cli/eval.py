@@ -51,7 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "degrees (e.g. 0.02,0.5): the keyframes are put with that pose "
                         "covariance, and each query's ground truth is taken as that uncertain "
                         "where its error is weighed by the stated covariance ('cov scale'); "
-                        "default 0,0: exact")
+                        "default 0,0: exact; 'map': the keyframes are put without one, so "
+                        "the map states its [mapping] default (0.02,0.5, or measured from "
+                        "the map itself where --options set keyframe_position_sigma_m and "
+                        "_rotation_sigma_deg to \"auto\"), the queries' ground truth exact")
     parser.add_argument("--calibration-sigma", metavar="FOCAL_REL,RADIAL_PX",
                         type=_calibration_sigma, default=None,
                         help="1-sigma accuracy of the dataset's camera calibration: the "
@@ -110,8 +113,11 @@ def _nonnegative_pair(text: str, layout: str, example: str) -> tuple[float, floa
     return a, b
 
 
-def _keyframe_sigma(text: str) -> tuple[float, float]:
-    """``"T_M,R_DEG"`` -> (metres, degrees), both finite and >= 0."""
+def _keyframe_sigma(text: str) -> tuple[float, float] | None:
+    """``"T_M,R_DEG"`` -> (metres, degrees), both finite and >= 0; ``"map"`` -> None (the
+    map's own default)."""
+    if text.strip() == "map":
+        return None
     return _nonnegative_pair(text, "T_M,R_DEG", "0.02,0.5")
 
 

@@ -260,6 +260,16 @@ class KeyframeMap:
         self._state = replace(state, default_pose_covariance=self._default_pose_covariance,
                               calibration_covariance=self._calibration_covariance)
 
+    def set_default_pose_covariance(self, covariance: npt.ArrayLike | None) -> MapState:
+        """Take ``covariance`` (6, 6) as the pose covariance of keyframes put without one
+        (None: exact) from now on, the current state's included (same version: the map's
+        content is unchanged); returns that state."""
+        self._default_pose_covariance = (
+            None if covariance is None
+            else check_pose_covariance(covariance, name="default_pose_covariance"))
+        self._state = replace(self._state, default_pose_covariance=self._default_pose_covariance)
+        return self._state
+
     def _publish(self, keyframes: dict[int, Keyframe], landmarks: LandmarkEditor,
                  next_landmark_id: int) -> MapState:
         self._state = MapState(MappingProxyType(keyframes), landmarks.commit(),

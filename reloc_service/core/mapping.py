@@ -32,6 +32,9 @@ Array = npt.NDArray[np.float64]
 #: A detected keypoint closer than this to a given (SVO) keypoint is dropped: the given one
 #: carries the landmark, a second keypoint there would only make a duplicate.
 GIVEN_KEYPOINT_RADIUS_PX = 2.0
+#: The value of ``MappingConf.keyframe_position_sigma_m`` / ``..._rotation_sigma_deg`` that
+#: has the map measure them.
+AUTO = "auto"
 #: Strongest keypoints kept per keyframe for a kind ``MappingConf.max_features`` does not name.
 DEFAULT_MAX_FEATURES = 2000
 
@@ -56,9 +59,15 @@ class MappingConf:
     #: centimetres and a few tenths of a degree (the ground-truth systems of the real sets
     #: are no better: TUM's motion capture 1-3 cm and 0.3-0.7 deg, KinectFusion 2-6 px); a
     #: relocalized pose cannot be more accurate than the poses its landmarks were placed
-    #: with. 0 takes such keyframes as exact.
-    keyframe_position_sigma_m: float = 0.02
-    keyframe_rotation_sigma_deg: float = 0.5
+    #: with. 0 takes such keyframes as exact. ``"auto"`` (both) measures it from the map
+    #: itself when its methods are trained or it is loaded, as the keyframes' disagreement
+    #: with their landmarks re-triangulated without them
+    #: (:mod:`~reloc_service.algorithms.pose.keyframe_disagreement`): about 0 for exact
+    #: (rendered) poses, but blind to an error the keyframes share (a drift between passes,
+    #: a ground truth's own bias), and it adds seconds to a training and a load; so the
+    #: stated noise above is the default.
+    keyframe_position_sigma_m: float | str = 0.02
+    keyframe_rotation_sigma_deg: float | str = 0.5
     #: How well the map's camera calibration is known, 1 sigma: the focal, relative, and the
     #: radial distortion, as the pixels it moves the image's farthest corner. A relocalized
     #: pose whose query claims this camera states what that uncertainty does to it
@@ -86,8 +95,11 @@ class MappingConf:
         if not 0 < self.max_view_angle_deg <= 180:
             raise ConfigError(f"mapping.max_view_angle_deg must be in (0, 180], got "
                               f"{self.max_view_angle_deg}")
-        for name in ("keyframe_position_sigma_m", "keyframe_rotation_sigma_deg",
-                     "calibration_focal_sigma_rel", "calibration_radial_sigma_px"):
+        _check_keyframe_sigmas(self.keyframe_position_sigma_m, self.keyframe_rotation_sigma_deg)
+        numbers: tuple[str, ...] = ("calibration_focal_sigma_rel", "calibration_radial_sigma_px")
+        if not self.keyframe_sigma_auto:
+            numbers += ("keyframe_position_sigma_m", "keyframe_rotation_sigma_deg")
+        for name in numbers:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float) or not (
                     math.isfinite(value) and value >= 0):
@@ -99,12 +111,19 @@ class MappingConf:
         """From a config table; a nested ``triangulation`` table sets :class:`TriangulationConf`."""
         return make_conf(cls, options, owner="mapping")
 
-    def default_pose_covariance(self) -> Array:
+    @property
+    def keyframe_sigma_auto(self) -> bool:
+        """Whether the keyframe pose sigmas are measured from the map (``"auto"``)."""
+        return self.keyframe_position_sigma_m == AUTO
+
+    def default_pose_covariance(self) -> Array | None:
         """(6, 6) covariance of a keyframe pose put without one (twist (rho, omega)):
         ``keyframe_position_sigma_m`` and ``keyframe_rotation_sigma_deg`` on each axis,
-        independent."""
-        return pose_covariance_from_sigmas(self.keyframe_position_sigma_m,
-                                           math.radians(self.keyframe_rotation_sigma_deg))
+        independent; None where they are ``"auto"`` (measured once the map is built)."""
+        if self.keyframe_sigma_auto:
+            return None
+        return pose_covariance_from_sigmas(float(self.keyframe_position_sigma_m),
+                                           math.radians(float(self.keyframe_rotation_sigma_deg)))
 
     def calibration_covariance(self) -> Array:
         """(2, 2) covariance of the calibration's error ``theta = (a, b)`` (relative focal,
@@ -124,6 +143,20 @@ class MappingConf:
         """This configuration extracting ``kinds`` too (order kept, no duplicates)."""
         merged = tuple(dict.fromkeys([*self.feature_kinds, *kinds]))
         return dataclasses.replace(self, feature_kinds=merged)
+
+
+def _check_keyframe_sigmas(position: object, rotation: object) -> None:
+    """``mapping.keyframe_position_sigma_m`` and ``..._rotation_sigma_deg``: both ``"auto"``
+    or both numbers (checked further by the caller); else ConfigError saying so."""
+    if (position == AUTO) != (rotation == AUTO):
+        raise ConfigError(f"mapping.keyframe_position_sigma_m and keyframe_rotation_sigma_deg: "
+                          f"expected both {AUTO!r} or both numbers, got {position!r} and "
+                          f"{rotation!r}")
+    for name, value in (("keyframe_position_sigma_m", position),
+                        ("keyframe_rotation_sigma_deg", rotation)):
+        if isinstance(value, str) and value != AUTO:
+            raise ConfigError(f"mapping.{name}: expected {AUTO!r} or a finite number >= 0, "
+                              f"got {value!r}")
 
 
 def _check_max_features(value: object) -> int | Mapping[str, int]:

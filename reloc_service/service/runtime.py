@@ -183,7 +183,8 @@ class MapRuntime(ServedMap):
             counters={**counters, **self._replay_progress()}, latency_s=latency,
             degraded=self.degraded(), replaying=self.replaying, map_id=self.map_id or "",
             content_hash=self.content.of(self.map_state()) if content_hash else "",
-            diverged=self.diverged, calibration_sigma=self.calibration_sigma)
+            diverged=self.diverged, calibration_sigma=self.calibration_sigma,
+            keyframe_pose_sigma=st["keyframe_pose_sigma"] or {})
 
     @property
     def map_id(self) -> str | None:

@@ -154,6 +154,12 @@ class StatusReply(Message):
     #: only when the map sets its own (``[maps.NAME]``), else empty (the service-wide
     #: ``[mapping]`` values).
     calibration_sigma: Mapping[str, float] = field(default_factory=dict)
+    #: The keyframe pose uncertainty the map measured of itself and states for keyframes put
+    #: without a covariance (``[mapping]`` sigmas ``"auto"``), 1 sigma per axis:
+    #: ``position_m``, ``rotation_deg``, the bounds of their 68 % bootstrap intervals
+    #: (``position_low_m`` ... ``rotation_high_deg``) and the ``keyframes`` measured; empty
+    #: when it measured none.
+    keyframe_pose_sigma: Mapping[str, float] = field(default_factory=dict)
 
     def to_wire(self) -> dict[str, Any]:
         # the optional fields only when set: a client that predates them reads a healthy
@@ -168,6 +174,8 @@ class StatusReply(Message):
                 **({} if self.resident else {"resident": False}),
                 **({"calibration_sigma": dict(self.calibration_sigma)}
                    if self.calibration_sigma else {}),
+                **({"keyframe_pose_sigma": dict(self.keyframe_pose_sigma)}
+                   if self.keyframe_pose_sigma else {}),
                 **{k: v for k, v in (("degraded", self.degraded), ("map_id", self.map_id),
                                      ("content_hash", self.content_hash),
                                      ("diverged", self.diverged)) if v}}
@@ -198,7 +206,9 @@ class StatusReply(Message):
             diverged=f.opt("diverged", lambda v, p: _str(v, p, limits), ""),
             resident=f.opt("resident", _bool, True),
             calibration_sigma=f.opt("calibration_sigma",
-                                    lambda v, p: _timings(v, p, limits), {}))
+                                    lambda v, p: _timings(v, p, limits), {}),
+            keyframe_pose_sigma=f.opt("keyframe_pose_sigma",
+                                      lambda v, p: _timings(v, p, limits), {}))
         f.done()
         return out
 

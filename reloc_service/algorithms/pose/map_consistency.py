@@ -155,7 +155,7 @@ def _statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: _
     keep = enough[np.unique(np.linspace(0, len(enough) - 1, min(len(enough), MAX_HELD_OUT))
                             .astype(np.int64))] if len(enough) else enough
     observed, rows = observed[keep], rows[keep]
-    points, held = _held_out_points(state, cols, rows, kf_id, kind)
+    points, held = held_out_points(state, cols, rows, kf_id, kind)
     if held.sum() < MIN_HELD_OUT:
         return None
     px = feats.keypoints_px[observed[held]].astype(np.float64)
@@ -217,7 +217,7 @@ def gated_inliers(squared: Array, inliers: IntArray,
     return inliers[values <= scale * float(stats.chi2.isf(false_alarm, 2))]
 
 
-def _held_out_points(state: MapState, cols: LandmarkColumns, rows: IntArray, kf_id: int,
+def held_out_points(state: MapState, cols: LandmarkColumns, rows: IntArray, kf_id: int,
                      kind: str) -> tuple[Array, npt.NDArray[np.bool_]]:
     """(R, 3) the landmarks of columns ``rows`` triangulated from their ``kind`` observations
     in keyframes other than ``kf_id`` (midpoint, then the reprojection error refined), and the

@@ -48,7 +48,7 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
              options: Mapping[str, Any] | None = None,
              landmarks: LandmarkSource | str = LandmarkSource.AUTO,
              progress: bool = True, remote: RemoteSpec | None = None,
-             keyframe_sigma: tuple[float, float] = (0.0, 0.0),
+             keyframe_sigma: tuple[float, float] | None = (0.0, 0.0),
              query_camera: QueryCamera | None = None,
              round_trip: bool = False,
              calibration_sigma: tuple[float, float] | None = None) -> EvalResult:
@@ -68,7 +68,11 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
             ground-truth poses: every keyframe is put with that pose covariance (what a
             relocalized pose inherits from the map) and every query's ground truth is
             taken as that uncertain when its error is weighed by the stated covariance
-            (:func:`.metrics.translation_mahalanobis`). (0, 0): exact poses.
+            (:func:`.metrics.translation_mahalanobis`). (0, 0): exact poses. None: the
+            keyframes are put without a covariance, so the map states its default (the
+            mapping options', by default measured from the map itself:
+            :mod:`~reloc_service.algorithms.pose.keyframe_disagreement`), and each query's
+            ground truth is taken as exact.
         query_camera: what the queries claim about their camera (default: the dataset's);
             the map is built with the dataset's.
         round_trip: query the map as a service restores it: saved after training as a
@@ -85,7 +89,7 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
     methods = _method_list(method)
     claimed = query_camera or QueryCamera()
     source = LandmarkSource(landmarks)
-    truth_covariance = ground_truth_covariance(keyframe_sigma)
+    truth_covariance = None if keyframe_sigma is None else ground_truth_covariance(keyframe_sigma)
     dataset = read_dataset(dataset_root)
     _check_dataset(dataset, source)
     # A service's maps take their mapping options from its own configuration, not from here.
@@ -112,7 +116,8 @@ def evaluate(dataset_root: str | Path, method: str | Sequence[str], *,
                       machine=machine_info(), backend=backend.description,
                       options=json_safe(dict(options or {})),
                       created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
-                      ground_truth_sigma=(float(keyframe_sigma[0]), float(keyframe_sigma[1])))
+                      ground_truth_sigma=(0.0, 0.0) if keyframe_sigma is None
+                      else (float(keyframe_sigma[0]), float(keyframe_sigma[1])))
 
 
 #: The mapping options that state the map's calibration accuracy.
@@ -208,9 +213,9 @@ def _timed(fn: Any) -> float:
 
 
 def _build_map(backend: Backend, dataset: Dataset, source: LandmarkSource,
-               progress: bool, pose_covariance: Array) -> float:
-    """Add every map.txt keyframe (id = its row) with ``pose_covariance``; returns the time
-    spent in the backend."""
+               progress: bool, pose_covariance: Array | None) -> float:
+    """Add every map.txt keyframe (id = its row) with ``pose_covariance`` (None: none, the
+    map's default); returns the time spent in the backend."""
     spent = 0.0
     entries: Iterable[tuple[int, DatasetEntry]] = enumerate(dataset.map_entries)
     if progress:
@@ -324,6 +329,7 @@ def _map_info(backend: Backend, dataset: Dataset, source: LandmarkSource, build_
               train_s: float) -> MapInfo:
     n_kf, n_lm = backend.map_counts()
     per_keyframe = getattr(backend, "landmarks_per_keyframe", None)
+    measured = getattr(backend, "keyframe_pose_sigma", None)
     errors = (backend.landmark_errors_m(dataset) if dataset.depth or dataset.truth_depth
               else None)
     median = metrics.percentile(errors, 50) if errors is not None else math.nan
@@ -333,7 +339,8 @@ def _map_info(backend: Backend, dataset: Dataset, source: LandmarkSource, build_
                    keyframe_ids=list(range(len(dataset.map_entries))),
                    keyframe_positions_world=[e.world_from_cam[:3, 3].tolist()
                                              for e in dataset.map_entries],
-                   landmarks_per_keyframe=None if per_keyframe is None else per_keyframe())
+                   landmarks_per_keyframe=None if per_keyframe is None else per_keyframe(),
+                   keyframe_pose_sigma=None if measured is None else measured())
 
 
 def _dataset_info(dataset: Dataset, query_camera: QueryCamera) -> dict[str, Any]:

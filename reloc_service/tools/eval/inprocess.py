@@ -87,6 +87,11 @@ class InProcessBackend:
         state = self.engine.map.snapshot()
         return len(state.keyframes), len(state.landmarks)
 
+    def keyframe_pose_sigma(self) -> dict[str, Any] | None:
+        """The keyframe pose uncertainty the map measured of itself (None: none measured)."""
+        measured = self.engine.keyframe_pose_sigma
+        return None if measured is None else measured.as_dict()
+
     def landmarks_per_keyframe(self) -> list[int]:
         """Distinct landmarks each keyframe observes (any feature kind), in id order."""
         state = self.engine.map.snapshot()

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 import re
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -67,6 +67,14 @@ def format_markdown(result: EvalResult) -> str:
     return "\n".join([head, rule] + ["| " + " | ".join(r) + " |" for r in rows])
 
 
+def _measured_sigma(measured: dict[str, Any] | None) -> str:
+    """The map's measured keyframe pose sigma, as the header states it ("" when none)."""
+    if measured is None:
+        return ""
+    return (f"; keyframe pose sigma measured {100 * measured['position_m']:.2f} cm, "
+            f"{measured['rotation_deg']:.3f} deg (on {measured['keyframes']} keyframes)")
+
+
 def format_header(result: EvalResult) -> str:
     """Dataset, map and timing lines printed above the table."""
     d, mp = result.dataset, result.map
@@ -80,7 +88,8 @@ def format_header(result: EvalResult) -> str:
         f"dataset {d['name']} ({d['root']}): {d['map_frames']} map frames, "
         f"{d['query_frames']} queries; backend {result.backend}",
         f"map: {mp.keyframes} keyframes, {mp.landmarks} landmarks ({mp.landmark_source}"
-        f"{lm_err}); built in {mp.build_time_s:.2f} s, trained in {mp.train_time_s:.2f} s",
+        f"{lm_err}); built in {mp.build_time_s:.2f} s, trained in {mp.train_time_s:.2f} s"
+        f"{_measured_sigma(mp.keyframe_pose_sigma)}",
         f"recall: queries with a pose within the thresholds; off / wrong: pose returned but "
         f"beyond {OFF_THRESHOLD[0] * 100:g} cm / {OFF_THRESHOLD[1]:g} deg / "
         f"{WRONG_THRESHOLD[0] * 100:g} cm / {WRONG_THRESHOLD[1]:g} deg (% of all queries); "

@@ -108,6 +108,10 @@ class MapInfo:
     #: Landmarks observed by each keyframe (keyframe_ids order); None when the backend cannot
     #: tell (remote maps).
     landmarks_per_keyframe: list[int] | None = None
+    #: The keyframe pose uncertainty the map measured of itself and states for keyframes put
+    #: without a covariance (:meth:`~reloc_service.algorithms.pose.keyframe_disagreement.
+    #: KeyframePoseSigma.as_dict`); None when it measured none (stated sigmas, remote maps).
+    keyframe_pose_sigma: dict[str, Any] | None = None
 
 
 @dataclass
