@@ -10,9 +10,12 @@ from types import MappingProxyType
 import numpy as np
 
 from reloc_service.algorithms.pose.map_consistency import (
+    _STATISTICS,
     excess_exclusion,
     gated_inliers,
+    keyframe_statistic,
     map_dispersion,
+    prepare_map,
 )
 from reloc_service.algorithms.pose.pnp import PnPConf
 from reloc_service.core import distributions as stats
@@ -50,6 +53,34 @@ def test_the_robust_dispersion_ignores_mis_associated_landmarks(synthetic_map):
               map_dispersion(wrong, "sift", ids, conf, robust=True))
     assert plain[1] > 2.0 * plain[0]
     assert robust[1] < 1.5 * robust[0]
+
+
+def fresh_features(state: MapState) -> MapState:
+    """``state`` with new (equal) feature objects: nothing cached with the old ones."""
+    keyframes = {k: kf.with_features("sift", dataclasses.replace(kf.features["sift"]))
+                 for k, kf in state.keyframes.items()}
+    return dataclasses.replace(state, keyframes=MappingProxyType(keyframes))
+
+
+def test_prepare_map_caches_both_statistics_as_each_computed_alone(synthetic_map):
+    # Computed together at map preparation (one set of held-out points for both), each
+    # keyframe's plain and gated statistics equal those computed alone, on a map where the
+    # gate leaves out more than honest residuals explain (the two differ). The keyframes
+    # where they do not are the real sets' (their answers compared per query).
+    wrong = mis_associated(synthetic_map, share=0.1, shift_px=3.0, seed=3)
+    alone_conf = dataclasses.replace(PnPConf(), robust_stated_dispersion=False)
+    ids = wrong.keyframe_ids()
+    plain_state, robust_state, prepared = (fresh_features(wrong) for _ in range(3))
+    plain = [keyframe_statistic(plain_state, k, "sift", alone_conf) for k in ids]
+    robust = [keyframe_statistic(robust_state, k, "sift", alone_conf, robust=True) for k in ids]
+    prepare_map(prepared, "sift", PnPConf())
+    differ = [p != r for p, r in zip(plain, robust, strict=True)]
+    assert any(differ)
+    assert all(set(_STATISTICS[prepared.keyframes[k].features["sift"]]) == {False, True}
+               for k in ids)  # both cached, so a query computes neither
+    assert [keyframe_statistic(prepared, k, "sift", alone_conf) for k in ids] == plain
+    assert [keyframe_statistic(prepared, k, "sift", alone_conf, robust=True)
+            for k in ids] == robust
 
 
 def test_the_gate_keeps_honest_residuals_at_its_false_alarm_rate():

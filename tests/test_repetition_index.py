@@ -100,6 +100,29 @@ def test_the_index_gives_the_ratio_test_matches_of_a_full_scan(kind: str) -> Non
     assert len(np.intersect1d(exact, found)) >= 0.95 * len(exact)
 
 
+@pytest.mark.parametrize("kind", ["sift", "orb"])
+def test_the_index_keeps_the_two_nearest_of_its_leaves_ties_to_the_first_scanned(
+        kind: str) -> None:
+    # The pool holds a picture twice (equal descriptors: ties): each query descriptor's two
+    # nearest among the rows of the leaves it probes, a tie going to the row scanned first
+    # (leaves in ascending order, rows in filing order), as one sorted scan of those rows.
+    pool, _ = copied_picture_pool(kind)
+    index = RepetitionIndex.build(pool.descriptors, INDEXED)
+    query = extract(kind, 0, warped=True).descriptors
+    d, rows = index.nearest_two(query)
+    ties = 0
+    for q, leaves in enumerate(index._probe(query)):
+        scanned = np.concatenate([index.order[index.offsets[leaf]:index.offsets[leaf + 1]]
+                                  for leaf in np.unique(leaves[leaves >= 0])]).astype(np.int64)
+        dist = feature_lib.descriptor_distance(np.repeat(query[q:q + 1], len(scanned), axis=0),
+                                               pool.descriptors[scanned])
+        pick = np.argsort(dist, kind="stable")[:2]
+        ties += int(dist[pick[0]] == dist[pick[1]])
+        np.testing.assert_array_equal(rows[q], scanned[pick])
+        np.testing.assert_allclose(d[q], dist[pick], rtol=1e-6)
+    assert ties >= 10  # the tie-break is exercised
+
+
 def test_a_small_pool_is_scanned_in_full_as_before() -> None:
     pool, _ = copied_picture_pool("orb")
     index = RepetitionIndex.build(pool.descriptors, IndexConf(exact_rows=len(pool.descriptors)))

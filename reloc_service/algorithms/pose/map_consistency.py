@@ -131,20 +131,22 @@ def keyframe_statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf,
         return None
     cached = _STATISTICS.setdefault(feats, {})
     if robust not in cached:
-        cached[robust] = _statistic(state, kf_id, kind, conf, columns or _Columns(state),
-                                    robust=robust)
+        # Where answers state the gated statistic, both share one set of held-out points.
+        both = conf.robust_stated_dispersion and not cached
+        cached.update(_statistics(state, kf_id, kind, conf, columns or _Columns(state),
+                                  (False, True) if both else (robust,)))
     return cached[robust]
 
 
-def _statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: _Columns, *,
-               robust: bool) -> float | None:
-    """The plain or (``robust``) the gated ``T^2`` of keyframe ``kf_id``
-    (:func:`keyframe_statistic`)."""
+def _statistics(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: _Columns,
+                wanted: tuple[bool, ...]) -> dict[bool, float | None]:
+    """The plain (False) and the gated (True) ``T^2`` of keyframe ``kf_id``
+    (:func:`keyframe_statistic`) for each of ``wanted``, from one set of held-out points."""
     keyframe = state.keyframes[kf_id]
     feats = keyframe.features[kind]
     cols = columns.get()
     if kind not in cols.kinds:
-        return None
+        return dict.fromkeys(wanted)
     observed = np.flatnonzero(feats.landmark_ids >= 0)
     rows = cols.rows(feats.landmark_ids[observed])
     observed, rows = observed[rows >= 0], rows[rows >= 0]
@@ -157,7 +159,7 @@ def _statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: _
     observed, rows = observed[keep], rows[keep]
     points, held = held_out_points(state, cols, rows, kf_id, kind)
     if held.sum() < MIN_HELD_OUT:
-        return None
+        return dict.fromkeys(wanted)
     px = feats.keypoints_px[observed[held]].astype(np.float64)
     points = points[held]
     project = pose_projector(points, keyframe.camera)
@@ -185,11 +187,17 @@ def _statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: _
             return None
         return check.data_statistic
 
-    if not robust or not excess_exclusion(len(inliers) - len(gated), len(inliers)):
-        return statistic(inliers, subset=False)
-    if len(gated) < MIN_HELD_OUT:
-        return None
-    return statistic(gated, subset=True)
+    # The gated statistic is the plain one where the gate left out no more than honest
+    # residuals explain: computed once for both.
+    plain_stands = not excess_exclusion(len(inliers) - len(gated), len(inliers))
+    values: dict[bool, float | None] = {}
+    if False in wanted or plain_stands:
+        values[False] = statistic(inliers, subset=False)
+    if True in wanted:
+        values[True] = (values[False] if plain_stands
+                        else None if len(gated) < MIN_HELD_OUT
+                        else statistic(gated, subset=True))
+    return {robust: values[robust] for robust in wanted}
 
 
 def excess_exclusion(excluded: int, total: int, *,
@@ -315,7 +323,10 @@ def covariance_with_intrinsics(covariance: Array, check: IntrinsicsCheck, *,
 
 def prepare_map(state: MapState, kind: str, conf: PnPConf) -> None:
     """Compute every keyframe's statistic ahead of the queries that would otherwise pay for
-    it (a tenth of a second per keyframe; cached with the keyframe's features)."""
+    it (a tenth of a second per keyframe; cached with the keyframe's features): the plain
+    one the decisions read and, where answers state it (``conf.robust_stated_dispersion``),
+    the gated one, which :func:`settle_intrinsics` reads for every keyframe near a pose
+    that reaches the test. The values are those a query would compute on the same state."""
     columns = _Columns(state)
     for kf_id in state.keyframe_ids():
         keyframe_statistic(state, kf_id, kind, conf, columns)

@@ -110,10 +110,10 @@ class RepetitionIndex:
         by_leaf = np.argsort(leaf, kind="stable")
         q, leaf = q[by_leaf], leaf[by_leaf]
         starts = np.flatnonzero(np.diff(leaf, prepend=-1))
-        best_d = np.full((len(desc), 2), np.inf, np.float32)
-        best_i = np.full((len(desc), 2), -1, np.int64)
+        found_q, found_d, found_i = [], [], []
         # One scan per probed leaf, of every query descriptor probing it (a loop over the
-        # leaves, ``leaves`` per descriptor, not over descriptors).
+        # leaves, ``leaves`` per descriptor, not over descriptors); each leaf's two nearest
+        # are kept in scan order and the two nearest overall picked once at the end.
         for start, stop in zip(starts, np.append(starts[1:], len(leaf)), strict=True):
             lo, hi = self.offsets[leaf[start]], self.offsets[leaf[start] + 1]
             if hi == lo:
@@ -121,8 +121,14 @@ class RepetitionIndex:
             rows = self.order[lo:hi].astype(np.int64)
             qs = q[start:stop]
             d, i = _two_nearest(desc[qs], self.descriptors[rows])
-            _merge(best_d, best_i, qs, d, np.where(i >= 0, rows[np.maximum(i, 0)], -1))
-        return best_d, best_i
+            found_q.append(np.repeat(qs, 2))
+            found_d.append(d.ravel())
+            found_i.append(np.where(i >= 0, rows[np.maximum(i, 0)], -1).ravel())
+        if not found_q:
+            return (np.full((len(desc), 2), np.inf, np.float32),
+                    np.full((len(desc), 2), -1, np.int64))
+        return _two_smallest(len(desc), np.concatenate(found_q), np.concatenate(found_d),
+                             np.concatenate(found_i))
 
     def scanned_rows(self, desc: npt.NDArray[Any]) -> npt.NDArray[np.int64]:
         """(Q,) pool rows :meth:`nearest_two` compares each of ``desc`` (Q, D) with: the
@@ -209,12 +215,19 @@ def _two_nearest(desc: npt.NDArray[Any], train: npt.NDArray[Any]
     return dist, rows
 
 
-def _merge(best_d: npt.NDArray[np.float32], best_i: npt.NDArray[np.int64], qs: IntArray,
-           d: npt.NDArray[np.float32], i: npt.NDArray[np.int64]) -> None:
-    """Keep in ``best_d``/``best_i`` rows ``qs`` (distinct) the two nearest of what they
-    hold and the new candidates ``d``/``i`` (len(qs), 2)."""
-    all_d = np.concatenate([best_d[qs], d], axis=1)
-    all_i = np.concatenate([best_i[qs], i], axis=1)
-    pick = np.argsort(all_d, axis=1, kind="stable")[:, :2]
-    best_d[qs] = np.take_along_axis(all_d, pick, axis=1)
-    best_i[qs] = np.take_along_axis(all_i, pick, axis=1)
+def _two_smallest(count: int, q: IntArray, d: npt.NDArray[np.float32], i: IntArray
+                  ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
+    """(count, 2) the two smallest distances ``d`` (K,) found for each query row ``q`` (K,)
+    and their pool rows ``i`` (K,), a tie going to the candidate found first (the order of
+    the arrays); ``inf`` and -1 where fewer than two were found. Candidates without a row
+    (``inf``, -1) are dropped."""
+    best_d = np.full((count, 2), np.inf, np.float32)
+    best_i = np.full((count, 2), -1, np.int64)
+    real = np.flatnonzero(i >= 0)
+    order = real[np.lexsort((real, d[real], q[real]))]  # by query, distance, then arrival
+    qs = q[order]
+    rank = np.arange(len(order)) - np.searchsorted(qs, qs, side="left")
+    top = rank < 2
+    best_d[qs[top], rank[top]] = d[order[top]]
+    best_i[qs[top], rank[top]] = i[order[top]]
+    return best_d, best_i
