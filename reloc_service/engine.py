@@ -487,14 +487,23 @@ class Engine:
         return loaded[0] / model_dir_name(method)
 
     def _start_prepare(self, models_dir: Path | None) -> None:
-        """Make the whole-map pools the queries read (:func:`.map_pools.restore_pools`) on a
-        thread of their own, so that loading returns at once; a query that needs a pool
-        still being made waits for it (:attr:`prepared` is set when all are made)."""
+        """Make the whole-map pools the queries read (:func:`.map_pools.restore_pools`): the
+        first method's first pool here, the one its first step reads, which any query waits
+        for (made on the background thread below the queries' priority, it delayed a cold
+        load's first answer); the others on a thread of their own, so that loading returns
+        before they are made; a query that needs a pool still being made waits for it
+        (:attr:`prepared` is set when all are made)."""
         with self._rw.read():
             work = [(live.relocalizer, None if models_dir is None
                      else models_dir / model_dir_name(m)) for m, live in self._live.items()]
             state = self._published
         self.prepared.clear()
+        if work:
+            relocalizer, directory = work[0]
+            try:
+                self.pools_read += restore_pools(relocalizer, state, directory, first=True)
+            except Exception as exc:   # the first query makes it
+                log.error("preparing the map's first pool failed: %s", exc)
 
         def run() -> None:
             try:
