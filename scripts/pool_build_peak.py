@@ -65,7 +65,7 @@ def main() -> None:
           f"({held / keyframes:.0f} B per keyframe); resident memory {before / MB:.1f} MB "
           f"before, peak {peak[0] / MB:.1f} MB, {after / MB:.1f} MB after (the heap's free "
           f"pages given back); the making's peak above what stays: {transient / MB:.1f} MB "
-          f"({transient / keyframes:.0f} B per keyframe)")
+          f"({transient / keyframes:.0f} B per keyframe, {transient / held:.3f} times the pools)")
 
 if __name__ == "__main__":
     main()

@@ -6,15 +6,15 @@ keyframes alone (the fleet bench had three 1000-keyframe maps counted in a share
 two, its resident memory 4 % over the budget).
 
 So until a map's pools are made it counts, beside its keyframes, a *reserve*: what its pools
-will hold once made, and what making one holds on top of that at its peak (the pool's rows
+will hold once made, and what making them holds on top of that at its peak (the pool's rows
 gathered keyframe by keyframe, then concatenated; a stored index read into buffers before its
-arrays are made). Both scale with the map's keyframes: the pools hold a row per landmark
-observation and a map holds about as many per keyframe wherever it was made. The rates per
-keyframe are measured: the pools' final size by every map whose pools this service made (the
-largest rate seen; a map denser than those seen is corrected once its own pools are made, the
-count then being what they hold), before any by :data:`POOL_BYTES_PER_KEYFRAME`; the making's
-peak by :data:`BUILD_BYTES_PER_KEYFRAME` (the making frees it: the count then drops to what
-the pools hold).
+arrays are made). The pools scale with the map's keyframes (a row per landmark observation,
+about as many per keyframe wherever a map was made), their making with the pools. The pools'
+rate per keyframe is measured by every map whose pools this service made (the largest rate
+seen; a map denser than those seen is corrected once its own pools are made, the count then
+being what they hold), before any by :data:`POOL_BYTES_PER_KEYFRAME`; the making's peak is
+:data:`MAKING_PER_POOL_BYTE` times the pools (the making frees it: the count then drops to
+what the pools hold).
 """
 
 from __future__ import annotations
@@ -26,25 +26,25 @@ import threading
 #: template's 1000 keyframes of 640x480 (``reloc bench --only fleet``; 491 SIFT and 4 ORB
 #: landmark observations per keyframe), scripts/pool_build_peak.py.
 POOL_BYTES_PER_KEYFRAME = 85_800
-#: Bytes per keyframe the making of a map's pools holds at its peak beyond what stays once
-#: they are made: 92.0 MB for the fleet template's 1000 keyframes, the peak of the resident
-#: memory while they were made above it after (two runs of scripts/pool_build_peak.py, 91.9
-#: and 92.0 MB).
-BUILD_BYTES_PER_KEYFRAME = 96_400
+#: What making a map's pools holds at its peak beyond what stays once they are made, per byte
+#: the pools hold: 92.0 MB for the fleet template's 81.8 MB of pools (two runs of
+#: scripts/pool_build_peak.py, 91.9 and 92.0 MB: the peak of the resident memory while they
+#: were made above it after).
+MAKING_PER_POOL_BYTE = 92.0 / 81.8
 
 
 class PoolReserve:
-    """The bytes per keyframe a map's pools count until made (see module docstring); the
-    pools' rate is the largest this service measured, else :data:`POOL_BYTES_PER_KEYFRAME`."""
+    """The bytes a map's pools count until made (see module docstring); the pools' rate per
+    keyframe is the largest this service measured, else :data:`POOL_BYTES_PER_KEYFRAME`."""
 
     def __init__(self, pool_rate: float = POOL_BYTES_PER_KEYFRAME,
-                 build_rate: float = BUILD_BYTES_PER_KEYFRAME) -> None:
-        if pool_rate < 0 or build_rate < 0:
-            raise ValueError(f"expected bytes per keyframe >= 0, got pools {pool_rate}, "
-                             f"their making {build_rate}")
+                 making_ratio: float = MAKING_PER_POOL_BYTE) -> None:
+        if pool_rate < 0 or making_ratio < 0:
+            raise ValueError(f"expected bytes per keyframe and a ratio >= 0, got pools "
+                             f"{pool_rate}, their making {making_ratio}")
         self._lock = threading.Lock()
         self.pool_rate = float(pool_rate)
-        self.build_rate = float(build_rate)
+        self.making_ratio = float(making_ratio)
         self.measured = 0   # maps whose pools' size set :attr:`pool_rate`
 
     def pools(self, keyframes: int) -> int:
@@ -53,7 +53,7 @@ class PoolReserve:
 
     def making(self, keyframes: int) -> int:
         """What making them holds on top at its peak (bytes)."""
-        return int(keyframes * self.build_rate)
+        return int(keyframes * self.pool_rate * self.making_ratio)
 
     def reserve(self, keyframes: int) -> int:
         """What a map's pools count until they are all made: :meth:`pools` and
