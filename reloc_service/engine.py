@@ -57,7 +57,7 @@ from .algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
 from .algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, create_tracker
 from .algorithms.relocalizers.map_pools import restore_pools, save_pools
 from .algorithms.relocalizers.tracking import relocalize_with_prior
-from .core.background import start_background
+from .core.background import LOWER_PRIORITY, lower_priority, start_background
 from .core.cameras import Camera
 from .core.errors import ConfigError, MapError
 from .core.frame import EncodedImage, Frame, Keyframe
@@ -514,7 +514,10 @@ class Engine:
     def _start_prepare(self, models_dir: Path | None) -> None:
         """Make the whole-map pools the queries read (:func:`.map_pools.restore_pools`) on a
         thread of their own, so that loading returns at once; a query that needs a pool
-        still being made waits for it (:attr:`prepared` is set when all are made)."""
+        still being made waits for it (:attr:`prepared` is set when all are made). The
+        first method's first pool, which its first step reads (any query waits for it), is
+        made at the queries' priority, the others below it: made below it too, it delayed a
+        cold load's first answer while the warm-up or other maps' queries ran."""
         with self._rw.read():
             work = [(live.relocalizer, None if models_dir is None
                      else models_dir / model_dir_name(m)) for m, live in self._live.items()]
@@ -523,6 +526,10 @@ class Engine:
 
         def run() -> None:
             try:
+                if work:
+                    self.pools_read += restore_pools(work[0][0], state, work[0][1],
+                                                     self._closed.is_set, first=True)
+                lower_priority(LOWER_PRIORITY)
                 for relocalizer, directory in work:
                     self.pools_read += restore_pools(relocalizer, state, directory,
                                                      self._closed.is_set)
@@ -531,9 +538,8 @@ class Engine:
             finally:
                 self.prepared.set()
 
-        # ended before the interpreter; below the queries' priority: a query on this map
-        # waits for its pools anyway, those on the other maps should not
-        start_background(run, "map-pools", self._closed, yield_to_queries=True)
+        # ended before the interpreter
+        start_background(run, "map-pools", self._closed)
 
     def held_bytes(self) -> int:
         """Bytes the relocalizers hold for the published map beside it: its whole-map

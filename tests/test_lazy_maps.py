@@ -30,7 +30,7 @@ from service_support import (
 )
 
 from reloc_service.core.errors import ConfigError
-from reloc_service.engine import EngineConf
+from reloc_service.engine import Engine, EngineConf
 from reloc_service.service.app import Service
 from reloc_service.service.config import parse_config
 from reloc_service.service.memory import rss_bytes, trim_now
@@ -61,6 +61,13 @@ def template(synthetic_scene, tmp_path_factory) -> StoredMap:
     engine = engine_from_images(synthetic_scene.camera, synthetic_scene.keyframe_images,
                                 synthetic_scene.keyframe_poses, EngineConf(methods=(METHOD,)))
     return stored_template(storage, "template", engine)
+
+
+def loaded_pool_bytes(stored: StoredMap) -> int:
+    """What the pools of ``stored`` hold once a load has made them."""
+    loaded = Engine.load(stored.directory / "map", EngineConf(methods=(METHOD,)))
+    assert loaded.prepared.wait(60)
+    return loaded.held_bytes()
 
 
 #: How many times :func:`big_template` holds each of the scene's keyframes: a map then counts
@@ -171,13 +178,20 @@ def test_a_query_that_cannot_wait_gets_busy_with_a_retry_hint(template, syntheti
 def test_small_budget_keeps_recent_maps_and_reloads_the_others(template, synthetic_scene,
                                                                tmp_path):
     map_bytes = template.counted_bytes
+    pool_bytes = loaded_pool_bytes(template)
     storage = stored_maps(template, tmp_path / "storage")
     port = free_port()
     service = Service(conf(port, storage, max_resident_mb=AMPLE_MB)).start()
-    share = 1.5 * map_bytes   # one map fits, two do not
-    limit_maps(service, share)
     residency = service.registry.residency
     assert residency is not None
+    # the service knows what these maps' pools hold, as once it has made one map's: each
+    # map counts that much more while its pools are made (pool_reserve), and one map so
+    # fits the share, two maps with their pools do not
+    residency.pool_reserve.learn(template.keyframes, pool_bytes)
+    assert map_bytes + residency.pool_reserve.reserve(template.keyframes) \
+        <= 1.5 * (map_bytes + pool_bytes) < 2 * (map_bytes + pool_bytes)
+    share = 1.5 * (map_bytes + pool_bytes)
+    limit_maps(service, share)
     counted_after_load: list[int] = []
     tell = residency.on_change
 

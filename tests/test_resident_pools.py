@@ -6,6 +6,7 @@ Real services on loopback, real storage."""
 from __future__ import annotations
 
 import sys
+import threading
 import weakref
 from pathlib import Path
 
@@ -13,6 +14,8 @@ import pytest
 from reloc_client.client import RelocClient
 from service_support import AMPLE_MB, endpoint, free_port, limit_maps, service_conf, wait_until
 
+from reloc_service.algorithms.relocalizers import map_pools
+from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.engine import Engine, EngineConf
 from reloc_service.service.app import Service
 from reloc_service.tools.bench.stored_map import StoredMap, copy_map, engine_from_images, stored_template
@@ -121,4 +124,64 @@ def test_closing_a_map_frees_it_and_gives_its_heap_pages_back(template, syntheti
         assert list(service.maps) == ["bravo"]
         assert "release_memory" in callers
     finally:
+        service.stop()
+
+
+CHAIN = DEFAULT_METHOD   # its first step's pool is ORB's, SIFT's next
+
+
+@pytest.fixture(scope="module")
+def chain_template(synthetic_scene, tmp_path_factory) -> StoredMap:
+    """A stored trained map of the scene's keyframes for the default method (a chain whose
+    models are restored at load, so its pools are made then): an ORB and a SIFT pool."""
+    storage = tmp_path_factory.mktemp("chain-template") / "storage"
+    engine = engine_from_images(synthetic_scene.camera, synthetic_scene.keyframe_images,
+                                synthetic_scene.keyframe_poses, EngineConf(methods=(CHAIN,)))
+    return stored_template(storage, "template", engine)
+
+
+def test_a_map_counts_its_pools_reserve_while_they_are_made(chain_template, tmp_path,
+                                                            monkeypatch) -> None:
+    # the SIFT pool is held until the test lets it go (the real making then), so the map
+    # is seen while it is being made
+    let_go = threading.Event()
+    real_make = map_pools._make
+
+    def held_make(finder, state, directory):
+        if finder.conf.kind != "orb":
+            let_go.wait(60)
+        return real_make(finder, state, directory)
+
+    monkeypatch.setattr(map_pools, "_make", held_make)
+    storage = tmp_path / "storage"
+    copy_map(chain_template, storage, "alpha")
+    port = free_port()
+    service = Service(service_conf(port, storage, methods=[CHAIN], default_method=CHAIN,
+                                   worker_mode="thread", workers=2, snapshot_every=0,
+                                   max_resident_mb=AMPLE_MB)).start()
+    try:
+        residency = service.registry.residency
+        assert residency is not None
+        residency.acquire("alpha", timeout=30)   # a cold load, no query
+        residency.release("alpha")
+        rt = service.maps["alpha"]
+        engine = rt.engine
+        # the first step's pool (ORB) is made while the next one is held
+        wait_until(lambda: engine.held_bytes() > 0, timeout=30)
+        assert not engine.prepared.is_set()
+        made_at_load = engine.held_bytes()
+        reserve = residency.pool_reserve.reserve(rt.usage.keyframes)
+        assert reserve > made_at_load
+        assert residency.counted("alpha", rt) >= rt.usage.total + reserve
+        assert residency.pool_reserve.measured == 0
+
+        let_go.set()
+        assert engine.prepared.wait(30)
+        held = engine.held_bytes()
+        assert held > made_at_load   # the SIFT pool too
+        assert residency.counted("alpha", rt) == rt.usage.total + held
+        wait_until(lambda: residency.pool_reserve.measured == 1, timeout=30)
+        assert residency.pool_reserve.pools(rt.usage.keyframes) == pytest.approx(held, abs=1)
+    finally:
+        let_go.set()
         service.stop()

@@ -9,24 +9,16 @@ the idle ones are closed once they are.
 What a map counts is what the quotas count for it (:class:`~.quotas.MapUsage`: its keyframes'
 images as held, depth and features) and what its relocalizers hold beside the map (the
 whole-map landmark pools, :meth:`~reloc_service.engine.Engine.held_bytes`, about 80 MB per
-1000 keyframes), those from its load on (:meth:`Residency.counted`). A 1000-keyframe map
+1000 keyframes); until its pools are made, what they will hold and what making them holds
+at its peak, estimated from its keyframes (:mod:`.pool_reserve`), so the evictor makes room
+for them before they are built (:meth:`Residency.counted`). A 1000-keyframe map
 counts 343 MB; its resident memory is 258 MB once its pools are made, 272 MB after queries,
 at most 350 MB while the pools are made (docs/performance.md). With ``worker_mode =
 "process"`` every worker process holds a replica of each resident map (its own engine, pools
 included), so a resident map counts once per copy: ``1 + workers`` times.
 
-The processes' own memory counts too: the budget is the whole service's (its process and its
-worker processes). The service's resident memory with no map (``VmRSS``: interpreter, OpenCV,
-Zenoh, and the compiled kernels its warm-up loads: numba and LLVM, about 106 MB) is its
-*baseline*: measured when the maps are declared, before the warm-up starts, plus what the
-warm-up will add (:func:`.warm.expected_growth`: its last clean measure, else a measured
-reserve), so no cold load waits for the warm-up. When the warm-up ends with no map resident
-or loading, the baseline is measured again and that measure replaces the estimate (and the
-growth is recorded for the next start); else the estimate stays. With ``worker_mode =
-"process"`` the forkserver's and the workers' count too, measured once each worker has warmed
-up and before it holds any replica. The maps get ``max_resident_mb`` minus the baseline. A
-budget the baseline at declaration fills refuses to start (ConfigError naming both); one that
-only the warmed-up baseline fills is logged as an error, and every idle map is closed.
+The processes' own memory counts too (:mod:`.memory_baseline`): the maps get
+``max_resident_mb`` minus the processes' baseline.
 
 A map is never closed while it is in use: a query or a write holds it (:meth:`Residency.acquire`
 ... :meth:`Residency.release`), puts wait in its writer lane, a training job, snapshot or
@@ -49,12 +41,13 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from reloc_client import protocol as wire
 
-from ..core.errors import ConfigError, StorageError
+from ..core.errors import StorageError
 from .durability import read_service_file
 from .map_dirs import map_dirname
-from .memory import release_memory, rss_bytes, total_rss_bytes, trim_now
+from .memory import release_memory, rss_bytes, trim_now
+from .memory_baseline import ProcessBaseline
+from .pool_reserve import PoolReserve
 from .quotas import MapUsage
-from .warm import record_growth
 
 if TYPE_CHECKING:
     from .config import ServiceConf
@@ -84,10 +77,12 @@ class MapRegistry(Protocol):
     def calibration_sigma(self, name: str) -> dict[str, float]: ...
 
 
-class Residency:
+class Residency(ProcessBaseline):
     """The resident and dormant maps of a :class:`~.registry.MapRegistry` (see module
     docstring). Its lock is taken inside no other; the registry's maps table is changed
     under it only by single dict operations."""
+
+    registry: MapRegistry
 
     def __init__(self, registry: MapRegistry, *, budget_mb: float, stop_timeout_s: float,
                  copies: int = 1, pending_writes: Callable[[str], int] | None = None) -> None:
@@ -120,8 +115,11 @@ class Residency:
         #: What each closed map's relocalizers held beside it (its next load's estimate).
         self.kept_held: dict[str, int] = {}
         #: What each resident map was expected to count (one copy) when its load began: it
-        #: counts at least that until its pools are made (:meth:`counted`).
+        #: counts at least that until its pools are made (:meth:`counted`); a map leaves
+        #: this table once its pools are seen made (:meth:`note_prepared`).
         self._expected: dict[str, int] = {}
+        #: What pools not made yet count, per keyframe (:mod:`.pool_reserve`).
+        self.pool_reserve = PoolReserve()
         self._load_slot = threading.Semaphore(1)   # one cold load at a time: bounded memory
         #: Set once the service's warm-up has ended (its baseline measured, or estimated
         #: when a map was resident then); loads do not wait for it.
@@ -153,100 +151,6 @@ class Residency:
             declare(name)
         self._evictor.start()
 
-    # -- the processes' own memory ----------------------------------------------------------------
-    @property
-    def baseline(self) -> int:
-        """The processes' own resident memory, counted against the budget (bytes)."""
-        return self.baseline_service + self.baseline_workers
-
-    def count_service_baseline(self, warm_up_growth: int = 0) -> None:
-        """Measure this process's resident memory (no map resident yet) and count it, with
-        ``warm_up_growth`` (bytes) if its warm-up has not ended: what that will add
-        (:func:`.warm.expected_growth`). ConfigError naming both numbers when that alone
-        fills the budget."""
-        with self._lock:
-            self.declared_rss = _settled_rss()
-            self.growth_estimate = 0 if self._warmed else max(0, warm_up_growth)
-            self.baseline_service = self.declared_rss + self.growth_estimate
-            self._declared = True
-            if self._warmed:
-                self.baseline_settled.set()
-        if self.baseline >= self.total_budget:
-            raise ConfigError(
-                f"service.max_resident_mb = {self.total_budget / MB:.0f} MB: expected more "
-                f"than the service's own resident memory with no map, "
-                f"{self.baseline / MB:.0f} MB (the budget counts the whole service)")
-        self._set_maps_budget()
-
-    def settle_service_baseline(self) -> None:
-        """The service's warm-up has ended. With no map resident or loading, its resident
-        memory is measured again and replaces the estimate (the growth, when a fresh
-        warm-up's, is recorded in the storage for the next start: :func:`.warm.record_growth`);
-        with one, the estimate stays (the measure would count the map). Past the budget the
-        service runs on (it is serving already): the error is logged."""
-        growth = None
-        with self._lock:
-            self._warmed = True
-            if self._declared and not self.registry.maps and not self._loading:
-                self.baseline_service = _settled_rss()
-                growth = self.baseline_service - self.declared_rss
-            elif self._declared:
-                log.info("the warm-up ended with a map resident: its memory is counted as "
-                         "estimated, %.1f MB", self.growth_estimate / MB)
-        if growth is not None and self.growth_estimate and self.registry.storage is not None:
-            record_growth(self.registry.storage, growth)
-        if self._declared:
-            self.baseline_settled.set()
-        if self.baseline >= self.total_budget:
-            log.error("service.max_resident_mb = %.0f MB is filled by the service's own "
-                      "resident memory with no map after its warm-up, %.0f MB: every idle map "
-                      "is closed", self.total_budget / MB, self.baseline / MB)
-        self._set_maps_budget()
-        self._wake.set()
-
-    def count_workers_baseline(self, pids: list[int]) -> None:
-        """Measure the worker processes' (and their forkserver's) resident memory ``pids``
-        as they start, and count it. Past the budget the service runs on (it is already
-        serving): every idle map is closed, and the error is logged."""
-        self.baseline_workers = total_rss_bytes(pids)
-        if self.baseline >= self.total_budget:
-            log.error("service.max_resident_mb = %.0f MB is filled by the processes' own "
-                      "resident memory with no map, %.0f MB (service %.0f MB, %d worker "
-                      "processes %.0f MB): every idle map is closed", self.total_budget / MB,
-                      self.baseline / MB, self.baseline_service / MB, len(pids),
-                      self.baseline_workers / MB)
-        self._set_maps_budget()
-        self._wake.set()
-
-    def set_total_budget(self, budget_mb: float) -> None:
-        """Make the whole service's budget ``budget_mb``, as ``service.max_resident_mb``
-        does at start: the maps get it minus the measured baseline; idle maps past it close."""
-        if not budget_mb > 0:
-            raise ValueError(f"expected a budget > 0 MB, got {budget_mb}")
-        self.total_budget = int(budget_mb * MB)
-        self._set_maps_budget()
-        self._wake.set()
-
-    def _set_maps_budget(self) -> None:
-        # at least one byte: a budget of 0 would mean "no budget" to the checks below
-        self.budget = max(1, self.total_budget - self.baseline)
-        log.info("memory budget %.1f MB: processes' baseline %.1f MB (service %.1f MB, workers "
-                 "%.1f MB), maps %.1f MB", self.total_budget / MB, self.baseline / MB,
-                 self.baseline_service / MB, self.baseline_workers / MB, self.budget / MB)
-
-    def memory_counters(self) -> dict[str, int]:
-        """The budget, the processes' baseline and the maps' count and share, in bytes, as
-        every map's status counters carry them:
-        ``memory_budget_bytes`` (``max_resident_mb``), ``memory_baseline_bytes`` (the
-        processes' own, with its ``_service`` and ``_workers`` parts),
-        ``memory_maps_budget_bytes`` (the maps' share) and ``memory_maps_bytes`` (what the
-        resident maps count)."""
-        return {"memory_budget_bytes": self.total_budget, "memory_baseline_bytes": self.baseline,
-                "memory_baseline_service_bytes": self.baseline_service,
-                "memory_baseline_workers_bytes": self.baseline_workers,
-                "memory_maps_budget_bytes": self.budget,
-                "memory_maps_bytes": self.resident_bytes()}
-
     def close(self) -> None:
         """Stop closing maps (the registry closes the resident ones)."""
         self._stopped.set()
@@ -273,12 +177,17 @@ class Residency:
 
     def counted(self, name: str, rt: MapRuntime) -> int:
         """What one copy of resident map ``name`` counts: :func:`counted_bytes`, and while
-        its pools are being made, at least what its load expected it to count with them. A
-        loaded map's pools come a few seconds after its load (80 MB per 1000 keyframes):
-        counted only once made, they let the next load in over the budget (the fleet bench
-        had three 1000-keyframe maps resident in a share that holds two)."""
-        now = counted_bytes(rt)
-        return now if rt.engine.prepared.is_set() else max(now, self._expected.get(name, 0))
+        its pools are being made, its keyframes and the reserve of its pools
+        (:meth:`.pool_reserve.PoolReserve.reserve`, or what they hold if more), at least
+        what its load expected it to count. A loaded map's pools come a few seconds after
+        its load: counted only once made, they let the next loads in over the budget (the
+        fleet bench had three 1000-keyframe maps counted without their pools, each load
+        expecting what the previous map counted before its pools were made)."""
+        if rt.engine.prepared.is_set():
+            return counted_bytes(rt)
+        usage = rt.usage
+        pools = max(rt.engine.held_bytes(), self.pool_reserve.reserve(usage.keyframes))
+        return max(int(usage.total) + pools, self._expected.get(name, 0))
 
     def usages(self) -> list[MapUsage]:
         """The usage of every served map: resident ones' and closed ones' (as kept)."""
@@ -344,6 +253,9 @@ class Residency:
                                     "of %.1f MB: it is closed whenever it is idle", name,
                                     expected / MB, self.copies, self.budget / MB)
                     self.make_room(expected)
+                    log.info("map %s: loading, %.1f MB expected (%.1f MB resident of %.1f MB: "
+                             "%s)", name, expected / MB, self.resident_bytes() / MB,
+                             self.budget / MB, self.accounting())
                     self._expected[name] = expected // self.copies
                     self.registry.load_resident(name)
                     # what the load read and decoded on its way (snapshot files, buffers)
@@ -365,17 +277,55 @@ class Residency:
             self._wake.set()
 
     def expected_bytes(self, name: str) -> int:
-        """What map ``name`` will count once loaded (all its :attr:`copies`): its count when
-        it was last closed, else the largest count of the maps known here (0 when none is).
-        The largest, not the mean: maps closed before their pools were made count without
-        them, and their mean let three 1000-keyframe maps into a share that holds two."""
+        """What map ``name`` will count while its pools are made (all its :attr:`copies`):
+        its keyframes and pools when it was last closed, else the largest of the maps known
+        here (0 when none is), and what making its pools holds at the peak
+        (:mod:`.pool_reserve`). The largest, not the mean: the maps differ in size, and
+        the mean let a third 1000-keyframe map into a share that holds two."""
         kept = self.kept_usage.get(name)
         if kept is not None:
-            return self.copies * (int(kept.total) + self.kept_held.get(name, 0))
-        known = [self.counted(n, rt) for n, rt in list(self.registry.maps.items())]
-        known += [u.total + self.kept_held.get(n, 0) for n, u in list(self.kept_usage.items())
-                  if n not in self.registry.maps]
-        return self.copies * int(max(known)) if known else 0
+            return self.copies * self._while_made(kept, self.kept_held.get(name, 0))
+        known = [self._while_made(rt.usage, self._pools_made(rt))
+                 for rt in list(self.registry.maps.values())]
+        known += [self._while_made(u, self.kept_held.get(n, 0))
+                  for n, u in list(self.kept_usage.items()) if n not in self.registry.maps]
+        return self.copies * max(known) if known else 0
+
+    def _pools_made(self, rt: MapRuntime) -> int:
+        """What resident map ``rt``'s pools hold, or will once made (estimated)."""
+        held = rt.engine.held_bytes()
+        if rt.engine.prepared.is_set():
+            return held
+        return max(held, self.pool_reserve.pools(rt.usage.keyframes))
+
+    def _while_made(self, usage: MapUsage, pools: int) -> int:
+        """What one copy of a map with ``usage`` and ``pools`` (bytes, once made) counts
+        while its pools are made."""
+        return int(usage.total) + pools + self.pool_reserve.making(usage.keyframes)
+
+    def note_prepared(self) -> None:
+        """Measure the pools of every map whose pools were made since the last call (the
+        pool rate of :attr:`pool_reserve`); their count is now what those hold."""
+        with self._lock:
+            preparing = [(n, self.registry.maps.get(n)) for n in list(self._expected)]
+        for name, rt in preparing:
+            if rt is None or not rt.engine.prepared.is_set():
+                continue
+            held = rt.engine.held_bytes()
+            self.pool_reserve.learn(rt.usage.keyframes, held)
+            self._expected.pop(name, None)
+            log.info("map %s: pools made, %.1f MB for %d keyframes (%.1f MB resident of "
+                     "%.1f MB: %s)", name, held / MB, rt.usage.keyframes,
+                     self.resident_bytes() / MB, self.budget / MB, self.accounting())
+
+    def accounting(self) -> str:
+        """What each resident map counts (one copy), MB, for the log: ``name count
+        (pools held or reserved)``."""
+        parts = []
+        for name, rt in list(self.registry.maps.items()):
+            state = "pools made" if rt.engine.prepared.is_set() else "pools reserved"
+            parts.append(f"{name} {self.counted(name, rt) / MB:.1f} ({state})")
+        return ", ".join(parts) or "none"
 
     # -- eviction --------------------------------------------------------------------------------
     def make_room(self, incoming: int) -> int:
@@ -405,6 +355,7 @@ class Residency:
             self._wake.wait(1.0)
             self._wake.clear()
             try:
+                self.note_prepared()
                 self.enforce_budget()
                 self.trim_excess()
             except Exception as exc:   # never stops evicting for one map's failure
@@ -467,8 +418,8 @@ class Residency:
             self.kept_usage[name] = rt.usage
             prepared = rt.engine.prepared
             held = rt.engine.held_bytes()
-            if not prepared.is_set():   # closed before its pools were made: as expected
-                held = max(held, self._expected.get(name, 0) - int(rt.usage.total))
+            if not prepared.is_set():   # closed before its pools were made: as estimated
+                held = max(held, self.pool_reserve.pools(rt.usage.keyframes))
             self.kept_held[name] = held
             self._expected.pop(name, None)
             self.registry.close_resident(name, timeout=self.stop_timeout_s)
@@ -496,13 +447,6 @@ class Residency:
             self.on_change(name, resident)
         except Exception as exc:   # a token not declared never stops loading or closing
             log.warning("map %s: residency token not updated: %s", name, exc)
-
-
-def _settled_rss() -> int:
-    """This process's resident memory once the heap's free pages are given back (what it
-    holds, not what its start-up freed: the measure then varies less between starts)."""
-    trim_now()
-    return rss_bytes()
 
 
 def resident_copies(worker_mode: str, workers: int) -> int:

@@ -66,17 +66,22 @@ def save_pools(relocalizer: Relocalizer, directory: Path, state: MapState,
 
 
 def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | None,
-                  cancelled: Callable[[], bool] | None = None) -> list[str]:
-    """Make ``relocalizer``'s pools over ``state`` in the order its steps run, each with
-    the index stored in model directory ``directory`` where it fits
-    (:func:`..pose.repetition_store.load_index`), else built; the kinds whose index was
-    read. Stops before the next pool once ``cancelled()`` is true (the map was closed: a
-    pool made for it would only hold its memory longer)."""
+                  cancelled: Callable[[], bool] | None = None, *,
+                  first: bool = False) -> list[str]:
+    """Make ``relocalizer``'s pools over ``state`` in the order its steps run (``first``:
+    only the first step's), each with the index stored in model directory ``directory``
+    where it fits (:func:`..pose.repetition_store.load_index`), else built, unless made
+    already; the kinds whose index was read. Stops before the next pool once
+    ``cancelled()`` is true (the map was closed: a pool made for it would only hold its
+    memory longer)."""
     read = []
-    for finder in pool_finders(relocalizer):
+    finders = pool_finders(relocalizer)
+    for finder in finders[:1] if first else finders:
         if cancelled is not None and cancelled():
             log.debug("pools of %d keyframes: cancelled", len(state.keyframes))
             break
+        if held_pool(state, finder.conf.kind, finder.conf.repetition_index()) is not None:
+            continue
         start = time.perf_counter()
         if _make(finder, state, directory):
             read.append(finder.conf.kind)
