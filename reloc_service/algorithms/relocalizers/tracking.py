@@ -83,9 +83,10 @@ class TrackingRelocalizer(Relocalizer):
         #: Query features tracked with when ``kind``'s tracking refuses (a name of
         #: ``STEP_FEATURES``, e.g. ``"sift-half"``: half-size SIFT's coarse keypoints survive
         #: the motion blur of a fast turn that takes ORB's corners); None: none. Off by
-        #: default: on 7-Scenes its tracked answers are 7-15 cm off on queries the chain
-        #: answers within 5 cm, and on TUM fr1/rpy it tracks 5 of 30 good priors, not 2
-        #: (docs/performance.md, "Localization with a prior").
+        #: default: with 3 good priors per query, "sift-half" tracks 5 of TUM fr1/rpy's 30,
+        #: not 2 (there the prior's windows, 5 cm at about 1 m depth, outgrow
+        #: ``max_window_fraction`` whatever the features), and 51 of 7-Scenes' 66, not 36,
+        #: 11 of the 15 new answers 7-15 cm off.
         fallback: str | None = None
         #: Keyframes nearest the prior (optical axes within ``max_view_angle_deg``) whose
         #: landmarks are projected.
