@@ -11,7 +11,11 @@ from reloc_client.protocol import ErrorCode, ProtocolError
 
 from reloc_service.algorithms.relocalizers.base import Prior
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer, create_tracker
-from reloc_service.algorithms.relocalizers.tracking import TRACK, relocalize_with_prior
+from reloc_service.algorithms.relocalizers.tracking import (
+    TRACK,
+    TrackingRelocalizer,
+    relocalize_with_prior,
+)
 from reloc_service.core.errors import ConfigError
 from reloc_service.core.frame import Frame
 from reloc_service.core.geometry import pose_covariance_from_sigmas, pose_error, se3_exp
@@ -281,3 +285,33 @@ def test_the_regated_growth_tracks_a_good_prior_and_an_unknown_growth_is_refused
     assert dt < 0.03 and dr < np.deg2rad(1.0)
     with pytest.raises(ConfigError, match="growth"):
         create_relocalizer("track", _map_of(synthetic_map), options={"track": {"growth": "x"}})
+
+
+@pytest.mark.parametrize("fallback", ["sift", "sift-half"])
+def test_a_fallback_kind_tracks_where_the_first_kind_refuses(synthetic_scene, synthetic_map,
+                                                             fallback):
+    # The map holds SIFT landmarks only: ORB tracking finds none to match and refuses.
+    kmap = _map_of(synthetic_map)
+    orb_only = TrackingRelocalizer(kmap, TrackingRelocalizer.Conf(kind="orb"))
+    with_fallback = TrackingRelocalizer(
+        kmap, TrackingRelocalizer.Conf(kind="orb", fallback=fallback))
+    rng = np.random.default_rng(3)
+    answered = 0
+    for i, gt in enumerate(synthetic_scene.query_poses):
+        prior = Prior(_perturbed(gt, rng), covariance=COVARIANCE)
+        refused = orb_only.relocalize(_query(synthetic_scene, i), prior=prior)
+        assert not refused.ok and "no keyframe near the prior sees" in refused.reason
+        result = with_fallback.relocalize(_query(synthetic_scene, i), prior=prior)
+        if result.ok:
+            answered += 1
+            dt, dr = pose_error(result.world_from_cam, gt)
+            assert result.method == TRACK and dt < 0.03 and dr < np.deg2rad(1.0)
+        else:
+            # Each kind's reason, named.
+            assert result.reason.startswith("orb: ") and f"; {fallback}: " in result.reason
+    assert answered >= len(synthetic_scene.query_poses) - 1
+
+
+def test_an_unknown_fallback_kind_is_refused():
+    with pytest.raises(ConfigError, match="fallback must be one of"):
+        TrackingRelocalizer.Conf(fallback="surf")

@@ -82,27 +82,31 @@ def pixel_sigmas(uncertainty: PointUncertainty, world_from_cam: Array, points_wo
 
 def match_in_windows(feats: Features, windows: Windows, rows: IntArray,
                      map_desc: npt.NDArray[Any], gate_chi2: float, *, ratio: float,
-                     background_quantile: float) -> tuple[IntArray, IntArray]:
+                     background_quantile: float, background: float | None = None
+                     ) -> tuple[IntArray, IntArray]:
     """Matches of the landmarks ``rows`` (their windows, descriptors ``map_desc[rows]``) to
     query keypoints inside their gates: (M,) query keypoint indices and (M,) landmark rows,
     one to one. Every keypoint inside a landmark's gate is a candidate
     (:func:`.prior_match.gated_best`); the best descriptor must beat the second by
     ``ratio`` and be closer than the ``background_quantile`` of unrelated descriptor pairs
-    (as guided matching's)."""
+    (as guided matching's; ``background``: that distance, where the caller has it for these
+    descriptors already)."""
     empty = np.zeros(0, np.int64)
     if len(feats) < 2 or len(rows) == 0:
         return empty, empty
     best, second, index = gated_best(feats.keypoints_px, feats.descriptors, windows.px[rows],
                                      windows.inv_cov[rows], windows.radius_px[rows],
                                      map_desc[rows], gate_chi2)
-    limit = background_distance(feats.descriptors, map_desc, background_quantile)
+    limit = (background if background is not None
+             else background_distance(feats.descriptors, map_desc, background_quantile))
     ok = np.isfinite(best) & (best < ratio * second) & (best < limit)
     return _one_to_one(index[ok], rows[ok].astype(np.int64), best[ok])
 
 
 def search_around(feats: Features, camera: Camera, world_from_cam: Array,
                   map_desc: npt.NDArray[Any], points_world: Array, radius_px: float, *,
-                  ratio: float, background_quantile: float) -> tuple[IntArray, IntArray]:
+                  ratio: float, background_quantile: float, background: float | None = None
+                  ) -> tuple[IntArray, IntArray]:
     """Guided matching around a solved pose: the landmarks (descriptors (L, D), points
     (L, 3)) visible from ``world_from_cam`` matched to the query keypoints within
     ``radius_px`` of their projection, with :func:`match_in_windows`'s tests (a circular
@@ -116,4 +120,5 @@ def search_around(feats: Features, camera: Camera, world_from_cam: Array,
     windows = Windows(px, inv_cov, radius, np.where(visible, np.pi * radius_px**2, np.inf),
                       visible)
     return match_in_windows(feats, windows, np.flatnonzero(visible), map_desc, 1.0,
-                            ratio=ratio, background_quantile=background_quantile)
+                            ratio=ratio, background_quantile=background_quantile,
+                            background=background)

@@ -30,7 +30,7 @@ from ...core.methods import MethodStep
 from ...core.plugins import make_conf
 from ..pose.base import PoseEstimate
 from ..pose.cluster_covariance import at_least, cluster_robust_covariance
-from ..pose.guided import GuidedConf
+from ..pose.guided import GuidedConf, background_distance
 from ..pose.intrinsics import IntrinsicsCheck
 from ..pose.landmark_keyframe_errors import keyframe_pose_sigmas, widen_for_keyframe_errors
 from ..pose.landmark_pool import LandmarkPool
@@ -75,10 +75,19 @@ class TrackingRelocalizer(Relocalizer):
 
     @dataclass(frozen=True)
     class Conf(PnPConf):
-        #: Feature kind matched; None: ORB where the map has ORB landmarks, else SIFT. The
-        #: query's features are those the method's own step of that kind extracts (ORB's
-        #: 500, SIFT's 2000), so a fallback reuses them.
+        #: Query features matched (a name of ``STEP_FEATURES``); None: ORB where a keyframe
+        #: near the prior has ORB landmarks, else SIFT. The query's features are those the
+        #: method's own step of that name extracts (ORB's 500, SIFT's 2000, half-size SIFT's
+        #: 1000), so a fallback reuses them.
         kind: str | None = None
+        #: Query features tracked with when ``kind``'s tracking refuses (a name of
+        #: ``STEP_FEATURES``, e.g. ``"sift-half"``: half-size SIFT's coarse keypoints survive
+        #: the motion blur of a fast turn that takes ORB's corners); None: none. Off by
+        #: default: with 3 good priors per query, "sift-half" tracks 5 of TUM fr1/rpy's 30,
+        #: not 2 (there the prior's windows, 5 cm at about 1 m depth, outgrow
+        #: ``max_window_fraction`` whatever the features), and 51 of 7-Scenes' 66, not 36,
+        #: 11 of the 15 new answers 7-15 cm off.
+        fallback: str | None = None
         #: Keyframes nearest the prior (optical axes within ``max_view_angle_deg``) whose
         #: landmarks are projected.
         local_keyframes: int = 10
@@ -108,9 +117,11 @@ class TrackingRelocalizer(Relocalizer):
 
         def __post_init__(self) -> None:
             super().__post_init__()
-            if self.kind is not None and self.kind not in STEP_FEATURES:
-                raise ConfigError(f"track: kind must be one of {sorted(STEP_FEATURES)} or "
-                                  f"None, got {self.kind!r}")
+            for name in ("kind", "fallback"):
+                value = getattr(self, name)
+                if value is not None and value not in STEP_FEATURES:
+                    raise ConfigError(f"track: {name} must be one of {sorted(STEP_FEATURES)} "
+                                      f"or None, got {value!r}")
             for name in ("gate_probability", "prior_gate_probability", "window_ratio",
                          "max_window_fraction", "background_quantile"):
                 if not 0 < getattr(self, name) <= 1:
@@ -157,8 +168,9 @@ class TrackingRelocalizer(Relocalizer):
 
     def relocalize(self, query: Frame, *, prior: Prior | None = None, hypotheses: int = 1
                    ) -> RelocResult:
-        """The pose tracked from ``prior`` (it must carry a covariance), verified; else
-        NOT_RELOCALIZED with the reason."""
+        """The pose tracked from ``prior`` (it must carry a covariance) with the first of the
+        query's feature kinds (:meth:`_feature_steps`) that verifies; else NOT_RELOCALIZED
+        with each kind's reason."""
         state = self.map.snapshot()
         timings: dict[str, float] = {}
         if prior is None or prior.covariance is None:
@@ -166,21 +178,43 @@ class TrackingRelocalizer(Relocalizer):
         near = state.nearest_keyframes(prior.world_from_cam, self.conf.local_keyframes,
                                        self.conf.max_view_angle_deg)
         keyframes = [state.keyframes[k] for k in near]
-        kind = self.conf.kind or _local_kind(keyframes)
-        if kind is None:
+        steps = _feature_steps(keyframes, self.conf.kind, self.conf.fallback)
+        if not steps:
             return self._refuse("no keyframe near the prior has ORB or SIFT landmarks",
                                 timings, state)
+        reasons: list[str] = []
+        for step in steps:
+            result = self._track(query, prior, state, near, keyframes, step, timings)
+            if result.ok:
+                return result
+            reasons.append(result.reason if len(steps) == 1 else f"{step}: {result.reason}")
+        result.reason = "; ".join(reasons)
+        result.timings = timings
+        return result
+
+    def _track(self, query: Frame, prior: Prior, state: MapState, near: list[int],
+               keyframes: list[Keyframe], step: str, timings: dict[str, float]
+               ) -> RelocResult:
+        """The pose tracked with the query's ``step`` features (a name of
+        ``STEP_FEATURES``), verified, or NOT_RELOCALIZED; its stages' times are added to
+        ``timings``."""
+        assert prior.covariance is not None
+        spec = STEP_FEATURES[step]
+        kind = spec["kind"]
+        fconf = feature_lib.FeatureConf(kind=kind, max_features=spec["max_features"],
+                                        scale=spec.get("query_scale", 1.0))
+        # A keypoint of the reduced image is located to one of its pixels: 1 / scale
+        # full-image pixels, in the windows and in the solve's weights.
+        scale = 1.0 / fconf.scale
         start = time.perf_counter()
-        conf = feature_lib.FeatureConf(kind=kind, max_features=STEP_FEATURES[kind]["max_features"])
-        feats = query.features_of(kind, lambda: feature_lib.extract(query.image, conf))
-        timings["features"] = time.perf_counter() - start
-        start = time.perf_counter()
+        feats = query.features_of(fconf.key, lambda: feature_lib.extract(query.image, fconf))
+        start = _add(timings, "features", start)
         pool, uncertainty = self._local_map(state, near, keyframes, kind)
         if len(pool.landmark_ids) == 0:
             return self._refuse("no keyframe near the prior sees what it sees", timings, state)
         gate = float(stats.chi2.ppf(self.conf.gate_probability, 2))
         sigmas = pixel_sigmas(uncertainty, prior.world_from_cam, pool.points_world,
-                              query.camera, self.conf.keypoint_sigma_px)
+                              query.camera, scale * self.conf.keypoint_sigma_px)
         windows = predict_windows(query.camera, prior.world_from_cam, prior.covariance,
                                   pool.points_world, gate, sigmas)
         width, height = query.camera.size
@@ -192,24 +226,27 @@ class TrackingRelocalizer(Relocalizer):
                 f"prior too uncertain to track: {len(rows)} of {int(windows.visible.sum())} "
                 f"predicted landmarks have a window within "
                 f"{self.conf.max_window_fraction:.3g} of the image", timings, state)
+        # The distance unrelated pairs of these descriptors fall below by chance: the same
+        # for the windows' matches and the guided ones around the solved pose, so drawn once.
+        background = background_distance(feats.descriptors, pool.descriptors,
+                                         self.conf.background_quantile)
         q_idx, m_rows = match_in_windows(
-            feats, windows, rows, pool.descriptors, gate,
-            ratio=self.conf.window_ratio, background_quantile=self.conf.background_quantile)
-        timings["track_match"] = time.perf_counter() - start
-        start = time.perf_counter()
+            feats, windows, rows, pool.descriptors, gate, ratio=self.conf.window_ratio,
+            background_quantile=self.conf.background_quantile, background=background)
+        start = _add(timings, "track_match", start)
         solved = solve_pnp_indexed(feats.keypoints_px[q_idx], pool.points_world[m_rows],
-                                   query.camera, self.conf, uncertainty=uncertainty.take(m_rows))
-        timings["solve"] = time.perf_counter() - start
+                                   query.camera, self.conf, uncertainty=uncertainty.take(m_rows),
+                                   keypoint_scales=_scales(scale, len(q_idx)))
+        start = _add(timings, "solve", start)
         if solved is None:
             return self._refuse(f"no pose from {len(q_idx)} matches in the prior's windows",
                                 timings, state, num_matches=len(q_idx))
         est, inliers = solved
         seed = (len(q_idx), int(est.inliers or 0))
         chance = _window_chance(est, windows.area_px[m_rows])
-        start = time.perf_counter()
         grown = self._grow(query, feats, est, pool, q_idx[inliers], m_rows[inliers],
-                           uncertainty)
-        timings["guided"] = time.perf_counter() - start
+                           uncertainty, scale, background)
+        start = _add(timings, "guided", start)
         if grown is not None:
             est, q_idx, m_rows, inliers = grown
         est.keyframe_ids = pool.keyframes_of(m_rows[inliers], near)
@@ -228,7 +265,7 @@ class TrackingRelocalizer(Relocalizer):
         est = settle_pose_errors(est, state, kind, self.conf, est.inlier_landmark_ids)
         result = result_from_estimate(est, self.verify_conf, method=TRACK,
                                       map_version=state.version, timings=timings)
-        timings["verify"] = time.perf_counter() - start
+        _add(timings, "verify", start)
         if result.ok and not _within_prior(est, result, prior, self.conf.prior_gate_probability):
             return self._refuse("the tracked pose lies outside the prior's gate", timings, state,
                                 num_matches=len(q_idx), inliers=int(est.inliers or 0))
@@ -251,19 +288,25 @@ class TrackingRelocalizer(Relocalizer):
         return result
 
     def _grow(self, query: Frame, feats: Features, est: PoseEstimate, pool: LandmarkPool,
-              seed_q: IntArray, seed_rows: IntArray, uncertainty: PointUncertainty
+              seed_q: IntArray, seed_rows: IntArray, uncertainty: PointUncertainty,
+              scale: float, background: float
               ) -> tuple[PoseEstimate, IntArray, IntArray, IntArray] | None:
         """The pose solved again or refined (``Conf.growth``) on the window consensus
         (``seed_q``, ``seed_rows``) plus the landmarks matched around the solved pose
         (windows of twice the inlier threshold, :func:`..pose.prior_windows.search_around`):
         the prior's windows are wide, and a crowd of similar descriptors hides matches that
-        the solved pose's narrow windows find. (estimate, query indices, pool rows, inlier
-        indices), or None when that adds no inlier."""
+        the solved pose's narrow windows find. ``scale``: the query keypoints' localisation
+        in full-image pixels; ``background``: the descriptors' chance distance at
+        ``Conf.background_quantile``, reused where guided matching's quantile is that one.
+        (estimate, query indices, pool rows, inlier indices), or None when that adds no
+        inlier."""
         guided = GuidedConf()
+        same = guided.background_quantile == self.conf.background_quantile
         g_idx, g_rows = search_around(
             feats, query.camera, est.world_from_cam, pool.descriptors, pool.points_world,
             guided.window_factor * self.conf.max_reproj_error_px, ratio=guided.window_ratio,
-            background_quantile=guided.background_quantile)
+            background_quantile=guided.background_quantile,
+            background=background if same else None)
         q_all, rows_all = _union(seed_q, seed_rows, g_idx, g_rows)
         px, points = feats.keypoints_px[q_all], pool.points_world[rows_all]
         if self.conf.growth == "regated":
@@ -279,7 +322,8 @@ class TrackingRelocalizer(Relocalizer):
             # can leave out the right guided matches and settle in its own basin
             # (centimetres off on the synthetic room).
             solved = solve_pnp_indexed(px, points, query.camera, self.conf,
-                                       uncertainty=uncertainty.take(rows_all))
+                                       uncertainty=uncertainty.take(rows_all),
+                                       keypoint_scales=_scales(scale, len(q_all)))
         if solved is None or (solved[0].inliers or 0) <= (est.inliers or 0):
             return None
         return solved[0], q_all, rows_all, solved[1]
@@ -357,15 +401,40 @@ def _landmark_uncertainty(pool: LandmarkPool, state: MapState, keyframe_ids: lis
                                      pool.points_world, pool.keyframe_rows, rot, pos, focal)
 
 
-def _local_kind(keyframes: list[Keyframe]) -> str | None:
-    """ORB where a keyframe near the prior has ORB landmarks (the cheap path), else SIFT
-    where one has SIFT landmarks, else None."""
-    for kind in ("orb", "sift"):
-        for kf in keyframes:
-            feats = kf.features.get(kind)
-            if feats is not None and bool(np.any(feats.landmark_ids >= 0)):
-                return kind
-    return None
+def _feature_steps(keyframes: list[Keyframe], kind: str | None, fallback: str | None
+                   ) -> list[str]:
+    """The query features to track with, in order (names of ``STEP_FEATURES``): ``kind``, or
+    ORB where a keyframe of ``keyframes`` has ORB landmarks (the cheap path), else SIFT where
+    one has SIFT landmarks; then ``fallback`` where one has its kind of landmarks."""
+    first = kind or next((k for k in ("orb", "sift") if _has_landmarks(keyframes, k)), None)
+    steps = [] if first is None else [first]
+    if (fallback is not None and fallback != first
+            and _has_landmarks(keyframes, STEP_FEATURES[fallback]["kind"])):
+        steps.append(fallback)
+    return steps
+
+
+def _has_landmarks(keyframes: list[Keyframe], kind: str) -> bool:
+    """Whether a keyframe of ``keyframes`` has ``kind`` features with landmarks."""
+    for kf in keyframes:
+        feats = kf.features.get(kind)
+        if feats is not None and bool(np.any(feats.landmark_ids >= 0)):
+            return True
+    return False
+
+
+def _add(timings: dict[str, float], stage: str, start: float) -> float:
+    """Add the time since ``start`` to ``timings[stage]`` (a query may track with several
+    kinds of features); the time now, the next stage's start."""
+    now = time.perf_counter()
+    timings[stage] = timings.get(stage, 0.0) + now - start
+    return now
+
+
+def _scales(scale: float, n: int) -> Array | None:
+    """(n,) keypoint localisation scales of features found on an image reduced by
+    ``1 / scale``; None (one pixel each) at full size."""
+    return None if scale == 1 else np.full(n, scale)
 
 
 def _window_chance(est: PoseEstimate, areas_px: Array) -> float:
