@@ -13,7 +13,12 @@ that error; elsewhere the refusal stands, saying which step could not confirm th
 Steps that match the same kind of keypoints estimate the same camera without the bias one
 kind's localisation puts on another's: where the answering step's estimate disagrees with
 an earlier such step's (a refusal, or a contender the chain held), the answer is refused
-too (:mod:`..pose.intrinsics_agreement`), whether or not its own test passed.
+too (:mod:`..pose.intrinsics_agreement`), whether or not its own test passed. Only two
+poses of one hypothesis can disagree about the camera: an earlier pose of another place
+(another copy of a repeated picture, whose scale its focal estimate absorbed) is a rival
+place instead, which the answering step weighs by the query keypoints each explains, as
+:mod:`.uniqueness` weighs its own hypotheses; the answer stands only where it explains
+significantly more (``compare_same_hypothesis``).
 """
 
 from __future__ import annotations
@@ -119,7 +124,7 @@ def disagreeing_steps(answer: RelocResult, estimate: PoseEstimate | None,
     """A refusal of ``answer`` (a verified pose, ``estimate`` its estimate, from a step
     matching landmarks of the kinds ``features``) where its intrinsics estimate disagrees
     with an ``earlier`` step's of the same kinds (:func:`..pose.intrinsics_agreement.
-    first_disagreement`), or, with ``guided``, where guided matching bent its own focal
+    disagreement_p_value`), or, with ``guided``, where guided matching bent its own focal
     estimate (:func:`..pose.intrinsics_agreement.guided_bend_p_value`, at the false-refusal
     rate); None where they agree, or where ``answer`` was not tested.
 
