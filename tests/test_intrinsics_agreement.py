@@ -16,16 +16,23 @@ from reloc_service.algorithms.pose.intrinsics_agreement import (
     disagreement_p_value,
     first_disagreement,
     guided_bend_p_value,
+    same_hypothesis_p_value,
 )
 from reloc_service.algorithms.relocalizers.base import (
     RelocResult,
+    RelocStatus,
 )
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
-from reloc_service.algorithms.relocalizers.confirmation import REFUSAL_BETWEEN_STEPS
+from reloc_service.algorithms.relocalizers.confirmation import (
+    REFUSAL_BETWEEN_STEPS,
+    StepEstimate,
+    disagreeing_steps,
+)
 from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
 from reloc_service.core.features import FeatureConf
 from reloc_service.core.frame import Frame
 from reloc_service.core.map import KeyframeMap
+from reloc_service.tools.eval.query_camera import QueryCamera
 
 
 def sharp(camera, seed: int):
@@ -139,3 +146,66 @@ def test_a_pose_whose_guided_matches_bent_the_focal_is_refused_on_request():
     chain = ChainRelocalizer(kmap, [AnsweringStep(kmap, bent, conf=_compare(True))])
     assert chain.relocalize(query).ok
     assert not MultiRelocalizer.Conf().compare_guided_focal
+
+
+#: A camera whose focal is 1 / 1.15 of the room camera's: pixels it sees, judged through the
+#: room camera, estimate the focal 13 % short, the pose moved along its axis to absorb it.
+SHORT = QueryCamera(focal_scale=1 / 1.15).claimed(ROOM)
+
+
+def _seen(camera, seed: int, offset_m: float = 0.0):
+    """A pose judged through the room camera from 300 sharp keypoints that ``camera`` saw,
+    their world points moved ``offset_m`` along x (a copy of the scene elsewhere)."""
+    px, points = correspondences(camera, 300, 0.5, np.random.default_rng(seed))
+    return judged(px, points + np.array([offset_m, 0.0, 0.0]), ROOM)
+
+
+def test_poses_of_one_place_are_one_hypothesis_whatever_their_focal_estimates():
+    """Two estimates of the same place whose focal estimates disagree (one pose moved along
+    its axis by a focal 13 % short) are one hypothesis once each is moved by its focal
+    sensitivity to a common camera; a pose of a copy of the scene 1 m away is not."""
+    right, short = _seen(ROOM, 1), _seen(SHORT, 2)
+    assert disagreement_p_value(right.intrinsics, short.intrinsics) < 1e-6
+    assert same_hypothesis_p_value(right, short) > right.intrinsics.prior.false_refusal
+    elsewhere = _seen(SHORT, 2, offset_m=1.0)
+    assert same_hypothesis_p_value(right, elsewhere) < 1e-6
+    assert same_hypothesis_p_value(elsewhere, right) < 1e-6
+
+
+def _answer(estimate) -> RelocResult:
+    return RelocResult(status=RelocStatus.OK, method="answering:sift",
+                       world_from_cam=estimate.world_from_cam,
+                       covariance=estimate.covariance, confidence=0.5)
+
+
+def test_a_disagreement_with_another_place_is_weighed_as_a_rival():
+    """A refused pose of the same place whose focal disagrees refuses the answer whatever
+    the weighing says (one of the two absorbed a focal error); a refused pose of another
+    place refuses it only where the answer does not explain the query significantly better
+    (``weigh`` gives why not), and without ``weigh`` (the option off) as any other."""
+    right = _seen(ROOM, 1)
+    answer = _answer(right)
+    sift = frozenset({"sift"})
+
+    def earlier(estimate) -> list[StepEstimate]:
+        return [StepEstimate("refusing:sift", sift, estimate.intrinsics, estimate)]
+
+    def better(first, second) -> None:
+        return None
+
+    def comparable(first, second) -> str:
+        return "40 vs 250 query keypoints explained by one alone"
+
+    same_place = earlier(_seen(SHORT, 2))
+    for weigh in (better, comparable, None):
+        refusal = disagreeing_steps(answer, right, sift, same_place, weigh=weigh)
+        assert refusal is not None and not refusal.ok
+        assert refusal.reason.startswith(REFUSAL_BETWEEN_STEPS)
+        assert refusal.reason.endswith("absorbed a focal error")
+    elsewhere = earlier(_seen(SHORT, 2, offset_m=1.0))
+    assert disagreeing_steps(answer, right, sift, elsewhere, weigh=better) is None
+    rival = disagreeing_steps(answer, right, sift, elsewhere, weigh=comparable)
+    assert rival is not None and "another place" in rival.reason and "40 vs 250" in rival.reason
+    assert disagreeing_steps(answer, right, sift, elsewhere, weigh=None) is not None
+    assert MultiRelocalizer.Conf().compare_same_hypothesis
+

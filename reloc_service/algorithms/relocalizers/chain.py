@@ -27,6 +27,7 @@ from .base import (
 )
 from .confirmation import (
     REFUSED,
+    REFUSED_POSE,
     Refusal,
     StepEstimate,
     disagreeing_steps,
@@ -126,33 +127,34 @@ class ChainRelocalizer(Relocalizer):
                 map_version = result.map_version
                 answered = query.cache.pop(ANSWERED, None)
                 refused = query.cache.pop(REFUSED, None)
+                refused_pose = query.cache.pop(REFUSED_POSE, None)
                 if refuses_the_query(result):
                     if not self._other_features_after(i):
                         result.timings = timings
                         return result
                     refusals.append(refusal_of(result, refused))
-                    _note_estimate(earlier, step, refusals[-1].check)
+                    _note_estimate(earlier, step, refusals[-1].check, refused_pose)
                     reasons.append(f"{step.method}: {result.reason}")
                     continue
                 if contender is not None and contender.weighed:
                     # the contender weighed: the winner, or "ambiguous"
-                    return _confirmed(step, result, answered, refusals, earlier, timings)
+                    return _confirmed(query, step, result, answered, refusals, earlier, timings)
                 if contender is not None and result.ok:
                     break  # a step that cannot weigh it does not overrule it
                 if result.ok and contender is None and i + 1 < len(self.steps) \
                         and (_narrow(step, answered) or self._underpowered(i, answered)):
                     contender, contender_step = Contender(result, answered), step
                     query.cache[CONTENDER] = contender
-                    _note_estimate(earlier, step, answered.intrinsics)
+                    _note_estimate(earlier, step, answered.intrinsics, answered)
                     continue
                 if result.ok:
-                    return _confirmed(step, result, answered, refusals, earlier, timings)
+                    return _confirmed(query, step, result, answered, refusals, earlier, timings)
                 reasons.append(f"{step.method}: {result.reason}")
         finally:
             query.cache.pop(CONTENDER, None)
         if contender is not None:
-            return _confirmed(contender_step, contender.result, contender.estimate, refusals,
-                              earlier, timings)
+            return _confirmed(query, contender_step, contender.result, contender.estimate,
+                              refusals, earlier, timings)
         if refusals:  # no later step found a pose to overrule them
             refusals[0].result.timings = timings
             return refusals[0].result
@@ -231,7 +233,8 @@ def extract_ahead(query: Frame, step: Relocalizer) -> Ahead[None] | None:
     return ahead
 
 
-def _confirmed(step: Relocalizer, result: RelocResult, estimate: PoseEstimate | None,
+def _confirmed(query: Frame, step: Relocalizer, result: RelocResult,
+               estimate: PoseEstimate | None,
                refusals: list[Refusal], earlier: list[StepEstimate],
                timings: dict[str, float]) -> RelocResult:
     """``result`` (``step``'s answer) with the chain's ``timings``; or, where ``step``
@@ -240,24 +243,31 @@ def _confirmed(step: Relocalizer, result: RelocResult, estimate: PoseEstimate | 
     cannot overrule (:func:`.confirmation.standing_refusal`), the first such refusal; or,
     where ``step`` asks for it (``conf.compare_intrinsics``) and its estimate of the
     intrinsics disagrees with an ``earlier`` step's of the same keypoints
-    (:func:`.confirmation.disagreeing_steps`), that refusal."""
+    (:func:`.confirmation.disagreeing_steps`; with ``conf.compare_same_hypothesis``, an
+    earlier pose of another place weighed against ``result``'s on ``query`` by ``step``'s
+    features instead), that refusal."""
     conf = getattr(step, "conf", None)
     if result.ok and getattr(conf, "confirm_intrinsics", False):
         result = next((r for r in (standing_refusal(refusal, result, estimate)
                                    for refusal in refusals) if r is not None), result)
     if result.ok and getattr(conf, "compare_intrinsics", False):
+        weigh = getattr(step, "weigh", None)
+        rivals = (functools.partial(weigh, query) if callable(weigh)
+                  and getattr(conf, "compare_same_hypothesis", False) else None)
         result = disagreeing_steps(result, estimate, step.required_features, earlier,
-                                   guided=getattr(conf, "compare_guided_focal", False)
-                                   ) or result
+                                   guided=getattr(conf, "compare_guided_focal", False),
+                                   weigh=rivals) or result
     result.timings = timings
     return result
 
 
 def _note_estimate(earlier: list[StepEstimate], step: Relocalizer,
-                   check: IntrinsicsCheck | None) -> None:
-    """Keep ``step``'s intrinsics test ``check`` (if any) for the later steps' answers."""
+                   check: IntrinsicsCheck | None, estimate: object) -> None:
+    """Keep ``step``'s intrinsics test ``check`` (if any), with the pose ``estimate`` it was
+    made on (None or anything else: not known), for the later steps' answers."""
     if check is not None:
-        earlier.append(StepEstimate(step.method, step.required_features, check))
+        pose = estimate if isinstance(estimate, PoseEstimate) else None
+        earlier.append(StepEstimate(step.method, step.required_features, check, pose))
 
 
 def _narrow(step: Relocalizer, estimate: PoseEstimate | None) -> bool:

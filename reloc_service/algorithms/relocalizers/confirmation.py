@@ -13,17 +13,28 @@ that error; elsewhere the refusal stands, saying which step could not confirm th
 Steps that match the same kind of keypoints estimate the same camera without the bias one
 kind's localisation puts on another's: where the answering step's estimate disagrees with
 an earlier such step's (a refusal, or a contender the chain held), the answer is refused
-too (:mod:`..pose.intrinsics_agreement`), whether or not its own test passed.
+too (:mod:`..pose.intrinsics_agreement`), whether or not its own test passed. Only two
+poses of one hypothesis can disagree about the camera: an earlier pose of another place
+(another copy of a repeated picture, whose scale its focal estimate absorbed) is a rival
+place instead, which the answering step weighs by the query keypoints each explains, as
+:mod:`.uniqueness` weighs its own hypotheses; the answer stands only where it explains
+significantly more (``compare_same_hypothesis``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from ...core.frame import Frame
 from ..pose.base import PoseEstimate
 from ..pose.intrinsics import REFUSAL, IntrinsicsCheck
-from ..pose.intrinsics_agreement import first_disagreement, focal_text, guided_bend_p_value
+from ..pose.intrinsics_agreement import (
+    disagreement_p_value,
+    focal_text,
+    guided_bend_p_value,
+    same_hypothesis_p_value,
+)
 from ..pose.intrinsics_confirmation import (
     confirms,
     detection_power,
@@ -35,6 +46,10 @@ from .base import RelocResult
 #: Key of ``query.cache`` where a relocalizer that refuses the query's intrinsics leaves the
 #: refusing test (:class:`..pose.intrinsics.IntrinsicsCheck`) for the chain that asked.
 REFUSED = "relocalizer:refused-intrinsics"
+
+#: Key of ``query.cache`` where that relocalizer leaves the refused pose's estimate too
+#: (:class:`..pose.base.PoseEstimate`): whether a later step's pose is the same hypothesis.
+REFUSED_POSE = "relocalizer:refused-pose"
 
 #: How a refusal by :func:`disagreeing_steps` begins (an intrinsics refusal: it begins as
 #: :data:`..pose.intrinsics.REFUSAL` does).
@@ -59,6 +74,8 @@ class StepEstimate:
     method: str
     features: frozenset[str]
     check: IntrinsicsCheck
+    #: The pose that test was made on (None: not known).
+    estimate: PoseEstimate | None = None
 
 
 def refusal_of(result: RelocResult, check: object) -> Refusal:
@@ -71,6 +88,7 @@ def leave_refused(query: Frame, estimate: PoseEstimate | None) -> None:
     """Leave ``estimate``'s refusing intrinsics test on ``query`` for a chain."""
     if estimate is not None and estimate.intrinsics is not None:
         query.cache[REFUSED] = estimate.intrinsics
+        query.cache[REFUSED_POSE] = estimate
 
 
 def standing_refusal(refusal: Refusal, answer: RelocResult,
@@ -100,13 +118,21 @@ def standing_refusal(refusal: Refusal, answer: RelocResult,
 
 def disagreeing_steps(answer: RelocResult, estimate: PoseEstimate | None,
                       features: frozenset[str], earlier: list[StepEstimate], *,
-                      guided: bool = False) -> RelocResult | None:
+                      guided: bool = False,
+                      weigh: Callable[[PoseEstimate, PoseEstimate], str | None] | None = None
+                      ) -> RelocResult | None:
     """A refusal of ``answer`` (a verified pose, ``estimate`` its estimate, from a step
     matching landmarks of the kinds ``features``) where its intrinsics estimate disagrees
     with an ``earlier`` step's of the same kinds (:func:`..pose.intrinsics_agreement.
-    first_disagreement`), or, with ``guided``, where guided matching bent its own focal
+    disagreement_p_value`), or, with ``guided``, where guided matching bent its own focal
     estimate (:func:`..pose.intrinsics_agreement.guided_bend_p_value`, at the false-refusal
-    rate); None where they agree, or where ``answer`` was not tested."""
+    rate); None where they agree, or where ``answer`` was not tested.
+
+    With ``weigh`` (None where ``answer``'s pose explains significantly more of the query
+    than another's, else why not), a disagreement counts only with an earlier pose of the
+    same hypothesis; one of another place (:func:`_rival`) refuses ``answer`` only where
+    ``answer`` does not out-explain it. Bonferroni at the false-refusal rate over the
+    earlier steps compared."""
     check = None if estimate is None else estimate.intrinsics
     if check is None:
         return None
@@ -120,15 +146,40 @@ def disagreeing_steps(answer: RelocResult, estimate: PoseEstimate | None,
     # A contender answering after a later step weighed it: its own step's keypoints.
     features = next((e.features for e in earlier if e.check is check), features)
     same = [e for e in earlier if e.features == features and e.check is not check]
-    found = first_disagreement(check, [e.check for e in same])
-    if found is None:
+    level = check.prior.false_refusal / max(len(same), 1)  # Bonferroni over the comparisons
+    for other in same:
+        p = disagreement_p_value(check, other.check)
+        if p >= level:
+            continue
+        reason = (f"{REFUSAL_BETWEEN_STEPS}: {answer.method} estimates the focal "
+                  f"{focal_text(check)} off the given one, {other.method} "
+                  f"{focal_text(other.check)} (p = {p:.1e})")
+        rival = None if weigh is None else _rival(estimate, other, weigh)
+        if rival is None:
+            return _refusal(answer, f"{reason}; one of the two poses absorbed a focal error")
+        if rival:
+            return _refusal(answer, f"{reason} on another place, which {answer.method}'s "
+                                    f"pose does not explain the query better than ({rival})")
+    return None
+
+
+def _rival(estimate: PoseEstimate | None, other: StepEstimate,
+           weigh: Callable[[PoseEstimate, PoseEstimate], str | None]) -> str | None:
+    """Whether ``other``'s pose, whose focal estimate disagrees with the answer's
+    (``estimate``), is another hypothesis that the answer does not beat: None where the two
+    are one hypothesis once their focal difference is allowed for
+    (:func:`..pose.intrinsics_agreement.same_hypothesis_p_value` not below the
+    false-refusal rate; or either pose unknown): the disagreement is about the focal;
+    otherwise a place the answer's pose explains significantly more of the query than
+    (``weigh`` gives None: the other's focal absorbed its wrong place's scale) gives "",
+    and one it does not, why not (``weigh``'s text)."""
+    if estimate is None or other.estimate is None:
         return None
-    index, p = found
-    other = same[index]
-    reason = (f"{REFUSAL_BETWEEN_STEPS}: {answer.method} estimates the focal "
-              f"{focal_text(check)} off the given one, {other.method} {focal_text(other.check)}"
-              f" (p = {p:.1e}); one of the two poses absorbed a focal error")
-    return _refusal(answer, reason)
+    p = same_hypothesis_p_value(estimate, other.estimate)
+    if p >= other.check.prior.false_refusal:
+        return None
+    why = weigh(estimate, other.estimate)
+    return "" if why is None else why
 
 
 def _refusal(answer: RelocResult, reason: str) -> RelocResult:

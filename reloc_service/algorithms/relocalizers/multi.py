@@ -94,6 +94,12 @@ class MultiRelocalizer(Relocalizer):
         #: contender): a two-sample test at the intrinsics test's false-refusal rate
         #: (:mod:`..pose.intrinsics_agreement`). Off: each step's test alone judges it.
         compare_intrinsics: bool = True
+        #: With ``compare_intrinsics``, count a disagreement only with an earlier pose of
+        #: the same hypothesis once the focal difference is allowed for (chi-square at the
+        #: intrinsics test's false-refusal rate); a pose of another place is weighed as a
+        #: rival instead: this step's pose answers only where it explains significantly
+        #: more of the query (:mod:`.confirmation`). Off: every earlier pose is compared.
+        compare_same_hypothesis: bool = True
         #: With ``compare_intrinsics``, also refuse this step's pose where guided matching
         #: bent its focal estimate: its unguided matches' estimate disagrees with its whole
         #: set's (Hausman's test of the focal at the false-refusal rate,
@@ -379,6 +385,20 @@ class MultiRelocalizer(Relocalizer):
             estimates, query.camera,
             lambda est: self.pose.support(query, est.world_from_cam, state), self._agree,
             alpha=self.verify_conf.max_false_alarms)
+
+    def weigh(self, query: Frame, first: PoseEstimate, second: PoseEstimate) -> str | None:
+        """None where ``first``'s pose explains significantly more of ``query``'s keypoints
+        than ``second``'s, by this step's features (:func:`.uniqueness.compare` at the
+        uniqueness level); else why not. Call after this step relocalized ``query``."""
+        state = self.map.snapshot()
+        one, two = (self.pose.support(query, e.world_from_cam, state) for e in (first, second))
+        if one is None or two is None:
+            return "no features to compare them by"
+        c, alpha = uniqueness.compare(one, two), self.verify_conf.max_false_alarms
+        if c.p_first < alpha:
+            return None
+        return (f"{c.only_first} vs {c.only_second} query keypoints explained by one alone, "
+                f"p = {c.p_first:.2g} >= {alpha:g}")
 
     def _agree(self, first: PoseEstimate, second: PoseEstimate) -> bool:
         """Whether two poses agree within the agreement thresholds."""
