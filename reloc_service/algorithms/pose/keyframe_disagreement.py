@@ -41,7 +41,7 @@ from ...core.cameras import Camera
 from ...core.geometry import invert, pose_covariance_from_sigmas, se3_exp, se3_log
 from ...core.map import MapState
 from ...core.triangulation import keypoint_sigmas
-from .map_consistency import MAX_HELD_OUT, MIN_HELD_OUT, held_out_points
+from .map_consistency import MIN_HELD_OUT, held_out_candidates, held_out_points
 from .pnp import PnPConf, solve_pnp_indexed
 from .projection import pose_projector
 
@@ -146,17 +146,12 @@ def disagreement(state: MapState, kf_id: int, kind: str) -> tuple[Array, Array] 
     if feats is None:
         return None
     cols = state.landmarks.columns()
-    observed = np.flatnonzero(feats.landmark_ids >= 0)
-    rows = cols.rows(feats.landmark_ids[observed])
-    observed, rows = observed[rows >= 0], rows[rows >= 0]
-    enough = np.flatnonzero(np.diff(cols.obs_offsets)[rows] >= 3)
-    keep = enough[np.unique(np.linspace(0, len(enough) - 1, min(len(enough), MAX_HELD_OUT))
-                            .astype(np.int64))] if len(enough) else enough
-    points, held = held_out_points(state, cols, rows[keep], kf_id, kind)
+    observed, rows = held_out_candidates(cols, feats.landmark_ids)
+    points, held = held_out_points(state, cols, rows, kf_id, kind)
     if held.sum() < MIN_HELD_OUT:
         return None
-    px = feats.keypoints_px[observed[keep][held]].astype(np.float64)
-    sigmas = keypoint_sigmas(feats)[observed[keep][held]]
+    px = feats.keypoints_px[observed[held]].astype(np.float64)
+    sigmas = keypoint_sigmas(feats)[observed[held]]
     return _solve(keyframe.world_from_cam, px, sigmas, points[held], keyframe.camera)
 
 

@@ -147,16 +147,7 @@ def _statistics(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: 
     cols = columns.get()
     if kind not in cols.kinds:
         return dict.fromkeys(wanted)
-    observed = np.flatnonzero(feats.landmark_ids >= 0)
-    rows = cols.rows(feats.landmark_ids[observed])
-    observed, rows = observed[rows >= 0], rows[rows >= 0]
-    # Two other observations make a held-out point; a few hundred of them, evenly spread
-    # over the keyframe's keypoints, make an estimate as good as a query's at a fraction
-    # of the triangulations.
-    enough = np.flatnonzero(np.diff(cols.obs_offsets)[rows] >= 3)
-    keep = enough[np.unique(np.linspace(0, len(enough) - 1, min(len(enough), MAX_HELD_OUT))
-                            .astype(np.int64))] if len(enough) else enough
-    observed, rows = observed[keep], rows[keep]
+    observed, rows = held_out_candidates(cols, feats.landmark_ids)
     points, held = held_out_points(state, cols, rows, kf_id, kind)
     if held.sum() < MIN_HELD_OUT:
         return dict.fromkeys(wanted)
@@ -223,6 +214,21 @@ def gated_inliers(squared: Array, inliers: IntArray,
         return inliers
     scale = float(np.median(values)) / CHI2_2_MEDIAN
     return inliers[values <= scale * float(stats.chi2.isf(false_alarm, 2))]
+
+
+def held_out_candidates(cols: LandmarkColumns, landmark_ids: IntArray
+                        ) -> tuple[IntArray, IntArray]:
+    """A keyframe's keypoints (indices) whose landmarks (column rows) can be triangulated
+    without it, and those rows: two other observations make a held-out point; at most
+    :data:`MAX_HELD_OUT` of them, evenly spread over the keyframe's keypoints, make an
+    estimate as good as a query's at a fraction of the triangulations."""
+    observed = np.flatnonzero(landmark_ids >= 0)
+    rows = cols.rows(landmark_ids[observed])
+    observed, rows = observed[rows >= 0], rows[rows >= 0]
+    enough = np.flatnonzero(np.diff(cols.obs_offsets)[rows] >= 3)
+    keep = enough[np.unique(np.linspace(0, len(enough) - 1, min(len(enough), MAX_HELD_OUT))
+                            .astype(np.int64))] if len(enough) else enough
+    return observed[keep], rows[keep]
 
 
 def held_out_points(state: MapState, cols: LandmarkColumns, rows: IntArray, kf_id: int,
