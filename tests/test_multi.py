@@ -352,3 +352,55 @@ def test_disagreeing_verified_groups_without_features_to_compare_are_ambiguous(s
     first_only = MultiRelocalizer(scene.map, place, FixedPoses([a, b]),
                                   conf=MultiRelocalizer.Conf(num_candidates=3, unique=False))
     assert first_only.relocalize(query).ok and first_only.pose.calls == 1
+
+
+class CountsSettles(PoseFinder):
+    """The p3p pose finder, counting the deferred settlings (intrinsics tests) that run."""
+
+    name = "counts-settles"
+    pools_candidates = True
+
+    def __init__(self) -> None:
+        super().__init__(None)
+        self.inner = create_pose_finder({"name": "p3p"})
+        self.settles = 0
+
+    def find_pose(self, query, candidates, state):
+        return self.inner.find_pose(query, candidates, state)
+
+    def find_pose_deferred(self, query, candidates, state):
+        est = self.inner.find_pose_deferred(query, candidates, state)
+        if est is not None and est.deferred_settling is not None:
+            pending = est.deferred_settling
+
+            def counted() -> None:
+                self.settles += 1
+                pending()
+
+            est.deferred_settling = counted
+        return est
+
+    def support(self, query, world_from_cam, state):
+        return self.inner.support(query, world_from_cam, state)
+
+
+def test_groups_agreeing_with_a_verified_pose_are_not_settled_again(scene):
+    # One keyframe per group: the three nearest keyframes all give the query's pose, so the
+    # second and third groups repeat the first's solution and cannot change the answer.
+    place = create_place_finder({"name": "sbi"}, scene.map)
+    query_at = query_pose(1)
+    runs = {}
+    for skip, hypotheses in ((True, 1), (False, 1), (True, 2)):
+        pose = CountsSettles()
+        conf = MultiRelocalizer.Conf(num_candidates=1, max_groups=3, overlap=False,
+                                     skip_duplicate_settle=skip)
+        result = MultiRelocalizer(scene.map, place, pose, conf=conf).relocalize(
+            Frame(scene.render(query_at), CAMERA), hypotheses=hypotheses)
+        assert result.ok and pose_error(result.world_from_cam, query_at)[0] < 0.02
+        runs[skip, hypotheses] = (result, pose.settles)
+    (skipped, fewer), (full, every), (_, asked) = (runs[True, 1], runs[False, 1],
+                                                   runs[True, 2])
+    assert fewer == 1 and every == 3 and asked == 3  # more hypotheses read every group
+    assert np.array_equal(skipped.world_from_cam, full.world_from_cam)
+    assert skipped.inliers == full.inliers
+    assert np.array_equal(skipped.covariance, full.covariance)

@@ -107,6 +107,13 @@ class MultiRelocalizer(Relocalizer):
         #: camera it refused two correct poses of about 400 (room-hard query 33,
         #: repeated-hard query 30), more than its level predicts.
         compare_guided_focal: bool = False
+        #: With ``unique``, leave unverified a candidate group whose pose agrees (within the
+        #: agreement thresholds) with the first pose of a solution verified earlier on the
+        #: query: verified or not, it would join that solution and never be its first,
+        #: which is all :func:`.uniqueness.decide` answers with, so the answer is the same
+        #: and the group's intrinsics test is saved. Applies only where one hypothesis is
+        #: asked for and no agreement is required (both read every verified group).
+        skip_duplicate_settle: bool = True
 
         def __post_init__(self) -> None:
             if self.num_candidates < 1 or self.max_groups < 1:
@@ -295,6 +302,10 @@ class MultiRelocalizer(Relocalizer):
             # Settled by the verification, only past the tests that do not read the
             # intrinsics test (most groups that fail, fail those).
             estimate = self.pose.find_pose_deferred(query, group, state)
+            if self._duplicates_a_solution(query, estimate, estimates, hypotheses):
+                assert estimate is not None
+                _add_timings(timings, estimate.timings)  # its pose was found all the same
+                continue
             note_map_calibration(estimate, query.camera, state)
             settled = 0.0 if estimate is None else estimate.timings.get("settle", 0.0)
             start = time.perf_counter()
@@ -316,6 +327,23 @@ class MultiRelocalizer(Relocalizer):
             if sum(r.ok for r in results) >= wanted and not self.conf.unique:
                 break
         return results, estimates
+
+    def _duplicates_a_solution(self, query: Frame, estimate: PoseEstimate | None,
+                               earlier: list[PoseEstimate | None], hypotheses: int) -> bool:
+        """Whether ``estimate``'s pose agrees with the first pose of a solution among the
+        ``earlier`` verified estimates (:func:`.uniqueness.solutions`, as :meth:`_unique`
+        forms them): with ``conf.skip_duplicate_settle`` and one hypothesis asked for, such
+        an estimate cannot change the answer, so it is not verified. Verification never
+        moves the pose, so its unsettled pose is the one compared."""
+        if (estimate is None or not self.conf.skip_duplicate_settle or not self.conf.unique
+                or hypotheses > 1 or self.require_agreement):
+            return False
+        verified = [e for e in earlier if e is not None]
+        if not verified:
+            return False
+        firsts = uniqueness.solutions(verified, query.camera, self._agree,
+                                      alpha=self.verify_conf.max_false_alarms)
+        return any(self._agree(verified[g[0]], estimate) for g in firsts)
 
     def _combine(self, query: Frame, state: MapState, results: list[RelocResult],
                  estimates: list[PoseEstimate | None], timings: dict[str, float],
