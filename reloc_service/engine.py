@@ -548,8 +548,10 @@ class Engine:
         return pool_bytes(self._published)
 
     def close(self) -> None:
-        """Stop making the pools a load prepares, before the next one (the map is closed:
-        its memory goes with the last reference, not after a build nobody will read)."""
+        """Stop making the pools a load prepares, in the middle of one too (between its
+        keyframes and its index's chunks; what was made of it is dropped): the map is
+        closed, its memory goes with the last reference, not after a build nobody will
+        read."""
         self._closed.set()
 
 

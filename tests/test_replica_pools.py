@@ -88,11 +88,11 @@ def test_closing_an_engine_stops_its_pools_before_the_next(saved, monkeypatch) -
     real = map_pools._make
     made: list[str] = []
 
-    def slow_make(finder, state, directory):
+    def slow_make(finder, state, directory, cancelled=None):
         made.append(finder.conf.kind)
         first_started.set()
         assert release.wait(60)
-        return real(finder, state, directory)
+        return real(finder, state, directory, cancelled)
 
     monkeypatch.setattr(map_pools, "_make", slow_make)
     engine = Engine.load(saved, conf())

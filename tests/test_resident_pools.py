@@ -14,6 +14,8 @@ import pytest
 from reloc_client.client import RelocClient
 from service_support import AMPLE_MB, endpoint, free_port, limit_maps, service_conf, wait_until
 
+from reloc_service.algorithms.pose import landmark_pool
+from reloc_service.algorithms.pose.map_pool import pools_of
 from reloc_service.algorithms.relocalizers import map_pools
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.engine import Engine, EngineConf
@@ -147,10 +149,10 @@ def test_a_map_counts_its_pools_reserve_while_they_are_made(chain_template, tmp_
     let_go = threading.Event()
     real_make = map_pools._make
 
-    def held_make(finder, state, directory):
+    def held_make(finder, state, directory, cancelled=None):
         if finder.conf.kind != "orb":
             let_go.wait(60)
-        return real_make(finder, state, directory)
+        return real_make(finder, state, directory, cancelled)
 
     monkeypatch.setattr(map_pools, "_make", held_make)
     storage = tmp_path / "storage"
@@ -185,3 +187,43 @@ def test_a_map_counts_its_pools_reserve_while_they_are_made(chain_template, tmp_
     finally:
         let_go.set()
         service.stop()
+
+
+def test_closing_an_engine_stops_the_pool_it_is_making(chain_template, monkeypatch) -> None:
+    # the SIFT pool's gathering is held at its first keyframe until the engine is closed,
+    # then at every later one until the test ends: the build ends only if the close stops
+    # it between two keyframes (a close that waited for the pool would wait for the test)
+    reached, closed, test_over = threading.Event(), threading.Event(), threading.Event()
+    sift_reads: list[int] = []
+    real_peek = landmark_pool._peek
+
+    def held_peek(kf, kind):
+        if kind != "orb":
+            sift_reads.append(kf.id)
+            if len(sift_reads) == 1:
+                reached.set()
+                closed.wait(60)
+            else:
+                test_over.wait(120)
+        return real_peek(kf, kind)
+
+    monkeypatch.setattr(landmark_pool, "_peek", held_peek)
+    before = set(threading.enumerate())
+    try:
+        engine = Engine.load(chain_template.directory / "map", EngineConf(methods=(CHAIN,)))
+        builds = [t for t in threading.enumerate() if t.name == "map-pools" and t not in before]
+        assert len(builds) == 1
+        assert reached.wait(30)
+        assert not engine.prepared.is_set()
+        engine.close()
+        closed.set()
+        builds[0].join(30)
+        assert not builds[0].is_alive()
+        assert engine.prepared.is_set()
+        assert len(sift_reads) == 1 < len(engine.map.snapshot().keyframes)
+        # the ORB pool made before the close is kept; nothing of the SIFT one
+        assert [kind for kind, _, _ in pools_of(engine._published)] == ["orb"]
+        assert engine.held_bytes() > 0
+    finally:
+        closed.set()
+        test_over.set()

@@ -16,6 +16,8 @@ import os
 import threading
 from collections.abc import Callable
 
+from .errors import Cancelled
+
 log = logging.getLogger(__name__)
 
 #: How long exit waits for each background thread after asking it to stop: work that checks
@@ -33,6 +35,13 @@ LOWER_PRIORITY = 10
 
 _lock = threading.Lock()
 _running: dict[threading.Thread, threading.Event | None] = {}
+
+
+def stop_if(cancelled: Callable[[], bool] | None) -> None:
+    """Raise :class:`~.errors.Cancelled` when ``cancelled`` (a work's cancel check, such as
+    an event's ``is_set``) is given and true: called between a long work's units."""
+    if cancelled is not None and cancelled():
+        raise Cancelled("cancelled by its caller")
 
 
 def start_background(target: Callable[[], None], name: str,

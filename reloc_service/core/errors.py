@@ -31,5 +31,10 @@ class StorageError(RelocError):
     """A saved map is missing, damaged, or written by a newer format version."""
 
 
+class Cancelled(RelocError):
+    """A long computation stopped between its units because its result is no longer wanted
+    (the cancel check it was given turned true); nothing it made is kept."""
+
+
 class NotTrainedError(RelocError):
     """A relocalizer that needs `train()` was asked to relocalize before training."""

@@ -424,7 +424,7 @@ class Residency(ProcessBaseline):
             self._expected.pop(name, None)
             self.registry.close_resident(name, timeout=self.stop_timeout_s)
             del rt   # this frame's reference: the map is freed below, not when _close returns
-            # a pool being made holds the map until it ends (it stops before the next one)
+            # a pool being made holds the map until it stops (at its next keyframe or chunk)
             prepared.wait(self.stop_timeout_s)
             # the map's objects are in reference cycles, and its arrays' freed pages stay in
             # the C heap's arenas unless given back (memory.release_memory)

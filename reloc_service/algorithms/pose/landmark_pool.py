@@ -4,12 +4,14 @@ matches a query against and what guided matching projects into it."""
 from __future__ import annotations
 
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from ...core.background import stop_if
 from ...core.frame import Features, Keyframe
 from ...core.map import MapState
 from .pnp import PointUncertainty
@@ -28,10 +30,17 @@ class LandmarkPool:
     keyframe_rows: npt.NDArray[np.int64]
 
     @classmethod
-    def gather(cls, keyframes: list[Keyframe], kind: str) -> LandmarkPool:
+    def gather(cls, keyframes: list[Keyframe], kind: str,
+               cancelled: Callable[[], bool] | None = None) -> LandmarkPool:
         """Pool ``kind`` landmarks of ``keyframes`` (best first). A landmark seen by several
-        keyframes keeps one row: duplicates would fail Lowe's ratio test against themselves."""
-        feats = [_peek(kf, kind) for kf in keyframes]
+        keyframes keeps one row: duplicates would fail Lowe's ratio test against themselves.
+        :class:`~reloc_service.core.errors.Cancelled` once ``cancelled()`` is true, checked
+        before each keyframe's features are read (for a keyframe loaded from a snapshot, a
+        decoding: most of a large map's gathering)."""
+        feats = []
+        for kf in keyframes:
+            stop_if(cancelled)
+            feats.append(_peek(kf, kind))
         if len(feats) == 1 and feats[0] is not None and len(feats[0]):
             f = feats[0]
             idx = _landmark_rows(f)

@@ -25,10 +25,14 @@ class MapPool:
     keyframe_ids: list[int]
 
     @classmethod
-    def make(cls, state: MapState, kind: str, conf: IndexConf) -> MapPool:
+    def make(cls, state: MapState, kind: str, conf: IndexConf,
+             cancelled: Callable[[], bool] | None = None) -> MapPool:
+        """The pool of ``state``'s ``kind`` landmarks and its index, built;
+        :class:`~reloc_service.core.errors.Cancelled` once ``cancelled()`` is true (checked
+        between the keyframes gathered and the index's chunks: what was made is dropped)."""
         ids = list(state.keyframes)
-        pool = LandmarkPool.gather([state.keyframes[k] for k in ids], kind)
-        return cls(pool, RepetitionIndex.build(pool.descriptors, conf), ids)
+        pool = LandmarkPool.gather([state.keyframes[k] for k in ids], kind, cancelled)
+        return cls(pool, RepetitionIndex.build(pool.descriptors, conf, cancelled=cancelled), ids)
 
     @property
     def nbytes(self) -> int:

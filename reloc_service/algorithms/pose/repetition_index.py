@@ -17,6 +17,7 @@ match, within Lowe's ratio) lie near the query and mostly share its leaves. Pool
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core import features as feature_lib
+from ...core.background import stop_if
 from ..place.vocabulary import VocabularyTree, pairwise_distances
 
 IntArray = npt.NDArray[np.int64]
@@ -72,19 +74,25 @@ class RepetitionIndex:
 
     @classmethod
     def build(cls, descriptors: npt.NDArray[Any], conf: IndexConf = IndexConf(), *,
-              seed: int = 0) -> RepetitionIndex:
-        """The index of pool ``descriptors`` (N, D) (uint8 SIFT or packed ORB bits)."""
+              seed: int = 0, cancelled: Callable[[], bool] | None = None) -> RepetitionIndex:
+        """The index of pool ``descriptors`` (N, D) (uint8 SIFT or packed ORB bits);
+        :class:`~reloc_service.core.errors.Cancelled` once ``cancelled()`` is true, checked
+        before the tree is built and before each chunk of rows is filed under it."""
         empty32, empty64 = np.zeros(0, np.int32), np.zeros(1, np.int64)
         if len(descriptors) <= max(conf.exact_rows, conf.leaf_rows):
             return cls(descriptors, None, empty32, empty64, conf.branches, conf.leaves)
         branching = math.ceil(math.sqrt(len(descriptors) / conf.leaf_rows))
+        stop_if(cancelled)
         rng = np.random.default_rng(seed)
         size = min(len(descriptors), conf.sample_per_leaf * branching * branching)
         sample = descriptors[np.sort(rng.choice(len(descriptors), size, replace=False))]
         tree = VocabularyTree.build(sample, branching=branching, depth=2,
                                     iterations=conf.iterations, rng=rng)
-        words = np.concatenate([_leaves_of(tree, descriptors[s:s + _FILE_CHUNK])
-                                for s in range(0, len(descriptors), _FILE_CHUNK)])
+        filed = []
+        for s in range(0, len(descriptors), _FILE_CHUNK):
+            stop_if(cancelled)
+            filed.append(_leaves_of(tree, descriptors[s:s + _FILE_CHUNK]))
+        words = np.concatenate(filed)
         order = np.argsort(words, kind="stable").astype(np.int32)
         offsets = np.concatenate([[0], np.cumsum(np.bincount(words, minlength=tree.n_words))])
         return cls(descriptors, tree, order, offsets.astype(np.int64), conf.branches,

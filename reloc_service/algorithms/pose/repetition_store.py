@@ -23,12 +23,14 @@ import hashlib
 import io
 import shutil
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from ...core.background import stop_if
 from ...core.errors import StorageError
 from ...core.map import MapState
 from ..place.vocabulary import VocabularyTree
@@ -132,11 +134,13 @@ def stored_kinds(directory: Path) -> list[str]:
                    if "." not in p.name[:-len(suffix)]})
 
 
-def load_index(directory: Path, state: MapState, kind: str, conf: IndexConf
-               ) -> MapPool | None:
+def load_index(directory: Path, state: MapState, kind: str, conf: IndexConf,
+               cancelled: Callable[[], bool] | None = None) -> MapPool | None:
     """The pool of ``state``'s ``kind`` landmarks with the index stored in model directory
     ``directory``; None when none is stored for ``kind`` or it was built for other rows or
-    options (the caller builds it). StorageError naming the file when it is malformed."""
+    options (the caller builds it). StorageError naming the file when it is malformed;
+    :class:`~reloc_service.core.errors.Cancelled` once ``cancelled()`` is true (checked
+    between the file read, each keyframe gathered and the index's checks)."""
     stored = _stored_path(directory / STORE_DIR, kind)
     if stored is None:
         return None
@@ -145,7 +149,8 @@ def load_index(directory: Path, state: MapState, kind: str, conf: IndexConf
     if not np.array_equal(arrays["conf"], _conf_row(conf)):
         return None
     ids = list(state.keyframes)
-    pool = LandmarkPool.gather([state.keyframes[k] for k in ids], kind)
+    pool = LandmarkPool.gather([state.keyframes[k] for k in ids], kind, cancelled)
+    stop_if(cancelled)
     if not np.array_equal(arrays["digest"], pool_digest(pool.descriptors)):
         return None
     index = _index(path, arrays, pool.descriptors, conf)

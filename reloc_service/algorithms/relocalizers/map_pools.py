@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from ...core.errors import StorageError
+from ...core.errors import Cancelled, StorageError
 from ...core.map import MapState
 from ..pose.map_pool import MapPool, held_pool, map_pool
 from ..pose.p3p import P3PPoseFinder
@@ -71,9 +71,10 @@ def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | N
     """Make ``relocalizer``'s pools over ``state`` in the order its steps run (``first``:
     only the first step's), each with the index stored in model directory ``directory``
     where it fits (:func:`..pose.repetition_store.load_index`), else built, unless made
-    already; the kinds whose index was read. Stops before the next pool once
-    ``cancelled()`` is true (the map was closed: a pool made for it would only hold its
-    memory longer)."""
+    already; the kinds whose index was read. Stops once ``cancelled()`` is true (the map
+    was closed: a pool made for it would only hold its memory longer), in the middle of a
+    pool too (between its keyframes and its index's chunks: what was made of it is
+    dropped, never kept for a query)."""
     read = []
     finders = pool_finders(relocalizer)
     for finder in finders[:1] if first else finders:
@@ -83,37 +84,44 @@ def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | N
         if held_pool(state, finder.conf.kind, finder.conf.repetition_index()) is not None:
             continue
         start = time.perf_counter()
-        if _make(finder, state, directory):
-            read.append(finder.conf.kind)
+        try:
+            if _make(finder, state, directory, cancelled):
+                read.append(finder.conf.kind)
+        except Cancelled:
+            log.debug("%s pool of %d keyframes: cancelled after %.2f s", finder.conf.kind,
+                      len(state.keyframes), time.perf_counter() - start)
+            break
         log.info("%s pool of %d keyframes ready in %.2f s (%s)", finder.conf.kind,
                   len(state.keyframes), time.perf_counter() - start,
                   "index read" if read and read[-1] == finder.conf.kind else "made")
     return read
 
 
-def _make(finder: P3PPoseFinder, state: MapState, directory: Path | None) -> bool:
+def _make(finder: P3PPoseFinder, state: MapState, directory: Path | None,
+          cancelled: Callable[[], bool] | None = None) -> bool:
     """Make ``finder``'s pool over ``state`` (unless made) through :func:`.map_pool`, so a
     query asking for it meanwhile waits instead of building its own; whether its index was
-    read from ``directory``."""
+    read from ``directory``. :class:`Cancelled` once ``cancelled()`` is true (nothing kept:
+    a query waiting for it then makes its own)."""
     kind, conf = finder.conf.kind, finder.conf.repetition_index()
     read = False
 
     def make() -> MapPool:
         nonlocal read
-        stored = _stored(directory, state, kind, conf)
+        stored = _stored(directory, state, kind, conf, cancelled)
         read = stored is not None
-        return stored if stored is not None else MapPool.make(state, kind, conf)
+        return stored if stored is not None else MapPool.make(state, kind, conf, cancelled)
 
     map_pool(state, kind, conf, make)
     return read
 
 
-def _stored(directory: Path | None, state: MapState, kind: str, conf: IndexConf
-            ) -> MapPool | None:
+def _stored(directory: Path | None, state: MapState, kind: str, conf: IndexConf,
+            cancelled: Callable[[], bool] | None) -> MapPool | None:
     if directory is None:
         return None
     try:
-        return load_index(directory, state, kind, conf)
+        return load_index(directory, state, kind, conf, cancelled)
     except StorageError as exc:   # its bytes were checked at load: a bug, not damage
         log.error("%s; building the index again", exc)
         return None
