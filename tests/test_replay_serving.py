@@ -80,6 +80,7 @@ def test_a_map_is_served_while_its_backlog_replays_and_a_put_applies_after_it(
             assert replaying, "the map should be served while its journal replays"
             assert total == n + 1 and 0 <= done < total
             events = Events(client)
+            wait_until(lambda: progress(client)[1] >= 1, timeout=30, interval=0.05)  # cam0
             # a put meanwhile waits for the backlog, then is journaled and applied after it
             client.add_keyframe(100, synthetic_scene.keyframe_images[0],
                                 synthetic_scene.keyframe_poses[0], camera_id="cam0")
@@ -154,6 +155,9 @@ def test_sigterm_during_a_served_replay_resumes_and_keeps_every_acknowledged_put
             first_answer = time.monotonic() - start
             replaying, done, total = progress(client)
             assert replaying and total == n + 1
+            # the query names cam0, the journal's first record: served before it is replayed,
+            # the map rightly knows no camera yet (UNKNOWN_CAMERA)
+            wait_until(lambda: progress(client)[1] >= 1, timeout=120, interval=0.1)
             # process mode: the first query starts the worker processes (slow under load)
             client.relocalize(synthetic_scene.query_images[0], camera_id="cam0", timeout=120)
             wait_until(lambda: progress(client)[1] >= 10, timeout=300, interval=0.5)
