@@ -156,6 +156,13 @@ class Writes:
             self.reject(map_name, job.rejected, ident, ErrorCode.BUSY,
                         f"writer queue full ({self.conf.writer_queue_size} puts or "
                         f"{self.conf.writer_queue_bytes} bytes waiting); put again later")
+        else:
+            # Counted once queued: a publisher can tell from the map's status that its puts
+            # reached the service (a status reply says nothing about samples still in flight,
+            # Zenoh orders no query after a put).
+            rt = self.registry.maps.get(map_name)
+            if rt is not None:
+                rt.stats.count(f"{op.name.lower()}_writes_queued")
 
     def reject(self, map_name: str, kind: EventKind, ident: Any, code: ErrorCode,
                message: str) -> None:
