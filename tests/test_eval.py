@@ -134,9 +134,10 @@ def test_machine_info():
 def test_table_rows_and_markdown():
     result = _result()
     (row,) = report.table_rows(result)
-    assert row == ["fake", "20.0", "40.0", "60.0", "20.00", "0.00", "2.0", "1.3", "40.0", "20.0",
-                   "20.0",
-                   "30.0", "49.6"]
+    # cov range: three answers, so the smallest and largest length, holding the true
+    # scale with probability 1 - 2 / 2**3.
+    assert row == ["fake", "20.0", "40.0", "60.0", "20.00", "0.00", "2.0", "1.30",
+                   "0.13-3.90 (75%)", "40.0", "20.0", "20.0", "30.0", "49.6"]
     table = report.format_table(result)
     assert table.splitlines()[0].split()[:2] == ["method", "@5cm/5deg"]
     assert report.format_markdown(result).count("\n") == 2

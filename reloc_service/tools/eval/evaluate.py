@@ -307,6 +307,8 @@ def summarize(records: Sequence[QueryRecord]) -> MethodSummary:
     latency = np.array([r.latency_ms for r in records])
     med_t, med_r = metrics.median_errors(t, rot, ok)
     ranks = [r.rank for r in records if r.rank is not None]
+    mahalanobis = np.array([math.nan if r.t_err_mahalanobis is None else r.t_err_mahalanobis
+                            for r in records])
     return MethodSummary(
         queries=len(records), relocalized=int(ok.sum()), recall=metrics.recalls(t, rot, ok),
         median_t_err_m=med_t, median_r_err_deg=med_r,
@@ -320,9 +322,10 @@ def summarize(records: Sequence[QueryRecord]) -> MethodSummary:
         median_t_err_over_sigma=metrics.error_over_sigma(
             t, np.array([math.nan if r.position_sigma_m is None else r.position_sigma_m
                          for r in records]), ok),
-        covariance_scale=metrics.covariance_scale(
-            [math.nan if r.t_err_mahalanobis is None else r.t_err_mahalanobis
-             for r in records], ok))
+        covariance_scale=metrics.covariance_scale(mahalanobis, ok),
+        **dict(zip(("covariance_scale_low", "covariance_scale_high",
+                    "covariance_scale_coverage"),
+                   metrics.covariance_scale_interval(mahalanobis, ok), strict=True)))
 
 
 def _map_info(backend: Backend, dataset: Dataset, source: LandmarkSource, build_s: float,

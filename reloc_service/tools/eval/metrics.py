@@ -122,6 +122,31 @@ def covariance_scale(mahalanobis: npt.ArrayLike, returned: npt.ArrayLike) -> flo
     return float(np.median(d[use]) / CHI3_MEDIAN) if use.any() else math.nan
 
 
+def covariance_scale_interval(mahalanobis: npt.ArrayLike, returned: npt.ArrayLike,
+                              level: float = 0.95) -> tuple[float, float, float]:
+    """(low, high, coverage): a distribution-free confidence interval of
+    :func:`covariance_scale` from the order statistics of the median. With n answers, the
+    j-th smallest and the j-th largest Mahalanobis lengths bracket the true median with
+    probability 1 - 2 P(Binomial(n, 1/2) < j), whatever their distribution; j is the largest
+    that keeps this at least ``level``. With too few answers for ``level`` (n <= 5 at 95 %),
+    the interval is the smallest and largest length and ``coverage`` says what it reaches:
+    a set of 5 answers cannot tell a scale of 0.58 from 1. NaNs when no answer has a finite
+    length (an infinite one counts: it bounds the interval above)."""
+    (d,), ok = _per_query(returned, d=mahalanobis)
+    with np.errstate(invalid="ignore"):
+        d = np.sort(d[ok & ~np.isnan(d)])
+    n = len(d)
+    if n == 0 or not np.isfinite(d[0]):
+        return math.nan, math.nan, math.nan
+    # P(Binomial(n, 1/2) < j) for j = 0..n, exact in integers.
+    below = np.cumsum([math.comb(n, i) for i in range(n + 1)]) / 2.0**n
+    tail = np.concatenate([[0.0], below[:-1]])
+    fits = np.flatnonzero(1.0 - 2.0 * tail[: n // 2 + 1] >= level)
+    j = max(int(fits[-1]), 1) if len(fits) else 1   # 1-based order statistic
+    coverage = 1.0 - 2.0 * float(tail[j])
+    return float(d[j - 1] / CHI3_MEDIAN), float(d[n - j] / CHI3_MEDIAN), coverage
+
+
 def recalls(t_err_m: npt.ArrayLike, r_err_deg: npt.ArrayLike, returned: npt.ArrayLike,
             thresholds: tuple[tuple[float, float], ...] = RECALL_THRESHOLDS) -> dict[str, float]:
     """``{threshold_key: recall}`` for each (metres, degrees) pair of ``thresholds``."""

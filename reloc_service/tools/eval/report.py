@@ -12,14 +12,14 @@ import numpy as np
 from .metrics import OFF_THRESHOLD, RECALL_THRESHOLDS, WRONG_THRESHOLD, threshold_key
 
 if TYPE_CHECKING:
-    from .results import EvalResult, MethodResult
+    from .results import EvalResult, MethodResult, MethodSummary
 
 _NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
 
 _COLUMNS = (["method"]
             + [f"@{t * 100:g}cm/{r:g}deg" for t, r in RECALL_THRESHOLDS]
-            + ["med t cm", "med r deg", "t err/sigma", "cov scale", "off %", "wrong %", "not reloc %",
-               "p50 ms", "p99 ms"])
+            + ["med t cm", "med r deg", "t err/sigma", "cov scale", "cov range", "off %",
+               "wrong %", "not reloc %", "p50 ms", "p99 ms"])
 
 
 def _pct(x: float) -> str:
@@ -30,6 +30,15 @@ def _num(x: float, scale: float = 1.0, digits: int = 1) -> str:
     return "-" if x is None or math.isnan(x) else f"{x * scale:.{digits}f}"
 
 
+def _range(s: MethodSummary) -> str:
+    """``low-high`` of the cov scale's confidence interval, its coverage when under 95 %."""
+    if math.isnan(s.covariance_scale_low):
+        return "-"
+    text = f"{s.covariance_scale_low:.2f}-{_num(s.covariance_scale_high, 1, 2)}"
+    return text if s.covariance_scale_coverage >= 0.95 else \
+        f"{text} ({100 * s.covariance_scale_coverage:.0f}%)"
+
+
 def table_rows(result: EvalResult) -> list[list[str]]:
     """One row of strings per method, in :data:`_COLUMNS` order (recalls in percent)."""
     rows = []
@@ -38,7 +47,8 @@ def table_rows(result: EvalResult) -> list[list[str]]:
         rows.append([m.method]
                     + [_pct(s.recall[threshold_key(t, r)]) for t, r in RECALL_THRESHOLDS]
                     + [_num(s.median_t_err_m, 100, 2), _num(s.median_r_err_deg, 1, 2),
-                       _num(s.median_t_err_over_sigma, 1, 1), _num(s.covariance_scale, 1, 1),
+                       _num(s.median_t_err_over_sigma, 1, 1), _num(s.covariance_scale, 1, 2),
+                       _range(s),
                        _pct(s.off_rate), _pct(s.wrong_rate),
                        _pct(s.not_relocalized_rate), _num(s.latency_p50_ms),
                        _num(s.latency_p99_ms)])
@@ -94,7 +104,8 @@ def format_header(result: EvalResult) -> str:
         f"beyond {OFF_THRESHOLD[0] * 100:g} cm / {OFF_THRESHOLD[1]:g} deg / "
         f"{WRONG_THRESHOLD[0] * 100:g} cm / {WRONG_THRESHOLD[1]:g} deg (% of all queries); "
         f"cov scale: 1 when the stated covariance fits the errors, 2 when it is twice too "
-        f"confident"])
+        f"confident; cov range: its 95 % confidence interval from the order statistics of "
+        f"the median (the probability it holds, when fewer answers cannot reach 95 %)"])
 
 
 def format_report(result: EvalResult) -> str:

@@ -80,6 +80,12 @@ class MethodSummary:
     #: (:func:`.metrics.covariance_scale`): 1 when the covariance is honest, 2 when its
     #: sigmas are half what the errors show.
     covariance_scale: float = math.nan
+    #: A distribution-free confidence interval of ``covariance_scale`` and the probability
+    #: it holds the true scale (:func:`.metrics.covariance_scale_interval`; 95 % or more
+    #: from 6 answers on, less below).
+    covariance_scale_low: float = math.nan
+    covariance_scale_high: float = math.nan
+    covariance_scale_coverage: float = math.nan
     #: Fraction of all queries answered beyond 25 cm / 10 deg (:func:`.metrics.off_rate`).
     off_rate: float = math.nan
 
