@@ -37,7 +37,6 @@ queries at most build the same table twice.
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -47,9 +46,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ...core.errors import ConfigError, NotTrainedError, StorageError
+from ...core.errors import ConfigError, NotTrainedError
 from ...core.features import FeatureConf
-from ...core.fileio import atomic_write
 from ...core.frame import Frame, Keyframe
 from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
@@ -79,13 +77,10 @@ from .base import (
     result_from_estimate,
 )
 from .ferns_conf import FernsConf
+from .ferns_files import MODEL_FILE, read_ferns, write_ferns
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
-
-FORMAT_VERSION = 1
-_MODEL_FILE = "ferns.npz"
-_META_FILE = "ferns.json"
 
 
 @dataclass(eq=False)
@@ -462,36 +457,20 @@ class FernsRelocalizer(Relocalizer):
                                                trust_unchecked_intrinsics=False)
 
     def save(self, directory: Path) -> None:
-        """Write ``ferns.npz`` (counts, records) and ``ferns.json`` (format, conf, regions)."""
-        directory = Path(directory)
+        """Write the models' files (:mod:`.ferns_files`: counts, records, options, regions)."""
         arrays, models = self._models.to_files()
-        meta = {"format_version": FORMAT_VERSION, "conf": dataclasses.asdict(self.conf),
-                "ever_trained": self._ever_trained, **models}
-        # Uncompressed: zlib takes seconds on ~10^7 counts and gains little on the indices.
-        atomic_write(directory / _MODEL_FILE, lambda f: np.savez(f, **arrays))
-        atomic_write(directory / _META_FILE, json.dumps(meta))
+        write_ferns(directory, arrays, {"conf": dataclasses.asdict(self.conf),
+                                        "ever_trained": self._ever_trained, **models})
 
     def load(self, directory: Path) -> bool:
         """Restore what :meth:`save` wrote; False (nothing changed) if there is none, if it was
         made with other options, or if its keyframes are not those of the map."""
-        directory = Path(directory)
-        if not (directory / _META_FILE).exists() or not (directory / _MODEL_FILE).exists():
+        stored = read_ferns(directory, dataclasses.asdict(self.conf))
+        if stored is None:
             return False
-        try:
-            meta = json.loads((directory / _META_FILE).read_text())
-            version = int(meta["format_version"])
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise StorageError(f"{directory / _META_FILE}: not a ferns model ({exc})") from exc
-        if version > FORMAT_VERSION:
-            raise StorageError(f"{directory / _META_FILE}: format version {version} is newer than "
-                               f"this reader's {FORMAT_VERSION}")
-        if meta.get("conf") != json.loads(json.dumps(dataclasses.asdict(self.conf))):
-            return False
-        state = self.map.snapshot()
-        with np.load(directory / _MODEL_FILE) as npz:
-            arrays = {k: npz[k] for k in npz.files}
-        models = FernModels.from_files(self.conf.models_conf(), self._tests, state, arrays,
-                                       meta, where=str(directory / _MODEL_FILE))
+        arrays, meta = stored
+        models = FernModels.from_files(self.conf.models_conf(), self._tests, self.map.snapshot(),
+                                       arrays, meta, where=str(Path(directory) / MODEL_FILE))
         if models is None:
             return False
         self._places.train()
