@@ -68,6 +68,7 @@ from .worker_process import EngineSpec, ReplicaMap, wait_ready, worker_main
 
 if TYPE_CHECKING:
     from .runtime import MapRuntime
+    from .runtime_state import RuntimeState
 
 log = logging.getLogger(__name__)
 
@@ -219,7 +220,7 @@ class ProcessWorkers:
         for handle in handles:
             handle.send(msg)
 
-    def rebase(self, rt: MapRuntime, handles: list[_Handle] | None = None) -> None:
+    def rebase(self, rt: RuntimeState, handles: list[_Handle] | None = None) -> None:
         """Save ``rt``'s engine and have ``handles`` (default: every worker) load it. Under
         the map's apply lock: no change is applied between the save and the sends."""
         with rt.apply_lock():
