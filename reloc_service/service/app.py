@@ -356,10 +356,8 @@ class Service:
         if kind is QueryKind.KEYFRAMES:
             if rt.replaying:   # a copy holds the whole map or nothing
                 query.reply_err(wire.encode_error(
-                    ErrorCode.BUSY, f"map {map_name!r} is replaying its journal "
-                    f"({rt.status().counters.get('replay_records_done', 0)} records of "
-                    f"{rt.status().counters.get('replay_records_total', 0)}); retry once its "
-                    "status no longer says replaying"))
+                    ErrorCode.BUSY, f"{rt.replay_note()}; retry once its status no longer "
+                    "says replaying"))
                 return
             # Answered by the writer after the puts already received, so a replica that
             # subscribed before asking (bootstrap_from_peers) misses none of them.
@@ -458,8 +456,18 @@ class Service:
     def relocalize_payload(self, rt: MapRuntime, payload: bytes, queued_s: float) -> bytes:
         """RelocalizeRequest bytes -> RelocalizeReply bytes, on a worker process (worker_mode
         "process") or in this thread; a failure raises as :func:`handlers.relocalize` does
-        (ProtocolError with the worker's code). Called from a relocalize pool thread (Zenoh
-        queries, the ROS 2 bridge)."""
+        (ProtocolError with the worker's code), but a camera unknown while the map replays
+        its journal is BUSY (:func:`handlers.camera_not_replayed`). Called from a relocalize
+        pool thread (Zenoh queries, the ROS 2 bridge)."""
+        replaying = rt.replaying   # read first: a replay ending meanwhile may put the camera
+        try:
+            return self._relocalize_payload(rt, payload, queued_s)
+        except ProtocolError as exc:
+            if replaying and exc.code is ErrorCode.UNKNOWN_CAMERA:
+                raise handlers.camera_not_replayed(rt, payload) from exc
+            raise
+
+    def _relocalize_payload(self, rt: MapRuntime, payload: bytes, queued_s: float) -> bytes:
         if self.processes is None:
             return handlers.relocalize(rt, payload, queued_s=queued_s)
         if not self.processes.replica_ready(rt.name):

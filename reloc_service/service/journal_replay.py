@@ -31,6 +31,16 @@ class JournalReplay(MapChanges):
         return {"replay_records_done": report.replayed + report.not_applied,
                 "replay_records_total": self._verdict.to_replay}
 
+    def replay_note(self) -> str:
+        """How far the journal replay is, as a refusal during it says it (a query refused
+        while the replay ran says so even if it completed meanwhile)."""
+        progress = self._replay_progress()
+        if not progress:
+            return f"map {self.name!r} has just replayed its journal"
+        return (f"map {self.name!r} is replaying its journal "
+                f"({progress['replay_records_done']} of {progress['replay_records_total']} "
+                "records replayed)")
+
     # -- restore ---------------------------------------------------------------------------------
     def restore(self, stop: threading.Event | None = None, verdict: Verdict | None = None
                 ) -> int:
