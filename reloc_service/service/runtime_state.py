@@ -120,9 +120,9 @@ class RuntimeState(ServedMap):
         self._snapshot_thread: threading.Thread | None = None
         self.restore_report = RestoreReport()
         self._losses: list[Loss] = []       # what the restore lacks, until accepted
-        #: The journal replay after the snapshot (see :meth:`begin_restore`): where it
-        #: continues from, whether it started, ended (however) and completed; the writers
-        #: hold this map's changes until it completes.
+        #: The journal replay after the snapshot (see :meth:`.JournalReplay.begin_restore`):
+        #: where it continues from, whether it started, ended (however) and completed; the
+        #: writers hold this map's changes until it completes.
         self._verdict: Verdict | None = None
         self._replay_started = False
         self._replay_ended = threading.Event()
