@@ -16,7 +16,15 @@ from pathlib import Path
 import msgpack
 import pytest
 from reloc_client import protocol as wire
-from reloc_client.client import RelocClient, to_wire_camera, to_wire_image, to_wire_pose
+from reloc_client.client import (
+    RelocClient,
+    ServiceBusy,
+    ServiceError,
+    to_wire_camera,
+    to_wire_image,
+    to_wire_pose,
+)
+from reloc_client.protocol import ErrorCode
 from reloc_client.result import RelocStatus
 from service_support import Events, endpoint, free_port, service_conf, wait_until
 from storage_support import answers, connect, serve, write_config
@@ -43,6 +51,24 @@ def numbered_journal(map_dir: Path, scene, n: int) -> None:
                                world_from_cam=to_wire_pose(scene.keyframe_poses[i]),
                                camera_id="cam0").encode()
         store.append({"op": "kf", "id": kf_id, "payload": put})
+    store.close()
+
+
+def camera_last_journal(map_dir: Path, scene, n: int) -> None:
+    """A map directory whose journal holds ``n`` keyframe puts, each with its camera inline,
+    then the put of camera cam1 as its last record (no snapshot)."""
+    store = MapStore(MAP, map_dir)
+    store.journal.identity = uuid.uuid4()
+    store.journal.open()
+    camera = to_wire_camera(scene.camera)
+    for kf_id in range(n):
+        i = kf_id % len(scene.keyframe_images)
+        put = wire.KeyframePut(id=kf_id, image=to_wire_image(scene.keyframe_images[i]),
+                               world_from_cam=to_wire_pose(scene.keyframe_poses[i]),
+                               camera=camera).encode()
+        store.append({"op": "kf", "id": kf_id, "payload": put})
+    store.append({"op": "cam", "id": "cam1",
+                  "payload": wire.CameraPut("cam1", camera).encode()})
     store.close()
 
 
@@ -100,6 +126,44 @@ def test_a_map_is_served_while_its_backlog_replays_and_a_put_applies_after_it(
     assert seqs[100] == n + 2 and max(v for k, v in seqs.items() if k != 100) == n + 1
 
 
+def test_a_camera_not_replayed_yet_is_busy_with_the_replay_progress_not_unknown(
+        synthetic_scene, tmp_path):
+    n = 8
+    storage = tmp_path / "storage"
+    camera_last_journal(storage / MAP, synthetic_scene, n)
+    port = free_port()
+    service = Service(service_conf(port, storage, train_on_load=False, snapshot_every=0,
+                                   worker_mode="thread"))
+    service.start(wait_ready=False)
+    query = synthetic_scene.query_images[0]
+    try:
+        wait_until(lambda: MAP in service.maps, timeout=60, interval=0.01)
+        rt = service.maps[MAP]
+        with RelocClient(endpoint(port), map=MAP, timeout=30) as client:
+            with rt.apply_lock():   # the replay waits before its next record: cam1 is last
+                assert rt.replaying, "replayed too fast to query during it"
+                wait_until(lambda: answers(client), timeout=30, interval=0.05)
+                with pytest.raises(ServiceBusy) as busy:
+                    client.relocalize(query, camera_id="cam1")
+                done = progress(client)[1]
+            assert busy.value.code is ErrorCode.BUSY
+            message = busy.value.message
+            assert "'cam1' is not on map 'backlog' yet" in message
+            assert f"replaying its journal ({done} of {n + 1} records replayed)" in message
+            assert "not replayed yet; retry" in message and "never put" not in message
+            wait_until(lambda: not progress(client)[0], timeout=120, interval=0.1)
+            result = client.relocalize(query, camera_id="cam1")
+            assert result.status in (RelocStatus.OK, RelocStatus.NOT_RELOCALIZED)
+            # once replayed, a camera the map does not hold is final again
+            with pytest.raises(ServiceError) as unknown:
+                client.relocalize(query, camera_id="cam9")
+            assert unknown.value.code is ErrorCode.UNKNOWN_CAMERA
+            assert not isinstance(unknown.value, ServiceBusy)
+            assert "never put" in unknown.value.message
+    finally:
+        service.stop(final_snapshot=False)
+
+
 @pytest.mark.slow
 def test_a_replay_stopped_midway_resumes_where_it_stopped(synthetic_scene, tmp_path):
     n = 8
@@ -155,8 +219,8 @@ def test_sigterm_during_a_served_replay_resumes_and_keeps_every_acknowledged_put
             first_answer = time.monotonic() - start
             replaying, done, total = progress(client)
             assert replaying and total == n + 1
-            # the query names cam0, the journal's first record: served before it is replayed,
-            # the map rightly knows no camera yet (UNKNOWN_CAMERA)
+            # the query names cam0, the journal's first record: before it is replayed, the
+            # map knows no camera yet (BUSY: it may be in the records not replayed)
             wait_until(lambda: progress(client)[1] >= 1, timeout=120, interval=0.1)
             # process mode: the first query starts the worker processes (slow under load)
             client.relocalize(synthetic_scene.query_images[0], camera_id="cam0", timeout=120)

@@ -36,10 +36,10 @@ from . import handlers
 from .codec import error_reply
 from .config import ServiceConf
 from .divergence import DivergenceWatch
+from .lazy_queries import LazyQueries
 from .processes import EngineSpec, ProcessWorkers
 from .registry import MapRegistry
 from .replication import Bootstrap, Peers
-from .residency import dormant_status
 from .runtime import MapRuntime
 from .transfer import Transfers
 from .warm import expected_growth, warm_in_background
@@ -87,6 +87,8 @@ class Service:
         #: The worker processes (worker_mode "process"); they start with the first query.
         self.processes: ProcessWorkers | None = None
         self.control_pool: WorkerPool | None = None
+        #: The first way of every query under a memory budget (``max_resident_mb``).
+        self.lazy: LazyQueries | None = None
         #: Compares the served maps with the peers serving them (a replica's).
         self.watch: DivergenceWatch | None = None
         self.started_at = time.monotonic()
@@ -124,6 +126,11 @@ class Service:
         if residency is None:
             warm_in_background()
         self.control_pool = WorkerPool("control", workers=1, queue_size=CONTROL_QUEUE)
+        if residency is not None:
+            self.lazy = LazyQueries(self.conf, self.registry,
+                                    relocalize_pool=self.relocalize_pool,
+                                    control_pool=self.control_pool,
+                                    relocalize=self._relocalize, on_query=self.on_query)
         self.writes.open()
         if self.registry.residency is not None:   # a map with puts queued stays resident
             pool = self.writes.pool
@@ -331,7 +338,7 @@ class Service:
         if kind is QueryKind.IMPORT:     # the map need not be served (yet)
             self.transfers.on_import(map_name, query)
             return
-        if self.registry.residency is not None and self._on_lazy_query(map_name, kind, query):
+        if self.lazy is not None and self.lazy.take(map_name, kind, query):
             return
         if kind is QueryKind.EXPORT and map_name in self.maps:
             self.transfers.on_export(map_name, query)
@@ -356,10 +363,8 @@ class Service:
         if kind is QueryKind.KEYFRAMES:
             if rt.replaying:   # a copy holds the whole map or nothing
                 query.reply_err(wire.encode_error(
-                    ErrorCode.BUSY, f"map {map_name!r} is replaying its journal "
-                    f"({rt.status().counters.get('replay_records_done', 0)} records of "
-                    f"{rt.status().counters.get('replay_records_total', 0)}); retry once its "
-                    "status no longer says replaying"))
+                    ErrorCode.BUSY, f"{rt.replay_note()}; retry once its status no longer "
+                    "says replaying"))
                 return
             # Answered by the writer after the puts already received, so a replica that
             # subscribed before asking (bootstrap_from_peers) misses none of them.
@@ -373,93 +378,27 @@ class Service:
             rt.stats.count("busy")
             query.reply_err(wire.encode_error(ErrorCode.BUSY, "control queue full; retry"))
 
-    def _on_lazy_query(self, map_name: str, kind: QueryKind, query: PendingQuery) -> bool:
-        """A query on a map that may not be resident (``max_resident_mb``): the status of a
-        dormant map answers from its storage; a relocalize query holds its map resident
-        while it runs, waiting ``cold_load_wait_s`` for a load (then "busy" with a retry
-        hint); any other query on a dormant map loads it, then goes its usual way. False
-        when the query goes its usual way now."""
-        residency = self.registry.residency
-        assert residency is not None and self.control_pool is not None
-        if not residency.known(map_name):
-            return False
-        if kind is QueryKind.RELOCALIZE:
-            assert self.relocalize_pool is not None
-            if not self.relocalize_pool.submit(
-                    lambda queued: self._relocalize_held(map_name, query, queued)):
-                query.reply(handlers.busy_reply(
-                    f"all {self.conf.service.workers} workers busy and "
-                    f"{self.conf.service.queue_size} queries waiting; retry later"))
-                query.finish()
-            return True
-        if map_name in self.maps:
-            return False
-        job = (self._dormant_status if kind is QueryKind.STATUS
-               else self._load_then_dispatch)
-        if not self.control_pool.submit(lambda _queued: job(map_name, kind, query)):
-            query.reply_err(wire.encode_error(ErrorCode.BUSY, "control queue full; retry"))
-        return True
-
-    def _cold_busy(self, map_name: str) -> str:
-        wait = self.conf.service.cold_load_wait_s
-        return (f"map {map_name!r} is being loaded from storage (not resident; waited "
-                f"{wait:g} s); retry in a few seconds")
-
-    def _relocalize_held(self, map_name: str, query: PendingQuery, queued_s: float) -> None:
-        residency = self.registry.residency
-        assert residency is not None
-        try:
-            rt = residency.acquire(map_name, self.conf.service.cold_load_wait_s)
-        except Exception as exc:   # its load failed: STORAGE_ERROR with the reason
-            query.reply_err(error_reply(exc))
-            query.finish()
-            return
-        if rt is None:
-            query.reply(handlers.busy_reply(self._cold_busy(map_name)))
-            query.finish()
-            return
-        try:
-            self._relocalize(rt, query, queued_s)
-        finally:
-            residency.release(map_name)
-
     def _memory_counters(self) -> dict[str, int]:
         """The memory budget's figures every status carries (``max_resident_mb`` > 0)."""
         residency = self.registry.residency
         return {} if residency is None else residency.memory_counters()
 
-    def _dormant_status(self, map_name: str, kind: QueryKind, query: PendingQuery) -> None:
-        try:
-            rt = self.maps.get(map_name)   # loaded meanwhile: its own status
-            reply = rt.status() if rt is not None else dormant_status(self.registry, map_name)
-            query.reply(handlers.with_counters(reply, self._memory_counters()).encode())
-        except Exception as exc:
-            query.reply_err(error_reply(exc))
-        finally:
-            query.finish()
-
-    def _load_then_dispatch(self, map_name: str, kind: QueryKind, query: PendingQuery) -> None:
-        residency = self.registry.residency
-        assert residency is not None
-        try:
-            rt = residency.acquire(map_name, self.conf.service.cold_load_wait_s)
-        except Exception as exc:
-            query.reply_err(error_reply(exc))
-            query.finish()
-            return
-        if rt is None:
-            query.reply_err(wire.encode_error(ErrorCode.BUSY, self._cold_busy(map_name)))
-            query.finish()
-            return
-        residency.release(map_name)
-        self.on_query(map_name, kind, query)   # resident now: its usual way
-
     # -- query jobs (worker threads) -------------------------------------------------------------
     def relocalize_payload(self, rt: MapRuntime, payload: bytes, queued_s: float) -> bytes:
         """RelocalizeRequest bytes -> RelocalizeReply bytes, on a worker process (worker_mode
         "process") or in this thread; a failure raises as :func:`handlers.relocalize` does
-        (ProtocolError with the worker's code). Called from a relocalize pool thread (Zenoh
-        queries, the ROS 2 bridge)."""
+        (ProtocolError with the worker's code), but a camera unknown while the map replays
+        its journal is BUSY (:func:`handlers.camera_not_replayed`). Called from a relocalize
+        pool thread (Zenoh queries, the ROS 2 bridge)."""
+        replaying = rt.replaying   # read first: a replay ending meanwhile may put the camera
+        try:
+            return self._relocalize_payload(rt, payload, queued_s)
+        except ProtocolError as exc:
+            if replaying and exc.code is ErrorCode.UNKNOWN_CAMERA:
+                raise handlers.camera_not_replayed(rt, payload) from exc
+            raise
+
+    def _relocalize_payload(self, rt: MapRuntime, payload: bytes, queued_s: float) -> bytes:
         if self.processes is None:
             return handlers.relocalize(rt, payload, queued_s=queued_s)
         if not self.processes.replica_ready(rt.name):

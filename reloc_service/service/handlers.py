@@ -103,6 +103,18 @@ def relocalize_reply(rt: QueryMap, payload: bytes, *, queued_s: float = 0.0
     return reply_from_result(answer).encode(), result.ok, timings["total"]
 
 
+def camera_not_replayed(rt: MapRuntime, payload: bytes) -> ProtocolError:
+    """BUSY for RelocalizeRequest bytes whose ``camera_id`` the map did not know while its
+    journal replayed: the camera may be put in the records not replayed yet, so "never put"
+    would be wrong, and BUSY is what a client retries (UNKNOWN_CAMERA it takes as final)."""
+    camera_id = wire.RelocalizeRequest.decode(payload, rt.limits).camera_id
+    return ProtocolError(ErrorCode.BUSY,
+                         f"relocalize.camera_id: camera {camera_id!r} is not on map "
+                         f"{rt.name!r} yet: {rt.replay_note()}, and the camera may be put in "
+                         "the records not replayed yet; retry in a few seconds (the map's "
+                         "status says replaying until its journal is replayed)")
+
+
 def busy_reply(reason: str) -> bytes:
     """A RelocalizeReply with status ``busy`` (the queue is full)."""
     return wire.RelocalizeReply(wire.ReplyStatus.BUSY, reason=reason).encode()

@@ -45,13 +45,11 @@ import logging
 import multiprocessing
 import os
 import shutil
-import signal
 import tempfile
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from multiprocessing.connection import Connection
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -64,10 +62,12 @@ from . import worker_process
 from .map_dirs import map_dirname
 from .memory import descendants
 from .served import WriteOp
+from .worker_handle import WorkerHandle, terminate
 from .worker_process import EngineSpec, ReplicaMap, wait_ready, worker_main
 
 if TYPE_CHECKING:
     from .runtime import MapRuntime
+    from .runtime_state import RuntimeState
 
 log = logging.getLogger(__name__)
 
@@ -76,37 +76,6 @@ STOP_GRACE_S = 3.0
 
 __all__ = ["EngineSpec", "ProcessWorkers", "RemoteAnswer", "ReplicaMap", "SCRATCH_PREFIX",
            "remove_stale_scratch"]
-
-
-@dataclass
-class _Handle:
-    """One worker process and the parent's end of its pipe."""
-
-    process: Any
-    conn: Connection
-    send_lock: threading.Lock = field(default_factory=threading.Lock)
-    dead: bool = False
-
-    def send(self, msg: tuple[Any, ...]) -> bool:
-        """Send ``msg``; False if the worker is gone (the pipe is closed)."""
-        with self.send_lock:
-            if self.dead:
-                return False
-            try:
-                self.conn.send(msg)
-                return True
-            except (OSError, ValueError):
-                self.dead = True
-                return False
-
-    def exit_description(self) -> str:
-        self.process.join(1.0)
-        code = self.process.exitcode
-        if code is None:
-            return "stopped answering"
-        if code < 0:
-            return f"was killed by signal {signal.Signals(-code).name}"
-        return f"exited with status {code}"
 
 
 @dataclass
@@ -168,8 +137,8 @@ class ProcessWorkers:
         self._ctx.set_forkserver_preload([worker_process.__name__])
         self._lock = threading.Lock()                 # handles, idle list, bases, maps
         self._start_lock = threading.Lock()           # the first start of the workers
-        self._handles: list[_Handle] = []
-        self._idle: list[_Handle] = []
+        self._handles: list[WorkerHandle] = []
+        self._idle: list[WorkerHandle] = []
         self._idle_ready = threading.Condition(self._lock)
         self._maps: dict[str, MapRuntime] = {}
         self._bases: dict[int, _Base] = {}            # id -> base (several may be in flight)
@@ -219,7 +188,7 @@ class ProcessWorkers:
         for handle in handles:
             handle.send(msg)
 
-    def rebase(self, rt: MapRuntime, handles: list[_Handle] | None = None) -> None:
+    def rebase(self, rt: RuntimeState, handles: list[WorkerHandle] | None = None) -> None:
         """Save ``rt``'s engine and have ``handles`` (default: every worker) load it. Under
         the map's apply lock: no change is applied between the save and the sends."""
         with rt.apply_lock():
@@ -294,7 +263,7 @@ class ProcessWorkers:
         no query, so its pipe holds nothing else), without blocking."""
         with self._idle_ready:
             idle, self._idle = self._idle, []
-        done: list[tuple[str, _Handle]] = []
+        done: list[tuple[str, WorkerHandle]] = []
         try:
             for handle in idle:
                 try:
@@ -353,7 +322,7 @@ class ProcessWorkers:
         with self._lock:
             return self._in_flight
 
-    def _receive(self, handle: _Handle, token: int) -> RemoteAnswer | None:
+    def _receive(self, handle: WorkerHandle, token: int) -> RemoteAnswer | None:
         """The answer to query ``token`` (load acknowledgements read on the way); None if the
         worker died."""
         while True:
@@ -372,7 +341,7 @@ class ProcessWorkers:
             else:
                 return RemoteAnswer(msg[2], error=True)
 
-    def _borrow(self) -> _Handle:
+    def _borrow(self) -> WorkerHandle:
         """An idle worker, live: one found dead is replaced first (an exception here, a
         worker that does not start, becomes the query's error reply)."""
         self._ensure_started()
@@ -388,7 +357,7 @@ class ProcessWorkers:
             self._give_back(handle)   # still dead: the next query tries again
             raise
 
-    def _give_back(self, handle: _Handle) -> None:
+    def _give_back(self, handle: WorkerHandle) -> None:
         with self._idle_ready:
             self._idle.append(handle)
             self._idle_ready.notify()
@@ -418,7 +387,7 @@ class ProcessWorkers:
                     for handle in handles:
                         self._handles.remove(handle)
                 for handle in handles:
-                    _terminate(handle)
+                    terminate(handle)
                 raise
         if self.on_started is not None:   # warmed up, before any replica: no map in them
             self.on_started(descendants())
@@ -428,21 +397,21 @@ class ProcessWorkers:
             self._idle.extend(handles)
             self._idle_ready.notify_all()
 
-    def _replace(self, dead: _Handle) -> _Handle:
+    def _replace(self, dead: WorkerHandle) -> WorkerHandle:
         """A new worker (with fresh bases of every map) in place of ``dead``."""
         self._drop(dead)
         if self._closed:
             raise RuntimeError("the service is stopping")
         return self._spawn_one()
 
-    def _spawn_one(self) -> _Handle:
+    def _spawn_one(self) -> WorkerHandle:
         handle = self._new_process()
         with self._lock:
             closed = self._closed
             if not closed:
                 self._handles.append(handle)
         if closed:   # close() has stopped the workers it listed: this one is not among them
-            _terminate(handle)
+            terminate(handle)
             raise RuntimeError("the service is stopping")
         for rt in self._attached():
             self.rebase(rt, [handle])
@@ -452,17 +421,17 @@ class ProcessWorkers:
         with self._lock:
             return list(self._maps.values())
 
-    def _new_process(self) -> _Handle:
+    def _new_process(self) -> WorkerHandle:
         """A new worker process, warmed up (:func:`.worker_process.wait_ready`)."""
         handle = self._start_process()
         try:
             wait_ready(handle.process, handle.conn)
         except BaseException:
-            _terminate(handle)
+            terminate(handle)
             raise
         return handle
 
-    def _start_process(self) -> _Handle:
+    def _start_process(self) -> WorkerHandle:
         parent_end, child_end = self._ctx.Pipe()
         with self._lock:
             index = len(self._handles)
@@ -470,9 +439,9 @@ class ProcessWorkers:
                                     name=f"reloc-relocalize-{index}", daemon=True)
         process.start()
         child_end.close()   # the worker's end lives in the worker only: its death means EOF
-        return _Handle(process, parent_end)
+        return WorkerHandle(process, parent_end)
 
-    def _drop(self, handle: _Handle) -> None:
+    def _drop(self, handle: WorkerHandle) -> None:
         handle.dead = True
         with self._lock:
             if handle in self._handles:
@@ -480,9 +449,9 @@ class ProcessWorkers:
             bases = list(self._bases.values())
         for base in bases:
             self._base_done(str(base.path), handle)
-        _terminate(handle)
+        terminate(handle)
 
-    def _base_done(self, path: str, handle: _Handle) -> None:
+    def _base_done(self, path: str, handle: WorkerHandle) -> None:
         with self._lock:
             for key, base in list(self._bases.items()):
                 if str(base.path) == path:
@@ -508,7 +477,7 @@ class ProcessWorkers:
         deadline = time.monotonic() + STOP_GRACE_S
         for handle in handles:
             handle.process.join(max(0.0, deadline - time.monotonic()))
-            _terminate(handle)
+            terminate(handle)
         if reviver is not None:   # a replacement it is starting is terminated by itself
             reviver.join(max(0.0, deadline - time.monotonic()) + STOP_GRACE_S)
         shutil.rmtree(self._scratch, ignore_errors=True)
@@ -516,16 +485,3 @@ class ProcessWorkers:
 
 def _internal(message: str) -> RemoteAnswer:
     return RemoteAnswer(wire.encode_error(ErrorCode.INTERNAL, message), error=True)
-
-
-def _terminate(handle: _Handle) -> None:
-    """Make sure ``handle``'s process is gone (SIGTERM, then SIGKILL) and reaped."""
-    process = handle.process
-    if process.is_alive():
-        process.terminate()
-        process.join(1.0)
-    if process.is_alive():
-        process.kill()
-        process.join(1.0)
-    handle.conn.close()
-
