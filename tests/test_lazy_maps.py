@@ -333,6 +333,28 @@ def test_worker_processes_drop_the_replica_of_a_closed_map(template, synthetic_s
         service.stop()
 
 
+def test_worker_processes_start_after_the_first_answer(template, synthetic_scene, tmp_path):
+    """With maps loaded on first use no map is held at start: `reloc serve`'s early start of
+    the worker processes is skipped (their spawn and imports would slow the first query's
+    cold load); the service answers the first query itself, then starts them."""
+    storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
+    port = free_port()
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB, worker_mode="process",
+                           workers=1)).start()
+    try:
+        processes = service.processes
+        assert processes is not None
+        service.start_workers_in_background()   # as `reloc serve` does after its start
+        assert "start-workers" not in {t.name for t in threading.enumerate()}
+        assert processes.pids() == []
+        with RelocClient(endpoint(port), map="alpha", timeout=60) as client:
+            pose_of(client, synthetic_scene, 0)
+            assert client.status().counters["relocalize_in_service"] == 1
+        wait_until(lambda: len(processes.pids()) == 1, timeout=60)
+    finally:
+        service.stop()
+
+
 def test_worker_processes_replicas_count_against_the_budget(template, synthetic_scene,
                                                             tmp_path):
     """With worker processes each resident map is held twice (the service's map, the

@@ -298,8 +298,10 @@ def test_stop_leaves_no_worker_process(synthetic_scene):
             _get_all(session, wire.keys.relocalize("reloc", MAP),
                      [_request(synthetic_scene.query_images[0])])
         assert service.processes is not None
-        pids = service.processes.pids()
-        assert len(pids) == 2 and all(_alive(p) for p in pids)
+        procs = service.processes   # started once that first answer was made
+        wait_until(lambda: len(procs.pids()) == 2, timeout=60)
+        pids = procs.pids()
+        assert all(_alive(p) for p in pids)
     finally:
         service.stop(final_snapshot=False)
     for pid in pids:

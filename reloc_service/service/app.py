@@ -237,8 +237,11 @@ class Service:
     def start_workers_in_background(self) -> None:
         """Start the relocalize worker processes (worker_mode "process") on a thread once
         every map is restored (each worker loads them all), so that the first query does not
-        wait for them; without this they start with the first query. No-op in thread mode."""
-        if self.processes is not None:
+        wait for them; without this they start after the first query's answer. No-op in
+        thread mode, and with maps loaded on first use (``max_resident_mb``): no map is held
+        at start then, and the workers' spawn and imports (seconds of CPU) would only slow
+        the first query's cold load and answer, which the service makes itself anyway."""
+        if self.processes is not None and self.registry.residency is None:
             self._starter = threading.Thread(target=self._start_workers, name="start-workers",
                                              daemon=True)
             self._starter.start()
@@ -404,10 +407,13 @@ class Service:
         if not self.processes.replica_ready(rt.name):
             # Answered here, as a worker's replica would answer it (:mod:`.served`), rather
             # than after the workers' start and their own load of the map: seconds after a
-            # start or a cold load.
-            self.processes.start_in_background()
+            # start or a cold load. Workers not started yet (or found dead) start once this
+            # answer is made, not beside it: their spawn and imports would slow it down.
             rt.stats.count("relocalize_in_service")
-            return handlers.relocalize(rt, payload, queued_s=queued_s)
+            try:
+                return handlers.relocalize(rt, payload, queued_s=queued_s)
+            finally:
+                self.processes.start_in_background()
         answer = self.processes.relocalize(rt.name, payload, queued_s)
         if answer.error:
             error = wire.decode_error_reply(answer.payload)

@@ -106,11 +106,15 @@ class MapRegistry:
     def maps_to_restore(self) -> list[str]:
         """Check the storage root, then the stored and configured maps, each once, the
         cheapest restore first (fewest journal bytes to replay)."""
+        start = time.perf_counter()
         if self.storage is not None:
             check_storage(self.storage)
             self.lock_storage()
         stored = [] if self.storage is None else stored_map_names(self.storage)
-        return self._restore_order(stored + sorted(self.conf.maps))
+        names = self._restore_order(stored + sorted(self.conf.maps))
+        log.info("%d maps found in %.2f s (%d stored in %s)", len(names),
+                 time.perf_counter() - start, len(stored), self.storage)
+        return names
 
     def lock_storage(self) -> None:
         """Own the storage directory for this process's lifetime (before any map is opened);
@@ -143,7 +147,10 @@ class MapRegistry:
         warm-up still to come (:meth:`.residency.Residency.count_service_baseline`)."""
         assert self.residency is not None
         self.residency.count_service_baseline(warm_up_growth)   # before any map is loaded
+        start = time.perf_counter()
         self.residency.register(names, self._declare)
+        log.info("%d maps declared in %.2f s, each loaded on its first use", len(names),
+                 time.perf_counter() - start)
         self._ready.set()
 
     def known(self, name: str) -> bool:
