@@ -122,6 +122,12 @@ class MultiRelocalizer(Relocalizer):
         #: is as likely the true place, and there the query's camera disagrees with the
         #: correspondences. Off: a refused alternative is dropped like any unverified one.
         weigh_refused_alternatives: bool = False
+        #: In a fallback chain, refuse this step's pose where the chain held it as a
+        #: contender for its underpowered intrinsics test (the data cannot exclude a camera
+        #: that moves it beyond 3 sigma: :func:`..pose.intrinsics_power.estimate_underpowered`)
+        #: and no later step verified a pose to weigh it against: nothing then vouches for
+        #: the given camera. Off: the contender answers.
+        refuse_unweighed_underpowered: bool = False
 
         def __post_init__(self) -> None:
             if self.num_candidates < 1 or self.max_groups < 1:
