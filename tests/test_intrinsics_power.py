@@ -32,6 +32,7 @@ from reloc_service.algorithms.relocalizers.base import (
     verify,
 )
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
+from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
 from reloc_service.core.frame import Frame
 from reloc_service.core.map import KeyframeMap
 
@@ -155,6 +156,44 @@ def test_an_underpowered_answer_is_left_to_a_step_with_other_features():
     result = ChainRelocalizer(kmap, [AnsweringStep(kmap, strong_est, kind="orb"),
                                      _RefusingSift(kmap)]).relocalize(query_frame())
     assert result.ok and result.method == "answering:orb"
+
+
+class _FailingSift(Relocalizer):
+    """A SIFT step that verifies no pose (so it weighs no contender)."""
+
+    name = "failing"
+    method = "failing:sift"
+    required_features = frozenset({"sift"})
+
+    def add_keyframe(self, keyframe) -> None:
+        pass
+
+    def remove_keyframe(self, keyframe) -> None:
+        pass
+
+    def relocalize(self, query, *, prior=None, hypotheses=1) -> RelocResult:
+        return RelocResult.failure(self.method, "too few inliers (3 < 12)")
+
+
+def test_an_underpowered_contender_no_later_step_weighs_is_refused_where_asked():
+    """An ORB pose whose test lacks power, held for the SIFT step's opinion: where that
+    step verifies nothing, the contender answers by default; with
+    ``refuse_unweighed_underpowered`` it is refused, saying why and what the later step
+    said. A pose whose test has the power answers either way."""
+    rng = np.random.default_rng(4)
+    weak = weakly_checked_estimate(rng)
+    kmap = KeyframeMap()
+    on = MultiRelocalizer.Conf(refuse_unweighed_underpowered=True)
+    held = ChainRelocalizer(kmap, [AnsweringStep(kmap, weak, kind="orb"), _FailingSift(kmap)])
+    assert held.relocalize(query_frame()).ok
+    refused = ChainRelocalizer(kmap, [AnsweringStep(kmap, weak, kind="orb", conf=on),
+                                      _FailingSift(kmap)]).relocalize(query_frame())
+    assert not refused.ok and refused.method == "answering:orb"
+    assert "intrinsics unconfirmed" in refused.reason and "too few inliers" in refused.reason
+    strong_est = settled(*judged(*correspondences(ROOM, 400, 0.3, rng), ROOM))
+    strong = ChainRelocalizer(kmap, [AnsweringStep(kmap, strong_est, kind="orb", conf=on),
+                                     _FailingSift(kmap)]).relocalize(query_frame())
+    assert strong.ok and strong.method == "answering:orb"
 
 
 def test_a_view_off_one_plane_that_cannot_check_the_intrinsics_is_refused():

@@ -6,15 +6,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from reloc_client.result import RelocResult
 
 from reloc_service.algorithms.pose.base import PoseEstimate, Support
 from reloc_service.algorithms.pose.guided import project_into
 from reloc_service.algorithms.pose.support import explained_keypoints
+from reloc_service.algorithms.relocalizers.base import INTRINSICS_REFUSAL
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer
 from reloc_service.algorithms.relocalizers.uniqueness import (
     choose,
     compare,
     fits_consensus,
+    refusing_rival,
     same_solution,
     solutions,
 )
@@ -103,6 +106,35 @@ def test_the_hypothesis_that_beats_every_other_wins_else_ambiguous() -> None:
                         weak2], alpha=0.01)
     assert tie.index is None
     assert tie.reason.startswith("ambiguous: 3 different poses") and "1.20 m" in tie.reason
+
+
+def test_a_refused_copy_the_answer_does_not_out_explain_refuses_the_query() -> None:
+    """A hypothesis whose intrinsics test refused the camera is weighed as a rival: the
+    answer stands where it explains significantly more keypoints, else the refusal does
+    (saying which pose and by how much); the answer's own place is no rival."""
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(-0.4, 0.4, 200), rng.uniform(-0.3, 0.3, 200),
+                              np.zeros(200)])
+    answer = estimate(downward_pose(0.0, 0.0, 1.0), points)
+    copy = estimate(downward_pose(0.6, 0.0, 1.0), points + [0.6, 0.0, 0.0])
+    near = estimate(downward_pose(0.002, 0.0, 1.0), points)
+    refusal = RelocResult.failure("bow+p3p", f"{INTRINSICS_REFUSAL}: focal 870.0 px "
+                                  "estimated, 1000.0 given (p = 1.0e-09)")
+    base = range(300)
+    supports = {id(answer): support([*base, *range(1000, 1100)]),
+                id(copy): support([*base, *range(2000, 2010)]),
+                id(near): support(base)}
+    kw = dict(camera=CAMERA, support=lambda e: supports[id(e)], close=lambda x, y: False,
+              alpha=0.01)
+    assert refusing_rival(answer, [(refusal, copy), (refusal, near)], **kw) is None
+    supports[id(copy)] = support([*base, *range(2000, 2090)])  # 100 vs 90: no clear winner
+    found = refusing_rival(answer, [(refusal, near), (refusal, copy)], **kw)
+    assert found is not None and found[1] is copy
+    assert found[2].startswith(INTRINSICS_REFUSAL) and "0.60 m" in found[2]
+    assert "100 vs 90 query keypoints" in found[2]
+    supports[id(copy)] = None  # cannot be compared: the answer cannot vouch for itself
+    assert refusing_rival(answer, [(refusal, copy)], **kw) is not None
+    assert refusing_rival(answer, [], **kw) is None
 
 
 def repeated_texture() -> np.ndarray:

@@ -115,6 +115,7 @@ class ChainRelocalizer(Relocalizer):
         map_version = self.map.version
         contender: Contender | None = None
         contender_step: Relocalizer = self.steps[0]
+        held_underpowered = False
         refusals: list[Refusal] = []
         earlier: list[StepEstimate] = []  # the intrinsics tests of refusals and contenders
         try:
@@ -144,6 +145,7 @@ class ChainRelocalizer(Relocalizer):
                 if result.ok and contender is None and i + 1 < len(self.steps) \
                         and (_narrow(step, answered) or self._underpowered(i, answered)):
                     contender, contender_step = Contender(result, answered), step
+                    held_underpowered = not _narrow(step, answered)
                     query.cache[CONTENDER] = contender
                     _note_estimate(earlier, step, answered.intrinsics, answered)
                     continue
@@ -152,6 +154,9 @@ class ChainRelocalizer(Relocalizer):
                 reasons.append(f"{step.method}: {result.reason}")
         finally:
             query.cache.pop(CONTENDER, None)
+        if contender is not None and held_underpowered and getattr(
+                getattr(contender_step, "conf", None), "refuse_unweighed_underpowered", False):
+            return _unconfirmed(contender_step, contender.result, reasons, timings)
         if contender is not None:
             return _confirmed(query, contender_step, contender.result, contender.estimate,
                               refusals, earlier, timings)
@@ -259,6 +264,20 @@ def _confirmed(query: Frame, step: Relocalizer, result: RelocResult,
                                    weigh=rivals) or result
     result.timings = timings
     return result
+
+
+def _unconfirmed(step: Relocalizer, held: RelocResult, reasons: list[str],
+                 timings: dict[str, float]) -> RelocResult:
+    """The refusal of ``step``'s answer ``held``, a contender held for its underpowered
+    intrinsics test that no later step weighed, with the later steps' ``reasons``."""
+    why = (f"{step.method}: intrinsics unconfirmed: its test cannot exclude a camera that "
+           f"moves the pose beyond 3 sigma, and no later step verified a pose to weigh it "
+           f"against ({'; '.join(reasons) or 'none ran'})")
+    return RelocResult.failure(step.method, why, inliers=held.inliers,
+                               num_matches=held.num_matches,
+                               reprojection_rms_px=held.reprojection_rms_px,
+                               matched_keyframe_ids=held.matched_keyframe_ids,
+                               timings=timings, map_version=held.map_version)
 
 
 def _note_estimate(earlier: list[StepEstimate], step: Relocalizer,

@@ -114,6 +114,23 @@ class MultiRelocalizer(Relocalizer):
         #: and the group's intrinsics test is saved. Applies only where one hypothesis is
         #: asked for and no agreement is required (both read every verified group).
         skip_duplicate_settle: bool = True
+        #: With ``unique``, weigh the repetition alternatives whose intrinsics test refused
+        #: the query's camera as rivals of the answer: the answer stands only where it
+        #: explains significantly more of the query than each (:func:`.uniqueness.compare`
+        #: at the verification's wrong-pose budget); else the query is refused with that
+        #: alternative's intrinsics refusal. An alternative the answer does not out-explain
+        #: is as likely the true place, and there the query's camera disagrees with the
+        #: correspondences. Off: a refused alternative is dropped like any unverified one
+        #: (with the right camera no answer of the 18 evaluation sets changes: the 2
+        #: refused alternatives met were out-explained; room-hard with a focal 15 % long:
+        #: query 8's 98 cm / 139 deg pose is refused).
+        weigh_refused_alternatives: bool = True
+        #: In a fallback chain, refuse this step's pose where the chain held it as a
+        #: contender for its underpowered intrinsics test (the data cannot exclude a camera
+        #: that moves it beyond 3 sigma: :func:`..pose.intrinsics_power.estimate_underpowered`)
+        #: and no later step verified a pose to weigh it against: nothing then vouches for
+        #: the given camera. Off: the contender answers.
+        refuse_unweighed_underpowered: bool = False
 
         def __post_init__(self) -> None:
             if self.num_candidates < 1 or self.max_groups < 1:
@@ -367,8 +384,8 @@ class MultiRelocalizer(Relocalizer):
         best = verified[0]
         if self.conf.unique:
             start = time.perf_counter()
-            verified, found = self._with_alternatives(query, state, verified,
-                                                      [e for e in estimates if e is not None])
+            verified, found, refused = self._with_alternatives(
+                query, state, verified, [e for e in estimates if e is not None])
             if contender is not None:  # an earlier step's answer, weighed by these features
                 contender.weighed = True
                 if not _explains(found[0], contender.estimate, query):
@@ -381,6 +398,10 @@ class MultiRelocalizer(Relocalizer):
                 return RelocResult.failure(self.method, chosen.reason, timings=timings,
                                            map_version=state.version,
                                            matched_keyframe_ids=best.matched_keyframe_ids)
+            rival = self._refusing_rival(query, state, found[chosen.index], refused)
+            if rival is not None:
+                rival.timings = timings
+                return rival
             best = verified[chosen.index]
             query.cache[ANSWERED] = found[chosen.index]
         best.timings = timings
@@ -390,10 +411,14 @@ class MultiRelocalizer(Relocalizer):
 
     def _with_alternatives(self, query: Frame, state: MapState, verified: list[RelocResult],
                            estimates: list[PoseEstimate]
-                           ) -> tuple[list[RelocResult], list[PoseEstimate]]:
+                           ) -> tuple[list[RelocResult], list[PoseEstimate],
+                                      list[tuple[RelocResult, PoseEstimate]]]:
         """``verified`` and their ``estimates`` followed by the alternatives a repetition of
-        the map around the first offers (:meth:`PoseFinder.alternatives`) that verify."""
+        the map around the first offers (:meth:`PoseFinder.alternatives`) that verify; and
+        the alternatives whose intrinsics test refused the query's camera, each with its
+        refusal (with ``conf.weigh_refused_alternatives``; else none)."""
         verified, estimates = list(verified), list(estimates)
+        refused: list[tuple[RelocResult, PoseEstimate]] = []
         plausible = functools.partial(plausible_first_pose, conf=self.verify_conf)
         for alternative in self.pose.alternatives(query, estimates[0], state,
                                                   plausible=plausible):
@@ -403,7 +428,28 @@ class MultiRelocalizer(Relocalizer):
             if result.ok:
                 verified.append(result)
                 estimates.append(alternative)
-        return verified, estimates
+            elif self.conf.weigh_refused_alternatives and refuses_the_query(result):
+                refused.append((result, alternative))
+        return verified, estimates, refused
+
+    def _refusing_rival(self, query: Frame, state: MapState, answer: PoseEstimate,
+                        refused: list[tuple[RelocResult, PoseEstimate]]) -> RelocResult | None:
+        """The refusal of the first ``refused`` alternative ``answer`` does not out-explain
+        (:func:`.uniqueness.refusing_rival`), left on ``query`` for a chain; None where
+        ``answer`` beats every one."""
+        found = uniqueness.refusing_rival(
+            answer, refused, query.camera,
+            lambda est: self.pose.support(query, est.world_from_cam, state), self._agree,
+            alpha=self.verify_conf.max_false_alarms)
+        if found is None:
+            return None
+        result, alternative, why = found
+        leave_refused(query, alternative)
+        return RelocResult.failure(self.method, why, inliers=result.inliers,
+                                   num_matches=result.num_matches,
+                                   reprojection_rms_px=result.reprojection_rms_px,
+                                   matched_keyframe_ids=result.matched_keyframe_ids,
+                                   map_version=state.version)
 
     def _unique(self, query: Frame, state: MapState, estimates: list[PoseEstimate]
                 ) -> uniqueness.Choice:

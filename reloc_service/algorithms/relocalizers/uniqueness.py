@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from reloc_client.result import RelocResult
 
 from ...core import distributions as stats
 from ...core.cameras import Camera
@@ -171,3 +172,33 @@ def decide(estimates: Sequence[PoseEstimate], camera: Camera,
                             "them by")
     chosen = choose(firsts, known, alpha=alpha)
     return chosen if chosen.index is None else Choice(groups[chosen.index][0])
+
+
+def refusing_rival(answer: PoseEstimate, refused: Sequence[tuple[RelocResult, PoseEstimate]],
+                   camera: Camera, support: Callable[[PoseEstimate], Support | None],
+                   close: Callable[[PoseEstimate, PoseEstimate], bool], *, alpha: float
+                   ) -> tuple[RelocResult, PoseEstimate, str] | None:
+    """The first of the ``refused`` hypotheses (each an intrinsics refusal of the query's
+    camera and the estimate it refused) of another solution than ``answer`` whose support
+    ``answer``'s does not beat at level ``alpha`` (:func:`compare`), with the refusal's
+    reason saying so; None where ``answer`` beats every one. Such a hypothesis is as likely
+    the true place as the answer, and there the correspondences disagree with the camera:
+    the answer cannot vouch for it (one that cannot be compared, without support, does not
+    either)."""
+    mine = None
+    for result, estimate in refused:
+        if close(answer, estimate) or same_solution(answer, estimate, camera, alpha=alpha):
+            continue  # the answer's own place, whose own test passed
+        mine = support(answer) if mine is None else mine
+        theirs = support(estimate)
+        c = None if mine is None or theirs is None else compare(mine, theirs)
+        if c is not None and c.p_first < alpha:
+            continue
+        dist, angle = pose_error(answer.world_from_cam, estimate.world_from_cam)
+        weighed = ("no features to compare them by" if c is None else
+                   f"{c.only_first} vs {c.only_second} query keypoints explained by one "
+                   f"alone, p = {c.p_first:.2g} >= {alpha:g}")
+        return result, estimate, (f"{result.reason}, at a pose {dist:.2f} m and "
+                                  f"{np.degrees(angle):.1f} deg from the verified one, which "
+                                  f"does not explain the query better ({weighed})")
+    return None
