@@ -66,6 +66,18 @@ def test_a_codebook_codes_sift_in_a_quarter_of_the_bytes_close_to_the_original(f
     assert np.array_equal(codebook.encode(decoded), codes)
 
 
+@pytest.mark.parametrize("subspaces", [32, 16])
+def test_decoding_puts_each_sub_vector_s_centroid_in_its_place(subspaces):
+    rng = np.random.default_rng(0)
+    centroids = rng.integers(0, 256, (subspaces, 256, 128 // subspaces), dtype=np.uint8)
+    codes = rng.integers(0, 256, (300, subspaces), dtype=np.uint8)
+    decoded = PQCodebook(centroids).decode(codes)
+    width = 128 // subspaces
+    for j in (0, subspaces // 2, subspaces - 1):
+        assert np.array_equal(decoded[:, j * width:(j + 1) * width], centroids[j][codes[:, j]])
+    assert PQCodebook(centroids).decode(codes[:0]).shape == (0, 128)
+
+
 def test_seeded_rows_draw_across_keyframes_without_concatenating_everything():
     rng = np.random.default_rng(0)
     parts = [rng.integers(0, 255, (n, 128), dtype=np.uint8) for n in (5, 0, 7, 3)]
