@@ -66,6 +66,18 @@ def test_a_codebook_codes_sift_in_a_quarter_of_the_bytes_close_to_the_original(f
     assert np.array_equal(codebook.encode(decoded), codes)
 
 
+@pytest.mark.parametrize("subspaces", [32, 16])
+def test_decoding_puts_each_sub_vector_s_centroid_in_its_place(subspaces):
+    rng = np.random.default_rng(0)
+    centroids = rng.integers(0, 256, (subspaces, 256, 128 // subspaces), dtype=np.uint8)
+    codes = rng.integers(0, 256, (300, subspaces), dtype=np.uint8)
+    decoded = PQCodebook(centroids).decode(codes)
+    width = 128 // subspaces
+    for j in (0, subspaces // 2, subspaces - 1):
+        assert np.array_equal(decoded[:, j * width:(j + 1) * width], centroids[j][codes[:, j]])
+    assert PQCodebook(centroids).decode(codes[:0]).shape == (0, 128)
+
+
 def test_seeded_rows_draw_across_keyframes_without_concatenating_everything():
     rng = np.random.default_rng(0)
     parts = [rng.integers(0, 255, (n, 128), dtype=np.uint8) for n in (5, 0, 7, 3)]
@@ -126,6 +138,30 @@ def test_saving_a_loaded_map_again_never_codes_a_descriptor_twice(
     assert np.array_equal(book_a, book_d)
 
 
+def test_pq16_codes_sift_in_16_bytes_and_a_saved_map_changes_codebook_with_the_codec(
+        tmp_path, fresh_map, small_training):
+    save_map(fresh_map, tmp_path / "pq", parts=PQ)
+    loaded, _ = load_map(tmp_path / "pq")
+    save_map(loaded, tmp_path / "pq16", parts=StoredParts(descriptor_codec="pq16"))
+    snap = current_snapshot(tmp_path / "pq16") / "features"
+    codes = np.load(snap / "sift.descriptors_pq.npy")
+    assert codes.shape == (len(_sift(fresh_map)), 16) and codes.dtype == np.uint8
+    assert np.load(snap / "sift.pq_codebook.npy").shape == (16, 256, 8)
+    state, _ = load_map(tmp_path / "pq16")
+    coarse, fine = _sift(state).astype(float), _sift(loaded).astype(float)
+    truth = _sift(fresh_map).astype(float)
+    norm = np.linalg.norm(truth, axis=1)
+    # 8-value sub-vectors quantize coarser than 4-value ones, but stay below the ~60% distance
+    # to the nearest other descriptor
+    err16 = np.median(np.linalg.norm(coarse - truth, axis=1) / norm)
+    err32 = np.median(np.linalg.norm(fine - truth, axis=1) / norm)
+    assert err32 < err16 < 0.35
+    # and back to "pq": a 32-sub-vector codebook is learnt again, not the 16 one reused
+    save_map(state, tmp_path / "pq32", parts=PQ)
+    snap = current_snapshot(tmp_path / "pq32") / "features"
+    assert np.load(snap / "sift.descriptors_pq.npy").shape[1] == 32
+
+
 def test_a_compact_snapshot_stores_small_blurry_images_as_float16(tmp_path, fresh_map):
     key = "sbi:40x30:2.5"
     for kf in fresh_map.keyframes.values():
@@ -176,5 +212,5 @@ def test_a_format_5_snapshot_loads_and_saves_as_format_6(tmp_path, small_trainin
 def test_the_codec_is_a_service_option_checked_by_name():
     assert ServiceConf().service.stored_parts().descriptor_codec == "none"
     assert ServiceSection(descriptor_codec="pq").stored_parts().descriptor_codec == "pq"
-    with pytest.raises(ConfigError, match=r"service\.descriptor_codec: expected one of none, pq"):
+    with pytest.raises(ConfigError, match=r"service\.descriptor_codec: expected one of none, pq, pq16"):
         ServiceSection(descriptor_codec="zip")

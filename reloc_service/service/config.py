@@ -206,9 +206,11 @@ class ServiceSection:
     #: sbi+esm) or "always" (needed later to add such a method or a feature kind, and by a
     #: replica that bootstraps from this one: ``bootstrap_from_peers`` keeps them).
     keyframe_images: str = "needed"
-    #: SIFT descriptors on disk: "none" (in full) or "pq" (product-quantization codes, a
+    #: SIFT descriptors on disk: "none" (in full), "pq" (product-quantization codes, a
     #: quarter of the bytes, decoded on load; keypoints in 1/8 px, float16 small blurry
-    #: images) (:mod:`..storage.descriptor_pq`). "none" by default: "pq" cost one of ten
+    #: images) or "pq16" (as "pq" with 16-byte codes, an eighth of the bytes; it cost
+    #: sbi+p3p 5 net of the validation repeated-hard_s1's 69 queries)
+    #: (:mod:`..storage.descriptor_pq`). "none" by default: "pq" cost one of ten
     #: tum_fr1_rpy queries for the default, bow+p3p and ferns (README, "Map size").
     descriptor_codec: str = "none"
     #: Keyframe features on disk: "landmarks" (the keypoints that carry a landmark: all

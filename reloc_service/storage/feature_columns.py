@@ -43,6 +43,7 @@ from ..core.features import level_scale_factor
 from ..core.frame import Features
 from ..core.landmark_table import LandmarkColumns, LandmarkTable
 from .descriptor_pq import (
+    CODEC_SUBSPACES,
     DESCRIPTOR_CODES,
     PQCodebook,
     descriptor_rows,
@@ -297,18 +298,22 @@ def _compact_keypoints(out: dict[str, np.ndarray]) -> None:
 def codebook_for(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Features]]],
                  codec: str, caches: Sequence[dict[str, Any]]) -> PQCodebook | None:
     """The codebook ``kind``'s descriptors are saved with under ``codec`` (None: in full):
-    only SIFT's are coded ("pq"). The codebook a loaded snapshot's keyframes use, or an
-    earlier save's (kept in the keyframes' ``caches``), is kept: codes are copied, never
-    decoded and coded again. Else one is learnt on the map's own descriptors and put in
-    ``caches`` (None when the map holds too few to learn from)."""
-    if codec != "pq" or kind.split("@")[0] != "sift":
+    only SIFT's are coded ("pq", "pq16": :data:`CODEC_SUBSPACES`). The codebook a loaded
+    snapshot's keyframes use, or an earlier save's (kept in the keyframes' ``caches``), is
+    kept when it has the codec's sub-quantizers: codes are copied, never decoded and coded
+    again. Else one is learnt on the map's own descriptors and put in ``caches`` (None when
+    the map holds too few to learn from)."""
+    subspaces = CODEC_SUBSPACES.get(codec)
+    if subspaces is None or kind.split("@")[0] != "sift":
         return None
-    key = f"pq:{kind}"
+    key = f"pq{subspaces}:{kind}"
     for (_, _, features), cache in zip(owners, caches, strict=True):
-        if (codebook := _codebook_of(features, kind) or cache.get(key)) is not None:
+        codebook = _codebook_of(features, kind) or cache.get(key)
+        if codebook is not None and codebook.subspaces == subspaces:
             break
     else:
-        codebook = train_codebook(seeded_rows([f[kind].descriptors for _, _, f in owners]))
+        codebook = train_codebook(seeded_rows([f[kind].descriptors for _, _, f in owners]),
+                                  subspaces=subspaces)
     if codebook is not None:
         for cache in caches:
             cache[key] = codebook

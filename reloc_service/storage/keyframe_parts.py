@@ -16,8 +16,9 @@ stores anyway. So by default (:class:`StoredParts`) a snapshot keeps:
   every method of the map is trained and none reads other keypoints: :mod:`.landmark_rows`)
   or ``"per-landmark"`` (those rows, with one descriptor a landmark shared by its rows:
   :mod:`.landmark_descriptors`);
-- SIFT descriptors: ``"none"`` (in full) or ``"pq"`` (product-quantization codes, 32 bytes
-  instead of 128, decoded when a keyframe's features are first read: :mod:`.descriptor_pq`).
+- SIFT descriptors: ``"none"`` (in full), ``"pq"`` (product-quantization codes, 32 bytes
+  instead of 128, decoded when a keyframe's features are first read: :mod:`.descriptor_pq`)
+  or ``"pq16"`` (16-byte codes, coarser).
 
 The service's defaults (``[service]`` in the configuration) store landmark rows, in full.
 
@@ -37,6 +38,7 @@ import numpy.typing as npt
 from ..core.absent_image import AbsentImage, pixels_crc32
 from ..core.errors import ConfigError, StorageError
 from ..core.frame import Keyframe
+from .descriptor_pq import CODEC_SUBSPACES
 from .landmark_rows import ROW_MODES
 from .snapshot_files import SnapshotReader
 
@@ -44,7 +46,7 @@ DEPTH_MODES = ("drop", "lossless", "raw")
 IMAGE_MODES = ("needed", "always")
 #: How SIFT descriptors are stored: in full, or as product-quantization codes
 #: (:mod:`.descriptor_pq`); ORB's 32-byte binary descriptors are stored as they are.
-DESCRIPTOR_CODECS = ("none", "pq")
+DESCRIPTOR_CODECS = ("none", *CODEC_SUBSPACES)
 
 
 def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:

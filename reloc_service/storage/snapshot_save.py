@@ -147,7 +147,7 @@ def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: Ma
             writer.write(f"features/{kind}.{CODEBOOK}.npy", _npy_bytes(codebook.centroids))
         keep = [masks.get((kf_id, kind)) for kf_id, _, _ in owners]
         for name, column in kind_columns(kind, owners, state.landmarks, landmarks,
-                                         codebook, keep, compact=codec == "pq",
+                                         codebook, keep, compact=codec != "none",
                                          shared=shared).items():
             writer.write(*packed_file(f"features/{kind}.{name}", column))
 
@@ -225,7 +225,7 @@ def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelW
     shared = parts.descriptors == "per-landmark"
     _write_features(writer, kfs, state, columns, rows, parts.descriptor_codec, masks,
                     shared=shared)
-    thumbnails = _write_thumbnails(writer, kfs, compact=parts.descriptor_codec == "pq")
+    thumbnails = _write_thumbnails(writer, kfs, compact=parts.descriptor_codec != "none")
     landmarks = _write_landmarks(writer, columns, state.keyframes, exact=exact_geometry)
     model_dirs: dict[str, str] = {}
     for method, write_model in models.items():
