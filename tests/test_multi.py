@@ -404,3 +404,38 @@ def test_groups_agreeing_with_a_verified_pose_are_not_settled_again(scene):
     assert np.array_equal(skipped.world_from_cam, full.world_from_cam)
     assert skipped.inliers == full.inliers
     assert np.array_equal(skipped.covariance, full.covariance)
+
+
+class OffersItsOwnPose(CountsSettles):
+    """:class:`CountsSettles` whose repetition search offers, as an alternative, the pose its
+    first estimate's own keyframes give again (an alternative that agrees with it)."""
+
+    name = "offers-its-own-pose"
+
+    def alternatives(self, query, estimate, state, *, plausible=lambda _: True):
+        again = self.find_pose_deferred(
+            query, [PlaceCandidate(k, 0.0) for k in estimate.keyframe_ids], state)
+        return [] if again is None else [again]
+
+
+def test_alternatives_agreeing_with_a_verified_pose_are_not_settled(scene):
+    place = create_place_finder({"name": "sbi"}, scene.map)
+    query_at = query_pose(1)
+    runs = {}
+    for skip, hypotheses in ((True, 1), (False, 1), (True, 2)):
+        pose = OffersItsOwnPose()
+        conf = MultiRelocalizer.Conf(num_candidates=1, max_groups=1, overlap=False,
+                                     skip_duplicate_settle=skip)
+        result = MultiRelocalizer(scene.map, place, pose, conf=conf).relocalize(
+            Frame(scene.render(query_at), CAMERA), hypotheses=hypotheses)
+        assert result.ok and pose_error(result.world_from_cam, query_at)[0] < 0.02
+        runs[skip, hypotheses] = (result, pose.settles)
+    (skipped, fewer), (full, every), (asked_for_two, asked) = (runs[True, 1], runs[False, 1],
+                                                                runs[True, 2])
+    # The group's, and the alternative's; asked for two hypotheses, two groups are heard and
+    # the alternative is verified for them.
+    assert fewer == 1 and every == 2 and asked == 3
+    assert len(asked_for_two.hypotheses) == 1
+    assert np.array_equal(skipped.world_from_cam, full.world_from_cam)
+    assert skipped.inliers == full.inliers
+    assert np.array_equal(skipped.covariance, full.covariance)

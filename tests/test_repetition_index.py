@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from reloc_service.algorithms.pose import repetition_kernels
 from reloc_service.algorithms.pose.landmark_pool import LandmarkPool
 from reloc_service.algorithms.pose.repetition import (
     RepetitionConf,
@@ -121,6 +122,31 @@ def test_the_index_keeps_the_two_nearest_of_its_leaves_ties_to_the_first_scanned
         np.testing.assert_array_equal(rows[q], scanned[pick])
         np.testing.assert_allclose(d[q], dist[pick], rtol=1e-6)
     assert ties >= 10  # the tie-break is exercised
+
+
+@pytest.mark.parametrize("kind", ["sift", "orb"])
+def test_the_compiled_leaf_scan_gives_the_numpy_scans_distances_and_rows(kind: str,
+                                                                        monkeypatch) -> None:
+    """The compiled scan (:mod:`.repetition_kernels`) finds, value for value, what the numpy
+    scan of each probed leaf does: on the copied picture (equal descriptors: ties across
+    leaves and within one) and on leaves of a single row."""
+    pytest.importorskip("numba")
+    pool, _ = copied_picture_pool(kind)
+    query = np.concatenate([extract(kind, 0, warped=True).descriptors,
+                            extract(kind, 0).descriptors[:50]])
+    for conf in (INDEXED, IndexConf(exact_rows=0, leaf_rows=2)):
+        index = RepetitionIndex.build(pool.descriptors, conf)
+        assert index._scan_compiled(query, index._probe(query)) is not None
+        compiled = index.nearest_two(query)
+        with monkeypatch.context() as m:
+            m.setattr(repetition_kernels, "compiled", lambda: None)
+            plain = index.nearest_two(query)
+        np.testing.assert_array_equal(compiled[1], plain[1])
+        np.testing.assert_array_equal(compiled[0], plain[0])
+        assert compiled[0].dtype == plain[0].dtype == np.float32
+        assert np.any(compiled[0][:, 0] == compiled[0][:, 1])  # ties were met
+    sizes = np.diff(index.offsets)
+    assert np.any(sizes == 1)  # one-row leaves too
 
 
 def test_a_small_pool_is_scanned_in_full_as_before() -> None:

@@ -1,7 +1,8 @@
 """Compiled projection and pose Jacobian (numba, the optional ``[jit]`` extra) for the pinhole
 and radtan cameras, bit for bit the numpy path's values; the refinement's fused pass
 (:func:`_fit`), Gauss-Newton update and covariance inverse, its values to rounding.
-(Guided matching's window test has its own: :mod:`.guided_kernels`.)
+(Guided matching's window test has its own: :mod:`.guided_kernels`; the repetition index's
+leaf scan too: :mod:`.repetition_kernels`.)
 
 The P3P refinement projects a few hundred points and differentiates their pixels several
 times per query; in numpy each of those is some forty array operations of a few microseconds
@@ -37,7 +38,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core.numeric import compile_once, numba_or_none
-from . import guided_kernels, intrinsics_kernels
+from . import guided_kernels, intrinsics_kernels, repetition_kernels
 
 Array = npt.NDArray[np.float64]
 
@@ -494,4 +495,5 @@ def warm_up() -> None:
     k.spd_inverse(np.eye(6), np.empty((6, 6)))
     guided_kernels.warm_up()
     intrinsics_kernels.warm_up()
+    repetition_kernels.warm_up()
 

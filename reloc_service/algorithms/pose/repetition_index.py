@@ -27,6 +27,7 @@ import numpy.typing as npt
 from ...core import features as feature_lib
 from ...core.background import stop_if
 from ..place.vocabulary import VocabularyTree, pairwise_distances
+from . import repetition_kernels
 
 IntArray = npt.NDArray[np.int64]
 
@@ -113,6 +114,9 @@ class RepetitionIndex:
         if self.tree is None:
             return _two_nearest(desc, self.descriptors)
         leaves = self._probe(desc)
+        scanned = self._scan_compiled(desc, leaves)
+        if scanned is not None:
+            return scanned
         q = np.repeat(np.arange(len(desc)), leaves.shape[1])
         leaf = leaves.ravel()
         by_leaf = np.argsort(leaf, kind="stable")
@@ -137,6 +141,39 @@ class RepetitionIndex:
                     np.full((len(desc), 2), -1, np.int64))
         return _two_smallest(len(desc), np.concatenate(found_q), np.concatenate(found_d),
                              np.concatenate(found_i))
+
+    def _scan_compiled(self, desc: npt.NDArray[Any], leaves: npt.NDArray[np.int64]
+                       ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]] | None:
+        """:meth:`nearest_two`'s scan of the probed ``leaves`` (Q, leaves) in one compiled
+        pass (:mod:`.repetition_kernels`, the same distances and rows), where numba is
+        installed and both sides are uint8 SIFT or ORB's whole 64-bit words; else None."""
+        kernels = repetition_kernels.compiled()
+        pool = self.descriptors
+        if kernels is None or desc.dtype != np.uint8 or pool.dtype != np.uint8 or (
+                desc.shape[1:] != pool.shape[1:]):
+            return None
+        binary = feature_lib.is_binary_descriptor(desc)
+        if binary and desc.shape[1] % 8:
+            return None
+        out_d = np.full((len(desc), 2), np.inf, np.float32)
+        out_i = np.full((len(desc), 2), -1, np.int64)
+        # (descriptor, leaf) pairs by ascending leaf: each descriptor meets its leaves in the
+        # order the numpy path files the candidates in, which decides ties.
+        q = np.repeat(np.arange(len(desc), dtype=np.int64), leaves.shape[1])
+        leaf = leaves.ravel()
+        by_leaf = np.argsort(leaf, kind="stable")
+        q, leaf = q[by_leaf], leaf[by_leaf]
+        probed = leaf >= 0
+        q, leaf = np.ascontiguousarray(q[probed]), np.ascontiguousarray(leaf[probed])
+        if binary:
+            kernels.leaf_nearest_two_hamming(
+                np.ascontiguousarray(desc).view(np.uint64),
+                np.ascontiguousarray(pool).view(np.uint64), self.order, self.offsets, q, leaf,
+                out_d, out_i)
+        else:
+            kernels.leaf_nearest_two_l2(np.ascontiguousarray(desc), np.ascontiguousarray(pool),
+                                        self.order, self.offsets, q, leaf, out_d, out_i)
+        return out_d, out_i
 
     def scanned_rows(self, desc: npt.NDArray[Any]) -> npt.NDArray[np.int64]:
         """(Q,) pool rows :meth:`nearest_two` compares each of ``desc`` (Q, D) with: the

@@ -107,12 +107,13 @@ class MultiRelocalizer(Relocalizer):
         #: camera it refused two correct poses of about 400 (room-hard query 33,
         #: repeated-hard query 30), more than its level predicts.
         compare_guided_focal: bool = False
-        #: With ``unique``, leave unverified a candidate group whose pose agrees (within the
-        #: agreement thresholds) with the first pose of a solution verified earlier on the
-        #: query: verified or not, it would join that solution and never be its first,
-        #: which is all :func:`.uniqueness.decide` answers with, so the answer is the same
-        #: and the group's intrinsics test is saved. Applies only where one hypothesis is
-        #: asked for and no agreement is required (both read every verified group).
+        #: With ``unique``, leave unverified a candidate group, or an alternative a
+        #: repetition offers, whose pose agrees (within the agreement thresholds) with the
+        #: first pose of a solution verified earlier on the query: verified or not, it would
+        #: join that solution and never be its first, which is all
+        #: :func:`.uniqueness.decide` answers with, so the answer is the same and its
+        #: intrinsics test is saved. Applies only where one hypothesis is asked for and no
+        #: agreement is required (both read every verified group).
         skip_duplicate_settle: bool = True
         #: With ``unique``, weigh the repetition alternatives whose intrinsics test refused
         #: the query's camera as rivals of the answer: the answer stands only where it
@@ -385,7 +386,7 @@ class MultiRelocalizer(Relocalizer):
         if self.conf.unique:
             start = time.perf_counter()
             verified, found, refused = self._with_alternatives(
-                query, state, verified, [e for e in estimates if e is not None])
+                query, state, verified, [e for e in estimates if e is not None], hypotheses)
             if contender is not None:  # an earlier step's answer, weighed by these features
                 contender.weighed = True
                 if not _explains(found[0], contender.estimate, query):
@@ -410,18 +411,24 @@ class MultiRelocalizer(Relocalizer):
         return best
 
     def _with_alternatives(self, query: Frame, state: MapState, verified: list[RelocResult],
-                           estimates: list[PoseEstimate]
+                           estimates: list[PoseEstimate], hypotheses: int
                            ) -> tuple[list[RelocResult], list[PoseEstimate],
                                       list[tuple[RelocResult, PoseEstimate]]]:
         """``verified`` and their ``estimates`` followed by the alternatives a repetition of
         the map around the first offers (:meth:`PoseFinder.alternatives`) that verify; and
         the alternatives whose intrinsics test refused the query's camera, each with its
-        refusal (with ``conf.weigh_refused_alternatives``; else none)."""
+        refusal (with ``conf.weigh_refused_alternatives``; else none). An alternative whose
+        pose agrees with the first pose of a solution already among them is left unverified
+        where :meth:`_duplicates_a_solution` says it cannot change the answer (verified, it
+        would join that solution and never be its first; refused, its place is weighed
+        already, as that solution)."""
         verified, estimates = list(verified), list(estimates)
         refused: list[tuple[RelocResult, PoseEstimate]] = []
         plausible = functools.partial(plausible_first_pose, conf=self.verify_conf)
         for alternative in self.pose.alternatives(query, estimates[0], state,
                                                   plausible=plausible):
+            if self._duplicates_a_solution(query, alternative, list(estimates), hypotheses):
+                continue
             note_map_calibration(alternative, query.camera, state)
             result = result_from_estimate(alternative, self.verify_conf, method=self.method,
                                           map_version=state.version, timings={})
