@@ -42,8 +42,7 @@ import tempfile
 import threading
 import time
 import weakref
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
@@ -64,13 +63,14 @@ from .core.frame import EncodedImage, Frame, Keyframe
 from .core.map import KeyframeMap, MapState
 from .core.mapping import MapBuilder, MappingConf
 from .core.progress import progress as progress_bar
+from .core.read_write_lock import ReadWriteLock
 from .core.triangulation import TriangulationConf
 from .storage.keyframe_parts import StoredParts
 from .storage.snapshot import load_map, model_dir_name, save_map
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Engine", "EngineConf", "MappingConf", "MapView", "ReadWriteLock", "TriangulationConf"]
+__all__ = ["Engine", "EngineConf", "MappingConf", "MapView", "TriangulationConf"]
 
 Array = npt.NDArray[Any]
 
@@ -104,48 +104,6 @@ class EngineConf:
     @property
     def default_method(self) -> str:
         return self.methods[0]
-
-
-class ReadWriteLock:
-    """Many readers or one writer. A waiting writer holds back new readers, so a stream of
-    queries cannot starve keyframe updates. Not reentrant."""
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition(threading.Lock())
-        self._readers = 0
-        self._writing = False
-        self._writers_waiting = 0
-
-    @contextmanager
-    def read(self) -> Iterator[None]:
-        with self._cond:
-            while self._writing or self._writers_waiting:
-                self._cond.wait()
-            self._readers += 1
-        try:
-            yield
-        finally:
-            with self._cond:
-                self._readers -= 1
-                if self._readers == 0:
-                    self._cond.notify_all()
-
-    @contextmanager
-    def write(self) -> Iterator[None]:
-        with self._cond:
-            self._writers_waiting += 1
-            try:
-                while self._writing or self._readers:
-                    self._cond.wait()
-            finally:
-                self._writers_waiting -= 1
-            self._writing = True
-        try:
-            yield
-        finally:
-            with self._cond:
-                self._writing = False
-                self._cond.notify_all()
 
 
 class MapView(KeyframeMap):
