@@ -58,9 +58,10 @@ from .algorithms.relocalizers.map_pools import restore_pools, save_pools
 from .algorithms.relocalizers.tracking import relocalize_with_prior
 from .core.background import LOWER_PRIORITY, lower_priority, start_background
 from .core.cameras import Camera
-from .core.errors import ConfigError, MapError
+from .core.errors import ConfigError
 from .core.frame import EncodedImage, Frame, Keyframe
 from .core.map import KeyframeMap, MapState
+from .core.map_view import MapView
 from .core.mapping import MapBuilder, MappingConf
 from .core.progress import progress as progress_bar
 from .core.read_write_lock import ReadWriteLock
@@ -70,7 +71,7 @@ from .storage.snapshot import load_map, model_dir_name, save_map
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Engine", "EngineConf", "MappingConf", "MapView", "TriangulationConf"]
+__all__ = ["Engine", "EngineConf", "MappingConf", "TriangulationConf"]
 
 Array = npt.NDArray[Any]
 
@@ -104,36 +105,6 @@ class EngineConf:
     @property
     def default_method(self) -> str:
         return self.methods[0]
-
-
-class MapView(KeyframeMap):
-    """A read-only :class:`KeyframeMap` showing one pinned :class:`MapState` (what a
-    relocalizer is given; the engine re-pins it when it publishes)."""
-
-    def __init__(self, state: MapState | None = None) -> None:
-        super().__init__()
-        self._pinned = state if state is not None else MapState()
-
-    def pin(self, state: MapState) -> None:
-        self._pinned = state
-
-    def snapshot(self) -> MapState:
-        return self._pinned
-
-    @property
-    def version(self) -> int:
-        return self._pinned.version
-
-    def __len__(self) -> int:
-        return len(self._pinned.keyframes)
-
-    def __contains__(self, kf_id: object) -> bool:
-        return kf_id in self._pinned.keyframes
-
-    def _read_only(self, *_: Any, **__: Any) -> Any:
-        raise MapError("a relocalizer's map view is read-only; change the map through the engine")
-
-    add_keyframe = remove_keyframe = add_landmarks = add_observations = replace_state = _read_only
 
 
 @dataclass
