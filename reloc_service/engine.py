@@ -42,8 +42,7 @@ import tempfile
 import threading
 import time
 import weakref
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
@@ -59,18 +58,20 @@ from .algorithms.relocalizers.map_pools import restore_pools, save_pools
 from .algorithms.relocalizers.tracking import relocalize_with_prior
 from .core.background import LOWER_PRIORITY, lower_priority, start_background
 from .core.cameras import Camera
-from .core.errors import ConfigError, MapError
+from .core.errors import ConfigError
 from .core.frame import EncodedImage, Frame, Keyframe
 from .core.map import KeyframeMap, MapState
+from .core.map_view import MapView
 from .core.mapping import MapBuilder, MappingConf
 from .core.progress import progress as progress_bar
+from .core.read_write_lock import ReadWriteLock
 from .core.triangulation import TriangulationConf
 from .storage.keyframe_parts import StoredParts
 from .storage.snapshot import load_map, model_dir_name, save_map
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Engine", "EngineConf", "MappingConf", "MapView", "ReadWriteLock", "TriangulationConf"]
+__all__ = ["Engine", "EngineConf", "MappingConf", "TriangulationConf"]
 
 Array = npt.NDArray[Any]
 
@@ -104,78 +105,6 @@ class EngineConf:
     @property
     def default_method(self) -> str:
         return self.methods[0]
-
-
-class ReadWriteLock:
-    """Many readers or one writer. A waiting writer holds back new readers, so a stream of
-    queries cannot starve keyframe updates. Not reentrant."""
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition(threading.Lock())
-        self._readers = 0
-        self._writing = False
-        self._writers_waiting = 0
-
-    @contextmanager
-    def read(self) -> Iterator[None]:
-        with self._cond:
-            while self._writing or self._writers_waiting:
-                self._cond.wait()
-            self._readers += 1
-        try:
-            yield
-        finally:
-            with self._cond:
-                self._readers -= 1
-                if self._readers == 0:
-                    self._cond.notify_all()
-
-    @contextmanager
-    def write(self) -> Iterator[None]:
-        with self._cond:
-            self._writers_waiting += 1
-            try:
-                while self._writing or self._readers:
-                    self._cond.wait()
-            finally:
-                self._writers_waiting -= 1
-            self._writing = True
-        try:
-            yield
-        finally:
-            with self._cond:
-                self._writing = False
-                self._cond.notify_all()
-
-
-class MapView(KeyframeMap):
-    """A read-only :class:`KeyframeMap` showing one pinned :class:`MapState` (what a
-    relocalizer is given; the engine re-pins it when it publishes)."""
-
-    def __init__(self, state: MapState | None = None) -> None:
-        super().__init__()
-        self._pinned = state if state is not None else MapState()
-
-    def pin(self, state: MapState) -> None:
-        self._pinned = state
-
-    def snapshot(self) -> MapState:
-        return self._pinned
-
-    @property
-    def version(self) -> int:
-        return self._pinned.version
-
-    def __len__(self) -> int:
-        return len(self._pinned.keyframes)
-
-    def __contains__(self, kf_id: object) -> bool:
-        return kf_id in self._pinned.keyframes
-
-    def _read_only(self, *_: Any, **__: Any) -> Any:
-        raise MapError("a relocalizer's map view is read-only; change the map through the engine")
-
-    add_keyframe = remove_keyframe = add_landmarks = add_observations = replace_state = _read_only
 
 
 @dataclass

@@ -24,8 +24,10 @@ from reloc_service.algorithms.relocalizers.base import (
 from reloc_service.core.errors import ConfigError, MapError, NotTrainedError
 from reloc_service.core.frame import Frame, Keyframe
 from reloc_service.core.map import KeyframeMap, MapState
+from reloc_service.core.map_view import MapView
 from reloc_service.core.methods import MethodStep
-from reloc_service.engine import Engine, EngineConf, MapView, ReadWriteLock
+from reloc_service.core.read_write_lock import ReadWriteLock
+from reloc_service.engine import Engine, EngineConf
 
 
 class Probe(Relocalizer):

@@ -26,12 +26,11 @@ from reloc_service.algorithms.relocalizers.base import (
     Relocalizer,
     RelocResult,
     VerifyConf,
-    inlier_cells,
     intrinsics_unchecked,
-    on_one_plane,
     verify,
 )
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
+from reloc_service.algorithms.relocalizers.inlier_coverage import inlier_cells, on_one_plane
 from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
 from reloc_service.core.frame import Frame
 from reloc_service.core.map import KeyframeMap

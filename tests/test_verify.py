@@ -148,7 +148,7 @@ def test_small_support_in_depth_or_planar_support_over_the_image_is_accepted():
 
 
 def test_noisy_plane_is_one_plane_and_a_bump_is_not():
-    from reloc_service.algorithms.relocalizers.base import on_one_plane
+    from reloc_service.algorithms.relocalizers.inlier_coverage import on_one_plane
 
     rng = np.random.default_rng(2)
     sig = np.full(300, 0.01)
@@ -164,7 +164,10 @@ def test_noisy_plane_is_one_plane_and_a_bump_is_not():
 def test_plane_fit_stops_when_the_kept_points_repeat():
     """Refitting on the same points gives the same plane, so stopping there decides as the
     three fixed refits did (that procedure written out here), on planes with outliers."""
-    from reloc_service.algorithms.relocalizers.base import _max_outside_3_sigma, on_one_plane
+    from reloc_service.algorithms.relocalizers.inlier_coverage import (
+        _max_outside_3_sigma,
+        on_one_plane,
+    )
 
     def three_refits(pts, sig):
         keep = np.ones(len(pts), bool)
@@ -193,7 +196,7 @@ def test_inlier_spread_is_the_hull_and_skips_only_passing_planes():
     beyond the patch share (with a margin) passes the patch test as the plane fit would."""
     from scipy.spatial import ConvexHull
 
-    from reloc_service.algorithms.relocalizers.base import inlier_spread
+    from reloc_service.algorithms.relocalizers.inlier_coverage import inlier_spread
 
     rng = np.random.default_rng(9)
     for _ in range(300):
