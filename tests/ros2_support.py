@@ -171,9 +171,14 @@ def counts(service: Service) -> dict[str, str]:
     return service.ros2.node("room").map_frame_status()
 
 
-def settle(service: Service, images: int) -> None:
-    """Until the bridge has taken ``images`` images and checked every keyframe candidate."""
+def settle(service: Service, images: int, odometry: int | None = None) -> None:
+    """Until the bridge has taken ``images`` images (and ``odometry`` odometry messages) and
+    checked every keyframe candidate. The odometry and the images come through different
+    subscribers, whose callbacks Zenoh does not order: an odometry reset published before an
+    image can be taken after it, so a test that counts resets waits for the odometry too."""
     wait_until(lambda: service.ros2.counters["images"] >= images, timeout=60)
+    if odometry is not None:
+        wait_until(lambda: service.ros2.counters["odometry"] >= odometry, timeout=60)
     assert service.ros2.worker.join(timeout=60)    # every image considered
     wait_until(lambda: counts(service)["candidates_waiting"] == "0", timeout=90)
     service.wait_idle()

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from engine_support import saved_trained_engine
+from engine_support import count_builds, saved_trained_engine
 
 from reloc_service.algorithms.pose.map_pool import held_pool
-from reloc_service.algorithms.pose.repetition_index import IndexConf, RepetitionIndex
+from reloc_service.algorithms.pose.repetition_index import IndexConf
 from reloc_service.core.errors import StorageError
 from reloc_service.core.mapping import MappingConf
 from reloc_service.engine import Engine, EngineConf
@@ -38,20 +38,6 @@ def stored_index(directory: Path) -> Path:
     return current_snapshot(directory) / "models" / model_dir_name(METHOD) / "repetition" / \
         "orb.leaves.npz"
 
-
-def count_builds(monkeypatch) -> list[int]:
-    """Record every index build (from any thread) in the returned list."""
-    made: list[int] = []
-    real = RepetitionIndex.build.__func__   # type: ignore[attr-defined]
-    lock = threading.Lock()
-
-    def build(cls, *args, **kw):
-        with lock:
-            made.append(1)
-        return real(cls, *args, **kw)
-
-    monkeypatch.setattr(RepetitionIndex, "build", classmethod(build))
-    return made
 
 
 def test_a_load_reads_the_stored_index_instead_of_building_it(saved, synthetic_scene,

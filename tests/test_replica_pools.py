@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from engine_support import saved_trained_engine
+from engine_support import count_builds, saved_trained_engine
 
 from reloc_service.algorithms.pose.map_pool import MapPool, held_pool
-from reloc_service.algorithms.pose.repetition_index import IndexConf, RepetitionIndex
+from reloc_service.algorithms.pose.repetition_index import IndexConf
 from reloc_service.algorithms.pose.repetition_store import STORE_DIR, load_index, stored_kinds
 from reloc_service.algorithms.relocalizers import map_pools
 from reloc_service.core.mapping import MappingConf
@@ -44,17 +44,6 @@ def saved(synthetic_scene, tmp_path_factory) -> Path:
 def stored(directory: Path) -> list[str]:
     return stored_kinds(current_snapshot(directory) / "models" / model_dir_name(METHOD))
 
-
-def count_builds(monkeypatch) -> list[int]:
-    made: list[int] = []
-    real = RepetitionIndex.build.__func__   # type: ignore[attr-defined]
-
-    def build(cls, *args, **kw):
-        made.append(1)
-        return real(cls, *args, **kw)
-
-    monkeypatch.setattr(RepetitionIndex, "build", classmethod(build))
-    return made
 
 
 def test_a_replica_of_an_engine_without_pools_reads_their_index(saved, tmp_path,

@@ -65,10 +65,10 @@ def hover_then_trigger(service, drone, scene, frame_id: str, odom_from_map: np.n
     the same view, each with the odometry of its stamp; their successes."""
     world_from_cam = scene.keyframe_poses[2]
     [png] = pngs([scene.keyframe_images[2]])
-    images = service.ros2.counters["images"]
+    images, odometry = service.ros2.counters["images"], service.ros2.counters["odometry"]
     for i in range(4):
         publish_frame(drone, t0 + 0.1 * i, frame_id, odom_from_map @ world_from_cam, png)
-    settle(service, images + 4)
+    settle(service, images + 4, odometry + 4)
     successes = []
     for i in range(calls):
         t = t0 + 1.0 + i
@@ -104,12 +104,12 @@ def test_a_paused_map_still_places_the_map_frame(flying, synthetic_scene):
     _payload = call_set_bool(drone, "/reloc/room/mapping", False, seq=1)
     wait_until(lambda: counts(service)["mapping"] == "paused")
     keyframes = len(service.maps["room"].map_state().keyframes)
-    images = service.ros2.counters["images"]
+    images, odometry = service.ros2.counters["images"], service.ros2.counters["odometry"]
     shots = [0, 2, 4, 5]
     for i, k in enumerate(shots):
         publish_frame(drone, 800.0 + i, "odom_2", ODOM2_FROM_MAP @ scene.keyframe_poses[k],
                       pngs([scene.keyframe_images[k]])[0])
-    settle(service, images + len(shots))
+    settle(service, images + len(shots), odometry + len(shots))
     status = counts(service)
     assert status["state"] == "anchored", status
     metres, degrees = pose_error(pose_from_tum(np.array(status["map_from_odom"].split(), float)),

@@ -291,8 +291,9 @@ def test_the_keyframe_distance_follows_the_scene_depth_the_map_knows(mapped, syn
     behind[:3, 3] -= behind[:3, 2] * 0.5 * (known + assumed)   # back along the optical axis
     [png] = pngs([synthetic_scene.render(behind)[0]])
     before, images = keyframe_count(service), service.ros2.counters["images"]
+    odometry = service.ros2.counters["odometry"]
     publish_frame(drone, 105.0, "odom", behind, png)
-    settle(service, images + 1)
+    settle(service, images + 1, odometry + 1)
     # farther than the known radius: a new keyframe; nearer: none (the assumed depth would
     # have said the opposite)
     assert keyframe_count(service) == before + (1 if known < assumed else 0), (known, assumed)
@@ -350,12 +351,12 @@ def test_a_vio_restart_in_a_shifted_frame_adds_no_keyframe_in_the_wrong_frame(
     before = set(rt.map_state().keyframes)
     frames = [*views[2:], *zip(scene.query_poses, pngs(scene.query_images), strict=True)]
     disagreed = count_of(service, "mapping_samples_disagrees")
-    images = service.ros2.counters["images"]
+    images, odometry = service.ros2.counters["images"], service.ros2.counters["odometry"]
     for i, (world_from_cam, png) in enumerate(frames):
         t = 300.0 + i
         truth_by_stamp[t] = world_from_cam
         publish_frame(drone, t, "odom", ODOM2_FROM_MAP @ world_from_cam, png)
-    settle(service, images + len(frames))
+    settle(service, images + len(frames), odometry + len(frames))
     # no keyframe in the wrong frame: every one added since sits where its image was taken
     added = [kf for k, kf in rt.map_state().keyframes.items() if k not in before]
     print(f"{len(added)} keyframes added after the restart; status {counts(service)}")
@@ -407,13 +408,13 @@ def test_a_new_odometry_frame_id_stops_mapping_until_anchored_again(mapped, synt
     scene = synthetic_scene
     odom3_from_map = pose(-45.0, (0.0, 1.0, 0.2))
     resets, disagreed = count_of(service, "resets"), count_of(service, "samples_disagreed")
-    images = service.ros2.counters["images"]
+    images, odometry = service.ros2.counters["images"], service.ros2.counters["odometry"]
     shots = [0, 2, 4, 5]
     caplog.set_level(logging.WARNING, logger="reloc_service.service.ros2.map_frame")
     for i, k in enumerate(shots):
         publish_frame(drone, 500.0 + i, "odom_2", odom3_from_map @ scene.keyframe_poses[k],
                       pngs([scene.keyframe_images[k]])[0])
-    settle(service, images + len(shots))
+    settle(service, images + len(shots), odometry + len(shots))
     status = counts(service)
     assert count_of(service, "resets") == resets + 1
     assert count_of(service, "samples_disagreed") == disagreed   # the odometry said so
