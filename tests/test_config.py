@@ -1,10 +1,11 @@
 """Service configuration: strict TOML loading, the embedded default, command-line overrides,
-and a smoke load of every file in config/."""
+a smoke load of every file in config/, and what ``max_resident_mb`` cannot bound."""
 
 import json
 from pathlib import Path
 
 import pytest
+from service_support import free_port, service_conf
 
 from reloc_service.core.errors import ConfigError
 from reloc_service.service.config import (
@@ -111,3 +112,23 @@ def test_every_zenoh_json5_in_config_loads(path):
     zenoh = pytest.importorskip("zenoh")
     conf = zenoh.Config.from_file(str(path))
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+
+
+@pytest.mark.parametrize("service, message", [
+    ({"worker_mode": "thread", "storage": ""}, "service.storage"),
+    ({"worker_mode": "thread", "bootstrap_from_peers": True}, "bootstrap_from_peers"),
+    ({"worker_mode": "thread", "max_resident_mb": -1}, "expected MB >= 0"),
+])
+def test_max_resident_mb_refuses_what_it_cannot_bound(service, message, tmp_path):
+    """The bootstrap copies every map, and a map without storage cannot be reloaded: each
+    refused by name."""
+    with pytest.raises(ConfigError, match=message):
+        service_conf(free_port(), **{"storage": str(tmp_path), "max_resident_mb": 100,
+                                     **service})
+
+
+def test_max_resident_mb_refuses_the_ros2_bridge(tmp_path):
+    with pytest.raises(ConfigError, match=r"\[ros2\] enabled"):
+        parse_config({"service": {"storage": str(tmp_path), "worker_mode": "thread",
+                                  "max_resident_mb": 100},
+                      "ros2": {"enabled": True}})

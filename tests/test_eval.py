@@ -1,6 +1,7 @@
 """``evaluate``: scoring, summaries, the JSON schema, tables, plots and an end-to-end run (its
 Backend seam: test_eval_backend.py)."""
 
+import dataclasses
 import json
 import math
 import shutil
@@ -143,6 +144,20 @@ def test_table_rows_and_markdown():
     assert report.format_markdown(result).count("\n") == 2
     assert "1  no" in report.format_failures(result.methods[0])
     assert "2 keyframes, 10 landmarks" in report.format_header(result)
+
+
+def test_cov_range_of_one_answer_is_left_out():
+    """One answer with a Mahalanobis length is no interval: the table prints "-" for its cov
+    range and the JSON null for its ends, while the cov scale still reads the one length."""
+    records = _records()
+    records[1:] = [dataclasses.replace(r, t_err_mahalanobis=None) for r in records[1:]]
+    result = _result(records)
+    (row,) = report.table_rows(result)
+    assert row[report._COLUMNS.index("cov scale")] != "-"
+    assert row[report._COLUMNS.index("cov range")] == "-"
+    summary = result.to_dict()["methods"][0]["summary"]
+    assert summary["covariance_scale_low"] is None and summary["covariance_scale_high"] is None
+    assert summary["covariance_scale_coverage"] is None
 
 
 def test_failure_reasons_are_grouped_by_their_words():

@@ -112,11 +112,13 @@ def weakly_checked_estimate(rng: np.random.Generator):
     raise AssertionError("no underpowered view in 10 draws")
 
 
-class _RefusingSift(Relocalizer):
-    """A SIFT step that refuses every query's intrinsics."""
+class _FailingSift(Relocalizer):
+    """A SIFT step that verifies no pose (so it weighs no contender): every query fails
+    with ``reason``."""
 
-    name = "refusing"
-    method = "refusing:sift"
+    name = "failing"
+    method = "failing:sift"
+    reason = "too few inliers (3 < 12)"
     required_features = frozenset({"sift"})
 
     def add_keyframe(self, keyframe) -> None:
@@ -126,8 +128,15 @@ class _RefusingSift(Relocalizer):
         pass
 
     def relocalize(self, query, *, prior=None, hypotheses=1) -> RelocResult:
-        return RelocResult.failure(self.method, f"{REFUSAL}: focal 400.0 px estimated, "
-                                   "460.0 given (p = 1.0e-06)")
+        return RelocResult.failure(self.method, self.reason)
+
+
+class _RefusingSift(_FailingSift):
+    """A SIFT step that refuses every query's intrinsics."""
+
+    name = "refusing"
+    method = "refusing:sift"
+    reason = f"{REFUSAL}: focal 400.0 px estimated, 460.0 given (p = 1.0e-06)"
 
 
 def query_frame() -> Frame:
@@ -155,23 +164,6 @@ def test_an_underpowered_answer_is_left_to_a_step_with_other_features():
     result = ChainRelocalizer(kmap, [AnsweringStep(kmap, strong_est, kind="orb"),
                                      _RefusingSift(kmap)]).relocalize(query_frame())
     assert result.ok and result.method == "answering:orb"
-
-
-class _FailingSift(Relocalizer):
-    """A SIFT step that verifies no pose (so it weighs no contender)."""
-
-    name = "failing"
-    method = "failing:sift"
-    required_features = frozenset({"sift"})
-
-    def add_keyframe(self, keyframe) -> None:
-        pass
-
-    def remove_keyframe(self, keyframe) -> None:
-        pass
-
-    def relocalize(self, query, *, prior=None, hypotheses=1) -> RelocResult:
-        return RelocResult.failure(self.method, "too few inliers (3 < 12)")
 
 
 def test_an_underpowered_contender_no_later_step_weighs_is_refused_where_asked():

@@ -32,7 +32,6 @@ from service_support import (
 from reloc_service.core.errors import ConfigError
 from reloc_service.engine import Engine, EngineConf
 from reloc_service.service.app import Service
-from reloc_service.service.config import parse_config
 from reloc_service.service.memory import rss_bytes, trim_now
 from reloc_service.service.residency import MB, counted_bytes
 from reloc_service.service.workers import Lane
@@ -493,23 +492,3 @@ def test_put_on_a_closed_map_loads_it_and_survives_kill_9(big_template, syntheti
         assert 77 in {info.id for info in restarted.client.keyframes()}
     finally:
         assert restarted.terminate() == 0
-
-
-@pytest.mark.parametrize("service, message", [
-    ({"worker_mode": "thread", "storage": ""}, "service.storage"),
-    ({"worker_mode": "thread", "bootstrap_from_peers": True}, "bootstrap_from_peers"),
-    ({"worker_mode": "thread", "max_resident_mb": -1}, "expected MB >= 0"),
-])
-def test_max_resident_mb_refuses_what_it_cannot_bound(service, message, tmp_path):
-    """The bootstrap copies every map, and a map without storage cannot be reloaded: each
-    refused by name."""
-    with pytest.raises(ConfigError, match=message):
-        service_conf(free_port(), **{"storage": str(tmp_path), "max_resident_mb": 100,
-                                     **service})
-
-
-def test_max_resident_mb_refuses_the_ros2_bridge(tmp_path):
-    with pytest.raises(ConfigError, match=r"\[ros2\] enabled"):
-        parse_config({"service": {"storage": str(tmp_path), "worker_mode": "thread",
-                                  "max_resident_mb": 100},
-                      "ros2": {"enabled": True}})

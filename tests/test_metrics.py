@@ -167,3 +167,14 @@ def test_covariance_scale_interval_uses_only_returned_finite_answers():
     assert coverage == pytest.approx(1 - 2 / 2**5)
     assert all(math.isnan(x) for x in metrics.covariance_scale_interval([math.nan], [True]))
     assert all(math.isnan(x) for x in metrics.covariance_scale_interval([1.0], [False]))
+
+
+def test_covariance_scale_interval_needs_two_answers():
+    """One length would be an interval of zero width, holding the median with probability 0:
+    none is given. Two are their extremes, holding it half the time."""
+    assert all(math.isnan(x) for x in metrics.covariance_scale_interval([2.0], [True]))
+    assert all(math.isnan(x) for x in metrics.covariance_scale_interval(
+        [2.0, math.nan, 3.0], [True, True, False]))
+    low, high, coverage = metrics.covariance_scale_interval([1.0, 2.0], [True, True])
+    assert (low, high) == pytest.approx((1.0 / metrics.CHI3_MEDIAN, 2.0 / metrics.CHI3_MEDIAN))
+    assert coverage == pytest.approx(0.5)

@@ -384,20 +384,28 @@ class CountsSettles(PoseFinder):
         return self.inner.support(query, world_from_cam, state)
 
 
-def test_groups_agreeing_with_a_verified_pose_are_not_settled_again(scene):
-    # One keyframe per group: the three nearest keyframes all give the query's pose, so the
-    # second and third groups repeat the first's solution and cannot change the answer.
+def _settle_runs(scene, make_pose, max_groups):
+    """(result, settles counted) of the query at pose 1 by ``make_pose()``, keyed by
+    (skip_duplicate_settle, hypotheses) for (True, 1), (False, 1) and (True, 2); each run
+    must find the query's pose."""
     place = create_place_finder({"name": "sbi"}, scene.map)
     query_at = query_pose(1)
     runs = {}
     for skip, hypotheses in ((True, 1), (False, 1), (True, 2)):
-        pose = CountsSettles()
-        conf = MultiRelocalizer.Conf(num_candidates=1, max_groups=3, overlap=False,
+        pose = make_pose()
+        conf = MultiRelocalizer.Conf(num_candidates=1, max_groups=max_groups, overlap=False,
                                      skip_duplicate_settle=skip)
         result = MultiRelocalizer(scene.map, place, pose, conf=conf).relocalize(
             Frame(scene.render(query_at), CAMERA), hypotheses=hypotheses)
         assert result.ok and pose_error(result.world_from_cam, query_at)[0] < 0.02
         runs[skip, hypotheses] = (result, pose.settles)
+    return runs
+
+
+def test_groups_agreeing_with_a_verified_pose_are_not_settled_again(scene):
+    # One keyframe per group: the three nearest keyframes all give the query's pose, so the
+    # second and third groups repeat the first's solution and cannot change the answer.
+    runs = _settle_runs(scene, CountsSettles, max_groups=3)
     (skipped, fewer), (full, every), (_, asked) = (runs[True, 1], runs[False, 1],
                                                    runs[True, 2])
     assert fewer == 1 and every == 3 and asked == 3  # more hypotheses read every group
@@ -419,17 +427,7 @@ class OffersItsOwnPose(CountsSettles):
 
 
 def test_alternatives_agreeing_with_a_verified_pose_are_not_settled(scene):
-    place = create_place_finder({"name": "sbi"}, scene.map)
-    query_at = query_pose(1)
-    runs = {}
-    for skip, hypotheses in ((True, 1), (False, 1), (True, 2)):
-        pose = OffersItsOwnPose()
-        conf = MultiRelocalizer.Conf(num_candidates=1, max_groups=1, overlap=False,
-                                     skip_duplicate_settle=skip)
-        result = MultiRelocalizer(scene.map, place, pose, conf=conf).relocalize(
-            Frame(scene.render(query_at), CAMERA), hypotheses=hypotheses)
-        assert result.ok and pose_error(result.world_from_cam, query_at)[0] < 0.02
-        runs[skip, hypotheses] = (result, pose.settles)
+    runs = _settle_runs(scene, OffersItsOwnPose, max_groups=1)
     (skipped, fewer), (full, every), (asked_for_two, asked) = (runs[True, 1], runs[False, 1],
                                                                 runs[True, 2])
     # The group's, and the alternative's; asked for two hypotheses, two groups are heard and

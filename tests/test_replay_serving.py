@@ -11,6 +11,7 @@ import json
 import re
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import msgpack
@@ -30,6 +31,7 @@ from service_support import Events, endpoint, free_port, service_conf, wait_unti
 from storage_support import answers, connect, serve, write_config
 
 from reloc_service.service.app import Service
+from reloc_service.service.config import ServiceConf
 from reloc_service.service.durability import MapStore
 from reloc_service.storage.journal import Journal
 
@@ -89,14 +91,23 @@ def progress(client: RelocClient) -> tuple[bool, int, int]:
             st.counters.get("replay_records_total", -1))
 
 
+def backlog_conf(storage: Path, scene, write_journal: Callable[[Path, object, int], None],
+                 n: int) -> tuple[ServiceConf, int]:
+    """The configuration of an in-process service (worker threads, no training, no
+    snapshots) over ``storage`` on a free port, and that port, once ``write_journal`` has
+    written map ``MAP``'s backlog of ``n`` keyframes."""
+    write_journal(storage / MAP, scene, n)
+    port = free_port()
+    return service_conf(port, storage, train_on_load=False, snapshot_every=0,
+                        worker_mode="thread"), port
+
+
 def test_a_map_is_served_while_its_backlog_replays_and_a_put_applies_after_it(
         synthetic_scene, tmp_path):
     n = 8
     storage = tmp_path / "storage"
-    numbered_journal(storage / MAP, synthetic_scene, n)
-    port = free_port()
-    service = Service(service_conf(port, storage, train_on_load=False, snapshot_every=0,
-                        worker_mode="thread"))
+    conf, port = backlog_conf(storage, synthetic_scene, numbered_journal, n)
+    service = Service(conf)
     started = time.monotonic()
     service.start(wait_ready=False)
     try:
@@ -130,10 +141,8 @@ def test_a_camera_not_replayed_yet_is_busy_with_the_replay_progress_not_unknown(
         synthetic_scene, tmp_path):
     n = 8
     storage = tmp_path / "storage"
-    camera_last_journal(storage / MAP, synthetic_scene, n)
-    port = free_port()
-    service = Service(service_conf(port, storage, train_on_load=False, snapshot_every=0,
-                                   worker_mode="thread"))
+    conf, port = backlog_conf(storage, synthetic_scene, camera_last_journal, n)
+    service = Service(conf)
     service.start(wait_ready=False)
     query = synthetic_scene.query_images[0]
     try:
@@ -168,10 +177,7 @@ def test_a_camera_not_replayed_yet_is_busy_with_the_replay_progress_not_unknown(
 def test_a_replay_stopped_midway_resumes_where_it_stopped(synthetic_scene, tmp_path):
     n = 8
     storage = tmp_path / "storage"
-    numbered_journal(storage / MAP, synthetic_scene, n)
-    port = free_port()
-    conf = service_conf(port, storage, train_on_load=False, snapshot_every=0,
-                        worker_mode="thread")
+    conf, port = backlog_conf(storage, synthetic_scene, numbered_journal, n)
     service = Service(conf)
     service.start(wait_ready=False)
     try:

@@ -167,6 +167,7 @@ def test_plane_fit_stops_when_the_kept_points_repeat():
     from reloc_service.algorithms.relocalizers.inlier_coverage import (
         _max_outside_3_sigma,
         on_one_plane,
+        within_3_sigma_of_plane,
     )
 
     def three_refits(pts, sig):
@@ -174,9 +175,7 @@ def test_plane_fit_stops_when_the_kept_points_repeat():
         for _ in range(3):
             if keep.sum() < 3:
                 return False
-            centre = pts[keep].mean(axis=0)
-            normal = np.linalg.svd(pts[keep] - centre, full_matrices=False)[2][2]
-            keep = np.abs((pts - centre) @ normal) / sig < 3.0
+            keep = within_3_sigma_of_plane(pts, sig, keep)
         return int(np.count_nonzero(~keep)) <= _max_outside_3_sigma(len(pts), 0.01)
 
     rng = np.random.default_rng(5)

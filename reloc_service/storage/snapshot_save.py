@@ -24,9 +24,7 @@ from ..core.landmark_table import LandmarkColumns
 from ..core.map import MapState
 from .descriptor_pq import CODEBOOK
 from .feature_columns import (
-    codebook_for,
     feature_count,
-    kind_columns,
     narrowest,
 )
 from .keyframe_parts import (
@@ -35,6 +33,7 @@ from .keyframe_parts import (
     depth_file,
     image_entry,
 )
+from .kind_columns import codebook_for, kind_columns
 from .landmark_codec import encode_geometry
 from .landmark_descriptors import OWN_ROWS
 from .landmark_rows import (
@@ -135,7 +134,7 @@ def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: Ma
                     landmarks: LandmarkColumns,
                     rows: Mapping[int, Mapping[str, tuple[int, int]]], codec: str,
                     masks: RowMasks, shared: bool) -> None:
-    """One ``.npy`` per kind and stored column (:func:`.feature_columns.kind_columns`; the
+    """One ``.npy`` per kind and stored column (:func:`.kind_columns.kind_columns`; the
     rows ``masks`` keeps; ``shared``: one descriptor per landmark), and the codebook of a
     kind whose descriptors are PQ codes."""
     for kind in sorted({k for kf in keyframes for k in kf.features}):

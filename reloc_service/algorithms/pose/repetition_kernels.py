@@ -22,6 +22,11 @@ thread, load about 13 on 2 cores) on a 28k-row pool of room-hard's keyframes (ab
 rows scanned per descriptor): 100 / 200 SIFT descriptors 7.3 / 12.9 ms against the numpy
 path's 12.0 / 15.4 ms; ORB 1.9 / 3.1 ms against 4.3 / 5.2 ms. :func:`compiled` imports numba on
 first use and returns None where it is not installed.
+
+The two scans are one loop apart from their distance; they stay two functions because one
+scan taking the distance as a compiled function (an argument or a closure's) answers the
+same as fast, but numba's disk cache keys such a function by the objects' identity and
+misses in every new process: each worker would compile it again, about 2.3 s under load.
 """
 
 from __future__ import annotations

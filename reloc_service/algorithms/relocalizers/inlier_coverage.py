@@ -70,13 +70,21 @@ def on_one_plane(points_world: Array, sigmas_m: Array, *, false_rejection: float
     for _ in range(3):
         if keep.sum() < 3:
             return False
-        centre = pts[keep].mean(axis=0)
-        normal = np.linalg.svd(pts[keep] - centre, full_matrices=False)[2][2]
-        z = np.abs((pts - centre) @ normal) / sig
-        refit, keep = keep, z < 3.0
+        refit, keep = keep, within_3_sigma_of_plane(pts, sig, keep)
         if np.array_equal(keep, refit):  # the same points would give the same plane again
             break
     return int(np.count_nonzero(~keep)) <= _max_outside_3_sigma(len(pts), false_rejection)
+
+
+def within_3_sigma_of_plane(pts: Array, sig: Array, keep: npt.NDArray[np.bool_]
+                            ) -> npt.NDArray[np.bool_]:
+    """(N,) mask of the (N, 3) points within 3 of their 1-sigmas (N,) of the least-squares
+    plane through the ``keep`` ones (its normal the smallest singular vector): one refit of
+    :func:`on_one_plane`."""
+    centre = pts[keep].mean(axis=0)
+    normal = np.linalg.svd(pts[keep] - centre, full_matrices=False)[2][2]
+    z = np.abs((pts - centre) @ normal) / sig
+    return z < 3.0
 
 
 @functools.lru_cache(maxsize=4096)

@@ -130,13 +130,15 @@ def covariance_scale_interval(mahalanobis: npt.ArrayLike, returned: npt.ArrayLik
     probability 1 - 2 P(Binomial(n, 1/2) < j), whatever their distribution; j is the largest
     that keeps this at least ``level``. With too few answers for ``level`` (n <= 5 at 95 %),
     the interval is the smallest and largest length and ``coverage`` says what it reaches:
-    a set of 5 answers cannot tell a scale of 0.58 from 1. NaNs when no answer has a finite
-    length (an infinite one counts: it bounds the interval above)."""
+    a set of 5 answers cannot tell a scale of 0.58 from 1. NaNs when fewer than two answers
+    have a length, or none a finite one (an infinite one counts: it bounds the interval
+    above): one length would be an interval of zero width that holds the median with
+    probability 0."""
     (d,), ok = _per_query(returned, d=mahalanobis)
     with np.errstate(invalid="ignore"):
         d = np.sort(d[ok & ~np.isnan(d)])
     n = len(d)
-    if n == 0 or not np.isfinite(d[0]):
+    if n < 2 or not np.isfinite(d[0]):
         return math.nan, math.nan, math.nan
     # P(Binomial(n, 1/2) < j) for j = 0..n, exact in integers.
     below = np.cumsum([math.comb(n, i) for i in range(n + 1)]) / 2.0**n

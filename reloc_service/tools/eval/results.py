@@ -82,7 +82,7 @@ class MethodSummary:
     covariance_scale: float = math.nan
     #: A distribution-free confidence interval of ``covariance_scale`` and the probability
     #: it holds the true scale (:func:`.metrics.covariance_scale_interval`; 95 % or more
-    #: from 6 answers on, less below).
+    #: from 6 answers on, less below; NaN with fewer than two answers).
     covariance_scale_low: float = math.nan
     covariance_scale_high: float = math.nan
     covariance_scale_coverage: float = math.nan
