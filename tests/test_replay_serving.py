@@ -11,7 +11,8 @@ import json
 import re
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import msgpack
@@ -33,6 +34,7 @@ from storage_support import answers, connect, serve, write_config
 from reloc_service.service.app import Service
 from reloc_service.service.config import ServiceConf
 from reloc_service.service.durability import MapStore
+from reloc_service.service.runtime import MapRuntime
 from reloc_service.storage.journal import Journal
 
 MAP = "backlog"
@@ -102,6 +104,25 @@ def backlog_conf(storage: Path, scene, write_journal: Callable[[Path, object, in
                         worker_mode="thread"), port
 
 
+@contextmanager
+def replay_held_after(rt: MapRuntime, records: int) -> Iterator[None]:
+    """Map ``rt``'s journal replay held between two records (its apply lock taken) once at
+    least ``records`` are replayed: what the test does meanwhile happens during the replay,
+    however fast or slow the machine replays."""
+    lock = rt.apply_lock()
+    while True:
+        lock.acquire()
+        if rt.restore_report.replayed >= records or not rt.replaying:
+            break
+        lock.release()
+        time.sleep(0.002)
+    try:
+        assert rt.replaying, "replayed too fast to hold the replay during it"
+        yield
+    finally:
+        lock.release()
+
+
 def test_a_map_is_served_while_its_backlog_replays_and_a_put_applies_after_it(
         synthetic_scene, tmp_path):
     n = 8
@@ -111,19 +132,20 @@ def test_a_map_is_served_while_its_backlog_replays_and_a_put_applies_after_it(
     started = time.monotonic()
     service.start(wait_ready=False)
     try:
+        wait_until(lambda: MAP in service.maps, timeout=60, interval=0.01)
+        rt = service.maps[MAP]
         with RelocClient(endpoint(port), map=MAP, timeout=30) as client:
-            wait_until(lambda: answers(client), timeout=30, interval=0.05)
-            replaying, done, total = progress(client)
-            assert replaying, "the map should be served while its journal replays"
-            assert total == n + 1 and 0 <= done < total
-            events = Events(client)
-            wait_until(lambda: progress(client)[1] >= 1, timeout=30, interval=0.05)  # cam0
-            # a put meanwhile waits for the backlog, then is journaled and applied after it
-            client.add_keyframe(100, synthetic_scene.keyframe_images[0],
-                                synthetic_scene.keyframe_poses[0], camera_id="cam0")
-            result = client.relocalize(synthetic_scene.query_images[0], camera_id="cam0")
-            assert result.status in (RelocStatus.OK, RelocStatus.NOT_RELOCALIZED)
-            assert progress(client)[0], "replayed too fast to see a query during it"
+            with replay_held_after(rt, 2):   # cam0 and a keyframe replayed, 7 to come
+                wait_until(lambda: answers(client), timeout=60, interval=0.05)
+                replaying, done, total = progress(client)
+                assert replaying, "the map should be served while its journal replays"
+                assert total == n + 1 and 1 <= done < total
+                events = Events(client)
+                # a put meanwhile waits for the backlog, then is journaled and applied after it
+                client.add_keyframe(100, synthetic_scene.keyframe_images[0],
+                                    synthetic_scene.keyframe_poses[0], camera_id="cam0")
+                result = client.relocalize(synthetic_scene.query_images[0], camera_id="cam0")
+                assert result.status in (RelocStatus.OK, RelocStatus.NOT_RELOCALIZED)
             events.wait("keyframe_added", id=100, timeout=120)
             st = client.status()
             assert not st.replaying and "replay_records_done" not in st.counters
