@@ -218,7 +218,8 @@ class ChainRelocalizer(Relocalizer):
         is asked anyway: its features are then extracted while step ``i`` hears its other
         groups. The same features as extracted later, so the answers are the same; the idle
         core is looked at first, as judging the estimate costs a little on the query's own."""
-        if overlap.idle_core() and (_narrow(self.steps[i], estimate) or self._underpowered(i, estimate)):
+        if overlap.idle_core() and (_narrow(self.steps[i], estimate)
+                                    or self._underpowered(i, estimate)):
             ahead()
 
     def save(self, directory: Path) -> None:
