@@ -4,6 +4,7 @@ and the errors of either side reach the caller as without."""
 
 from __future__ import annotations
 
+import functools
 import threading
 
 import cv2
@@ -11,7 +12,8 @@ import numpy as np
 import pytest
 
 from reloc_service.algorithms.relocalizers import overlap
-from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
+from reloc_service.algorithms.relocalizers.base import ANSWERED
+from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer, _narrow, extract_ahead
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer
 from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
 from reloc_service.core import features as feature_lib
@@ -70,6 +72,40 @@ def test_the_overlap_gives_the_same_answers(engines, synthetic_scene, idle):
     assert sum(r.ok for r in [engines["off"].relocalize(Frame(im, synthetic_scene.camera))
                               for im in jpeg_queries(synthetic_scene)]) >= 2
     assert overlapped >= 2, "the helper thread never ran the place finder"
+
+
+def test_a_first_verified_pose_the_chain_holds_starts_the_next_steps_features(
+        synthetic_scene, idle):
+    """The chain's hook at a step's first verified pose extracts the next step's features
+    ahead exactly where the chain will hold that pose as a contender and ask the next step
+    (narrow support, or an intrinsics test without power while a later step matches other
+    features), and nowhere else. A coverage test asking for 9 of 16 cells makes some of
+    the room's answers narrow (inliers' hull under 9/16 of the image)."""
+    engine = Engine(EngineConf(options={"verify": {"min_inlier_cells": 9}}))
+    for i, (image, pose) in enumerate(zip(synthetic_scene.keyframe_images,
+                                          synthetic_scene.keyframe_poses, strict=True)):
+        engine.add_keyframe(i, image, synthetic_scene.camera, pose)
+    engine.train()
+    chain = engine.relocalizer(DEFAULT_METHOD)
+    assert isinstance(chain, ChainRelocalizer)
+    seen = {True: 0, False: 0}
+    for i in range(len(chain.steps) - 1):
+        for image in jpeg_queries(synthetic_scene):
+            first = Frame(image.copy(), synthetic_scene.camera)
+            if not chain.steps[i].relocalize(first).ok:
+                continue
+            estimate = first.cache[ANSWERED]
+            held = _narrow(chain.steps[i], estimate) or chain._underpowered(i, estimate)
+            query = Frame(image.copy(), synthetic_scene.camera)
+            chain._ahead_if_held(i, functools.partial(extract_ahead, query, chain.steps[i + 1]),
+                                 estimate)
+            kinds = set(chain.steps[i + 1].feature_confs())
+            started = {k for k in kinds if k in query.features or query.pending_features(k)}
+            assert started == (kinds if held else set()), (i, held)
+            seen[held] += 1
+            for kind in started:  # waited for, not extracted again
+                query.features_of(kind, lambda: pytest.fail("the extraction ahead failed"))
+    assert seen[True] >= 1 and seen[False] >= 1, seen
 
 
 def test_the_option_is_read_from_the_service_config(synthetic_map):

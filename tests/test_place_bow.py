@@ -107,6 +107,22 @@ def test_query_features_are_stored_for_the_pose_finder(trained, images):
     assert "sift" in query.features and len(query.features["sift"]) > 100
 
 
+@pytest.mark.parametrize("target", [0, 7])
+def test_half_size_query_features_are_reused_not_extracted_again(trained, images, target):
+    """With ``query_scale`` 0.5 the finder quantises the half-size SIFT a chain's earlier
+    step left on the query (the same object, no full-size extraction) against the
+    keyframes' full-size words, and still finds the rotated view's keyframe."""
+    half = FeatureConf("sift", 1000, scale=0.5)
+    finder = BagOfWords(trained.map, BagOfWords.Conf(max_features=1000, query_scale=0.5))
+    finder._install(trained.vocabulary)   # the same words, the keyframes indexed again
+    query = _query(images[target])
+    cached = query.features[half.key] = extract(query.image, half)
+    candidates = finder.find_places(query, 5)
+    assert candidates[0].keyframe_id == target
+    assert query.features[half.key] is cached and "sift" not in query.features
+    assert finder.feature_confs() == {"sift@0.5": half}
+
+
 def test_allowed_restricts_candidates(trained, images):
     query = _query(images[3])
     candidates = trained.find_places(query, 10, allowed={1, 5, 9})
@@ -268,6 +284,9 @@ def test_config_errors():
         create_place_finder({"name": "bow", "branching": 1}, kmap)
     with pytest.raises(ConfigError, match="unknown option"):
         create_place_finder({"name": "bow", "vocabulary_size": 3}, kmap)
+    for scale in (0.0, 1.5):
+        with pytest.raises(ConfigError, match="query_scale in"):
+            create_place_finder({"name": "bow", "query_scale": scale}, kmap)
 
 
 def test_float_centres_are_stored_as_float16_and_older_float32_states_still_load(

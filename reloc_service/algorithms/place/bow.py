@@ -119,6 +119,11 @@ class BagOfWords(PlaceFinder):
         seed: int = 0
         #: Keypoints extracted from a query that comes without features of ``kind``.
         max_features: int = 2000
+        #: Query image scale the query's keypoints are detected at (:class:`FeatureConf`):
+        #: 0.5 quantises the half-size image's SIFT, which a chain's ``sift-half`` step has
+        #: extracted already (the same cached features, not a second extraction); the
+        #: keyframes' words stay those of their full-size features.
+        query_scale: float = 1.0
 
         def __post_init__(self) -> None:
             if self.kind not in FEATURE_KINDS:
@@ -130,6 +135,8 @@ class BagOfWords(PlaceFinder):
                                   f"{self.kmeans_iterations}")
             if self.max_train_descriptors < 1 or self.max_features < 1:
                 raise ConfigError("bow: max_train_descriptors and max_features must be positive")
+            if not 0 < self.query_scale <= 1:
+                raise ConfigError(f"bow: expected query_scale in (0, 1], got {self.query_scale}")
 
     def __init__(self, kmap: KeyframeMap, conf: BagOfWords.Conf) -> None:
         super().__init__(kmap, conf)
@@ -243,7 +250,8 @@ class BagOfWords(PlaceFinder):
 
     # -- queries -----------------------------------------------------------------------------
     def feature_confs(self) -> dict[str, FeatureConf]:
-        return {self.conf.kind: FeatureConf(self.conf.kind, self.conf.max_features)}
+        conf = FeatureConf(self.conf.kind, self.conf.max_features, scale=self.conf.query_scale)
+        return {conf.key: conf}
 
     def query_features(self, query: Frame) -> Features:
         """The query's features of ``kind``, extracted and stored in ``query.features`` if

@@ -359,6 +359,11 @@ def refuses_the_query(result: RelocResult) -> bool:
 #: calls it (once, through :func:`doubt`) when it first has reason to expect it may not
 #: verify, so the chain can start the next step's work on an idle core meanwhile.
 ON_DOUBT = "relocalizer:on-doubt"
+#: ``query.cache`` key of a callable a fallback chain leaves to the step it runs, taking a
+#: :class:`PoseEstimate`: the step calls it (once, through :func:`first_verified`) with its
+#: first verified pose, so the chain can start the next step's work on an idle core where
+#: that pose is one it will hold as a contender and ask the next step about anyway.
+ON_VERIFIED = "relocalizer:on-verified"
 
 
 #: Key of ``query.cache`` where a relocalizer that verified a pose leaves that pose's
@@ -395,6 +400,14 @@ def doubt(query: Frame) -> None:
     hook = query.cache.pop(ON_DOUBT, None)
     if hook is not None:
         hook()
+
+
+def first_verified(query: Frame, estimate: PoseEstimate | None) -> None:
+    """Call the hook a chain left on ``query`` (:data:`ON_VERIFIED`), if any, with the
+    step's first verified ``estimate``, and drop it."""
+    hook = query.cache.pop(ON_VERIFIED, None)
+    if hook is not None and estimate is not None:
+        hook(estimate)
 
 
 class Relocalizer(abc.ABC):

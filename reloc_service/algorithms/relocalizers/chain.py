@@ -14,10 +14,12 @@ from ...core.map import KeyframeMap
 from ..pose.base import PoseEstimate
 from ..pose.intrinsics import IntrinsicsCheck
 from ..pose.intrinsics_power import estimate_underpowered
+from . import overlap
 from .base import (
     ANSWERED,
     CONTENDER,
     ON_DOUBT,
+    ON_VERIFIED,
     Contender,
     Prior,
     Relocalizer,
@@ -120,7 +122,8 @@ class ChainRelocalizer(Relocalizer):
         earlier: list[StepEstimate] = []  # the intrinsics tests of refusals and contenders
         try:
             for i, step in enumerate(self.steps):
-                result = self._ask(query, i, prior, hypotheses, reasons)
+                result = self._ask(query, i, prior, hypotheses, reasons,
+                                   holding=contender is not None)
                 if result is None:
                     continue
                 for stage, seconds in result.timings.items():
@@ -187,12 +190,17 @@ class ChainRelocalizer(Relocalizer):
                 and estimate_underpowered(estimate))
 
     def _ask(self, query: Frame, i: int, prior: Prior | None, hypotheses: int,
-             reasons: list[str]) -> RelocResult | None:
-        """Step ``i``'s result, with the next step's features extracted ahead on doubt;
+             reasons: list[str], *, holding: bool) -> RelocResult | None:
+        """Step ``i``'s result, with the next step's features extracted ahead on doubt,
+        or, unless the chain is ``holding`` a contender already, once the step's first
+        verified pose is one the chain would hold as a contender (:meth:`_ahead_if_held`);
         None (its reason noted) when the step is not trained."""
         step = self.steps[i]
         if i + 1 < len(self.steps):
-            query.cache[ON_DOUBT] = functools.partial(extract_ahead, query, self.steps[i + 1])
+            ahead = functools.partial(extract_ahead, query, self.steps[i + 1])
+            query.cache[ON_DOUBT] = ahead
+            if not holding:
+                query.cache[ON_VERIFIED] = functools.partial(self._ahead_if_held, i, ahead)
         try:
             return step.relocalize(query, prior=prior, hypotheses=hypotheses)
         except NotTrainedError as exc:
@@ -200,6 +208,19 @@ class ChainRelocalizer(Relocalizer):
             return None
         finally:
             query.cache.pop(ON_DOUBT, None)
+            query.cache.pop(ON_VERIFIED, None)
+
+    def _ahead_if_held(self, i: int, ahead: functools.partial[Ahead[None] | None],
+                       estimate: PoseEstimate) -> None:
+        """Run ``ahead`` (the next step's extraction) where step ``i``'s verified
+        ``estimate`` is one the chain holds as a contender if the step answers it (narrow
+        support, or an underpowered intrinsics test: :meth:`relocalize`), so the next step
+        is asked anyway: its features are then extracted while step ``i`` hears its other
+        groups. The same features as extracted later, so the answers are the same; the idle
+        core is looked at first, as judging the estimate costs a little on the query's own."""
+        if overlap.idle_core() and (_narrow(self.steps[i], estimate)
+                                    or self._underpowered(i, estimate)):
+            ahead()
 
     def save(self, directory: Path) -> None:
         """Each step saves into its own sub-directory (``0_bow_p3p``, ...)."""

@@ -28,6 +28,7 @@ from .base import (
     RelocResult,
     VerifyConf,
     doubt,
+    first_verified,
     note_map_calibration,
     refuses_the_query,
     register,
@@ -67,7 +68,9 @@ class MultiRelocalizer(SolutionWeighing, Relocalizer):
         #: start its next step's feature extraction on an idle helper thread
         #: (:func:`.base.doubt`): where this step fails altogether, the next one finds its
         #: features extracted or under way. Answers are the same either way; work done
-        #: ahead for nothing (a later group verifies) only ever uses an idle core.
+        #: ahead for nothing (a later group verifies) only ever uses an idle core. Likewise
+        #: at the first verified group, where the chain will hold that pose as a contender
+        #: and ask its next step too (:func:`.base.first_verified`).
         look_ahead: bool = True
         #: Hear every candidate group (up to ``max_groups``) even after one verified, and
         #: answer only a pose that explains the query significantly better than every other
@@ -336,6 +339,8 @@ class MultiRelocalizer(SolutionWeighing, Relocalizer):
             if (self.conf.look_ahead and not result.ok and len(results) < len(groups)
                     and not any(r.ok for r in results)):
                 doubt(query)
+            if self.conf.look_ahead and result.ok and sum(r.ok for r in results) == 1:
+                first_verified(query, estimate)
             if sum(r.ok for r in results) >= wanted and not self.conf.unique:
                 break
         return results, estimates
