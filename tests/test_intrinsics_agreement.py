@@ -83,6 +83,28 @@ def test_guided_matching_bent_the_focal_where_the_unguided_matches_see_another()
     assert guided_bend_p_value(dataclasses.replace(bent.unguided, unguided=whole)) == 1.0
 
 
+def _noisier(check: IntrinsicsCheck, factor: float) -> IntrinsicsCheck:
+    """``check`` with every solution's residuals ``sqrt(factor)`` times larger (its variance,
+    covariance and cost scaled alike, so the same solution is tested)."""
+    return dataclasses.replace(check, solutions=tuple(
+        dataclasses.replace(s, sigma2=s.sigma2 * factor, cost=s.cost * factor,
+                            model_covariance=s.model_covariance * factor)
+        for s in check.solutions))
+
+
+def test_one_residual_variance_sees_a_bend_that_made_the_whole_set_noisier():
+    whole = sharp(ROOM, 1).intrinsics
+    bent = with_unguided(whole, STALE, 4)
+    # Guided matches fitting a wrong focal: the whole set's residuals grow until its focal
+    # variance passes the unguided one's, and by each set's own variance nothing is seen.
+    noisy = _noisier(bent, 1.05 * float(bent.unguided.covariance[0, 0] / bent.covariance[0, 0]))
+    assert guided_bend_p_value(noisy) == 1.0
+    assert guided_bend_p_value(noisy, one_sigma=True) < 1e-6
+    # One camera: the one-variance test keeps to its level.
+    agreeing = with_unguided(whole, ROOM, 4)
+    assert guided_bend_p_value(agreeing, one_sigma=True) > whole.prior.false_refusal
+
+
 class _RefusingSiftHalf(RefusingOrb):
     """The same on SIFT of the half-size query (as the default chain's sift-half)."""
 

@@ -282,6 +282,7 @@ def _confirmed(query: Frame, step: Relocalizer, result: RelocResult,
                   and getattr(conf, "compare_same_hypothesis", False) else None)
         result = disagreeing_steps(result, estimate, step.required_features, earlier,
                                    guided=getattr(conf, "compare_guided_focal", False),
+                                   one_sigma=getattr(conf, "guided_focal_one_sigma", False),
                                    weigh=rivals) or result
     result.timings = timings
     return result

@@ -118,7 +118,7 @@ def standing_refusal(refusal: Refusal, answer: RelocResult,
 
 def disagreeing_steps(answer: RelocResult, estimate: PoseEstimate | None,
                       features: frozenset[str], earlier: list[StepEstimate], *,
-                      guided: bool = False,
+                      guided: bool = False, one_sigma: bool = False,
                       weigh: Callable[[PoseEstimate, PoseEstimate], str | None] | None = None
                       ) -> RelocResult | None:
     """A refusal of ``answer`` (a verified pose, ``estimate`` its estimate, from a step
@@ -126,7 +126,8 @@ def disagreeing_steps(answer: RelocResult, estimate: PoseEstimate | None,
     with an ``earlier`` step's of the same kinds (:func:`..pose.intrinsics_agreement.
     disagreement_p_value`), or, with ``guided``, where guided matching bent its own focal
     estimate (:func:`..pose.intrinsics_agreement.guided_bend_p_value`, at the false-refusal
-    rate); None where they agree, or where ``answer`` was not tested.
+    rate; ``one_sigma``: its variant with one residual variance); None where they agree,
+    or where ``answer`` was not tested.
 
     With ``weigh`` (None where ``answer``'s pose explains significantly more of the query
     than another's, else why not), a disagreement counts only with an earlier pose of the
@@ -137,7 +138,7 @@ def disagreeing_steps(answer: RelocResult, estimate: PoseEstimate | None,
     if check is None:
         return None
     if guided and check.unguided is not None:
-        p = guided_bend_p_value(check)
+        p = guided_bend_p_value(check, one_sigma=one_sigma)
         if p < check.prior.false_refusal:
             return _refusal(answer, (
                 f"{REFUSAL}: {answer.method}'s matches found without the pose estimate the "

@@ -104,6 +104,14 @@ class MultiRelocalizer(SolutionWeighing, Relocalizer):
         #: camera it refused two correct poses of about 400 (room-hard query 33,
         #: repeated-hard query 30), more than its level predicts.
         compare_guided_focal: bool = False
+        #: With ``compare_guided_focal``, take both focal variances of that test from one
+        #: residual variance, the unguided matches' (Hausman's test under its null: guided
+        #: matches fitting a wrong focal inflate the whole set's own variance until the test
+        #: sees nothing; :func:`..pose.intrinsics_agreement.guided_bend_p_value`). Off: each
+        #: set's own (docs/focal_census.md): with a focal 15 % long it refuses repeated-hard
+        #: query 50 (32 cm, 7.2 sigma), but with the right camera the chain loses
+        #: repeated-hard query 30 (5 cm: its 19 unguided matches estimate -27 +- 7 %).
+        guided_focal_one_sigma: bool = False
         #: With ``unique``, leave unverified a candidate group, or an alternative a
         #: repetition offers, whose pose agrees (within the agreement thresholds) with the
         #: first pose of a solution verified earlier on the query: verified or not, it would
