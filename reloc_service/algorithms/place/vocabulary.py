@@ -213,8 +213,10 @@ class VocabularyTree:
         == "uint8"`` (and every centre within 0-255) they are rounded to SIFT's own integer
         grid instead, half float16's bytes again: each value within 0.5, a centre within 5.7
         (3.3 RMS) in L2 over 128 values, which moves a descriptor's distance to it by no more
-        (triangle inequality); two views' SIFT descriptors of one point lie a few hundred
-        apart, so a descriptor changes word only where its own noise already decides it.
+        (triangle inequality); two views' SIFT descriptors of one point (OpenCV's, integer
+        values, norm 512) lie 90-240 apart (10th-90th percentile of ratio-test matches
+        between two desk keyframes, median 165), so a descriptor changes word only where its
+        own noise already decides it.
         Any reader of float16 centres reads them (``stored_dtype``)."""
         if centres not in ("float16", "uint8"):
             raise ValueError(f"vocabulary centres: expected 'float16' or 'uint8', got "
