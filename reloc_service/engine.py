@@ -356,12 +356,14 @@ class Engine:
         ``"always"`` or a live relocalizer reads them)."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
+        parts = parts or self.conf.stored
         with self._save_lock, tempfile.TemporaryDirectory(dir=directory, prefix=".models-") as tmp:
             with self._rw.read():
                 state = self._published
                 for method, live in self._live.items():
                     (Path(tmp) / model_dir_name(method)).mkdir()
-                    live.relocalizer.save(Path(tmp) / model_dir_name(method))
+                    live.relocalizer.save(Path(tmp) / model_dir_name(method),
+                                          centres=parts.vocabulary)
                     save_pools(live.relocalizer, Path(tmp) / model_dir_name(method), state,
                                self._loaded_models(method, state))
                 methods = list(self._live)
@@ -371,7 +373,6 @@ class Engine:
                 # at a query, or at the training a load gives a method that saved no model
                 every_row = any(live.relocalizer.reads_unmapped_keypoints
                                 or not live.relocalizer.trained for live in self._live.values())
-            parts = parts or self.conf.stored
             parts = replace(parts, images="always" if parts.keeps_images(reads_images)
                             else "needed", descriptors="all" if every_row else parts.descriptors)
             models = {m: functools.partial(_move_contents, Path(tmp) / model_dir_name(m))

@@ -6,8 +6,10 @@ and write one ``reloc eval`` JSON per mode (and print kB a keyframe per snapshot
     .venv/bin/python scripts/stored_form_pairs.py /work/data/repeated-hard /tmp/out/rh 0,0 \\
         landmarks:none per-landmark:none per-landmark:pq[:RATE] -- METHOD...
 
-A mode is ``DESCRIPTORS:CODEC[:RATE]``; RATE, the false-alarm rate of the own-descriptor
-test of :mod:`reloc_service.storage.landmark_descriptors` (default its ``OWN_FALSE_ALARM``).
+A mode is ``DESCRIPTORS:CODEC[:RATE][:KEY=VALUE...]``; RATE, the false-alarm rate of the
+own-descriptor test of :mod:`reloc_service.storage.landmark_descriptors` (default its
+``OWN_FALSE_ALARM``); KEY=VALUE, another field of ``StoredParts`` (``vocabulary=uint8``,
+``landmark_points=float16``), or ``score=no`` to print the sizes only.
 One build for every mode: the modes' answers differ by what they store alone."""
 
 from __future__ import annotations
@@ -33,7 +35,9 @@ def kb_per_part(snapshot_root: str, keyframes: int) -> dict[str, float]:
             rel = f.relative_to(snapshot_root).parts
             key = rel[2] if len(rel) > 3 else "other"
             if key == "features":
-                key = "f:" + rel[3].split(".")[1] if "descriptor" in rel[3] else "f:other"
+                key = "f:" + ".".join(rel[3].split(".")[:2]) if "descriptor" in rel[3] else "f:other"
+            elif key == "landmarks":
+                key = "l:points" if "points" in rel[3] else "l:other"
             sizes[key] = sizes.get(key, 0) + f.stat().st_size
     return {k: round(v / 1024 / max(keyframes, 1), 1) for k, v in sorted(sizes.items())}
 
@@ -53,13 +57,19 @@ def main(args: list[str]) -> None:
     base = ServiceSection().stored_parts()
     name = Path(root).name
     for mode in modes:
-        descriptors, codec, *rate = mode.split(":")
+        descriptors, codec, *rest = mode.split(":")
+        extra = dict(r.split("=", 1) for r in rest if "=" in r)
+        rate = [r for r in rest if "=" not in r]
+        score = extra.pop("score", "yes") != "no"
         ld.own_rows.__kwdefaults__["rate"] = float(rate[0]) if rate else ld.OWN_FALSE_ALARM
         tmp = tempfile.TemporaryDirectory(prefix="reloc-pair-")
         trained.save(tmp.name, parts=replace(base, descriptors=descriptors,
-                                             descriptor_codec=codec))
+                                             descriptor_codec=codec, **extra))
         parts = kb_per_part(tmp.name, len(trained.map.snapshot().keyframes))
         print(name, mode, "kB/kf", round(sum(parts.values()), 1), parts, flush=True)
+        if not score:
+            tmp.cleanup()
+            continue
         backend.engine = Engine.load(tmp.name, trained.conf)
         with ev.as_a_service_worker():
             results = [ev._evaluate_method(backend, dataset, m, False, claimed, truth_cov)
@@ -68,7 +78,8 @@ def main(args: list[str]) -> None:
         ev.EvalResult(dataset=ev._dataset_info(dataset, claimed), map=info, methods=results,
                       machine=ev.machine_info(), backend=backend.description, options={},
                       created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
-                      ground_truth_sigma=sigma).write_json(f"{prefix}_{mode.replace(':', '_')}.json")
+                      ground_truth_sigma=sigma).write_json(
+                          f"{prefix}_{mode.replace(':', '_').replace('=', '-')}.json")
         for r in results:
             print(name, mode, r.method, f"{100 * r.summary.recall['5cm_5deg']:.1f}",
                   f"{100 * r.summary.wrong_rate:.1f}", flush=True)

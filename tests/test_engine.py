@@ -97,7 +97,7 @@ class Probe(Relocalizer):
                            matched_keyframe_ids=sorted(ids), map_version=state.version,
                            timings={"place": 0.0})
 
-    def save(self, directory: Path) -> None:
+    def save(self, directory: Path, *, centres: str = "float16") -> None:
         (directory / "probe.json").write_text(json.dumps(sorted(self.index)))
 
     def load(self, directory: Path) -> bool:

@@ -10,6 +10,7 @@ import pytest
 
 from reloc_service.storage.landmark_codec import (
     ANCHORED_POINTS,
+    HALF_ROUNDING_SHARE,
     ROUNDING_SHARE,
     WidenedColumn,
     anchored_points,
@@ -35,6 +36,28 @@ def test_anchored_float32_is_within_the_share_of_each_sigma(synthetic_map):
     # the anchor is a camera that saw the landmark: the range, not the world position, counts
     ranges = np.linalg.norm(columns.points_world - centres, axis=1)
     assert ranges.max() < 10 and np.all(error <= ranges * 2.0**-23)
+
+
+def test_float16_offsets_are_within_half_of_each_sigma_else_float32(synthetic_map):
+    """``half``: float16 offsets where every landmark's rounding is within
+    HALF_ROUNDING_SHARE of its uncertainty (the test camera's, with unknown sigmas: the
+    0.5 px floor); a focal length 8 times larger shrinks that floor below float16's rounding
+    and the map keeps float32, within ROUNDING_SHARE as before."""
+    columns = synthetic_map.landmarks.columns()
+    unknown = dataclasses.replace(columns, depth_sigmas_m=np.zeros(len(columns)))
+    stored = encode_geometry(unknown, synthetic_map.keyframes, half=True)
+    assert stored[ANCHORED_POINTS].dtype == np.float16
+    assert stored["depth_sigmas_m"].dtype == np.float32
+    points = decode_points(stored[ANCHORED_POINTS], columns.obs_offsets, columns.obs_keyframe,
+                           synthetic_map.keyframes)
+    centres, focal = anchors(columns, synthetic_map.keyframes)
+    sigma = position_sigmas(columns.points_world, centres, focal, unknown.depth_sigmas_m)
+    error = np.linalg.norm(points - columns.points_world, axis=1)
+    assert np.all(error <= HALF_ROUNDING_SHARE * sigma) and np.any(error > ROUNDING_SHARE * sigma)
+    sharp = {k: dataclasses.replace(kf, camera=dataclasses.replace(kf.camera, fx=8 * kf.camera.fx,
+                                                                    fy=8 * kf.camera.fy))
+             for k, kf in synthetic_map.keyframes.items()}
+    assert encode_geometry(unknown, sharp, half=True)[ANCHORED_POINTS].dtype == np.float32
 
 
 def test_unknown_sigmas_use_the_pixel_floor_and_huge_focal_lengths_keep_float64(synthetic_map):

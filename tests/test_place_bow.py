@@ -305,3 +305,39 @@ def test_float_centres_are_stored_as_float16_and_older_float32_states_still_load
     del old["stored_dtype"]
     assert all(np.array_equal(a, b) for a, b in zip(VocabularyTree.from_state(old).centres,
                                                     tree.centres, strict=True))
+
+
+def test_uint8_centres_halve_the_stored_vocabulary_and_stay_within_half_a_unit(
+        trained, sift_keyframes, images):
+    """``centres="uint8"``: SIFT means rounded to SIFT's integer values, half float16's bytes;
+    read back as float32 by the reader of float16 centres, and the loaded finder saved again
+    stores the same bytes and answers as the first load does."""
+    small = trained.state(centres="uint8")
+    assert small["tree"]["stored_dtype"] == "uint8"
+
+    def centre_bytes(state):
+        return sum(len(level["centres"]) for level in state["tree"]["levels"])
+
+    assert 2 * centre_bytes(small) == centre_bytes(trained.state())
+    restored, _ = _finder(sift_keyframes)
+    restored.load_state(msgpack.unpackb(msgpack.packb(small, use_bin_type=True), raw=False))
+    for held, read in zip(trained.vocabulary.centres, restored.vocabulary.centres, strict=True):
+        assert read.dtype == np.float32 and np.abs(read - held).max() <= 0.5
+        assert np.array_equal(read, np.rint(held))
+    again = restored.state(centres="uint8")
+    assert again["tree"] == small["tree"]
+    twice, _ = _finder(sift_keyframes)
+    twice.load_state(again)
+    query = _query(images[5])
+    assert twice.find_places(query, 5) == restored.find_places(query, 5)
+    assert restored.find_places(query, 1)[0].keyframe_id == 5
+
+
+def test_uint8_centres_apply_only_to_centres_on_sift_s_value_range():
+    """Float descriptors outside 0-255 keep float16 centres; an unknown setting is refused."""
+    rng = np.random.default_rng(0)
+    tree = VocabularyTree.build(rng.normal(0.0, 1.0, (300, 8)).astype(np.float32),
+                                branching=3, depth=2, iterations=2, rng=rng)
+    assert tree.to_state(centres="uint8")["stored_dtype"] == "float16"
+    with pytest.raises(ValueError, match="'float16' or 'uint8'"):
+        tree.to_state(centres="int4")

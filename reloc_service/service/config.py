@@ -218,6 +218,15 @@ class ServiceSection:
     #: untrained method, or one that reads other keypoints (5pt), keeps them all) or "all"
     #: (needed to re-train a bag-of-words vocabulary on a restored map, or to add 5pt).
     keyframe_descriptors: str = "landmarks"
+    #: A bag-of-words vocabulary's SIFT centres on disk: "float16" or "uint8" (rounded to
+    #: SIFT's integer values; half the bytes, read by older reloc too)
+    #: (:meth:`..algorithms.place.vocabulary.VocabularyTree.to_state`). An option: it changes
+    #: which word a descriptor near a cell boundary gets (docs/performance.md, "Map size").
+    vocabulary_centres: str = "float16"
+    #: Landmark points on disk: "float32" offsets from their anchor keyframe, or "float16"
+    #: where the rounding stays within half of each landmark's uncertainty (format 10: an
+    #: older reloc refuses the map, naming the format) (:mod:`..storage.landmark_codec`).
+    landmark_points: str = "float32"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "methods", _str_tuple(self.methods, "service.methods"))
@@ -261,7 +270,9 @@ class ServiceSection:
         try:
             return StoredParts(depth=self.keyframe_depth, images=images,
                                descriptor_codec=self.descriptor_codec,
-                               descriptors=self.keyframe_descriptors)
+                               descriptors=self.keyframe_descriptors,
+                               vocabulary=self.vocabulary_centres,
+                               landmark_points=self.landmark_points)
         except ConfigError as exc:
             raise ConfigError(f"service.{exc}") from None
 

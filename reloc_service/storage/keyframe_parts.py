@@ -18,7 +18,13 @@ stores anyway. So by default (:class:`StoredParts`) a snapshot keeps:
   :mod:`.landmark_descriptors`);
 - SIFT descriptors: ``"none"`` (in full), ``"pq"`` (product-quantization codes, 32 bytes
   instead of 128, decoded when a keyframe's features are first read: :mod:`.descriptor_pq`)
-  or ``"pq16"`` (16-byte codes, coarser).
+  or ``"pq16"`` (16-byte codes, coarser);
+- a bag-of-words vocabulary's centres (``vocabulary``): ``"float16"`` or ``"uint8"`` (SIFT
+  means rounded to SIFT's own integer grid: :meth:`..algorithms.place.vocabulary.VocabularyTree.to_state`
+  documents the bound; read by every reloc that reads float16 centres);
+- landmark points (``landmark_points``): ``"float32"`` offsets from their anchor keyframe, or
+  ``"float16"`` where the rounding is within a quarter of each landmark's uncertainty
+  (:mod:`.landmark_codec`; a snapshot with float16 points is format 10).
 
 The service's defaults (``[service]`` in the configuration) store landmark rows, in full.
 
@@ -47,6 +53,10 @@ IMAGE_MODES = ("needed", "always")
 #: How SIFT descriptors are stored: in full, or as product-quantization codes
 #: (:mod:`.descriptor_pq`); ORB's 32-byte binary descriptors are stored as they are.
 DESCRIPTOR_CODECS = ("none", *CODEC_SUBSPACES)
+#: How a bag-of-words vocabulary's float centres are stored (``[service] vocabulary_centres``).
+VOCABULARY_MODES = ("float16", "uint8")
+#: How landmark points' offsets from their anchor are stored (``[service] landmark_points``).
+POINT_MODES = ("float32", "float16")
 
 
 def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
@@ -70,12 +80,16 @@ class StoredParts:
     images: str = "needed"
     descriptor_codec: str = "none"
     descriptors: str = "all"
+    vocabulary: str = "float16"
+    landmark_points: str = "float32"
 
     def __post_init__(self) -> None:
         _check_choice("keyframe_depth", self.depth, DEPTH_MODES)
         _check_choice("keyframe_images", self.images, IMAGE_MODES)
         _check_choice("keyframe_descriptors", self.descriptors, ROW_MODES)
         _check_choice("descriptor_codec", self.descriptor_codec, DESCRIPTOR_CODECS)
+        _check_choice("vocabulary_centres", self.vocabulary, VOCABULARY_MODES)
+        _check_choice("landmark_points", self.landmark_points, POINT_MODES)
 
     def keeps_images(self, methods_read_images: bool) -> bool:
         """Whether a map whose methods do (or do not) read keyframe pixels stores images."""

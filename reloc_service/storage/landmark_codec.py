@@ -11,6 +11,10 @@ A snapshot keeps that form only when, for every landmark, the rounding error is 
 :data:`ROUNDING_SHARE` of the landmark's 1-sigma position uncertainty (:func:`position_sigmas`:
 its triangulated depth sigma, at least the pixel localisation floor P3P uses); otherwise
 the map keeps float64 points and sigmas (format 3's columns), so no map loses more.
+
+On request (``StoredParts.landmark_points == "float16"``, format 10) the offsets are stored
+float16 when every landmark's rounding error is at most :data:`HALF_ROUNDING_SHARE` of its
+1-sigma uncertainty; otherwise the float32 test above applies.
 """
 
 from __future__ import annotations
@@ -34,6 +38,15 @@ Array = npt.NDArray[np.float64]
 #: the keypoint localisation sigma (0.005 px) from the floor's camera: far below what any
 #: decision on a 0.5 px keypoint can resolve.
 ROUNDING_SHARE = 0.01
+#: Largest rounding error of float16 offsets, as a share of the landmark's 1-sigma position
+#: uncertainty. float16 rounds an offset to within 2**-11 of its length (11-bit significand),
+#: that is 0.45 of the uncertainty floor (a 0.5 px keypoint at the landmark's range) at a
+#: 460 px focal length. At 1/2 every uncertainty grows by at most 12 % in quadrature, and a
+#: 99 % chi-square gate on the landmark's reprojection (2 dof, 9.21) keeps a true match with
+#: probability at least 98.4 % (noncentral chi-square, noncentrality 1/4) instead of 99 %.
+#: A map with a landmark beyond it (a focal length above about 510 px with exact depth, where
+#: only the pixel floor bounds the uncertainty) keeps float32.
+HALF_ROUNDING_SHARE = 0.5
 #: Keypoint localisation (1 sigma, pixels) of the uncertainty floor: the triangulation's
 #: (and P3P's) default ``keypoint_sigma_px``.
 KEYPOINT_SIGMA_PX = TriangulationConf.keypoint_sigma_px
@@ -72,10 +85,12 @@ def position_sigmas(points_world: Array, centres_world: Array, focal_px: Array,
 
 
 def encode_geometry(columns: LandmarkColumns, keyframes: Mapping[int, Keyframe], *,
-                    exact: bool = False) -> dict[str, np.ndarray]:
-    """The landmark geometry columns a snapshot stores: ``{ANCHORED_POINTS: (L, 3) float32,
-    "depth_sigmas_m": (L,) float32}`` when every landmark's rounding error (point and sigma)
-    is at most ``ROUNDING_SHARE`` of its :func:`position_sigmas`, else (or when ``exact``)
+                    exact: bool = False, half: bool = False) -> dict[str, np.ndarray]:
+    """The landmark geometry columns a snapshot stores: with ``half``, ``{ANCHORED_POINTS:
+    (L, 3) float16, "depth_sigmas_m": (L,) float32}`` when every offset's rounding error is at
+    most ``HALF_ROUNDING_SHARE`` of its :func:`position_sigmas`; else ``{ANCHORED_POINTS: (L,
+    3) float32, "depth_sigmas_m": (L,) float32}`` when every landmark's rounding error (point
+    and sigma) is at most ``ROUNDING_SHARE`` of it, else (or when ``exact``)
     ``{"points_world": (L, 3) float64, "depth_sigmas_m": (L,) float64}`` as held."""
     points = np.asarray(columns.points_world, np.float64)
     sigmas = np.asarray(columns.depth_sigmas_m, np.float64)
@@ -85,14 +100,18 @@ def encode_geometry(columns: LandmarkColumns, keyframes: Mapping[int, Keyframe],
         return full
     centres, focal = found
     with np.errstate(over="ignore", invalid="ignore"):
-        offsets32 = (points - centres).astype(np.float32)
         sigmas32 = sigmas.astype(np.float32)
-        point_error = np.linalg.norm(centres + offsets32.astype(np.float64) - points, axis=1)
         sigma_error = np.abs(sigmas32.astype(np.float64) - sigmas)
-        allowed = ROUNDING_SHARE * position_sigmas(points, centres, focal, sigmas)
-        # NaN or overflow compares False: such a map keeps float64
-        fits = bool(np.all(point_error <= allowed) and np.all(sigma_error <= allowed))
-    return {ANCHORED_POINTS: offsets32, "depth_sigmas_m": sigmas32} if fits else full
+        uncertainty = position_sigmas(points, centres, focal, sigmas)
+        sigma_fits = bool(np.all(sigma_error <= ROUNDING_SHARE * uncertainty))
+        for dtype, share in ((np.float16, HALF_ROUNDING_SHARE),) * half + (
+                (np.float32, ROUNDING_SHARE),):
+            offsets = (points - centres).astype(dtype)
+            point_error = np.linalg.norm(centres + offsets.astype(np.float64) - points, axis=1)
+            # NaN or overflow compares False: such a map keeps float64
+            if sigma_fits and bool(np.all(point_error <= share * uncertainty)):
+                return {ANCHORED_POINTS: offsets, "depth_sigmas_m": sigmas32}
+    return full
 
 
 class RowDecoded:
@@ -134,9 +153,9 @@ class WidenedColumn(RowDecoded):
 
 class AnchoredPoints(RowDecoded):
     """(L, 3) float64 world points: the centre of each landmark's anchor keyframe plus its
-    stored float32 offset (:func:`encode_geometry`), decoded per row."""
+    stored float32 (or float16) offset (:func:`encode_geometry`), decoded per row."""
 
-    def __init__(self, offsets: npt.NDArray[np.float32], anchor: np.ndarray,
+    def __init__(self, offsets: npt.NDArray[np.floating[Any]], anchor: np.ndarray,
                  centres_world: Array) -> None:
         super().__init__((len(offsets), 3))
         self._offsets, self._anchor, self._centres = offsets, anchor, centres_world
@@ -145,7 +164,7 @@ class AnchoredPoints(RowDecoded):
         return self._centres[self._anchor[rows]] + self._offsets[rows].astype(np.float64)
 
 
-def anchored_points(anchored: npt.NDArray[np.float32], obs_offsets: npt.NDArray[np.int64],
+def anchored_points(anchored: npt.NDArray[np.floating[Any]], obs_offsets: npt.NDArray[np.int64],
                     obs_keyframe: npt.NDArray[np.int64], keyframes: Mapping[int, Keyframe]
                     ) -> AnchoredPoints:
     """The (L, 3) world points of :func:`encode_geometry`'s offsets ``anchored`` (kept as
@@ -166,7 +185,7 @@ def anchored_points(anchored: npt.NDArray[np.float32], obs_offsets: npt.NDArray[
     return AnchoredPoints(anchored, anchor, centres)
 
 
-def decode_points(anchored: npt.NDArray[np.float32], obs_offsets: npt.NDArray[np.int64],
+def decode_points(anchored: npt.NDArray[np.floating[Any]], obs_offsets: npt.NDArray[np.int64],
                   obs_keyframe: npt.NDArray[np.int64], keyframes: Mapping[int, Keyframe]
                   ) -> Array:
     """(L, 3) float64 world points of :func:`anchored_points`, every row decoded."""

@@ -307,8 +307,8 @@ def _read_landmark_columns(reader: SnapshotReader, manifest: Mapping[str, Any],
          for name in LANDMARK_COLUMNS if not (anchored and name == "points_world")}
     if anchored:
         a["points_world"] = read_column(reader, f"landmarks/{ANCHORED_POINTS}")
-        if a["points_world"].dtype != np.float32:
-            raise StorageError(f"{where}/{ANCHORED_POINTS}.npy: expected float32, got "
+        if a["points_world"].dtype not in (np.float32, np.float16):
+            raise StorageError(f"{where}/{ANCHORED_POINTS}.npy: expected float32 or float16, got "
                                f"{a['points_world'].dtype}")
     n, n_obs = len(a["ids"]), len(a["obs_keyframe"])
     offsets = a["obs_offsets"]
@@ -320,7 +320,7 @@ def _read_landmark_columns(reader: SnapshotReader, manifest: Mapping[str, Any],
                            f"{a['points_world'].shape}, {n_obs} observations)")
     kinds = [str(k) for k in meta.get("kinds", [])]
     _check_observations(where, a, kinds, keyframes)
-    if anchored:   # float32 on disk, float64 rows decoded on read (memory-mapped until then)
+    if anchored:   # float32 (or float16) on disk, float64 rows decoded on read (memory-mapped until then)
         try:
             a["points_world"] = anchored_points(a["points_world"], offsets, a["obs_keyframe"],
                                                 keyframes)  # type: ignore[assignment]

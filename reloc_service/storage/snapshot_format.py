@@ -8,14 +8,16 @@ import re
 import numpy as np
 
 FORMAT = "reloc map"
-FORMAT_VERSION = 9
-#: What a snapshot with shared (per-landmark) descriptors and no row keeping its own is
-#: written as, and one without shared descriptors: nothing in them needs a later format, so a
-#: reloc that reads up to that format still loads them.
+FORMAT_VERSION = 10
+#: What a snapshot with float16 landmark points is written as (``FORMAT_VERSION``); one
+#: with float32 or float64 points is written as the oldest format that reads the rest:
+#: 9 with rows keeping their own descriptor beside shared ones, 8 with shared descriptors,
+#: else 7, so a reloc that reads up to that format still loads it.
+OWN_ROWS_FORMAT_VERSION = 9
 SHARED_FORMAT_VERSION = 8
 UNSHARED_FORMAT_VERSION = 7
 #: Older format versions this reloc still reads.
-READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8, 9)
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
 MODELS_DIR = "models"
 
 FEATURE_FIELDS = ("keypoints_px", "levels", "sizes", "angles", "descriptors", "landmark_ids",

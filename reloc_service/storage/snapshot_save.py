@@ -59,6 +59,7 @@ from .snapshot_format import (
     LANDMARK_INTEGERS,
     LANDMARK_NARROWER,
     MODELS_DIR,
+    OWN_ROWS_FORMAT_VERSION,
     SHARED_FORMAT_VERSION,
     THUMBNAIL_PREFIX,
     UNSHARED_FORMAT_VERSION,
@@ -168,15 +169,20 @@ def _write_thumbnails(writer: SnapshotWriter, keyframes: list[Keyframe], compact
 
 
 def _write_landmarks(writer: SnapshotWriter, columns: LandmarkColumns,
-                     keyframes: Mapping[int, Keyframe], *, exact: bool) -> dict[str, Any]:
+                     keyframes: Mapping[int, Keyframe], *, exact: bool, half: bool
+                     ) -> tuple[dict[str, Any], bool]:
     """The landmark columns: ids and observation indices in the narrowest exact integer
-    type, points and sigmas float32 where :func:`encode_geometry` allows (never if ``exact``)."""
+    type, points and sigmas float32 (points float16 with ``half``) where
+    :func:`encode_geometry` allows (never if ``exact``). Returns the manifest's entry and
+    whether the points were stored float16."""
     for name in LANDMARK_INTEGERS:
         column = narrowest(np.asarray(getattr(columns, name)), LANDMARK_NARROWER[name])
         writer.write(*packed_file(f"landmarks/{name}", column))
-    for name, column in encode_geometry(columns, keyframes, exact=exact).items():
+    geometry = encode_geometry(columns, keyframes, exact=exact, half=half)
+    for name, column in geometry.items():
         writer.write(*packed_file(f"landmarks/{name}", column))
-    return {"dir": "landmarks", "kinds": list(columns.kinds), "count": len(columns.ids)}
+    halved = any(column.dtype == np.float16 for column in geometry.values())
+    return {"dir": "landmarks", "kinds": list(columns.kinds), "count": len(columns.ids)}, halved
 
 
 def save_map(state: MapState, directory: str | Path, *,
@@ -225,7 +231,8 @@ def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelW
     _write_features(writer, kfs, state, columns, rows, parts.descriptor_codec, masks,
                     shared=shared)
     thumbnails = _write_thumbnails(writer, kfs, compact=parts.descriptor_codec != "none")
-    landmarks = _write_landmarks(writer, columns, state.keyframes, exact=exact_geometry)
+    landmarks, half_points = _write_landmarks(writer, columns, state.keyframes, exact=exact_geometry,
+                                 half=parts.landmark_points == "float16")
     model_dirs: dict[str, str] = {}
     for method, write_model in models.items():
         rel = f"{MODELS_DIR}/{model_dir_name(method)}"
@@ -235,7 +242,7 @@ def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelW
         model_dirs[method] = rel
     link_duplicate_models(snapshot, writer.files)
     manifest = {"format": FORMAT,
-                "format_version": _format_version(shared, writer.files),
+                "format_version": _format_version(shared, writer.files, half_points),
                 "map_version": int(state.version), "next_landmark_id": int(state.next_landmark_id),
                 "keyframes": keyframes, "landmarks": landmarks, "thumbnails": thumbnails,
                 "models": model_dirs, "store": dict(store),
@@ -271,11 +278,14 @@ def link_duplicate_models(snapshot: Path, files: Mapping[str, Mapping[str, Any]]
     return saved
 
 
-def _format_version(shared: bool, files: Mapping[str, Any]) -> int:
-    """The oldest format that reads what was written: 9 with own-row masks
-    (:data:`.landmark_descriptors.OWN_ROWS`), 8 with shared descriptors, else 7."""
+def _format_version(shared: bool, files: Mapping[str, Any], half_points: bool) -> int:
+    """The oldest format that reads what was written: 10 with float16 landmark points, 9
+    with own-row masks (:data:`.landmark_descriptors.OWN_ROWS`), 8 with shared descriptors,
+    else 7."""
+    if half_points:
+        return FORMAT_VERSION
     if not shared:
         return UNSHARED_FORMAT_VERSION
     own = any(f".{OWN_ROWS}." in name for name in files)
-    return FORMAT_VERSION if own else SHARED_FORMAT_VERSION
+    return OWN_ROWS_FORMAT_VERSION if own else SHARED_FORMAT_VERSION
 

@@ -75,8 +75,9 @@ class PlaceFinder(abc.ABC):
         """Up to ``k`` candidates, best first; ``[]`` on an empty map. ``allowed`` restricts
         the candidates to those keyframe ids (a prior pose with a radius)."""
 
-    def state(self) -> dict[str, Any] | None:
-        """Trained model to persist with the map (msgpack-able), or None."""
+    def state(self, *, centres: str = "float16") -> dict[str, Any] | None:
+        """Trained model to persist with the map (msgpack-able), or None; ``centres``: how
+        float cluster centres are stored ("float16" or "uint8")."""
         return None
 
     def load_state(self, state: dict[str, Any]) -> None:  # noqa: B027 (optional hook)

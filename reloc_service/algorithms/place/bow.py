@@ -284,13 +284,16 @@ class BagOfWords(PlaceFinder):
         return l1_scores(index.weights, uniq, weights / total)
 
     # -- persistence -------------------------------------------------------------------------
-    def state(self) -> dict[str, Any] | None:
-        """Vocabulary tree and per-keyframe word counts (msgpack-able), None before training."""
+    def state(self, *, centres: str = "float16") -> dict[str, Any] | None:
+        """Vocabulary tree (its float centres stored as ``centres`` says:
+        :meth:`VocabularyTree.to_state`) and per-keyframe word counts (msgpack-able), None
+        before training."""
         if self._tree is None:
             return None
         ids = sorted(self._rows)
         words = [self._rows[i][0] for i in ids]
-        return {"format": _STATE_FORMAT, "kind": self.conf.kind, "tree": self._tree.to_state(),
+        return {"format": _STATE_FORMAT, "kind": self.conf.kind,
+                "tree": self._tree.to_state(centres=centres),
                 "keyframe_ids": [int(i) for i in ids],
                 "indptr": np.cumsum([0] + [len(w) for w in words]).astype(np.int64).tobytes(),
                 "words": np.concatenate(words or [np.zeros(0, np.int32)]).tobytes(),

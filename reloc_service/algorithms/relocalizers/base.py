@@ -482,8 +482,11 @@ class Relocalizer(abc.ABC):
                    ) -> RelocResult:
         """The query's ``world_from_cam``, verified, or NOT_RELOCALIZED with a reason."""
 
-    def save(self, directory: Path) -> None:  # noqa: B027 (optional hook)
-        """Write trained models into ``directory`` (created by the caller); default: none."""
+    def save(self, directory: Path, *, centres: str = "float16"  # noqa: B027 (optional hook)
+             ) -> None:
+        """Write trained models into ``directory`` (created by the caller); default: none.
+        ``centres``: how a vocabulary's float centres are stored, "float16" or "uint8"
+        (:meth:`..place.vocabulary.VocabularyTree.to_state`)."""
 
     def defer_unchecked_intrinsics(self) -> None:  # noqa: B027 (optional hook)
         """Refuse, rather than trust the calibration, where a view cannot check the query's

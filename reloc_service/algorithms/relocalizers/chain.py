@@ -222,12 +222,12 @@ class ChainRelocalizer(Relocalizer):
                                     or self._underpowered(i, estimate)):
             ahead()
 
-    def save(self, directory: Path) -> None:
+    def save(self, directory: Path, *, centres: str = "float16") -> None:
         """Each step saves into its own sub-directory (``0_bow_p3p``, ...)."""
         for i, step in enumerate(self.steps):
             sub = directory / _step_dir(i, step.method)
             sub.mkdir(parents=True, exist_ok=True)
-            step.save(sub)
+            step.save(sub, centres=centres)
 
     def load(self, directory: Path) -> bool:
         """Restore every step that has something saved; True if any did."""

@@ -456,7 +456,7 @@ class FernsRelocalizer(Relocalizer):
         self.verify_conf = dataclasses.replace(self.verify_conf,
                                                trust_unchecked_intrinsics=False)
 
-    def save(self, directory: Path) -> None:
+    def save(self, directory: Path, *, centres: str = "float16") -> None:
         """Write the models' files (:mod:`.ferns_files`: counts, records, options, regions)."""
         arrays, models = self._models.to_files()
         write_ferns(directory, arrays, {"conf": dataclasses.asdict(self.conf),

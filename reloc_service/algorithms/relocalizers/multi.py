@@ -357,11 +357,11 @@ class MultiRelocalizer(SolutionWeighing, Relocalizer):
         self.verify_conf = dataclasses.replace(self.verify_conf,
                                                trust_unchecked_intrinsics=False)
 
-    def save(self, directory: Path) -> None:
+    def save(self, directory: Path, *, centres: str = "float16") -> None:
         """Write the place finder's trained model (if any) as ``place_<name>.msgpack.zlib``:
         zlib keeps about two thirds of a vocabulary tree and its inverted file (word counts
         and sorted word ids repeat), exactly."""
-        state = self.place.state()
+        state = self.place.state(centres=centres)
         if state is not None:
             import msgpack  # only needed when a place finder has a model to persist
 
