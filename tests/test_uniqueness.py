@@ -211,6 +211,31 @@ def test_ferns_refuse_a_view_of_one_copy_and_answer_the_view_beside_it(repeated_
     assert first_only.relocalize(copy_only).ok   # the first verified pose, as before
 
 
+def test_ferns_weigh_the_pose_of_a_copy_against_the_true_place_elsewhere(repeated_scene) -> None:
+    """Classified against the landmarks of the keyframes near the right copy only (a prior
+    around it), the query of the left copy and the photograph beside it verifies one pose:
+    the copy's. Ferns' own hypotheses show no other, but the keypoints that pose leaves
+    unexplained point to the true place (a repetition alternative, as a multi step weighs
+    its own), whose pose explains more of the image: it answers, not the copy's."""
+    from reloc_service.algorithms.relocalizers.base import Prior
+
+    ferns = create_relocalizer("ferns", repeated_scene.map, options={"ferns": dict(
+        num_ferns=40, num_tests=10, num_warps=25, workers=2, partition="select")})
+    ferns.train()
+    gt, copy_pose = downward_pose(-0.75, -0.5, 0.8), downward_pose(1.25, -0.5, 0.8)
+    near_copy = Prior(copy_pose, radius_m=0.8)   # keyframes at x >= 0.5, the truth's 1.75 m away
+    result = ferns.relocalize(Frame(repeated_scene.render(gt), CAMERA), prior=near_copy)
+    assert result.ok, result.reason
+    assert pose_error(result.world_from_cam, gt)[0] < 0.02, (
+        f"answered {pose_error(result.world_from_cam, gt)[0]:.2f} m from the truth")
+    unweighed = create_relocalizer("ferns", repeated_scene.map, options={"ferns": dict(
+        num_ferns=40, num_tests=10, num_warps=25, workers=2, partition="select",
+        competitors=0)})
+    unweighed.train()
+    copy = unweighed.relocalize(Frame(repeated_scene.render(gt), CAMERA), prior=near_copy)
+    assert copy.ok and pose_error(copy.world_from_cam, copy_pose)[0] < 0.1  # the first pose
+
+
 def test_what_a_copys_pose_leaves_unexplained_points_to_the_true_place(repeated_scene) -> None:
     """Posed on the keyframe above the right copy only, the query of the left copy and the
     photograph beside it gets the copy's pose; the keypoints that pose does not explain

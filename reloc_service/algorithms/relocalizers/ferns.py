@@ -1,6 +1,8 @@
 """Ferns relocalizer (thesis 3.2, 5.1.2, 5.2.2): map landmarks are the classes of a random-ferns
 classifier trained on warped views of their observations; query keypoints are classified into
-2D-3D correspondences and the pose comes from P3P LO-RANSAC, then the shared verification.
+2D-3D correspondences and the pose comes from P3P LO-RANSAC, then the shared verification;
+the verified poses are weighed against each other and the alternatives a repetition of the map
+offers as a multi step weighs its own (:mod:`.ferns_weighing`).
 
 Training is exact and incremental (:mod:`reloc_service.algorithms.ferns.models`): every trained
 observation ``(keyframe, keypoint, landmark)`` is recorded, its samples are a function of the
@@ -47,7 +49,6 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core.errors import ConfigError, NotTrainedError
-from ...core.features import FeatureConf
 from ...core.frame import Frame, Keyframe
 from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
@@ -61,11 +62,8 @@ from ..ferns.scorer import FernScorer
 from ..ferns.training import prepare_image
 from ..place.sbi import SmallBlurryImageFinder
 from ..pose.base import PoseEstimate
-from ..pose.guided import GuidedConf
 from ..pose.map_consistency import prepare_map, settle_pose_errors
 from ..pose.pnp import PnPConf, solve_pnp_indexed
-from ..pose.support import query_support
-from . import uniqueness
 from .base import (
     Prior,
     Relocalizer,
@@ -78,6 +76,7 @@ from .base import (
 )
 from .ferns_conf import FernsConf
 from .ferns_files import MODEL_FILE, read_ferns, write_ferns
+from .ferns_weighing import FernsWeighing, supported_p3p
 
 Array = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -106,6 +105,8 @@ class FernsRelocalizer(Relocalizer):
         self.conf = conf or FernsConf()
         self.verify_conf = verify_conf or VerifyConf()
         self.pnp_conf = pnp_conf or PnPConf()
+        # Weighs the verified poses against a repetition's alternatives (:meth:`_solve`).
+        self._weighing_pose = supported_p3p(self.conf.kind, self.pnp_conf)
         self._tests = FernTests(self.conf.fern_conf())
         self._points_cache: tuple[int, IntArray, Array] = (-1, np.zeros(0, np.int64),
                                                            np.zeros((0, 3)))
@@ -166,7 +167,9 @@ class FernsRelocalizer(Relocalizer):
         models.train(self.map.snapshot(), show_progress=progress)
         self._models = models
         self._ever_trained = True
-        if self.pnp_conf.intrinsics_false_refusal > 0:
+        if self.conf.competitors > 0:  # the map pool the repetition search reads, too
+            self._weighing_pose.prepare_map(self.map.snapshot())
+        elif self.pnp_conf.intrinsics_false_refusal > 0:
             prepare_map(self.map.snapshot(), self.conf.kind, self.pnp_conf)
 
     def update(self, *, show_progress: bool = False) -> None:
@@ -296,10 +299,7 @@ class FernsRelocalizer(Relocalizer):
         points, live = self._landmark_points(state, lm)
         kp, lm, points = kp[live], lm[live], points[live]
         timings["classify"] = time.perf_counter() - start
-        results = self._solve(query, px, kp, lm, points, state, max(1, hypotheses), timings)
-        best = results[0]
-        best.hypotheses = [r for r in results[1:] if r.ok]
-        return best
+        return self._solve(query, px, kp, lm, points, state, max(1, hypotheses), timings)
 
     def _near_keyframes(self, state: MapState, prior: Prior) -> list[int]:
         """Keyframe ids within the prior's radius of its position."""
@@ -386,12 +386,14 @@ class FernsRelocalizer(Relocalizer):
         return points[pos], ids[pos] == landmark_ids
 
     def _solve(self, query: Frame, px: Array, kp: IntArray, lm: IntArray, points: Array,
-               state: MapState, hypotheses: int, timings: dict[str, float]) -> list[RelocResult]:
-        """Verified results, the answer first: RANSAC, then again on the correspondences
-        each verified pose leaves (``hypotheses`` in all, at least ``1 + competitors``), the
-        answer chosen among them by :func:`.uniqueness.decide`."""
+               state: MapState, hypotheses: int, timings: dict[str, float]) -> RelocResult:
+        """The answer, with up to ``hypotheses - 1`` other verified results: RANSAC, then
+        again on the correspondences each verified pose leaves (``hypotheses`` in all, at
+        least ``1 + competitors``); with ``competitors``, the verified poses and the
+        alternatives a repetition of the map offers are weighed as a multi step weighs its
+        own (:mod:`.ferns_weighing`), else the first verified pose answers."""
         results: list[RelocResult] = []
-        estimates: list[PoseEstimate] = []
+        estimates: list[PoseEstimate | None] = []
         remaining = np.arange(len(kp))
         for _ in range(max(hypotheses, 1 + self.conf.competitors)):
             start = time.perf_counter()
@@ -402,38 +404,23 @@ class FernsRelocalizer(Relocalizer):
                                           method=self.method, map_version=state.version,
                                           timings=timings)
             timings["verify"] = timings.get("verify", 0.0) + time.perf_counter() - start
-            if est is None or not result.ok:
-                results.append(result)
-                break
             results.append(result)
+            if est is None or not result.ok:
+                break
             estimates.append(est[0])
             # The next solve keeps these keypoints' other classes: a repeated landmark's twin
             # is the second class of the keypoints the first pose explained.
             remaining = np.delete(remaining, est[1])
-        if len(estimates) < 2:
-            return results[:max(hypotheses, 1)]
-        return self._unique(query, state, results, estimates, timings)[:max(hypotheses, 1)]
-
-    def _unique(self, query: Frame, state: MapState, results: list[RelocResult],
-                estimates: list[PoseEstimate], timings: dict[str, float]) -> list[RelocResult]:
-        """The verified ``results`` (of ``estimates``) with the one that answers first, or a
-        failure saying the query is ambiguous."""
+        if self.conf.competitors == 0 or not estimates:
+            best = results[0]
+            best.hypotheses = [r for r in results[1:hypotheses] if r.ok]
+            return best
+        estimates += [None] * (len(results) - len(estimates))
         start = time.perf_counter()
-        feature_conf = FeatureConf(kind=self.conf.kind)
-        radius = GuidedConf().window_factor * self.pnp_conf.max_reproj_error_px
-        chosen = uniqueness.decide(
-            estimates, query.camera,
-            lambda est: query_support(query, est.world_from_cam, state, feature_conf,
-                                      radius_px=radius),
-            lambda a, b: False, alpha=self.verify_conf.max_false_alarms)
+        weighing = FernsWeighing(self.map, self._weighing_pose, self.verify_conf)
+        best = weighing.answer(query, state, results, estimates, timings, hypotheses)
         timings["unique"] = time.perf_counter() - start
-        verified = [r for r in results if r.ok]
-        if chosen.index is None:
-            return [RelocResult.failure(self.method, chosen.reason, timings=timings,
-                                        map_version=state.version,
-                                        matched_keyframe_ids=verified[0].matched_keyframe_ids)]
-        best = verified[chosen.index]
-        return [best, *(r for r in verified if r is not best)]
+        return best
 
     def _estimate(self, query: Frame, px: Array, kp: IntArray, lm: IntArray, points: Array,
                   state: MapState) -> tuple[PoseEstimate, IntArray] | None:

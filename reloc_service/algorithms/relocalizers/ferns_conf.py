@@ -72,8 +72,9 @@ class FernsConf:
     seed: int = 0
     #: Solve again on the correspondences a verified pose leaves, up to this many times, and
     #: answer only the pose that explains the query significantly better than every other
-    #: verified one (:mod:`.uniqueness`; a keypoint's second class is often a repeated
-    #: landmark's twin). 0: the first verified pose answers.
+    #: verified one and every alternative a repetition of the map offers, as a multi step
+    #: weighs its own (:mod:`.ferns_weighing`, :mod:`.uniqueness`; a keypoint's second class
+    #: is often a repeated landmark's twin). 0: the first verified pose answers.
     competitors: int = 2
 
     def __post_init__(self) -> None:
