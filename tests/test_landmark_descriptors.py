@@ -29,12 +29,12 @@ from reloc_service.storage.landmark_descriptors import (
 )
 from reloc_service.storage.packed_columns import DELTA_PACKED, packed_file, unpack
 from reloc_service.storage.snapshot import (
-    FORMAT_VERSION,
     SHARED_FORMAT_VERSION,
     load_map,
     save_map,
 )
 from reloc_service.storage.snapshot_files import current_snapshot
+from reloc_service.storage.snapshot_format import OWN_ROWS_FORMAT_VERSION
 
 PER_LANDMARK = StoredParts(descriptors="per-landmark")
 
@@ -125,7 +125,7 @@ def test_per_landmark_descriptors_round_trip(tmp_path, synthetic_map):
     save_map(synthetic_map, tmp_path / "full", parts=StoredParts(descriptors="landmarks"))
     snap = save_map(synthetic_map, tmp_path / "shared", parts=PER_LANDMARK)
     manifest = json.loads((snap / "manifest.json").read_text())
-    assert manifest["format_version"] == FORMAT_VERSION == 9
+    assert manifest["format_version"] == OWN_ROWS_FORMAT_VERSION == 9
     assert f"features/sift.{SHARED_DESCRIPTORS}.npy" in manifest["files"]
     assert "features/sift.descriptors.npy" not in manifest["files"]
     rows = _rows_in_snapshot_order(synthetic_map, "sift")

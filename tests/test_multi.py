@@ -327,7 +327,7 @@ def test_save_and_load_the_place_finders_model(scene, tmp_path):
     class WithModel(SmallBlurryImageFinder):
         loaded: dict | None = None
 
-        def state(self):
+        def state(self, *, centres="float16"):
             return {"words": b"\x00\x01\x02", "k": 3, "ids": [4, 5]}
 
         def load_state(self, state):

@@ -233,10 +233,12 @@ def test_fuzz_every_queryable_over_zenoh(served):
         session.put(f"reloc/{MAP}/keyframes/not-a-number", b"x", congestion_control=BLOCK)
         for kind in ("keyframes", "cameras"):   # map copies still work
             assert len(list(session.get(f"reloc/{MAP}/{kind}/**", timeout=20))) >= 1
-    assert service.wait_idle(30)
     rt = service.maps[MAP]
+    # the puts reach the service through its subscribers, in no order with the queries
+    # above: wait for their rejections rather than take the last get as proof they arrived
+    wait_until(lambda: rt.stats.counters["rejected"] >= 16, timeout=60)
+    assert service.wait_idle(30)
     assert len(rt.map_state().keyframes) == 2 and rt.camera_ids() == ["cam0"]
-    assert rt.stats.counters["rejected"] >= 16
     with RelocClient(endpoint(port), map=MAP, timeout=30) as client:
         assert client.status().keyframes == 2
         result = client.relocalize(scene.query_images[0], camera_id="cam0")
