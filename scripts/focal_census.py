@@ -19,8 +19,8 @@ from scipy import special
 from reloc_service.algorithms.pose.base import PoseEstimate, total_covariance
 from reloc_service.algorithms.pose.intrinsics import IntrinsicsCheck
 from reloc_service.algorithms.pose.intrinsics_agreement import guided_bend_p_value
-from reloc_service.algorithms.relocalizers.base import ANSWERED
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
+from reloc_service.algorithms.relocalizers.chain_hooks import ANSWERED
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
 from reloc_service.core.frame import Frame

@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from reloc_service.algorithms.pose.intrinsics_power import estimate_underpowered
-from reloc_service.algorithms.relocalizers.base import ANSWERED, narrow_support
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
+from reloc_service.algorithms.relocalizers.chain_hooks import ANSWERED, narrow_support
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
 from reloc_service.core.frame import Frame

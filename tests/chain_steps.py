@@ -5,12 +5,8 @@ intrinsics with a given test, each leaving on the query what the multi relocaliz
 from __future__ import annotations
 
 from reloc_service.algorithms.pose.intrinsics import IntrinsicsCheck
-from reloc_service.algorithms.relocalizers.base import (
-    ANSWERED,
-    Relocalizer,
-    RelocResult,
-    RelocStatus,
-)
+from reloc_service.algorithms.relocalizers.base import Relocalizer, RelocResult, RelocStatus
+from reloc_service.algorithms.relocalizers.chain_hooks import ANSWERED
 from reloc_service.algorithms.relocalizers.confirmation import REFUSED
 from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
 from reloc_service.core.features import FeatureConf

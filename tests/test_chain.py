@@ -358,7 +358,8 @@ def every_answer_narrow(monkeypatch):
 
 def test_narrow_support_is_the_inliers_hull_against_the_patch_share():
     from reloc_service.algorithms.pose.base import PoseEstimate
-    from reloc_service.algorithms.relocalizers.base import VerifyConf, narrow_support
+    from reloc_service.algorithms.relocalizers.base import VerifyConf
+    from reloc_service.algorithms.relocalizers.chain_hooks import narrow_support
 
     corners = np.array([[0, 0], [80, 0], [80, 60], [0, 60], [40, 30]], np.float64)
     est = PoseEstimate(np.eye(4), [0], inlier_px=corners, image_size=(320, 240))

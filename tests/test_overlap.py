@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from reloc_service.algorithms.relocalizers import overlap
-from reloc_service.algorithms.relocalizers.base import ANSWERED
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer, _narrow, extract_ahead
+from reloc_service.algorithms.relocalizers.chain_hooks import ANSWERED
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer
 from reloc_service.algorithms.relocalizers.multi import MultiRelocalizer
 from reloc_service.core import features as feature_lib

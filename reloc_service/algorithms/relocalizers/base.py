@@ -355,61 +355,6 @@ def refuses_the_query(result: RelocResult) -> bool:
     return not result.ok and result.reason.startswith(INTRINSICS_REFUSAL)
 
 
-#: ``query.cache`` key of a callable a fallback chain leaves to the step it runs: the step
-#: calls it (once, through :func:`doubt`) when it first has reason to expect it may not
-#: verify, so the chain can start the next step's work on an idle core meanwhile.
-ON_DOUBT = "relocalizer:on-doubt"
-#: ``query.cache`` key of a callable a fallback chain leaves to the step it runs, taking a
-#: :class:`PoseEstimate`: the step calls it (once, through :func:`first_verified`) with its
-#: first verified pose, so the chain can start the next step's work on an idle core where
-#: that pose is one it will hold as a contender and ask the next step about anyway.
-ON_VERIFIED = "relocalizer:on-verified"
-
-
-#: Key of ``query.cache`` where a relocalizer that verified a pose leaves that pose's
-#: :class:`PoseEstimate` for the chain that asked (:data:`CONTENDER`).
-ANSWERED = "relocalizer:answered"
-#: Key of ``query.cache`` where a fallback chain leaves an earlier step's answer, as
-#: ``Contender``, for a later step to weigh against its own poses. A step that weighs it
-#: sets ``Contender.weighed``.
-CONTENDER = "relocalizer:contender"
-
-
-@dataclass
-class Contender:
-    """An earlier step's verified answer that a later step should compare with its own:
-    the answer, its estimate, and whether a step has weighed it yet."""
-
-    result: RelocResult
-    estimate: PoseEstimate
-    weighed: bool = False
-
-
-def narrow_support(estimate: PoseEstimate, conf: VerifyConf) -> bool:
-    """Whether ``estimate``'s inliers span less of the image than the coverage test asks of
-    a planar patch (``min_inlier_cells / coverage_grid**2``): a pose fixed by one small area
-    is weakly conditioned (a rotation about that area trades against a translation), so a
-    few wrong matches from a repeated texture can move it far, and a step that sees more of
-    the image should be heard too."""
-    spread = inlier_spread(estimate)
-    return spread is not None and spread < conf.min_inlier_cells / conf.coverage_grid**2
-
-
-def doubt(query: Frame) -> None:
-    """Call the hook a chain left on ``query`` (:data:`ON_DOUBT`), if any, and drop it."""
-    hook = query.cache.pop(ON_DOUBT, None)
-    if hook is not None:
-        hook()
-
-
-def first_verified(query: Frame, estimate: PoseEstimate | None) -> None:
-    """Call the hook a chain left on ``query`` (:data:`ON_VERIFIED`), if any, with the
-    step's first verified ``estimate``, and drop it."""
-    hook = query.cache.pop(ON_VERIFIED, None)
-    if hook is not None and estimate is not None:
-        hook(estimate)
-
-
 class Relocalizer(abc.ABC):
     """``add_keyframe``, ``remove_keyframe``, ``train``, ``relocalize`` (thesis chapter 4).
 
@@ -458,7 +403,7 @@ class Relocalizer(abc.ABC):
 
     def feature_confs(self) -> dict[str, FeatureConf]:
         """The query features :meth:`relocalize` extracts, by kind, with the settings it
-        extracts them with: what a chain may extract ahead for it (:data:`ON_DOUBT`) to
+        extracts them with: what a chain may extract ahead for it (:data:`.chain_hooks.ON_DOUBT`) to
         the same result. Default: none."""
         return {}
 

@@ -15,18 +15,8 @@ from ..pose.base import PoseEstimate
 from ..pose.intrinsics import IntrinsicsCheck
 from ..pose.intrinsics_power import estimate_underpowered
 from . import overlap
-from .base import (
-    ANSWERED,
-    CONTENDER,
-    ON_DOUBT,
-    ON_VERIFIED,
-    Contender,
-    Prior,
-    Relocalizer,
-    RelocResult,
-    narrow_support,
-    refuses_the_query,
-)
+from .base import Prior, Relocalizer, RelocResult, refuses_the_query
+from .chain_hooks import ANSWERED, CONTENDER, ON_DOUBT, ON_VERIFIED, Contender, narrow_support
 from .confirmation import (
     REFUSED,
     REFUSED_POSE,
@@ -103,10 +93,10 @@ class ChainRelocalizer(Relocalizer):
         refusal answers as the class docstring says.
 
         A second opinion for weakly conditioned answers: when a step's pose rests on inliers
-        spanning a small part of the image (:func:`.base.narrow_support`), or on an
+        spanning a small part of the image (:func:`.chain_hooks.narrow_support`), or on an
         intrinsics test too weak to vouch for it while a later step matches other features
         (:meth:`_underpowered`), the later steps are asked too, with that answer left on the
-        query as a :class:`.base.Contender`. The
+        query as a :class:`.chain_hooks.Contender`. The
         first later step that verifies a pose weighs the contender against its own by the
         query keypoints each explains, with its own (richer) features, and its answer is the
         chain's: the contender, its own pose, or "ambiguous". When no later step weighs it

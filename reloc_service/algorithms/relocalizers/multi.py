@@ -27,13 +27,12 @@ from .base import (
     Relocalizer,
     RelocResult,
     VerifyConf,
-    doubt,
-    first_verified,
     note_map_calibration,
     refuses_the_query,
     register,
     result_from_estimate,
 )
+from .chain_hooks import doubt, first_verified
 from .confirmation import leave_refused
 from .overlap import run_beside
 from .solution_weighing import SolutionWeighing
@@ -66,11 +65,11 @@ class MultiRelocalizer(SolutionWeighing, Relocalizer):
         overlap: bool = True
         #: When a candidate group fails to verify and more remain, let a fallback chain
         #: start its next step's feature extraction on an idle helper thread
-        #: (:func:`.base.doubt`): where this step fails altogether, the next one finds its
+        #: (:func:`.chain_hooks.doubt`): where this step fails altogether, the next one finds its
         #: features extracted or under way. Answers are the same either way; work done
         #: ahead for nothing (a later group verifies) only ever uses an idle core. Likewise
         #: at the first verified group, where the chain will hold that pose as a contender
-        #: and ask its next step too (:func:`.base.first_verified`).
+        #: and ask its next step too (:func:`.chain_hooks.first_verified`).
         look_ahead: bool = True
         #: Hear every candidate group (up to ``max_groups``) even after one verified, and
         #: answer only a pose that explains the query significantly better than every other

@@ -18,8 +18,6 @@ from ...core.map import KeyframeMap, MapState
 from ..pose.base import PoseEstimate, PoseFinder
 from . import uniqueness
 from .base import (
-    ANSWERED,
-    CONTENDER,
     RelocResult,
     VerifyConf,
     note_map_calibration,
@@ -27,6 +25,7 @@ from .base import (
     refuses_the_query,
     result_from_estimate,
 )
+from .chain_hooks import ANSWERED, CONTENDER
 from .confirmation import leave_refused
 
 

@@ -45,15 +45,8 @@ from ..pose.prior_windows import (
     search_around,
 )
 from ..pose.regated_refinement import refine_from
-from .base import (
-    Prior,
-    Relocalizer,
-    RelocResult,
-    VerifyConf,
-    narrow_support,
-    register,
-    result_from_estimate,
-)
+from .base import Prior, Relocalizer, RelocResult, VerifyConf, register, result_from_estimate
+from .chain_hooks import narrow_support
 from .multi import STEP_FEATURES
 
 Array = npt.NDArray[np.float64]
