@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from test_pose_p3p import TRUE_POSE, correspondences, make_camera
 
 from reloc_service.algorithms.pose.cell_sandwich import (
     FALSE_ALARM,
     SPREAD_LIMITS,
     cell_sandwich,
+    effective_cells,
     grid_cells,
     simulated_limit,
     spread_limit,
+    tracy_widom_limit,
     widened,
 )
 from reloc_service.algorithms.pose.intrinsics import CLUSTER_GRID
@@ -91,7 +94,13 @@ def test_tabled_limits_are_the_simulated_ones():
     assert sorted(SPREAD_LIMITS) == list(range(3, 17))
     for cells in (3, 9, 16):
         assert spread_limit(cells) == simulated_limit(cells, FALSE_ALARM)
-    assert spread_limit(40) == simulated_limit(40, FALSE_ALARM)
+    assert spread_limit(40) == tracy_widom_limit(40)
+
+
+@pytest.mark.parametrize("cells", [8, 16, 30, 60, 120])
+def test_tracy_widom_limit_is_within_one_percent_of_the_simulated(cells):
+    assert tracy_widom_limit(cells) == pytest.approx(simulated_limit(cells, FALSE_ALARM),
+                                                     rel=0.01)
 
 
 def test_sandwich_needs_three_cells():
@@ -100,3 +109,68 @@ def test_sandwich_needs_three_cells():
     assert cell_sandwich(np.eye(6), scores, np.arange(10) % 2) is None
     out = cell_sandwich(np.eye(6), scores, np.arange(10) % 3)
     assert out is not None and out[1] == 3
+
+
+def _point_widened(est: object) -> np.ndarray:
+    sandwich = est.point_sandwich()  # type: ignore[attr-defined]
+    # as many effective cells as equal cells would weigh, fewer than the inliers
+    assert sandwich is not None and 3 <= sandwich[1] < est.inliers  # type: ignore[attr-defined]
+    return widened(est.covariance, *sandwich)  # type: ignore[attr-defined]
+
+
+POINT_CONF = PnPConf(min_sigma_px=0.0, stated_point_sandwich=True)
+
+
+def test_point_sandwich_is_there_only_when_asked():
+    rng = np.random.default_rng(7)
+    camera = make_camera("radtan")
+    clean, points = correspondences(camera, TRUE_POSE, 100, rng)
+    noisy = clean + rng.normal(0.0, 1.0, clean.shape)
+    est, _ = solve_pnp_indexed(noisy, points, camera, PnPConf(min_sigma_px=0.0))
+    assert est.point_sandwich is None
+    est, _ = solve_pnp_indexed(noisy, points, camera, POINT_CONF)
+    assert est.point_sandwich is not None
+
+
+def test_honest_residuals_are_rarely_widened_point_by_point():
+    # Independent isotropic 1 px noise: one residual variance for all inliers holds, and the
+    # point-by-point widening fires at about its 1 % false-alarm rate.
+    rng = np.random.default_rng(8)
+    camera = make_camera("radtan")
+    clean, points = correspondences(camera, TRUE_POSE, 150, rng)
+    fired = 0
+    for _ in range(60):
+        est, _ = solve_pnp_indexed(clean + rng.normal(0.0, 1.0, clean.shape), points, camera,
+                                   POINT_CONF)
+        fired += not np.allclose(_point_widened(est), est.covariance)
+    assert fired <= 4
+
+
+def test_noise_growing_with_leverage_along_one_direction_is_covered():
+    # Keypoint noise along x only (a horizontal blur), growing towards the image's sides
+    # where the points weigh most on the pose: one residual variance for all inliers
+    # under-states the pose's spread; the points' own spread shows it.
+    rng = np.random.default_rng(9)
+    camera = make_camera("pinhole")
+    clean, points = correspondences(camera, TRUE_POSE, 300, rng)
+    lever = np.abs(clean[:, 0] - camera.width / 2) / (camera.width / 2)
+    model, stated = [], []
+    for _ in range(40):
+        noise = np.zeros_like(clean)
+        noise[:, 0] = rng.normal(0.0, 0.2 + 3.0 * lever**2)
+        est, _ = solve_pnp_indexed(clean + noise, points, camera, POINT_CONF)
+        model.append(_mahalanobis(est, est.covariance))
+        stated.append(_mahalanobis(est, _point_widened(est)))
+    # chi-square with 6 degrees of freedom has median 5.35
+    assert np.median(model) > 8.0
+    assert np.median(stated) < 0.75 * np.median(model)
+
+
+def test_equal_points_count_as_equal_cells_and_a_dominant_point_as_fewer():
+    rng = np.random.default_rng(10)
+    a = rng.normal(size=(6, 6))
+    normal = a @ a.T + 6 * np.eye(6)
+    assert effective_cells(np.linalg.inv(normal), np.repeat(normal[None] / 20, 20, 0)) == 20
+    skewed = np.repeat(normal[None] / 40, 20, 0)
+    skewed[0] += normal / 2                                 # one point holds half the weight
+    assert effective_cells(np.linalg.inv(normal), skewed) < 10

@@ -112,6 +112,12 @@ class PoseEstimate:
     #: covariance only, never by a decision.
     measurement_sandwich: Callable[[], tuple[Array, int] | None] | None = field(
         default=None, repr=False, compare=False)
+    #: The same with each inlier its own cluster (White's heteroskedasticity-robust
+    #: covariance) and the number of inliers, which widens the answer's covariance relative
+    #: to the map where it exceeds it (:func:`.cell_sandwich.widened`); None where the solver
+    #: gives none or ``stated_point_sandwich`` is off. Read by the stated covariance only.
+    point_sandwich: Callable[[], tuple[Array, int] | None] | None = field(
+        default=None, repr=False, compare=False)
     #: Whether the query claims exactly the camera of the keyframes behind the pose (the
     #: map's calibration, as a drone whose camera built the map), which is what a view
     #: that cannot check the intrinsics may trust; None where not known (not trusted).

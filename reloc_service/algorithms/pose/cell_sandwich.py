@@ -63,13 +63,61 @@ def cell_sandwich(normal_inverse: Array, scores: Array, cells: npt.NDArray[np.in
     return np.asarray(0.5 * (out + out.T), np.float64), g
 
 
+def point_sandwich(normal_inverse: Array, scores: Array, informations: Array
+                   ) -> tuple[Array, int] | None:
+    """:func:`cell_sandwich` with each of the (N, 6) ``scores`` its own cell (White's
+    heteroskedasticity-robust covariance) and, in place of the number of cells, the
+    effective number (:func:`effective_cells`) of the points' (N, 6, 6) ``informations``
+    ``J_i^T W_i J_i``; None where fewer than :data:`MIN_CELLS`."""
+    cells = effective_cells(normal_inverse, informations)
+    out = cell_sandwich(normal_inverse, scores, np.arange(len(scores), dtype=np.int64))
+    return None if out is None or cells < MIN_CELLS else (out[0], cells)
+
+
+def effective_cells(normal_inverse: Array, informations: Array) -> int:
+    """How many equal cells the points of (N, 6, 6) ``informations`` ``A_i`` weigh as: whitened
+    by the model, point i's score has covariance ``B_i = N^-1/2 A_i N^-1/2`` (the ``B_i`` sum
+    to the identity), and the whitened sandwich's trace has variance ``2 sum_i tr(B_i^2)``,
+    which a ``W_6(nu, I) / nu`` matches with ``nu = 6 / sum_i tr(B_i^2)`` (Satterthwaite
+    1946): ``nu = G`` for ``G`` equal cells, fewer where a few points carry a direction
+    (the farthest from the image's centre, the rotation about the optical axis). ``nu``
+    rounded down (a higher limit where in doubt), counted as cells as :func:`cell_sandwich`
+    counts them (one degree of freedom to the fit)."""
+    moved = np.asarray(informations, np.float64) @ np.asarray(normal_inverse, np.float64)
+    spread = float(np.einsum("nij,nji->", moved, moved))
+    if not np.isfinite(spread) or spread <= 0:
+        return 0
+    return int(np.floor(6.0 / spread + 1e-9))
+
+
 def spread_limit(cells: int, false_alarm: float = FALSE_ALARM) -> float:
     """The largest whitened eigenvalue of the sandwich that honest residuals exceed with
     probability ``false_alarm``, for ``G`` ``cells`` (:func:`simulated_limit`; at the default
     rate, the values it gives for the cells of a 4 x 4 grid, :data:`SPREAD_LIMITS`)."""
     if false_alarm == FALSE_ALARM and cells in SPREAD_LIMITS:
         return SPREAD_LIMITS[cells]
+    if false_alarm == FALSE_ALARM and cells > max(SPREAD_LIMITS):
+        return tracy_widom_limit(cells)
     return simulated_limit(cells, false_alarm)
+
+
+#: The 99 % quantile of the Tracy-Widom law of order 1 (Tracy & Widom 1996; the largest
+#: eigenvalue of a real Wishart matrix, centred and scaled, tends to it).
+TRACY_WIDOM_1_Q99 = 2.0234
+
+
+def tracy_widom_limit(cells: int, dim: int = 6) -> float:
+    """:func:`simulated_limit` at :data:`FALSE_ALARM` in closed form for many ``cells`` (each
+    inlier its own, say): the largest eigenvalue of ``W_dim(n, I)``, ``n = G - 1``, is about
+    ``mu + sigma TW_1`` with ``mu = (sqrt(n - 1/2) + sqrt(dim - 1/2))^2`` and ``sigma =
+    sqrt(mu) (1 / sqrt(n - 1/2) + 1 / sqrt(dim - 1/2))^(1/3)`` (Johnstone 2001, Theorem 1.1);
+    divided by ``n``. Within 1 % of the simulated quantile from 8 cells to 250 (the test
+    checks), without the simulation's seconds for hundreds of cells."""
+    n = max(cells - 1, 1)
+    a, b = np.sqrt(n - 0.5), np.sqrt(dim - 0.5)
+    mu = (a + b) ** 2
+    sigma = (a + b) * (1.0 / a + 1.0 / b) ** (1.0 / 3.0)
+    return float((mu + sigma * TRACY_WIDOM_1_Q99) / n)
 
 
 @functools.lru_cache(maxsize=64)

@@ -23,7 +23,7 @@ from ...core.cameras import Camera
 from ...core.errors import ConfigError, GeometryError
 from ...core.geometry import invert, se3_exp, transform_points
 from .base import PoseEstimate
-from .cell_sandwich import cell_sandwich, grid_cells
+from .cell_sandwich import cell_sandwich, grid_cells, point_sandwich
 from .chance import chance_agreement
 from .intrinsics import CLUSTER_GRID, FOCAL_STARTS, IntrinsicsCheck, IntrinsicsPrior, check_intrinsics
 from .kernels import compiled
@@ -75,6 +75,10 @@ class PnPConf:
     #: its inliers show over the coverage grid's cells, where it exceeds the model's at a 1 %
     #: false-alarm rate (:mod:`.cell_sandwich`); the decisions keep the model covariance.
     stated_cell_sandwich: bool = True
+    #: Widen the answer's covariance to the spread its inliers show one by one (White's
+    #: sandwich), where beyond chance at 1 % (:func:`.cell_sandwich.point_sandwich`): noise
+    #: growing with leverage or along one direction (blur). Decisions keep the model's.
+    stated_point_sandwich: bool = False
 
     def __post_init__(self) -> None:
         if self.max_reproj_error_px <= 0:
@@ -253,25 +257,32 @@ def refined_estimate(world_from_cam: Array, px: Array, pts: Array, camera: Camer
     if conf.intrinsics_false_refusal > 0:
         est.intrinsics_test = functools.partial(_check_intrinsics, fit, px, pts, camera, conf,
                                                 uncertainty, scales)
+    scores = functools.cache(functools.partial(_inlier_scores, fit, px, pts, camera, conf,
+                                               uncertainty, scales))
     if conf.stated_cell_sandwich:
-        est.measurement_sandwich = functools.cache(functools.partial(
-            _measurement_sandwich, fit, px, pts, camera, conf, uncertainty, scales))
+        cells = functools.partial(grid_cells, px[inliers], camera.size, CLUSTER_GRID)
+        est.measurement_sandwich = functools.cache(
+            lambda: cell_sandwich(*scores()[:2], cells()))
+    if conf.stated_point_sandwich:
+        est.point_sandwich = functools.cache(lambda: point_sandwich(*scores()))
     return est, inliers
 
 
-def _measurement_sandwich(fit: _Fit, px: Array, points_world: Array, camera: Camera,
-                          conf: PnPConf, uncertainty: PointUncertainty | None,
-                          keypoint_scales: Array | None) -> tuple[Array, int] | None:
-    """:func:`.cell_sandwich.cell_sandwich` of ``fit``'s inliers over the coverage grid's
-    cells, with the refinement's weights (the spread its model covariance is compared with)."""
+def _inlier_scores(fit: _Fit, px: Array, points_world: Array, camera: Camera, conf: PnPConf,
+                   uncertainty: PointUncertainty | None, keypoint_scales: Array | None
+                   ) -> tuple[Array, Array, Array]:
+    """The (6, 6) inverse normal matrix of ``fit``, its inliers' (I, 6) weighted scores
+    ``J_i^T W_i r_i`` and (I, 6, 6) informations ``J_i^T W_i J_i``, with the refinement's
+    weights: what :mod:`.cell_sandwich` compares the model covariance with, by cell or by
+    point."""
     rows = fit.inliers
     weights = _weights(fit.world_from_cam, points_world, rows, camera, conf, uncertainty,
                        keypoint_scales)
     points_cam = transform_points(invert(fit.world_from_cam), points_world[rows])
     jac = pose_jacobian(camera, points_cam).reshape(-1, 2, 6)
     scores = np.einsum("nki,nk->ni", jac, px[rows] - fit.projected_px) * weights[:, None]
-    return cell_sandwich(_normal_inverse(fit.normal), scores,
-                         grid_cells(px[rows], camera.size, CLUSTER_GRID))
+    informations = np.einsum("nki,nkj->nij", jac, jac) * weights[:, None, None]
+    return _normal_inverse(fit.normal), scores, informations
 
 
 def _check_intrinsics(fit: _Fit, px: Array, points_world: Array, camera: Camera,

@@ -29,6 +29,7 @@ from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
 from ...core.plugins import Registry
 from ..pose.base import PoseEstimate, log10_false_alarms, total_covariance
+from ..pose.cell_sandwich import widened
 from ..pose.decision_covariance import decision_covariance
 from ..pose.intrinsics import REFUSAL as INTRINSICS_REFUSAL
 from ..pose.intrinsics_marginal import checked_covariance, given_calibration_covariance
@@ -302,10 +303,25 @@ def stated_covariance(estimate: PoseEstimate, max_position_sigma_m: float) -> Ar
     plus the keyframe poses' errors (:func:`..pose.base.total_covariance`). A weakness: where
     the intrinsics go unchecked (a plane: :attr:`VerifyConf.trust_unchecked_intrinsics`) a
     stale calibration passes, with the calibration's covariance. What the answer states
-    only: :func:`verify` judges by :func:`..pose.decision_covariance.decision_covariance`."""
+    only: :func:`verify` judges by :func:`..pose.decision_covariance.decision_covariance`.
+    Where the solver gives it, the part relative to the map is widened to its inliers'
+    point-by-point spread (:func:`point_widened`)."""
     if intrinsics_unchecked(estimate, max_position_sigma_m):
-        return total_covariance(estimate, given_calibration_covariance(estimate))
-    return total_covariance(estimate, checked_covariance(estimate))
+        return total_covariance(estimate, point_widened(estimate,
+                                                        given_calibration_covariance(estimate)))
+    return total_covariance(estimate, point_widened(estimate, checked_covariance(estimate)))
+
+
+def point_widened(estimate: PoseEstimate, own: Array | None) -> Array | None:
+    """``own`` (6, 6; ``estimate``'s covariance relative to the map, its intrinsics' part
+    included) widened along the directions where the inliers' heteroskedasticity-robust
+    spread (:attr:`..pose.base.PoseEstimate.point_sandwich`) exceeds it beyond chance
+    (:func:`..pose.cell_sandwich.widened`, 1 % false alarm): the measurement part cannot be
+    narrower than its own residuals show. ``own`` where there is no such spread."""
+    if own is None or estimate.point_sandwich is None:
+        return own
+    sandwich = estimate.point_sandwich()
+    return own if sandwich is None else widened(np.asarray(own, np.float64), *sandwich)
 
 
 def largest_eigenvalue_sym3(a: list[list[float]]) -> float:
