@@ -121,14 +121,15 @@ def _point_widened(est: object) -> np.ndarray:
 POINT_CONF = PnPConf(min_sigma_px=0.0, stated_point_sandwich=True)
 
 
-def test_point_sandwich_is_there_only_when_asked():
+def test_point_sandwich_is_there_by_default_and_only_then():
     rng = np.random.default_rng(7)
     camera = make_camera("radtan")
     clean, points = correspondences(camera, TRUE_POSE, 100, rng)
     noisy = clean + rng.normal(0.0, 1.0, clean.shape)
-    est, _ = solve_pnp_indexed(noisy, points, camera, PnPConf(min_sigma_px=0.0))
+    off = PnPConf(min_sigma_px=0.0, stated_point_sandwich=False)
+    est, _ = solve_pnp_indexed(noisy, points, camera, off)
     assert est.point_sandwich is None
-    est, _ = solve_pnp_indexed(noisy, points, camera, POINT_CONF)
+    est, _ = solve_pnp_indexed(noisy, points, camera, PnPConf(min_sigma_px=0.0))
     assert est.point_sandwich is not None
 
 

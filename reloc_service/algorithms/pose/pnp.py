@@ -78,7 +78,7 @@ class PnPConf:
     #: Widen the answer's covariance to the spread its inliers show one by one (White's
     #: sandwich), where beyond chance at 1 % (:func:`.cell_sandwich.point_sandwich`): noise
     #: growing with leverage or along one direction (blur). Decisions keep the model's.
-    stated_point_sandwich: bool = False
+    stated_point_sandwich: bool = True
 
     def __post_init__(self) -> None:
         if self.max_reproj_error_px <= 0:
