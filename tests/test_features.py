@@ -4,7 +4,7 @@ import pytest
 import skimage.data
 
 from reloc_service.core.errors import ConfigError
-from reloc_service.core.features import FeatureConf, compute_at, extract, match_ratio
+from reloc_service.core.features import FeatureConf, compute_at, describe, extract, match_ratio
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +50,30 @@ def test_compute_at_given_positions(image):
     feats, origin = compute_at(image, "sift", pts)
     assert set(origin) <= {0, 1, 2} and 0 in origin and 1 in origin
     assert np.allclose(feats.keypoints_px, pts[origin])
+
+
+@pytest.mark.parametrize("cap", [5000, 200])
+def test_sift_described_at_its_detection_is_the_extraction(image, cap):
+    """Described at every keypoint SIFT's detector found, the features are extract's: the
+    same arrays in the same order when the cap drops none, the same keypoints with the same
+    descriptors when it keeps the strongest."""
+    detected = list(cv2.SIFT.create().detect(image, None))
+    conf = FeatureConf("sift", cap)
+    want, got = extract(image, conf), describe(image, detected, conf)
+    assert (len(detected) <= cap) == (cap == 5000)
+    if cap == 5000:
+        for name in ("keypoints_px", "descriptors", "levels", "sizes", "angles"):
+            assert np.array_equal(getattr(got, name), getattr(want, name)), name
+        return
+    def rows(f):
+        return sorted(zip(map(tuple, f.keypoints_px), map(bytes, f.descriptors),
+                          f.levels.tolist(), f.sizes.tolist(), f.angles.tolist(), strict=True))
+    assert len(want) >= cap and rows(got) == rows(want)
+
+
+def test_describe_wants_full_image_sift(image):
+    with pytest.raises(ConfigError, match="SIFT features of the full image expected"):
+        describe(image, [], FeatureConf("orb", 100))
 
 
 def test_conf_errors():

@@ -101,6 +101,38 @@ def extract(image: npt.NDArray[np.uint8], conf: FeatureConf | None = None, *,
     return _features_from_cv(conf.kind, list(keypoints), descriptors)
 
 
+#: The ``Frame.cache`` key of every SIFT keypoint a step detected on the whole query image
+#: (``cv2.SIFT``'s detector, no cap, its default settings), left for :func:`describe`.
+SIFT_DETECTED = "features:sift-detected"
+
+
+def describe(image: npt.NDArray[np.uint8], detected: list[cv2.KeyPoint],
+             conf: FeatureConf) -> Features:
+    """``extract(image, conf)`` for SIFT, from ``detected``: every keypoint ``cv2.SIFT``'s
+    detector (default settings, no cap) finds on ``image``. The detection ``extract`` repeats
+    is skipped: the keypoints it keeps are those at least as strong as the
+    ``conf.max_features``-th (OpenCV's ``retainBest`` keeps the ties too), and OpenCV
+    describes given keypoints on the same Gaussian pyramid, so each gets the descriptor
+    ``extract`` gives it. Listed in detection order, which is ``extract``'s own when no
+    keypoint is dropped (else ``extract`` lists them in the order its partial sort leaves).
+    The pyramid starts at the upsampled octave only when a described keypoint lies there:
+    otherwise ``extract`` runs."""
+    if conf.kind != "sift" or conf.scale != 1:
+        raise ConfigError(f"describe: SIFT features of the full image expected, got "
+                          f"{conf.kind} at scale {conf.scale:g}")
+    if len(detected) <= conf.max_features:
+        kept = list(detected)
+    else:
+        response = np.fromiter((k.response for k in detected), np.float32, len(detected))
+        weakest = np.partition(response, len(response) - conf.max_features)[-conf.max_features]
+        kept = [detected[i] for i in np.flatnonzero(response >= weakest)]
+    # SIFT packs the octave in the low byte: 255 is the upsampled octave (-1).
+    if not any(k.octave & 0xFF == 0xFF for k in kept):
+        return extract(image, conf)
+    keypoints, descriptors = _create(conf).compute(image, kept)
+    return _features_from_cv(conf.kind, list(keypoints), descriptors)
+
+
 #: Candidates detected per keypoint kept when keypoints are spread over a grid: enough that
 #: a cell of the grid whose corners are weaker than elsewhere's still holds candidates.
 SPREAD_OVERSAMPLING = 4

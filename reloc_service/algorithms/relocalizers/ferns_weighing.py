@@ -17,14 +17,19 @@ So the twin search starts from the query features (of the kind whose landmarks f
 learned, extracted as the ``p3p`` pose finder extracts them) that the ferns pose explains:
 its support (:mod:`..pose.support`: the local map around the pose projected into the query
 and found there by guided matching), the same features every solution is compared by.
+Ferns' query keypoints are SIFT's DoG extrema, detected as the SIFT extraction detects
+them: those features are described at that detection (:func:`...core.features.describe`),
+not detected a second time.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Callable
 
-from ...core.frame import Frame
+from ...core.features import SIFT_DETECTED, describe
+from ...core.frame import Features, Frame
 from ...core.map import KeyframeMap, MapState
 from ..pose.base import PoseEstimate
 from ..pose.p3p import P3PPoseFinder
@@ -50,6 +55,21 @@ class SupportedP3P(P3PPoseFinder):
         view = dataclasses.replace(estimate, inlier_keypoints=explained.keypoints,
                                    inlier_landmark_ids=explained.landmark_ids)
         return super().alternatives(query, view, state, plausible=plausible)
+
+
+    def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
+        """:meth:`P3PPoseFinder.query_features`, described at the SIFT keypoints a step
+        already detected on ``query`` (``query.cache[SIFT_DETECTED]``: ferns' own detection)
+        where there are some and the features are full-image SIFT; the same features
+        (:func:`...core.features.describe`) without detecting them a second time."""
+        (key, conf), = self.feature_confs().items()
+        detected = query.cache.get(SIFT_DETECTED)
+        if detected is None or conf.kind != "sift" or conf.scale != 1:
+            return super().query_features(query, timings)
+        start = time.perf_counter()
+        feats = query.features_of(key, lambda: describe(query.image, detected, conf))
+        timings["features"] = time.perf_counter() - start
+        return feats
 
 
 def supported_p3p(kind: str, pnp_conf: PnPConf) -> SupportedP3P:
