@@ -11,6 +11,7 @@ import numpy.typing as npt
 from . import hamming
 from .errors import ConfigError
 from .frame import Features, is_binary_descriptor
+from .retain_best import retain_best
 
 FEATURE_KINDS: tuple[str, ...] = ("sift", "orb")
 
@@ -109,23 +110,17 @@ SIFT_DETECTED = "features:sift-detected"
 def describe(image: npt.NDArray[np.uint8], detected: list[cv2.KeyPoint],
              conf: FeatureConf) -> Features:
     """``extract(image, conf)`` for SIFT, from ``detected``: every keypoint ``cv2.SIFT``'s
-    detector (default settings, no cap) finds on ``image``. The detection ``extract`` repeats
-    is skipped: the keypoints it keeps are those at least as strong as the
-    ``conf.max_features``-th (OpenCV's ``retainBest`` keeps the ties too), and OpenCV
-    describes given keypoints on the same Gaussian pyramid, so each gets the descriptor
-    ``extract`` gives it. Listed in detection order, which is ``extract``'s own when no
-    keypoint is dropped (else ``extract`` lists them in the order its partial sort leaves).
-    The pyramid starts at the upsampled octave only when a described keypoint lies there:
-    otherwise ``extract`` runs."""
+    detector (default settings, no cap) finds on ``image``, in its order. The detection
+    ``extract`` repeats is skipped: the keypoints it keeps and their order are those of
+    OpenCV's cap (:func:`.retain_best.retain_best`), and OpenCV describes given keypoints on
+    the same Gaussian pyramid, so each gets the descriptor ``extract`` gives it. Where the
+    cap's order cannot be had, or no kept keypoint lies in the upsampled octave (the pyramid
+    would start elsewhere), ``extract`` runs."""
     if conf.kind != "sift" or conf.scale != 1:
         raise ConfigError(f"describe: SIFT features of the full image expected, got "
                           f"{conf.kind} at scale {conf.scale:g}")
-    if len(detected) <= conf.max_features:
-        kept = list(detected)
-    else:
-        response = np.fromiter((k.response for k in detected), np.float32, len(detected))
-        weakest = np.partition(response, len(response) - conf.max_features)[-conf.max_features]
-        kept = [detected[i] for i in np.flatnonzero(response >= weakest)]
+    order = retain_best([k.response for k in detected], conf.max_features)
+    kept = [] if order is None else [detected[i] for i in order]
     # SIFT packs the octave in the low byte: 255 is the upsampled octave (-1).
     if not any(k.octave & 0xFF == 0xFF for k in kept):
         return extract(image, conf)
