@@ -4,7 +4,14 @@ import pytest
 import skimage.data
 
 from reloc_service.core.errors import ConfigError
-from reloc_service.core.features import FeatureConf, compute_at, describe, extract, match_ratio
+from reloc_service.core.features import (
+    FeatureConf,
+    capped,
+    compute_at,
+    detect_sift,
+    extract,
+    match_ratio,
+)
 from reloc_service.core.retain_best import retain_best
 
 
@@ -54,13 +61,17 @@ def test_compute_at_given_positions(image):
 
 
 @pytest.mark.parametrize("cap", [5000, 200, 50])
-def test_sift_described_at_its_detection_is_the_extraction(image, cap):
-    """Described at every keypoint SIFT's detector found, the features are extract's, the
-    same arrays in the same order, whether the cap drops keypoints or not."""
-    detected = list(cv2.SIFT.create().detect(image, None))
+def test_sift_capped_from_its_whole_detection_is_the_extraction(image, cap):
+    """Capped from every keypoint SIFT detects and describes, the features are extract's:
+    the same arrays in the same order, whether the cap drops keypoints or not; the
+    detection's keypoints are those SIFT's detector alone lists."""
+    detection = detect_sift(image)
+    assert [k.pt for k in detection.keypoints] == [
+        k.pt for k in cv2.SIFT.create().detect(image, None)]
     conf = FeatureConf("sift", cap)
-    want, got = extract(image, conf), describe(image, detected, conf)
-    assert (len(detected) > cap) == (cap < 5000) and len(want) >= min(cap, len(detected))
+    want, got = extract(image, conf), capped(image, detection, conf)
+    assert (len(detection.keypoints) > cap) == (cap < 5000)
+    assert len(want) >= min(cap, len(detection.keypoints))
     for name in ("keypoints_px", "descriptors", "levels", "sizes", "angles"):
         assert np.array_equal(getattr(got, name), getattr(want, name)), name
 
@@ -83,9 +94,9 @@ def test_retain_best_keeps_ties_of_the_weakest_kept():
     assert retain_best([1.0, 2.0], 5) == [0, 1]
 
 
-def test_describe_wants_full_image_sift(image):
+def test_capped_wants_full_image_sift(image):
     with pytest.raises(ConfigError, match="SIFT features of the full image expected"):
-        describe(image, [], FeatureConf("orb", 100))
+        capped(image, detect_sift(image), FeatureConf("orb", 100))
 
 
 def test_conf_errors():

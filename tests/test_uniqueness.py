@@ -230,7 +230,7 @@ def test_ferns_weigh_the_pose_of_a_copy_against_the_true_place_elsewhere(repeate
     assert result.ok, result.reason
     assert pose_error(result.world_from_cam, gt)[0] < 0.02, (
         f"answered {pose_error(result.world_from_cam, gt)[0]:.2f} m from the truth")
-    # The weighing described its SIFT features at ferns' detection: extract's features.
+    # The weighing's SIFT features were capped from ferns' detection: extract's features.
     weighed, extracted = query.features["sift"], extract(query.image, FeatureConf("sift", 2000))
     assert np.array_equal(weighed.keypoints_px, extracted.keypoints_px)
     assert np.array_equal(weighed.descriptors, extracted.descriptors)

@@ -102,30 +102,43 @@ def extract(image: npt.NDArray[np.uint8], conf: FeatureConf | None = None, *,
     return _features_from_cv(conf.kind, list(keypoints), descriptors)
 
 
-#: The ``Frame.cache`` key of every SIFT keypoint a step detected on the whole query image
-#: (``cv2.SIFT``'s detector, no cap, its default settings), left for :func:`describe`.
+#: The ``Frame.cache`` key of a step's :class:`SiftDetection` of the whole query image, left
+#: for :func:`capped` (ferns leaves its own).
 SIFT_DETECTED = "features:sift-detected"
 
 
-def describe(image: npt.NDArray[np.uint8], detected: list[cv2.KeyPoint],
-             conf: FeatureConf) -> Features:
-    """``extract(image, conf)`` for SIFT, from ``detected``: every keypoint ``cv2.SIFT``'s
-    detector (default settings, no cap) finds on ``image``, in its order. The detection
-    ``extract`` repeats is skipped: the keypoints it keeps and their order are those of
-    OpenCV's cap (:func:`.retain_best.retain_best`), and OpenCV describes given keypoints on
-    the same Gaussian pyramid, so each gets the descriptor ``extract`` gives it. Where the
-    cap's order cannot be had, or no kept keypoint lies in the upsampled octave (the pyramid
-    would start elsewhere), ``extract`` runs."""
+@dataclass(frozen=True)
+class SiftDetection:
+    """Every keypoint ``cv2.SIFT`` (default settings, no cap) finds on an image, in its
+    order, with its descriptor (None when there is no keypoint)."""
+
+    keypoints: list[cv2.KeyPoint]
+    descriptors: npt.NDArray[np.float32] | None
+
+
+def detect_sift(image: npt.NDArray[np.uint8]) -> SiftDetection:
+    """:class:`SiftDetection` of ``image``: its keypoints and descriptors are those
+    ``extract`` keeps of it (same pyramid, same detection; the cap only drops keypoints)."""
+    keypoints, descriptors = cv2.SIFT.create().detectAndCompute(image, None)
+    return SiftDetection(list(keypoints), None if descriptors is None
+                         else np.asarray(descriptors, np.float32))
+
+
+def capped(image: npt.NDArray[np.uint8], detection: SiftDetection,
+           conf: FeatureConf) -> Features:
+    """``extract(image, conf)`` for SIFT, from ``detection`` of ``image``, without detecting
+    and describing again: the keypoints ``extract``'s cap keeps, in its order
+    (:func:`.retain_best.retain_best`), with their descriptors. ``extract`` runs where the
+    cap's order cannot be had."""
     if conf.kind != "sift" or conf.scale != 1:
-        raise ConfigError(f"describe: SIFT features of the full image expected, got "
+        raise ConfigError(f"capped: SIFT features of the full image expected, got "
                           f"{conf.kind} at scale {conf.scale:g}")
-    order = retain_best([k.response for k in detected], conf.max_features)
-    kept = [] if order is None else [detected[i] for i in order]
-    # SIFT packs the octave in the low byte: 255 is the upsampled octave (-1).
-    if not any(k.octave & 0xFF == 0xFF for k in kept):
+    order = retain_best([k.response for k in detection.keypoints], conf.max_features)
+    if order is None:
         return extract(image, conf)
-    keypoints, descriptors = _create(conf).compute(image, kept)
-    return _features_from_cv(conf.kind, list(keypoints), descriptors)
+    kept = [detection.keypoints[i] for i in order]
+    descriptors = None if detection.descriptors is None else detection.descriptors[order]
+    return _features_from_cv(conf.kind, kept, descriptors)
 
 
 #: Candidates detected per keypoint kept when keypoints are spread over a grid: enough that

@@ -14,15 +14,11 @@ def detect_keypoints(image: npt.NDArray[np.uint8], detector: str, max_keypoints:
     """(N, 2) distinct keypoint pixels of a query: SIFT (DoG extrema, no descriptor) or FAST,
     the strongest ``max_keypoints``."""
     if detector == "sift":
-        return strongest_distinct(detect_sift(image), max_keypoints)
-    fast = cv2.FastFeatureDetector.create(threshold=15, nonmaxSuppression=True)
-    return strongest_distinct(list(fast.detect(image, None)), max_keypoints)
-
-
-def detect_sift(image: npt.NDArray[np.uint8]) -> list[cv2.KeyPoint]:
-    """Every DoG extremum of ``image`` as SIFT's detector (default settings, no cap) lists
-    them, without descriptors."""
-    return list(cv2.SIFT.create().detect(image, None))
+        kps = cv2.SIFT.create().detect(image, None)  # all, then the strongest distinct ones
+    else:
+        fast = cv2.FastFeatureDetector.create(threshold=15, nonmaxSuppression=True)
+        kps = fast.detect(image, None)
+    return strongest_distinct(list(kps), max_keypoints)
 
 
 def strongest_distinct(kps: list[cv2.KeyPoint], max_keypoints: int) -> Array:

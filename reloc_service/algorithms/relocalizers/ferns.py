@@ -49,7 +49,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core.errors import ConfigError, NotTrainedError
-from ...core.features import SIFT_DETECTED
+from ...core.features import SIFT_DETECTED, detect_sift
 from ...core.frame import Frame, Keyframe
 from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
@@ -57,7 +57,7 @@ from ...core.numeric import top_k
 from ...core.plugins import make_conf
 from ..ferns.classifier import FernClassifier
 from ..ferns.fern_tests import FernTests
-from ..ferns.keypoints import detect_keypoints, detect_sift, strongest_distinct
+from ..ferns.keypoints import detect_keypoints, strongest_distinct
 from ..ferns.models import FernModels, Published
 from ..ferns.scorer import FernScorer
 from ..ferns.training import prepare_image
@@ -329,13 +329,14 @@ class FernsRelocalizer(Relocalizer):
         key = f"ferns:keypoints:{self.conf.detector}:{self.conf.max_query_keypoints}"
         if key in query.cache:
             return query.cache[key]
-        if self.conf.detector == "sift":
-            # Every DoG keypoint stays on the frame: the weighing describes its SIFT features
-            # at them rather than detecting them again (:func:`...core.features.describe`).
-            detected = query.cache.get(SIFT_DETECTED)
-            if detected is None:
-                detected = query.cache[SIFT_DETECTED] = detect_sift(query.image)
-            query.cache[key] = strongest_distinct(detected, self.conf.max_query_keypoints)
+        if self.conf.detector == "sift" and self.conf.competitors > 0:
+            # Detected with their descriptors, left on the frame: the weighing's SIFT
+            # features are these (:func:`...core.features.capped`), not extracted again.
+            detection = query.cache.get(SIFT_DETECTED)
+            if detection is None:
+                detection = query.cache[SIFT_DETECTED] = detect_sift(query.image)
+            query.cache[key] = strongest_distinct(detection.keypoints,
+                                                  self.conf.max_query_keypoints)
         else:
             query.cache[key] = detect_keypoints(query.image, self.conf.detector,
                                                 self.conf.max_query_keypoints)

@@ -18,8 +18,8 @@ learned, extracted as the ``p3p`` pose finder extracts them) that the ferns pose
 its support (:mod:`..pose.support`: the local map around the pose projected into the query
 and found there by guided matching), the same features every solution is compared by.
 Ferns' query keypoints are SIFT's DoG extrema, detected as the SIFT extraction detects
-them: those features are described at that detection (:func:`...core.features.describe`),
-not detected a second time.
+them: ferns describes them as it detects them, and those features are that detection capped
+as the extraction caps it (:func:`...core.features.capped`), not extracted a second time.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import dataclasses
 import time
 from collections.abc import Callable
 
-from ...core.features import SIFT_DETECTED, describe
+from ...core.features import SIFT_DETECTED, capped
 from ...core.frame import Features, Frame
 from ...core.map import KeyframeMap, MapState
 from ..pose.base import PoseEstimate
@@ -58,16 +58,16 @@ class SupportedP3P(P3PPoseFinder):
 
 
     def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
-        """:meth:`P3PPoseFinder.query_features`, described at the SIFT keypoints a step
-        already detected on ``query`` (``query.cache[SIFT_DETECTED]``: ferns' own detection)
-        where there are some and the features are full-image SIFT; the same features
-        (:func:`...core.features.describe`) without detecting them a second time."""
+        """:meth:`P3PPoseFinder.query_features`, taken from the SIFT detection a step left
+        on ``query`` (``query.cache[SIFT_DETECTED]``: ferns' own, with descriptors) where
+        there is one and the features are full-image SIFT: the same features
+        (:func:`...core.features.capped`), without detecting and describing again."""
         (key, conf), = self.feature_confs().items()
-        detected = query.cache.get(SIFT_DETECTED)
-        if detected is None or conf.kind != "sift" or conf.scale != 1:
+        detection = query.cache.get(SIFT_DETECTED)
+        if detection is None or conf.kind != "sift" or conf.scale != 1:
             return super().query_features(query, timings)
         start = time.perf_counter()
-        feats = query.features_of(key, lambda: describe(query.image, detected, conf))
+        feats = query.features_of(key, lambda: capped(query.image, detection, conf))
         timings["features"] = time.perf_counter() - start
         return feats
 
