@@ -4,7 +4,15 @@ import pytest
 import skimage.data
 
 from reloc_service.core.errors import ConfigError
-from reloc_service.core.features import FeatureConf, compute_at, extract, match_ratio
+from reloc_service.core.features import (
+    FeatureConf,
+    capped,
+    compute_at,
+    detect_sift,
+    extract,
+    match_ratio,
+)
+from reloc_service.core.retain_best import retain_best
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +58,45 @@ def test_compute_at_given_positions(image):
     feats, origin = compute_at(image, "sift", pts)
     assert set(origin) <= {0, 1, 2} and 0 in origin and 1 in origin
     assert np.allclose(feats.keypoints_px, pts[origin])
+
+
+@pytest.mark.parametrize("cap", [5000, 200, 50])
+def test_sift_capped_from_its_whole_detection_is_the_extraction(image, cap):
+    """Capped from every keypoint SIFT detects and describes, the features are extract's:
+    the same arrays in the same order, whether the cap drops keypoints or not; the
+    detection's keypoints are those SIFT's detector alone lists."""
+    detection = detect_sift(image)
+    assert [k.pt for k in detection.keypoints] == [
+        k.pt for k in cv2.SIFT.create().detect(image, None)]
+    conf = FeatureConf("sift", cap)
+    want, got = extract(image, conf), capped(image, detection, conf)
+    assert (len(detection.keypoints) > cap) == (cap < 5000)
+    assert len(want) >= min(cap, len(detection.keypoints))
+    for name in ("keypoints_px", "descriptors", "levels", "sizes", "angles"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
+
+
+@pytest.mark.parametrize("count", [1, 7, 100, 999])
+def test_retain_best_orders_as_opencvs_cap(count):
+    """The emulated order of OpenCV's cap is the one ``cv2.SIFT`` with ``nfeatures`` gives,
+    on a photograph with more keypoints than each cap."""
+    image = cv2.resize(skimage.data.astronaut()[..., 1], (512, 512))
+    detected = list(cv2.SIFT.create().detect(image, None))
+    capped = cv2.SIFT.create(nfeatures=count).detect(image, None)
+    order = retain_best([k.response for k in detected], count)
+    assert order is not None and len(detected) > count
+    assert [detected[i].pt for i in order] == [k.pt for k in capped]
+
+
+def test_retain_best_keeps_ties_of_the_weakest_kept():
+    # Introselect (worked by hand) leaves [0, 3 | 2, 1, 4]; 2 ties the weakest kept (3).
+    assert retain_best([3.0, 1.0, 2.0, 2.0, 0.5], 2) == [0, 3, 2]
+    assert retain_best([1.0, 2.0], 5) == [0, 1]
+
+
+def test_capped_wants_full_image_sift(image):
+    with pytest.raises(ConfigError, match="SIFT features of the full image expected"):
+        capped(image, detect_sift(image), FeatureConf("orb", 100))
 
 
 def test_conf_errors():

@@ -22,6 +22,7 @@ from reloc_service.algorithms.relocalizers.uniqueness import (
     solutions,
 )
 from reloc_service.core.cameras import PinholeCamera
+from reloc_service.core.features import FeatureConf, extract
 from reloc_service.core.frame import Frame
 from reloc_service.core.geometry import pose_error
 from reloc_service.tools.synth.planar import (
@@ -224,10 +225,15 @@ def test_ferns_weigh_the_pose_of_a_copy_against_the_true_place_elsewhere(repeate
     ferns.train()
     gt, copy_pose = downward_pose(-0.75, -0.5, 0.8), downward_pose(1.25, -0.5, 0.8)
     near_copy = Prior(copy_pose, radius_m=0.8)   # keyframes at x >= 0.5, the truth's 1.75 m away
-    result = ferns.relocalize(Frame(repeated_scene.render(gt), CAMERA), prior=near_copy)
+    query = Frame(repeated_scene.render(gt), CAMERA)
+    result = ferns.relocalize(query, prior=near_copy)
     assert result.ok, result.reason
     assert pose_error(result.world_from_cam, gt)[0] < 0.02, (
         f"answered {pose_error(result.world_from_cam, gt)[0]:.2f} m from the truth")
+    # The weighing's SIFT features were capped from ferns' detection: extract's features.
+    weighed, extracted = query.features["sift"], extract(query.image, FeatureConf("sift", 2000))
+    assert np.array_equal(weighed.keypoints_px, extracted.keypoints_px)
+    assert np.array_equal(weighed.descriptors, extracted.descriptors)
     unweighed = create_relocalizer("ferns", repeated_scene.map, options={"ferns": dict(
         num_ferns=40, num_tests=10, num_warps=25, workers=2, partition="select",
         competitors=0)})

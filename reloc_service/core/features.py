@@ -11,6 +11,7 @@ import numpy.typing as npt
 from . import hamming
 from .errors import ConfigError
 from .frame import Features, is_binary_descriptor
+from .retain_best import retain_best
 
 FEATURE_KINDS: tuple[str, ...] = ("sift", "orb")
 
@@ -99,6 +100,45 @@ def extract(image: npt.NDArray[np.uint8], conf: FeatureConf | None = None, *,
         return _extract_spread(image, conf, mask)
     keypoints, descriptors = _create(conf).detectAndCompute(image, mask)
     return _features_from_cv(conf.kind, list(keypoints), descriptors)
+
+
+#: The ``Frame.cache`` key of a step's :class:`SiftDetection` of the whole query image, left
+#: for :func:`capped` (ferns leaves its own).
+SIFT_DETECTED = "features:sift-detected"
+
+
+@dataclass(frozen=True)
+class SiftDetection:
+    """Every keypoint ``cv2.SIFT`` (default settings, no cap) finds on an image, in its
+    order, with its descriptor (None when there is no keypoint)."""
+
+    keypoints: list[cv2.KeyPoint]
+    descriptors: npt.NDArray[np.float32] | None
+
+
+def detect_sift(image: npt.NDArray[np.uint8]) -> SiftDetection:
+    """:class:`SiftDetection` of ``image``: its keypoints and descriptors are those
+    ``extract`` keeps of it (same pyramid, same detection; the cap only drops keypoints)."""
+    keypoints, descriptors = cv2.SIFT.create().detectAndCompute(image, None)
+    return SiftDetection(list(keypoints), None if descriptors is None
+                         else np.asarray(descriptors, np.float32))
+
+
+def capped(image: npt.NDArray[np.uint8], detection: SiftDetection,
+           conf: FeatureConf) -> Features:
+    """``extract(image, conf)`` for SIFT, from ``detection`` of ``image``, without detecting
+    and describing again: the keypoints ``extract``'s cap keeps, in its order
+    (:func:`.retain_best.retain_best`), with their descriptors. ``extract`` runs where the
+    cap's order cannot be had."""
+    if conf.kind != "sift" or conf.scale != 1:
+        raise ConfigError(f"capped: SIFT features of the full image expected, got "
+                          f"{conf.kind} at scale {conf.scale:g}")
+    order = retain_best([k.response for k in detection.keypoints], conf.max_features)
+    if order is None:
+        return extract(image, conf)
+    kept = [detection.keypoints[i] for i in order]
+    descriptors = None if detection.descriptors is None else detection.descriptors[order]
+    return _features_from_cv(conf.kind, kept, descriptors)
 
 
 #: Candidates detected per keypoint kept when keypoints are spread over a grid: enough that

@@ -18,6 +18,11 @@ def detect_keypoints(image: npt.NDArray[np.uint8], detector: str, max_keypoints:
     else:
         fast = cv2.FastFeatureDetector.create(threshold=15, nonmaxSuppression=True)
         kps = fast.detect(image, None)
+    return strongest_distinct(list(kps), max_keypoints)
+
+
+def strongest_distinct(kps: list[cv2.KeyPoint], max_keypoints: int) -> Array:
+    """(N, 2) pixels of the strongest ``max_keypoints`` of ``kps``, one per location."""
     if not kps:
         return np.zeros((0, 2))
     pts = np.asarray(cv2.KeyPoint.convert(kps), np.float64).reshape(-1, 2)

@@ -49,6 +49,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core.errors import ConfigError, NotTrainedError
+from ...core.features import SIFT_DETECTED, detect_sift
 from ...core.frame import Frame, Keyframe
 from ...core.map import KeyframeMap, MapState
 from ...core.methods import MethodStep
@@ -56,7 +57,7 @@ from ...core.numeric import top_k
 from ...core.plugins import make_conf
 from ..ferns.classifier import FernClassifier
 from ..ferns.fern_tests import FernTests
-from ..ferns.keypoints import detect_keypoints
+from ..ferns.keypoints import detect_keypoints, strongest_distinct
 from ..ferns.models import FernModels, Published
 from ..ferns.scorer import FernScorer
 from ..ferns.training import prepare_image
@@ -326,7 +327,17 @@ class FernsRelocalizer(Relocalizer):
     def _detect(self, query: Frame) -> Array:
         """(N, 2) query keypoints (distinct pixels), cached on the frame."""
         key = f"ferns:keypoints:{self.conf.detector}:{self.conf.max_query_keypoints}"
-        if key not in query.cache:
+        if key in query.cache:
+            return query.cache[key]
+        if self.conf.detector == "sift" and self.conf.competitors > 0:
+            # Detected with their descriptors, left on the frame: the weighing's SIFT
+            # features are these (:func:`...core.features.capped`), not extracted again.
+            detection = query.cache.get(SIFT_DETECTED)
+            if detection is None:
+                detection = query.cache[SIFT_DETECTED] = detect_sift(query.image)
+            query.cache[key] = strongest_distinct(detection.keypoints,
+                                                  self.conf.max_query_keypoints)
+        else:
             query.cache[key] = detect_keypoints(query.image, self.conf.detector,
                                                 self.conf.max_query_keypoints)
         return query.cache[key]

@@ -17,14 +17,19 @@ So the twin search starts from the query features (of the kind whose landmarks f
 learned, extracted as the ``p3p`` pose finder extracts them) that the ferns pose explains:
 its support (:mod:`..pose.support`: the local map around the pose projected into the query
 and found there by guided matching), the same features every solution is compared by.
+Ferns' query keypoints are SIFT's DoG extrema, detected as the SIFT extraction detects
+them: ferns describes them as it detects them, and those features are that detection capped
+as the extraction caps it (:func:`...core.features.capped`), not extracted a second time.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Callable
 
-from ...core.frame import Frame
+from ...core.features import SIFT_DETECTED, capped
+from ...core.frame import Features, Frame
 from ...core.map import KeyframeMap, MapState
 from ..pose.base import PoseEstimate
 from ..pose.p3p import P3PPoseFinder
@@ -50,6 +55,21 @@ class SupportedP3P(P3PPoseFinder):
         view = dataclasses.replace(estimate, inlier_keypoints=explained.keypoints,
                                    inlier_landmark_ids=explained.landmark_ids)
         return super().alternatives(query, view, state, plausible=plausible)
+
+
+    def query_features(self, query: Frame, timings: dict[str, float]) -> Features:
+        """:meth:`P3PPoseFinder.query_features`, taken from the SIFT detection a step left
+        on ``query`` (``query.cache[SIFT_DETECTED]``: ferns' own, with descriptors) where
+        there is one and the features are full-image SIFT: the same features
+        (:func:`...core.features.capped`), without detecting and describing again."""
+        (key, conf), = self.feature_confs().items()
+        detection = query.cache.get(SIFT_DETECTED)
+        if detection is None or conf.kind != "sift" or conf.scale != 1:
+            return super().query_features(query, timings)
+        start = time.perf_counter()
+        feats = query.features_of(key, lambda: capped(query.image, detection, conf))
+        timings["features"] = time.perf_counter() - start
+        return feats
 
 
 def supported_p3p(kind: str, pnp_conf: PnPConf) -> SupportedP3P:
