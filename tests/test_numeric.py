@@ -121,3 +121,20 @@ def test_compile_once_runs_its_factory_once_for_concurrent_first_calls() -> None
         t.join(30)
     assert len(calls) == 1 and len(results) == 2 and results[0] is results[1]
     assert once() is results[0]
+
+
+@pytest.mark.parametrize("n,high", [(0, 5), (1, 5), (12, 3), (10_000, 4000), (10_000, 10**12),
+                                    (5000, 2**62)])
+def test_first_occurrences_are_the_sorted_unique_indices(n, high, monkeypatch):
+    """The compiled hash pass and the numpy path both give np.unique's first indices, sorted:
+    repeated values, negative ids (-1: no landmark), ids far apart and near 2**63."""
+    from reloc_service.core import numeric
+
+    rng = np.random.default_rng(n + high % 1000)
+    values = rng.integers(-3 if high < 100 else 0, high, n)
+    values[::7] = -1
+    expected = np.sort(np.unique(values, return_index=True)[1])
+    got = numeric.first_occurrences(values)
+    assert got.dtype == np.int64 and np.array_equal(got, expected)
+    monkeypatch.setattr(numeric, "_first_occurrence_kernel", lambda: None)
+    assert np.array_equal(numeric.first_occurrences(values), expected)

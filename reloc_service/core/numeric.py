@@ -89,6 +89,55 @@ def _top_k_rows(scores: npt.NDArray[np.floating], k: int) -> IntArray:
     return out
 
 
+def first_occurrences(values: npt.NDArray[np.int64]) -> IntArray:
+    """(U,) ascending indices of the first occurrence of each distinct value of ``values``
+    (N,): ``np.sort(np.unique(values, return_index=True)[1])``. One compiled pass over a hash
+    table where numba is installed (:func:`_first_in_table`), where ``np.unique`` sorts:
+    pooling the landmarks of a dozen keyframes (10 000 ids) spent 1.7 of its 3 ms there."""
+    values = np.ascontiguousarray(values, np.int64)
+    kernel = _first_occurrence_kernel()
+    if kernel is None or len(values) == 0:
+        return np.sort(np.unique(values, return_index=True)[1]).astype(np.int64)
+    bits = max(4, (2 * len(values)).bit_length())   # more than 2N slots: at most half full
+    first = np.empty(len(values), np.int64)
+    count = kernel(values, np.zeros(1 << bits, np.int64), bits, first)
+    return first[:count]
+
+
+def _first_in_table(values: npt.NDArray[np.int64], table: npt.NDArray[np.int64], bits: int,
+                    first: npt.NDArray[np.int64]) -> int:
+    """Indices of the first occurrences of ``values`` into ``first``, in order; their count.
+    ``table`` (2 ** ``bits``, zeros) holds 1 + the index of each distinct value seen so far,
+    at the slot Fibonacci hashing gives its value, probing linearly."""
+    mask = np.int64((1 << bits) - 1)
+    shift = np.uint64(64 - bits)
+    golden = np.uint64(0x9E3779B97F4A7C15)
+    count = 0
+    for i in range(values.shape[0]):
+        v = values[i]
+        slot = np.int64((np.uint64(v) * golden) >> shift)
+        while True:
+            held = table[slot]
+            if held == 0:
+                table[slot] = i + 1
+                first[count] = i
+                count += 1
+                break
+            if values[held - 1] == v:
+                break
+            slot = np.int64((slot + 1) & mask)
+    return count
+
+
+@functools.cache
+def _first_occurrence_kernel() -> Any:
+    """:func:`_first_in_table` compiled by numba (cached on disk), or None without numba."""
+    numba = numba_or_none()
+    if numba is None:
+        return None
+    return numba.njit(cache=True, nogil=True)(_first_in_table)
+
+
 _T = TypeVar("_T")
 
 

@@ -27,6 +27,7 @@ from ..core import hamming
 from ..core.background import start_background
 from ..core.fileio import atomic_write
 from ..core.frame import area_downscale
+from ..core.numeric import first_occurrences
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +53,7 @@ def warm_kernels() -> None:
     orb = np.zeros((2, 32), np.uint8)   # ORB's 256-bit descriptors, as queries match them
     hamming.knn2(orb, orb)
     pose_kernels.warm_up()
+    first_occurrences(np.array([2, 1, 2], np.int64))   # pooling several keyframes' landmarks
     area_downscale(np.zeros((32, 32), np.uint8), 2, 2)
     _warmed.set()
 

@@ -17,6 +17,7 @@ from ...core.cameras import Camera
 from ...core.frame import Features, is_binary_descriptor
 from ...core.geometry import invert, transform_points
 from .guided_kernels import compiled
+from .keypoint_grid import window_neighbours
 from .projection import project_cam
 
 Array = npt.NDArray[np.float64]
@@ -115,8 +116,8 @@ def search_by_projection(feats: Features, camera: Camera, world_from_cam: Array,
     px, visible = project_into(camera, world_from_cam, points_world)
     rows = np.flatnonzero(visible)
     k = min(_WINDOW_NEIGHBOURS, len(feats))
-    _, near = keypoint_tree(feats).query(px[rows], k=k, distance_upper_bound=radius_px)
-    near = near.reshape(len(rows), k).astype(np.int64, copy=False)
+    near = window_neighbours(feats.keypoints_px, px[rows], k, radius_px,
+                             lambda: keypoint_tree(feats))
     best, second, first = _window_best(feats.descriptors, map_desc[rows], near)
     limit = background_distance(feats.descriptors, map_desc, conf.background_quantile)
     ok = np.isfinite(best) & (best < conf.window_ratio * second) & (best < limit)

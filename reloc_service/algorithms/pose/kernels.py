@@ -38,7 +38,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ...core.numeric import compile_once, numba_or_none
-from . import guided_kernels, intrinsics_kernels, repetition_kernels
+from . import guided_kernels, intrinsics_kernels, keypoint_grid, repetition_kernels
 
 Array = npt.NDArray[np.float64]
 
@@ -494,6 +494,7 @@ def warm_up() -> None:
     k.gauss_newton_update(np.eye(4), np.eye(6), np.ones(6), np.empty(6), np.empty((4, 4)))
     k.spd_inverse(np.eye(6), np.empty((6, 6)))
     guided_kernels.warm_up()
+    keypoint_grid.warm_up()
     intrinsics_kernels.warm_up()
     repetition_kernels.warm_up()
 

@@ -14,6 +14,7 @@ import numpy.typing as npt
 from ...core.background import stop_if
 from ...core.frame import Features, Keyframe
 from ...core.map import MapState
+from ...core.numeric import first_occurrences
 from .pnp import PointUncertainty
 
 Array = npt.NDArray[np.float64]
@@ -57,7 +58,7 @@ class LandmarkPool:
         kf_rows = np.repeat(np.arange(len(feats)), [len(i) for i in local])
         # The first occurrence is in the best-ranked keyframe; sorted, rows stay grouped by
         # keyframe, so only the kept descriptors are copied (not every observation's).
-        first = np.sort(np.unique(ids, return_index=True)[1])
+        first = first_occurrences(ids)
         rows, idx = kf_rows[first], np.concatenate(local)[first]
         # rows ascend: each keyframe's picks are one run of idx (one pass, not one per keyframe)
         starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
