@@ -10,7 +10,7 @@ import skimage.data
 
 from reloc_service.algorithms.place.base import create_place_finder
 from reloc_service.algorithms.place.bow import BagOfWords
-from reloc_service.algorithms.place.vocabulary import VocabularyTree
+from reloc_service.algorithms.place.vocabulary import VocabularyTree, sized_branching
 from reloc_service.core.cameras import PinholeCamera
 from reloc_service.core.errors import ConfigError, NotTrainedError, StorageError
 from reloc_service.core.features import FeatureConf, extract
@@ -276,8 +276,47 @@ def test_deep_tree_on_few_descriptors_and_consistent_quantisation():
     assert VocabularyTree.from_state(tree.to_state()).quantise(x).tolist() == words.tolist()
 
 
+@pytest.mark.parametrize(("n", "expected"), [
+    (200_000, 10),      # the training cap: 10^4 leaves of 20, the fixed tree
+    (10_000_000, 10),   # never above the configured branching
+    (199_999, 9),       # 10^4 leaves would hold fewer than 20 each
+    (131_220, 9), (131_219, 8),   # 9^4 * 20 = 131,220
+    (30_000, 6),        # 6^4 = 1,296 leaves of 23
+    (0, 2), (100, 2),   # never below a binary split
+])
+def test_sized_branching_keeps_the_count_per_leaf(n, expected):
+    k = sized_branching(n, depth=4, max_branching=10, leaf_descriptors=20)
+    assert k == expected
+    assert k == 2 or k ** 4 * 20 <= n < (k + 1) ** 4 * 20 or k == 10
+
+
+def test_sized_branching_rejects_a_zero_count():
+    with pytest.raises(ValueError, match="leaf_descriptors >= 1"):
+        sized_branching(1000, depth=4, max_branching=10, leaf_descriptors=0)
+
+
+def test_sized_vocabulary_follows_the_map_and_still_ranks(sift_keyframes, images):
+    fixed, _ = _finder(sift_keyframes)
+    sized, _ = _finder(sift_keyframes, leaf_descriptors=20)
+    fixed.train()
+    sized.train()
+    n = sum(len(kf.features["sift"]) for kf in sift_keyframes)   # 20 views, up to 500 each
+    k = sized_branching(n, depth=4, max_branching=10, leaf_descriptors=20)
+    assert sized.vocabulary is not None and fixed.vocabulary is not None
+    assert sized.vocabulary.branching == k < fixed.vocabulary.branching == 10
+    assert sized.vocabulary.n_words <= k ** 4 <= n / 20
+    assert len(msgpack.packb(sized.state())) < len(msgpack.packb(fixed.state())) / 4
+    for target in (0, 3, 7, 12):
+        assert sized.find_places(_query(images[target]), 1)[0].keyframe_id == target
+    restored, _ = _finder(sift_keyframes)   # a reader of any configuration reads the tree
+    restored.load_state(msgpack.unpackb(msgpack.packb(sized.state())))
+    assert restored.vocabulary is not None and restored.vocabulary.branching == k
+
+
 def test_config_errors():
     kmap = KeyframeMap()
+    with pytest.raises(ConfigError, match="leaf_descriptors >= 0"):
+        create_place_finder({"name": "bow", "leaf_descriptors": -1}, kmap)
     with pytest.raises(ConfigError, match="kind"):
         create_place_finder({"name": "bow", "kind": "surf"}, kmap)
     with pytest.raises(ConfigError, match="branching"):

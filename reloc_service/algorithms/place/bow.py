@@ -12,7 +12,10 @@ reported as the similarity ``sum_w min(q_w, d_w)`` in [0, 1] (higher is more sim
 
 Training. :meth:`BagOfWords.train` builds the vocabulary from the map's keyframes (descriptors
 subsampled to ``max_train_descriptors``, seeded) and indexes every keyframe, however few there
-are (any number of descriptors makes a tree). Before training, ``add_keyframe`` has nothing to do
+are (any number of descriptors makes a tree). The tree is ``branching ** depth`` leaves
+whatever the map holds, or, with ``leaf_descriptors`` set, sized to the map's training
+descriptors (:func:`.vocabulary.sized_branching`: as many leaves as leave each that many
+descriptors on average, up to the fixed tree). Before training, ``add_keyframe`` has nothing to do
 (training reads the map) and ``find_places`` raises :class:`NotTrainedError` rather than
 building a vocabulary inside a query (seconds for a large map; a fallback chain then moves on
 to its next method); on an empty map it returns no candidates.
@@ -45,7 +48,7 @@ from ...core.landmark_rows import check_every_row
 from ...core.map import KeyframeMap
 from ...core.numeric import top_k
 from .base import PlaceCandidate, PlaceFinder, register
-from .vocabulary import VocabularyTree
+from .vocabulary import VocabularyTree, sized_branching
 
 _STATE_FORMAT = 1
 
@@ -112,6 +115,11 @@ class BagOfWords(PlaceFinder):
         #: Children per node and levels: up to branching**depth visual words.
         branching: int = 10
         depth: int = 4
+        #: Training descriptors per leaf the tree is sized for (:func:`.vocabulary.sized_branching`:
+        #: ``depth`` levels, the largest branching up to ``branching`` that leaves each leaf
+        #: this many of the map's training descriptors on average); 0: the fixed tree of
+        #: ``branching ** depth`` leaves whatever the map holds.
+        leaf_descriptors: int = 0
         #: Lloyd iterations per node after k-means++ seeding.
         kmeans_iterations: int = 5
         #: Descriptors drawn (uniformly, seeded) from the map to build the tree.
@@ -133,6 +141,9 @@ class BagOfWords(PlaceFinder):
                 raise ConfigError(f"bow: expected branching >= 2, depth >= 1, "
                                   f"kmeans_iterations >= 0; got {self.branching}, {self.depth}, "
                                   f"{self.kmeans_iterations}")
+            if self.leaf_descriptors < 0:
+                raise ConfigError(f"bow: expected leaf_descriptors >= 0 (0: a fixed tree), got "
+                                  f"{self.leaf_descriptors}")
             if self.max_train_descriptors < 1 or self.max_features < 1:
                 raise ConfigError("bow: max_train_descriptors and max_features must be positive")
             if not 0 < self.query_scale <= 1:
@@ -167,8 +178,12 @@ class BagOfWords(PlaceFinder):
         descriptors = self._training_descriptors()
         if descriptors is None:
             return
-        tree = VocabularyTree.build(descriptors, branching=self.conf.branching,
-                                    depth=self.conf.depth,
+        branching = self.conf.branching
+        if self.conf.leaf_descriptors:
+            branching = sized_branching(len(descriptors), depth=self.conf.depth,
+                                        max_branching=branching,
+                                        leaf_descriptors=self.conf.leaf_descriptors)
+        tree = VocabularyTree.build(descriptors, branching=branching, depth=self.conf.depth,
                                     iterations=self.conf.kmeans_iterations,
                                     rng=np.random.default_rng(self.conf.seed))
         self._install(tree)

@@ -126,6 +126,30 @@ def _kmeans(x: npt.NDArray[Any], k: int, iterations: int, rng: np.random.Generat
     return centres[used], remap[labels]
 
 
+# -- the tree's size ---------------------------------------------------------------------------
+def sized_branching(n_descriptors: int, *, depth: int, max_branching: int,
+                    leaf_descriptors: int) -> int:
+    """Branching of a ``depth``-level tree sized to ``n_descriptors`` training descriptors:
+    the largest k <= ``max_branching`` (at least 2) with ``k ** depth * leaf_descriptors <=
+    n_descriptors``, so that a leaf holds ``leaf_descriptors`` of them on average.
+
+    Why a count per leaf: a leaf's centre is the mean (or bitwise majority) of its members;
+    the mean of m members is off the cluster's own centre by sigma^2 / m in expectation, so
+    a new member's expected squared distance to it is (1 + 1/m) times its distance to the
+    true centre: 5 % more at m = 20. A fixed tree of 10^4 leaves trained on a small map's
+    20,000 descriptors holds 2 of them per leaf (the leaf is a descriptor, not a word) while
+    costing as many centres as a large map's. At the default training cap (200,000
+    descriptors) and 20 per leaf the rule gives the fixed tree, 10 ** 4 leaves."""
+    if n_descriptors < 0 or depth < 1 or max_branching < 2 or leaf_descriptors < 1:
+        raise ValueError(f"sized_branching: expected n >= 0, depth >= 1, max_branching >= 2, "
+                         f"leaf_descriptors >= 1; got {n_descriptors}, {depth}, "
+                         f"{max_branching}, {leaf_descriptors}")
+    k = max_branching
+    while k > 2 and k ** depth * leaf_descriptors > n_descriptors:
+        k -= 1
+    return k
+
+
 # -- the vocabulary tree -----------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class VocabularyTree:
