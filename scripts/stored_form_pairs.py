@@ -26,7 +26,10 @@ from reloc_service.service.config import ServiceSection
 from reloc_service.tools.eval import evaluate as ev
 
 
-def kb_per_part(snapshot_root: str, keyframes: int) -> dict[str, float]:
+def kb_per_part(snapshot_root: str, keyframes: int, unit: int = 1024) -> dict[str, float]:
+    """Bytes a keyframe of each snapshot part in ``unit`` (1024: KiB, as this script has
+    always reported; 1000: kB, as `reloc bench` and map_size_parts.py report), a model file
+    hard-linked under several methods counted once."""
     sizes: dict[str, int] = {}
     seen: set[tuple[int, int]] = set()   # a model file equal to another method's: a hard link
     for f in Path(snapshot_root).rglob("*"):
@@ -39,7 +42,7 @@ def kb_per_part(snapshot_root: str, keyframes: int) -> dict[str, float]:
             elif key == "landmarks":
                 key = "l:points" if "points" in rel[3] else "l:other"
             sizes[key] = sizes.get(key, 0) + f.stat().st_size
-    return {k: round(v / 1024 / max(keyframes, 1), 1) for k, v in sorted(sizes.items())}
+    return {k: round(v / unit / max(keyframes, 1), 1) for k, v in sorted(sizes.items())}
 
 
 def main(args: list[str]) -> None:

@@ -19,27 +19,12 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from stored_form_pairs import kb_per_part  # scripts/ is sys.path[0] when run as a script
+
 from reloc_service.algorithms.place.bow import BagOfWords
 from reloc_service.engine import Engine
 from reloc_service.service.config import ServiceSection
 from reloc_service.tools.eval import evaluate as ev
-
-
-def kb_per_part(snapshot_root: str, keyframes: int) -> dict[str, float]:
-    """kB a keyframe of each snapshot part (a hard-linked model file counted once)."""
-    sizes: dict[str, int] = {}
-    seen: set[tuple[int, int]] = set()
-    for f in Path(snapshot_root).rglob("*"):
-        if f.is_file() and (f.stat().st_dev, f.stat().st_ino) not in seen:
-            seen.add((f.stat().st_dev, f.stat().st_ino))
-            rel = f.relative_to(snapshot_root).parts
-            key = rel[2] if len(rel) > 3 else "other"
-            if key == "features":
-                key = "f:" + ".".join(rel[3].split(".")[:2]) if "descriptor" in rel[3] else "f:other"
-            elif key == "landmarks":
-                key = "l:points" if "points" in rel[3] else "l:other"
-            sizes[key] = sizes.get(key, 0) + f.stat().st_size
-    return {k: round(v / 1000 / max(keyframes, 1), 1) for k, v in sorted(sizes.items())}
 
 
 def bow_trees(engine: Engine, methods: list[str]) -> list[str]:
@@ -74,7 +59,7 @@ def main(args: list[str]) -> None:
         train_s = ev._timed(lambda: engine.train())
         with tempfile.TemporaryDirectory(prefix="reloc-voc-") as tmp:
             engine.save(tmp, parts=ServiceSection().stored_parts())
-            parts = kb_per_part(tmp, len(engine.map.snapshot().keyframes))
+            parts = kb_per_part(tmp, len(engine.map.snapshot().keyframes), unit=1000)
         print(name, value, "trees", bow_trees(engine, methods), "kB/kf",
               round(sum(parts.values()), 1), parts, flush=True)
         with ev.as_a_service_worker():
