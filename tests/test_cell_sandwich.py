@@ -18,7 +18,8 @@ from reloc_service.algorithms.pose.cell_sandwich import (
     widened,
 )
 from reloc_service.algorithms.pose.intrinsics import CLUSTER_GRID
-from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp import solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp_conf import PnPConf
 from reloc_service.core.geometry import invert, se3_log
 
 

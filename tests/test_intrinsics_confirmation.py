@@ -23,7 +23,8 @@ from reloc_service.algorithms.pose.intrinsics_confirmation import (
     refused_theta,
 )
 from reloc_service.algorithms.pose.map_consistency import covariance_with_intrinsics
-from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp import solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp_conf import PnPConf
 from reloc_service.algorithms.relocalizers.base import (
     RelocResult,
 )

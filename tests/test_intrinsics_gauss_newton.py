@@ -15,7 +15,8 @@ from reloc_service.algorithms.pose.intrinsics_gauss_newton import (
     joint_estimates,
 )
 from reloc_service.algorithms.pose.intrinsics_model import IntrinsicsModel
-from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp import solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp_conf import PnPConf
 from reloc_service.algorithms.pose.projection import pose_projector
 from reloc_service.core.cameras import RadTanCamera
 from reloc_service.core.geometry import (

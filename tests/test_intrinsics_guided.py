@@ -14,7 +14,8 @@ from reloc_service.algorithms.pose.intrinsics_guided import (
     unguided_positions,
     with_unguided_test,
 )
-from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp import solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp_conf import PnPConf
 from reloc_service.core.cameras import Camera
 from reloc_service.core.geometry import invert, transform_points
 

@@ -14,7 +14,8 @@ from test_pose_intrinsics import POSE, ROOM, correspondences
 
 from reloc_service.algorithms.pose.intrinsics_marginal import intrinsics_posterior
 from reloc_service.algorithms.pose.map_consistency import covariance_with_intrinsics
-from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp import solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp_conf import PnPConf
 from reloc_service.algorithms.relocalizers.base import stated_covariance
 from reloc_service.tools.eval import metrics
 

@@ -21,7 +21,8 @@ from reloc_service.algorithms.pose.intrinsics_power import (
     missed_noncentrality,
 )
 from reloc_service.algorithms.pose.map_consistency import covariance_with_intrinsics
-from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp import solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp_conf import PnPConf
 from reloc_service.algorithms.relocalizers.base import (
     Relocalizer,
     RelocResult,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from reloc_service.algorithms.pose.landmark_keyframe_errors import widen_for_keyframe_errors
-from reloc_service.algorithms.pose.pnp import PointUncertainty
+from reloc_service.algorithms.pose.point_uncertainty import PointUncertainty
 from reloc_service.core.cameras import PinholeCamera
 from reloc_service.core.geometry import so3_exp
 from reloc_service.core.triangulation import ViewObservations, depth_uncertainty

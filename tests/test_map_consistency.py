@@ -17,7 +17,7 @@ from reloc_service.algorithms.pose.map_consistency import (
     map_dispersion,
     prepare_map,
 )
-from reloc_service.algorithms.pose.pnp import PnPConf
+from reloc_service.algorithms.pose.pnp_conf import PnPConf
 from reloc_service.core import distributions as stats
 from reloc_service.core.map import MapState
 

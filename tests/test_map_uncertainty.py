@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from reloc_service.algorithms.pose.map_uncertainty import keyframe_shares, map_covariance
-from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp
+from reloc_service.algorithms.pose.pnp import solve_pnp
+from reloc_service.algorithms.pose.pnp_conf import PnPConf
 from reloc_service.core.cameras import PinholeCamera
 from reloc_service.core.frame import Keyframe
 from reloc_service.core.geometry import invert, look_at, se3_exp, se3_log, transform_points

@@ -18,7 +18,8 @@ from reloc_service.algorithms.pose.map_consistency import (
     keyframe_statistic,
     map_dispersion,
 )
-from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp import solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp_conf import PnPConf
 from reloc_service.algorithms.relocalizers.base import Relocalizer, RelocResult, refuses_the_query
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer

@@ -12,7 +12,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reloc_service.algorithms.pose import chance, guided, guided_kernels, kernels, p3p, pnp, projection
+from reloc_service.algorithms.pose import (
+    chance,
+    guided,
+    guided_kernels,
+    kernels,
+    p3p,
+    pnp,
+    point_uncertainty,
+    projection,
+)
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.core.cameras import Camera, camera_from_dict
 from reloc_service.core.frame import Frame
@@ -108,7 +117,7 @@ def test_pixel_sigmas_and_chance_pairs_are_the_numpy_values(monkeypatch):
     origins[:3] = pts[:3]  # a zero ray: the norm's floor
     sigmas = rng.uniform(0, 0.3, len(pts))
     sigmas[3] = np.nan
-    unc = pnp.PointUncertainty(sigmas, origins)
+    unc = point_uncertainty.PointUncertainty(sigmas, origins)
     rows = np.arange(len(pts))
     px = np.round(rng.uniform([0, 0], [640, 480], (300, 2)) / 4) * 4  # ties in x
     projected = px + rng.normal(scale=3, size=px.shape)
@@ -194,7 +203,7 @@ def _correspondences(camera: Camera, uncertain: bool, scaled: bool):
     px[6:60] = rng.uniform([0, 0], [640, 480], (54, 2))
     px[61] = np.nan
     pts = pts_cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
-    unc = (pnp.PointUncertainty(rng.uniform(0.0, 0.2, len(pts)),
+    unc = (point_uncertainty.PointUncertainty(rng.uniform(0.0, 0.2, len(pts)),
                                 pts + rng.normal(0.0, 1.0, pts.shape)) if uncertain else None)
     scales = pnp.level_scales(rng.integers(0, 8, len(pts)), 1.2) if scaled else None
     return world_from_cam @ pnp.se3_exp(rng.normal(0.0, 0.003, 6)), px, pts, unc, scales

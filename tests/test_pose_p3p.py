@@ -8,12 +8,9 @@ import pytest
 from reloc_service.algorithms.place.base import PlaceCandidate
 from reloc_service.algorithms.pose.base import create_pose_finder
 from reloc_service.algorithms.pose.landmark_pool import LandmarkPool
-from reloc_service.algorithms.pose.pnp import (
-    PnPConf,
-    PointUncertainty,
-    solve_pnp,
-    solve_pnp_indexed,
-)
+from reloc_service.algorithms.pose.pnp import solve_pnp, solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp_conf import PnPConf
+from reloc_service.algorithms.pose.point_uncertainty import PointUncertainty
 from reloc_service.algorithms.relocalizers.base import (
     VerifyConf,
     note_map_calibration,

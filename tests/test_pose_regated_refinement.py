@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from reloc_service.algorithms.pose.pnp import PnPConf, solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp import solve_pnp_indexed
+from reloc_service.algorithms.pose.pnp_conf import PnPConf
 from reloc_service.algorithms.pose.regated_refinement import covariance_gated, refine_from
 from reloc_service.core.cameras import camera_from_dict
 from reloc_service.core.geometry import look_at, pose_error, transform_points

@@ -42,7 +42,8 @@ from ...core.geometry import invert, pose_covariance_from_sigmas, se3_exp, se3_l
 from ...core.map import MapState
 from ...core.triangulation import keypoint_sigmas
 from .map_consistency import MIN_HELD_OUT, held_out_candidates, held_out_points
-from .pnp import PnPConf, solve_pnp_indexed
+from .pnp import solve_pnp_indexed
+from .pnp_conf import PnPConf
 from .projection import pose_projector
 
 Array = npt.NDArray[np.float64]

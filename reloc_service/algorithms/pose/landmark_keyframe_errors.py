@@ -21,7 +21,7 @@ import numpy.typing as npt
 
 from ...core.map import MapState
 from ...core.triangulation import TriangulationConf
-from .pnp import PointUncertainty
+from .point_uncertainty import PointUncertainty
 
 Array = npt.NDArray[np.float64]
 

@@ -15,7 +15,7 @@ from ...core.background import stop_if
 from ...core.frame import Features, Keyframe
 from ...core.map import MapState
 from ...core.numeric import first_occurrences
-from .pnp import PointUncertainty
+from .point_uncertainty import PointUncertainty
 
 Array = npt.NDArray[np.float64]
 

@@ -57,7 +57,7 @@ from .guided import GuidedConf
 from .intrinsics import IntrinsicsCheck, check_intrinsics
 from .intrinsics_power import blind_spot_factor, governing_covariance
 from .map_uncertainty import map_covariance
-from .pnp import PnPConf
+from .pnp_conf import PnPConf
 from .projection import pose_projector
 
 Array = npt.NDArray[np.float64]

@@ -27,7 +27,9 @@ from .kernels import compiled
 from .landmark_pool import LandmarkPool
 from .map_consistency import prepare_map, settle_pose_errors
 from .map_pool import map_pool
-from .pnp import PnPConf, PointUncertainty, level_scales, solve_pnp_indexed
+from .pnp import level_scales, solve_pnp_indexed
+from .pnp_conf import PnPConf
+from .point_uncertainty import PointUncertainty
 from .repetition import (
     RepetitionConf,
     alternative_poses,

@@ -20,94 +20,18 @@ import numpy.typing as npt
 import poselib
 
 from ...core.cameras import Camera
-from ...core.errors import ConfigError, GeometryError
+from ...core.errors import GeometryError
 from ...core.geometry import invert, se3_exp, transform_points
 from .base import PoseEstimate
 from .cell_sandwich import cell_sandwich, grid_cells, point_sandwich
 from .chance import chance_agreement
-from .intrinsics import CLUSTER_GRID, FOCAL_STARTS, IntrinsicsCheck, IntrinsicsPrior, check_intrinsics
+from .intrinsics import CLUSTER_GRID, FOCAL_STARTS, IntrinsicsCheck, check_intrinsics
 from .kernels import compiled
+from .pnp_conf import PnPConf
+from .point_uncertainty import PointUncertainty
 from .projection import kernel_camera, pose_jacobian, pose_projector, project_cam, undistort_pixels
 
 Array = npt.NDArray[np.float64]
-
-@dataclass(frozen=True)
-class PnPConf:
-    """Robust absolute-pose settings shared by every P3P user (this module, ferns)."""
-
-    #: RANSAC inlier threshold and final inlier gate, pixels.
-    max_reproj_error_px: float = 5.0
-    min_iterations: int = 50
-    max_iterations: int = 10000
-    success_prob: float = 0.9999
-    seed: int = 0
-    #: Gauss-Newton steps through the real (distorted) camera model after PoseLib.
-    refine_iterations: int = 1
-    #: Floor of the residual standard deviation used for the covariance, pixels (keypoints
-    #: are not more precise than this, however well a few of them happen to fit).
-    min_sigma_px: float = 0.25
-    #: Localisation noise of a query keypoint, pixels: with a landmark's depth uncertainty
-    #: projected into the query (``s`` pixels), its residual weighs ``1 / (1 + (s / this)^2)``
-    #: in the refinement and the covariance.
-    keypoint_sigma_px: float = 1.0
-    #: Test the query's intrinsics on the pose's correspondences (:mod:`.intrinsics`): a
-    #: focal scale and a radial distortion term estimated with the pose, the given camera
-    #: refused at this false-refusal rate (the share of correctly calibrated queries refused).
-    #: 0: no test.
-    intrinsics_false_refusal: float = 1e-3
-    #: A correct calibration's 1-sigma uncertainty: of the focal, relative, and of the
-    #: distortion, as the pixels it moves the image's farthest corner. The test allows it; a
-    #: pose that passes carries it in its covariance.
-    focal_sigma_rel: float = 0.005
-    radial_sigma_px: float = 2.0
-    #: The share of stale calibrations a passing pose's covariance may fail to cover: every
-    #: intrinsics error the test misses more often than this moves the pose within 3 of its
-    #: stated sigmas (:mod:`.intrinsics_power`).
-    intrinsics_missed_detection: float = 0.5
-    #: State the map's dispersion robust to mis-associated landmarks (each keyframe's
-    #: held-out statistic on its chi-square gate's inliers where the gate left out more than
-    #: honest residuals explain, :mod:`.map_consistency`) in the answer's covariance; the
-    #: decisions keep the plain one either way. Alone it brings repeated into the cov-scale
-    #: band (0.60 -> 0.79) but makes degraded sets more confident (room-hard 1.27 -> 1.45),
-    #: which ``stated_cell_sandwich`` makes up for.
-    robust_stated_dispersion: bool = True
-    #: Widen the measurement part of the answer's covariance to the cluster-robust spread
-    #: its inliers show over the coverage grid's cells, where it exceeds the model's at a 1 %
-    #: false-alarm rate (:mod:`.cell_sandwich`); the decisions keep the model covariance.
-    stated_cell_sandwich: bool = True
-    #: Widen the answer's covariance to the spread its inliers show one by one (White's
-    #: sandwich), where beyond chance at 1 % (:func:`.cell_sandwich.point_sandwich`): noise
-    #: growing with leverage or along one direction (blur). Decisions keep the model's.
-    stated_point_sandwich: bool = True
-
-    def __post_init__(self) -> None:
-        if self.max_reproj_error_px <= 0:
-            raise ConfigError(f"max_reproj_error_px must be positive, "
-                              f"got {self.max_reproj_error_px}")
-        if not 0 < self.min_iterations <= self.max_iterations:
-            raise ConfigError(f"expected 0 < min_iterations <= max_iterations, got "
-                              f"{self.min_iterations}, {self.max_iterations}")
-        if not 0 < self.success_prob < 1:
-            raise ConfigError(f"success_prob must be in (0, 1), got {self.success_prob}")
-        if self.keypoint_sigma_px <= 0:
-            raise ConfigError(f"keypoint_sigma_px must be positive, got {self.keypoint_sigma_px}")
-        if self.refine_iterations < 0 or self.min_sigma_px < 0:
-            raise ConfigError("refine_iterations and min_sigma_px must be >= 0")
-        if not 0 <= self.intrinsics_false_refusal < 1:
-            raise ConfigError(f"intrinsics_false_refusal must be in [0, 1), got "
-                              f"{self.intrinsics_false_refusal}")
-        if not 0 < self.intrinsics_missed_detection < 1:
-            raise ConfigError(f"intrinsics_missed_detection must be in (0, 1), got "
-                              f"{self.intrinsics_missed_detection}")
-        if self.focal_sigma_rel <= 0 or self.radial_sigma_px <= 0:
-            raise ConfigError(f"focal_sigma_rel and radial_sigma_px must be positive, got "
-                              f"{self.focal_sigma_rel}, {self.radial_sigma_px}")
-
-    @property
-    def intrinsics_prior(self) -> IntrinsicsPrior:
-        """The calibration uncertainty and false-refusal rate :mod:`.intrinsics` tests with."""
-        return IntrinsicsPrior(self.focal_sigma_rel, self.radial_sigma_px,
-                               self.intrinsics_false_refusal, self.intrinsics_missed_detection)
 
 
 def solve_pnp(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Camera,
@@ -121,53 +45,6 @@ def solve_pnp(query_px: npt.ArrayLike, points_world: npt.ArrayLike, camera: Came
     """
     solved = solve_pnp_indexed(query_px, points_world, camera, conf)
     return None if solved is None else solved[0]
-
-
-@dataclass(frozen=True, eq=False)
-class PointUncertainty:
-    """How well N world points are known: 1-sigma ``depth_sigmas_m`` (N,) along the rays from
-    ``ray_origins_world`` (N, 3) (the centre of a keyframe that observes each)."""
-
-    depth_sigmas_m: Array
-    ray_origins_world: Array
-
-    def take(self, rows: npt.NDArray[np.int64]) -> PointUncertainty:
-        """The uncertainty of points ``rows`` alone."""
-        return PointUncertainty(self.depth_sigmas_m[rows], self.ray_origins_world[rows])
-
-    def pixel_sigmas(self, world_from_cam: Array, points_world: Array, camera: Camera,
-                     rows: npt.NDArray[np.int64] | slice = slice(None), *,
-                     projected_px: Array | None = None) -> Array:
-        """(M,) the depth uncertainty of points ``rows`` as seen from ``world_from_cam``:
-        pixels between a point and the point moved one sigma along its ray.
-        ``projected_px`` (M, 2): the points' pixels at that pose when already known."""
-        pts = points_world
-        kernels = compiled()
-        if kernels is None:
-            ray = pts - self.ray_origins_world[rows]
-            ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
-            moved = pts + self.depth_sigmas_m[rows, None] * ray
-        else:
-            moved = np.empty_like(pts, np.float64)
-            kernels.moved_points(np.ascontiguousarray(pts, np.float64),
-                                 np.ascontiguousarray(self.ray_origins_world[rows], np.float64),
-                                 np.ascontiguousarray(self.depth_sigmas_m[rows], np.float64),
-                                 moved)
-        cam_from_world = invert(world_from_cam)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            # Per-point arithmetic: projecting a point alone or among others gives its values.
-            if projected_px is None:
-                both = project_cam(camera, transform_points(cam_from_world,
-                                                            np.concatenate([moved, pts])))
-                moved_px, projected_px = both[:len(pts)], both[len(pts):]
-            else:
-                moved_px = project_cam(camera, transform_points(cam_from_world, moved))
-            if kernels is not None:
-                sigma = np.empty(len(pts))
-                kernels.pixel_distances(moved_px, np.ascontiguousarray(projected_px), sigma)
-                return sigma
-            sigma = np.linalg.norm(moved_px - projected_px, axis=1)
-        return np.where(np.isfinite(sigma), sigma, np.inf)
 
 
 @dataclass(frozen=True, eq=False)

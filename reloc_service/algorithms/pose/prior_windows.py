@@ -18,7 +18,7 @@ from ...core.cameras import Camera
 from ...core.frame import Features
 from ...core.geometry import invert, transform_points
 from .guided import _one_to_one, background_distance, project_into
-from .pnp import PointUncertainty
+from .point_uncertainty import PointUncertainty
 from .prior_match import gated_best
 from .projection import pose_jacobian
 

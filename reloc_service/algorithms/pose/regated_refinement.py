@@ -21,7 +21,9 @@ import numpy.typing as npt
 from ...core.cameras import Camera
 from ...core.geometry import se3_exp
 from .base import PoseEstimate
-from .pnp import PnPConf, PointUncertainty, _View, _weights, refined_estimate
+from .pnp import _View, _weights, refined_estimate
+from .pnp_conf import PnPConf
+from .point_uncertainty import PointUncertainty
 from .projection import pose_jacobian
 
 Array = npt.NDArray[np.float64]

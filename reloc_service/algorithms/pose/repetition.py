@@ -33,7 +33,8 @@ from ...core.cameras import Camera
 from ...core.frame import Features
 from .base import PoseEstimate
 from .landmark_pool import LandmarkPool
-from .pnp import PnPConf, solve_pnp_indexed
+from .pnp import solve_pnp_indexed
+from .pnp_conf import PnPConf
 from .repetition_index import RepetitionIndex
 
 Array = npt.NDArray[np.float64]

@@ -64,7 +64,8 @@ from ..ferns.training import prepare_image
 from ..place.sbi import SmallBlurryImageFinder
 from ..pose.base import PoseEstimate
 from ..pose.map_consistency import prepare_map, settle_pose_errors
-from ..pose.pnp import PnPConf, solve_pnp_indexed
+from ..pose.pnp import solve_pnp_indexed
+from ..pose.pnp_conf import PnPConf
 from .base import (
     Prior,
     Relocalizer,

@@ -33,7 +33,7 @@ from ...core.frame import Features, Frame
 from ...core.map import KeyframeMap, MapState
 from ..pose.base import PoseEstimate
 from ..pose.p3p import P3PPoseFinder
-from ..pose.pnp import PnPConf
+from ..pose.pnp_conf import PnPConf
 from .base import RelocResult, VerifyConf
 from .multi import MultiRelocalizer
 from .solution_weighing import SolutionWeighing, WeighingConf

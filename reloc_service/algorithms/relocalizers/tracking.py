@@ -35,7 +35,9 @@ from ..pose.intrinsics import IntrinsicsCheck
 from ..pose.landmark_keyframe_errors import keyframe_pose_sigmas, widen_for_keyframe_errors
 from ..pose.landmark_pool import LandmarkPool
 from ..pose.map_consistency import settle_pose_errors
-from ..pose.pnp import PnPConf, PointUncertainty, solve_pnp_indexed
+from ..pose.pnp import solve_pnp_indexed
+from ..pose.pnp_conf import PnPConf
+from ..pose.point_uncertainty import PointUncertainty
 from ..pose.prior_focal import axis_variance, focal_reach, focal_starts_within
 from ..pose.prior_gain import narrows_prior
 from ..pose.prior_windows import (

@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 
 from ...algorithms.pose.intrinsics import IntrinsicsCheck
-from ...algorithms.pose.pnp import PnPConf, solve_pnp_indexed
+from ...algorithms.pose.pnp import solve_pnp_indexed
+from ...algorithms.pose.pnp_conf import PnPConf
 from ...core.cameras import RadTanCamera
 from ...core.geometry import look_at, transform_points
 
