@@ -338,14 +338,14 @@ def test_keypoints_proposing_several_landmarks_agree_by_chance_more_often():
     with a wrong pose is 1 - (1 - p)^k. Counted per keypoint, a consensus of 15 among 1000
     two-candidate keypoints (a wrong pose on room-hard) is then no longer out of chance's reach."""
     from reloc_service.algorithms.pose.base import log10_false_alarms
-    from reloc_service.algorithms.relocalizers.ferns import _per_keypoint_chance
+    from reloc_service.algorithms.relocalizers.ferns_pose import per_keypoint_chance
 
     p = 2.56e-4  # pi 5^2 / (640 x 480)
-    assert _per_keypoint_chance(p, 1000, 1000) == pytest.approx(p)
-    two = _per_keypoint_chance(p, 2000, 1000)
+    assert per_keypoint_chance(p, 1000, 1000) == pytest.approx(p)
+    two = per_keypoint_chance(p, 2000, 1000)
     assert two == pytest.approx(1 - (1 - p) ** 2)
     assert log10_false_alarms(1000, 15, 3, p) < -2 < log10_false_alarms(1000, 15, 3, two)
-    assert _per_keypoint_chance(None, 10, 5) is None
+    assert per_keypoint_chance(None, 10, 5) is None
 
 
 # -- region prior ------------------------------------------------------------------------------

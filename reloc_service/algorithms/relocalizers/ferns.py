@@ -63,21 +63,21 @@ from ..ferns.scorer import FernScorer
 from ..ferns.training import prepare_image
 from ..place.sbi import SmallBlurryImageFinder
 from ..pose.base import PoseEstimate
-from ..pose.map_consistency import prepare_map, settle_pose_errors
-from ..pose.pnp import solve_pnp_indexed
+from ..pose.map_consistency import prepare_map
 from ..pose.pnp_conf import PnPConf
 from .base import (
     Prior,
     Relocalizer,
     RelocResult,
     VerifyConf,
-    note_map_calibration,
     refuses_the_query,
     register,
     result_from_estimate,
 )
 from .ferns_conf import FernsConf
 from .ferns_files import MODEL_FILE, read_ferns, write_ferns
+from .ferns_pose import classified_pose
+from .ferns_regions import allowed_classes, near_keyframes, region_attempts
 from .ferns_weighing import FernsWeighing, supported_p3p
 
 Array = npt.NDArray[np.float64]
@@ -238,14 +238,8 @@ class FernsRelocalizer(Relocalizer):
         return result
 
     def _attempts(self, regions: tuple[int, ...], num_regions: int) -> list[tuple[int, ...]]:
-        """The region sets :meth:`relocalize` tries in turn: growing prefixes of the prior's
-        ranking ``regions``, then every region (``region_fallback``); just every region when
-        the prior ranked none (``regions`` is all of them)."""
-        every = tuple(range(num_regions))
-        if len(regions) >= num_regions:
-            return [every]
-        attempts = [regions[:i] for i in range(1, len(regions) + 1)]
-        return attempts + [every] if self.conf.region_fallback else attempts
+        """The region sets :meth:`relocalize` tries in turn (:func:`.ferns_regions.region_attempts`)."""
+        return region_attempts(regions, num_regions, self.conf.region_fallback)
 
     def choose_regions(self, query: Frame, *, prior: Prior | None = None) -> tuple[int, ...]:
         """Indices of the regions to classify ``query`` against, most voted first: every
@@ -257,7 +251,7 @@ class FernsRelocalizer(Relocalizer):
         every = tuple(range(len(pub.scorers)))
         if self.conf.region_prior == "none" or len(every) <= self.conf.max_regions:
             return every
-        near = None if prior is None else set(self._near_keyframes(self.map.snapshot(), prior))
+        near = None if prior is None else set(near_keyframes(self.map.snapshot(), prior))
         if near is not None and not near:
             return every  # relocalize_in says "no keyframe within the prior's radius"
         ranked = self._places.find_places(query, self.conf.place_keyframes, allowed=near)
@@ -290,7 +284,8 @@ class FernsRelocalizer(Relocalizer):
             raise ValueError(f"ferns: regions must be in [0, {len(pub.scorers)}), got {picked}")
         if sum(pub.scorers[r].num_classes for r in picked) == 0:
             return RelocResult.failure(reason="no trained landmarks", **fail)
-        allowed = self._allowed(state, [pub.scorers[r] for r in picked], prior)
+        allowed = allowed_classes(state, [pub.scorers[r] for r in picked], prior,
+                                  self.conf.kind)
         if allowed is None:
             return RelocResult.failure(reason="no keyframe within the prior's radius", **fail)
         start = time.perf_counter()
@@ -302,28 +297,6 @@ class FernsRelocalizer(Relocalizer):
         kp, lm, points = kp[live], lm[live], points[live]
         timings["classify"] = time.perf_counter() - start
         return self._solve(query, px, kp, lm, points, state, max(1, hypotheses), timings)
-
-    def _near_keyframes(self, state: MapState, prior: Prior) -> list[int]:
-        """Keyframe ids within the prior's radius of its position."""
-        ids = state.keyframe_ids()
-        if not ids:
-            return []
-        dist = np.linalg.norm(state.positions_world(ids) - prior.world_from_cam[:3, 3], axis=1)
-        return [k for k, d in zip(ids, dist, strict=True) if d <= prior.radius_m]
-
-    def _allowed(self, state: MapState, scorers: list[FernScorer], prior: Prior | None
-                 ) -> list[npt.NDArray[np.bool_] | None] | None:
-        """Per model, the mask of classes the prior allows (None: all); None if the prior
-        leaves no keyframe."""
-        if prior is None:
-            return [None] * len(scorers)
-        near = self._near_keyframes(state, prior)
-        if not near:
-            return None
-        lms = [state.keyframes[k].features[self.conf.kind].landmark_ids for k in near
-               if self.conf.kind in state.keyframes[k].features]
-        seen = np.unique(np.concatenate(lms)) if lms else np.zeros(0, np.int64)
-        return [np.isin(s.class_ids, seen) for s in scorers]
 
     def _detect(self, query: Frame) -> Array:
         """(N, 2) query keypoints (distinct pixels), cached on the frame."""
@@ -409,7 +382,8 @@ class FernsRelocalizer(Relocalizer):
         remaining = np.arange(len(kp))
         for _ in range(max(hypotheses, 1 + self.conf.competitors)):
             start = time.perf_counter()
-            est = self._estimate(query, px, kp[remaining], lm[remaining], points[remaining], state)
+            est = classified_pose(query, px, kp[remaining], lm[remaining], points[remaining],
+                                  state, self.pnp_conf, self.conf.kind)
             timings["solve"] = timings.get("solve", 0.0) + time.perf_counter() - start
             start = time.perf_counter()
             result = result_from_estimate(est[0] if est else None, self.verify_conf,
@@ -433,22 +407,6 @@ class FernsRelocalizer(Relocalizer):
         best = weighing.answer(query, state, results, estimates, timings, hypotheses)
         timings["unique"] = time.perf_counter() - start
         return best
-
-    def _estimate(self, query: Frame, px: Array, kp: IntArray, lm: IntArray, points: Array,
-                  state: MapState) -> tuple[PoseEstimate, IntArray] | None:
-        """P3P LO-RANSAC on the correspondences; counts are per query keypoint (a keypoint
-        with two candidate landmarks is one match), keyframes are those seeing the inliers."""
-        solved = solve_pnp_indexed(px[kp], points, query.camera, self.pnp_conf)
-        if solved is None:
-            return None
-        est, inliers = solved
-        est.num_matches = len(np.unique(kp))
-        est.inliers = len(np.unique(kp[inliers]))
-        est.chance_probability = _per_keypoint_chance(est.chance_probability, len(kp),
-                                                      est.num_matches)
-        est.keyframe_ids = _keyframes_seeing(state, lm[inliers])
-        note_map_calibration(est, query.camera, state)
-        return settle_pose_errors(est, state, self.conf.kind, self.pnp_conf, lm[inliers]), inliers
 
     # -- persistence -------------------------------------------------------------------------
     def defer_unchecked_intrinsics(self) -> None:
@@ -476,24 +434,3 @@ class FernsRelocalizer(Relocalizer):
         self._models = models
         self._ever_trained = bool(meta.get("ever_trained", True))
         return True
-
-
-# -- helpers ---------------------------------------------------------------------------------
-def _per_keypoint_chance(p: float | None, correspondences: int, keypoints: int
-                         ) -> float | None:
-    """Chance that a query keypoint agrees with a wrong pose when it proposes
-    ``correspondences / keypoints`` landmarks on average (its ``top_k`` classes) and RANSAC
-    may use any of them: ``1 - (1 - p)^c`` for a single correspondence's chance ``p``. The
-    false-alarm test counts keypoints, so it must use this, not ``p``."""
-    if p is None or keypoints == 0:
-        return p
-    return float(1.0 - (1.0 - p) ** (correspondences / keypoints))
-
-
-def _keyframes_seeing(state: MapState, landmark_ids: IntArray) -> list[int]:
-    """Keyframes observing the most of ``landmark_ids``, most first (ties: lower id)."""
-    kf_ids, votes = state.landmarks.observing_keyframes(landmark_ids)
-    return kf_ids[np.lexsort((kf_ids, -votes))].tolist()
-
-
-
