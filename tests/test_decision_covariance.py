@@ -14,6 +14,7 @@ from reloc_service.algorithms.pose.base import total_covariance
 from reloc_service.algorithms.pose.decision_covariance import decision_covariance
 from reloc_service.algorithms.relocalizers.base import (
     VerifyConf,
+    gate_widened,
     intrinsics_unchecked,
     point_widened,
     position_sigma_m,
@@ -42,9 +43,11 @@ def test_the_decision_covariance_is_the_marginal_whatever_the_answer_states():
                                       total_covariance(est))
     assert position_sigma_m(stated_covariance(mine, 1.0)) < 0.5 * position_sigma_m(
         decision_covariance(mine, intrinsics_unchecked=False))
-    # another camera's answer states the marginal (widened to its inliers' own spread)
-    np.testing.assert_array_equal(stated_covariance(other, 1.0),
-                                  total_covariance(other, point_widened(other, other.covariance)))
+    # another camera's answer states the marginal (widened to its inliers' own spread and to
+    # the noise the inlier gate cut)
+    np.testing.assert_array_equal(
+        stated_covariance(other, 1.0),
+        total_covariance(other, gate_widened(other, point_widened(other, other.covariance))))
     unchecked = decision_covariance(mine, intrinsics_unchecked=True)
     assert mine.covariance_given_intrinsics is not None
     np.testing.assert_array_equal(unchecked,

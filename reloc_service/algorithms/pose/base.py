@@ -118,6 +118,12 @@ class PoseEstimate:
     #: gives none or ``stated_point_sandwich`` is off. Read by the stated covariance only.
     point_sandwich: Callable[[], tuple[Array, int] | None] | None = field(
         default=None, repr=False, compare=False)
+    #: (6, 6) what the measurement part of the covariance lacks where the inlier gate cut
+    #: the keypoint noise's tails (:mod:`.gate_truncation`), added to the answer's
+    #: covariance; None where the solver gives none or ``stated_gate_truncation`` is off.
+    #: Read by the stated covariance only.
+    gate_truncation: Callable[[], Array | None] | None = field(
+        default=None, repr=False, compare=False)
     #: Whether the query claims exactly the camera of the keyframes behind the pose (the
     #: map's calibration, as a drone whose camera built the map), which is what a view
     #: that cannot check the intrinsics may trust; None where not known (not trusted).

@@ -25,6 +25,7 @@ from ...core.geometry import invert, se3_exp, transform_points
 from .base import PoseEstimate
 from .cell_sandwich import cell_sandwich, grid_cells, point_sandwich
 from .chance import chance_agreement
+from .gate_truncation import untruncated_variance
 from .intrinsics import CLUSTER_GRID, FOCAL_STARTS, IntrinsicsCheck, check_intrinsics
 from .kernels import compiled
 from .pnp_conf import PnPConf
@@ -142,7 +143,26 @@ def refined_estimate(world_from_cam: Array, px: Array, pts: Array, camera: Camer
             lambda: cell_sandwich(*scores()[:2], cells()))
     if conf.stated_point_sandwich:
         est.point_sandwich = functools.cache(lambda: point_sandwich(*scores()))
+    if conf.stated_gate_truncation:
+        est.gate_truncation = functools.cache(functools.partial(
+            _gate_truncation, fit, pts, camera, conf, uncertainty, scales))
     return est, inliers
+
+
+def _gate_truncation(fit: _Fit, points_world: Array, camera: Camera, conf: PnPConf,
+                     uncertainty: PointUncertainty | None, keypoint_scales: Array | None
+                     ) -> Array | None:
+    """(6, 6) ``(sigma_u^2 - sigma^2) (J^T W J)^-1``: the untruncated keypoint variance of
+    ``fit``'s inliers (:func:`.gate_truncation.untruncated_variance`) less the one its
+    covariance states (:func:`_estimate`); None where it adds nothing or is unknown."""
+    weights = _weights(fit.world_from_cam, points_world, fit.inliers, camera, conf,
+                       uncertainty, keypoint_scales)
+    untruncated = untruncated_variance(weights, fit.weighted_sq, conf.max_reproj_error_px)
+    stated = max(fit.weighted_sq / max(2 * len(fit.inliers) - 6, 1), conf.min_sigma_px**2)
+    if not np.isfinite(untruncated) or untruncated <= stated:
+        return None
+    extra = (untruncated - stated) * _normal_inverse(fit.normal)
+    return extra if np.all(np.isfinite(extra)) else None
 
 
 def _inlier_scores(fit: _Fit, px: Array, points_world: Array, camera: Camera, conf: PnPConf,

@@ -58,6 +58,11 @@ class PnPConf:
     #: sandwich), where beyond chance at 1 % (:func:`.cell_sandwich.point_sandwich`): noise
     #: growing with leverage or along one direction (blur). Decisions keep the model's.
     stated_point_sandwich: bool = True
+    #: Widen the measurement part of the answer's covariance to the keypoint noise its
+    #: inliers show once the inlier gate's truncation is undone (:mod:`.gate_truncation`):
+    #: noise comparable to ``max_reproj_error_px`` (blur) loses its tails to the gate and the
+    #: residuals understate it. Decisions keep the model covariance.
+    stated_gate_truncation: bool = True
 
     def __post_init__(self) -> None:
         if self.max_reproj_error_px <= 0:

@@ -305,11 +305,23 @@ def stated_covariance(estimate: PoseEstimate, max_position_sigma_m: float) -> Ar
     stale calibration passes, with the calibration's covariance. What the answer states
     only: :func:`verify` judges by :func:`..pose.decision_covariance.decision_covariance`.
     Where the solver gives it, the part relative to the map is widened to its inliers'
-    point-by-point spread (:func:`point_widened`)."""
+    point-by-point spread (:func:`point_widened`) and by the noise the inlier gate cut
+    (:func:`gate_widened`)."""
     if intrinsics_unchecked(estimate, max_position_sigma_m):
-        return total_covariance(estimate, point_widened(estimate,
-                                                        given_calibration_covariance(estimate)))
-    return total_covariance(estimate, point_widened(estimate, checked_covariance(estimate)))
+        own = point_widened(estimate, given_calibration_covariance(estimate))
+    else:
+        own = point_widened(estimate, checked_covariance(estimate))
+    return total_covariance(estimate, gate_widened(estimate, own))
+
+
+def gate_widened(estimate: PoseEstimate, own: Array | None) -> Array | None:
+    """``own`` plus what its measurement part lacks where the inlier gate cut the keypoint
+    noise's tails (:attr:`..pose.base.PoseEstimate.gate_truncation`); ``own`` where the
+    solver gives none or the gate cut nothing."""
+    if own is None or estimate.gate_truncation is None:
+        return own
+    extra = estimate.gate_truncation()
+    return own if extra is None else np.asarray(own, np.float64) + extra
 
 
 def point_widened(estimate: PoseEstimate, own: Array | None) -> Array | None:
