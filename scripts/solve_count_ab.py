@@ -162,9 +162,11 @@ def main(argv: list[str] | None = None) -> int:
               f"(total {sum(solves[on])}), p50 {np.median(ms[on]):.1f} ms, "
               f"mean {np.mean(ms[on]):.1f} ms")
     ratio = np.array(ms[True]) / np.array(ms[False])
-    print(f"  median per-query ratio skip / main {np.median(ratio):.3f}")
+    print(f"  median per-query ratio {names[1]} / {names[0]} {np.median(ratio):.3f}")
     print(f"  groups heard after a verified one: {np.sum(after_ms) / np.sum(step_ms):.0%} of "
-          f"the step's time; duplicates set aside {dups} (of {total} queries)")
+          f"{names[1]}'s time", end="")
+    # duplicates_early asks the same test of the poses it stops at: counted there too.
+    print("" if args.early else f"; duplicates set aside {dups} (in {total} queries)")
     return 0
 
 
