@@ -437,3 +437,31 @@ def test_alternatives_agreeing_with_a_verified_pose_are_not_settled(scene):
     assert np.array_equal(skipped.world_from_cam, full.world_from_cam)
     assert skipped.inliers == full.inliers
     assert np.array_equal(skipped.covariance, full.covariance)
+
+
+def test_duplicates_early_stops_a_later_group_at_its_first_agreeing_pose(scene, monkeypatch):
+    # One keyframe per group, each giving the query's pose; grown below 100 000 inliers (so
+    # always): with duplicates_early the second and third groups end at their pose before
+    # growth, which agrees with the first's, and the answer is the first group's as before.
+    import reloc_service.algorithms.pose.p3p as p3p
+
+    solves: list[int] = []
+    real_solve = p3p.solve_pnp_indexed
+    monkeypatch.setattr(p3p, "solve_pnp_indexed",
+                        lambda px, *a, **k: solves.append(len(px)) or real_solve(px, *a, **k))
+    place = create_place_finder({"name": "sbi"}, scene.map)
+    query_at = query_pose(1)
+    runs = {}
+    for early in (False, True):
+        pose = create_pose_finder({"name": "p3p", "guided_below_inliers": 100_000})
+        conf = MultiRelocalizer.Conf(num_candidates=1, max_groups=3, overlap=False,
+                                     duplicates_early=early)
+        solves.clear()
+        result = MultiRelocalizer(scene.map, place, pose, conf=conf).relocalize(
+            Frame(scene.render(query_at), CAMERA))
+        assert result.ok and pose_error(result.world_from_cam, query_at)[0] < 0.02
+        runs[early] = (result, len(solves))
+    (full, n_full), (early, n_early) = runs[False], runs[True]
+    assert n_early == n_full - 2  # two later groups not grown
+    assert np.array_equal(early.world_from_cam, full.world_from_cam)
+    assert early.inliers == full.inliers and np.array_equal(early.covariance, full.covariance)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from reloc_service.algorithms.place.base import PlaceCandidate
-from reloc_service.algorithms.pose.base import create_pose_finder
+from reloc_service.algorithms.pose.base import PoseEstimate, create_pose_finder
 from reloc_service.algorithms.pose.landmark_pool import LandmarkPool
 from reloc_service.algorithms.pose.pnp import solve_pnp, solve_pnp_indexed
 from reloc_service.algorithms.pose.pnp_conf import PnPConf
@@ -484,3 +484,64 @@ def test_support_is_searched_once_per_pose_and_map_state(scene):
     assert np.array_equal(fresh.keypoints, first.keypoints) and fresh.predicted == first.predicted
     moved = est.world_from_cam @ se3_exp_small(np.random.default_rng(1))
     assert finder.support(query, moved, state) is not first
+
+
+def test_a_first_pool_with_too_few_matches_to_be_kept_is_not_solved(scene, monkeypatch):
+    """A first pool whose pose would be set aside for the whole group's (fewer inliers than
+    ``guided_below_inliers``) is not solved when it has fewer matches than that: the estimate
+    is the one solving it would give, with one solve fewer."""
+    import reloc_service.algorithms.pose.p3p as p3p
+
+    gt = query_pose(0)
+    state, cands = scene.map.snapshot(), candidates_near(scene, gt, 3)
+    finder = create_pose_finder({"name": "p3p", "kind": "orb", "max_features": 1000,
+                                 "first_pool_keyframes": 1, "guided_below_inliers": 100_000})
+    solves: list[int] = []
+    real_solve = p3p.solve_pnp_indexed
+    monkeypatch.setattr(p3p, "solve_pnp_indexed",
+                        lambda px, *a, **k: solves.append(len(px)) or real_solve(px, *a, **k))
+    skipped = finder.find_pose(Frame(scene.render(gt), scene.camera), cands, state)
+    n_skipped = len(solves)
+    real_match_and_solve = p3p.P3PPoseFinder._match_and_solve
+    monkeypatch.setattr(p3p.P3PPoseFinder, "_match_and_solve",
+                        lambda self, *a, solve_from=0, **k: real_match_and_solve(self, *a, **k))
+    solves.clear()
+    solved = finder.find_pose(Frame(scene.render(gt), scene.camera), cands, state)
+    assert len(solves) == n_skipped + 1 and solves[0] < 100_000  # the first pool's, set aside
+    assert skipped is not None and solved is not None and skipped.inliers == solved.inliers > 0
+    np.testing.assert_array_equal(skipped.world_from_cam, solved.world_from_cam)
+    np.testing.assert_array_equal(skipped.inlier_landmark_ids, solved.inlier_landmark_ids)
+    assert skipped.num_matches == solved.num_matches
+
+
+def test_a_pose_the_caller_knows_is_returned_at_once(scene, monkeypatch):
+    """``known`` recognising the first pool's pose ends the search there (one solve, no whole
+    group, no guided matching); recognising nothing, the search runs in full to the pose it
+    gives without ``known``."""
+    import reloc_service.algorithms.pose.p3p as p3p
+
+    gt = query_pose(0)
+    state, cands = scene.map.snapshot(), candidates_near(scene, gt, 3)
+    finder = create_pose_finder({"name": "p3p", "kind": "orb", "max_features": 1000,
+                                 "first_pool_keyframes": 1, "guided_below_inliers": 100_000})
+    solves: list[int] = []
+    real_solve = p3p.solve_pnp_indexed
+    monkeypatch.setattr(p3p, "solve_pnp_indexed",
+                        lambda px, *a, **k: solves.append(len(px)) or real_solve(px, *a, **k))
+
+    def found(known):
+        solves.clear()
+        est = finder.find_pose_deferred(Frame(scene.render(gt), scene.camera), cands, state,
+                                        known=known)
+        assert est is not None
+        return est, len(solves)
+
+    asked: list[PoseEstimate] = []
+    early, n_early = found(lambda est: asked.append(est) or True)
+    full, n_full = found(None)
+    refused, n_refused = found(lambda est: False)
+    assert n_early == 1 and asked == [early] and early.keyframe_ids == [cands[0].keyframe_id]
+    assert "guided" not in early.timings and "guided" in full.timings
+    assert n_refused == n_full + 1  # the first pool solved to be asked about, then as without
+    np.testing.assert_array_equal(refused.world_from_cam, full.world_from_cam)
+    assert refused.inliers == full.inliers > early.inliers

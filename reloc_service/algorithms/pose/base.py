@@ -218,10 +218,14 @@ class PoseFinder(abc.ABC):
         """Best estimate from ``candidates`` (best first) in map ``state``; None if none."""
 
     def find_pose_deferred(self, query: Frame, candidates: list[PlaceCandidate],
-                           state: MapState) -> PoseEstimate | None:
+                           state: MapState, *, known: Callable[[PoseEstimate], bool] | None = None
+                           ) -> PoseEstimate | None:
         """:meth:`find_pose`, with whatever settling of the estimate only verification reads
         left in :attr:`PoseEstimate.deferred_settling` (for a caller that verifies every
-        estimate at once: most fail a cheaper test first). Default: :meth:`find_pose`."""
+        estimate at once: most fail a cheaper test first). ``known``, where given, tells a
+        pose of a solution the caller has verified already: a finder may return a pose
+        ``known`` recognises as soon as it has one, before refining it further (the caller
+        sets it aside unverified). Default: :meth:`find_pose`."""
         return self.find_pose(query, candidates, state)
 
     def support(self, query: Frame, world_from_cam: Array, state: MapState) -> Support | None:

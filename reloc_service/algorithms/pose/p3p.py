@@ -118,12 +118,15 @@ class P3PPoseFinder(PoseFinder):
         return found
 
     def find_pose_deferred(self, query: Frame, candidates: list[PlaceCandidate],
-                           state: MapState) -> PoseEstimate | None:
+                           state: MapState, *, known: Callable[[PoseEstimate], bool] | None = None
+                           ) -> PoseEstimate | None:
         """:meth:`find_pose` with the intrinsics test and the map's errors (:meth:`_settled`)
         left to verification (:attr:`PoseEstimate.deferred_settling`): a pose refused for
         its inliers' count, consensus, residuals or spread never pays for the test, whose
-        verdict those refusals do not read."""
-        found = self._unsettled_pose(query, candidates, state)
+        verdict those refusals do not read. ``known``: see :meth:`PoseFinder.find_pose_deferred`
+        (the first pool's pose, or the group's before guided matching, is returned as soon
+        as ``known`` says it is a solution already verified)."""
+        found = self._unsettled_pose(query, candidates, state, known)
         return None if found is None else self._deferred(found, state)
 
     def _deferred(self, est: PoseEstimate, state: MapState) -> PoseEstimate:
@@ -144,9 +147,11 @@ class P3PPoseFinder(PoseFinder):
         without inliers)."""
         return settle_pose_errors(est, state, self.conf.kind, self.conf, est.inlier_landmark_ids)
 
-    def _unsettled_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState
+    def _unsettled_pose(self, query: Frame, candidates: list[PlaceCandidate], state: MapState,
+                        known: Callable[[PoseEstimate], bool] | None = None
                         ) -> PoseEstimate | None:
-        """:meth:`find_pose` before :meth:`_settled`."""
+        """:meth:`find_pose` before :meth:`_settled`; with ``known``, the first pose
+        ``known`` recognises, as soon as there is one."""
         keyframes = _keyframes_in(candidates, state)
         if not keyframes:
             return None
@@ -154,33 +159,41 @@ class P3PPoseFinder(PoseFinder):
         feats = self.query_features(query, timings)
         first = self._first_pool(keyframes)
         if len(first) < len(keyframes):
-            matched = self._match_and_solve(query, feats, first, state, timings)
-            solved = matched[3]
-            if solved is None or (solved[0].inliers or 0) < self.conf.guided_below_inliers:
+            # A first pose below ``guided_below_inliers`` inliers is set aside for the whole
+            # group's: so is one from fewer matches than that, which need not be solved
+            # (unless ``known`` may recognise it).
+            below = self.conf.guided_below_inliers
+            matched = self._match_and_solve(query, feats, first, state, timings,
+                                             solve_from=below if known is None else 0)
+            seen = _described(matched, first)
+            if seen is not None and known is not None and known(seen):
+                seen.timings = {**seen.timings, **timings}
+                return seen
+            if seen is None or (seen.inliers or 0) < below:
                 matched = self._match_and_solve(query, feats, keyframes, state, timings)
         else:
             matched = self._match_and_solve(query, feats, keyframes, state, timings)
-        q_idx, rows, pool, solved = matched
-        if solved is None:
+        q_idx, rows, pool, _ = matched
+        est = _described(matched, keyframes)
+        if est is None:
             return PoseEstimate(world_from_cam=keyframes[0].world_from_cam.copy(),
                                 keyframe_ids=[kf.id for kf in keyframes], num_matches=len(q_idx),
                                 inliers=0, timings=timings)
-        est, inliers = solved
-        est.keyframe_ids = pool.keyframes_of(rows[inliers], [kf.id for kf in keyframes])
-        est.inlier_keypoints = q_idx[inliers]
-        est.inlier_landmark_ids = pool.landmark_ids[rows[inliers]]
-        if self.conf.guided and (est.inliers or 0) < self.conf.guided_below_inliers:
+        if (self.conf.guided and (est.inliers or 0) < self.conf.guided_below_inliers
+                and (known is None or not known(est))):
             est = self._grow(query, feats, est, keyframes, state, q_idx,
                              pool.landmark_ids[rows])
         est.timings = {**est.timings, **timings}  # every match and solve, guided's own
         return est
 
     def _match_and_solve(self, query: Frame, feats: Features, keyframes: list[Keyframe],
-                         state: MapState, timings: dict[str, float]
+                         state: MapState, timings: dict[str, float], *, solve_from: int = 0
                          ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], LandmarkPool,
                                     tuple[PoseEstimate, npt.NDArray[np.int64]] | None]:
         """Ratio-test matches to the landmarks of ``keyframes`` and the pose they give
-        (:func:`solve_pnp_indexed`, or None); ``timings["match"]`` accumulates."""
+        (:func:`solve_pnp_indexed`, or None); ``timings["match"]`` accumulates. With fewer
+        than ``solve_from`` matches no pose is solved (None): its inliers, a subset of the
+        matches, could not reach ``solve_from``."""
         start = time.perf_counter()
         prepared = query.cache.get(_pool_key(self.conf.kind, keyframes, state))
         if prepared is not None and prepared.state is not state:
@@ -188,6 +201,9 @@ class P3PPoseFinder(PoseFinder):
         q_idx, rows, pool = self.match_landmarks(
             feats, keyframes, pool=None if prepared is None else prepared.pool)
         matched = time.perf_counter()
+        if len(q_idx) < solve_from:
+            timings["match"] = timings.get("match", 0.0) + matched - start
+            return q_idx, rows, pool, None
         uncertainty = (pool.uncertainty(state, keyframes, rows) if prepared is None
                        else prepared.uncertainty.take(rows))
         solved = solve_pnp_indexed(feats.keypoints_px[q_idx], pool.points_world[rows],
@@ -408,6 +424,21 @@ class P3PPoseFinder(PoseFinder):
                                                     ratio=self.conf.ratio)
         keep = _best_per_landmark(pool.landmark_ids[rows], dist, rows, len(pool.landmark_ids))
         return q_idx[keep], rows[keep], pool
+
+
+def _described(matched: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], LandmarkPool,
+                               tuple[PoseEstimate, npt.NDArray[np.int64]] | None],
+               keyframes: list[Keyframe]) -> PoseEstimate | None:
+    """The pose :meth:`P3PPoseFinder._match_and_solve` gave (None without one), naming its
+    inliers' query keypoints, landmarks and the ``keyframes`` that observe them."""
+    q_idx, rows, pool, solved = matched
+    if solved is None:
+        return None
+    est, inliers = solved
+    est.keyframe_ids = pool.keyframes_of(rows[inliers], [kf.id for kf in keyframes])
+    est.inlier_keypoints = q_idx[inliers]
+    est.inlier_landmark_ids = pool.landmark_ids[rows[inliers]]
+    return est
 
 
 def _keyframes_in(candidates: list[PlaceCandidate], state: MapState) -> list[Keyframe]:
