@@ -17,6 +17,7 @@ from reloc_service.algorithms.pose import (
     guided,
     guided_kernels,
     kernels,
+    landmark_matches,
     p3p,
     pnp,
     point_uncertainty,
@@ -54,7 +55,8 @@ def _points_cam(n: int = 400) -> np.ndarray:
 def _numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(pnp, "compiled", lambda: None)
     monkeypatch.setattr(projection, "compiled", lambda: None)
-    monkeypatch.setattr(p3p, "compiled", lambda: None)
+    monkeypatch.setattr(landmark_matches, "compiled", lambda: None)
+    monkeypatch.setattr(point_uncertainty, "compiled", lambda: None)
     monkeypatch.setattr(chance, "compiled", lambda: None)
     monkeypatch.setattr(guided, "compiled", lambda: None)
 
@@ -158,8 +160,8 @@ def test_best_match_per_landmark_is_the_numpy_choice():
     ids = rng.permutation(np.arange(100, 400))  # a pool: one row per landmark
     rows = rng.integers(0, len(ids), 500)
     dist = rng.integers(0, 6, 500).astype(np.float32)  # many ties
-    fast = p3p._best_per_landmark(ids[rows], dist, rows, len(ids))
-    slow = p3p._best_per_landmark(ids[rows], dist)
+    fast = landmark_matches.best_per_landmark(ids[rows], dist, rows, len(ids))
+    slow = landmark_matches.best_per_landmark(ids[rows], dist)
     assert np.array_equal(fast, slow) and len(np.unique(rows)) == len(fast) < len(rows)
 
 

@@ -405,7 +405,7 @@ def _pairs_within(projected_px: Array, px: Array, threshold_px: float, threshold
 
 def _best_per_row(rows: npt.NDArray[np.int64], dist: npt.NDArray[np.float32],
                   best: npt.NDArray[np.int64], keep: npt.NDArray[np.int64]) -> int:
-    """``p3p._best_per_landmark`` over pool rows (one per landmark): for each row the match
+    """``landmark_matches.best_per_landmark`` over pool rows (one per landmark): for each row the match
     of the smallest distance, the first of equal ones (a stable sort's choice); their
     indices, ascending, into ``keep``; returns how many. ``best`` (pool size,) holds -1."""
     for k in range(rows.shape[0]):

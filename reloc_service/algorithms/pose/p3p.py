@@ -23,7 +23,7 @@ from ..place.base import PlaceCandidate
 from .base import PoseEstimate, PoseFinder, Support, register
 from .guided import GuidedConf, search_by_projection
 from .intrinsics_guided import unguided_positions, with_unguided_test
-from .kernels import compiled
+from .landmark_matches import best_per_landmark, union_matches
 from .landmark_pool import LandmarkPool
 from .map_consistency import prepare_map, settle_pose_errors
 from .map_pool import map_pool
@@ -230,7 +230,7 @@ class P3PPoseFinder(PoseFinder):
         radius = conf.window_factor * self.conf.max_reproj_error_px
         g_idx, g_rows = search_by_projection(feats, query.camera, est.world_from_cam,
                                              pool.descriptors, pool.points_world, radius, conf)
-        q_all, rows_all = _union(g_idx, g_rows, q_idx, pool.rows_of(landmark_ids))
+        q_all, rows_all = union_matches(g_idx, g_rows, q_idx, pool.rows_of(landmark_ids))
         solved = solve_pnp_indexed(feats.keypoints_px[q_all], pool.points_world[rows_all],
                                    query.camera, self.conf,
                                    uncertainty=pool.uncertainty(state, local, rows_all),
@@ -422,7 +422,7 @@ class P3PPoseFinder(PoseFinder):
             pool = LandmarkPool.gather(keyframes, self.conf.kind)
         q_idx, rows, dist = feature_lib.match_ratio(feats.descriptors, pool.descriptors,
                                                     ratio=self.conf.ratio)
-        keep = _best_per_landmark(pool.landmark_ids[rows], dist, rows, len(pool.landmark_ids))
+        keep = best_per_landmark(pool.landmark_ids[rows], dist, rows, len(pool.landmark_ids))
         return q_idx[keep], rows[keep], pool
 
 
@@ -479,34 +479,3 @@ def _support_key(feature_key: str, kind: str, radius_px: float, conf: GuidedConf
 def _pool_key(kind: str, keyframes: list[Keyframe], state: MapState) -> str:
     """The ``query.cache`` key of the prepared pool of ``keyframes`` in map ``state``."""
     return f"p3p:pool:{kind}:{state.version}:{','.join(str(kf.id) for kf in keyframes)}"
-
-
-def _union(first_q: npt.NDArray[np.int64], first_rows: npt.NDArray[np.int64],
-           second_q: npt.NDArray[np.int64], second_rows: npt.NDArray[np.int64]
-           ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
-    """Correspondences (query index, pool row) of both lists, the first list winning where a
-    query keypoint or a pool row appears in both; rows of -1 are dropped."""
-    q = np.concatenate([first_q, second_q])
-    rows = np.concatenate([first_rows, second_rows])
-    valid = np.flatnonzero(rows >= 0)
-    keep = np.sort(valid[np.unique(q[valid], return_index=True)[1]])
-    keep = np.sort(keep[np.unique(rows[keep], return_index=True)[1]])
-    return q[keep], rows[keep]
-
-
-def _best_per_landmark(landmark_ids: npt.NDArray[np.int64], dist: npt.NDArray[np.float32],
-                       rows: npt.NDArray[np.int64] | None = None, pool_size: int = 0
-                       ) -> npt.NDArray[np.int64]:
-    """Indices of the matches to keep: for each landmark, the query keypoint nearest to it
-    (the first of equally near ones). With the matches' pool ``rows`` (one row per landmark,
-    ``pool_size`` rows), one compiled pass where numba is installed (:mod:`.kernels`)."""
-    kernels = compiled()
-    if kernels is not None and rows is not None:
-        keep = np.empty(len(rows), np.int64)
-        count = kernels.best_per_row(np.ascontiguousarray(rows, np.int64),
-                                     np.ascontiguousarray(dist, np.float32),
-                                     np.full(pool_size, -1, np.int64), keep)
-        return keep[:count]
-    order = np.lexsort((dist, landmark_ids))
-    _, first = np.unique(landmark_ids[order], return_index=True)
-    return np.sort(order[first])

@@ -33,6 +33,7 @@ from ..pose.cluster_covariance import at_least, cluster_robust_covariance
 from ..pose.guided import GuidedConf, background_distance
 from ..pose.intrinsics import IntrinsicsCheck
 from ..pose.landmark_keyframe_errors import keyframe_pose_sigmas, widen_for_keyframe_errors
+from ..pose.landmark_matches import union_matches
 from ..pose.landmark_pool import LandmarkPool
 from ..pose.map_consistency import settle_pose_errors
 from ..pose.pnp import solve_pnp_indexed
@@ -302,7 +303,7 @@ class TrackingRelocalizer(Relocalizer):
             guided.window_factor * self.conf.max_reproj_error_px, ratio=guided.window_ratio,
             background_quantile=guided.background_quantile,
             background=background if same else None)
-        q_all, rows_all = _union(seed_q, seed_rows, g_idx, g_rows)
+        q_all, rows_all = union_matches(seed_q, seed_rows, g_idx, g_rows)
         px, points = feats.keypoints_px[q_all], pool.points_world[rows_all]
         if self.conf.growth == "regated":
             # Each correspondence gated by the residual the solved pose's covariance predicts
@@ -370,17 +371,6 @@ class TrackingRelocalizer(Relocalizer):
                 **evidence: Any) -> RelocResult:
         return RelocResult.failure(TRACK, reason, timings=timings, map_version=state.version,
                                    **evidence)
-
-
-def _union(first_q: IntArray, first_rows: IntArray, second_q: IntArray, second_rows: IntArray
-           ) -> tuple[IntArray, IntArray]:
-    """Correspondences (query index, pool row) of both lists, one to one, the first list
-    winning where a query keypoint or a row appears in both."""
-    q = np.concatenate([first_q, second_q])
-    rows = np.concatenate([first_rows, second_rows])
-    keep = np.sort(np.unique(q, return_index=True)[1])
-    keep = np.sort(keep[np.unique(rows[keep], return_index=True)[1]])
-    return q[keep], rows[keep]
 
 
 def _landmark_uncertainty(pool: LandmarkPool, state: MapState, keyframe_ids: list[int],
