@@ -31,7 +31,9 @@ landmark's rows (the row whose summed distance to the others is least: L2 for SI
 for ORB; ties to the earliest row) rather than the first row's, stored in the first row's
 place, so the reader and the format are unchanged. A query seen near any of the landmark's
 keyframes then reads the central view rather than one end of the track, and fewer rows
-differ from it beyond noise. The first row has no own slot (the shared one is in its
+differ from it beyond noise (the noise is measured as without it, later rows against their
+first: two views of one patch; distances to a medoid, chosen as the least, would understate
+it). The first row has no own slot (the shared one is in its
 place): where it differs from the medoid beyond noise the landmark keeps its first row's
 descriptor as before. A landmark of one or two rows keeps its first row's (two rows tie).
 A loaded map saved again: its rows read the medoid or their own; with the median 0 a first
@@ -130,14 +132,17 @@ def own_and_reference(descriptors: np.ndarray, landmark_ids: npt.NDArray[np.inte
     if not len(rows):
         return own, reference
     desc = np.asarray(descriptors)
-    ref = _medoid_of_each(desc, rows, first) if medoid else first
-    distances = _row_distances(desc, rows, ref)
-    later = rows != ref
+    distances = _row_distances(desc, rows, first)
+    later = rows != first
     if not later.any():
-        reference[rows] = ref
+        reference[rows] = first
         return own, reference
+    # the noise of two views of one patch: later rows against their first, whatever is shared
     threshold = noise_threshold(distances[later], desc, rate=rate)
+    ref = first
     if medoid:   # a first row beyond noise of its medoid: the landmark keeps the first's
+        ref = _medoid_of_each(desc, rows, first)
+        distances = _row_distances(desc, rows, ref)
         far_first = np.zeros(len(landmark_ids), bool)
         far_first[rows[(rows == first) & (distances > threshold)]] = True
         back = far_first[first]
