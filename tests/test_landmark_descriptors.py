@@ -24,6 +24,7 @@ from reloc_service.storage.landmark_descriptors import (
     SHARED_DESCRIPTORS,
     first_rows,
     noise_threshold,
+    own_and_reference,
     own_rows,
     shared_index,
 )
@@ -255,3 +256,78 @@ def test_a_format_8_snapshot_loads_its_shared_descriptors_and_saves_again(tmp_pa
             assert not (snap / name).exists()
         elif name.startswith("features/"):
             assert (snap / name).read_bytes() == (V8_MAP / "snapshots/000001" / name).read_bytes()
+
+
+def _brute_medoid(desc: np.ndarray, rows: np.ndarray, binary: bool) -> int:
+    """The row of ``rows`` with least summed distance to the others (earliest on a tie)."""
+    if binary:
+        d = np.array([[np.unpackbits(desc[a] ^ desc[b]).sum() for b in rows] for a in rows])
+    else:
+        g = desc[rows].astype(np.float64)
+        d = np.sqrt(((g[:, None, :] - g[None, :, :]) ** 2).sum(-1))
+    return int(rows[np.argmin(d.sum(1))])
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_medoid_reference_is_the_rows_medoid_unless_the_first_row_is_beyond_noise(binary):
+    """Landmarks of 1 to 6 rows, shuffled in row order: each row's reference is its
+    landmark's medoid (brute force), the first row for one or two rows, and the first row
+    where that differs from the medoid beyond the noise threshold; the own rows differ from
+    their reference beyond it, and a row that is its landmark's reference is never own."""
+    rng = np.random.default_rng(5)
+    sizes = rng.integers(1, 7, 300)
+    ids = rng.permutation(np.repeat(np.arange(300), sizes))
+    if binary:
+        centre = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+        p = np.where(rng.random(len(ids)) < 0.05, 0.4, 0.08)
+        desc = centre[ids] ^ np.packbits(rng.random((len(ids), 256)) < p[:, None], axis=1)
+    else:
+        centre = rng.uniform(40, 200, (300, 128))
+        sigma = np.where(rng.random(len(ids)) < 0.05, 6.0, 1.5)
+        desc = np.clip(np.round(centre[ids] + rng.normal(0, 1, (len(ids), 128))
+                                * sigma[:, None]), 0, 255).astype(np.uint8)
+    own, reference = own_and_reference(desc, ids, medoid=True)
+    plain_own, plain_ref = own_and_reference(desc, ids)
+    assert np.array_equal(plain_own, own_rows(desc, ids))
+    moved = 0
+    for lm in range(300):
+        rows = np.flatnonzero(ids == lm)
+        assert (plain_ref[rows] == rows[0]).all()
+        medoid = _brute_medoid(desc, rows, binary) if len(rows) >= 3 else int(rows[0])
+        ref = int(reference[rows[0]])
+        assert (reference[rows] == ref).all()
+        assert ref in (medoid, int(rows[0]))
+        moved += ref != rows[0]
+        assert not own[ref] and not own[rows[0]]
+    assert moved > 50   # most landmarks of 3+ rows share their medoid's descriptor
+    assert own.sum() < plain_own.sum() + 5   # rows read a central view: no more keep their own
+
+
+def test_per_landmark_medoid_descriptors_round_trip(tmp_path, synthetic_map):
+    """Each row reads its own descriptor or its landmark's medoid's (an observed row's), the
+    snapshot has the format and files of ``"per-landmark"`` (older readers read it), and a
+    loaded map saved again, before and after its features are built, stores the same."""
+    medoid_parts = StoredParts(descriptors="per-landmark-medoid")
+    snap = save_map(synthetic_map, tmp_path / "medoid", parts=medoid_parts)
+    plain = save_map(synthetic_map, tmp_path / "plain", parts=PER_LANDMARK)
+    files = json.loads((snap / "manifest.json").read_text())
+    assert files["format_version"] == json.loads(
+        (plain / "manifest.json").read_text())["format_version"]
+    assert sorted(files["files"]) == sorted(json.loads(
+        (plain / "manifest.json").read_text())["files"])
+    rows = _rows_in_snapshot_order(synthetic_map, "sift")
+    ids = np.concatenate([f.landmark_ids[f.landmark_ids >= 0] for _, f in rows])
+    desc = np.concatenate([f.descriptors[f.landmark_ids >= 0] for _, f in rows])
+    own, reference = own_and_reference(desc, ids, medoid=True)
+    assert (reference[ids >= 0] != np.flatnonzero(ids >= 0)).any()
+    loaded, _ = load_map(tmp_path / "medoid")
+    got = np.concatenate([loaded.keyframes[k].features["sift"].descriptors for k, _ in rows])
+    expected = np.where(own[:, None], desc, desc[reference])
+    assert np.array_equal(got, expected)
+    shared = snap / "features" / f"sift.{SHARED_DESCRIPTORS}.npy"
+    again = save_map(loaded, tmp_path / "again", parts=medoid_parts)
+    assert (again / shared.relative_to(snap)).read_bytes() == shared.read_bytes()
+    for kf in loaded.keyframes.values():
+        kf.features["sift"]   # noqa: B018 (built now)
+    thrice = save_map(loaded, tmp_path / "thrice", parts=medoid_parts)
+    assert (thrice / shared.relative_to(snap)).read_bytes() == shared.read_bytes()

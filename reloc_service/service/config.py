@@ -216,7 +216,11 @@ class ServiceSection:
     #: Keyframe features on disk: "landmarks" (the keypoints that carry a landmark: all
     #: relocalization reads once the map's methods are trained; a snapshot of a map with an
     #: untrained method, or one that reads other keypoints (5pt), keeps them all) or "all"
-    #: (needed to re-train a bag-of-words vocabulary on a restored map, or to add 5pt).
+    #: (needed to re-train a bag-of-words vocabulary on a restored map, or to add 5pt);
+    #: options: "per-landmark" (those rows, one descriptor a landmark: its first row's) and
+    #: "per-landmark-medoid" (the medoid of its rows'), each about half the descriptor bytes
+    #: and each more than 2 points of recall short on some set (docs/performance.md)
+    #: (:mod:`..storage.landmark_descriptors`).
     keyframe_descriptors: str = "landmarks"
     #: A bag-of-words vocabulary's SIFT centres on disk: "float16" or "uint8" (rounded to
     #: SIFT's integer values; half the bytes, read by older reloc too)

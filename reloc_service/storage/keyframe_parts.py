@@ -15,7 +15,8 @@ stores anyway. So by default (:class:`StoredParts`) a snapshot keeps:
 - features: ``"all"``, ``"landmarks"`` (the rows of keypoints that carry a landmark, where
   every method of the map is trained and none reads other keypoints: :mod:`.landmark_rows`)
   or ``"per-landmark"`` (those rows, with one descriptor a landmark shared by its rows:
-  :mod:`.landmark_descriptors`);
+  :mod:`.landmark_descriptors`; ``"per-landmark-medoid"``: the rows' medoid's rather than
+  the first row's);
 - SIFT descriptors: ``"none"`` (in full), ``"pq"`` (product-quantization codes, 32 bytes
   instead of 128, decoded when a keyframe's features are first read: :mod:`.descriptor_pq`)
   or ``"pq16"`` (16-byte codes, coarser);

@@ -44,7 +44,8 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
                  table: LandmarkTable, landmarks: LandmarkColumns,
                  codebook: PQCodebook | None = None,
                  keep: Sequence[npt.NDArray[np.bool_] | None] | None = None,
-                 compact: bool = False, shared: bool = False) -> dict[str, np.ndarray]:
+                 compact: bool = False, shared: bool = False,
+                 medoid: bool = False) -> dict[str, np.ndarray]:
     """The columns a snapshot stores for ``kind`` (name -> array): ``owners`` are (keyframe
     id, first row, features) of every keyframe holding ``kind``, in row order; rows narrowed
     where lossless, and the derivable fields only where they are not what load derives
@@ -52,7 +53,8 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     With a ``codebook`` the descriptors are stored as its codes (:data:`DESCRIPTOR_CODES`);
     ``keep``: per owner, the mask of its rows stored (None: all; :mod:`.landmark_rows`);
     ``compact``: keypoints in eighths of a pixel, sizes float16; ``shared``: one
-    descriptor per landmark (:mod:`.landmark_descriptors`)."""
+    descriptor per landmark (:mod:`.landmark_descriptors`), its rows' medoid's with
+    ``medoid``."""
     # a part is the rows as a loaded snapshot stored them (never built since), or Features
     parts: list[Features | dict[str, np.ndarray]] = [
         _stored_rows(features, kind) or features[kind] for _, _, features in owners]
@@ -69,7 +71,7 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     if keep is not None:
         columns = keep_rows(columns, keep, [len(c) for c in codes])
     if shared:
-        columns = share_descriptors(columns, codebook)
+        columns = share_descriptors(columns, codebook, medoid=medoid)
     sizes = sizes_by_level(columns["levels"], columns["sizes"])
     if sizes is not None:
         del columns["sizes"]

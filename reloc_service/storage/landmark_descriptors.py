@@ -25,6 +25,20 @@ the model's :data:`OWN_FALSE_ALARM` quantile keeps its own. A loaded map's later
 either their landmark's descriptor (distance 0) or their own (beyond the first save's
 threshold); while those that share are more than half of them, the median is 0, and a
 save again keeps exactly the rows that differ, so it stores the same bytes.
+
+With ``medoid`` (``"per-landmark-medoid"``) the shared descriptor is the medoid of the
+landmark's rows (the row whose summed distance to the others is least: L2 for SIFT, Hamming
+for ORB; ties to the earliest row) rather than the first row's, stored in the first row's
+place, so the reader and the format are unchanged. A query seen near any of the landmark's
+keyframes then reads the central view rather than one end of the track, and fewer rows
+differ from it beyond noise (the noise is measured as without it, later rows against their
+first: two views of one patch; distances to a medoid, chosen as the least, would understate
+it). The first row has no own slot (the shared one is in its
+place): where it differs from the medoid beyond noise the landmark keeps its first row's
+descriptor as before. A landmark of one or two rows keeps its first row's (two rows tie).
+A loaded map saved again: its rows read the medoid or their own; with the median 0 a first
+row that is not the medoid again differs beyond noise, so each landmark keeps what it
+stored.
 """
 
 from __future__ import annotations
@@ -102,18 +116,85 @@ def own_rows(descriptors: np.ndarray, landmark_ids: npt.NDArray[np.integer], *,
     """(N,) mask of the rows with a landmark whose ``descriptors`` row differs from its
     landmark's first row's by more than descriptor noise at false-alarm ``rate`` (see the
     module's docstring; the first rows themselves are never in it)."""
+    return own_and_reference(descriptors, landmark_ids, rate=rate)[0]
+
+
+def own_and_reference(descriptors: np.ndarray, landmark_ids: npt.NDArray[np.integer], *,
+                      rate: float = OWN_FALSE_ALARM, medoid: bool = False
+                      ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.int64]]:
+    """(own-row mask as :func:`own_rows`, (N,) the row whose descriptor each row's landmark
+    shares, -1 for rows without one): the first row of each landmark, or with ``medoid`` its
+    medoid where the first row is within noise of it (module docstring). Rows are compared
+    with the shared descriptor they would read."""
     own = np.zeros(len(landmark_ids), bool)
-    rows, first_of_row = _first_row_of_each(landmark_ids)
-    later = rows != first_of_row
-    rows, first = rows[later], first_of_row[later]
+    reference = np.full(len(landmark_ids), -1, np.int64)
+    rows, first = _first_row_of_each(landmark_ids)
     if not len(rows):
-        return own
+        return own, reference
     desc = np.asarray(descriptors)
-    distances = np.concatenate([
-        _distances(desc[rows[i:i + _CHUNK]], desc[first[i:i + _CHUNK]])
-        for i in range(0, len(rows), _CHUNK)])
-    own[rows[distances > noise_threshold(distances, desc, rate=rate)]] = True
-    return own
+    distances = _row_distances(desc, rows, first)
+    later = rows != first
+    if not later.any():
+        reference[rows] = first
+        return own, reference
+    # the noise of two views of one patch: later rows against their first, whatever is shared
+    threshold = noise_threshold(distances[later], desc, rate=rate)
+    ref = first
+    if medoid:   # a first row beyond noise of its medoid: the landmark keeps the first's
+        ref = _medoid_of_each(desc, rows, first)
+        distances = _row_distances(desc, rows, ref)
+        far_first = np.zeros(len(landmark_ids), bool)
+        far_first[rows[(rows == first) & (distances > threshold)]] = True
+        back = far_first[first]
+        ref = np.where(back, first, ref)
+        distances[back] = _row_distances(desc, rows[back], ref[back])
+    own[rows[(rows != ref) & (rows != first) & (distances > threshold)]] = True
+    reference[rows] = ref
+    return own, reference
+
+
+def _row_distances(desc: np.ndarray, rows: npt.NDArray[np.int64],
+                   ref: npt.NDArray[np.int64]) -> npt.NDArray[np.float64]:
+    """:func:`_distances` of ``desc[rows]`` to ``desc[ref]``, :data:`_CHUNK` rows at a time."""
+    if not len(rows):
+        return np.zeros(0)
+    return np.concatenate([_distances(desc[rows[i:i + _CHUNK]], desc[ref[i:i + _CHUNK]])
+                           for i in range(0, len(rows), _CHUNK)])
+
+
+def _medoid_of_each(desc: np.ndarray, rows: npt.NDArray[np.int64],
+                    first: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    """For each of ``rows`` (with ``first``, its landmark's first row), its landmark's medoid
+    row: least summed distance to the landmark's rows (L2 for real descriptors, Hamming for
+    binary), ties to the earliest row. Landmarks of equal row count k >= 3 are batched, their
+    k x k distances computed at once; one or two rows: the first."""
+    order = np.lexsort((rows, first))          # grouped by landmark, rows ascending
+    grouped, group_of = rows[order], first[order]
+    starts = np.flatnonzero(np.r_[True, group_of[1:] != group_of[:-1]])
+    sizes = np.diff(np.r_[starts, len(grouped)])
+    medoid = group_of.copy()
+    binary = is_binary_descriptor(desc)
+    for k in np.unique(sizes[sizes >= 3]):
+        at = starts[sizes == k][:, None] + np.arange(k)          # (G, k) positions
+        per_block = max(1, _CHUNK // int(k * k))
+        for i in range(0, len(at), per_block):
+            block = at[i:i + per_block]
+            members = grouped[block]                               # (B, k) rows
+            best = _pairwise_sums(desc[members], binary).argmin(axis=1)
+            medoid[block] = members[np.arange(len(members)), best][:, None]
+    out = np.empty_like(medoid)
+    out[order] = medoid
+    return out
+
+
+def _pairwise_sums(group: np.ndarray, binary: bool) -> npt.NDArray[np.float64]:
+    """(B, k) summed distance of each of a (B, k, D) group's rows to the group's others."""
+    if binary:
+        xor = group[:, :, None, :] ^ group[:, None, :, :]
+        return np.unpackbits(xor, axis=-1).sum(axis=(2, 3), dtype=np.int64).astype(np.float64)
+    g = group.astype(np.float32)
+    diff = g[:, :, None, :] - g[:, None, :, :]
+    return np.sqrt(np.einsum("bijd,bijd->bij", diff, diff)).sum(axis=2, dtype=np.float64)
 
 
 def _distances(a: np.ndarray, b: np.ndarray) -> npt.NDArray[np.float64]:
@@ -138,24 +219,32 @@ def noise_threshold(distances: npt.NDArray[np.float64], descriptors: np.ndarray,
     return median * distributions.chi2.ppf(1.0 - rate, dims) / distributions.chi2.median(dims)
 
 
-def share_descriptors(columns: dict[str, np.ndarray], codebook: PQCodebook | None = None
-                      ) -> dict[str, np.ndarray]:
+def share_descriptors(columns: dict[str, np.ndarray], codebook: PQCodebook | None = None,
+                      medoid: bool = False) -> dict[str, np.ndarray]:
     """``columns`` (one kind's, every row) with its per-row descriptors or codes replaced by
     the :data:`SHARED_OF` column of the :func:`first_rows` and the :func:`own_rows` (compared
     as ``codebook`` decodes them where they are its codes), and the own rows' mask as
-    :data:`OWN_ROWS` where there are any (``landmark_ids`` must be there)."""
+    :data:`OWN_ROWS` where there are any (``landmark_ids`` must be there); ``medoid``: each
+    landmark's first row holds its medoid's descriptor or code (:func:`own_and_reference`)."""
     ids = columns["landmark_ids"]
     if DESCRIPTOR_CODES in columns:
         if codebook is None:
             raise MapError("PQ codes shared without their codebook")
-        own = own_rows(codebook.decode(np.asarray(columns[DESCRIPTOR_CODES])), ids)
+        own, reference = own_and_reference(
+            codebook.decode(np.asarray(columns[DESCRIPTOR_CODES])), ids, medoid=medoid)
     else:
-        own = own_rows(columns["descriptors"], ids)
+        own, reference = own_and_reference(columns["descriptors"], ids, medoid=medoid)
     keep = first_rows(ids, own)
+    rows, first = _first_row_of_each(ids)
+    moved = rows[(rows == first) & (reference[rows] != rows)]
     out = dict(columns)
     for row, shared in SHARED_OF.items():
         if row in out:
-            out[shared] = out.pop(row)[keep]
+            values = np.asarray(out.pop(row))
+            if len(moved):    # the first row's slot holds its landmark's medoid
+                values = values.copy()
+                values[moved] = values[reference[moved]]
+            out[shared] = values[keep]
     if own.any():
         out[OWN_ROWS] = own.astype(np.uint8)
     return out

@@ -20,9 +20,11 @@ from ..core.frame import Features, Keyframe
 from ..core.landmark_rows import holds_landmark_rows_only
 from ..core.landmark_table import LandmarkColumns
 
-#: "per-landmark" keeps the rows "landmarks" keeps, with one descriptor a landmark
-#: (:mod:`.landmark_descriptors`)
-ROW_MODES = ("all", "landmarks", "per-landmark")
+#: "per-landmark" keeps the rows "landmarks" keeps, with one descriptor a landmark (its first
+#: row's; "per-landmark-medoid": its rows' medoid) (:mod:`.landmark_descriptors`)
+ROW_MODES = ("all", "landmarks", "per-landmark", "per-landmark-medoid")
+#: The row modes that store one descriptor a landmark
+SHARED_MODES = ("per-landmark", "per-landmark-medoid")
 
 #: (keyframe id, kind) -> mask of the rows kept (None: every row kept)
 RowMasks = dict[tuple[int, str], npt.NDArray[np.bool_] | None]

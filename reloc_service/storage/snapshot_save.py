@@ -37,6 +37,7 @@ from .kind_columns import codebook_for, kind_columns
 from .landmark_codec import encode_geometry
 from .landmark_descriptors import OWN_ROWS
 from .landmark_rows import (
+    SHARED_MODES,
     RowMasks,
     kept_count,
     landmark_rows_only,
@@ -134,9 +135,10 @@ def _feature_rows(keyframes: list[Keyframe], masks: RowMasks
 def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: MapState,
                     landmarks: LandmarkColumns,
                     rows: Mapping[int, Mapping[str, tuple[int, int]]], codec: str,
-                    masks: RowMasks, shared: bool) -> None:
+                    masks: RowMasks, shared: bool, medoid: bool = False) -> None:
     """One ``.npy`` per kind and stored column (:func:`.kind_columns.kind_columns`; the
-    rows ``masks`` keeps; ``shared``: one descriptor per landmark), and the codebook of a
+    rows ``masks`` keeps; ``shared``: one descriptor per landmark, its rows' medoid's with
+    ``medoid``), and the codebook of a
     kind whose descriptors are PQ codes."""
     for kind in sorted({k for kf in keyframes for k in kf.features}):
         owners = [(kf.id, rows[kf.id][kind][0], kf.features)
@@ -148,7 +150,7 @@ def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: Ma
         keep = [masks.get((kf_id, kind)) for kf_id, _, _ in owners]
         for name, column in kind_columns(kind, owners, state.landmarks, landmarks,
                                          codebook, keep, compact=codec != "none",
-                                         shared=shared).items():
+                                         shared=shared, medoid=medoid).items():
             writer.write(*packed_file(f"features/{kind}.{name}", column))
 
 
@@ -227,9 +229,9 @@ def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelW
         if only:
             entry["landmark_rows_only"] = True
     columns = renumber_observations(state.landmarks.columns(), masks)
-    shared = parts.descriptors == "per-landmark"
+    shared = parts.descriptors in SHARED_MODES
     _write_features(writer, kfs, state, columns, rows, parts.descriptor_codec, masks,
-                    shared=shared)
+                    shared=shared, medoid=parts.descriptors == "per-landmark-medoid")
     thumbnails = _write_thumbnails(writer, kfs, compact=parts.descriptor_codec != "none")
     landmarks, half_points = _write_landmarks(writer, columns, state.keyframes, exact=exact_geometry,
                                  half=parts.landmark_points == "float16")
