@@ -18,7 +18,6 @@ from reloc_service.algorithms.pose import (
     guided_kernels,
     kernels,
     landmark_matches,
-    p3p,
     pnp,
     point_uncertainty,
     projection,
