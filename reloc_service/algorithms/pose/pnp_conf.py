@@ -58,6 +58,11 @@ class PnPConf:
     #: sandwich), where beyond chance at 1 % (:func:`.cell_sandwich.point_sandwich`): noise
     #: growing with leverage or along one direction (blur). Decisions keep the model's.
     stated_point_sandwich: bool = True
+    #: Judge the intrinsics test on a grown pose's unguided matches with the intra-cell
+    #: correlation the map's keyframes show (:mod:`.cell_correlation`, its upper 95 % bound)
+    #: as a design effect on the model covariance, instead of the cluster-robust reference
+    #: over the 3-5 cells those matches occupy, which has almost no degrees of freedom.
+    unguided_cell_correlation: bool = False
 
     def __post_init__(self) -> None:
         if self.max_reproj_error_px <= 0:
