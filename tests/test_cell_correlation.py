@@ -24,6 +24,7 @@ from reloc_service.algorithms.pose.intrinsics import (
     IntrinsicsCheck,
     IntrinsicsPrior,
     Solution,
+    too_few_cells,
 )
 from reloc_service.algorithms.pose.map_consistency import map_cell_correlation
 from reloc_service.algorithms.pose.pnp_conf import PnPConf
@@ -157,3 +158,14 @@ def test_a_map_whose_cells_share_their_errors_measures_it(synthetic_map):
     assert honest.keyframes == shared.keyframes == len(ids)
     assert shared.rho > honest.upper
     assert shared.rho > 0.3
+
+
+def test_the_sandwich_stays_where_the_cells_are_enough():
+    # Over 16 cells of two matches each the sandwich's reference is sharper than the model's
+    # with each cell one observation: the measured correlation does not replace it, and the
+    # test is the cluster-robust one's.
+    many = dataclasses.replace(few_cell_check(None, 2.0).solution, clusters=16)
+    assert not too_few_cells(many, 1e-3)
+    assert too_few_cells(few_cell_check(None, 2.0).solution, 1e-3)
+    check = dataclasses.replace(few_cell_check(None, 2.0), solutions=(many,))
+    assert dataclasses.replace(check, cell_correlation=0.05).p_value == check.p_value

@@ -139,11 +139,12 @@ class IntrinsicsCheck:
     #: camera but not overrule what the unguided ones say (:mod:`.intrinsics_guided`).
     unguided: IntrinsicsCheck | None = None
     #: The intra-cell correlation of reprojection errors the map's keyframes show (the upper
-    #: confidence bound of :mod:`.cell_correlation`), where measured and asked for: the test
-    #: then allows for errors shared within a cell by the design effect on the model
-    #: covariance (keeping the model's degrees of freedom) instead of the cluster-robust
-    #: sandwich, whose reference over the few cells the unguided matches occupy has almost no
-    #: degrees of freedom. None: the cluster-robust reference.
+    #: confidence bound of :mod:`.cell_correlation`), where measured and asked for: over too
+    #: few cells (:func:`too_few_cells`) the test then allows for errors shared within a
+    #: cell by the design effect on the model covariance (keeping the model's degrees of
+    #: freedom) instead of the cluster-robust sandwich, whose reference over the 3-5 cells
+    #: unguided matches occupy has almost no degrees of freedom. None: the cluster-robust
+    #: reference.
     cell_correlation: float | None = None
 
     def _likelihood_ratio(self, worse: Solution, better: Solution) -> float:
@@ -217,12 +218,13 @@ class IntrinsicsCheck:
         ``T^2 / 2 ~ F(2, dof)``) and the cluster-robust one's (``V_c + P`` over ``G``
         cells: ``T^2 (G - 2) / (2 (G - 1)) ~ F(2, G - 2)``): each allows for what the other
         misses (a map bent everywhere, noise shared by one region). With a measured
-        :attr:`cell_correlation` ``rho`` the second is the design-effect one instead
-        (``(1 + (m - 1) rho) dispersion V + P``, ``F(2, dof)``)."""
+        :attr:`cell_correlation` ``rho`` over too few cells (:func:`too_few_cells`) the
+        second is the design-effect one instead (``(1 + (m - 1) rho) dispersion V + P``,
+        ``F(2, dof)``)."""
         chosen = self.solution
         p_model = hotelling_p_value(hotelling_t2(chosen.theta, self.covariance + self.prior.covariance),
                              chosen.dof)
-        if self.cell_correlation is not None:
+        if self.cell_correlation is not None and too_few_cells(chosen, self.prior.false_refusal):
             inflation = design_effect(self.cell_correlation, chosen.mean_cell_size)
             t2 = hotelling_t2(chosen.theta, inflation * self.covariance + self.prior.covariance)
             return max(p_model, hotelling_p_value(t2, chosen.dof))
@@ -401,6 +403,22 @@ def _cluster_robust(eq: Equations, inverse: Array, cell: npt.NDArray[np.int64]
     meat = s.T @ s * (g / (g - 1))
     sandwich = inverse @ meat @ inverse
     return sandwich[6:, 6:], g
+
+
+def too_few_cells(solution: Solution, level: float) -> bool:
+    """Whether the cluster-robust reference over ``solution``'s occupied cells is weaker
+    than the model's with every cell counted as one observation: its critical ``T^2`` at
+    ``level`` (``2 (G - 1) / (G - 2) F(2, G - 2)``, in units of the sandwich, whose
+    expectation is the model covariance times the design effect) at least ``m`` times the
+    model's (``2 F(2, dof)``), ``m`` the size-weighted mean cell size (the design effect of
+    a correlation of 1). There any measured correlation gives a sharper reference than the
+    sandwich's; with more cells the sandwich, which sees the query's own cells, stays."""
+    g = solution.clusters
+    if g < 3:
+        return True
+    robust = 2.0 * (g - 1) / (g - 2) * float(special.fdtri(2, g - 2, 1.0 - level))
+    model = 2.0 * float(special.fdtri(2, max(solution.dof, 1), 1.0 - level))
+    return robust >= solution.mean_cell_size * model
 
 
 def hotelling_p_value(t2: float, dof: int) -> float:
