@@ -167,5 +167,7 @@ def test_the_sandwich_stays_where_the_cells_are_enough():
     many = dataclasses.replace(few_cell_check(None, 2.0).solution, clusters=16)
     assert not too_few_cells(many, 1e-3)
     assert too_few_cells(few_cell_check(None, 2.0).solution, 1e-3)
+    two = dataclasses.replace(many, clusters=2, robust_covariance=None)
+    assert not too_few_cells(two, 1e-3)  # no sandwich: the model's test stands, as without
     check = dataclasses.replace(few_cell_check(None, 2.0), solutions=(many,))
     assert dataclasses.replace(check, cell_correlation=0.05).p_value == check.p_value
