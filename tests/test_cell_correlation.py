@@ -26,7 +26,7 @@ from reloc_service.algorithms.pose.intrinsics import (
     Solution,
     too_few_cells,
 )
-from reloc_service.algorithms.pose.map_consistency import map_cell_correlation
+from reloc_service.algorithms.pose.map_consistency import map_cell_correlation, prepare_map
 from reloc_service.algorithms.pose.pnp_conf import PnPConf
 from reloc_service.core.map import MapState
 
@@ -150,8 +150,9 @@ def cell_shared(state: MapState, sigma_px: float, seed: int) -> MapState:
 
 
 def test_a_map_whose_cells_share_their_errors_measures_it(synthetic_map):
-    conf = PnPConf()
+    conf = PnPConf(unguided_cell_correlation=True)
     ids = synthetic_map.keyframe_ids()
+    prepare_map(synthetic_map, "sift", PnPConf())  # statistics cached without the cells
     honest = map_cell_correlation(synthetic_map, "sift", ids, conf)
     shared = map_cell_correlation(cell_shared(synthetic_map, 1.0, seed=4), "sift", ids, conf)
     assert honest is not None and shared is not None

@@ -91,7 +91,7 @@ _STATISTICS: weakref.WeakKeyDictionary[Features, dict[bool, float | None]] = (
 
 #: Per keyframe features, the variance components over the image cells of the held-out
 #: residuals (:mod:`.cell_correlation`; None: too few held-out landmarks), computed with the
-#: statistics from the same held-out points.
+#: statistics from the same held-out points where ``unguided_cell_correlation`` asks.
 _CELLS: weakref.WeakKeyDictionary[Features, CellComponents | None] = weakref.WeakKeyDictionary()
 
 
@@ -120,6 +120,8 @@ def map_cell_correlation(state: MapState, kind: str, keyframe_ids: list[int], co
     for k in keyframe_ids:
         if k not in state.keyframes or (feats := state.keyframes[k].features.get(kind)) is None:
             continue
+        if feats not in _CELLS:  # its statistics were computed without the cells' entry
+            _STATISTICS.pop(feats, None)  # (same values again, with it)
         keyframe_statistic(state, k, kind, conf, columns)  # fills the cells' entry (cached)
         if (found := _CELLS.get(feats)) is not None:
             components.append(found)
@@ -166,7 +168,8 @@ def _statistics(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: 
     (:func:`keyframe_statistic`) for each of ``wanted``, from one set of held-out points."""
     keyframe = state.keyframes[kf_id]
     feats = keyframe.features[kind]
-    _CELLS[feats] = None
+    if conf.unguided_cell_correlation:
+        _CELLS[feats] = None
     cols = columns.get()
     if kind not in cols.kinds:
         return dict.fromkeys(wanted)
@@ -182,10 +185,10 @@ def _statistics(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: 
         inliers = np.flatnonzero(np.linalg.norm(px - projected, axis=1) < conf.max_reproj_error_px)
     weights = 1.0 / keypoint_sigmas(feats)[observed[held]] ** 2
     gated = gated_inliers(np.sum((px - projected) ** 2, axis=1) * weights, inliers)
-    _CELLS[feats] = (cell_shared_components(keyframe.world_from_cam, px, inliers, weights,
-                                            keyframe.camera, project,
-                                            threshold_px=conf.max_reproj_error_px)
-                     if len(inliers) >= MIN_HELD_OUT else None)
+    if conf.unguided_cell_correlation and len(inliers) >= MIN_HELD_OUT:
+        _CELLS[feats] = cell_shared_components(keyframe.world_from_cam, px, inliers, weights,
+                                               keyframe.camera, project,
+                                               threshold_px=conf.max_reproj_error_px)
 
     def statistic(use: IntArray, subset: bool) -> float | None:
         # ``subset``: only the correspondences ``use`` are given to the test, which re-gates
