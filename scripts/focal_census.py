@@ -44,7 +44,9 @@ def check_text(check: IntrinsicsCheck | None) -> str:
     model = 100 * np.sqrt(max(check.covariance[0, 0], 0.0))
     robust = ("-" if s.robust_covariance is None
               else f"{100 * np.sqrt(max(s.robust_covariance[0, 0], 0.0)):.1f}")
-    return (f"{100 * check.theta[0]:+.1f}% (m {model:.1f} r {robust} G{s.clusters}) "
+    shared = ("" if check.cell_correlation is None
+              else f" rho {check.cell_correlation:.3f} m {s.mean_cell_size:.1f}")
+    return (f"{100 * check.theta[0]:+.1f}% (m {model:.1f} r {robust} G{s.clusters}{shared}) "
             f"p={check.p_value:.1e} n={check.inliers}")
 
 

@@ -44,6 +44,14 @@ from scipy import special
 from ...core import distributions as stats
 from ...core.cameras import Camera
 from ...core.geometry import invert, se3_log_many
+from .cell_correlation import (
+    CellComponents,
+    cell_components,
+    design_effect,
+    fitted_residuals,
+    grid_cells,
+    mean_cell_size,
+)
 from .intrinsics_gauss_newton import Equations, Problem, Projector, joint_estimates
 from .intrinsics_model import IntrinsicsModel
 
@@ -92,8 +100,10 @@ class Solution:
     ``sigma2`` (px^2; the Schur complement of the pose in the weighted normal equations),
     ``robust_covariance`` the cluster-robust one over ``clusters`` occupied grid cells (None
     below 3), ``dof`` the residual degrees of freedom, ``inliers`` the correspondences it
-    re-gated, ``cost`` their weighted truncated squared error (px^2) and ``twist`` (6,) its
-    pose relative to the pose at the given intrinsics (right perturbation)."""
+    re-gated, ``cost`` their weighted truncated squared error (px^2), ``twist`` (6,) its
+    pose relative to the pose at the given intrinsics (right perturbation) and
+    ``mean_cell_size`` the size-weighted mean number of inliers per occupied cell (``sum m_g^2
+    / sum m_g``, what a design effect scales with: :mod:`.cell_correlation`)."""
 
     theta: Array
     model_covariance: Array
@@ -104,6 +114,7 @@ class Solution:
     inliers: int
     cost: float
     twist: Array
+    mean_cell_size: float = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,6 +138,14 @@ class IntrinsicsCheck:
     #: of a pose agree with its intrinsics by construction, so they may confirm the given
     #: camera but not overrule what the unguided ones say (:mod:`.intrinsics_guided`).
     unguided: IntrinsicsCheck | None = None
+    #: The intra-cell correlation of reprojection errors the map's keyframes show (the upper
+    #: confidence bound of :mod:`.cell_correlation`), where measured and asked for: over too
+    #: few cells (:func:`too_few_cells`) the test then allows for errors shared within a
+    #: cell by the design effect on the model covariance (keeping the model's degrees of
+    #: freedom) instead of the cluster-robust sandwich, whose reference over the 3-5 cells
+    #: unguided matches occupy has almost no degrees of freedom. None: the cluster-robust
+    #: reference.
+    cell_correlation: float | None = None
 
     def _likelihood_ratio(self, worse: Solution, better: Solution) -> float:
         """The likelihood-ratio statistic of ``better`` against ``worse``: their cost
@@ -198,10 +217,17 @@ class IntrinsicsCheck:
         the larger of the model-based test's (covariance ``dispersion V + P``, Hotelling's
         ``T^2 / 2 ~ F(2, dof)``) and the cluster-robust one's (``V_c + P`` over ``G``
         cells: ``T^2 (G - 2) / (2 (G - 1)) ~ F(2, G - 2)``): each allows for what the other
-        misses (a map bent everywhere, noise shared by one region)."""
+        misses (a map bent everywhere, noise shared by one region). With a measured
+        :attr:`cell_correlation` ``rho`` over too few cells (:func:`too_few_cells`) the
+        second is the design-effect one instead (``(1 + (m - 1) rho) dispersion V + P``,
+        ``F(2, dof)``)."""
         chosen = self.solution
         p_model = hotelling_p_value(hotelling_t2(chosen.theta, self.covariance + self.prior.covariance),
                              chosen.dof)
+        if self.cell_correlation is not None and too_few_cells(chosen, self.prior.false_refusal):
+            inflation = design_effect(self.cell_correlation, chosen.mean_cell_size)
+            t2 = hotelling_t2(chosen.theta, inflation * self.covariance + self.prior.covariance)
+            return max(p_model, hotelling_p_value(t2, chosen.dof))
         if chosen.robust_covariance is None:
             return p_model
         g = chosen.clusters
@@ -218,6 +244,14 @@ class IntrinsicsCheck:
         level = self.prior.false_refusal
         return not (self.p_value < level
                     or (self.unguided is not None and self.unguided.p_value < level))
+
+    def with_unguided_cell_correlation(self, rho: float) -> IntrinsicsCheck:
+        """This check with its :attr:`unguided` test allowing for the intra-cell
+        correlation ``rho`` (:attr:`cell_correlation`); itself where it has none."""
+        if self.unguided is None:
+            return self
+        return dataclasses.replace(
+            self, unguided=dataclasses.replace(self.unguided, cell_correlation=float(rho)))
 
     def with_dispersion(self, dispersion: float) -> IntrinsicsCheck:
         unguided = None if self.unguided is None else self.unguided.with_dispersion(dispersion)
@@ -282,6 +316,20 @@ def check_intrinsics(world_from_cam: Array, px: Array, inliers: npt.NDArray[np.i
                            pose_shift=_pose_shift(given.normal))
 
 
+def cell_shared_components(world_from_cam: Array, px: Array, rows: npt.NDArray[np.int64],
+                           weights: Array, camera: Camera, project: Projector, *,
+                           threshold_px: float) -> CellComponents | None:
+    """The variance components over this test's grid cells (:mod:`.cell_correlation`) of
+    the residuals of the correspondences ``rows`` at ``world_from_cam`` and the given camera
+    (arguments as :func:`check_intrinsics`'s), whitened by their weights and with what the
+    pose and ``theta`` explain projected out, as the test's joint fit would; None with fewer
+    than two occupied cells."""
+    eq = _normal_equations(world_from_cam, np.zeros(2), px, weights, IntrinsicsModel(camera),
+                           project, threshold_px, rows=rows)
+    residuals = fitted_residuals(eq.residuals, eq.jac, eq.weights)
+    return cell_components(residuals, grid_cells(eq.px, camera.size, CLUSTER_GRID))
+
+
 def _along_axis(distance_m: float) -> Array:
     """(4, 4) ``cam_from_moved``: the camera moved ``distance_m`` along its optical axis."""
     out = np.eye(4)
@@ -328,21 +376,20 @@ def _solution(eq: Equations, theta: Array, twist: Array, camera: Camera,
         inverse = np.asarray(np.linalg.inv(eq.normal), np.float64)
     except np.linalg.LinAlgError:
         inverse = np.full((8, 8), np.inf)
-    robust, clusters = _cluster_robust(eq, inverse, camera)
+    cells = grid_cells(eq.px, camera.size, CLUSTER_GRID)
+    robust, clusters = _cluster_robust(eq, inverse, cells)
     return Solution(theta=theta, model_covariance=sigma2 * inverse[6:, 6:],
                     robust_covariance=robust, clusters=clusters, dof=dof, sigma2=sigma2,
-                    inliers=len(eq.rows), cost=eq.cost, twist=twist)
+                    inliers=len(eq.rows), cost=eq.cost, twist=twist,
+                    mean_cell_size=mean_cell_size(cells))
 
 
-def _cluster_robust(eq: Equations, inverse: Array, camera: Camera) -> tuple[Array | None, int]:
+def _cluster_robust(eq: Equations, inverse: Array, cell: npt.NDArray[np.int64]
+                    ) -> tuple[Array | None, int]:
     """The (2, 2) cluster-robust covariance of ``theta`` (sandwich ``N^-1 M N^-1`` with
-    ``M`` the sum over grid cells of each cell's outer product of its score ``J^T W r``,
-    times ``G / (G - 1)``) and the number ``G`` of occupied cells; None when ``G < 3``."""
-    width, height = camera.size
-    col = np.clip(((eq.px[:, 0] + 0.5) * CLUSTER_GRID // width).astype(int), 0, CLUSTER_GRID - 1)
-    row = np.clip(((eq.px[:, 1] + 0.5) * CLUSTER_GRID // height).astype(int), 0,
-                  CLUSTER_GRID - 1)
-    cell = row * CLUSTER_GRID + col
+    ``M`` the sum over grid cells ``cell`` (the rows' cells) of each cell's outer product of
+    its score ``J^T W r``, times ``G / (G - 1)``) and the number ``G`` of occupied cells;
+    None when ``G < 3``."""
     scores_per_point = np.einsum("mik,mi->mk", eq.jac, eq.residuals) * eq.weights[:, None]
     # Per-cell sums in the points' order (np.add.at's), in one bincount over (cell, column).
     scores = np.bincount((cell[:, None] * 8 + np.arange(8)).ravel(),
@@ -356,6 +403,26 @@ def _cluster_robust(eq: Equations, inverse: Array, camera: Camera) -> tuple[Arra
     meat = s.T @ s * (g / (g - 1))
     sandwich = inverse @ meat @ inverse
     return sandwich[6:, 6:], g
+
+
+def too_few_cells(solution: Solution, level: float) -> bool:
+    """Whether the cluster-robust reference over ``solution``'s occupied cells is weaker
+    than the model's with every cell counted as one observation: its critical ``T^2`` at
+    ``level`` (``2 (G - 1) / (G - 2) F(2, G - 2)``, in units of the sandwich, whose
+    expectation is the model covariance times the design effect) at least ``m`` times the
+    model's (``2 F(2, dof)``), ``m`` the size-weighted mean cell size (the design effect of
+    a correlation of 1). There any measured correlation gives a sharper reference than the
+    sandwich's; with more cells the sandwich, which sees the query's own cells, stays. Below
+    3 cells there is no sandwich and the model's reference stands alone, as without a
+    measured correlation: the design effect would only weaken that test there (a stale
+    focal's unguided matches in two cells passed it: tum_fr1_rpy x1.15 query 6, answered
+    12 cm off at 3.5 sigma), and a wrong pose is worse than no pose."""
+    g = solution.clusters
+    if g < 3:
+        return False
+    robust = 2.0 * (g - 1) / (g - 2) * float(special.fdtri(2, g - 2, 1.0 - level))
+    model = 2.0 * float(special.fdtri(2, max(solution.dof, 1), 1.0 - level))
+    return robust >= solution.mean_cell_size * model
 
 
 def hotelling_p_value(t2: float, dof: int) -> float:

@@ -53,8 +53,9 @@ from ...core.landmark_table import LandmarkColumns
 from ...core.map import MapState
 from ...core.triangulation import ViewObservations, keypoint_sigmas, refine_points, triangulate_midpoint
 from .base import PoseEstimate
+from .cell_correlation import CellComponents, CellCorrelation, pooled_correlation
 from .guided import GuidedConf
-from .intrinsics import IntrinsicsCheck, check_intrinsics
+from .intrinsics import IntrinsicsCheck, cell_shared_components, check_intrinsics
 from .intrinsics_power import blind_spot_factor, governing_covariance
 from .map_uncertainty import map_covariance
 from .pnp_conf import PnPConf
@@ -88,6 +89,11 @@ MIS_ASSOCIATION_FALSE_ALARM = 0.01
 _STATISTICS: weakref.WeakKeyDictionary[Features, dict[bool, float | None]] = (
     weakref.WeakKeyDictionary())
 
+#: Per keyframe features, the variance components over the image cells of the held-out
+#: residuals (:mod:`.cell_correlation`; None: too few held-out landmarks), computed with the
+#: statistics from the same held-out points where ``unguided_cell_correlation`` asks.
+_CELLS: weakref.WeakKeyDictionary[Features, CellComponents | None] = weakref.WeakKeyDictionary()
+
 
 def map_dispersion(state: MapState, kind: str, keyframe_ids: list[int], conf: PnPConf, *,
                    robust: bool = False) -> float:
@@ -102,6 +108,24 @@ def map_dispersion(state: MapState, kind: str, keyframe_ids: list[int], conf: Pn
     if len(values) < 3:
         return 1.0
     return max(1.0, float(np.median(values)) / CHI2_2_MEDIAN)
+
+
+def map_cell_correlation(state: MapState, kind: str, keyframe_ids: list[int], conf: PnPConf
+                         ) -> CellCorrelation | None:
+    """The intra-cell correlation of ``kind`` reprojection errors the held-out residuals of
+    ``keyframe_ids`` show (:func:`.cell_correlation.pooled_correlation`); None where fewer
+    than its minimum of keyframes have enough held-out landmarks."""
+    columns = _Columns(state)
+    components = []
+    for k in keyframe_ids:
+        if k not in state.keyframes or (feats := state.keyframes[k].features.get(kind)) is None:
+            continue
+        if feats not in _CELLS:  # its statistics were computed without the cells' entry
+            _STATISTICS.pop(feats, None)  # (same values again, with it)
+        keyframe_statistic(state, k, kind, conf, columns)  # fills the cells' entry (cached)
+        if (found := _CELLS.get(feats)) is not None:
+            components.append(found)
+    return pooled_correlation(components)
 
 
 class _Columns:
@@ -144,6 +168,8 @@ def _statistics(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: 
     (:func:`keyframe_statistic`) for each of ``wanted``, from one set of held-out points."""
     keyframe = state.keyframes[kf_id]
     feats = keyframe.features[kind]
+    if conf.unguided_cell_correlation:
+        _CELLS[feats] = None
     cols = columns.get()
     if kind not in cols.kinds:
         return dict.fromkeys(wanted)
@@ -159,6 +185,10 @@ def _statistics(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: 
         inliers = np.flatnonzero(np.linalg.norm(px - projected, axis=1) < conf.max_reproj_error_px)
     weights = 1.0 / keypoint_sigmas(feats)[observed[held]] ** 2
     gated = gated_inliers(np.sum((px - projected) ** 2, axis=1) * weights, inliers)
+    if conf.unguided_cell_correlation and len(inliers) >= MIN_HELD_OUT:
+        _CELLS[feats] = cell_shared_components(keyframe.world_from_cam, px, inliers, weights,
+                                               keyframe.camera, project,
+                                               threshold_px=conf.max_reproj_error_px)
 
     def statistic(use: IntArray, subset: bool) -> float | None:
         # ``subset``: only the correspondences ``use`` are given to the test, which re-gates
@@ -272,6 +302,10 @@ def settle_intrinsics(estimate: PoseEstimate, state: MapState, kind: str, conf: 
     near = state.nearest_keyframes(estimate.world_from_cam, guided.local_keyframes,
                                    guided.max_view_angle_deg)
     check = check.with_dispersion(map_dispersion(state, kind, near, conf))
+    if conf.unguided_cell_correlation and check.unguided is not None:
+        correlation = map_cell_correlation(state, kind, near, conf)
+        if correlation is not None:
+            check = check.with_unguided_cell_correlation(correlation.upper)
     if conf.robust_stated_dispersion:
         estimate.stated_dispersion = map_dispersion(state, kind, near, conf, robust=True)
     estimate.intrinsics = check

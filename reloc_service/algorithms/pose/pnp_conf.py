@@ -63,6 +63,11 @@ class PnPConf:
     #: noise comparable to ``max_reproj_error_px`` (blur) loses its tails to the gate and the
     #: residuals understate it. Decisions keep the model covariance.
     stated_gate_truncation: bool = True
+    #: Judge the intrinsics test on a grown pose's unguided matches with the intra-cell
+    #: correlation the map's keyframes show (:mod:`.cell_correlation`, its upper 95 % bound)
+    #: as a design effect on the model covariance, instead of the cluster-robust reference
+    #: over the 3-5 cells those matches occupy, which has almost no degrees of freedom.
+    unguided_cell_correlation: bool = False
 
     def __post_init__(self) -> None:
         if self.max_reproj_error_px <= 0:
