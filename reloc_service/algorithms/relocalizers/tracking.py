@@ -40,7 +40,7 @@ from ..pose.pnp import solve_pnp_indexed
 from ..pose.pnp_conf import PnPConf
 from ..pose.point_uncertainty import PointUncertainty
 from ..pose.prior_focal import axis_variance, focal_reach, focal_starts_within
-from ..pose.prior_gain import narrows_prior
+from ..pose.prior_gain import narrower_everywhere, narrows_prior
 from ..pose.prior_windows import (
     match_in_windows,
     pixel_sigmas,
@@ -62,6 +62,8 @@ TRACK = "track"
 LOCAL_MAPS_KEPT = 8
 #: The ways a tracked pose grows onto the matches found around it (``Conf.growth``).
 GROWTH = ("ransac", "regated")
+#: How a tracked pose must narrow its prior (``Conf.narrowing``).
+NARROWING = ("every direction", "image average")
 
 
 @register(TRACK)
@@ -110,6 +112,12 @@ class TrackingRelocalizer(Relocalizer):
         #: bench "regated" answered one good-prior draw of 207 outside 5 cm / 5 deg that
         #: "ransac" answered within, for a p50 within the run's noise.
         growth: str = "ransac"
+        #: How much better than the prior a tracked pose must be known
+        #: (:mod:`..pose.prior_gain`): "every direction": its covariance below the prior's
+        #: in the Loewner order; "image average": its inliers' pixel variance below the
+        #: prior's on average (lets an answer less certain than the prior along a direction
+        #: the pixels hardly see through: 7-Scenes' 6-20 cm answers).
+        narrowing: str = "every direction"
 
         def __post_init__(self) -> None:
             super().__post_init__()
@@ -125,6 +133,9 @@ class TrackingRelocalizer(Relocalizer):
                                       f"{getattr(self, name)}")
             if self.local_keyframes < 1:
                 raise ConfigError("track: local_keyframes must be >= 1")
+            if self.narrowing not in NARROWING:
+                raise ConfigError(f"track: narrowing must be one of {NARROWING}, got "
+                                  f"{self.narrowing!r}")
             if self.growth not in GROWTH:
                 raise ConfigError(f"track: growth must be one of {GROWTH}, got "
                                   f"{self.growth!r}")
@@ -265,23 +276,30 @@ class TrackingRelocalizer(Relocalizer):
         if result.ok and not _within_prior(est, result, prior, self.conf.prior_gate_probability):
             return self._refuse("the tracked pose lies outside the prior's gate", timings, state,
                                 num_matches=len(q_idx), inliers=int(est.inliers or 0))
-        if result.ok and not narrows_prior(query.camera, est.world_from_cam,
-                                           pool.points_world[m_rows[inliers]],
-                                           est.covariance, prior.covariance):
+        if result.ok and not self._narrows(query, est, pool.points_world[m_rows[inliers]],
+                                           prior.covariance):
             # Where this image (its matches and its camera) fixes the pose less well than
-            # the prior placed their windows, the windows chose the matches: the method,
-            # which matches without the prior, decides. The keyframes' pose errors, in the
-            # answer's stated covariance, are left out: a prior anchored to this map (the
-            # ROS 2 map_from_odom) holds them too.
-            return self._refuse("the tracked pose predicts its inliers no better than the "
-                                "prior", timings, state, num_matches=len(q_idx),
-                                inliers=int(est.inliers or 0))
+            # the prior (along some direction, or for its inliers' pixels on average), the
+            # windows chose the matches: the method, which matches without the prior,
+            # decides. The keyframes' pose errors, in the answer's stated covariance, are
+            # left out: a prior anchored to this map (the ROS 2 map_from_odom) holds them too.
+            return self._refuse(f"the tracked pose is known no better than the prior "
+                                f"({self.conf.narrowing})", timings, state,
+                                num_matches=len(q_idx), inliers=int(est.inliers or 0))
         if result.ok and narrow_support(est, self.verify_conf):
             # A pose fixed by a small area of the image is weakly conditioned: the method,
             # which weighs such answers against the rest of the map, decides.
             return self._refuse("the tracked pose rests on a small part of the image", timings,
                                 state, num_matches=len(q_idx), inliers=int(est.inliers or 0))
         return result
+
+    def _narrows(self, query: Frame, est: PoseEstimate, inliers_world: Array,
+                 prior_covariance: Array) -> bool:
+        """Whether ``est`` is better known than the prior (``Conf.narrowing``)."""
+        if self.conf.narrowing == "every direction":
+            return narrower_everywhere(est.covariance, prior_covariance)
+        return narrows_prior(query.camera, est.world_from_cam, inliers_world, est.covariance,
+                             prior_covariance)
 
     def _grow(self, query: Frame, feats: Features, est: PoseEstimate, pool: LandmarkPool,
               seed_q: IntArray, seed_rows: IntArray, uncertainty: PointUncertainty,
