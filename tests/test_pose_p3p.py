@@ -486,10 +486,10 @@ def test_support_is_searched_once_per_pose_and_map_state(scene):
     assert finder.support(query, moved, state) is not first
 
 
-def test_a_first_pool_with_too_few_matches_to_be_kept_is_not_solved(scene, monkeypatch):
-    """A first pool whose pose would be set aside for the whole group's (fewer inliers than
-    ``guided_below_inliers``) is not solved when it has fewer matches than that: the estimate
-    is the one solving it would give, with one solve fewer."""
+def _counted_orb_finder(scene, monkeypatch):
+    """An ORB p3p finder matching the best candidate's landmarks first, whose whole group is
+    always matched after (``guided_below_inliers`` out of reach), with the real PnP solve
+    counted: (finder, ground-truth pose, state, candidates, the solves' sizes)."""
     import reloc_service.algorithms.pose.p3p as p3p
 
     gt = query_pose(0)
@@ -500,6 +500,16 @@ def test_a_first_pool_with_too_few_matches_to_be_kept_is_not_solved(scene, monke
     real_solve = p3p.solve_pnp_indexed
     monkeypatch.setattr(p3p, "solve_pnp_indexed",
                         lambda px, *a, **k: solves.append(len(px)) or real_solve(px, *a, **k))
+    return finder, gt, state, cands, solves
+
+
+def test_a_first_pool_with_too_few_matches_to_be_kept_is_not_solved(scene, monkeypatch):
+    """A first pool whose pose would be set aside for the whole group's (fewer inliers than
+    ``guided_below_inliers``) is not solved when it has fewer matches than that: the estimate
+    is the one solving it would give, with one solve fewer."""
+    import reloc_service.algorithms.pose.p3p as p3p
+
+    finder, gt, state, cands, solves = _counted_orb_finder(scene, monkeypatch)
     skipped = finder.find_pose(Frame(scene.render(gt), scene.camera), cands, state)
     n_skipped = len(solves)
     real_match_and_solve = p3p.P3PPoseFinder._match_and_solve
@@ -518,16 +528,7 @@ def test_a_pose_the_caller_knows_is_returned_at_once(scene, monkeypatch):
     """``known`` recognising the first pool's pose ends the search there (one solve, no whole
     group, no guided matching); recognising nothing, the search runs in full to the pose it
     gives without ``known``."""
-    import reloc_service.algorithms.pose.p3p as p3p
-
-    gt = query_pose(0)
-    state, cands = scene.map.snapshot(), candidates_near(scene, gt, 3)
-    finder = create_pose_finder({"name": "p3p", "kind": "orb", "max_features": 1000,
-                                 "first_pool_keyframes": 1, "guided_below_inliers": 100_000})
-    solves: list[int] = []
-    real_solve = p3p.solve_pnp_indexed
-    monkeypatch.setattr(p3p, "solve_pnp_indexed",
-                        lambda px, *a, **k: solves.append(len(px)) or real_solve(px, *a, **k))
+    finder, gt, state, cands, solves = _counted_orb_finder(scene, monkeypatch)
 
     def found(known):
         solves.clear()
