@@ -84,8 +84,11 @@ def quiet(service, drone) -> None:
 
 
 def test_every_nth_image_while_tracking_is_localized_from_the_odometry_prior(tracking):
-    """Six images (two runs of three): exactly two localized, both by tracking in the prior's
-    windows, published with their images' stamps within 2 cm / 1 deg of the truth."""
+    """Six images (two runs of three): exactly two localized, published with their images'
+    stamps within 2 cm / 1 deg of the truth; by tracking in the prior's windows where the
+    tracked pose is known better than the prior in every direction, else by the chain. The
+    odometry here is sharp (1-3 cm, 0.2-0.4 deg), so one of the two views' tracked poses is
+    not (along one direction) and the chain answers it: at least one is tracked."""
     service, drone, views = tracking
     quiet(service, drone)
     tracked, done = service.ros2.counters["tracked_poses"], localizations(service)
@@ -93,7 +96,7 @@ def test_every_nth_image_while_tracking_is_localized_from_the_odometry_prior(tra
     wait_until(lambda: localizations(service) == done + 2, timeout=60)
     readings = drain(drone.poses)
     assert len(readings) == 2
-    assert service.ros2.counters["tracked_poses"] == tracked + 2
+    assert tracked + 1 <= service.ros2.counters["tracked_poses"] <= tracked + 2
     truth = {stamp(200.0 + 0.1 * i): world_from_cam for i, (world_from_cam, _) in
              enumerate(views)}
     for reading in readings:
