@@ -54,6 +54,14 @@ class FeatureConf:
 ORB_SCALE_FACTOR = 1.2
 
 
+#: Where OpenCV's SIFT reports a keypoint, pixels in x and y, against the pixel-centre
+#: convention (pixel ``i`` covers ``[i - 0.5, i + 0.5]``): its first octave is the image
+#: upsampled twice by a centre-aligned linear resize, whose pixel ``u`` lies at ``u / 2 -
+#: 0.25`` of the image, while the keypoint is reported at ``u / 2``. Measured on Gaussian
+#: blobs at known sub-pixel centres: +0.246 to +0.253 px (tests/test_features.py).
+SIFT_UPSCALE_OFFSET_PX = 0.25
+
+
 def level_scale_factor(kind: str) -> float:
     """Scale step between the pyramid levels that ``Features.levels`` counts: ORB's
     ``ORB_SCALE_FACTOR``, SIFT's octaves 2."""
@@ -214,7 +222,12 @@ def _extract_reduced(image: npt.NDArray[np.uint8], conf: FeatureConf,
     """:func:`extract` on ``image`` reduced by ``conf.scale`` (INTER_AREA: each pixel the mean
     of the pixels it covers), keypoints, sizes and pyramid levels mapped back to the full
     image: a keypoint of the reduced image lies at ``(x + 0.5) / scale - 0.5`` and is located
-    to ``1 / scale`` full-image pixels, which the level (``factor^level``) carries."""
+    to ``1 / scale`` full-image pixels, which the level (``factor^level``) carries.
+
+    SIFT's coordinates carry :data:`SIFT_UPSCALE_OFFSET_PX` in whichever image it runs on, so
+    that offset is taken out before the mapping and put back after it: the reduced image's
+    keypoints then share full-size SIFT's convention, which the map's landmarks were made
+    with (without it they sit ``offset * (1 / scale - 1)`` further, +0.25 px at half size)."""
     h, w = image.shape[:2]
     size = (max(1, round(w * conf.scale)), max(1, round(h * conf.scale)))
     small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
@@ -224,7 +237,9 @@ def _extract_reduced(image: npt.NDArray[np.uint8], conf: FeatureConf,
     feats = _features_from_cv(conf.kind, list(keypoints), descriptors)
     sx, sy = w / size[0], h / size[1]
     shift = round(np.log(1.0 / conf.scale) / np.log(level_scale_factor(conf.kind)))
-    return Features.create(conf.kind, (feats.keypoints_px + 0.5) * (sx, sy) - 0.5,
+    offset = SIFT_UPSCALE_OFFSET_PX if conf.kind == "sift" else 0.0
+    full_px = (feats.keypoints_px - offset + 0.5) * (sx, sy) - 0.5 + offset
+    return Features.create(conf.kind, full_px,
                            feats.descriptors, levels=feats.levels + shift,
                            sizes=feats.sizes * np.float32(sx), angles=feats.angles)
 
