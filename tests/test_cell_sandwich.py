@@ -93,8 +93,11 @@ def test_spread_limit_is_the_largest_eigenvalues_quantile_and_falls_with_more_ce
 
 def test_tabled_limits_are_the_simulated_ones():
     assert sorted(SPREAD_LIMITS) == list(range(3, 17))
+    # Equal to rounding: the simulation's eigenvalues differ in the last bits between BLAS
+    # builds, a quantile of them by an ulp.
     for cells in (3, 9, 16):
-        assert spread_limit(cells) == simulated_limit(cells, FALSE_ALARM)
+        assert spread_limit(cells) == pytest.approx(simulated_limit(cells, FALSE_ALARM),
+                                                    rel=1e-12)
     assert spread_limit(40) == tracy_widom_limit(40)
 
 
