@@ -16,7 +16,8 @@ from reloc_service.algorithms.pose.prior_gain import (
 )
 from reloc_service.algorithms.relocalizers.base import Prior
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer, create_tracker
-from reloc_service.algorithms.relocalizers.tracking import TRACK, relocalize_with_prior
+from reloc_service.algorithms.relocalizers.tracking import TRACK
+from reloc_service.algorithms.relocalizers.tracking_fallback import relocalize_with_prior
 from reloc_service.core.cameras import PinholeCamera
 from reloc_service.core.frame import Frame
 from reloc_service.core.geometry import pose_covariance_from_sigmas, se3_exp, transform_points

@@ -11,11 +11,8 @@ from reloc_client.protocol import ErrorCode, ProtocolError
 
 from reloc_service.algorithms.relocalizers.base import Prior
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer, create_tracker
-from reloc_service.algorithms.relocalizers.tracking import (
-    TRACK,
-    TrackingRelocalizer,
-    relocalize_with_prior,
-)
+from reloc_service.algorithms.relocalizers.tracking import TRACK, TrackingRelocalizer
+from reloc_service.algorithms.relocalizers.tracking_fallback import relocalize_with_prior
 from reloc_service.core.errors import ConfigError
 from reloc_service.core.frame import Frame
 from reloc_service.core.geometry import pose_covariance_from_sigmas, pose_error, se3_exp
@@ -222,13 +219,13 @@ def _stated_uncertain(state, sigma_m=0.01, sigma_deg=0.3):
 
 def test_landmarks_of_keyframes_with_pose_errors_are_less_certain(synthetic_scene, synthetic_map):
     from reloc_service.algorithms.pose.landmark_pool import LandmarkPool
-    from reloc_service.algorithms.relocalizers.tracking import _landmark_uncertainty
+    from reloc_service.algorithms.relocalizers.tracking_local_map import landmark_uncertainty
 
     near = synthetic_map.nearest_keyframes(synthetic_scene.query_poses[0], 10, 60.0)
     keyframes = [synthetic_map.keyframes[k] for k in near]
     pool = LandmarkPool.gather(keyframes, "sift")
-    exact = _landmark_uncertainty(pool, synthetic_map, near, keyframes).depth_sigmas_m
-    uncertain = _landmark_uncertainty(pool, _stated_uncertain(synthetic_map), near,
+    exact = landmark_uncertainty(pool, synthetic_map, near, keyframes).depth_sigmas_m
+    uncertain = landmark_uncertainty(pool, _stated_uncertain(synthetic_map), near,
                                       keyframes).depth_sigmas_m
     finite = np.isfinite(exact) & (exact > 0)
     assert finite.sum() > 20
