@@ -42,7 +42,15 @@ from ..pose.prior_windows import (
     predict_windows,
     window_chance,
 )
-from .base import Prior, Relocalizer, RelocResult, VerifyConf, register, result_from_estimate
+from .base import (
+    Prior,
+    Relocalizer,
+    RelocResult,
+    VerifyConf,
+    note_map_calibration,
+    register,
+    result_from_estimate,
+)
 from .chain_hooks import narrow_support
 from .multi import STEP_FEATURES
 from .tracking_growth import GROWTH, grow, keypoint_scales
@@ -260,6 +268,10 @@ class TrackingRelocalizer(Relocalizer):
                            float(stats.chi2.ppf(self.conf.prior_gate_probability, 6)))
         start = time.perf_counter()
         est = settle_pose_errors(est, state, kind, self.conf, est.inlier_landmark_ids)
+        # As every chain step does: an answer of a query that claims the map's own camera
+        # states its covariance under the map's calibration accuracy, so a tracked answer
+        # and the method's state the same for the same geometry.
+        note_map_calibration(est, query.camera, state)
         result = result_from_estimate(est, self.verify_conf, method=TRACK,
                                       map_version=state.version, timings=timings)
         _add(timings, "verify", start)
