@@ -98,9 +98,9 @@ def diagnose(root: Path, repeats: int, seed: int, keyframe_sigma: tuple[float, f
     real_narrows = tracking.TrackingRelocalizer._narrows
     real_result = tracking.result_from_estimate
 
-    def narrows(self, query, est, inliers_world, prior_covariance):  # type: ignore[no-untyped-def]
+    def narrows(self, query, est, *args):  # type: ignore[no-untyped-def]
         seen["est"] = est
-        seen["narrows"] = real_narrows(self, query, est, inliers_world, prior_covariance)
+        seen["narrows"] = real_narrows(self, query, est, *args)
         return seen["narrows"]
 
     def result(est, *args, **kwargs):  # type: ignore[no-untyped-def]
@@ -159,6 +159,9 @@ def diagnose(root: Path, repeats: int, seed: int, keyframe_sigma: tuple[float, f
                         if noted.map_covariance is not None:
                             cal = cal - noted.map_covariance
                         parts["stated_noted_own"] = cal
+                        if est.intrinsics is not None:
+                            far = est.intrinsics.unexcluded_twist
+                            parts["trusted_unique"] = cal + np.outer(far, far)
                     if stated.covariance is not None:
                         own = np.asarray(stated.covariance)
                         if est.map_covariance is not None:

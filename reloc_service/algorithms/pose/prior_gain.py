@@ -100,3 +100,24 @@ def narrower_everywhere(answer_covariance: Array | None, prior_covariance: Array
     if answer_covariance is None:
         return False
     return largest_variance_ratio(answer_covariance, prior_covariance) < 1.0
+
+
+def stated_and_unique(stated_own_covariance: Array, unexcluded_twist: Array | None,
+                      calibration_trusted: bool) -> Array:
+    """(6, 6) what :func:`narrower_everywhere` compares with the prior under
+    ``narrowing = "stated, unique"``: the covariance the answer states relative to the map
+    (``stated_own_covariance``, the keyframes' part left out), plus, where that trusted the
+    map's calibration (``calibration_trusted``: it then weighs the solutions the data
+    cannot exclude by the calibration's prior, and a focal several sigmas off drops out),
+    the (6,) ``unexcluded_twist`` of the farthest such solution as a variance ``s s^T``, as
+    the decision covariance counts it. Where the data admit another pose about as well,
+    which of the two the prior's windows found was the prior's choice: the sum lies below
+    the prior's covariance only if that other pose lies within the prior's one-sigma
+    ellipsoid (``s^T C_prior^-1 s < 1``) and the stated covariance is below it too. Where
+    the calibration is not trusted, the stated covariance is the decision's, which holds
+    ``s s^T`` already."""
+    out = np.asarray(stated_own_covariance, np.float64)
+    if calibration_trusted and unexcluded_twist is not None:
+        far = np.asarray(unexcluded_twist, np.float64)
+        out = out + np.outer(far, far)
+    return out
