@@ -55,7 +55,7 @@ from .algorithms.pose.map_pool import pool_bytes
 from .algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
 from .algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, create_tracker
 from .algorithms.relocalizers.map_pools import restore_pools, save_pools
-from .algorithms.relocalizers.tracking import relocalize_with_prior
+from .algorithms.relocalizers.tracking_fallback import relocalize_with_prior
 from .core.background import LOWER_PRIORITY, lower_priority, start_background
 from .core.cameras import Camera
 from .core.errors import ConfigError

@@ -61,7 +61,10 @@ def test_summary_counts_what_the_table_says():
     row = prior.summarize([ok, off, refused])
     assert row == {"n": 3, "p50_ms": 20.0, "answered": 2, "recall_5cm_5deg": pytest.approx(1 / 3),
                    "wrong": 1, "near_wrong_prior": 1, "by_track": 1,
-                   "cov_scale": pytest.approx(1.0)}
+                   "cov_scale": pytest.approx(1.0), "beyond_3_sigma": 0}
+    # An answer 3.5 sigmas off its stated covariance is counted; a refusal never.
+    far = {**ok, "mahalanobis": 3.5}
+    assert prior.summarize([ok, far, refused])["beyond_3_sigma"] == 1
     lines = prior.table_lines({"sets": {"s": {"limit": {"orb_limit_p50_ms": 10.0}, "runs": {
         "no prior": {**row, "over_limit": 2.0}}}, "f": {"error": "boom"}}})
     assert lines[2] == "| s | no prior | 20.0 | 10.0 | 2.00 | 33% | 1 | 1.00 | 1 | 1/3 |"

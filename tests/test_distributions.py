@@ -85,7 +85,7 @@ def test_serving_imports_no_scipy_stats() -> None:
     leaves scipy.stats unloaded: its import alone took 2-3 s of the start-up."""
     code = ("import sys, reloc_service.service.app, reloc_service.service.processes, "
             "reloc_service.algorithms.relocalizers.factory, "
-            "reloc_service.algorithms.relocalizers.tracking, "
+            "reloc_service.algorithms.relocalizers.tracking_fallback, "
             "reloc_service.service.ros2.map_frame; "
             "print('scipy.stats' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

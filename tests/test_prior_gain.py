@@ -13,13 +13,20 @@ from reloc_service.algorithms.pose.prior_gain import (
     largest_variance_ratio,
     narrower_everywhere,
     narrows_prior,
+    stated_and_unique,
 )
 from reloc_service.algorithms.relocalizers.base import Prior
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer, create_tracker
-from reloc_service.algorithms.relocalizers.tracking import TRACK, relocalize_with_prior
+from reloc_service.algorithms.relocalizers.tracking import TRACK
+from reloc_service.algorithms.relocalizers.tracking_fallback import relocalize_with_prior
 from reloc_service.core.cameras import PinholeCamera
 from reloc_service.core.frame import Frame
-from reloc_service.core.geometry import pose_covariance_from_sigmas, se3_exp, transform_points
+from reloc_service.core.geometry import (
+    pose_covariance_from_sigmas,
+    pose_error,
+    se3_exp,
+    transform_points,
+)
 from reloc_service.core.map import KeyframeMap
 
 CAMERA = PinholeCamera(width=640, height=480, fx=500.0, fy=500.0, cx=319.5, cy=239.5)
@@ -99,32 +106,61 @@ def _query(scene, i):
     return Frame(scene.query_images[i], scene.camera)
 
 
-def test_a_tracked_pose_no_sharper_than_its_prior_is_left_to_the_method(
+def test_a_focal_the_data_pin_down_is_no_reason_to_leave_a_tracked_pose_to_the_method(
         synthetic_scene, synthetic_map):
-    # A sharp VIO prior (1 cm, 0.3 degree) and a camera whose focal is known to 5 % only: a
-    # pose from it is uncertain along its axis by 5 % of the scene's depth (where the
-    # focal's error moves it), which no match in this image resolves, so it cannot narrow
-    # the prior; tracking verifies (its windows are still wider than a keypoint's noise)
-    # but refuses, and the method answers.
+    # A sharp VIO prior (1 cm, 0.3 degree) and a camera whose focal is known to 5 % only.
+    # The decision covariance doubts that calibration (the focal free, its prior added on
+    # top): 5 % of the scene's depth along the axis, above the prior's 1 cm, so under
+    # "every direction" tracking verifies but refuses and the method answers. The room's
+    # depth pins the focal down: the answer's stated covariance (the calibration's prior
+    # and the data's estimate combined) is millimetres along the axis, and its farthest
+    # unexcluded solution near, so under the default it is tracked, and right.
     kmap = KeyframeMap()
     kmap.replace_state(synthetic_map)
-    tracker = create_tracker(kmap, options={"track": {"focal_sigma_rel": 0.05}})
     gt = synthetic_scene.query_poses[0]
     prior = Prior(gt @ se3_exp(np.r_[0.006, -0.004, 0.008, 0.0, 0.003, -0.002]),
                   covariance=pose_covariance_from_sigmas(0.01, np.deg2rad(0.3)))
-    tracked = tracker.relocalize(_query(synthetic_scene, 0), prior=prior)
-    assert not tracked.ok and "no better than the prior" in tracked.reason
+    doubting = create_tracker(kmap, options={"track": {"focal_sigma_rel": 0.05,
+                                                       "narrowing": "every direction"}})
+    refused = doubting.relocalize(_query(synthetic_scene, 0), prior=prior)
+    assert not refused.ok and "no better than the prior (every direction)" in refused.reason
     method = create_relocalizer("sbi+p3p", kmap)
     method.train()
-    answer = relocalize_with_prior(method, tracker, _query(synthetic_scene, 0), prior=prior)
+    answer = relocalize_with_prior(method, doubting, _query(synthetic_scene, 0), prior=prior)
     assert answer.ok and answer.method == "sbi+p3p"
-    # With the calibration known to 0.5 % (the default) the same prior is narrowed on
-    # average over the inliers' pixels, but not along the axis (0.5 % of a few metres is
-    # more than the prior's 1 cm), which the default test asks too.
+    tracker = create_tracker(kmap, options={"track": {"focal_sigma_rel": 0.05}})
+    tracked = tracker.relocalize(_query(synthetic_scene, 0), prior=prior)
+    assert tracked.ok and tracked.method == TRACK, tracked.reason
+    dt, dr = pose_error(tracked.world_from_cam, gt)
+    assert dt < 0.005 and dr < np.deg2rad(0.1)
+    assert tracked.covariance[2, 2] < prior.covariance[2, 2]
+    # With the calibration known to 0.5 % (the default) the image average narrows the same
+    # prior too; the decision covariance still not along the axis (0.5 % of a few metres
+    # is more than the prior's 1 cm).
     average = create_tracker(kmap, options={"track": {"narrowing": "image average"}})
     assert average.relocalize(_query(synthetic_scene, 0), prior=prior).ok
-    tracked = create_tracker(kmap).relocalize(_query(synthetic_scene, 0), prior=prior)
-    assert not tracked.ok and "(every direction)" in tracked.reason
+    every = create_tracker(kmap, options={"track": {"narrowing": "every direction"}})
+    refused = every.relocalize(_query(synthetic_scene, 0), prior=prior)
+    assert not refused.ok and "(every direction)" in refused.reason
+    assert create_tracker(kmap).relocalize(_query(synthetic_scene, 0), prior=prior).ok
+
+
+def test_a_solution_the_data_cannot_exclude_beyond_the_priors_sigma_fails_the_default():
+    rng = np.random.default_rng(3)
+    prior = pose_covariance_from_sigmas(0.05, np.deg2rad(2.0))
+    stated = 0.3 * prior
+    direction = np.linalg.cholesky(prior) @ rng.normal(size=6)
+    unit = direction / np.sqrt(direction @ np.linalg.solve(prior, direction))  # 1 prior sigma
+    # The ratio along the far solution's direction is 0.3 + (its prior sigmas)^2.
+    near, far = 0.8 * unit, 0.9 * unit
+    assert abs(largest_variance_ratio(stated_and_unique(stated, near, True), prior)
+               - (0.3 + 0.64)) < 1e-9
+    assert narrower_everywhere(stated_and_unique(stated, near, True), prior)
+    assert not narrower_everywhere(stated_and_unique(stated, far, True), prior)
+    # Where the calibration was not trusted, the stated covariance is the decision's, which
+    # holds the far solution already: it is not counted twice.
+    assert narrower_everywhere(stated_and_unique(stated, far, False), prior)
+    assert narrower_everywhere(stated_and_unique(stated, None, True), prior)
 
 
 def test_a_tracked_pose_sharper_than_its_prior_is_answered(synthetic_scene, synthetic_map):

@@ -11,11 +11,8 @@ from reloc_client.protocol import ErrorCode, ProtocolError
 
 from reloc_service.algorithms.relocalizers.base import Prior
 from reloc_service.algorithms.relocalizers.factory import create_relocalizer, create_tracker
-from reloc_service.algorithms.relocalizers.tracking import (
-    TRACK,
-    TrackingRelocalizer,
-    relocalize_with_prior,
-)
+from reloc_service.algorithms.relocalizers.tracking import TRACK, TrackingRelocalizer
+from reloc_service.algorithms.relocalizers.tracking_fallback import relocalize_with_prior
 from reloc_service.core.errors import ConfigError
 from reloc_service.core.frame import Frame
 from reloc_service.core.geometry import pose_covariance_from_sigmas, pose_error, se3_exp
@@ -222,13 +219,13 @@ def _stated_uncertain(state, sigma_m=0.01, sigma_deg=0.3):
 
 def test_landmarks_of_keyframes_with_pose_errors_are_less_certain(synthetic_scene, synthetic_map):
     from reloc_service.algorithms.pose.landmark_pool import LandmarkPool
-    from reloc_service.algorithms.relocalizers.tracking import _landmark_uncertainty
+    from reloc_service.algorithms.relocalizers.tracking_local_map import landmark_uncertainty
 
     near = synthetic_map.nearest_keyframes(synthetic_scene.query_poses[0], 10, 60.0)
     keyframes = [synthetic_map.keyframes[k] for k in near]
     pool = LandmarkPool.gather(keyframes, "sift")
-    exact = _landmark_uncertainty(pool, synthetic_map, near, keyframes).depth_sigmas_m
-    uncertain = _landmark_uncertainty(pool, _stated_uncertain(synthetic_map), near,
+    exact = landmark_uncertainty(pool, synthetic_map, near, keyframes).depth_sigmas_m
+    uncertain = landmark_uncertainty(pool, _stated_uncertain(synthetic_map), near,
                                       keyframes).depth_sigmas_m
     finite = np.isfinite(exact) & (exact > 0)
     assert finite.sum() > 20
@@ -315,3 +312,27 @@ def test_a_fallback_kind_tracks_where_the_first_kind_refuses(synthetic_scene, sy
 def test_an_unknown_fallback_kind_is_refused():
     with pytest.raises(ConfigError, match="fallback must be one of"):
         TrackingRelocalizer.Conf(fallback="surf")
+
+
+def test_a_tracked_answer_states_the_covariance_the_method_states_for_the_maps_camera(
+        synthetic_scene, synthetic_map):
+    """A query that claims the keyframes' own camera is answered under the map's
+    calibration accuracy, as the method's steps answer it; one claiming another camera (a
+    focal 0.1 % off: nothing vouches for it) with the intrinsics marginalised, wider along
+    the optical axis."""
+    import dataclasses
+
+    tracker = create_tracker(_map_of(synthetic_map))
+    gt = synthetic_scene.query_poses[0]
+    prior = Prior(_perturbed(gt, np.random.default_rng(3)), covariance=COVARIANCE)
+    camera = synthetic_scene.camera
+    other = dataclasses.replace(camera, fx=camera.fx * 1.001, fy=camera.fy * 1.001)
+    image = synthetic_scene.query_images[0]
+    own = tracker.relocalize(Frame(image, camera), prior=prior)
+    foreign = tracker.relocalize(Frame(image, other), prior=prior)
+    assert own.ok and foreign.ok, (own.reason, foreign.reason)
+    assert own.method == foreign.method == TRACK
+    # Along the optical axis (the twist's third component), where the focal moves the pose.
+    assert own.covariance[2, 2] < foreign.covariance[2, 2]
+    dt, dr = pose_error(own.world_from_cam, gt)
+    assert dt < 0.03 and dr < np.deg2rad(1.0)

@@ -14,10 +14,15 @@ from it) holds no admissible focal finds nothing the gate would let through."""
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+
 import numpy as np
 import numpy.typing as npt
 
-from .intrinsics import FOCAL_STARTS
+from ...core.geometry import invert, transform_points
+from .base import PoseEstimate
+from .intrinsics import FOCAL_STARTS, IntrinsicsCheck
 
 Array = npt.NDArray[np.float64]
 
@@ -52,3 +57,17 @@ def axis_variance(prior_covariance: Array, own_covariance: Array | None) -> floa
     if own_covariance is not None:
         total += float(np.asarray(own_covariance, np.float64)[2, 2])
     return total
+
+
+def limit_focal_starts(est: PoseEstimate, prior_covariance: Array, inliers_world: Array,
+                       gate_chi2: float) -> None:
+    """Start ``est``'s intrinsics test only from the focals the prior's gate (``gate_chi2``,
+    6 degrees of freedom) leaves open: a focal error the gate excludes needs no search.
+    The reach is judged at the median depth of the (N, 3) ``inliers_world``."""
+    if est.intrinsics_test is None or len(inliers_world) == 0:
+        return
+    depth = float(np.median(transform_points(invert(est.world_from_cam), inliers_world)[:, 2]))
+    reach = focal_reach(axis_variance(prior_covariance, est.covariance), depth, gate_chi2)
+    # The test is pnp's, which takes its focal starts by keyword.
+    test: Callable[..., IntrinsicsCheck | None] = est.intrinsics_test
+    est.intrinsics_test = functools.partial(test, focal_starts=focal_starts_within(reach))

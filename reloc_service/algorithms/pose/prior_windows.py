@@ -122,3 +122,16 @@ def search_around(feats: Features, camera: Camera, world_from_cam: Array,
     return match_in_windows(feats, windows, np.flatnonzero(visible), map_desc, 1.0,
                             ratio=ratio, background_quantile=background_quantile,
                             background=background)
+
+
+def window_chance(inlier_threshold_px: float | None, areas_px: Array) -> float:
+    """The probability that a wrong match agrees with a pose (inlier threshold
+    ``inlier_threshold_px``) by chance when each match was drawn from its window (areas
+    ``areas_px``) rather than from the whole image: ``pi t^2 / area`` (at most 1) averaged
+    over the matches. The binomial with this mean bounds the tail of the matches'
+    Poisson-binomial count beyond its mean (Hoeffding 1956), which is what the false-alarm
+    test reads."""
+    t = inlier_threshold_px
+    if t is None or len(areas_px) == 0:
+        return 0.0
+    return float(np.mean(np.minimum(np.pi * t * t / np.maximum(areas_px, 1e-12), 1.0)))

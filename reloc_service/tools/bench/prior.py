@@ -93,7 +93,8 @@ def turned_prior(gt_world_from_cam: Array, rng: np.random.Generator) -> Array:
 
 def summarize(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """One run's row: p50, answers, recall, wrong poses, answers near the wrong prior, cov
-    scale (NaN without an answer), answers by the tracking step."""
+    scale (NaN without an answer), answers whose position error lies beyond 3 sigma of
+    their stated covariance, answers by the tracking step."""
     lat = [r["ms"] for r in records]
     return {"n": len(records), "p50_ms": float(np.median(lat)) if lat else None,
             "answered": sum(bool(r["ok"]) for r in records),
@@ -105,6 +106,9 @@ def summarize(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             "near_wrong_prior": sum(r.get("near_prior", False) for r in records),
             "cov_scale": covariance_scale([r.get("mahalanobis", np.nan) for r in records],
                                           [r["ok"] for r in records]) if records else None,
+            # a 3-D Gaussian puts 2.9 % of honest answers there (compare_eval.py's count)
+            "beyond_3_sigma": sum(bool(r["ok"]) and r.get("mahalanobis", 0.0) > 3.0
+                                  for r in records),
             "by_track": sum(r["method"] == TRACK for r in records)}
 
 
