@@ -27,7 +27,7 @@ import numpy.typing as npt
 
 from ..core.errors import MapError
 from .descriptor_pq import PQCodebook
-from .landmark_descriptors import _first_row_of_each, _row_distances
+from .landmark_descriptors import later_row_distances
 
 #: Columns of a kind stored with exact rows: the mask over its code rows, the full rows.
 EXACT_ROWS = "descriptors_exact_rows"
@@ -50,11 +50,9 @@ def exact_threshold(descriptors: list[npt.NDArray[np.uint8]],
     if not len(ids):
         return None
     desc = np.concatenate([np.asarray(d)[h] for d, h in zip(descriptors, has, strict=True)])
-    rows, first = _first_row_of_each(ids)
-    later = rows != first
-    if not later.any():
+    distances = later_row_distances(desc, ids)
+    if not len(distances):
         return None
-    distances = _row_distances(desc, rows[later], first[later])
     return EXACT_SHARE * float(np.median(distances))
 
 
