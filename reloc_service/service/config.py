@@ -212,6 +212,9 @@ class ServiceSection:
     #: sbi+p3p 5 net of the validation repeated-hard_s1's 69 queries)
     #: (:mod:`..storage.descriptor_pq`). "none" by default: "pq" cost one of ten
     #: tum_fr1_rpy queries for the default, bow+p3p and ferns (README, "Map size").
+    #: "pq-hybrid": "pq" codes, and in full the rows whose code's squared error exceeds a
+    #: quarter of the map's median two-view descriptor distance (format 11)
+    #: (:mod:`..storage.descriptor_hybrid`; docs/performance.md, "PQ with exact rows").
     descriptor_codec: str = "none"
     #: Keyframe features on disk: "landmarks" (the keypoints that carry a landmark: all
     #: relocalization reads once the map's methods are trained; a snapshot of a map with an

@@ -34,7 +34,10 @@ SUBSPACES = 32
 #: Sub-quantizers of each PQ codec (``[service] descriptor_codec``): "pq" codes a SIFT
 #: descriptor in 32 bytes (4-value sub-vectors), "pq16" in 16 (8-value sub-vectors, half the
 #: bytes, coarser). A snapshot's codebook records its own M, so a reader needs no codec name.
-CODEC_SUBSPACES = {"pq": SUBSPACES, "pq16": 16}
+CODEC_SUBSPACES = {"pq": SUBSPACES, "pq16": 16, "pq-hybrid": SUBSPACES}
+#: Codecs that keep a row in full where its code's error exceeds the descriptors' own noise
+#: (:mod:`.descriptor_hybrid`; the codebook carries the threshold).
+EXACT_CODECS = ("pq-hybrid",)
 CENTROIDS = 256
 #: Descriptors a codebook is learnt from (64 per centroid; a seeded draw when the map holds
 #: more), and the fewest it is learnt from: below this a k-means of 256 centroids per
@@ -51,6 +54,9 @@ class PQCodebook:
     """(SUBSPACES, 256, D / SUBSPACES) uint8 centroids of a product quantizer of D-dim descriptors."""
 
     centroids: npt.NDArray[np.uint8]
+    #: squared L2 error of a code beyond which its row is also stored in full (None: never;
+    #: :mod:`.descriptor_hybrid`)
+    exact_above: float | None = None
     #: codes of the Features objects already coded (a map saved every few hundred puts codes
     #: each keyframe once, not at every save); gone with the Features
     _memo: weakref.WeakKeyDictionary[Features, npt.NDArray[np.uint8]] = field(

@@ -41,6 +41,7 @@ import numpy.typing as npt
 from ..core.errors import MapError
 from ..core.frame import Features
 from ..core.landmark_table import LandmarkColumns, LandmarkTable
+from .descriptor_hybrid import EXACT, EXACT_ROWS, exact_rank, with_exact
 from .descriptor_pq import (
     DESCRIPTOR_CODES,
     PQCodebook,
@@ -251,6 +252,8 @@ class FeatureColumns:
         #: read, from the landmark ids: :func:`.landmark_descriptors.shared_index`)
         self._shared_index: dict[str, npt.NDArray[np.int64]] = {}
         self._shared_lock = threading.Lock()
+        #: kind -> (code rows,) row of its exact column each masked code row reads
+        self._exact_rank: dict[str, npt.NDArray[np.int64]] = {}
 
     def attach_landmarks(self, landmarks: LandmarkColumns,
                          starts: Mapping[str, tuple[npt.NDArray[np.int64],
@@ -284,10 +287,17 @@ class FeatureColumns:
     def raw(self, kind: str, start: int, stop: int) -> dict[str, np.ndarray]:
         """Rows ``start:stop`` of ``kind``'s columns as stored (no copy), sizes and
         keypoints from their tables where not stored (float32); no derived points."""
-        out = {f: c[start:stop] for f, c in self.columns[kind].items()
-               if f not in ROW_OF and f != OWN_ROWS}
-        for shared in ROW_OF.keys() & self.columns[kind].keys():
-            out[ROW_OF[shared]] = self.columns[kind][shared][self._shared_rows(kind)[start:stop]]
+        cols = self.columns[kind]
+        out = {f: c[start:stop] for f, c in cols.items()
+               if f not in ROW_OF and f not in (OWN_ROWS, EXACT_ROWS, EXACT)}
+        shared = ROW_OF.keys() & cols.keys()
+        for name in shared:
+            out[ROW_OF[name]] = cols[name][self._shared_rows(kind)[start:stop]]
+        if EXACT_ROWS in cols:   # per row: its code row's mask, and the masked rows' exact
+            code_rows = self._shared_rows(kind)[start:stop] if shared else np.arange(start, stop)
+            mask = cols[EXACT_ROWS][code_rows] != 0
+            out[EXACT_ROWS] = mask
+            out[EXACT] = cols[EXACT][self._exact_rows(kind)[code_rows[mask]]]
         if "sizes" not in out:
             out["sizes"] = sizes_from_table(self.tables[kind], out["levels"])
         if "angles" not in out:
@@ -310,6 +320,15 @@ class FeatureColumns:
                 index = self._shared_index.setdefault(kind, index)
         return index
 
+    def _exact_rows(self, kind: str) -> npt.NDArray[np.int64]:
+        """(code rows,) row of ``kind``'s exact column each masked code row reads (once)."""
+        rank = self._exact_rank.get(kind)
+        if rank is None:
+            rank = exact_rank(self.columns[kind][EXACT_ROWS])
+            with self._shared_lock:
+                rank = self._exact_rank.setdefault(kind, rank)
+        return rank
+
     def _own(self, kind: str) -> npt.NDArray[np.bool_] | None:
         """``kind``'s rows that keep their own shared-column descriptor (None: none do)."""
         own = self.columns[kind].get(OWN_ROWS)
@@ -323,6 +342,9 @@ class FeatureColumns:
         arrays = {f: _canonical(f, c) for f, c in self.raw(kind, start, stop).items()}
         if DESCRIPTOR_CODES in arrays:
             arrays["descriptors"] = self.codebooks[kind].decode(arrays.pop(DESCRIPTOR_CODES))
+        if EXACT_ROWS in arrays:
+            arrays["descriptors"] = with_exact(arrays["descriptors"], arrays.pop(EXACT_ROWS),
+                                               arrays.pop(EXACT))
         if DERIVED_FIELD not in arrays:
             arrays[DERIVED_FIELD] = derive_points(self.landmarks, arrays["landmark_ids"])
         for a in arrays.values():

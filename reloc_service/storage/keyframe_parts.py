@@ -19,7 +19,9 @@ stores anyway. So by default (:class:`StoredParts`) a snapshot keeps:
   the first row's);
 - SIFT descriptors: ``"none"`` (in full), ``"pq"`` (product-quantization codes, 32 bytes
   instead of 128, decoded when a keyframe's features are first read: :mod:`.descriptor_pq`)
-  or ``"pq16"`` (16-byte codes, coarser);
+  or ``"pq16"`` (16-byte codes, coarser), or ``"pq-hybrid"`` (``"pq"`` codes, and in full
+  the rows the codes reconstruct worse than the descriptors' own noise allows:
+  :mod:`.descriptor_hybrid`; format 11);
 - a bag-of-words vocabulary's centres (``vocabulary``): ``"float16"`` or ``"uint8"`` (SIFT
   means rounded to SIFT's own integer grid: :meth:`..algorithms.place.vocabulary.VocabularyTree.to_state`
   documents the bound; read by every reloc that reads float16 centres);

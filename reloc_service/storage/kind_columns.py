@@ -13,9 +13,11 @@ import numpy.typing as npt
 from ..core.features import level_scale_factor
 from ..core.frame import Features
 from ..core.landmark_table import LandmarkColumns, LandmarkTable
+from .descriptor_hybrid import EXACT, EXACT_ROWS, exact_threshold, split_exact, with_exact
 from .descriptor_pq import (
     CODEC_SUBSPACES,
     DESCRIPTOR_CODES,
+    EXACT_CODECS,
     PQCodebook,
     descriptor_rows,
     seeded_rows,
@@ -36,7 +38,7 @@ from .feature_columns import (
     points_are_derived,
     sizes_by_level,
 )
-from .landmark_descriptors import share_descriptors
+from .landmark_descriptors import SHARED_CODES, SHARED_DESCRIPTORS, share_descriptors
 from .landmark_rows import keep_rows
 
 
@@ -54,11 +56,12 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     ``keep``: per owner, the mask of its rows stored (None: all; :mod:`.landmark_rows`);
     ``compact``: keypoints in eighths of a pixel, sizes float16; ``shared``: one
     descriptor per landmark (:mod:`.landmark_descriptors`), its rows' medoid's with
-    ``medoid``."""
+    ``medoid``. A codebook with an exact threshold also stores in full the rows its codes
+    reconstruct worse than that (:mod:`.descriptor_hybrid`)."""
     # a part is the rows as a loaded snapshot stored them (never built since), or Features
     parts: list[Features | dict[str, np.ndarray]] = [
         _stored_rows(features, kind) or features[kind] for _, _, features in owners]
-    codes = [descriptor_rows(p, _codebook_of(f, kind), codebook)
+    codes = [_descriptor_rows(p, _codebook_of(f, kind), codebook)
              for p, (_, _, f) in zip(parts, owners, strict=True)]
     fields = [f for f in (*STORED_FIELDS, *DERIVABLE_FIELDS[:2]) if f != "descriptors"]
     if not all(points_are_derived(table, p.landmark_ids, p.points_world)
@@ -68,10 +71,19 @@ def kind_columns(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     columns = {name: _concat([getattr(p, name) if isinstance(p, Features) else p[name]
                               for p in parts]) for name in fields}
     columns["descriptors" if codebook is None else DESCRIPTOR_CODES] = _concat(codes)
+    exact = codebook is not None and codebook.exact_above is not None
+    if exact:   # the full rows ride along through the row selection and the sharing
+        columns["descriptors"] = _concat([_full_rows(p, _codebook_of(f, kind))
+                                          for p, (_, _, f) in zip(parts, owners, strict=True)])
     if keep is not None:
         columns = keep_rows(columns, keep, [len(c) for c in codes])
     if shared:
         columns = share_descriptors(columns, codebook, medoid=medoid)
+    if exact:
+        assert codebook is not None
+        full, coded = (("descriptors", DESCRIPTOR_CODES) if DESCRIPTOR_CODES in columns
+                       else (SHARED_DESCRIPTORS, SHARED_CODES))
+        columns.update(split_exact(columns.pop(full), columns[coded], codebook))
     sizes = sizes_by_level(columns["levels"], columns["sizes"])
     if sizes is not None:
         del columns["sizes"]
@@ -117,18 +129,57 @@ def codebook_for(kind: str, owners: Sequence[tuple[int, int, Mapping[str, Featur
     subspaces = CODEC_SUBSPACES.get(codec)
     if subspaces is None or kind.split("@")[0] != "sift":
         return None
-    key = f"pq{subspaces}:{kind}"
+    exact = codec in EXACT_CODECS
+    key = f"pq{subspaces}{'-exact' if exact else ''}:{kind}"
     for (_, _, features), cache in zip(owners, caches, strict=True):
         codebook = _codebook_of(features, kind) or cache.get(key)
-        if codebook is not None and codebook.subspaces == subspaces:
+        if (codebook is not None and codebook.subspaces == subspaces
+                and (codebook.exact_above is not None) == exact):
             break
     else:
         codebook = train_codebook(seeded_rows([f[kind].descriptors for _, _, f in owners]),
                                   subspaces=subspaces)
+        if codebook is not None and exact:
+            codebook = _with_threshold(codebook, kind, owners)
     if codebook is not None:
         for cache in caches:
             cache[key] = codebook
     return codebook
+
+
+def _with_threshold(codebook: PQCodebook, kind: str,
+                    owners: Sequence[tuple[int, int, Mapping[str, Features]]]) -> PQCodebook:
+    """``codebook`` with its exact threshold measured on the owners' landmark rows (infinite,
+    no row exact, when no landmark has two rows to measure descriptor noise on)."""
+    feats = [f[kind] for _, _, f in owners]
+    threshold = exact_threshold([x.descriptors for x in feats], [x.landmark_ids for x in feats])
+    return PQCodebook(codebook.centroids,
+                      exact_above=float("inf") if threshold is None else threshold)
+
+
+def _descriptor_rows(part: Features | dict[str, np.ndarray], source: PQCodebook | None,
+                     target: PQCodebook | None) -> np.ndarray:
+    """:func:`.descriptor_pq.descriptor_rows`, a loaded snapshot's exact rows included
+    where its codes are not copied as they are."""
+    if isinstance(part, dict) and EXACT_ROWS in part and (target is None or source is not target):
+        full = _full_rows(part, source)
+        return full if target is None else target.encode(full)
+    return descriptor_rows(part, source, target)
+
+
+def _full_rows(part: Features | dict[str, np.ndarray], source: PQCodebook | None
+               ) -> np.ndarray:
+    """A part's descriptors as held: a loaded snapshot's stored codes decoded, with the rows
+    it kept exact."""
+    if isinstance(part, Features):
+        return np.asarray(part.descriptors)
+    if DESCRIPTOR_CODES not in part:
+        return np.asarray(part["descriptors"])
+    assert source is not None, "coded rows come with their codebook"
+    decoded = source.decode(np.asarray(part[DESCRIPTOR_CODES]))
+    if EXACT_ROWS not in part:
+        return decoded
+    return with_exact(decoded, np.asarray(part[EXACT_ROWS], bool), np.asarray(part[EXACT]))
 
 
 def _stored_rows(features: Mapping[str, Features], kind: str) -> dict[str, np.ndarray] | None:

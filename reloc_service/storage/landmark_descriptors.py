@@ -111,6 +111,15 @@ def shared_index(landmark_ids: npt.NDArray[np.integer],
     return rank
 
 
+def later_row_distances(descriptors: np.ndarray, landmark_ids: npt.NDArray[np.integer]
+                        ) -> npt.NDArray[np.float64]:
+    """Distances (:func:`_distances`' units) of each landmark's later rows to its first row:
+    the noise of two views of one patch that :func:`own_rows` measures."""
+    rows, first = _first_row_of_each(landmark_ids)
+    later = rows != first
+    return _row_distances(np.asarray(descriptors), rows[later], first[later])
+
+
 def own_rows(descriptors: np.ndarray, landmark_ids: npt.NDArray[np.integer], *,
              rate: float = OWN_FALSE_ALARM) -> npt.NDArray[np.bool_]:
     """(N,) mask of the rows with a landmark whose ``descriptors`` row differs from its

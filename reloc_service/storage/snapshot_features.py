@@ -15,6 +15,7 @@ from ..core.errors import CameraError, GeometryError, MapError, StorageError
 from ..core.frame import EncodedImage, Features, Keyframe
 from ..core.landmark_rows import LANDMARK_ROWS_ONLY
 from ..core.landmark_table import LandmarkColumns
+from .descriptor_hybrid import EXACT, EXACT_ROWS, EXACT_THRESHOLD, check_exact
 from .descriptor_pq import CODEBOOK, DESCRIPTOR_CODES, PQCodebook
 from .feature_columns import (
     ANGLELESS_KINDS,
@@ -58,7 +59,7 @@ class FeatureColumnsReader:
         codebooks: dict[str, PQCodebook] = {}
         for kind in kinds:
             listed = {f for f in (*DERIVABLE_FIELDS, LEVEL_PIXELS, DESCRIPTOR_CODES,
-                                  EIGHTH_PIXELS, OWN_ROWS, *ROW_OF)
+                                  EIGHTH_PIXELS, OWN_ROWS, *ROW_OF, EXACT_ROWS, EXACT)
                       if stored_as(manifest["files"], f"features/{kind}.{f}") is not None}
             stored = [f for f in STORED_FIELDS
                       if not (f == "keypoints_px" and listed & {LEVEL_PIXELS, EIGHTH_PIXELS})
@@ -81,9 +82,13 @@ class FeatureColumnsReader:
                                        f"{cols[LEVEL_PIXELS].dtype}")
             codes = cols.get(DESCRIPTOR_CODES, cols.get(SHARED_CODES))
             if codes is not None:
-                codebooks[kind] = _codebook(reader, kind, codes)
-            # a shared descriptor column has a row per landmark, not per keypoint
-            lengths = {f: len(c) for f, c in cols.items() if f not in ROW_OF}
+                codebooks[kind] = _codebook(reader, kind, codes, exact=EXACT_ROWS in cols)
+                if EXACT_ROWS in cols:
+                    _check_exact(reader, kind, cols, len(codes))
+            # a shared descriptor column has a row per landmark, not per keypoint; the exact
+            # rows' mask a row per code row, their column one per masked row
+            lengths = {f: len(c) for f, c in cols.items()
+                       if f not in ROW_OF and f not in (EXACT, EXACT_ROWS)}
             if len(set(lengths.values())) != 1:
                 raise StorageError(f"{reader.root}/features/{kind}.*.npy: columns of different "
                                    f"lengths {lengths}; expected one row per keypoint")
@@ -169,15 +174,45 @@ def _entry_depth(reader: SnapshotReader, entry: Mapping[str, Any]) -> np.ndarray
     return reader.npy(rel)
 
 
-def _codebook(reader: SnapshotReader, kind: str, codes: np.ndarray) -> PQCodebook:
-    """The PQ codebook ``kind``'s (N, M) uint8 ``codes`` decode with (checked against them)."""
+def _codebook(reader: SnapshotReader, kind: str, codes: np.ndarray, *, exact: bool = False
+              ) -> PQCodebook:
+    """The PQ codebook ``kind``'s (N, M) uint8 ``codes`` decode with (checked against them),
+    with its exact threshold where its rows keep exact ones (:mod:`.descriptor_hybrid`)."""
     relpath = f"features/{kind}.{CODEBOOK}.npy"
-    codebook = PQCodebook(np.asarray(reader.npy(relpath)))
+    exact_above = _exact_threshold(reader, kind) if exact else None
+    codebook = PQCodebook(np.asarray(reader.npy(relpath)), exact_above=exact_above)
     if codes.dtype != np.uint8 or codes.ndim != 2 or codes.shape[1] != len(codebook.centroids):
         raise StorageError(f"{reader.root}/features/{kind}.{DESCRIPTOR_CODES}.npy: expected "
                            f"(N, {len(codebook.centroids)}) uint8 codes, got {codes.shape} "
                            f"{codes.dtype}")
     return codebook
+
+
+def _exact_threshold(reader: SnapshotReader, kind: str) -> float:
+    """The squared error beyond which ``kind``'s rows were stored exact: a (1,) float64 file."""
+    relpath = f"features/{kind}.{EXACT_THRESHOLD}.npy"
+    if relpath not in reader.files:
+        raise StorageError(f"{reader.root}/features/{kind}.{EXACT_ROWS}: exact rows saved "
+                           f"without their threshold {relpath}")
+    value = np.asarray(reader.npy(relpath))
+    if value.dtype != np.float64 or value.shape != (1,) or not value[0] >= 0:
+        raise StorageError(f"{reader.root / relpath}: expected a (1,) float64 threshold >= 0, "
+                           f"got {value.shape} {value.dtype}")
+    return float(value[0])
+
+
+def _check_exact(reader: SnapshotReader, kind: str, cols: Mapping[str, np.ndarray],
+                 code_rows: int) -> None:
+    """StorageError unless ``kind``'s exact-row mask covers its ``code_rows`` code rows and
+    its exact column holds one descriptor per masked row."""
+    if EXACT not in cols:
+        raise StorageError(f"{reader.root}/features/{kind}.{EXACT_ROWS}: saved without "
+                           f"{kind}.{EXACT}")
+    try:
+        check_exact(f"{reader.root}/features/{kind}", np.asarray(cols[EXACT_ROWS]),
+                    np.asarray(cols[EXACT]), code_rows)
+    except MapError as exc:
+        raise StorageError(str(exc)) from exc
 
 
 def _size_table(reader: SnapshotReader, relpath: str) -> np.ndarray:

@@ -8,16 +8,18 @@ import re
 import numpy as np
 
 FORMAT = "reloc map"
-FORMAT_VERSION = 10
-#: What a snapshot with float16 landmark points is written as (``FORMAT_VERSION``); one
-#: with float32 or float64 points is written as the oldest format that reads the rest:
+FORMAT_VERSION = 11
+#: A snapshot is written as the oldest format that reads what it holds: 11 with exact
+#: descriptor rows beside PQ codes (``FORMAT_VERSION``), 10 with float16 landmark points,
 #: 9 with rows keeping their own descriptor beside shared ones, 8 with shared descriptors,
 #: else 7, so a reloc that reads up to that format still loads it.
+EXACT_ROWS_FORMAT_VERSION = FORMAT_VERSION
+HALF_POINTS_FORMAT_VERSION = 10
 OWN_ROWS_FORMAT_VERSION = 9
 SHARED_FORMAT_VERSION = 8
 UNSHARED_FORMAT_VERSION = 7
 #: Older format versions this reloc still reads.
-READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11)
 MODELS_DIR = "models"
 
 FEATURE_FIELDS = ("keypoints_px", "levels", "sizes", "angles", "descriptors", "landmark_ids",

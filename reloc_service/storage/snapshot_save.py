@@ -22,6 +22,7 @@ from ..core.fileio import fsync_path
 from ..core.frame import Keyframe
 from ..core.landmark_table import LandmarkColumns
 from ..core.map import MapState
+from .descriptor_hybrid import EXACT_ROWS, EXACT_THRESHOLD
 from .descriptor_pq import CODEBOOK
 from .feature_columns import (
     feature_count,
@@ -55,8 +56,9 @@ from .snapshot_files import (
     switch_current,
 )
 from .snapshot_format import (
+    EXACT_ROWS_FORMAT_VERSION,
     FORMAT,
-    FORMAT_VERSION,
+    HALF_POINTS_FORMAT_VERSION,
     LANDMARK_INTEGERS,
     LANDMARK_NARROWER,
     MODELS_DIR,
@@ -147,6 +149,9 @@ def _write_features(writer: SnapshotWriter, keyframes: list[Keyframe], state: Ma
                                 [kf.cache for kf in keyframes if kind in kf.features])
         if codebook is not None:
             writer.write(f"features/{kind}.{CODEBOOK}.npy", _npy_bytes(codebook.centroids))
+        if codebook is not None and codebook.exact_above is not None:
+            writer.write(f"features/{kind}.{EXACT_THRESHOLD}.npy",
+                         _npy_bytes(np.array([codebook.exact_above], np.float64)))
         keep = [masks.get((kf_id, kind)) for kf_id, _, _ in owners]
         for name, column in kind_columns(kind, owners, state.landmarks, landmarks,
                                          codebook, keep, compact=codec != "none",
@@ -281,11 +286,13 @@ def link_duplicate_models(snapshot: Path, files: Mapping[str, Mapping[str, Any]]
 
 
 def _format_version(shared: bool, files: Mapping[str, Any], half_points: bool) -> int:
-    """The oldest format that reads what was written: 10 with float16 landmark points, 9
-    with own-row masks (:data:`.landmark_descriptors.OWN_ROWS`), 8 with shared descriptors,
-    else 7."""
+    """The oldest format that reads what was written: 11 with exact descriptor rows beside
+    PQ codes (:mod:`.descriptor_hybrid`), 10 with float16 landmark points, 9 with own-row
+    masks (:data:`.landmark_descriptors.OWN_ROWS`), 8 with shared descriptors, else 7."""
+    if any(f".{EXACT_ROWS}." in name for name in files):
+        return EXACT_ROWS_FORMAT_VERSION
     if half_points:
-        return FORMAT_VERSION
+        return HALF_POINTS_FORMAT_VERSION
     if not shared:
         return UNSHARED_FORMAT_VERSION
     own = any(f".{OWN_ROWS}." in name for name in files)
