@@ -19,6 +19,7 @@ from scipy import special
 from reloc_service.algorithms.pose.base import PoseEstimate, total_covariance
 from reloc_service.algorithms.pose.intrinsics import IntrinsicsCheck
 from reloc_service.algorithms.pose.intrinsics_agreement import guided_bend_p_value
+from reloc_service.algorithms.relocalizers.base import VerifyConf, stated_covariance
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
 from reloc_service.algorithms.relocalizers.chain_hooks import ANSWERED
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
@@ -33,6 +34,7 @@ from reloc_service.tools.eval.evaluate import (
     record_from_result,
 )
 from reloc_service.tools.eval.inprocess import InProcessBackend, as_a_service_worker
+from reloc_service.tools.eval.metrics import translation_mahalanobis
 from reloc_service.tools.eval.query_camera import QueryCamera
 
 
@@ -113,8 +115,25 @@ def shift_text(est: PoseEstimate, check: IntrinsicsCheck, gt: np.ndarray, truth:
                  f"(decision cov {np.sqrt(float(t @ np.linalg.solve(cov[:3, :3], t))):.1f} sig; "
                  f"sigmas {' '.join(f'{100 * v:.1f}' for v in np.sqrt(np.linalg.eigvalsh(cov[:3, :3])))})")
     cm = lambda v: "(" + " ".join(f"{100 * x:+.1f}" for x in v[:3]) + ")"  # noqa: E731
+    unguided = "" if check.unguided is None else (
+        f" unguided: B*est {cm(b @ check.unguided.theta)} sol-twist "
+        f"{cm(check.unguided.solution.twist)} far {cm(check.unguided.unexcluded_twist)}")
     return (f"err {cm(err)} B*truth {cm(pred)} B*est {cm(own)} sol-twist "
-            f"{cm(check.solution.twist)} far {cm(check.unexcluded_twist)} sigma-along {along} cm")
+            f"{cm(check.solution.twist)} far {cm(check.unexcluded_twist)} sigma-along {along} cm"
+            f"{unguided}")
+
+
+def stated_text(est: PoseEstimate, gt: np.ndarray, truth_covariance: np.ndarray) -> str:
+    """The answer's position Mahalanobis length under its stated covariance without and with
+    the unguided matches' intrinsics envelope (:mod:`.intrinsics_envelope`), as ``reloc
+    eval`` measures it (the ground truth's own uncertainty included)."""
+    lengths = []
+    for flag in (False, True):
+        est.stated_unguided_intrinsics = flag
+        cov = stated_covariance(est, VerifyConf().max_position_sigma_m)
+        lengths.append("-" if cov is None else
+                       f"{translation_mahalanobis(est.world_from_cam, gt, cov, truth_covariance):.1f}")
+    return f"stated sig: without envelope {lengths[0]}, with {lengths[1]}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -171,6 +190,7 @@ def main(argv: list[str] | None = None) -> int:
                           f"{bend_text(check)}")
                     if est is not None and check is not None and rec.returned:
                         print("      " + shift_text(est, check, gt, 1 / args.focal_scale - 1))
+                        print("      " + stated_text(est, gt, truth))
                     if not rec.returned:
                         print(f"      {rec.reason[:200]}")
                     assert isinstance(step, (ChainRelocalizer, MultiRelocalizer))
