@@ -19,6 +19,8 @@ from scipy import special
 from reloc_service.algorithms.pose.base import PoseEstimate, total_covariance
 from reloc_service.algorithms.pose.intrinsics import IntrinsicsCheck
 from reloc_service.algorithms.pose.intrinsics_agreement import guided_bend_p_value
+from reloc_service.algorithms.pose.intrinsics_envelope import intrinsics_moment, positive_part
+from reloc_service.algorithms.pose.intrinsics_power import blind_spot_factor, governing_covariance
 from reloc_service.algorithms.relocalizers.base import VerifyConf, stated_covariance
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
 from reloc_service.algorithms.relocalizers.chain_hooks import ANSWERED
@@ -123,17 +125,62 @@ def shift_text(est: PoseEstimate, check: IntrinsicsCheck, gt: np.ndarray, truth:
             f"{unguided}")
 
 
+def _spread(check: IntrinsicsCheck) -> np.ndarray:
+    """``V + P + (k - 1) W`` of ``check`` (:func:`.intrinsics_envelope.intrinsics_moment`)."""
+    widening = blind_spot_factor(check) - 1.0
+    return check.covariance + check.prior.covariance + widening * governing_covariance(check)
+
+
+def _linear_moment(check: IntrinsicsCheck, shift: np.ndarray) -> np.ndarray:
+    """``B (theta theta^T + V + P + (k - 1) W) B^T``: the moment without the far solution."""
+    return shift @ (np.outer(check.theta, check.theta) + _spread(check)) @ shift.T
+
+
+def _weighted_moment(check: IntrinsicsCheck, shift: np.ndarray) -> np.ndarray:
+    """``sum_i w_i s_i s_i^T + B (V + P + (k - 1) W) B^T``: the solutions the test cannot
+    exclude, weighed by their likelihood ``exp(-LR / 2)``, instead of ``B theta`` and the
+    farthest at weight 1."""
+    best = min(check.solutions, key=lambda s: s.cost)
+    kept = [s for s in check.solutions if check._likelihood_ratio(s, best) <= check._limit]
+    logs = np.array([-0.5 * check._likelihood_ratio(s, best) for s in kept])
+    weights = np.exp(logs - logs.max())
+    weights /= weights.sum()
+    offsets = sum((w * np.outer(s.twist, s.twist) for s, w in zip(kept, weights, strict=True)),
+                  np.zeros((6, 6)))
+    return offsets + shift @ _spread(check) @ shift.T
+
+
+def _variant_widenings(check: IntrinsicsCheck | None) -> dict[str, np.ndarray | None]:
+    """The envelope's widening as committed and two variants the diagnosis compares: the
+    unguided moment without its far solution (``linear``: ``B theta_u`` alone) and with its
+    solutions weighed by their likelihood (``weighted``)."""
+    if check is None or check.unguided is None or not check.passed:
+        return {"linear": None, "weighted": None}
+    shift, whole = check.pose_shift, intrinsics_moment(check, check.pose_shift)
+    return {"linear": positive_part(_linear_moment(check.unguided, shift) - whole),
+            "weighted": positive_part(_weighted_moment(check.unguided, shift) - whole)}
+
+
 def stated_text(est: PoseEstimate, gt: np.ndarray, truth_covariance: np.ndarray) -> str:
     """The answer's position Mahalanobis length under its stated covariance without and with
-    the unguided matches' intrinsics envelope (:mod:`.intrinsics_envelope`), as ``reloc
-    eval`` measures it (the ground truth's own uncertainty included)."""
+    the unguided matches' intrinsics envelope (:mod:`.intrinsics_envelope`), and with the
+    two variants of :func:`_variant_widenings`, as ``reloc eval`` measures it (the ground
+    truth's own uncertainty included)."""
     lengths = []
+
+    def length(cov: np.ndarray | None) -> str:
+        return ("-" if cov is None else
+                f"{translation_mahalanobis(est.world_from_cam, gt, cov, truth_covariance):.1f}")
+
     for flag in (False, True):
         est.stated_unguided_intrinsics = flag
-        cov = stated_covariance(est, VerifyConf().max_position_sigma_m)
-        lengths.append("-" if cov is None else
-                       f"{translation_mahalanobis(est.world_from_cam, gt, cov, truth_covariance):.1f}")
-    return f"stated sig: without envelope {lengths[0]}, with {lengths[1]}"
+        lengths.append(length(stated_covariance(est, VerifyConf().max_position_sigma_m)))
+    est.stated_unguided_intrinsics = False
+    plain = stated_covariance(est, VerifyConf().max_position_sigma_m)
+    variants = {name: length(None if plain is None else plain + (0.0 if w is None else w))
+                for name, w in _variant_widenings(est.intrinsics).items()}
+    return (f"stated sig: without envelope {lengths[0]}, with {lengths[1]} "
+            f"(linear {variants['linear']}, weighted {variants['weighted']})")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -145,6 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--queries", default="", help="comma-separated indices (all: empty)")
     parser.add_argument("--answering-step", action="store_true",
                         help="run the chain, then only the step that answered (not every step)")
+    parser.add_argument("--chain-only", action="store_true",
+                        help="ask the chain alone (its answer), not each step")
     parser.add_argument("--options", default="", help="TOML-like 'section.key=value;...'")
     args = parser.parse_args(argv)
     t_m, r_deg = (float(v) for v in args.keyframe_sigma.split(","))
@@ -171,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
                 image = dataset.load_image(entry)
                 gt = np.array(entry.world_from_cam)
                 camera = claim.claimed(dataset.camera(entry))
-                steps = [chain, *chain.steps]
+                steps = [chain] if args.chain_only else [chain, *chain.steps]
                 if args.answering_step:
                     answer = chain.relocalize(Frame(image, camera, gt_world_from_cam=gt))
                     steps = [s for s in chain.steps if s.method == answer.method]
