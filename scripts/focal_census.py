@@ -192,8 +192,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--queries", default="", help="comma-separated indices (all: empty)")
     parser.add_argument("--answering-step", action="store_true",
                         help="run the chain, then only the step that answered (not every step)")
-    parser.add_argument("--chain-only", action="store_true",
-                        help="ask the chain alone (its answer), not each step")
     parser.add_argument("--options", default="", help="TOML-like 'section.key=value;...'")
     args = parser.parse_args(argv)
     t_m, r_deg = (float(v) for v in args.keyframe_sigma.split(","))
@@ -220,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
                 image = dataset.load_image(entry)
                 gt = np.array(entry.world_from_cam)
                 camera = claim.claimed(dataset.camera(entry))
-                steps = [chain] if args.chain_only else [chain, *chain.steps]
+                steps = [chain, *chain.steps]
                 if args.answering_step:
                     answer = chain.relocalize(Frame(image, camera, gt_world_from_cam=gt))
                     steps = [s for s in chain.steps if s.method == answer.method]
