@@ -19,6 +19,9 @@ from scipy import special
 from reloc_service.algorithms.pose.base import PoseEstimate, total_covariance
 from reloc_service.algorithms.pose.intrinsics import IntrinsicsCheck
 from reloc_service.algorithms.pose.intrinsics_agreement import guided_bend_p_value
+from reloc_service.algorithms.pose.intrinsics_envelope import intrinsics_moment, positive_part
+from reloc_service.algorithms.pose.intrinsics_power import blind_spot_factor, governing_covariance
+from reloc_service.algorithms.relocalizers.base import VerifyConf, stated_covariance
 from reloc_service.algorithms.relocalizers.chain import ChainRelocalizer
 from reloc_service.algorithms.relocalizers.chain_hooks import ANSWERED
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
@@ -33,6 +36,7 @@ from reloc_service.tools.eval.evaluate import (
     record_from_result,
 )
 from reloc_service.tools.eval.inprocess import InProcessBackend, as_a_service_worker
+from reloc_service.tools.eval.metrics import translation_mahalanobis
 from reloc_service.tools.eval.query_camera import QueryCamera
 
 
@@ -113,8 +117,70 @@ def shift_text(est: PoseEstimate, check: IntrinsicsCheck, gt: np.ndarray, truth:
                  f"(decision cov {np.sqrt(float(t @ np.linalg.solve(cov[:3, :3], t))):.1f} sig; "
                  f"sigmas {' '.join(f'{100 * v:.1f}' for v in np.sqrt(np.linalg.eigvalsh(cov[:3, :3])))})")
     cm = lambda v: "(" + " ".join(f"{100 * x:+.1f}" for x in v[:3]) + ")"  # noqa: E731
+    unguided = "" if check.unguided is None else (
+        f" unguided: B*est {cm(b @ check.unguided.theta)} sol-twist "
+        f"{cm(check.unguided.solution.twist)} far {cm(check.unguided.unexcluded_twist)}")
     return (f"err {cm(err)} B*truth {cm(pred)} B*est {cm(own)} sol-twist "
-            f"{cm(check.solution.twist)} far {cm(check.unexcluded_twist)} sigma-along {along} cm")
+            f"{cm(check.solution.twist)} far {cm(check.unexcluded_twist)} sigma-along {along} cm"
+            f"{unguided}")
+
+
+def _spread(check: IntrinsicsCheck) -> np.ndarray:
+    """``V + P + (k - 1) W`` of ``check`` (:func:`.intrinsics_envelope.intrinsics_moment`)."""
+    widening = blind_spot_factor(check) - 1.0
+    return check.covariance + check.prior.covariance + widening * governing_covariance(check)
+
+
+def _linear_moment(check: IntrinsicsCheck, shift: np.ndarray) -> np.ndarray:
+    """``B (theta theta^T + V + P + (k - 1) W) B^T``: the moment without the far solution."""
+    return shift @ (np.outer(check.theta, check.theta) + _spread(check)) @ shift.T
+
+
+def _weighted_moment(check: IntrinsicsCheck, shift: np.ndarray) -> np.ndarray:
+    """``sum_i w_i s_i s_i^T + B (V + P + (k - 1) W) B^T``: the solutions the test cannot
+    exclude, weighed by their likelihood ``exp(-LR / 2)``, instead of ``B theta`` and the
+    farthest at weight 1."""
+    best = min(check.solutions, key=lambda s: s.cost)
+    kept = [s for s in check.solutions if check._likelihood_ratio(s, best) <= check._limit]
+    logs = np.array([-0.5 * check._likelihood_ratio(s, best) for s in kept])
+    weights = np.exp(logs - logs.max())
+    weights /= weights.sum()
+    offsets = sum((w * np.outer(s.twist, s.twist) for s, w in zip(kept, weights, strict=True)),
+                  np.zeros((6, 6)))
+    return offsets + shift @ _spread(check) @ shift.T
+
+
+def _variant_widenings(check: IntrinsicsCheck | None) -> dict[str, np.ndarray | None]:
+    """The envelope's widening as committed and two variants the diagnosis compares: the
+    unguided moment without its far solution (``linear``: ``B theta_u`` alone) and with its
+    solutions weighed by their likelihood (``weighted``)."""
+    if check is None or check.unguided is None or not check.passed:
+        return {"linear": None, "weighted": None}
+    shift, whole = check.pose_shift, intrinsics_moment(check, check.pose_shift)
+    return {"linear": positive_part(_linear_moment(check.unguided, shift) - whole),
+            "weighted": positive_part(_weighted_moment(check.unguided, shift) - whole)}
+
+
+def stated_text(est: PoseEstimate, gt: np.ndarray, truth_covariance: np.ndarray) -> str:
+    """The answer's position Mahalanobis length under its stated covariance without and with
+    the unguided matches' intrinsics envelope (:mod:`.intrinsics_envelope`), and with the
+    two variants of :func:`_variant_widenings`, as ``reloc eval`` measures it (the ground
+    truth's own uncertainty included)."""
+    lengths = []
+
+    def length(cov: np.ndarray | None) -> str:
+        return ("-" if cov is None else
+                f"{translation_mahalanobis(est.world_from_cam, gt, cov, truth_covariance):.1f}")
+
+    for flag in (False, True):
+        est.stated_unguided_intrinsics = flag
+        lengths.append(length(stated_covariance(est, VerifyConf().max_position_sigma_m)))
+    est.stated_unguided_intrinsics = False
+    plain = stated_covariance(est, VerifyConf().max_position_sigma_m)
+    variants = {name: length(None if plain is None else plain + (0.0 if w is None else w))
+                for name, w in _variant_widenings(est.intrinsics).items()}
+    return (f"stated sig: without envelope {lengths[0]}, with {lengths[1]} "
+            f"(linear {variants['linear']}, weighted {variants['weighted']})")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -171,6 +237,7 @@ def main(argv: list[str] | None = None) -> int:
                           f"{bend_text(check)}")
                     if est is not None and check is not None and rec.returned:
                         print("      " + shift_text(est, check, gt, 1 / args.focal_scale - 1))
+                        print("      " + stated_text(est, gt, truth))
                     if not rec.returned:
                         print(f"      {rec.reason[:200]}")
                     assert isinstance(step, (ChainRelocalizer, MultiRelocalizer))

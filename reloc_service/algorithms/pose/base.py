@@ -105,6 +105,11 @@ class PoseEstimate:
     #: scales the pose's own part by in place of the decision's (``intrinsics.dispersion``);
     #: None: the decision's. Read by the stated covariance only, never by a decision.
     stated_dispersion: float | None = None
+    #: Whether the stated covariance of a pose grown by guided matching, where the query
+    #: does not claim the map's calibration, covers what its unguided matches cannot exclude
+    #: about the intrinsics (:func:`.intrinsics_envelope.unguided_widening`; the option
+    #: ``stated_unguided_intrinsics``). Read by the stated covariance only, never by a decision.
+    stated_unguided_intrinsics: bool = False
     #: The cluster-robust covariance of the pose over the coverage grid's cells and their
     #: number (:func:`.cell_sandwich.cell_sandwich`), computed when the answer's covariance
     #: is stated, which widens its measurement part where it exceeds it

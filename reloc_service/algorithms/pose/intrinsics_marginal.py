@@ -32,6 +32,7 @@ import numpy.typing as npt
 from .base import PoseEstimate
 from .cell_sandwich import widened
 from .intrinsics import IntrinsicsCheck, Solution
+from .intrinsics_envelope import unguided_widening
 
 Array = npt.NDArray[np.float64]
 
@@ -135,13 +136,19 @@ def checked_covariance(estimate: PoseEstimate) -> Array | None:
     or was not run: :func:`calibration_trusted_covariance` (under the map's stated
     calibration accuracy) where the query claims the camera of the keyframes behind the
     pose, else its ``covariance`` (the intrinsics marginalised,
-    :func:`.map_consistency.covariance_with_intrinsics`)."""
+    :func:`.map_consistency.covariance_with_intrinsics`), widened where asked
+    (:attr:`.base.PoseEstimate.stated_unguided_intrinsics`) to what the unguided matches
+    of a grown pose cannot exclude (:func:`.intrinsics_envelope.unguided_widening`)."""
     check, trusted = estimate.intrinsics, estimate.covariance_given_intrinsics
     if (estimate.query_camera_is_map_calibration and trusted is not None
             and check is not None and check.passed):
         trusted, check = stated_dispersion_parts(estimate, trusted, check)
         return calibration_trusted_covariance(trusted, check, calibration_prior(estimate, check))
-    return estimate.covariance
+    if estimate.covariance is None or check is None or not estimate.stated_unguided_intrinsics:
+        return estimate.covariance
+    extra = unguided_widening(check)
+    return estimate.covariance if extra is None else np.asarray(estimate.covariance + extra,
+                                                                np.float64)
 
 
 def stated_dispersion_parts(estimate: PoseEstimate, trusted: Array, check: IntrinsicsCheck

@@ -308,6 +308,7 @@ def settle_intrinsics(estimate: PoseEstimate, state: MapState, kind: str, conf: 
             check = check.with_unguided_cell_correlation(correlation.upper)
     if conf.robust_stated_dispersion:
         estimate.stated_dispersion = map_dispersion(state, kind, near, conf, robust=True)
+    estimate.stated_unguided_intrinsics = conf.stated_unguided_intrinsics
     estimate.intrinsics = check
     if check.passed:
         estimate.covariance_given_intrinsics = covariance_with_intrinsics(
