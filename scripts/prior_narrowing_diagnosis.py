@@ -35,11 +35,12 @@ from reloc_service.algorithms.relocalizers.base import (
     stated_covariance,
 )
 from reloc_service.core.frame import Frame
-from reloc_service.core.geometry import invert, pose_covariance_from_sigmas, pose_error, se3_log
+from reloc_service.core.geometry import invert, pose_error, se3_log
 from reloc_service.tools.bench import prior as prior_bench
-from reloc_service.tools.bench.accuracy import eval_default_landmarks, service_default_method
-from reloc_service.tools.data.dataset import read_dataset
 from reloc_service.tools.eval import evaluate as ev
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from prior_track_vs_chain import bench_setup  # noqa: E402  (a sibling script)
 
 AXES = ("x", "y", "z", "rx", "ry", "rz")
 
@@ -88,12 +89,7 @@ def _parts(est: PoseEstimate) -> dict[str, np.ndarray]:
 def diagnose(root: Path, repeats: int, seed: int, keyframe_sigma: tuple[float, float],
              track_options: dict[str, Any], with_chain: bool = False
              ) -> list[dict[str, Any]]:
-    method = service_default_method()
-    dataset, source = read_dataset(root), eval_default_landmarks()
-    backend = ev.InProcessBackend([method], {}, source)
-    covariance = pose_covariance_from_sigmas(prior_bench.SIGMA_M,
-                                             np.deg2rad(prior_bench.SIGMA_DEG))
-    rng = np.random.default_rng(seed)
+    method, dataset, source, backend, covariance, rng = bench_setup(root, seed)
     seen: dict[str, Any] = {}
     real_narrows = tracking.TrackingRelocalizer._narrows
     real_result = tracking.result_from_estimate

@@ -51,14 +51,23 @@ def within_recall(answer: dict[str, Any]) -> bool:
                 and answer["r_deg"] <= prior_bench.RECALL[1])
 
 
-def compare(root: Path, draws: int, seed: int, keyframe_sigma: tuple[float, float]
-            ) -> list[dict[str, Any]]:
+def bench_setup(root: Path, seed: int) -> tuple[str, Any, Any, ev.InProcessBackend,
+                                                np.ndarray, np.random.Generator]:
+    """What both prior diagnostics start from, as ``reloc bench --only prior`` does: the
+    service's default method, the dataset at ``root``, where its landmarks come from, an
+    in-process backend to build its map, the good prior's covariance (5 cm, 2 deg) and the
+    draws' generator."""
     method = service_default_method()
     dataset, source = read_dataset(root), eval_default_landmarks()
     backend = ev.InProcessBackend([method], {}, source)
     covariance = pose_covariance_from_sigmas(prior_bench.SIGMA_M,
                                              np.deg2rad(prior_bench.SIGMA_DEG))
-    rng = np.random.default_rng(seed)
+    return method, dataset, source, backend, covariance, np.random.default_rng(seed)
+
+
+def compare(root: Path, draws: int, seed: int, keyframe_sigma: tuple[float, float]
+            ) -> list[dict[str, Any]]:
+    method, dataset, source, backend, covariance, rng = bench_setup(root, seed)
     rows: list[dict[str, Any]] = []
     try:
         ev._build_map(backend, dataset, source, False, ev.ground_truth_covariance(keyframe_sigma))

@@ -8,6 +8,7 @@ import dataclasses
 
 import numpy as np
 from test_intrinsics_guided import claimed_focal
+from test_intrinsics_marginal import settled_estimate
 from test_pose_intrinsics import POSE, ROOM, correspondences
 
 from reloc_service.algorithms.pose.decision_covariance import decision_covariance
@@ -127,21 +128,11 @@ def test_no_unguided_test_or_a_refusal_adds_nothing():
     assert unguided_widening(refused) is None
 
 
-def _settled(est, check):
-    """``est`` as settling leaves a pose whose query claims another camera than the map's."""
-    est.intrinsics = check
-    est.covariance_given_intrinsics = covariance_with_intrinsics(est.covariance, check,
-                                                                 trusted=True)
-    est.covariance = covariance_with_intrinsics(est.covariance, check)
-    est.query_camera_is_map_calibration = False
-    return est
-
-
 def test_the_answer_states_the_envelope_and_the_decision_does_not_read_it():
     claimed = claimed_focal(ROOM, 1.05)
     px, points = bent_correspondences(ROOM, claimed, np.random.default_rng(1))
     est, check, _ = judged(px, points, claimed, 12)
-    est = _settled(est, check)
+    est = settled_estimate(est, check, map_calibration=False)
     decided = decision_covariance(est, intrinsics_unchecked=False)
     plain = stated_covariance(est, 0.2)
     est.stated_unguided_intrinsics = True

@@ -51,7 +51,7 @@ def test_calibration_errors_from_the_prior_are_covered_as_stated():
     assert np.count_nonzero(np.array(lengths) > 3.0) <= 1
 
 
-def _settled(est, check, *, map_calibration: bool):
+def settled_estimate(est, check, *, map_calibration: bool):
     """``est`` as a pose finder and a relocalizer leave it: judged, and noted whether the
     query claims the map's calibration."""
     est.intrinsics = check
@@ -69,8 +69,8 @@ def test_the_map_calibration_is_trusted_within_its_prior_where_the_query_claims_
     rng = np.random.default_rng(3)
     est, check = _solved(ROOM, 200, 0.5, rng)
     own = check.dispersion * est.covariance
-    mine = _settled(*_solved(ROOM, 200, 0.5, np.random.default_rng(3)), map_calibration=True)
-    other = _settled(est, check, map_calibration=False)
+    mine = settled_estimate(*_solved(ROOM, 200, 0.5, np.random.default_rng(3)), map_calibration=True)
+    other = settled_estimate(est, check, map_calibration=False)
     m, s = intrinsics_posterior(check.theta, check.covariance, check.prior.covariance)
     b = check.pose_shift
     np.testing.assert_allclose(stated_covariance(mine, 0.2),
@@ -111,7 +111,7 @@ def test_map_calibration_answers_are_covered_as_stated():
         est, check = _solved(true_camera, 200, 1.0, rng)
         if not check.passed:
             continue
-        stated = stated_covariance(_settled(est, check, map_calibration=True), 0.2)
+        stated = stated_covariance(settled_estimate(est, check, map_calibration=True), 0.2)
         lengths.append(metrics.translation_mahalanobis(est.world_from_cam, POSE, stated))
     assert len(lengths) >= 45
     scale = metrics.covariance_scale(lengths, [True] * len(lengths))
@@ -128,7 +128,7 @@ def _exact_calibration_lengths(calibration: np.ndarray, seed: int) -> list[float
         est, check = _solved(ROOM, 200, 1.0, rng)
         if not check.passed:
             continue
-        settled = _settled(est, check, map_calibration=True)
+        settled = settled_estimate(est, check, map_calibration=True)
         settled.calibration_covariance = calibration
         lengths.append(metrics.translation_mahalanobis(
             est.world_from_cam, POSE, stated_covariance(settled, 0.2)))
@@ -142,7 +142,7 @@ def test_an_exact_calibration_states_the_pose_at_the_given_camera_alone():
     mixed in; a stated prior adds ``B (S + m m^T) B^T``, whatever the test allowed."""
     est, check = _solved(ROOM, 200, 0.5, np.random.default_rng(3))
     own = check.dispersion * est.covariance
-    settled = _settled(est, check, map_calibration=True)
+    settled = settled_estimate(est, check, map_calibration=True)
     settled.calibration_covariance = np.zeros((2, 2))
     np.testing.assert_allclose(stated_covariance(settled, 0.2), own, rtol=1e-9, atol=1e-15)
     loose = np.diag([0.02**2, 4.0**2])
