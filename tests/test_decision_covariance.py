@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_intrinsics_marginal import _settled, _solved
+from test_intrinsics_marginal import _solved, settled_estimate
 from test_pose_intrinsics import ROOM
 
 from reloc_service.algorithms.pose.base import total_covariance
@@ -26,8 +26,9 @@ from reloc_service.algorithms.relocalizers.base import (
 
 def _pair(seed: int, n: int = 60, noise_px: float = 1.0):
     """One solved pose settled twice: claiming the map's calibration, and another camera."""
-    mine = _settled(*_solved(ROOM, n, noise_px, np.random.default_rng(seed)), map_calibration=True)
-    other = _settled(*_solved(ROOM, n, noise_px, np.random.default_rng(seed)),
+    mine = settled_estimate(*_solved(ROOM, n, noise_px, np.random.default_rng(seed)),
+                            map_calibration=True)
+    other = settled_estimate(*_solved(ROOM, n, noise_px, np.random.default_rng(seed)),
                      map_calibration=False)
     return mine, other
 
