@@ -29,7 +29,7 @@ def _pair(seed: int, n: int = 60, noise_px: float = 1.0):
     mine = settled_estimate(*_solved(ROOM, n, noise_px, np.random.default_rng(seed)),
                             map_calibration=True)
     other = settled_estimate(*_solved(ROOM, n, noise_px, np.random.default_rng(seed)),
-                     map_calibration=False)
+                              map_calibration=False)
     return mine, other
 
 
