@@ -261,18 +261,19 @@ class TrackingRelocalizer(Relocalizer):
         start = _add(timings, "guided", start)
         if grown is not None:
             est, q_idx, m_rows, inliers = grown
-        est.keyframe_ids = pool.keyframes_of(m_rows[inliers], near)
+        inlier_rows = m_rows[inliers]
+        inliers_world = pool.points_world[inlier_rows]
+        est.keyframe_ids = pool.keyframes_of(inlier_rows, near)
         est.inlier_keypoints = q_idx[inliers]
-        est.inlier_landmark_ids = pool.landmark_ids[m_rows[inliers]]
+        est.inlier_landmark_ids = pool.landmark_ids[inlier_rows]
         # The false-alarm test judges the consensus found in the prior's windows, against
         # the chance of agreeing inside a window; what guided matching added around the
         # solved pose agrees with it by construction.
         est.unguided_evidence = seed
-        widen_for_source_keyframes(est, feats.keypoints_px[q_idx[inliers]],
-                                   pool.points_world[m_rows[inliers]], query,
-                                   pool.keyframe_rows[m_rows[inliers]])
+        widen_for_source_keyframes(est, feats.keypoints_px[q_idx[inliers]], inliers_world,
+                                   query, pool.keyframe_rows[inlier_rows])
         est.chance_probability = max(est.chance_probability or 0.0, chance)
-        limit_focal_starts(est, prior.covariance, pool.points_world[m_rows[inliers]],
+        limit_focal_starts(est, prior.covariance, inliers_world,
                            float(stats.chi2.ppf(self.conf.prior_gate_probability, 6)))
         start = time.perf_counter()
         est = settle_pose_errors(est, state, kind, self.conf, est.inlier_landmark_ids)
@@ -286,8 +287,7 @@ class TrackingRelocalizer(Relocalizer):
         if result.ok and not self._within_prior(est, result, prior):
             return self._refuse("the tracked pose lies outside the prior's gate", timings, state,
                                 num_matches=len(q_idx), inliers=int(est.inliers or 0))
-        if result.ok and not self._narrows(query, est, result,
-                                           pool.points_world[m_rows[inliers]], prior.covariance):
+        if result.ok and not self._narrows(query, est, result, inliers_world, prior.covariance):
             # Where this image (its matches and its camera) fixes the pose less well than
             # the prior (along some direction, or for its inliers' pixels on average), the
             # windows chose the matches: the method, which matches without the prior,
