@@ -81,6 +81,8 @@ def test_summarize_by_hand():
     assert s.median_t_err_m == pytest.approx(0.20)
     assert s.median_t_err_over_sigma == pytest.approx(2.0)  # of 0.2, 2 and 6 sigmas
     assert s.covariance_scale == pytest.approx(2.0 / metrics.CHI3_MEDIAN)  # isotropic: alike
+    assert s.beyond_3_sigma == pytest.approx(1 / 3)  # 6 sigmas of 0.2, 2 and 6
+    assert s.covariance_rms_scale == pytest.approx(math.sqrt((0.2**2 + 2**2 + 6**2) / 9))
     assert s.mean_t_err_m == pytest.approx((0.01 + 0.10 + 0.30 + 1.0) / 4)
     assert s.latency_p50_ms == pytest.approx(30.0)
     assert s.latency_p99_ms == pytest.approx(40.0 + 0.96 * 10.0)
@@ -138,7 +140,7 @@ def test_table_rows_and_markdown():
     # cov range: three answers, so the smallest and largest length, holding the true
     # scale with probability 1 - 2 / 2**3.
     assert row == ["fake", "20.0", "40.0", "60.0", "20.00", "0.00", "2.0", "1.30",
-                   "0.13-3.90 (75%)", "40.0", "20.0", "20.0", "30.0", "49.6"]
+                   "0.13-3.90 (75%)", "2.11", "33.3", "40.0", "20.0", "20.0", "30.0", "49.6"]
     table = report.format_table(result)
     assert table.splitlines()[0].split()[:2] == ["method", "@5cm/5deg"]
     assert report.format_markdown(result).count("\n") == 2

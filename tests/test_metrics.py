@@ -128,6 +128,40 @@ def test_covariance_scale_recovers_how_far_the_stated_sigmas_are_off(inflation):
     assert scale == pytest.approx(inflation, rel=0.05)
 
 
+def test_chi3_beyond_3_is_scipys():
+    stats = pytest.importorskip("scipy.stats")
+    assert metrics.CHI3_BEYOND_3 == pytest.approx(stats.chi2.sf(9.0, 3), rel=1e-12)
+
+
+def test_tail_share_and_rms_scale_of_gaussian_and_heavy_tailed_errors():
+    """Gaussian errors under their own covariance: 2.9 % beyond 3 sigma and a second-moment
+    scale of 1. Errors from a multivariate t with 5 degrees of freedom, scaled so that their
+    median length is the Gaussian's: the median scale stays 1 while the tail share and the
+    second-moment scale show the heavy tail (t5's second moment is 5/3 of its scale's)."""
+    rng = np.random.default_rng(11)
+    n = 20000
+    gauss = np.linalg.norm(rng.normal(size=(n, 3)), axis=1)
+    ok = np.ones(n, bool)
+    assert metrics.beyond_sigma_share(gauss, ok) == pytest.approx(metrics.CHI3_BEYOND_3, abs=0.004)
+    assert metrics.covariance_rms_scale(gauss, ok) == pytest.approx(1.0, abs=0.02)
+    t5 = gauss / np.sqrt(rng.chisquare(5, n) / 5)
+    t5 *= metrics.CHI3_MEDIAN / np.median(t5)
+    assert metrics.covariance_scale(t5, ok) == pytest.approx(1.0, abs=1e-9)
+    assert metrics.beyond_sigma_share(t5, ok) > 2 * metrics.CHI3_BEYOND_3
+    assert metrics.covariance_rms_scale(t5, ok) > 1.15
+
+
+def test_tail_share_and_rms_scale_skip_unreturned_and_count_infinite():
+    lengths = [1.0, 4.0, math.nan, 10.0]
+    returned = [True, True, True, False]
+    assert metrics.beyond_sigma_share(lengths, returned) == pytest.approx(0.5)
+    assert metrics.covariance_rms_scale(lengths, returned) == pytest.approx(math.sqrt(17 / 6))
+    assert metrics.beyond_sigma_share([1.0, math.inf], [True, True]) == pytest.approx(0.5)
+    assert metrics.covariance_rms_scale([1.0, math.inf], [True, True]) == math.inf
+    assert math.isnan(metrics.beyond_sigma_share([2.0], [False]))
+    assert math.isnan(metrics.covariance_rms_scale([math.nan], [True]))
+
+
 def test_covariance_scale_skips_unreturned_and_singular():
     singular = np.zeros((6, 6))
     assert metrics.translation_mahalanobis(np.eye(4), np.eye(4), singular) == math.inf

@@ -323,6 +323,8 @@ def summarize(records: Sequence[QueryRecord]) -> MethodSummary:
             t, np.array([math.nan if r.position_sigma_m is None else r.position_sigma_m
                          for r in records]), ok),
         covariance_scale=metrics.covariance_scale(mahalanobis, ok),
+        beyond_3_sigma=metrics.beyond_sigma_share(mahalanobis, ok),
+        covariance_rms_scale=metrics.covariance_rms_scale(mahalanobis, ok),
         **dict(zip(("covariance_scale_low", "covariance_scale_high",
                     "covariance_scale_coverage"),
                    metrics.covariance_scale_interval(mahalanobis, ok), strict=True)))

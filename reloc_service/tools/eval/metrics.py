@@ -122,6 +122,36 @@ def covariance_scale(mahalanobis: npt.ArrayLike, returned: npt.ArrayLike) -> flo
     return float(np.median(d[use]) / CHI3_MEDIAN) if use.any() else math.nan
 
 
+#: Share of 3-D Gaussian errors beyond 3 sigmas of their own covariance (Mahalanobis length
+#: over 3: ``scipy.stats.chi2.sf(9, 3)``): what :func:`beyond_sigma_share` gives for honest
+#: Gaussian answers.
+CHI3_BEYOND_3 = 0.02929088653488826
+
+def beyond_sigma_share(mahalanobis: npt.ArrayLike, returned: npt.ArrayLike,
+                       limit: float = 3.0) -> float:
+    """Share of the returned poses with a covariance whose Mahalanobis length
+    (:func:`translation_mahalanobis`) exceeds ``limit``: the tail the median behind
+    :func:`covariance_scale` does not see (:data:`CHI3_BEYOND_3` for honest Gaussian errors at
+    3). NaN when no returned pose has a length; an infinite length (a singular block) counts
+    as beyond."""
+    (d,), ok = _per_query(returned, d=mahalanobis)
+    d = d[ok & ~np.isnan(d)]
+    return float(np.mean(d > limit)) if len(d) else math.nan
+
+
+def covariance_rms_scale(mahalanobis: npt.ArrayLike, returned: npt.ArrayLike) -> float:
+    """How many times larger the stated position sigmas would have to be for the errors'
+    second moment to match them: ``sqrt(mean(d^2) / 3)`` over the returned poses' Mahalanobis
+    lengths ``d`` (3 is the mean of chi-square with 3 degrees of freedom). A Kalman filter
+    fusing the answers weighs them by their covariance as a second moment, so this is the
+    scale it needs; it exceeds :func:`covariance_scale` where the errors have heavier tails
+    than a Gaussian (a few answers far out, the median honest). NaN when no returned pose has
+    a length; infinite when one is."""
+    (d,), ok = _per_query(returned, d=mahalanobis)
+    d = d[ok & ~np.isnan(d)]
+    return float(np.sqrt(np.mean(d**2) / 3.0)) if len(d) else math.nan
+
+
 def covariance_scale_interval(mahalanobis: npt.ArrayLike, returned: npt.ArrayLike,
                               level: float = 0.95) -> tuple[float, float, float]:
     """(low, high, coverage): a distribution-free confidence interval of

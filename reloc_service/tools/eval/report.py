@@ -18,7 +18,8 @@ _NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?")
 
 _COLUMNS = (["method"]
             + [f"@{t * 100:g}cm/{r:g}deg" for t, r in RECALL_THRESHOLDS]
-            + ["med t cm", "med r deg", "t err/sigma", "cov scale", "cov range", "off %",
+            + ["med t cm", "med r deg", "t err/sigma", "cov scale", "cov range", "cov rms",
+               ">3 sigma %", "off %",
                "wrong %", "not reloc %", "p50 ms", "p99 ms"])
 
 
@@ -48,7 +49,7 @@ def table_rows(result: EvalResult) -> list[list[str]]:
                     + [_pct(s.recall[threshold_key(t, r)]) for t, r in RECALL_THRESHOLDS]
                     + [_num(s.median_t_err_m, 100, 2), _num(s.median_r_err_deg, 1, 2),
                        _num(s.median_t_err_over_sigma, 1, 1), _num(s.covariance_scale, 1, 2),
-                       _range(s),
+                       _range(s), _num(s.covariance_rms_scale, 1, 2), _pct(s.beyond_3_sigma),
                        _pct(s.off_rate), _pct(s.wrong_rate),
                        _pct(s.not_relocalized_rate), _num(s.latency_p50_ms),
                        _num(s.latency_p99_ms)])

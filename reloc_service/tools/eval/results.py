@@ -88,6 +88,12 @@ class MethodSummary:
     covariance_scale_coverage: float = math.nan
     #: Fraction of all queries answered beyond 25 cm / 10 deg (:func:`.metrics.off_rate`).
     off_rate: float = math.nan
+    #: Share of the answers with a covariance more than 3 sigmas off
+    #: (:func:`.metrics.beyond_sigma_share`; 2.9 % for honest Gaussian errors).
+    beyond_3_sigma: float = math.nan
+    #: The scale the stated sigmas need for the errors' second moment
+    #: (:func:`.metrics.covariance_rms_scale`): what a filter fusing the answers needs.
+    covariance_rms_scale: float = math.nan
 
 
 @dataclass
