@@ -1,0 +1,249 @@
+"""Where the default method's answers beyond 3 sigma come from (docs/covariance_tails.md).
+
+    python scripts/covariance_tails.py table EVAL.json... [--plot PNG]
+    python scripts/covariance_tails.py landmarks SYNTH_SET [--out JSON]
+
+``table`` reads ``reloc eval`` JSON files (the first method of each) and prints, per set and
+pooled, the median cov scale, the second-moment scale ``sqrt(mean d^2 / 3)`` and the share
+beyond 3 sigma, fits a multivariate Student t to the pooled Mahalanobis lengths (maximum
+likelihood over the degrees of freedom and the scale: ``d^2 / 3`` is F(3, nu) times the
+scale) and, with ``--plot``, draws their quantiles against chi(3)'s and the fitted t's.
+
+``landmarks`` evaluates a synthetic set (ground-truth depth) with the default method in this
+process and, for every answer, solves its pose again from the same inliers (the PnP
+refinement of :mod:`reloc_service.algorithms.pose.pnp`, from the answer) twice: on the map's
+landmark points and on their ground-truth points (the first observation's pixel lifted with
+the keyframe's true depth). Where the answers beyond 3 sigma come close to the truth on the
+true points, the tail is the map's landmark errors, not the query's keypoints. It also
+relocalizes every keyframe on its landmarks re-triangulated without it
+(:func:`~reloc_service.algorithms.pose.map_consistency.held_out_points`, as the intrinsics
+dispersion does) and scores the position error against its known pose under the PnP model
+covariance: whether the map's own keyframes show the same tail.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import stats
+from scipy.spatial.transform import Rotation
+
+CHI3_MEDIAN = math.sqrt(stats.chi2.ppf(0.5, 3))
+
+
+def _lengths(path: str) -> np.ndarray:
+    queries = json.loads(Path(path).read_text())["methods"][0]["queries"]
+    return np.array([q["t_err_mahalanobis"] for q in queries
+                     if q["returned"] and q.get("t_err_mahalanobis") is not None], np.float64)
+
+
+def _row(name: str, d: np.ndarray) -> str:
+    return (f"| {name} | {len(d)} | {np.median(d) / CHI3_MEDIAN:.2f} | "
+            f"{math.sqrt(np.mean(d**2) / 3):.2f} | {int((d > 3).sum())} ({100 * np.mean(d > 3):.1f} %) |")
+
+
+def fit_t(d: np.ndarray) -> tuple[float, float]:
+    """(nu, scale) of the multivariate t whose ``d^2 / 3 / scale`` is F(3, nu), by maximum
+    likelihood over a grid (nu up to 200: a Gaussian at the top)."""
+    best = (-math.inf, math.nan, math.nan)
+    for nu in (2.5, 3, 3.5, 4, 5, 6, 8, 10, 15, 20, 30, 50, 200):
+        for scale in np.linspace(0.3, 3.0, 271):
+            ll = float(stats.f.logpdf(d**2 / 3 / scale, 3, nu).sum() - len(d) * math.log(scale))
+            if ll > best[0]:
+                best = (ll, float(nu), float(scale))
+    return best[1], best[2]
+
+
+def table(paths: list[str], plot: str | None) -> None:
+    print("| set | answers | cov scale (median) | second-moment scale | beyond 3 sigma |")
+    print("|---|---|---|---|---|")
+    pooled = []
+    for p in paths:
+        d = _lengths(p)
+        pooled.append(d)
+        print(_row(Path(p).stem, d))
+    d = np.concatenate(pooled)
+    print(_row("all", d))
+    nu, scale = fit_t(d)
+    print(f"pooled: Gaussian beyond 3 sigma {100 * stats.chi2.sf(9, 3):.1f} %; fitted t: "
+          f"nu {nu:g}, scale {scale:.2f} (its beyond 3 sigma "
+          f"{100 * stats.f.sf(3 / scale, 3, nu):.1f} %)")
+    if plot:
+        _qq_plot(d, nu, scale, plot)
+
+
+def _qq_plot(d: np.ndarray, nu: float, scale: float, out: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d = np.sort(d)
+    p = (np.arange(len(d)) + 0.5) / len(d)
+    fig, ax = plt.subplots(figsize=(5.5, 5))
+    ax.plot(np.sqrt(stats.chi2.ppf(p, 3)), d, ".", ms=3, label="against chi(3) (Gaussian)")
+    ax.plot(np.sqrt(3 * scale * stats.f.ppf(p, 3, nu)), d, ".", ms=3,
+            label=f"against the fitted t (nu {nu:g}, scale {scale:.2f})")
+    top = float(d.max()) * 1.05
+    ax.plot([0, top], [0, top], "k-", lw=0.8)
+    ax.axhline(3, color="grey", lw=0.6, ls="--")
+    ax.set_xlim(0, top)
+    ax.set_ylim(0, top)
+    ax.set_xlabel("expected Mahalanobis length (quantile)")
+    ax.set_ylabel("answers' Mahalanobis length (sorted)")
+    ax.set_title(f"{len(d)} answers of the default method, 18 sets")
+    ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+
+
+def _pose(seven: list[float]) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, 3] = seven[:3]
+    out[:3, :3] = Rotation.from_quat(seven[3:]).as_matrix()
+    return out
+
+
+def landmarks(dataset: str, out: str | None) -> None:
+    from reloc_service.algorithms.pose import map_consistency as mc
+    from reloc_service.algorithms.pose.pnp import refined_estimate
+    from reloc_service.algorithms.pose.pnp_conf import PnPConf
+    from reloc_service.algorithms.relocalizers import base as relocalizer_base
+    from reloc_service.algorithms.relocalizers import multi
+    from reloc_service.core.mapping import first_observations, lift_pixels, sample_depth
+    from reloc_service.tools.eval import evaluate, inprocess
+
+    truth: dict[int, np.ndarray] = {}
+    held: list[dict[str, Any]] = []
+    seen: dict[str, Any] = {}
+    conf = PnPConf()
+
+    def on_map(backend: Any, data: Any) -> np.ndarray:
+        state = seen["state"] = backend.engine.map.snapshot()
+        for kind in sorted({k for kf in state.keyframes.values() for k in kf.features}):
+            for kf_id, (ids, px) in first_observations(state, kind).items():
+                depth = data.load_truth_depth(data.map_entries[kf_id])
+                if depth is None or not len(ids):
+                    continue
+                kf = state.keyframes[kf_id]
+                z, valid = sample_depth(depth, px, max_jump=0.03)
+                for i, p in zip(ids[valid], lift_pixels(kf.camera, kf.world_from_cam, px[valid],
+                                                        z[valid]), strict=True):
+                    truth.setdefault(int(i), p)
+            held.extend(_held_out(state, kind, conf, mc, refined_estimate))
+        return np.zeros(0)
+
+    answers: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def on_result(estimate: Any, c: Any, **kwargs: Any) -> Any:
+        result = relocalizer_base.result_from_estimate(estimate, c, **kwargs)
+        if estimate.inlier_landmark_ids is not None and estimate.inlier_px is not None:
+            answers.append((estimate.world_from_cam.copy(), np.asarray(estimate.inlier_px),
+                            np.asarray(estimate.inlier_landmark_ids)))
+        return result
+
+    inprocess.InProcessBackend.landmark_errors_m = on_map  # type: ignore[method-assign]
+    multi.result_from_estimate = on_result
+    result = evaluate.evaluate(dataset, "sbi+p3p:orb,sbi+p3p:sift-half,bow+p3p,sbi+p3p",
+                               progress=False)
+    state = seen["state"]
+    camera = next(iter(state.keyframes.values())).camera
+    rows = []
+    for q in result.methods[0].queries:
+        if not q.returned or q.t_err_mahalanobis is None:
+            continue
+        world_from_cam, px, ids = min(answers, key=lambda a: float(np.linalg.norm(
+            a[0][:3, 3] - np.asarray(q.est_world_from_cam[:3]))))
+        known = np.array([int(i) in truth for i in ids])
+        if known.sum() < 8:
+            continue
+        gt = _pose(q.gt_world_from_cam)
+        errors = []
+        for points in (state.landmark_points(ids[known]),
+                       np.array([truth[int(i)] for i in ids[known]])):
+            got = refined_estimate(world_from_cam, px[known].astype(np.float64), points, camera,
+                                   conf)
+            errors.append(math.nan if got is None else
+                          float(np.linalg.norm(got[0].world_from_cam[:3, 3] - gt[:3, 3])))
+        rows.append({"image": q.image_path, "step": q.method_used, "mahalanobis":
+                     q.t_err_mahalanobis, "t_err_m": q.t_err_m, "inliers": int(known.sum()),
+                     "resolved_on_map_m": errors[0], "resolved_on_truth_m": errors[1]})
+    _print_landmarks(rows, held)
+    if out:
+        Path(out).write_text(json.dumps({"answers": rows, "held_out_keyframes": held}, indent=1))
+
+
+def _held_out(state: Any, kind: str, conf: Any, mc: Any, refined_estimate: Any
+              ) -> list[dict[str, Any]]:
+    """Each keyframe relocalized on its ``kind`` landmarks re-triangulated without it: its
+    position error against its known pose and that error's Mahalanobis length under the PnP
+    model covariance."""
+    columns = mc._Columns(state)
+    out = []
+    for kf_id in state.keyframe_ids():
+        kf = state.keyframes[kf_id]
+        feats = kf.features.get(kind)
+        if feats is None:
+            continue
+        observed, rows = mc.held_out_candidates(columns.get(), feats.landmark_ids)
+        points, held = mc.held_out_points(state, columns.get(), rows, kf_id, kind)
+        if held.sum() < mc.MIN_HELD_OUT:
+            continue
+        got = refined_estimate(kf.world_from_cam, feats.keypoints_px[observed[held]]
+                               .astype(np.float64), points[held], kf.camera, conf)
+        if got is None:
+            continue
+        est = got[0]
+        err = est.world_from_cam[:3, :3].T @ (kf.world_from_cam[:3, 3] - est.world_from_cam[:3, 3])
+        length = math.sqrt(float(err @ np.linalg.solve(est.covariance[:3, :3], err)))
+        out.append({"keyframe": int(kf_id), "kind": kind, "inliers": int(est.inliers or 0),
+                    "t_err_m": float(np.linalg.norm(err)), "mahalanobis": length})
+    return out
+
+
+def _print_landmarks(rows: list[dict[str, Any]], held: list[dict[str, Any]]) -> None:
+    rows = sorted(rows, key=lambda r: -r["mahalanobis"])
+    tail = [r for r in rows if r["mahalanobis"] > 3]
+    print("| answer | step | Mahalanobis | error cm | inliers | again on the map's points cm "
+          "| again on the true points cm |")
+    print("|---|---|---|---|---|---|---|")
+    for r in tail:
+        print(f"| {Path(r['image']).name} | {r['step']} | {r['mahalanobis']:.2f} | "
+              f"{100 * r['t_err_m']:.2f} | {r['inliers']} | {100 * r['resolved_on_map_m']:.2f} | "
+              f"{100 * r['resolved_on_truth_m']:.2f} |")
+    for name, part in (("beyond 3 sigma", tail), ("all answers", rows)):
+        on_map = np.array([r["resolved_on_map_m"] for r in part])
+        on_truth = np.array([r["resolved_on_truth_m"] for r in part])
+        if len(part):
+            print(f"{name} ({len(part)}): median error again on the map's points "
+                  f"{100 * np.nanmedian(on_map):.2f} cm, on the true points "
+                  f"{100 * np.nanmedian(on_truth):.2f} cm")
+    for kind in sorted({h["kind"] for h in held}):
+        d = np.array([h["mahalanobis"] for h in held if h["kind"] == kind])
+        print(f"held-out keyframes, {kind}: {len(d)}, cov scale {np.median(d) / CHI3_MEDIAN:.2f}, "
+              f"second-moment scale {math.sqrt(np.mean(d**2) / 3):.2f}, beyond 3 sigma "
+              f"{int((d > 3).sum())} ({100 * np.mean(d > 3):.1f} %)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    t = sub.add_parser("table", help="tails of reloc eval JSON files")
+    t.add_argument("evals", nargs="+")
+    t.add_argument("--plot")
+    lm = sub.add_parser("landmarks", help="answers solved again on true landmark points")
+    lm.add_argument("dataset")
+    lm.add_argument("--out")
+    args = parser.parse_args()
+    if args.command == "table":
+        table(args.evals, args.plot)
+    else:
+        landmarks(args.dataset, args.out)
+
+
+if __name__ == "__main__":
+    main()
