@@ -133,6 +133,8 @@ def test_scores_equal_reloc_eval(tiny_desk):
     assert ours["returned"] == s.relocalized
     assert ours["recall"] == s.recall and ours["wrong_rate"] == s.wrong_rate
     assert ours["median_t_err_m"] == pytest.approx(s.median_t_err_m, rel=1e-9)
+    for key in ("covariance_scale", "covariance_rms_scale", "beyond_3_sigma"):
+        assert ours[key] == pytest.approx(getattr(s, key), nan_ok=True), key
     assert record["landmark_source"] == ev.map.landmark_source
     # the decode + ORB (1000) limit of the same queries, timed in the same run, and the
     # column's p50 over it

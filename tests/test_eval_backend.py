@@ -181,6 +181,22 @@ def test_the_datasets_stated_calibration_is_the_default_in_process():
     assert ev.calibration_to_state(None, None, None) is None
 
 
+def test_benches_state_the_datasets_calibration_as_reloc_eval_does(tmp_path):
+    """`reloc bench`'s accuracy and prior sections build their maps with the options
+    :func:`options_stating_dataset_calibration` gives: the dataset's ``calibration.json``
+    unless the options state a calibration themselves."""
+    from reloc_service.tools.data.dataset import read_dataset
+
+    root = _tiny_dataset(tmp_path / "toy")
+    assert ev.options_stating_dataset_calibration({"p3p": {}}, read_dataset(root)) == {"p3p": {}}
+    (root / "calibration.json").write_text('{"focal_sigma_rel": 0.0, "radial_sigma_px": 0.25}')
+    dataset = read_dataset(root)
+    assert ev.options_stating_dataset_calibration({"p3p": {}}, dataset) == {"p3p": {}, "mapping": {
+        "calibration_focal_sigma_rel": 0.0, "calibration_radial_sigma_px": 0.25}}
+    own = {"mapping": {"calibration_radial_sigma_px": 1.0}}
+    assert ev.options_stating_dataset_calibration(own, dataset) == own
+
+
 def test_a_remote_services_maps_keep_their_configured_calibration(tmp_path, fake_remote):
     """Through a service, the dataset's ``calibration.json`` adds no mapping options (the
     service's configuration sets them, and refuses options from a client)."""

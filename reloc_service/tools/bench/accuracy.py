@@ -61,7 +61,7 @@ NOT_APPLICABLE = "not applicable"
 #: Keys of every column's summary (the JSON schema of one cell).
 SUMMARY_KEYS: tuple[str, ...] = (
     "queries", "returned", "recall", "wrong_rate", "off_rate", "covariance_scale",
-    "returned_rate", "not_relocalized_rate",
+    "covariance_rms_scale", "beyond_3_sigma", "returned_rate", "not_relocalized_rate",
     "median_t_err_m",
     "median_r_err_deg", "p50_ms", "p90_ms", "p99_ms")
 
@@ -258,6 +258,7 @@ def score_dataset(root: Path, methods: Sequence[str], *, show_progress: bool = T
     # reloc eval's own steps (evaluate() without the method loop): the same checks, backend,
     # map building and training, so that the map is the one `reloc eval` scores on.
     ev._check_dataset(dataset, source)
+    options = ev.options_stating_dataset_calibration(options, dataset)
     backend = ev.InProcessBackend(list(methods), {k: dict(v) for k, v in (options or {}).items()},
                                   source)
     try:
@@ -402,7 +403,9 @@ def summary_dict(s: Any) -> dict[str, Any]:
     """The figures of one column from ``reloc eval``'s :class:`MethodSummary`."""
     return {"queries": s.queries, "returned": s.relocalized, "recall": dict(s.recall),
             "wrong_rate": s.wrong_rate, "off_rate": s.off_rate,
-            "covariance_scale": s.covariance_scale, "returned_rate": 1.0 - s.not_relocalized_rate,
+            "covariance_scale": s.covariance_scale,
+            "covariance_rms_scale": s.covariance_rms_scale, "beyond_3_sigma": s.beyond_3_sigma,
+            "returned_rate": 1.0 - s.not_relocalized_rate,
             "not_relocalized_rate": s.not_relocalized_rate,
             "median_t_err_m": s.median_t_err_m, "median_r_err_deg": s.median_r_err_deg,
             "p50_ms": s.latency_p50_ms, "p99_ms": s.latency_p99_ms}

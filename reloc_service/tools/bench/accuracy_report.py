@@ -83,9 +83,8 @@ def detail_lines(section: Mapping[str, Any]) -> list[str]:
     """One row per dataset and column: recalls, wrong and not-relocalized rates, p50 and
     p99, the default's recall gap to ``sbi+p3p`` and the share its first step answered."""
     header = ["dataset", "method", "recall 5cm/5deg", "recall 25cm/10deg", "off", "wrong",
-              "cov scale", "not relocalized", "p50 ms", "p90 ms", "p99 ms", "recall - `sbi+p3p`",
-              "first step",
-              "decode + ORB p50", "p50 / limit"]
+              "cov scale", "cov rms", "beyond 3 sigma", "not relocalized", "p50 ms", "p90 ms",
+              "p99 ms", "recall - `sbi+p3p`", "first step", "decode + ORB p50", "p50 / limit"]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     for name, d in section["datasets"].items():
         if "error" in d:
@@ -102,7 +101,8 @@ def detail_lines(section: Mapping[str, Any]) -> list[str]:
                 f"{name} ({d['keyframes']} / {d['queries']})", column_label(section, c),
                 _pct(r["recall"].get("5cm_5deg")), _pct(r["recall"].get("25cm_10deg")),
                 _pct(r.get("off_rate")), _pct(r["wrong_rate"]),
-                _scale(r.get("covariance_scale")), _pct(r.get("not_relocalized_rate")),
+                _scale(r.get("covariance_scale")), _scale(r.get("covariance_rms_scale")),
+                _pct(r.get("beyond_3_sigma")), _pct(r.get("not_relocalized_rate")),
                 _ms(r["p50_ms"]), _ms(r.get("p90_ms")),
                 _ms(r["p99_ms"]), "-" if gap is None else f"{gap:+.0f} points",
                 "-" if share is None else f"{_pct(share)} by `{first['step']}`",

@@ -147,7 +147,8 @@ def bench_set(root: Path, method: str, *, repeats: int, seed: int,
     dataset = read_dataset(root)
     source = eval_default_landmarks()
     ev._check_dataset(dataset, source)
-    backend = ev.InProcessBackend([method], {}, source)
+    options = ev.options_stating_dataset_calibration(None, dataset) or {}
+    backend = ev.InProcessBackend([method], {k: dict(v) for k, v in options.items()}, source)
     covariance = pose_covariance_from_sigmas(SIGMA_M, np.deg2rad(SIGMA_DEG))
     rng = np.random.default_rng(seed)
     runs: dict[str, list[dict[str, Any]]] = {name: [] for name in RUNS}

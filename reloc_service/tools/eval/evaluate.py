@@ -135,6 +135,15 @@ def calibration_to_state(given: tuple[float, float] | None, options: Mapping[str
     return dataset_states
 
 
+def options_stating_dataset_calibration(options: Mapping[str, Any] | None, dataset: Dataset
+                                        ) -> Mapping[str, Any] | None:
+    """``options`` with the calibration accuracy the map states as ``reloc eval`` sets it
+    without ``--calibration-sigma``: the options' own, else the dataset's
+    ``calibration.json`` (a rendered set states its camera exact)."""
+    return with_calibration_sigma(options, calibration_to_state(None, options,
+                                                                dataset.calibration_sigma))
+
+
 def with_calibration_sigma(options: Mapping[str, Any] | None,
                            calibration_sigma: tuple[float, float] | None
                            ) -> Mapping[str, Any] | None:
