@@ -127,6 +127,7 @@ def covariance_scale(mahalanobis: npt.ArrayLike, returned: npt.ArrayLike) -> flo
 #: Gaussian answers.
 CHI3_BEYOND_3 = 0.02929088653488826
 
+
 def beyond_sigma_share(mahalanobis: npt.ArrayLike, returned: npt.ArrayLike,
                        limit: float = 3.0) -> float:
     """Share of the returned poses with a covariance whose Mahalanobis length
