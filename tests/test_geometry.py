@@ -123,6 +123,24 @@ def test_so3_exp_is_scipys_rotation_to_the_bit():
     assert batch.shape == (1, 3, 3)
 
 
+def test_se3_exp_many_rotations_are_scipys_rotation_to_the_bit():
+    """se3_exp_many's rotations are ``Rotation.from_rotvec(omega).as_matrix()``'s values (it
+    calls the same compiled functions), at every scale of angle, for one twist or many;
+    none gives an empty batch."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(12)
+    for scale in (0.0, 1e-9, 1e-5, 1e-3, 0.1, 1.0, 3.0):
+        for n in (1, 7, 500):
+            twists = rng.normal(size=(n, 6)) * scale
+            poses = g.se3_exp_many(twists)
+            assert np.array_equal(poses[:, :3, :3],
+                                  Rotation.from_rotvec(twists[:, 3:]).as_matrix())
+            np.testing.assert_allclose(poses, np.stack([g.se3_exp(x) for x in twists]),
+                                       rtol=0, atol=1e-12)
+    assert g.se3_exp_many(np.zeros((0, 6))).shape == (0, 4, 4)
+
+
 def test_se3_adjoint_moves_a_twist_across_a_pose():
     """``a_from_b @ exp(xi) @ b_from_a == exp(Ad(a_from_b) xi)``, for one pose and a stack."""
     rng = np.random.default_rng(5)

@@ -57,6 +57,38 @@ def test_the_numpy_and_compiled_window_tests_agree_ties_included():
     assert np.sum(numpy_path[0] == 0) > 10
 
 
+@pytest.mark.parametrize("angle_deg", [0.0, 35.0, 90.0, 150.0])
+def test_long_tilted_gates_keep_every_keypoint_near_their_rim(angle_deg):
+    # Gates 40 sigma long and 1.5 wide, tilted: the compiled pass looks for candidates in
+    # each gate's bounding box, band by band; keypoints at 0.999 and 1.001 of the gate's
+    # Mahalanobis radius along random directions must be kept and left out as the numpy
+    # pairs are.
+    rng = np.random.default_rng(3)
+    n_lm = 60
+    theta = np.deg2rad(angle_deg) + rng.normal(0, 0.2, n_lm)
+    rot = np.stack([np.c_[np.cos(theta), -np.sin(theta)], np.c_[np.sin(theta), np.cos(theta)]],
+                   axis=1)
+    cov = rot @ np.diag([40.0**2, 1.5**2]) @ rot.transpose(0, 2, 1)
+    inv = np.linalg.inv(cov)
+    px = rng.uniform([60, 60], [260, 180], (n_lm, 2))
+    chol = np.linalg.cholesky(cov)
+    unit = rng.normal(size=(n_lm, 6, 2))
+    unit /= np.linalg.norm(unit, axis=2, keepdims=True)
+    reach = np.sqrt(GATE) * np.array([0.999, 1.001, 0.999, 1.001, 0.5, 0.999])
+    keypoints = (px[:, None, :] + np.einsum("lij,lkj->lki", chol, unit * reach[None, :, None])
+                 ).reshape(-1, 2)
+    query = rng.integers(0, 256, (len(keypoints), 32), dtype=np.uint8)
+    landmarks = rng.integers(0, 256, (n_lm, 32), dtype=np.uint8)
+    radius = np.sqrt(GATE * np.linalg.eigvalsh(cov)[:, -1])
+    numpy_path = prior_match._gated_best_numpy(keypoints, query, px, inv, radius, landmarks,
+                                               GATE)
+    chosen = prior_match.gated_best(keypoints, query, px, inv, radius, landmarks, GATE)
+    for a, b in zip(numpy_path, chosen, strict=True):
+        np.testing.assert_array_equal(a, b)
+    # Every landmark has candidates (at least its four inside), some near their rim.
+    assert np.isfinite(numpy_path[1]).all()
+
+
 def test_only_keypoints_inside_the_gate_are_candidates():
     desc = np.random.default_rng(1).integers(0, 256, (2, 32), dtype=np.uint8)
     # The landmark's own descriptor sits just outside its 10 px (1 sigma ~ 3.3 px) gate.

@@ -112,6 +112,12 @@ def _landmark_rows(features: Features) -> npt.NDArray[np.int64]:
     return rows
 
 
+def peek_features(kf: Keyframe, kind: str) -> Features | None:
+    """``kf``'s ``kind`` features, read as :meth:`LandmarkPool.gather` reads them (without
+    keeping them built on a keyframe loaded from a snapshot)."""
+    return _peek(kf, kind)
+
+
 def _peek(kf: Keyframe, kind: str) -> Features | None:
     """``kf``'s ``kind`` features, read without keeping them built on a keyframe loaded from
     a snapshot (a pool reads every keyframe once: kept, they took about 135 MB per 1000

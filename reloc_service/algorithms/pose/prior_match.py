@@ -7,8 +7,9 @@ each: every one of them is a candidate, so the ratio test sees all the confusers
 window. Two paths give the same values: array operations on the candidate pairs (a k-d tree
 lists the pairs within the largest gate's radius, then the gate, the distances and a sort
 by landmark), and, where numba is installed (the ``[jit]`` extra) and the descriptors are
-ORB's, one compiled pass per landmark over the query keypoints that tests the gate before
-it computes a Hamming distance. Ties go to the lowest keypoint index in both.
+ORB's, one compiled pass per landmark over the query keypoints inside its gate's bounding
+box (the keypoints kept in horizontal bands, sorted by x inside each) that tests the gate
+before it computes a Hamming distance. Ties go to the lowest keypoint index in both.
 """
 
 from __future__ import annotations
@@ -45,12 +46,12 @@ def gated_best(keypoints_px: Array, query_desc: npt.NDArray[Any], px: Array, inv
     if kernel is not None and _are_orb_words(query_desc, landmark_desc):
         best, second = np.empty(len(px)), np.empty(len(px))
         index = np.empty(len(px), np.int64)
-        keypoints = np.ascontiguousarray(keypoints_px, np.float64)
-        by_row = np.argsort(keypoints[:, 1], kind="stable").astype(np.int64)
-        radius = np.where(np.isfinite(radius_px), radius_px, -1.0).astype(np.float64)
-        kernel(keypoints, by_row, _words(query_desc), np.ascontiguousarray(px, np.float64),
-               _gate_coefficients(inv_cov), radius, float(gate_chi2), _words(landmark_desc),
-               best, second, index)
+        half_x, half_y = _gate_half_extents(inv_cov, radius_px, gate_chi2)
+        bands = _KeypointBands.of(np.ascontiguousarray(keypoints_px, np.float64), half_y)
+        kernel(bands.keypoints_px, bands.order, bands.x_sorted, bands.starts, bands.y0,
+               bands.height, _words(query_desc), np.ascontiguousarray(px, np.float64),
+               _gate_coefficients(inv_cov), half_x, half_y, float(gate_chi2),
+               _words(landmark_desc), best, second, index)
         return best, second, index
     return _gated_best_numpy(keypoints_px, query_desc, px, inv_cov, radius_px, landmark_desc,
                              gate_chi2)
@@ -122,34 +123,102 @@ def _gate_coefficients(inv_cov: Array) -> Array:
                                          axis=1), np.float64)
 
 
-def _gated_best_hamming(keypoints_px: Array, by_row: npt.NDArray[np.int64], query_words:
-                        npt.NDArray[np.uint64], px: Array, coefficients: Array,
-                        radius_px: Array, gate_chi2: float,
+#: Relative and absolute margins by which a gate's bounding box is widened: rounding in
+#: the box's computation must never drop a keypoint the gate test itself would keep.
+_BOX_MARGIN_REL, _BOX_MARGIN_ABS = 1e-6, 1e-9
+#: Below this ``det / (a c)`` of a gate's quadratic form (a correlation of the two pixel
+#: axes above 0.9999995) the axis extents lose digits to cancellation, and the gate's half
+#: major axis bounds it instead.
+_NEAR_SINGULAR = 1e-6
+
+
+def _gate_half_extents(inv_cov: Array, radius_px: Array, gate_chi2: float
+                       ) -> tuple[Array, Array]:
+    """(L,) half widths and (L,) half heights of the axis-aligned boxes around the gates
+    ``d^T S^-1 d <= gate_chi2``: ``sqrt(gate_chi2 S_xx)`` and ``sqrt(gate_chi2 S_yy)``
+    (``S`` the inverse of ``inv_cov``), widened by the box margins and at most the gate's
+    half major axis ``radius_px`` (with the same margins as the bound it was); -1 where the
+    radius is not finite (no candidate)."""
+    a, b, c = inv_cov[:, 0, 0], inv_cov[:, 0, 1], inv_cov[:, 1, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        det = a * c - b * b
+        sound = (det > _NEAR_SINGULAR * a * c) & (a > 0) & (c > 0)
+        half_x = np.sqrt(gate_chi2 * c / det)
+        half_y = np.sqrt(gate_chi2 * a / det)
+    finite = np.isfinite(radius_px)
+    bound = np.where(finite, radius_px, 0.0) * (1.0 + 1e-9) + 1e-9
+    out = []
+    for half in (half_x, half_y):
+        half = np.where(sound & np.isfinite(half),
+                        half * (1.0 + _BOX_MARGIN_REL) + _BOX_MARGIN_ABS, bound)
+        out.append(np.ascontiguousarray(np.where(finite, np.minimum(half, bound), -1.0)))
+    return out[0], out[1]
+
+
+class _KeypointBands:
+    """Query keypoints in horizontal bands of one height, sorted by x inside each band: a
+    gate's candidates are the keypoints of the bands its box spans, each band's run of x
+    within the box found by bisection, so a gate tests the keypoints of its box rather than
+    those of the whole image's rows it spans. The band height is half the median gate's
+    half height: a box then spans a few bands, and at most one band's height of keypoints
+    above and below it is tested in vain. It changes the cost, never the candidates."""
+
+    def __init__(self, keypoints_px: Array, order: npt.NDArray[np.int64], x_sorted: Array,
+                 starts: npt.NDArray[np.int64], y0: float, height: float) -> None:
+        self.keypoints_px, self.order, self.x_sorted = keypoints_px, order, x_sorted
+        self.starts, self.y0, self.height = starts, y0, height
+
+    @classmethod
+    def of(cls, keypoints_px: Array, half_y: Array) -> _KeypointBands:
+        """The bands of (N, 2) ``keypoints_px`` for gates of half heights ``half_y`` (L,)."""
+        spans = half_y[half_y > 0]
+        height = max(float(np.median(spans)) / 2.0 if len(spans) else 1.0, 1.0)
+        y0 = float(keypoints_px[:, 1].min())
+        band = np.floor((keypoints_px[:, 1] - y0) / height).astype(np.int64)
+        order = np.lexsort((keypoints_px[:, 0], band)).astype(np.int64)
+        starts = np.searchsorted(band[order], np.arange(int(band.max()) + 2)).astype(np.int64)
+        return cls(keypoints_px, order, np.ascontiguousarray(keypoints_px[order, 0]), starts,
+                   y0, height)
+
+
+def _gated_best_hamming(keypoints_px: Array, order: npt.NDArray[np.int64], x_sorted: Array,
+                        starts: npt.NDArray[np.int64], y0: float, height: float,
+                        query_words: npt.NDArray[np.uint64], px: Array, coefficients: Array,
+                        half_x: Array, half_y: Array, gate_chi2: float,
                         landmark_words: npt.NDArray[np.uint64], best: Array, second: Array,
                         index: npt.NDArray[np.int64]) -> None:
-    """The compiled pass of :func:`gated_best` (ORB): per landmark, the keypoints of the rows
-    its gate spans (``by_row``: keypoint indices by ascending y; a gate lies within its half
-    major axis ``radius_px`` of its centre), each one's gate test, and a Hamming distance
-    only for those inside. Of equal distances the lowest keypoint index is the best."""
-    rows_y = keypoints_px[by_row, 1]
+    """The compiled pass of :func:`gated_best` (ORB): per landmark, the keypoints inside its
+    gate's box (:class:`_KeypointBands`: ``order`` keypoint indices by band then x,
+    ``x_sorted`` their x, ``starts`` each band's first position), each one's gate test, and
+    a Hamming distance only for those inside. Of equal distances the lowest keypoint index
+    is the best, whatever order the keypoints are visited in."""
+    last_band = starts.shape[0] - 2
     for r in range(px.shape[0]):
         b, s, f = math.inf, math.inf, -1
         a, c2, c = coefficients[r, 0], coefficients[r, 1], coefficients[r, 2]
         x, y = px[r, 0], px[r, 1]
-        lo = np.searchsorted(rows_y, y - radius_px[r] * (1.0 + 1e-9) - 1e-9, side="left")
-        hi = np.searchsorted(rows_y, y + radius_px[r] * (1.0 + 1e-9) + 1e-9, side="right")
-        for k in range(lo, hi):
-            q = by_row[k]
-            dx, dy = keypoints_px[q, 0] - x, keypoints_px[q, 1] - y
-            if a * dx * dx + 2.0 * c2 * dx * dy + c * dy * dy > gate_chi2:
-                continue
-            dist = 0
-            for t in range(query_words.shape[1]):
-                dist += _popcount64(query_words[q, t] ^ landmark_words[r, t])
-            if dist < b or (dist == b and q < f):
-                b, s, f = float(dist), b, q
-            elif dist < s:
-                s = float(dist)
+        if half_y[r] >= 0:
+            first = max(int(math.floor((y - half_y[r] - y0) / height)), 0)
+            final = min(int(math.floor((y + half_y[r] - y0) / height)), last_band)
+            for band in range(first, final + 1):
+                lo0, hi0 = starts[band], starts[band + 1]
+                if lo0 == hi0:
+                    continue
+                xs = x_sorted[lo0:hi0]
+                lo = lo0 + np.searchsorted(xs, x - half_x[r], side="left")
+                hi = lo0 + np.searchsorted(xs, x + half_x[r], side="right")
+                for k in range(lo, hi):
+                    q = order[k]
+                    dx, dy = keypoints_px[q, 0] - x, keypoints_px[q, 1] - y
+                    if a * dx * dx + 2.0 * c2 * dx * dy + c * dy * dy > gate_chi2:
+                        continue
+                    dist = 0
+                    for t in range(query_words.shape[1]):
+                        dist += _popcount64(query_words[q, t] ^ landmark_words[r, t])
+                    if dist < b or (dist == b and q < f):
+                        b, s, f = float(dist), b, q
+                    elif dist < s:
+                        s = float(dist)
         best[r], second[r], index[r] = b, s, f
 
 
