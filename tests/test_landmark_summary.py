@@ -147,3 +147,15 @@ def test_a_budget_with_every_row_kept_is_refused_by_name():
                                           "than 'all'"):
         ServiceSection(landmark_budget=300, keyframe_descriptors="all")
     assert ServiceSection(landmark_budget=300).stored_parts().landmark_budget == 300
+
+
+@pytest.mark.parametrize("descriptors", ["per-landmark", "per-landmark-medoid"])
+def test_a_summary_composes_with_one_descriptor_a_landmark(tmp_path, synthetic_map, descriptors):
+    budget = _budget(synthetic_map)
+    save_map(synthetic_map, tmp_path, parts=StoredParts(descriptors=descriptors,
+                                                        landmark_budget=budget))
+    state, _ = load_map(tmp_path)
+    assert set(state.landmarks) == _reference_kept(synthetic_map, budget)
+    for lm_id, lm in state.landmarks.items():
+        for kf_id, kind, kp in lm.observations:
+            assert state.keyframes[kf_id].features[kind].landmark_ids[kp] == lm_id
