@@ -12,17 +12,20 @@ A statistic of what answers use, from which a budget is chosen (docs/performance
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 import numpy as np
 
 import reloc_service.algorithms.relocalizers.base as reloc_base
+from reloc_service.engine import Engine
 from reloc_service.storage.landmark_summary import landmark_views, row_ranks
 from reloc_service.tools.eval import evaluate as ev
+from reloc_service.tools.eval.inprocess import InProcessBackend
 
-BUDGETS = (100, 150, 200, 300, 400, 600, 800)
+BUDGETS = (100, 150, 200, 300, 400, 600, 800, 1000)
 
 
-def best_ranks(engine) -> tuple[np.ndarray, np.ndarray]:
+def best_ranks(engine: Engine) -> tuple[np.ndarray, np.ndarray]:
     """(ids, best rank) of every landmark: its best row rank over the keyframes seeing it."""
     state = engine.map.snapshot()
     columns = state.landmarks.columns()
@@ -40,19 +43,22 @@ def best_ranks(engine) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main(args: list[str]) -> None:
-    root, sigma = args[0], tuple(float(v) for v in args[1].split(","))
+    root, (t_sigma, r_sigma) = args[0], (float(v) for v in args[1].split(","))
+    sigma = (t_sigma, r_sigma)
     methods = args[args.index("--") + 1:]
     source, truth_cov = ev.LandmarkSource("auto"), ev.ground_truth_covariance(sigma)
     dataset = ev.read_dataset(root)
     ev._check_dataset(dataset, source)
     backend = ev._make_backend(methods, {}, source, None)
+    assert isinstance(backend, InProcessBackend)   # no remote: the map is in this process
     ev._build_map(backend, dataset, source, False, truth_cov)
     backend.train(progress=False)
     ids, best = best_ranks(backend.engine)
     accepted: list[np.ndarray] = []
     verify = reloc_base.verify
 
-    def recording(estimate, conf):   # the verification, and the inliers it accepted
+    def recording(estimate: Any, conf: Any) -> tuple[bool, str, float]:
+        """The verification's verdict; the inliers of an accepted estimate recorded."""
         ok, reason, confidence = verify(estimate, conf)
         if ok and estimate.inlier_landmark_ids is not None:
             accepted.append(np.asarray(estimate.inlier_landmark_ids, np.int64))
