@@ -9,7 +9,8 @@ and write one ``reloc eval`` JSON per mode (and print kB a keyframe per snapshot
 A mode is ``DESCRIPTORS:CODEC[:RATE][:KEY=VALUE...]``; RATE, the false-alarm rate of the
 own-descriptor test of :mod:`reloc_service.storage.landmark_descriptors` (default its
 ``OWN_FALSE_ALARM``); KEY=VALUE, another field of ``StoredParts`` (``vocabulary=uint8``,
-``landmark_points=float16``), or ``score=no`` to print the sizes only.
+``landmark_points=float16``, ``landmark_budget=300``: digits read as an integer), or
+``score=no`` to print the sizes only.
 One build for every mode: the modes' answers differ by what they store alone."""
 
 from __future__ import annotations
@@ -61,7 +62,8 @@ def main(args: list[str]) -> None:
     name = Path(root).name
     for mode in modes:
         descriptors, codec, *rest = mode.split(":")
-        extra = dict(r.split("=", 1) for r in rest if "=" in r)
+        extra: dict[str, str | int] = {k: int(v) if v.isdigit() else v for k, v in
+                                       (r.split("=", 1) for r in rest if "=" in r)}
         rate = [r for r in rest if "=" not in r]
         score = extra.pop("score", "yes") != "no"
         ld.own_rows.__kwdefaults__["rate"] = float(rate[0]) if rate else ld.OWN_FALSE_ALARM

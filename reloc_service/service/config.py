@@ -234,6 +234,9 @@ class ServiceSection:
     #: where the rounding stays within half of each landmark's uncertainty (format 10: an
     #: older reloc refuses the map, naming the format) (:mod:`..storage.landmark_codec`).
     landmark_points: str = "float32"
+    #: At most this many landmark rows a keyframe and kind on disk, most-seen first, spread
+    #: over the image (0: all) (:mod:`..storage.landmark_summary`).
+    landmark_budget: int = 0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "methods", _str_tuple(self.methods, "service.methods"))
@@ -279,7 +282,8 @@ class ServiceSection:
                                descriptor_codec=self.descriptor_codec,
                                descriptors=self.keyframe_descriptors,
                                vocabulary=self.vocabulary_centres,
-                               landmark_points=self.landmark_points)
+                               landmark_points=self.landmark_points,
+                               landmark_budget=self.landmark_budget)
         except ConfigError as exc:
             raise ConfigError(f"service.{exc}") from None
 

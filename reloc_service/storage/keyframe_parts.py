@@ -27,7 +27,10 @@ stores anyway. So by default (:class:`StoredParts`) a snapshot keeps:
   documents the bound; read by every reloc that reads float16 centres);
 - landmark points (``landmark_points``): ``"float32"`` offsets from their anchor keyframe, or
   ``"float16"`` where the rounding is within a quarter of each landmark's uncertainty
-  (:mod:`.landmark_codec`; a snapshot with float16 points is format 10).
+  (:mod:`.landmark_codec`; a snapshot with float16 points is format 10);
+- landmarks (``landmark_budget``): every one (0), or a summary map's, at most that many of
+  each keyframe's rows of a kind ranked by views and spread (:mod:`.landmark_summary`; the
+  format is unchanged: a summary map is a map with fewer landmarks).
 
 The service's defaults (``[service]`` in the configuration) store landmark rows, in full.
 
@@ -68,6 +71,17 @@ def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
         raise ConfigError(f"{key}: expected one of {', '.join(choices)}, got {value!r}")
 
 
+def _check_budget(budget: object, descriptors: str) -> None:
+    """ConfigError unless ``budget`` is an integer >= 0, and > 0 only with landmark rows (a
+    summary map drops the rows of the landmarks it drops: "all" would keep them)."""
+    if isinstance(budget, bool) or not isinstance(budget, int) or budget < 0:
+        raise ConfigError(f"landmark_budget: expected an integer >= 0 (0: every landmark), "
+                          f"got {budget!r}")
+    if budget > 0 and descriptors == "all":
+        raise ConfigError(f"landmark_budget: expected keyframe_descriptors other than 'all' "
+                          f"with a budget ({budget}): a summary map keeps landmark rows only")
+
+
 #: Keyframe cache entry of the CRC-32 and (H, W) of its pixels (an image's bytes never
 #: change while the keyframe object lives: a replaced keyframe is a new object).
 IMAGE_CRC_KEY = "image:crc32"
@@ -85,6 +99,7 @@ class StoredParts:
     descriptors: str = "all"
     vocabulary: str = "float16"
     landmark_points: str = "float32"
+    landmark_budget: int = 0
 
     def __post_init__(self) -> None:
         _check_choice("keyframe_depth", self.depth, DEPTH_MODES)
@@ -93,6 +108,7 @@ class StoredParts:
         _check_choice("descriptor_codec", self.descriptor_codec, DESCRIPTOR_CODECS)
         _check_choice("vocabulary_centres", self.vocabulary, VOCABULARY_MODES)
         _check_choice("landmark_points", self.landmark_points, POINT_MODES)
+        _check_budget(self.landmark_budget, self.descriptors)
 
     def keeps_images(self, methods_read_images: bool) -> bool:
         """Whether a map whose methods do (or do not) read keyframe pixels stores images."""

@@ -30,21 +30,35 @@ SHARED_MODES = ("per-landmark", "per-landmark-medoid")
 RowMasks = dict[tuple[int, str], npt.NDArray[np.bool_] | None]
 
 
-def row_masks(keyframes: Sequence[Keyframe], mode: str) -> RowMasks:
+def row_masks(keyframes: Sequence[Keyframe], mode: str,
+              kept_ids: npt.NDArray[np.int64] | None = None) -> RowMasks:
     """The rows a snapshot keeps of each keyframe's features under ``mode``: with
     ``"landmarks"`` (or ``"per-landmark"``) the keypoints with a landmark (None where that is
-    every row). A keyframe without any landmark of a kind keeps all its keypoints of that
-    kind: it is not mapped yet (a map's first keyframe, one whose neighbours are still to
-    come), and the keyframes that will see its keypoints make their landmarks from them."""
+    every row), of the landmarks ``kept_ids`` (ascending) only when given (a summary map:
+    :mod:`.landmark_summary`). A keyframe without any landmark of a kind keeps all its
+    keypoints of that kind: it is not mapped yet (a map's first keyframe, one whose
+    neighbours are still to come), and the keyframes that will see its keypoints make their
+    landmarks from them."""
     masks: RowMasks = {}
     for kf in keyframes:
         for kind in kf.features:
             keep = None
             if mode != "all":
-                keep = _landmark_ids(kf.features, kind) >= 0
-                keep = None if keep.all() or not keep.any() else keep
+                ids = _landmark_ids(kf.features, kind)
+                mapped = ids >= 0
+                keep = mapped if kept_ids is None else _is_kept(ids, kept_ids)
+                keep = None if keep.all() or not mapped.any() else keep
             masks[(kf.id, kind)] = keep
     return masks
+
+
+def _is_kept(ids: npt.NDArray[np.integer], kept_ids: npt.NDArray[np.int64]
+             ) -> npt.NDArray[np.bool_]:
+    """(N,) whether each id is one of ``kept_ids`` (ascending; -1 never is)."""
+    if len(kept_ids) == 0:
+        return np.zeros(len(ids), bool)
+    pos = np.clip(np.searchsorted(kept_ids, ids), 0, len(kept_ids) - 1)
+    return (kept_ids[pos] == ids) & (ids >= 0)
 
 
 def landmark_rows_only(keyframes: Sequence[Keyframe], masks: RowMasks) -> list[bool]:

@@ -45,6 +45,7 @@ from .landmark_rows import (
     renumber_observations,
     row_masks,
 )
+from .landmark_summary import kept_landmarks
 from .packed_columns import packed_file
 from .snapshot_files import (
     MANIFEST_FILE,
@@ -227,13 +228,18 @@ def _write_snapshot(state: MapState, snapshot: Path, models: Mapping[str, ModelW
     writer = SnapshotWriter(snapshot)
     # insertion order, kept by load_map: a replica copies the map in the order it was built
     kfs = list(state.keyframes.values())
-    masks = row_masks(kfs, parts.descriptors)
+    held = state.landmarks.columns()
+    kept = None   # every landmark, or a summary map's (:mod:`.landmark_summary`)
+    if parts.landmark_budget > 0:
+        held = held.select(kept_landmarks(kfs, held, parts.landmark_budget))
+        kept = np.asarray(held.ids, np.int64)
+    masks = row_masks(kfs, parts.descriptors, kept)
     rows = _feature_rows(kfs, masks)
     keyframes = [_write_keyframe(writer, kf, rows[kf.id], parts) for kf in kfs]
     for entry, only in zip(keyframes, landmark_rows_only(kfs, masks), strict=True):
         if only:
             entry["landmark_rows_only"] = True
-    columns = renumber_observations(state.landmarks.columns(), masks)
+    columns = renumber_observations(held, masks)
     shared = parts.descriptors in SHARED_MODES
     _write_features(writer, kfs, state, columns, rows, parts.descriptor_codec, masks,
                     shared=shared, medoid=parts.descriptors == "per-landmark-medoid")
