@@ -281,8 +281,10 @@ def test_evaluate_depth_landmarks_and_several_methods(small_desk, tmp_path):
     rgbd = _as_rgbd(small_desk, tmp_path / "desk")
     result = ev.evaluate(rgbd, ["gt+none", "sbi+none"], landmarks="depth", progress=False)
     assert result.map.landmark_source == "depth" and result.map.landmarks > 0
-    # landmarks lifted from the very depth maps they are scored against
+    # landmarks lifted from the very depth maps they are scored against, and kept there
     assert result.map.median_landmark_error_m < 1e-3
+    assert result.map.p90_landmark_error_m < 1e-3
+    assert "90th percentile" in report.format_header(result)
     assert [m.method for m in result.methods] == ["gt+none", "sbi+none"]
     for m in result.to_dict()["methods"]:
         _check_consistent(m)

@@ -347,6 +347,7 @@ def _map_info(backend: Backend, dataset: Dataset, source: LandmarkSource, build_
     errors = (backend.landmark_errors_m(dataset) if dataset.depth or dataset.truth_depth
               else None)
     median = metrics.percentile(errors, 50) if errors is not None else math.nan
+    p90 = metrics.percentile(errors, 90) if errors is not None else math.nan
     return MapInfo(keyframes=n_kf, landmarks=n_lm, landmark_source=source.value,
                    build_time_s=build_s, train_time_s=train_s,
                    median_landmark_error_m=None if math.isnan(median) else median,
@@ -354,7 +355,8 @@ def _map_info(backend: Backend, dataset: Dataset, source: LandmarkSource, build_
                    keyframe_positions_world=[e.world_from_cam[:3, 3].tolist()
                                              for e in dataset.map_entries],
                    landmarks_per_keyframe=None if per_keyframe is None else per_keyframe(),
-                   keyframe_pose_sigma=None if measured is None else measured())
+                   keyframe_pose_sigma=None if measured is None else measured(),
+                   p90_landmark_error_m=None if math.isnan(p90) else p90)
 
 
 def _dataset_info(dataset: Dataset, query_camera: QueryCamera) -> dict[str, Any]:

@@ -91,6 +91,8 @@ def format_header(result: EvalResult) -> str:
     d, mp = result.dataset, result.map
     lm_err = ("" if mp.median_landmark_error_m is None
               else f", median landmark error {100 * mp.median_landmark_error_m:.2f} cm")
+    if mp.median_landmark_error_m is not None and mp.p90_landmark_error_m is not None:
+        lm_err += f" (90th percentile {100 * mp.p90_landmark_error_m:.2f} cm)"
     if mp.landmarks_per_keyframe:
         per_kf = np.asarray(mp.landmarks_per_keyframe)
         lm_err = (f", per keyframe median {np.median(per_kf):.0f} min {per_kf.min()} max "
