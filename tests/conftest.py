@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -240,3 +241,36 @@ def synthetic_map(synthetic_scene):
                                           synthetic_scene.keyframe_poses, strict=True)):
         builder.add_keyframe(i, image, synthetic_scene.camera, pose, timestamp=float(i))
     return kmap.snapshot()
+
+
+@dataclass
+class PanningDepthMap:
+    """Keyframes of a camera panning in place with exact depth, mapped: the keyframes' depth
+    maps (ground truth) and the map built from them."""
+
+    depths: list[npt.NDArray[np.float32]]
+    state: Any  # MapState
+
+
+@pytest.fixture(scope="session")
+def panning_depth_map(synthetic_scene) -> PanningDepthMap:
+    """``synthetic_scene``'s first keyframe turned 0-12 deg about its own y axis in 3 deg steps,
+    each centre within 3 mm of the first (a drone yawing on the spot), rendered with exact
+    depth and mapped with it: nearly parallel rays between every pair of keyframes."""
+    from reloc_service.core.map import KeyframeMap
+    from reloc_service.core.mapping import MapBuilder
+
+    first = synthetic_scene.keyframe_poses[0]
+    rng = np.random.default_rng(0)
+    builder = MapBuilder(KeyframeMap())
+    depths = []
+    for i, yaw in enumerate(np.radians([0.0, 3.0, 6.0, 9.0, 12.0])):
+        turn = np.eye(4)
+        turn[:3, :3] = [[np.cos(yaw), 0.0, np.sin(yaw)], [0.0, 1.0, 0.0],
+                        [-np.sin(yaw), 0.0, np.cos(yaw)]]
+        pose = first @ turn
+        pose[:3, 3] += rng.uniform(-0.003, 0.003, 3)
+        image, depth = synthetic_scene.render(pose)
+        builder.add_keyframe(i, image, synthetic_scene.camera, pose, depth=depth)
+        depths.append(depth)
+    return PanningDepthMap(depths, builder.map.snapshot())

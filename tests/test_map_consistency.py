@@ -13,6 +13,8 @@ from reloc_service.algorithms.pose.map_consistency import (
     _STATISTICS,
     excess_exclusion,
     gated_inliers,
+    held_out_candidates,
+    held_out_points,
     keyframe_statistic,
     map_dispersion,
     prepare_map,
@@ -121,3 +123,24 @@ def test_the_exclusion_test_keeps_the_nominal_count():
     assert not excess_exclusion(3, 300)   # the gate's expected count at 1 %
     assert not excess_exclusion(0, 300)
     assert excess_exclusion(15, 300)      # 5 %: P(X >= 15) is about 1e-6
+
+
+def test_held_out_depth_landmarks_keep_the_point_another_keyframe_measured(panning_depth_map):
+    """On a depth map of a camera panning in place (conftest), a held-out keyframe's
+    landmarks lifted from another keyframe's depth are held at that measured point, and those
+    lifted from its own depth map are left out: re-triangulated from keyframes a few
+    millimetres apart they land anywhere along their rays, and the held-out statistic would
+    read that as the map's own dispersion."""
+    state = panning_depth_map.state
+    cols = state.landmarks.columns()
+    assert np.all(cols.depth_sigmas_m == 0)                 # every landmark from depth
+    kept = own = 0
+    for kf_id in state.keyframe_ids():
+        feats = state.keyframes[kf_id].features["sift"]
+        _, rows = held_out_candidates(cols, feats.landmark_ids)
+        points, held = held_out_points(state, cols, rows, kf_id, "sift")
+        assert np.array_equal(points[held], cols.points_world[rows[held]])
+        kept, own = kept + int(held.sum()), own + int((~held).sum())
+    assert kept > 100 and own > 0     # measured elsewhere; lifted from the keyframe itself
+    dispersion = map_dispersion(state, "sift", state.keyframe_ids(), PnPConf())
+    assert dispersion < 3.0, dispersion

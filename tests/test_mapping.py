@@ -106,8 +106,9 @@ def test_depth_keyframes_make_landmarks_from_depth(synthetic_scene):
 
 
 
+
 class _Depths:
-    """landmark_errors' view of keyframes rendered here: their ground-truth depth maps."""
+    """landmark_errors' view of keyframes rendered in a test: their ground-truth depth maps."""
 
     def __init__(self, depths: list[np.ndarray]) -> None:
         self.map_entries = list(range(len(depths)))
@@ -117,31 +118,17 @@ class _Depths:
         return self.depths[entry]
 
 
-def test_depth_landmarks_keep_their_measured_point_when_seen_again_from_nearby(synthetic_scene):
-    """A camera panning in place with exact depth: every keyframe within 3 mm of the first,
-    turned by a few degrees. Track refinement on the keypoints alone cannot place a point
-    along such nearly parallel rays; a depth landmark, stated exact, must stay where its depth
-    put it (before, refinement slid many metres along their rays)."""
-    first = synthetic_scene.keyframe_poses[0]
-    rng = np.random.default_rng(0)
-    poses = []
-    for yaw in np.radians([0.0, 3.0, 6.0, 9.0, 12.0]):
-        turn = np.eye(4)
-        turn[:3, :3] = np.array([[np.cos(yaw), 0.0, np.sin(yaw)], [0.0, 1.0, 0.0],
-                                 [-np.sin(yaw), 0.0, np.cos(yaw)]])      # about the camera's y
-        pose = first @ turn
-        pose[:3, 3] += rng.uniform(-0.003, 0.003, 3)
-        poses.append(pose)
-    views = [synthetic_scene.render(p) for p in poses]
-    builder = MapBuilder(KeyframeMap())
-    for i, ((image, depth), pose) in enumerate(zip(views, poses, strict=True)):
-        builder.add_keyframe(i, image, synthetic_scene.camera, pose, depth=depth)
-    state = builder.map.snapshot()
+def test_depth_landmarks_keep_their_measured_point_when_seen_again_from_nearby(
+        panning_depth_map):
+    """A camera panning in place with exact depth (conftest): track refinement on the
+    keypoints alone cannot place a point along such nearly parallel rays; a depth landmark,
+    stated exact, must stay where its depth put it (before, refinement slid many landmarks
+    metres along their rays)."""
+    state = panning_depth_map.state
     assert any(len(lm.observations) >= 2 for lm in state.landmarks.values())   # tracks extended
-    errors = landmark_errors(state, _Depths([d for _, d in views]))
+    errors = landmark_errors(state, _Depths(panning_depth_map.depths))
     assert len(errors) > 500
     assert np.percentile(errors, 99) < 1e-3, np.percentile(errors, [50, 90, 99])
-
 
 def test_remove_keyframe_drops_its_observations(synthetic_map):
     kmap = KeyframeMap()

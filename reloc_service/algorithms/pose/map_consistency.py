@@ -261,11 +261,22 @@ def held_out_candidates(cols: LandmarkColumns, landmark_ids: IntArray
     return observed[keep], rows[keep]
 
 
+#: Reprojection error (pixels) under which an observation is the one a landmark stated exact
+#: was lifted from: a point lifted with a depth map reprojects onto its own keypoint to
+#: rounding (1e-13 px measured), any other observation by its keypoint noise (0.016 px at the
+#: first percentile of two RGB-D maps, a tenth of a pixel and more typically).
+SOURCE_REPROJECTION_PX = 1e-6
+
+
 def held_out_points(state: MapState, cols: LandmarkColumns, rows: IntArray, kf_id: int,
-                     kind: str) -> tuple[Array, npt.NDArray[np.bool_]]:
-    """(R, 3) the landmarks of columns ``rows`` triangulated from their ``kind`` observations
-    in keyframes other than ``kf_id`` (midpoint, then the reprojection error refined), and the
-    (R,) mask of those at least two other keyframes observe."""
+                    kind: str) -> tuple[Array, npt.NDArray[np.bool_]]:
+    """(R, 3) the landmarks of columns ``rows`` as known without keyframe ``kf_id``, and the
+    (R,) mask of those known at all: a landmark stated exact (depth sigma 0, lifted from
+    another keyframe's depth map: :func:`_lifted_elsewhere`) at its measured point, which
+    ``kf_id`` did not contribute to; one lifted from ``kf_id``'s own depth map is left out
+    (keypoints seen from nearby cannot place it along its ray); any other triangulated from
+    its ``kind`` observations in at least two other keyframes (midpoint, then the
+    reprojection error refined)."""
     kind_index = cols.kinds.index(kind)
     starts, counts = cols.obs_offsets[rows], np.diff(cols.obs_offsets)[rows]
     owner = np.repeat(np.arange(len(rows)), counts)
@@ -285,7 +296,31 @@ def held_out_points(state: MapState, cols: LandmarkColumns, rows: IntArray, kf_i
     points = triangulate_midpoint(views, len(rows))
     held = (seen >= 2) & np.isfinite(points).all(axis=1)
     points = refine_points(np.where(held[:, None], points, 1.0), views)
-    return points, held & np.isfinite(points).all(axis=1)
+    held &= np.isfinite(points).all(axis=1)
+    exact = cols.depth_sigmas_m[rows] == 0
+    if exact.any():
+        elsewhere = _lifted_elsewhere(cols.points_world[rows], exact, views)
+        points[elsewhere] = cols.points_world[rows[elsewhere]]
+        held = np.where(exact, elsewhere, held)
+    return points, held
+
+
+def _lifted_elsewhere(points_world: Array, exact: npt.NDArray[np.bool_],
+                      views: list[ViewObservations]) -> npt.NDArray[np.bool_]:
+    """(R,) whether each ``exact`` point of (R, 3) ``points_world`` reprojects onto one of its
+    observations in ``views`` (keyframes other than the held-out one) within
+    :data:`SOURCE_REPROJECTION_PX`: that keyframe's depth map measured it."""
+    out = np.zeros(len(points_world), bool)
+    for v in views:
+        sel = exact[v.point_index]
+        if not sel.any():
+            continue
+        owner = v.point_index[sel]
+        px = v.camera.project(transform_points(v.cam_from_world, points_world[owner]))
+        with np.errstate(invalid="ignore"):
+            hit = np.linalg.norm(px - v.pixels_px[sel], axis=1) < SOURCE_REPROJECTION_PX
+        out[owner[hit]] = True
+    return out
 
 
 def settle_intrinsics(estimate: PoseEstimate, state: MapState, kind: str, conf: PnPConf) -> None:
