@@ -2,6 +2,7 @@
 
     python scripts/covariance_tails.py table EVAL.json... [--plot PNG]
     python scripts/covariance_tails.py landmarks SYNTH_SET [--out JSON]
+    python scripts/covariance_tails.py scales BEFORE_DIR AFTER_DIR [--plot PNG]
 
 ``table`` reads ``reloc eval`` JSON files (the first method of each) and prints, per set and
 pooled, the median cov scale, the second-moment scale ``sqrt(mean d^2 / 3)`` and the share
@@ -19,6 +20,10 @@ relocalizes every keyframe on its landmarks re-triangulated without it
 (:func:`~reloc_service.algorithms.pose.map_consistency.held_out_points`, as the intrinsics
 dispersion does) and scores the position error against its known pose under the PnP model
 covariance: whether the map's own keyframes show the same tail.
+
+``scales`` compares two directories of ``reloc eval`` JSON files set by set (the files both
+hold, by name): cov scale, second-moment scale and the share beyond 3 sigma before and after,
+and with ``--plot`` both cov scales per set on a log axis against the 0.67-1.5 band.
 """
 
 from __future__ import annotations
@@ -74,10 +79,47 @@ def table(paths: list[str], plot: str | None) -> None:
           f"nu {nu:g}, scale {scale:.2f} (its beyond 3 sigma "
           f"{100 * stats.f.sf(3 / scale, 3, nu):.1f} %)")
     if plot:
-        _qq_plot(d, nu, scale, plot)
+        _qq_plot(d, nu, scale, plot, len(paths))
 
 
-def _qq_plot(d: np.ndarray, nu: float, scale: float, out: str) -> None:
+def scales(before: str, after: str, plot: str | None) -> None:
+    names = sorted({p.stem for p in Path(before).glob("*.json")}
+                   & {p.stem for p in Path(after).glob("*.json")})
+    print("| set | answers | cov scale | second-moment scale | beyond 3 sigma |")
+    print("|---|---|---|---|---|")
+    rows = []
+    for name in names:
+        b, a = _lengths(f"{before}/{name}.json"), _lengths(f"{after}/{name}.json")
+        rows.append((name, np.median(b) / CHI3_MEDIAN, np.median(a) / CHI3_MEDIAN))
+        print(f"| {name} | {len(b)} -> {len(a)} | {rows[-1][1]:.2f} -> {rows[-1][2]:.2f} | "
+              f"{math.sqrt(np.mean(b**2) / 3):.2f} -> {math.sqrt(np.mean(a**2) / 3):.2f} | "
+              f"{100 * np.mean(b > 3):.1f} % -> {100 * np.mean(a > 3):.1f} % |")
+    if plot:
+        _scales_plot(rows, plot)
+
+
+def _scales_plot(rows: list[tuple[str, float, float]], out: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 0.45 * len(rows) + 1.2))
+    y = np.arange(len(rows))
+    ax.axvspan(0.67, 1.5, color="0.9", label="target band 0.67-1.5")
+    ax.plot([r[1] for r in rows], y, "o", mfc="none", color="C3", label="before")
+    ax.plot([r[2] for r in rows], y, "o", color="C0", label="after")
+    for i, (_, b, a) in enumerate(rows):
+        ax.annotate("", (a, i), (b, i), arrowprops={"arrowstyle": "->", "color": "0.5"})
+    ax.set_xscale("log")
+    ax.set_yticks(y, [r[0] for r in rows])
+    ax.invert_yaxis()
+    ax.set_xlabel("cov scale (1: honest; above: too confident)")
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+
+
+def _qq_plot(d: np.ndarray, nu: float, scale: float, out: str, sets: int) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -95,7 +137,7 @@ def _qq_plot(d: np.ndarray, nu: float, scale: float, out: str) -> None:
     ax.set_ylim(0, top)
     ax.set_xlabel("expected Mahalanobis length (quantile)")
     ax.set_ylabel("answers' Mahalanobis length (sorted)")
-    ax.set_title(f"{len(d)} answers of the default method, 18 sets")
+    ax.set_title(f"{len(d)} answers of the default method, {sets} sets")
     ax.legend(loc="upper left", fontsize=8)
     fig.tight_layout()
     fig.savefig(out, dpi=110)
@@ -118,6 +160,7 @@ def landmarks(dataset: str, out: str | None) -> None:
     from reloc_service.tools.eval import evaluate, inprocess
 
     truth: dict[int, np.ndarray] = {}
+    origin: dict[int, np.ndarray] = {}   # centre of the keyframe a landmark's truth is from
     held: list[dict[str, Any]] = []
     seen: dict[str, Any] = {}
     conf = PnPConf()
@@ -134,6 +177,7 @@ def landmarks(dataset: str, out: str | None) -> None:
                 for i, p in zip(ids[valid], lift_pixels(kf.camera, kf.world_from_cam, px[valid],
                                                         z[valid]), strict=True):
                     truth.setdefault(int(i), p)
+                    origin.setdefault(int(i), kf.position_world)
             held.extend(_held_out(state, kind, conf, mc, refined_estimate))
         return np.zeros(0)
 
@@ -173,6 +217,7 @@ def landmarks(dataset: str, out: str | None) -> None:
                      q.t_err_mahalanobis, "t_err_m": q.t_err_m, "inliers": int(known.sum()),
                      "resolved_on_map_m": errors[0], "resolved_on_truth_m": errors[1]})
     _print_landmarks(rows, held)
+    _print_depth_errors(state, truth, origin)
     if out:
         Path(out).write_text(json.dumps({"answers": rows, "held_out_keyframes": held}, indent=1))
 
@@ -205,6 +250,26 @@ def _held_out(state: Any, kind: str, conf: Any, mc: Any, refined_estimate: Any
     return out
 
 
+def _print_depth_errors(state: Any, truth: dict[int, np.ndarray],
+                        origin: dict[int, np.ndarray]) -> None:
+    """The map's landmark errors along the ray of the keyframe their truth is from: signed
+    (negative: nearer than the truth), and in units of their stated depth sigmas (the median
+    of an honest |error| / sigma is 0.67)."""
+    ids = np.array(sorted(truth), np.int64)
+    if not len(ids):
+        return
+    true = np.array([truth[int(i)] for i in ids])
+    ray = true - np.array([origin[int(i)] for i in ids])
+    ranges = np.linalg.norm(ray, axis=1)
+    along = np.einsum("ij,ij->i", state.landmark_points(ids) - true, ray / ranges[:, None])
+    sigmas = state.landmark_sigmas(ids)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.abs(along) / sigmas
+    print(f"landmarks ({len(ids)}): error along the ray median |{100 * np.median(np.abs(along)):.1f}| cm, "
+          f"signed mean {100 * np.mean(along):.1f} cm at a median range of {np.median(ranges):.2f} m; "
+          f"|error| / stated sigma median {np.median(z[np.isfinite(z)]):.2f} (0.67 honest)")
+
+
 def _print_landmarks(rows: list[dict[str, Any]], held: list[dict[str, Any]]) -> None:
     rows = sorted(rows, key=lambda r: -r["mahalanobis"])
     tail = [r for r in rows if r["mahalanobis"] > 3]
@@ -235,12 +300,18 @@ def main() -> None:
     t = sub.add_parser("table", help="tails of reloc eval JSON files")
     t.add_argument("evals", nargs="+")
     t.add_argument("--plot")
+    sc = sub.add_parser("scales", help="cov scales of two directories of reloc eval JSON")
+    sc.add_argument("before")
+    sc.add_argument("after")
+    sc.add_argument("--plot")
     lm = sub.add_parser("landmarks", help="answers solved again on true landmark points")
     lm.add_argument("dataset")
     lm.add_argument("--out")
     args = parser.parse_args()
     if args.command == "table":
         table(args.evals, args.plot)
+    elif args.command == "scales":
+        scales(args.before, args.after, args.plot)
     else:
         landmarks(args.dataset, args.out)
 
