@@ -271,45 +271,56 @@ SOURCE_REPROJECTION_PX = 1e-6
 def held_out_points(state: MapState, cols: LandmarkColumns, rows: IntArray, kf_id: int,
                     kind: str) -> tuple[Array, npt.NDArray[np.bool_]]:
     """(R, 3) the landmarks of columns ``rows`` as known without keyframe ``kf_id``, and the
-    (R,) mask of those known at all: a landmark stated exact (depth sigma 0, lifted from
-    another keyframe's depth map: :func:`_lifted_elsewhere`) at its measured point, which
-    ``kf_id`` did not contribute to; one lifted from ``kf_id``'s own depth map is left out
-    (keypoints seen from nearby cannot place it along its ray); any other triangulated from
-    its ``kind`` observations in at least two other keyframes (midpoint, then the
-    reprojection error refined)."""
+    (R,) mask of those known at all: a landmark lifted from another keyframe's depth map
+    (stated exact, depth sigma 0, and reprojecting onto that keyframe's keypoint:
+    :func:`_lifted_in`) at its measured point, which ``kf_id`` did not contribute to; one
+    lifted from ``kf_id``'s own depth map left out (keypoints seen from nearby cannot place
+    it along its ray); any other triangulated from its ``kind`` observations in at least two
+    other keyframes (midpoint, then the reprojection error refined)."""
     kind_index = cols.kinds.index(kind)
     starts, counts = cols.obs_offsets[rows], np.diff(cols.obs_offsets)[rows]
     owner = np.repeat(np.arange(len(rows)), counts)
     run = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
     other_kf, obs_kind, keypoint = cols.obs_keyframe[run], cols.obs_kind[run], cols.obs_keypoint[run]
-    use = (obs_kind == kind_index) & (other_kf != kf_id) & np.isin(other_kf, state.keyframe_ids())
-    owner, other_kf, keypoint = owner[use], other_kf[use], keypoint[use]
-    views = []
-    for k in np.unique(other_kf).tolist():
-        sel = other_kf == k
-        kf = state.keyframes[k]
-        f = kf.features[kind]
-        views.append(ViewObservations(kf.camera, invert(kf.world_from_cam), owner[sel],
-                                      f.keypoints_px[keypoint[sel]].astype(np.float64),
-                                      keypoint_sigmas(f)[keypoint[sel]]))
-    seen = np.bincount(owner, minlength=len(rows))
+    of_kind = (obs_kind == kind_index) & np.isin(other_kf, state.keyframe_ids())
+    views = _views(state, kind, owner, other_kf, keypoint, of_kind & (other_kf != kf_id))
+    seen = np.bincount(owner[of_kind & (other_kf != kf_id)], minlength=len(rows))
     points = triangulate_midpoint(views, len(rows))
     held = (seen >= 2) & np.isfinite(points).all(axis=1)
     points = refine_points(np.where(held[:, None], points, 1.0), views)
     held &= np.isfinite(points).all(axis=1)
     exact = cols.depth_sigmas_m[rows] == 0
     if exact.any():
-        elsewhere = _lifted_elsewhere(cols.points_world[rows], exact, views)
-        points[elsewhere] = cols.points_world[rows[elsewhere]]
-        held = np.where(exact, elsewhere, held)
+        measured = cols.points_world[rows]
+        elsewhere = _lifted_in(measured, exact, views)
+        here = _lifted_in(measured, exact & ~elsewhere,
+                          _views(state, kind, owner, other_kf, keypoint,
+                                 of_kind & (other_kf == kf_id)))
+        points[elsewhere] = measured[elsewhere]
+        held = (held | elsewhere) & ~here
     return points, held
 
 
-def _lifted_elsewhere(points_world: Array, exact: npt.NDArray[np.bool_],
-                      views: list[ViewObservations]) -> npt.NDArray[np.bool_]:
+def _views(state: MapState, kind: str, owner: IntArray, keyframe: IntArray, keypoint: IntArray,
+           use: npt.NDArray[np.bool_]) -> list[ViewObservations]:
+    """The observations ``use`` of points ``owner`` (keypoint ``keypoint`` of ``kind`` in
+    keyframe ``keyframe``), one view a keyframe."""
+    views = []
+    for k in np.unique(keyframe[use]).tolist():
+        sel = use & (keyframe == k)
+        kf = state.keyframes[k]
+        f = kf.features[kind]
+        views.append(ViewObservations(kf.camera, invert(kf.world_from_cam), owner[sel],
+                                      f.keypoints_px[keypoint[sel]].astype(np.float64),
+                                      keypoint_sigmas(f)[keypoint[sel]]))
+    return views
+
+
+def _lifted_in(points_world: Array, exact: npt.NDArray[np.bool_],
+               views: list[ViewObservations]) -> npt.NDArray[np.bool_]:
     """(R,) whether each ``exact`` point of (R, 3) ``points_world`` reprojects onto one of its
-    observations in ``views`` (keyframes other than the held-out one) within
-    :data:`SOURCE_REPROJECTION_PX`: that keyframe's depth map measured it."""
+    observations in ``views`` within :data:`SOURCE_REPROJECTION_PX`: that keyframe's depth
+    map measured it."""
     out = np.zeros(len(points_world), bool)
     for v in views:
         sel = exact[v.point_index]
