@@ -27,9 +27,9 @@ from reloc_service.service.config import parse_config
 class FakeDataset:
     """What landmark_errors needs of a Dataset: map entries and their depth maps."""
 
-    def __init__(self, scene: SyntheticScene) -> None:
-        self.map_entries = list(range(len(scene.keyframe_depths)))
-        self.depths = scene.keyframe_depths
+    def __init__(self, depths: list[np.ndarray]) -> None:
+        self.map_entries = list(range(len(depths)))
+        self.depths = depths
 
     def load_truth_depth(self, entry: int) -> np.ndarray:
         return self.depths[entry]
@@ -44,7 +44,8 @@ def _build(scene: SyntheticScene, conf: MappingConf | None = None, ids=None, **k
 
 
 def test_synthetic_map_is_accurate(synthetic_scene, synthetic_map):
-    errors, ranges = landmark_errors(synthetic_map, FakeDataset(synthetic_scene), return_range=True)
+    errors, ranges = landmark_errors(synthetic_map, FakeDataset(synthetic_scene.keyframe_depths),
+                                     return_range=True)
     assert len(errors) > 0.95 * len(synthetic_map.landmarks) > 500
     assert np.median(errors) < 0.004          # ~2 m range, 320x240, f = 250 px
     assert np.mean(errors < 0.03) > 0.95
@@ -55,7 +56,7 @@ def test_synthetic_map_is_accurate(synthetic_scene, synthetic_map):
 
 def test_radtan_map_is_accurate(synthetic_scene_radtan):
     builder = _build(synthetic_scene_radtan)
-    errors = landmark_errors(builder.map.snapshot(), FakeDataset(synthetic_scene_radtan))
+    errors = landmark_errors(builder.map.snapshot(), FakeDataset(synthetic_scene_radtan.keyframe_depths))
     assert np.median(errors) < 0.005
 
 
@@ -101,21 +102,10 @@ def test_depth_keyframes_make_landmarks_from_depth(synthetic_scene):
     stats = builder.last_stats["sift"]
     assert stats.from_depth > 0.7 * len(kf.features["sift"]) and stats.created == 0
     assert kf.depth is not None and kf.depth.dtype == np.float32
-    errors = landmark_errors(builder.map.snapshot(), FakeDataset(synthetic_scene))
+    errors = landmark_errors(builder.map.snapshot(), FakeDataset(synthetic_scene.keyframe_depths))
     assert np.median(errors) < 1e-3
 
 
-
-
-class _Depths:
-    """landmark_errors' view of keyframes rendered in a test: their ground-truth depth maps."""
-
-    def __init__(self, depths: list[np.ndarray]) -> None:
-        self.map_entries = list(range(len(depths)))
-        self.depths = depths
-
-    def load_truth_depth(self, entry: int) -> np.ndarray:
-        return self.depths[entry]
 
 
 def test_depth_landmarks_keep_their_measured_point_when_seen_again_from_nearby(
@@ -126,7 +116,7 @@ def test_depth_landmarks_keep_their_measured_point_when_seen_again_from_nearby(
     metres along their rays)."""
     state = panning_depth_map.state
     assert any(len(lm.observations) >= 2 for lm in state.landmarks.values())   # tracks extended
-    errors = landmark_errors(state, _Depths(panning_depth_map.depths))
+    errors = landmark_errors(state, FakeDataset(panning_depth_map.depths))
     assert len(errors) > 500
     assert np.percentile(errors, 99) < 1e-3, np.percentile(errors, [50, 90, 99])
 
@@ -234,7 +224,7 @@ def test_feature_kinds_added_later_are_triangulated(synthetic_scene, synthetic_m
     assert builder.conf.feature_kinds == ("sift", "orb")
     assert state.landmark_count("orb") > 500
     assert state.landmark_count("sift") == synthetic_map.landmark_count("sift")
-    errors = landmark_errors(state, FakeDataset(synthetic_scene), kind="orb")
+    errors = landmark_errors(state, FakeDataset(synthetic_scene.keyframe_depths), kind="orb")
     assert np.median(errors) < 0.01
     assert builder.add_feature_kinds(["orb"]) == []
 
@@ -313,9 +303,9 @@ def test_landmark_errors_measure_a_known_offset(synthetic_scene, synthetic_map):
     kmap = KeyframeMap()
     kmap.replace_state(synthetic_map)
     ids = np.array(sorted(synthetic_map.landmarks))
-    base = landmark_errors(synthetic_map, FakeDataset(synthetic_scene))
+    base = landmark_errors(synthetic_map, FakeDataset(synthetic_scene.keyframe_depths))
     kmap.move_landmarks(ids, synthetic_map.landmark_points(ids) + (0.0, 0.0, 0.5))
-    moved = landmark_errors(kmap.snapshot(), FakeDataset(synthetic_scene))
+    moved = landmark_errors(kmap.snapshot(), FakeDataset(synthetic_scene.keyframe_depths))
     assert np.median(moved) == pytest.approx(0.5, abs=0.01) and np.median(base) < 0.01
     # Landmarks moved in the features too.
     kf = kmap.snapshot().keyframes[0].features["sift"]
