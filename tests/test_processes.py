@@ -204,6 +204,31 @@ def test_queries_before_the_workers_hold_the_map_are_answered_by_the_service(syn
         service.stop(final_snapshot=False)
 
 
+def test_workers_still_starting_get_no_query(synthetic_scene):
+    """Once the worker processes are listed, while they are still warming up (their kernels)
+    and before they have loaded the map, the map is not ready on them: a query then is
+    answered by the service at once, not queued behind the workers' start and their load of
+    the map (seconds: a query sent in that window used to wait for both)."""
+    service = _serve(service_conf(free_port(), "", maps=(MAP,), workers=1, queue_size=8),
+                     synthetic_scene)
+    try:
+        procs, rt = service.processes, service.maps[MAP]
+        assert procs is not None
+        service.start_workers_in_background()
+        wait_until(lambda: len(procs.pids()) == 1, timeout=60, interval=0.005)
+        assert not procs.replica_ready(MAP)        # listed, not holding the map yet
+        payload = _request(synthetic_scene.query_images[0])
+        first = _pose(service.relocalize_payload(rt, payload, 0.0))
+        assert rt.stats.counters["relocalize_in_service"] == 1 and first[0] == "ok"
+        wait_until(lambda: procs.replica_ready(MAP), timeout=60)
+        assert all(MAP in h.holds for h in procs._handles)
+        again = _pose(service.relocalize_payload(rt, payload, 0.0))
+        assert rt.stats.counters["relocalize_in_service"] == 1   # a worker answered
+        np.testing.assert_allclose(again[1], first[1], rtol=0, atol=1e-9)
+    finally:
+        service.stop(final_snapshot=False)
+
+
 def test_killed_worker_is_replaced_and_its_query_answered(served):
     """kill -9 of both workers while each holds a query (stopped first, so they hold it for
     sure): each of those queries gets one INTERNAL error reply naming the signal, and the

@@ -175,6 +175,8 @@ class ProcessWorkers:
             with self._lock:
                 self._maps.pop(rt.name, None)
                 handles = list(self._handles)
+                for handle in handles:
+                    handle.holds.discard(rt.name)
         for handle in handles:
             handle.send(("drop", rt.name))
 
@@ -200,15 +202,24 @@ class ProcessWorkers:
             # named like the map's storage directory, cut short: mkdtemp adds to it, and the
             # name must fit NAME_MAX whatever the map's name
             path = Path(tempfile.mkdtemp(prefix=f"{map_dirname(rt.name)[:120]}-", dir=self._scratch))
-            # unchanged since it was loaded: the snapshot it was loaded from, linked; else
-            # float64 geometry as the map holds it (a worker answers bit for bit as this map
-            # does) and every image and depth map it holds (a copy, not a compact snapshot)
-            loaded = rt.engine.loaded_snapshot()
-            if loaded is None or not link_snapshot(loaded, path):
-                rt.engine.save(path, exact_geometry=True, parts=EVERYTHING)
+            # pending from now on: a query that finds it pending is answered here, not sent
+            # to a worker that will load the base before it reads the query
             base = _Base(path, {id(h) for h in targets}, rt.name)
             with self._lock:
                 self._bases[id(base)] = base
+            try:
+                # unchanged since it was loaded: the snapshot it was loaded from, linked;
+                # else float64 geometry as the map holds it (a worker answers bit for bit as
+                # this map does) and every image and depth map it holds (a copy, not a
+                # compact snapshot)
+                loaded = rt.engine.loaded_snapshot()
+                if loaded is None or not link_snapshot(loaded, path):
+                    rt.engine.save(path, exact_geometry=True, parts=EVERYTHING)
+            except BaseException:
+                with self._lock:
+                    self._bases.pop(id(base), None)
+                shutil.rmtree(path, ignore_errors=True)
+                raise
             msg = ("load", rt.name, path, self.spec, rt.cameras())
             for handle in targets:
                 if not handle.send(msg):
@@ -246,17 +257,20 @@ class ProcessWorkers:
                          "retry")
 
     def replica_ready(self, name: str) -> bool:
-        """Whether the workers hold map ``name`` now: started, and every worker its latest
-        base was sent to has loaded it. Until then the service answers its queries itself
-        (:meth:`.app.Service.relocalize_payload`): the same answers, without waiting for the
-        workers' start and their load of the map."""
+        """Whether the workers hold map ``name`` now: every live worker has loaded a base of
+        it and none is pending (sent, or being saved to be sent). Until then the service
+        answers its queries itself (:meth:`.app.Service.relocalize_payload`): the same
+        answers, without waiting for the workers' start and their load of the map (a query
+        sent to a worker that is still warming up, or that has a base to load before it,
+        waits for both: seconds)."""
         self._read_acks()
         with self._lock:
             if not self._started or self._closed or name not in self._maps:
                 return False
-            if not any(not h.dead for h in self._handles):
+            live = [h for h in self._handles if not h.dead]
+            if not live or any(base.name == name for base in self._bases.values()):
                 return False
-            return not any(base.name == name for base in self._bases.values())
+            return all(name in h.holds for h in live)
 
     def _read_acks(self) -> None:
         """Read the "loaded" acknowledgements the idle workers sent (an idle worker holds
@@ -452,9 +466,12 @@ class ProcessWorkers:
         terminate(handle)
 
     def _base_done(self, path: str, handle: WorkerHandle) -> None:
+        """Worker ``handle`` loaded the base at ``path`` (or died: it waits for it no more)."""
         with self._lock:
             for key, base in list(self._bases.items()):
                 if str(base.path) == path:
+                    if not handle.dead:
+                        handle.holds.add(base.name)
                     base.waiting.discard(id(handle))
                     if not base.waiting:
                         del self._bases[key]

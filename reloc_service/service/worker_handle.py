@@ -19,6 +19,9 @@ class WorkerHandle:
     conn: Connection
     send_lock: threading.Lock = field(default_factory=threading.Lock)
     dead: bool = False
+    #: The maps whose replica this worker has loaded (it acknowledged one of their bases);
+    #: changed under the owning :class:`~.processes.ProcessWorkers`' lock.
+    holds: set[str] = field(default_factory=set)
 
     def send(self, msg: tuple[Any, ...]) -> bool:
         """Send ``msg``; False if the worker is gone (the pipe is closed)."""
