@@ -58,6 +58,7 @@ def _throughput_mode(ws: Workspace, method: str, mode: str | None) -> list[dict[
     runs = []
     with group_service(ws, "default", process=True, worker_mode=mode) as endpoint:
         with group_client(endpoint, q.camera) as client:
+            _until_workers_answer(client, q, method, conf.reply_timeout_s)
             for _ in range(conf.service_workers):  # warm-up: every worker's first query
                 client.relocalize(q.jpegs[0], camera_id=CAMERA_ID, method=method)
         for n in progress(list(conf.throughput_clients),
@@ -68,6 +69,22 @@ def _throughput_mode(ws: Workspace, method: str, mode: str | None) -> list[dict[
     for row in runs:
         row["speedup_over_first"] = row["queries_per_s"] / base if base else math.nan
     return runs
+
+
+def _until_workers_answer(client: Any, q: QuerySet, method: str, timeout_s: float) -> None:
+    """Query until the service's worker processes answer (until they hold the map the service
+    answers itself, counted as ``relocalize_in_service``): the runs measure the workers, not
+    their start. One query where the service has no worker processes."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        before = client.status().counters.get("relocalize_in_service", 0)
+        client.relocalize(q.jpegs[0], camera_id=CAMERA_ID, method=method)
+        if client.status().counters.get("relocalize_in_service", 0) == before:
+            return
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the service's worker processes did not take queries within "
+                               f"{timeout_s:.0f} s")
+        time.sleep(0.2)
 
 
 def _in_process_threads(ws: Workspace, method: str, duration_s: float,
