@@ -177,7 +177,6 @@ def landmarks(dataset: str, out: str | None) -> None:
     from reloc_service.algorithms.pose.pnp_conf import PnPConf
     from reloc_service.algorithms.relocalizers import base as relocalizer_base
     from reloc_service.algorithms.relocalizers import multi
-    from reloc_service.core.mapping import first_observations, lift_pixels, sample_depth
     from reloc_service.tools.eval import evaluate, inprocess
 
     truth: dict[int, np.ndarray] = {}
@@ -188,17 +187,9 @@ def landmarks(dataset: str, out: str | None) -> None:
 
     def on_map(backend: Any, data: Any) -> np.ndarray:
         state = seen["state"] = backend.engine.map.snapshot()
+        for i, (point, centre) in _true_points(state, data).items():
+            truth[i], origin[i] = point, centre
         for kind in sorted({k for kf in state.keyframes.values() for k in kf.features}):
-            for kf_id, (ids, px) in first_observations(state, kind).items():
-                depth = data.load_truth_depth(data.map_entries[kf_id])
-                if depth is None or not len(ids):
-                    continue
-                kf = state.keyframes[kf_id]
-                z, valid = sample_depth(depth, px, max_jump=0.03)
-                for i, p in zip(ids[valid], lift_pixels(kf.camera, kf.world_from_cam, px[valid],
-                                                        z[valid]), strict=True):
-                    truth.setdefault(int(i), p)
-                    origin.setdefault(int(i), kf.position_world)
             held.extend(_held_out(state, kind, conf, mc, refined_estimate))
         return np.zeros(0)
 
@@ -241,6 +232,26 @@ def landmarks(dataset: str, out: str | None) -> None:
     _print_depth_errors(state, truth, origin)
     if out:
         Path(out).write_text(json.dumps({"answers": rows, "held_out_keyframes": held}, indent=1))
+
+
+def _true_points(state: Any, data: Any) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Landmark id -> its ground-truth point (its first observation's pixel lifted with that
+    keyframe's true depth) and that keyframe's centre, for the landmarks whose first
+    observation has a valid true depth."""
+    from reloc_service.core.mapping import first_observations, lift_pixels, sample_depth
+
+    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for kind in sorted({k for kf in state.keyframes.values() for k in kf.features}):
+        for kf_id, (ids, px) in first_observations(state, kind).items():
+            depth = data.load_truth_depth(data.map_entries[kf_id])
+            if depth is None or not len(ids):
+                continue
+            kf = state.keyframes[kf_id]
+            z, valid = sample_depth(depth, px, max_jump=0.03)
+            for i, p in zip(ids[valid], lift_pixels(kf.camera, kf.world_from_cam, px[valid],
+                                                    z[valid]), strict=True):
+                out.setdefault(int(i), (p, kf.position_world))
+    return out
 
 
 def _held_out(state: Any, kind: str, conf: Any, mc: Any, refined_estimate: Any
@@ -319,7 +330,6 @@ def provenance(dataset: str) -> None:
     from reloc_service.algorithms.relocalizers import base as relocalizer_base
     from reloc_service.algorithms.relocalizers import multi
     from reloc_service.core import map as core_map
-    from reloc_service.core.mapping import first_observations, lift_pixels, sample_depth
     from reloc_service.tools.eval import evaluate, inprocess
 
     created: dict[int, tuple[np.ndarray, float, int]] = {}
@@ -345,16 +355,7 @@ def provenance(dataset: str) -> None:
 
     def on_map(backend: Any, data: Any) -> np.ndarray:
         state = backend.engine.map.snapshot()
-        for kind in sorted({k for kf in state.keyframes.values() for k in kf.features}):
-            for kf_id, (ids, px) in first_observations(state, kind).items():
-                depth = data.load_truth_depth(data.map_entries[kf_id])
-                if depth is None or not len(ids):
-                    continue
-                kf = state.keyframes[kf_id]
-                z, valid = sample_depth(depth, px, max_jump=0.03)
-                for i, p in zip(ids[valid], lift_pixels(kf.camera, kf.world_from_cam, px[valid],
-                                                        z[valid]), strict=True):
-                    truth.setdefault(int(i), p)
+        truth.update({i: point for i, (point, _) in _true_points(state, data).items()})
         for i in truth:
             lm = state.landmarks[i]
             final[i] = (lm.point_world.copy(), len(lm.observations))
