@@ -424,7 +424,7 @@ def _descendants(pid: int) -> list[int]:
 def test_stale_replica_directories_of_dead_services_are_removed(tmp_path):
     """A service killed -9 cannot remove its replica bases; the next one removes the
     directories whose pid no longer runs, and keeps those of running services."""
-    from reloc_service.service.processes import SCRATCH_PREFIX, remove_stale_scratch
+    from reloc_service.service.replica_scratch import SCRATCH_PREFIX, remove_stale_scratch
 
     gone = subprocess.Popen([sys.executable, "-c", "pass"])
     gone.wait()

@@ -61,6 +61,7 @@ from ..storage.snapshot_link import link_snapshot
 from . import worker_process
 from .map_dirs import map_dirname
 from .memory import descendants
+from .replica_scratch import SCRATCH_PREFIX, remove_stale_scratch
 from .served import WriteOp
 from .worker_handle import WorkerHandle, terminate
 from .worker_process import EngineSpec, ReplicaMap, wait_ready, worker_main
@@ -74,8 +75,7 @@ log = logging.getLogger(__name__)
 #: Seconds a worker gets to exit after "stop" before it is terminated, then killed.
 STOP_GRACE_S = 3.0
 
-__all__ = ["EngineSpec", "ProcessWorkers", "RemoteAnswer", "ReplicaMap", "SCRATCH_PREFIX",
-           "remove_stale_scratch"]
+__all__ = ["EngineSpec", "ProcessWorkers", "RemoteAnswer", "ReplicaMap"]
 
 
 @dataclass
@@ -96,33 +96,6 @@ class RemoteAnswer:
     error: bool
     ok: bool = False
     total_s: float = 0.0
-
-
-#: Prefix of the private directory of a service's replica bases, followed by its pid.
-SCRATCH_PREFIX = "reloc-replicas-"
-
-
-def remove_stale_scratch(tmp: Path) -> list[Path]:
-    """Remove the replica directories of services that are gone (killed -9: no ``close``),
-    so a service restarted after crashes does not fill the disk; returns what was removed.
-    A directory counts as stale when the pid in its name no longer runs."""
-    removed = []
-    for path in tmp.glob(f"{SCRATCH_PREFIX}*-*"):
-        pid = path.name[len(SCRATCH_PREFIX):].split("-", 1)[0]
-        if pid.isdigit() and not _alive(int(pid)) and path.is_dir():
-            shutil.rmtree(path, ignore_errors=True)
-            removed.append(path)
-    return removed
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process: alive, not ours to judge
-        return True
-    return True
 
 
 class ProcessWorkers:
