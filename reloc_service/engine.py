@@ -55,6 +55,7 @@ from .algorithms.pose.map_pool import pool_bytes
 from .algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
 from .algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, create_tracker
 from .algorithms.relocalizers.map_pools import restore_pools, save_pools
+from .algorithms.relocalizers.map_statistics import restore_statistics, save_statistics
 from .algorithms.relocalizers.tracking_fallback import relocalize_with_prior
 from .core.background import LOWER_PRIORITY, lower_priority, start_background
 from .core.cameras import Camera
@@ -150,6 +151,8 @@ class Engine:
         #: Feature kinds whose pool index the load read rather than built (set with
         #: :attr:`prepared`); :meth:`close` stops the pools still to be made.
         self.pools_read: list[str] = []
+        #: Feature kinds whose keyframe statistics the load read (:meth:`load`).
+        self.statistics_read: list[str] = []
         self._closed = threading.Event()
         kinds: set[str] = set()
         for method in self.conf.methods:
@@ -347,9 +350,11 @@ class Engine:
     # -- persistence ---------------------------------------------------------------------------
     def save(self, directory: str | Path, *, exact_geometry: bool = False,
              store: Mapping[str, Any] | None = None, parts: StoredParts | None = None) -> Path:
-        """Save the published map and every live relocalizer's models (consistent with it);
-        returns the snapshot. Queries go on meanwhile: the read lock is held only while the
-        relocalizers write their models (into a scratch directory), not for the map files.
+        """Save the published map and every live relocalizer's models (consistent with it),
+        with the whole-map pools' indexes and the keyframe statistics they hold
+        (:mod:`.map_pools`, :mod:`.map_statistics`); returns the snapshot. Queries go on
+        meanwhile: the read lock is held only while the relocalizers write their models
+        (into a scratch directory), not for the map files.
         ``exact_geometry``: landmark geometry float64 as held; ``store``: the owner's fields
         of the manifest (see :func:`.storage.snapshot.save_map`); ``parts``: what is stored
         of each keyframe's depth and image (default: ``conf.stored``; images when it says
@@ -366,6 +371,7 @@ class Engine:
                                           centres=parts.vocabulary)
                     save_pools(live.relocalizer, Path(tmp) / model_dir_name(method), state,
                                self._loaded_models(method, state))
+                    save_statistics(live.relocalizer, Path(tmp) / model_dir_name(method), state)
                 methods = list(self._live)
                 reads_images = any(live.relocalizer.reads_keyframe_images
                                    for live in self._live.values())
@@ -388,7 +394,10 @@ class Engine:
         one without is fed every keyframe and trained (with ``train`` False it stays
         untrained, as in the engine saved: a replica of it). ``pools``: make the whole-map
         pools its queries read on a thread of their own (:meth:`_start_prepare`); False for
-        an engine that answers no query."""
+        an engine that answers no query. The keyframe statistics stored with each method's
+        model are given back to the map's keyframes
+        (:func:`.map_statistics.restore_statistics`): its first queries compute only those
+        of keyframes whose inputs differ from those they were computed from."""
         state, models_dir = load_map(directory)
         engine = cls(conf)
         engine.map.replace_state(state)
@@ -400,7 +409,9 @@ class Engine:
         restored_all = True
         for method, live in list(engine._live.items()):
             path = models_dir / model_dir_name(method) if models_dir is not None else None
-            if path is not None and path.is_dir():
+            if path is not None and path.is_dir():   # before training, which reads them
+                engine.statistics_read += restore_statistics(live.relocalizer,
+                                                             engine._published, path)
                 restored = engine._create(method, engine._published)
                 if restored.relocalizer.load(path):
                     engine._live[method] = restored

@@ -37,23 +37,33 @@ which the model covariance does not (room-hard's cov scale 1.27 -> 1.45 with the
 dispersion alone); the answer's measurement part is widened to its inliers' spread over the
 image's cells for them (:mod:`.cell_sandwich`), without which the robust dispersion would
 make degraded sets too confident.
+
+A keyframe's statistics are computed once and kept with its features; a save stores them
+beside the models, each with the digest of what it was computed from, and a load gives them
+back to the keyframes (:func:`held_statistics`, :func:`offer_statistics`,
+:mod:`.consistency_store`), so that the first queries of a loaded map compute only those of
+keyframes whose inputs changed.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import weakref
+from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from ...core import distributions as stats
-from ...core.frame import Features
+from ...core.frame import Features, Keyframe
 from ...core.geometry import invert, transform_points
 from ...core.landmark_table import LandmarkColumns
 from ...core.map import MapState
 from ...core.triangulation import ViewObservations, keypoint_sigmas, refine_points, triangulate_midpoint
 from .base import PoseEstimate
 from .cell_correlation import CellComponents, CellCorrelation, pooled_correlation
+from .consistency_store import InputsDigest, KeyframeStatistics
 from .guided import GuidedConf
 from .intrinsics import IntrinsicsCheck, cell_shared_components, check_intrinsics
 from .intrinsics_power import blind_spot_factor, governing_covariance
@@ -93,6 +103,20 @@ _STATISTICS: weakref.WeakKeyDictionary[Features, dict[bool, float | None]] = (
 #: residuals (:mod:`.cell_correlation`; None: too few held-out landmarks), computed with the
 #: statistics from the same held-out points where ``unguided_cell_correlation`` asks.
 _CELLS: weakref.WeakKeyDictionary[Features, CellComponents | None] = weakref.WeakKeyDictionary()
+
+#: Per keyframe and feature kind, what the last computation of its statistics gave with the
+#: digest of what it read, or what a snapshot stored for it (:func:`offer_statistics`):
+#: what a save stores (:func:`held_statistics`), and what a computation whose inputs have
+#: that digest gives without computing. Keyed by the keyframe, not its features, so that
+#: neither a save nor a load builds a keyframe's features (a keyframe whose features change
+#: is a new object).
+_RECORDS: weakref.WeakKeyDictionary[Keyframe, dict[str, KeyframeStatistics]] = (
+    weakref.WeakKeyDictionary())
+
+#: The name of this computation in the digests of its inputs: changed with anything that
+#: makes it compute other values from the same inputs, so that statistics stored by another
+#: computation are not taken for its own.
+STATISTIC_VERSION = "held-out intrinsics T^2, 1"
 
 
 def map_dispersion(state: MapState, kind: str, keyframe_ids: list[int], conf: PnPConf, *,
@@ -145,7 +169,8 @@ class _Columns:
 def keyframe_statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf,
                        columns: _Columns | None = None, *, robust: bool = False) -> float | None:
     """``T^2`` of keyframe ``kf_id``'s intrinsics estimate on its ``kind`` landmarks
-    re-triangulated without it (cached with its features); None where fewer than
+    re-triangulated without it (cached with its features; given by a snapshot's record of
+    the same inputs where the map was loaded: :func:`offer_statistics`); None where fewer than
     :data:`MIN_HELD_OUT` of them are observed by two other keyframes. ``robust``: on the
     residuals within the gate of :func:`gated_inliers` where it left out more than honest
     ones explain (:func:`excess_exclusion`; None where fewer than :data:`MIN_HELD_OUT` pass
@@ -165,7 +190,9 @@ def keyframe_statistic(state: MapState, kf_id: int, kind: str, conf: PnPConf,
 def _statistics(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: _Columns,
                 wanted: tuple[bool, ...]) -> dict[bool, float | None]:
     """The plain (False) and the gated (True) ``T^2`` of keyframe ``kf_id``
-    (:func:`keyframe_statistic`) for each of ``wanted``, from one set of held-out points."""
+    (:func:`keyframe_statistic`) for each of ``wanted`` (and any other its record holds),
+    from one set of held-out points: recorded with the digest of what they were computed
+    from, or given by a record of the same digest (a snapshot's) without computing."""
     keyframe = state.keyframes[kf_id]
     feats = keyframe.features[kind]
     if conf.unguided_cell_correlation:
@@ -174,9 +201,65 @@ def _statistics(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: 
     if kind not in cols.kinds:
         return dict.fromkeys(wanted)
     observed, rows = held_out_candidates(cols, feats.landmark_ids)
-    points, held = held_out_points(state, cols, rows, kf_id, kind)
+    views = held_out_views(state, cols, rows, kf_id, kind)
+    digest = _inputs_digest(keyframe, feats, observed, cols.ids[rows], views, conf)
+    record = _RECORDS.get(keyframe, {}).get(kind)
+    if record is None or not _answers(record, digest, wanted, conf):
+        record = _computed(keyframe, feats, observed, views, conf, wanted, digest)
+        _record(keyframe, kind, record)
+    if conf.unguided_cell_correlation:
+        _CELLS[feats] = record.cells
+    return dict(record.values)
+
+
+def _answers(record: KeyframeStatistics, digest: bytes, wanted: tuple[bool, ...],
+             conf: PnPConf) -> bool:
+    """Whether ``record`` holds every statistic of ``wanted`` (and the cells' entry, where
+    ``conf`` asks for it) as computed from inputs of ``digest``."""
+    return (record.digest == digest and all(robust in record.values for robust in wanted)
+            and (record.has_cells or not conf.unguided_cell_correlation))
+
+
+def _record(keyframe: Keyframe, kind: str, record: KeyframeStatistics) -> None:
+    """Keep ``record`` as ``keyframe``'s ``kind`` statistics, with what its earlier record
+    holds from the same inputs."""
+    held = _RECORDS.setdefault(keyframe, {})
+    earlier = held.get(kind)
+    held[kind] = record if earlier is None else earlier.merged(record)
+
+
+def _inputs_digest(keyframe: Keyframe, feats: Features, observed: IntArray,
+                   landmark_ids: IntArray, views: HeldOutViews, conf: PnPConf) -> bytes:
+    """The digest of what :func:`_computed` reads: the options it tests with, the keyframe
+    (camera, pose, the keypoints of its held-out landmarks ``landmark_ids``: pixels and
+    noise) and the other keyframes' observations those landmarks are re-triangulated from
+    (:class:`HeldOutViews`). Keypoint indices are not part of it, only what they point
+    at: a snapshot that keeps only landmark keypoints numbers them afresh."""
+    digest = InputsDigest(STATISTIC_VERSION)
+    digest.text(feats.kind)
+    digest.array(np.array([conf.max_reproj_error_px, conf.min_sigma_px,
+                           *dataclasses.astuple(conf.intrinsics_prior)], np.float64))
+    digest.array(np.asarray(landmark_ids, np.int64))
+    digest.view(ViewObservations(keyframe.camera, invert(keyframe.world_from_cam),
+                                 np.arange(len(observed)),
+                                 feats.keypoints_px[observed].astype(np.float64),
+                                 keypoint_sigmas(feats)[observed]))
+    for view in (*views.others, *views.own):
+        digest.view(view)
+    digest.array(views.exact)
+    if views.measured is not None:
+        digest.array(np.asarray(views.measured[views.exact], np.float64))
+    return digest.digest()
+
+
+def _computed(keyframe: Keyframe, feats: Features, observed: IntArray, views: HeldOutViews,
+              conf: PnPConf, wanted: tuple[bool, ...], digest: bytes) -> KeyframeStatistics:
+    """The statistics of ``wanted`` of ``keyframe`` on the landmarks of its keypoints
+    ``observed`` held out as ``views`` says, and its cells' variance components where
+    ``conf`` asks for them (:func:`keyframe_statistic`), recorded under ``digest``."""
+    points, held = points_held_out(views)
     if held.sum() < MIN_HELD_OUT:
-        return dict.fromkeys(wanted)
+        return KeyframeStatistics(digest, dict.fromkeys(wanted), conf.unguided_cell_correlation)
     px = feats.keypoints_px[observed[held]].astype(np.float64)
     points = points[held]
     project = pose_projector(points, keyframe.camera)
@@ -185,10 +268,11 @@ def _statistics(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: 
         inliers = np.flatnonzero(np.linalg.norm(px - projected, axis=1) < conf.max_reproj_error_px)
     weights = 1.0 / keypoint_sigmas(feats)[observed[held]] ** 2
     gated = gated_inliers(np.sum((px - projected) ** 2, axis=1) * weights, inliers)
+    cells = None
     if conf.unguided_cell_correlation and len(inliers) >= MIN_HELD_OUT:
-        _CELLS[feats] = cell_shared_components(keyframe.world_from_cam, px, inliers, weights,
-                                               keyframe.camera, project,
-                                               threshold_px=conf.max_reproj_error_px)
+        cells = cell_shared_components(keyframe.world_from_cam, px, inliers, weights,
+                                       keyframe.camera, project,
+                                       threshold_px=conf.max_reproj_error_px)
 
     def statistic(use: IntArray, subset: bool) -> float | None:
         # ``subset``: only the correspondences ``use`` are given to the test, which re-gates
@@ -218,7 +302,8 @@ def _statistics(state: MapState, kf_id: int, kind: str, conf: PnPConf, columns: 
         values[True] = (values[False] if plain_stands
                         else None if len(gated) < MIN_HELD_OUT
                         else statistic(gated, subset=True))
-    return {robust: values[robust] for robust in wanted}
+    return KeyframeStatistics(digest, {robust: values[robust] for robust in wanted},
+                              conf.unguided_cell_correlation, cells)
 
 
 def excess_exclusion(excluded: int, total: int, *,
@@ -268,34 +353,66 @@ def held_out_candidates(cols: LandmarkColumns, landmark_ids: IntArray
 SOURCE_REPROJECTION_PX = 1e-6
 
 
+@dataclass(frozen=True)
+class HeldOutViews:
+    """What the held-out points of a keyframe's R landmarks are made from
+    (:func:`held_out_views`): their observations (of one feature kind) by the other
+    keyframes (``others``, one view a keyframe, ``point_index`` into the R) and how many of
+    those keyframes see each (``seen``); which are stated exact (``exact``: lifted from a
+    depth map, depth sigma 0) and, where any is, their measured points (``measured``,
+    (R, 3), read at the exact rows only) and their observations by the keyframe itself
+    (``own``)."""
+
+    others: list[ViewObservations]
+    seen: IntArray
+    exact: npt.NDArray[np.bool_]
+    measured: Array | None = None
+    own: list[ViewObservations] = dataclasses.field(default_factory=list)
+
+
 def held_out_points(state: MapState, cols: LandmarkColumns, rows: IntArray, kf_id: int,
                     kind: str) -> tuple[Array, npt.NDArray[np.bool_]]:
     """(R, 3) the landmarks of columns ``rows`` as known without keyframe ``kf_id``, and the
-    (R,) mask of those known at all: a landmark lifted from another keyframe's depth map
-    (stated exact, depth sigma 0, and reprojecting onto that keyframe's keypoint:
-    :func:`_lifted_in`) at its measured point, which ``kf_id`` did not contribute to; one
-    lifted from ``kf_id``'s own depth map left out (keypoints seen from nearby cannot place
-    it along its ray); any other triangulated from its ``kind`` observations in at least two
-    other keyframes (midpoint, then the reprojection error refined)."""
+    (R,) mask of those known at all (:func:`points_held_out` of :func:`held_out_views`)."""
+    return points_held_out(held_out_views(state, cols, rows, kf_id, kind))
+
+
+def held_out_views(state: MapState, cols: LandmarkColumns, rows: IntArray, kf_id: int,
+                   kind: str) -> HeldOutViews:
+    """The observations the landmarks of columns ``rows`` are known from without keyframe
+    ``kf_id`` (:class:`HeldOutViews`): those of ``kind`` in keyframes of ``state``."""
     kind_index = cols.kinds.index(kind)
     starts, counts = cols.obs_offsets[rows], np.diff(cols.obs_offsets)[rows]
     owner = np.repeat(np.arange(len(rows)), counts)
     run = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
     other_kf, obs_kind, keypoint = cols.obs_keyframe[run], cols.obs_kind[run], cols.obs_keypoint[run]
     of_kind = (obs_kind == kind_index) & np.isin(other_kf, state.keyframe_ids())
-    views = _views(state, kind, owner, other_kf, keypoint, of_kind & (other_kf != kf_id))
-    seen = np.bincount(owner[of_kind & (other_kf != kf_id)], minlength=len(rows))
-    points = triangulate_midpoint(views, len(rows))
-    held = (seen >= 2) & np.isfinite(points).all(axis=1)
-    points = refine_points(np.where(held[:, None], points, 1.0), views)
-    held &= np.isfinite(points).all(axis=1)
+    elsewhere = of_kind & (other_kf != kf_id)
+    others = _views(state, kind, owner, other_kf, keypoint, elsewhere)
+    seen = np.bincount(owner[elsewhere], minlength=len(rows))
     exact = cols.depth_sigmas_m[rows] == 0
-    if exact.any():
-        measured = cols.points_world[rows]
-        elsewhere = _lifted_in(measured, exact, views)
-        here = _lifted_in(measured, exact & ~elsewhere,
-                          _views(state, kind, owner, other_kf, keypoint,
-                                 of_kind & (other_kf == kf_id)))
+    if not exact.any():
+        return HeldOutViews(others, seen, exact)
+    own = _views(state, kind, owner, other_kf, keypoint, of_kind & (other_kf == kf_id))
+    return HeldOutViews(others, seen, exact, cols.points_world[rows], own)
+
+
+def points_held_out(views: HeldOutViews) -> tuple[Array, npt.NDArray[np.bool_]]:
+    """(R, 3) the landmarks ``views`` describes as known without their keyframe, and the
+    (R,) mask of those known at all: a landmark lifted from another keyframe's depth map
+    (stated exact, depth sigma 0, and reprojecting onto that keyframe's keypoint:
+    :func:`_lifted_in`) at its measured point, which the keyframe did not contribute to; one
+    lifted from the keyframe's own depth map left out (keypoints seen from nearby cannot
+    place it along its ray); any other triangulated from its observations in at least two
+    other keyframes (midpoint, then the reprojection error refined)."""
+    points = triangulate_midpoint(views.others, len(views.seen))
+    held = (views.seen >= 2) & np.isfinite(points).all(axis=1)
+    points = refine_points(np.where(held[:, None], points, 1.0), views.others)
+    held &= np.isfinite(points).all(axis=1)
+    if views.measured is not None:
+        measured = views.measured
+        elsewhere = _lifted_in(measured, views.exact, views.others)
+        here = _lifted_in(measured, views.exact & ~elsewhere, views.own)
         points[elsewhere] = measured[elsewhere]
         held = (held | elsewhere) & ~here
     return points, held
@@ -417,3 +534,28 @@ def prepare_map(state: MapState, kind: str, conf: PnPConf) -> None:
     columns = _Columns(state)
     for kf_id in state.keyframe_ids():
         keyframe_statistic(state, kf_id, kind, conf, columns)
+
+
+def held_statistics(state: MapState, kind: str) -> dict[int, KeyframeStatistics]:
+    """Per keyframe of ``state`` (id), its ``kind`` statistics as last computed with the
+    digest of their inputs, or as a snapshot stored them (:func:`offer_statistics`) where
+    none was computed here: what a save stores beside the models. No keyframe's features
+    are built."""
+    return {kf_id: record for kf_id, keyframe in state.keyframes.items()
+            if (record := _RECORDS.get(keyframe, {}).get(kind)) is not None}
+
+
+def offer_statistics(state: MapState, kind: str, stored: Mapping[int, KeyframeStatistics]
+                     ) -> int:
+    """Give the keyframes of ``state`` the ``kind`` statistics a snapshot ``stored`` for
+    them (keyframe id -> entry; ids not in ``state`` ignored): the first computation of a
+    keyframe's statistic whose inputs have the entry's digest gives its values instead of
+    computing them (:func:`keyframe_statistic`); another computes. A keyframe that has a
+    record of its own keeps it. Returns the number of entries given."""
+    given = 0
+    for kf_id, entry in stored.items():
+        keyframe = state.keyframes.get(kf_id)
+        if keyframe is not None and kind not in _RECORDS.get(keyframe, {}):
+            _RECORDS.setdefault(keyframe, {})[kind] = entry
+            given += 1
+    return given

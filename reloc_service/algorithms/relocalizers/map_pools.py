@@ -4,7 +4,8 @@ by the first query: each p3p finder's landmark pool and repetition index
 :mod:`..pose.repetition_store`), in the order the relocalizer's steps run, so the first
 step's pool is ready first. The keyframes' agreement with the map's camera is left to the
 queries that read it (a few keyframes each; the whole map's takes seconds of CPU the first
-queries would compete with)."""
+queries would compete with), or read from the snapshot where stored
+(:mod:`.map_statistics`)."""
 
 from __future__ import annotations
 
