@@ -184,3 +184,29 @@ def test_a_damaged_statistics_file_is_refused_by_name_at_load(saved, tmp_path) -
     path.write_bytes(bytes(data))
     with pytest.raises(StorageError, match=re.escape(str(path)) + ".*checksum mismatch"):
         Engine.load(copy, conf())
+
+
+def test_a_map_lifted_from_depth_saved_with_rounded_points_reads_its_statistics(
+        synthetic_scene, tmp_path, monkeypatch) -> None:
+    """Landmarks lifted from depth maps are stated exact, and their statistics read their
+    measured points: a save that rounds those points as a snapshot does by default (float32
+    offsets from their anchor keyframe) still gives the statistics back, with the values the
+    engine that saved them computed."""
+    engine = Engine(conf())
+    for i, image in enumerate(synthetic_scene.keyframe_images):
+        engine.add_keyframe(i, image, synthetic_scene.camera, synthetic_scene.keyframe_poses[i],
+                            depth=synthetic_scene.keyframe_depths[i])
+    engine.train()
+    state = engine.map.snapshot()
+    assert np.any(state.landmark_sigmas(state.landmarks.id_array(), 0.0) == 0.0)
+    saved_values = {(kind, k): tuple(keyframe_statistic(state, k, kind, PnPConf(), robust=r)
+                                     for r in (False, True))
+                    for kind in KINDS for k in state.keyframe_ids()}
+    directory = tmp_path / "map"
+    engine.save(directory)   # the default geometry: anchored float32 points
+    assert (current_snapshot(directory) / "landmarks" / "anchored_points_world.npy").is_file()
+    loaded = Engine.load(directory, conf(), pools=False)
+    counted = count_held_out(monkeypatch)
+    computed, values = computed_keyframes(loaded.map.snapshot(), counted, PnPConf())
+    assert not computed, f"computed again: {sorted(computed)}"
+    assert values == saved_values

@@ -247,8 +247,9 @@ def _inputs_digest(keyframe: Keyframe, feats: Features, observed: IntArray,
     for view in (*views.others, *views.own):
         digest.view(view)
     digest.array(views.exact)
-    if views.measured is not None:
-        digest.array(np.asarray(views.measured[views.exact], np.float64))
+    # The measured points in the form a snapshot stores them, so that a map lifted from
+    # depth maps, saved and loaded, still finds its statistics.
+    digest.array(views.stored_offsets())
     return digest.digest()
 
 
@@ -360,14 +361,29 @@ class HeldOutViews:
     keyframes (``others``, one view a keyframe, ``point_index`` into the R) and how many of
     those keyframes see each (``seen``); which are stated exact (``exact``: lifted from a
     depth map, depth sigma 0) and, where any is, their measured points (``measured``,
-    (R, 3), read at the exact rows only) and their observations by the keyframe itself
-    (``own``)."""
+    (R, 3), read at the exact rows only), their observations by the keyframe itself
+    (``own``) and the world centre of each one's anchor keyframe (``anchors``, (R, 3): the
+    keyframe of its first observation, from which a snapshot stores its point as a float32
+    offset; NaN where that keyframe is not in the map)."""
 
     others: list[ViewObservations]
     seen: IntArray
     exact: npt.NDArray[np.bool_]
     measured: Array | None = None
     own: list[ViewObservations] = dataclasses.field(default_factory=list)
+    anchors: Array | None = None
+
+    def stored_offsets(self) -> npt.NDArray[np.float32]:
+        """(E, 3) the measured points of the E exact landmarks as a snapshot stores them by
+        default: float32 offsets from their anchor keyframe's centre. A map saved so and
+        loaded back gives the very same offsets (its point is that centre plus the offset,
+        whose float32 rounding returns the offset), as does one saved with float64 points,
+        so the digest of what a statistic read holds across a save: the values a loaded map
+        is given are then those computed on the points before their rounding, which moved
+        each by at most 1/100 of its uncertainty (the snapshot's bound)."""
+        if self.measured is None or self.anchors is None:
+            return np.zeros((0, 3), np.float32)
+        return (self.measured[self.exact] - self.anchors[self.exact]).astype(np.float32)
 
 
 def held_out_points(state: MapState, cols: LandmarkColumns, rows: IntArray, kf_id: int,
@@ -394,7 +410,18 @@ def held_out_views(state: MapState, cols: LandmarkColumns, rows: IntArray, kf_id
     if not exact.any():
         return HeldOutViews(others, seen, exact)
     own = _views(state, kind, owner, other_kf, keypoint, of_kind & (other_kf == kf_id))
-    return HeldOutViews(others, seen, exact, cols.points_world[rows], own)
+    return HeldOutViews(others, seen, exact, cols.points_world[rows], own,
+                        _anchor_centres(state, cols.obs_keyframe[starts]))
+
+
+def _anchor_centres(state: MapState, anchor_ids: IntArray) -> Array:
+    """(R, 3) world centres of keyframes ``anchor_ids`` (R,); NaN for an id not in ``state``."""
+    centres = np.full((len(anchor_ids), 3), np.nan)
+    for i, kf_id in enumerate(anchor_ids.tolist()):
+        keyframe = state.keyframes.get(kf_id)
+        if keyframe is not None:
+            centres[i] = keyframe.world_from_cam[:3, 3]
+    return centres
 
 
 def points_held_out(views: HeldOutViews) -> tuple[Array, npt.NDArray[np.bool_]]:
