@@ -18,7 +18,7 @@ landmark points and on their ground-truth points (the first observation's pixel 
 the keyframe's true depth). Where the answers beyond 3 sigma come close to the truth on the
 true points, the tail is the map's landmark errors, not the query's keypoints. It also
 relocalizes every keyframe on its landmarks re-triangulated without it
-(:func:`~reloc_service.algorithms.pose.map_consistency.held_out_points`, as the intrinsics
+(:func:`~reloc_service.algorithms.pose.held_out.held_out_points`, as the intrinsics
 dispersion does) and scores the position error against its known pose under the PnP model
 covariance: whether the map's own keyframes show the same tail.
 
@@ -246,6 +246,8 @@ def _held_out(state: Any, kind: str, conf: Any, mc: Any, refined_estimate: Any
     """Each keyframe relocalized on its ``kind`` landmarks re-triangulated without it: its
     position error against its known pose and that error's Mahalanobis length under the PnP
     model covariance."""
+    from reloc_service.algorithms.pose import held_out
+
     columns = mc._Columns(state)
     out = []
     for kf_id in state.keyframe_ids():
@@ -253,8 +255,8 @@ def _held_out(state: Any, kind: str, conf: Any, mc: Any, refined_estimate: Any
         feats = kf.features.get(kind)
         if feats is None:
             continue
-        observed, rows = mc.held_out_candidates(columns.get(), feats.landmark_ids)
-        points, held = mc.held_out_points(state, columns.get(), rows, kf_id, kind)
+        observed, rows = held_out.held_out_candidates(columns.get(), feats.landmark_ids)
+        points, held = held_out.held_out_points(state, columns.get(), rows, kf_id, kind)
         if held.sum() < mc.MIN_HELD_OUT:
             continue
         got = refined_estimate(kf.world_from_cam, feats.keypoints_px[observed[held]]

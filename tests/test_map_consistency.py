@@ -9,12 +9,11 @@ from types import MappingProxyType
 
 import numpy as np
 
+from reloc_service.algorithms.pose.held_out import held_out_candidates, held_out_points
 from reloc_service.algorithms.pose.map_consistency import (
     _STATISTICS,
     excess_exclusion,
     gated_inliers,
-    held_out_candidates,
-    held_out_points,
     keyframe_statistic,
     map_dispersion,
     prepare_map,

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from engine_support import FAST_MAPPING, query_frame, trained_engine
 
-from reloc_service.algorithms.pose import map_consistency
+from reloc_service.algorithms.pose import held_out
 from reloc_service.algorithms.pose.consistency_store import STORE_DIR, read_statistics
 from reloc_service.algorithms.pose.map_consistency import keyframe_statistic
 from reloc_service.algorithms.pose.pnp_conf import PnPConf
@@ -56,7 +56,7 @@ def count_held_out(monkeypatch) -> list[int]:
     """Record every re-triangulation of a keyframe's held-out landmarks from now on (one a
     statistic computed) in the returned list."""
     made: list[int] = []
-    real = map_consistency.triangulate_midpoint
+    real = held_out.triangulate_midpoint
     lock = threading.Lock()
 
     def triangulate(*args, **kw):
@@ -64,7 +64,7 @@ def count_held_out(monkeypatch) -> list[int]:
             made.append(1)
         return real(*args, **kw)
 
-    monkeypatch.setattr(map_consistency, "triangulate_midpoint", triangulate)
+    monkeypatch.setattr(held_out, "triangulate_midpoint", triangulate)
     return made
 
 

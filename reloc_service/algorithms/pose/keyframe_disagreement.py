@@ -6,7 +6,7 @@ A keyframe pose off by a few centimetres or tenths of a degree (a motion-capture
 KinectFusion ground truth, a visual-inertial odometry) places its landmarks off by as much,
 and a query's pose solved on them inherits it (:mod:`.map_uncertainty`). Where the keyframes
 are put without a covariance, the map measures it: held out of its landmarks (each
-re-triangulated from its other observations, :func:`.map_consistency.held_out_points`), a
+re-triangulated from its other observations, :func:`.held_out.held_out_points`), a
 keyframe's pose solved on them by Gauss-Newton from the pose put moves by ``d`` (twist
 (rho, omega), right perturbation), whose covariance is the pose's own error relative to the
 rest of the map, ``S``, plus the solve's a-posteriori covariance ``C`` (its residuals' scale
@@ -41,7 +41,8 @@ from ...core.cameras import Camera
 from ...core.geometry import invert, pose_covariance_from_sigmas, se3_exp, se3_log
 from ...core.map import MapState
 from ...core.triangulation import keypoint_sigmas
-from .map_consistency import MIN_HELD_OUT, held_out_candidates, held_out_points
+from .held_out import held_out_candidates, held_out_points
+from .map_consistency import MIN_HELD_OUT
 from .pnp import solve_pnp_indexed
 from .pnp_conf import PnPConf
 from .projection import pose_projector
