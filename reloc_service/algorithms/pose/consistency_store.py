@@ -23,7 +23,6 @@ import dataclasses
 import hashlib
 import io
 import json
-import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -33,6 +32,7 @@ import numpy.typing as npt
 
 from ...core.cameras import Camera
 from ...core.errors import StorageError
+from ...core.npz_fields import read_fields
 from ...core.triangulation import ViewObservations
 from .cell_correlation import CellComponents
 
@@ -177,15 +177,7 @@ def _value(status: np.integer[Any], value: np.floating[Any]) -> float | None:
 
 def _read(path: Path) -> dict[str, npt.NDArray[Any]]:
     """The arrays of stored statistics ``path``, their shapes and codes checked."""
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            missing = [f for f in _FIELDS if f not in npz.files]
-            if missing:
-                raise StorageError(f"{path}: expected stored keyframe statistics with "
-                                   f"{', '.join(_FIELDS)}; missing {', '.join(missing)}")
-            a = {f: npz[f] for f in _FIELDS}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise StorageError(f"{path}: not readable stored keyframe statistics ({exc})") from exc
+    a = read_fields(path, _FIELDS, "stored keyframe statistics")
     if a["version"].shape != () or int(a["version"]) > FILE_VERSION:
         raise StorageError(f"{path}: layout version {a['version']}, expected at most "
                            f"{FILE_VERSION} (written by a newer reloc)")

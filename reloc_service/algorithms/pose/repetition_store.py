@@ -22,7 +22,6 @@ import dataclasses
 import hashlib
 import io
 import shutil
-import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -33,6 +32,7 @@ import numpy.typing as npt
 from ...core.background import stop_if
 from ...core.errors import StorageError
 from ...core.map import MapState
+from ...core.npz_fields import read_fields
 from ..place.vocabulary import VocabularyTree
 from .landmark_pool import LandmarkPool
 from .map_pool import MapPool
@@ -160,16 +160,8 @@ def load_index(directory: Path, state: MapState, kind: str, conf: IndexConf,
 def _read(path: Path, leaves: bool) -> dict[str, npt.NDArray[Any]]:
     """The arrays of stored index ``path`` (``order`` and ``offsets`` made from its leaves
     where it holds them)."""
-    fields = _TREE_FIELDS + _FILING_FIELDS[leaves]
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            missing = [f for f in fields if f not in npz.files]
-            if missing:
-                raise StorageError(f"{path}: expected a stored repetition index with "
-                                   f"{', '.join(fields)}; missing {', '.join(missing)}")
-            arrays = {f: npz[f] for f in fields}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise StorageError(f"{path}: not a readable repetition index ({exc})") from exc
+    arrays = read_fields(path, _TREE_FIELDS + _FILING_FIELDS[leaves],
+                         "a stored repetition index")
     if leaves:
         n_words, rows = int(arrays["n_words"]), arrays.pop("leaves")
         if rows.dtype.kind != "u" or rows.ndim != 1 or int(rows.max(initial=0)) >= n_words:
