@@ -14,7 +14,10 @@ statistics, as before they were stored.
 An entry is used only where the loaded map's inputs for its keyframe have its digest: the same
 held-out landmarks, observed at the same pixels by the same keyframes at the same poses
 through the same cameras, and the same options. There a computation gives the stored values
-bit for bit; any other keyframe computes its own, as without a store.
+bit for bit, but where landmarks lifted from depth maps are read: their points count in the
+form a snapshot stores them (rounded within 1/100 of their uncertainty), and the values are
+those the saving engine computed on them unrounded. Any other keyframe computes its own, as
+without a store.
 """
 
 from __future__ import annotations
