@@ -56,7 +56,7 @@ def test_only_the_engine_creates_locks(synthetic_scene, monkeypatch):
     engine = _real_engine(synthetic_scene, range(3))
     engine.remove_keyframe(2)
     # The engine's readers-writer lock creates its condition in its own module.
-    engine_sites = {"engine.py", "core/read_write_lock.py"}
+    engine_sites = {"engine/engine.py", "core/read_write_lock.py"}
     assert sites and {s.split(":")[0] for s in sites} == engine_sites, sites
     built = len(sites)
     for method in REAL_METHODS:

@@ -43,69 +43,37 @@ import threading
 import time
 import weakref
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any
 
 import numpy.typing as npt
 
-from .algorithms.pose.keyframe_disagreement import KeyframePoseSigma, keyframe_pose_sigma
-from .algorithms.pose.map_pool import pool_bytes
-from .algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
-from .algorithms.relocalizers.factory import DEFAULT_METHOD, create_relocalizer, create_tracker
-from .algorithms.relocalizers.map_pools import restore_pools, save_pools
-from .algorithms.relocalizers.map_statistics import restore_statistics, save_statistics
-from .algorithms.relocalizers.tracking_fallback import relocalize_with_prior
-from .core.background import LOWER_PRIORITY, lower_priority, start_background
-from .core.cameras import Camera
-from .core.errors import ConfigError
-from .core.frame import EncodedImage, Frame, Keyframe
-from .core.map import KeyframeMap, MapState
-from .core.map_view import MapView
-from .core.mapping import MapBuilder, MappingConf
-from .core.progress import progress as progress_bar
-from .core.read_write_lock import ReadWriteLock
-from .core.triangulation import TriangulationConf
-from .storage.keyframe_parts import StoredParts
-from .storage.snapshot import load_map, model_dir_name, save_map
+from ..algorithms.pose.keyframe_disagreement import KeyframePoseSigma, keyframe_pose_sigma
+from ..algorithms.pose.map_pool import pool_bytes
+from ..algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
+from ..algorithms.relocalizers.factory import create_relocalizer, create_tracker
+from ..algorithms.relocalizers.map_pools import restore_pools, save_pools
+from ..algorithms.relocalizers.map_statistics import restore_statistics, save_statistics
+from ..algorithms.relocalizers.tracking_fallback import relocalize_with_prior
+from ..core.background import LOWER_PRIORITY, lower_priority, start_background
+from ..core.cameras import Camera
+from ..core.frame import EncodedImage, Frame, Keyframe
+from ..core.map import KeyframeMap, MapState
+from ..core.map_view import MapView
+from ..core.mapping import MapBuilder, MappingConf
+from ..core.progress import progress as progress_bar
+from ..core.read_write_lock import ReadWriteLock
+from ..core.triangulation import TriangulationConf
+from ..storage.keyframe_parts import StoredParts
+from ..storage.snapshot import load_map, model_dir_name, save_map
+from .conf import EngineConf
 
 log = logging.getLogger(__name__)
 
 __all__ = ["Engine", "EngineConf", "MappingConf", "TriangulationConf"]
 
 Array = npt.NDArray[Any]
-
-
-@dataclass(frozen=True)
-class EngineConf:
-    """Methods kept ready (the first is the default), plugin options (plugin name -> option
-    dict, as :func:`create_relocalizer` takes them), the map building configuration and what
-    a save stores of each keyframe's depth and image (:class:`StoredParts`)."""
-
-    methods: tuple[str, ...] = (DEFAULT_METHOD,)
-    options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
-    mapping: MappingConf = field(default_factory=MappingConf)
-    stored: StoredParts = field(default_factory=StoredParts)
-
-    def __post_init__(self) -> None:
-        methods = tuple(self.methods) if isinstance(self.methods, list | tuple) else None
-        if not methods or not all(isinstance(m, str) and m.strip() for m in methods):
-            raise ConfigError(f"engine.methods: expected a non-empty list of method strings "
-                              f"(e.g. ['sbi+p3p']), got {self.methods!r}")
-        object.__setattr__(self, "methods", tuple(m.strip() for m in methods))
-        if not isinstance(self.options, Mapping) or not all(
-                isinstance(v, Mapping) for v in self.options.values()):
-            raise ConfigError(f"engine.options: expected plugin name -> option table, got "
-                              f"{self.options!r}")
-        object.__setattr__(self, "options", MappingProxyType(
-            {k: MappingProxyType(dict(v)) for k, v in self.options.items()}))
-        if isinstance(self.mapping, Mapping):
-            object.__setattr__(self, "mapping", MappingConf.from_options(self.mapping))
-
-    @property
-    def default_method(self) -> str:
-        return self.methods[0]
 
 
 @dataclass
@@ -115,7 +83,7 @@ class _Live:
     relocalizer: Relocalizer
     view: MapView
     #: Tracking from a prior with a covariance, asked before ``relocalizer`` when a query
-    #: carries one (:mod:`.algorithms.relocalizers.tracking`), over the same view.
+    #: carries one (:mod:`..algorithms.relocalizers.tracking`), over the same view.
     tracker: Relocalizer | None = None
 
 
@@ -352,11 +320,12 @@ class Engine:
              store: Mapping[str, Any] | None = None, parts: StoredParts | None = None) -> Path:
         """Save the published map and every live relocalizer's models (consistent with it),
         with the whole-map pools' indexes and the keyframe statistics they hold
-        (:mod:`.map_pools`, :mod:`.map_statistics`); returns the snapshot. Queries go on
-        meanwhile: the read lock is held only while the relocalizers write their models
+        (:mod:`..algorithms.relocalizers.map_pools`,
+        :mod:`..algorithms.relocalizers.map_statistics`); returns the snapshot. Queries go
+        on meanwhile: the read lock is held only while the relocalizers write their models
         (into a scratch directory), not for the map files.
         ``exact_geometry``: landmark geometry float64 as held; ``store``: the owner's fields
-        of the manifest (see :func:`.storage.snapshot.save_map`); ``parts``: what is stored
+        of the manifest (see :func:`..storage.snapshot.save_map`); ``parts``: what is stored
         of each keyframe's depth and image (default: ``conf.stored``; images when it says
         ``"always"`` or a live relocalizer reads them)."""
         directory = Path(directory)
@@ -396,8 +365,9 @@ class Engine:
         pools its queries read on a thread of their own (:meth:`_start_prepare`); False for
         an engine that answers no query. The keyframe statistics stored with each method's
         model are given back to the map's keyframes
-        (:func:`.map_statistics.restore_statistics`): its first queries compute only those
-        of keyframes whose inputs differ from those they were computed from."""
+        (:func:`..algorithms.relocalizers.map_statistics.restore_statistics`): its first
+        queries compute only those of keyframes whose inputs differ from those they were
+        computed from."""
         state, models_dir = load_map(directory)
         engine = cls(conf)
         engine.map.replace_state(state)
@@ -453,12 +423,13 @@ class Engine:
         return loaded[0] / model_dir_name(method)
 
     def _start_prepare(self, models_dir: Path | None) -> None:
-        """Make the whole-map pools the queries read (:func:`.map_pools.restore_pools`) on a
-        thread of their own, so that loading returns at once; a query that needs a pool
-        still being made waits for it (:attr:`prepared` is set when all are made). The
-        first method's first pool, which its first step reads (any query waits for it), is
-        made at the queries' priority, the others below it: made below it too, it delayed a
-        cold load's first answer while the warm-up or other maps' queries ran."""
+        """Make the whole-map pools the queries read
+        (:func:`..algorithms.relocalizers.map_pools.restore_pools`) on a thread of their own,
+        so that loading returns at once; a query that needs a pool still being made waits
+        for it (:attr:`prepared` is set when all are made). The first method's first pool,
+        which its first step reads (any query waits for it), is made at the queries'
+        priority, the others below it: made below it too, it delayed a cold load's first
+        answer while the warm-up or other maps' queries ran."""
         with self._rw.read():
             work = [(live.relocalizer, None if models_dir is None
                      else models_dir / model_dir_name(m)) for m, live in self._live.items()]
@@ -484,7 +455,7 @@ class Engine:
 
     def held_bytes(self) -> int:
         """Bytes the relocalizers hold for the published map beside it: its whole-map
-        landmark pools and their indexes (:mod:`.algorithms.pose.map_pool`). Read without
+        landmark pools and their indexes (:mod:`..algorithms.pose.map_pool`). Read without
         the engine's lock (the budget's count, called under other locks)."""
         return pool_bytes(self._published)
 
