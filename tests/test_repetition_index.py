@@ -223,3 +223,29 @@ def test_finders_of_one_kind_share_the_pool_which_goes_with_its_map_state() -> N
     del state
     gc.collect()
     assert not set(own) & set(map_pool._POOLS)
+
+
+@pytest.mark.parametrize("kind", ["orb", "sift"])
+def test_a_map_pool_read_keyframe_by_keyframe_is_the_pool_gathered_at_once(kind: str) -> None:
+    """The whole map's pool, each keyframe's features dropped once read, holds the rows the
+    gathering of every keyframe at once holds, in the same order (keyframes in any order:
+    the first to see a landmark gives its row), and stops when cancelled."""
+    from reloc_service.core.errors import Cancelled
+    from reloc_service.tools.synth.planar import keyframe_grid, planar_scene
+
+    scene = planar_scene(keyframe_grid(3, 2), kinds=(kind,), max_features=300)
+    state = scene.map.snapshot()
+    keyframes = list(state.keyframes.values())
+    seen_twice = 0
+    for order in (keyframes, keyframes[::-1], keyframes[2:] + keyframes[:2], keyframes[3:4]):
+        at_once = LandmarkPool.gather(order, kind)
+        streamed = LandmarkPool.gather_streamed(order, kind)
+        for field in ("descriptors", "landmark_ids", "points_world", "keyframe_rows"):
+            np.testing.assert_array_equal(getattr(streamed, field), getattr(at_once, field))
+        observed = sum(int((kf.features[kind].landmark_ids >= 0).sum()) for kf in order)
+        seen_twice = max(seen_twice, observed - len(at_once.landmark_ids))
+    assert seen_twice > 0, "no landmark seen by two keyframes: nothing to keep once"
+    calls: list[int] = []
+    with pytest.raises(Cancelled):
+        LandmarkPool.gather_streamed(keyframes, kind, lambda: calls.append(1) or len(calls) > 2)
+    assert len(calls) == 3

@@ -29,7 +29,9 @@ POOL_BYTES_PER_KEYFRAME = 85_800
 #: What making a map's pools holds at its peak beyond what stays once they are made, per byte
 #: the pools hold: 92.0 MB for the fleet template's 81.8 MB of pools (two runs of
 #: scripts/pool_build_peak.py, 91.9 and 92.0 MB: the peak of the resident memory while they
-#: were made above it after).
+#: were made above it after), measured when a pool held every keyframe's features until it
+#: was made; 76.2 MB since it drops each keyframe's once read (one run), which this bound
+#: covers.
 MAKING_PER_POOL_BYTE = 92.0 / 81.8
 
 

@@ -68,6 +68,43 @@ class LandmarkPool:
                    ids[first], np.concatenate([f.points_world[i] for f, i in picks
                                                if f is not None]), rows)
 
+    @classmethod
+    def gather_streamed(cls, keyframes: list[Keyframe], kind: str,
+                        cancelled: Callable[[], bool] | None = None) -> LandmarkPool:
+        """:meth:`gather`'s pool, each keyframe's features read and dropped in turn: for a
+        whole map, where holding every keyframe's features until the end took about 1.5
+        times the pool at its peak (0.9 times this way: scripts/pool_build_peak.py on the
+        fleet template). Slower than :meth:`gather` on a few keyframes (a table of the ids
+        seen, one pass per keyframe)."""
+        # each keyframe's rows of landmarks no better-ranked keyframe gave, as it is read
+        seen = _SeenIds()
+        parts: list[tuple[npt.NDArray[Any], npt.NDArray[np.int64], Array]] = []
+        counts = np.zeros(len(keyframes), np.int64)
+        for row, kf in enumerate(keyframes):
+            stop_if(cancelled)
+            f = _peek(kf, kind)
+            if f is None:
+                continue
+            local = np.flatnonzero(f.landmark_ids >= 0)
+            local = local[first_occurrences(f.landmark_ids[local])]
+            local = local[seen.take_new(f.landmark_ids[local])]
+            if len(local):
+                parts.append((f.descriptors[local], f.landmark_ids[local],
+                              f.points_world[local]))
+                counts[row] = len(local)
+        if not parts:
+            return cls.empty(kind)
+        return cls(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+                   np.concatenate([p[2] for p in parts]),
+                   np.repeat(np.arange(len(keyframes), dtype=np.int64), counts))
+
+    @classmethod
+    def empty(cls, kind: str) -> LandmarkPool:
+        """A pool of no landmark (``kind``'s descriptor width: both kinds are uint8)."""
+        width = 128 if kind == "sift" else 32
+        return cls(np.zeros((0, width), np.uint8), np.zeros(0, np.int64), np.zeros((0, 3)),
+                   np.zeros(0, np.int64))
+
     def uncertainty(self, state: MapState, keyframes: list[Keyframe],
                     rows: npt.NDArray[np.int64]) -> PointUncertainty:
         """The depth uncertainty of the landmarks of pool ``rows`` (``keyframes`` as given to
@@ -90,6 +127,26 @@ class LandmarkPool:
         counts = np.bincount(self.keyframe_rows[rows], minlength=len(keyframe_ids))
         order = np.argsort(-counts, kind="stable")
         return [keyframe_ids[i] for i in order if counts[i] > 0]
+
+
+class _SeenIds:
+    """The landmark ids a pool holds so far, as a growing boolean table indexed by id."""
+
+    def __init__(self) -> None:
+        self._seen = np.zeros(0, bool)
+
+    def take_new(self, ids: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:
+        """Which of ``ids`` (distinct, non-negative) were not seen before; marks them seen."""
+        if len(ids) == 0:
+            return np.zeros(0, bool)
+        top = int(ids.max()) + 1
+        if top > len(self._seen):
+            grown = np.zeros(max(top, 2 * len(self._seen)), bool)
+            grown[:len(self._seen)] = self._seen
+            self._seen = grown
+        new = ~self._seen[ids]
+        self._seen[ids[new]] = True
+        return new
 
 
 #: Per keyframe features: the rows :meth:`LandmarkPool.gather` keeps of it alone (a few

@@ -31,7 +31,8 @@ class MapPool:
         :class:`~reloc_service.core.errors.Cancelled` once ``cancelled()`` is true (checked
         between the keyframes gathered and the index's chunks: what was made is dropped)."""
         ids = list(state.keyframes)
-        pool = LandmarkPool.gather([state.keyframes[k] for k in ids], kind, cancelled)
+        pool = LandmarkPool.gather_streamed([state.keyframes[k] for k in ids], kind,
+                                            cancelled)
         return cls(pool, RepetitionIndex.build(pool.descriptors, conf, cancelled=cancelled), ids)
 
     @property
