@@ -6,10 +6,13 @@ file by name; an engine that answers no query carries them into its saves."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import re
 import shutil
 import threading
+import tracemalloc
+import weakref
 from pathlib import Path
 from types import MappingProxyType
 
@@ -19,7 +22,12 @@ from engine_support import FAST_MAPPING, query_frame, trained_engine
 
 from reloc_service.algorithms.pose import held_out
 from reloc_service.algorithms.pose.consistency_store import STORE_DIR, read_statistics
-from reloc_service.algorithms.pose.map_consistency import keyframe_statistic
+from reloc_service.algorithms.pose.map_consistency import (
+    RECORD_BYTES,
+    held_statistics,
+    keyframe_statistic,
+)
+from reloc_service.algorithms.pose.map_pool import pool_bytes
 from reloc_service.algorithms.pose.pnp_conf import PnPConf
 from reloc_service.core.errors import StorageError
 from reloc_service.core.geometry import look_at
@@ -210,3 +218,33 @@ def test_a_map_lifted_from_depth_saved_with_rounded_points_reads_its_statistics(
     computed, values = computed_keyframes(loaded.map.snapshot(), counted, PnPConf())
     assert not computed, f"computed again: {sorted(computed)}"
     assert values == saved_values
+
+
+class _Owner:
+    """Stands for a keyframe as a key of the records' table (weakly referenced)."""
+
+    def __init__(self, kf_id: int) -> None:
+        self.id = kf_id
+
+
+def test_the_records_count_against_the_memory_budget_within_their_bound(saved) -> None:
+    """A trained engine's held bytes are its pools' and its keyframes' records', each
+    record counted as ``RECORD_BYTES``: a bound on what copies of its records take, with
+    their entries in a table like the records' (by tracemalloc), and not far above it."""
+    engine, _ = saved
+    state = engine.map.snapshot()
+    records = {kind: held_statistics(state, kind) for kind in KINDS}
+    count = sum(len(held) for held in records.values())
+    assert count == len(KINDS) * len(state.keyframes)
+    assert engine.held_bytes() == pool_bytes(state) + RECORD_BYTES * count
+    owners = [_Owner(kf_id) for kf_id in state.keyframe_ids()]
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        table: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+        for owner in owners:
+            table[owner] = {kind: copy.deepcopy(records[kind][owner.id]) for kind in KINDS}
+        held = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert RECORD_BYTES / 2 <= held / count <= RECORD_BYTES

@@ -50,6 +50,7 @@ from typing import Any
 import numpy.typing as npt
 
 from ..algorithms.pose.keyframe_disagreement import KeyframePoseSigma, keyframe_pose_sigma
+from ..algorithms.pose.map_consistency import statistics_bytes
 from ..algorithms.pose.map_pool import pool_bytes
 from ..algorithms.relocalizers.base import Prior, Relocalizer, RelocResult
 from ..algorithms.relocalizers.factory import create_relocalizer, create_tracker
@@ -70,6 +71,10 @@ from ..storage.snapshot import load_map, model_dir_name, save_map
 from .conf import EngineConf
 
 log = logging.getLogger(__name__)
+
+#: Seconds a count of a map's statistics records stands (they are made when it trains or
+#: loads, and for a keyframe added since at the first query near it).
+STATISTICS_RECOUNT_S = 5.0
 
 __all__ = ["Engine", "EngineConf", "MappingConf", "TriangulationConf"]
 
@@ -122,6 +127,8 @@ class Engine:
         #: Feature kinds whose keyframe statistics the load read (:meth:`load`).
         self.statistics_read: list[str] = []
         self._closed = threading.Event()
+        #: (state, when, bytes) of the last count of its keyframes' statistics records
+        self._statistics_counted: tuple[weakref.ref[MapState], float, int] | None = None
         kinds: set[str] = set()
         for method in self.conf.methods:
             live = self._create(method, self._published)
@@ -455,9 +462,22 @@ class Engine:
 
     def held_bytes(self) -> int:
         """Bytes the relocalizers hold for the published map beside it: its whole-map
-        landmark pools and their indexes (:mod:`..algorithms.pose.map_pool`). Read without
-        the engine's lock (the budget's count, called under other locks)."""
-        return pool_bytes(self._published)
+        landmark pools and their indexes (:mod:`..algorithms.pose.map_pool`) and its
+        keyframes' statistics (:mod:`..algorithms.pose.map_consistency`). Read without the
+        engine's lock (the budget's count, called under other locks)."""
+        state = self._published
+        return pool_bytes(state) + self._statistics_bytes(state)
+
+    def _statistics_bytes(self, state: MapState) -> int:
+        """:func:`statistics_bytes` of ``state``, counted again at most every
+        :data:`STATISTICS_RECOUNT_S` (a pass over its keyframes, which the budget's count
+        would otherwise make several times after every query)."""
+        counted = self._statistics_counted
+        now = time.monotonic()
+        if counted is None or counted[0]() is not state or now - counted[1] > STATISTICS_RECOUNT_S:
+            counted = (weakref.ref(state), now, statistics_bytes(state))
+            self._statistics_counted = counted
+        return counted[2]
 
     def close(self) -> None:
         """Stop making the pools a load prepares, in the middle of one too (between its

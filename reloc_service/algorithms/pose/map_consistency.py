@@ -425,6 +425,21 @@ def held_statistics(state: MapState, kind: str) -> dict[int, KeyframeStatistics]
             if (record := _RECORDS.get(keyframe, {}).get(kind)) is not None}
 
 
+#: Bytes one keyframe's record of one feature kind holds in memory (the record, its digest,
+#: values and cells, and its share of the keyframe's entry in the records' table): a bound
+#: on what they take by tracemalloc (500-610 bytes), for the memory budget's count.
+RECORD_BYTES = 640
+
+
+def statistics_bytes(state: MapState) -> int:
+    """Bytes the statistics records of ``state``'s keyframes hold (:data:`RECORD_BYTES`
+    each): about 1.3 MB for 1000 keyframes of two feature kinds, counted with the map's
+    pools against a service's memory budget."""
+    records = _RECORDS
+    return RECORD_BYTES * sum(len(records.get(keyframe, ()))
+                              for keyframe in state.keyframes.values())
+
+
 def offer_statistics(state: MapState, kind: str, stored: Mapping[int, KeyframeStatistics]
                      ) -> int:
     """Give the keyframes of ``state`` the ``kind`` statistics a snapshot ``stored`` for
