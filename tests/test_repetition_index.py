@@ -249,3 +249,28 @@ def test_a_map_pool_read_keyframe_by_keyframe_is_the_pool_gathered_at_once(kind:
     with pytest.raises(Cancelled):
         LandmarkPool.gather_streamed(keyframes, kind, lambda: calls.append(1) or len(calls) > 2)
     assert len(calls) == 3
+
+
+@pytest.mark.parametrize("parts", [
+    {}, {"descriptors": "per-landmark"}, {"descriptors": "landmarks", "descriptor_codec": "pq"},
+    {"descriptors": "per-landmark", "descriptor_codec": "pq-hybrid"}])
+def test_a_stored_maps_pool_decodes_its_landmark_rows_only_into_the_same_pool(
+        tmp_path, parts) -> None:
+    """Of a map loaded from a snapshot (each way of storing descriptors), the pool that
+    decodes only the rows it keeps is the pool of every keyframe's features read whole, and
+    no keyframe's features are built by it."""
+    from reloc_service.storage.keyframe_parts import StoredParts
+    from reloc_service.storage.snapshot import load_map, save_map
+    from reloc_service.tools.synth.planar import keyframe_grid, planar_scene
+
+    scene = planar_scene(keyframe_grid(3, 2), kinds=("orb", "sift"), max_features=300)
+    save_map(scene.map.snapshot(), tmp_path / "map", parts=StoredParts(**parts))
+    state, _ = load_map(tmp_path / "map")
+    keyframes = list(state.keyframes.values())
+    for kind in ("orb", "sift"):
+        at_once = LandmarkPool.gather(keyframes, kind)
+        streamed = LandmarkPool.gather_streamed(keyframes, kind)
+        assert len(at_once.landmark_ids) > 0
+        for field in ("descriptors", "landmark_ids", "points_world", "keyframe_rows"):
+            np.testing.assert_array_equal(getattr(streamed, field), getattr(at_once, field))
+    assert not any(kf.features.built_kinds for kf in keyframes)

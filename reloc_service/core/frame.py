@@ -108,6 +108,14 @@ class Features:
         pts[idx] = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
         return dataclasses.replace(self, landmark_ids=ids, points_world=pts)
 
+    def take(self, rows: npt.ArrayLike) -> Features:
+        """A copy of keypoints ``rows`` (indices) only."""
+        idx = np.asarray(rows, dtype=np.int64)
+        return dataclasses.replace(
+            self, keypoints_px=self.keypoints_px[idx], levels=self.levels[idx],
+            sizes=self.sizes[idx], angles=self.angles[idx], descriptors=self.descriptors[idx],
+            landmark_ids=self.landmark_ids[idx], points_world=self.points_world[idx])
+
     def cv_keypoints(self, indices: npt.ArrayLike | None = None) -> list[cv2.KeyPoint]:
         """OpenCV keypoints (for computing descriptors at known positions)."""
         idx = range(len(self)) if indices is None else np.asarray(indices)

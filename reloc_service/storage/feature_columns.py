@@ -32,7 +32,7 @@ memory-mapped columns it reads from.
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator, Mapping, MutableMapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, MutableMapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -284,17 +284,25 @@ class FeatureColumns:
     def length(self, kind: str) -> int:
         return len(self.columns[kind]["levels"])
 
-    def raw(self, kind: str, start: int, stop: int) -> dict[str, np.ndarray]:
+    def raw(self, kind: str, start: int, stop: int,
+            rows: npt.NDArray[np.int64] | None = None) -> dict[str, np.ndarray]:
         """Rows ``start:stop`` of ``kind``'s columns as stored (no copy), sizes and
-        keypoints from their tables where not stored (float32); no derived points."""
+        keypoints from their tables where not stored (float32); no derived points.
+        ``rows``: only those of them (indices into ``start:stop``), copied."""
+
+        def take(column: np.ndarray) -> np.ndarray:
+            part = column[start:stop]
+            return part if rows is None else part[rows]
+
         cols = self.columns[kind]
-        out = {f: c[start:stop] for f, c in cols.items()
+        out = {f: take(c) for f, c in cols.items()
                if f not in ROW_OF and f not in (OWN_ROWS, EXACT_ROWS, EXACT)}
         shared = ROW_OF.keys() & cols.keys()
         for name in shared:
-            out[ROW_OF[name]] = cols[name][self._shared_rows(kind)[start:stop]]
+            out[ROW_OF[name]] = cols[name][take(self._shared_rows(kind))]
         if EXACT_ROWS in cols:   # per row: its code row's mask, and the masked rows' exact
-            code_rows = self._shared_rows(kind)[start:stop] if shared else np.arange(start, stop)
+            code_rows = (take(self._shared_rows(kind)) if shared
+                         else take(np.arange(len(cols["levels"]))))
             mask = cols[EXACT_ROWS][code_rows] != 0
             out[EXACT_ROWS] = mask
             out[EXACT] = cols[EXACT][self._exact_rows(kind)[code_rows[mask]]]
@@ -334,12 +342,14 @@ class FeatureColumns:
         own = self.columns[kind].get(OWN_ROWS)
         return None if own is None else np.asarray(own) != 0
 
-    def features(self, kind: str, start: int, stop: int) -> Features:
+    def features(self, kind: str, start: int, stop: int,
+                 rows: npt.NDArray[np.int64] | None = None) -> Features:
         """Rows ``start:stop`` of ``kind`` as :class:`Features` in its canonical dtypes
-        (read-only: views of the map where the dtype is already canonical, else copies)."""
+        (read-only: views of the map where the dtype is already canonical, else copies);
+        ``rows``: only those of them (indices into ``start:stop``)."""
         if self.landmarks is None:
             raise MapError("features read before the landmark columns were loaded")
-        arrays = {f: _canonical(f, c) for f, c in self.raw(kind, start, stop).items()}
+        arrays = {f: _canonical(f, c) for f, c in self.raw(kind, start, stop, rows).items()}
         if DESCRIPTOR_CODES in arrays:
             arrays["descriptors"] = self.codebooks[kind].decode(arrays.pop(DESCRIPTOR_CODES))
         if EXACT_ROWS in arrays:
@@ -414,6 +424,23 @@ class LazyFeatures(MutableMapping[str, Features]):
         if feats is not None or kind not in self._rows:
             return feats
         return self._columns.features(kind, *self._rows[kind])
+
+    def peek_rows(self, kind: str, rows: Callable[[npt.NDArray[np.int64]],
+                                                  npt.NDArray[np.int64]]) -> Features | None:
+        """Some of ``kind``'s rows as :meth:`peek` reads them: ``rows(landmark_ids)`` says
+        which, from the landmark id of every row (read as stored); the others are never
+        decoded (a pool reads a map's landmark rows only). None when this keyframe has no
+        ``kind`` or none of its rows is asked for."""
+        feats = self._built.get(kind)
+        if feats is not None:
+            wanted = rows(feats.landmark_ids)
+            return feats.take(wanted) if len(wanted) else None
+        if kind not in self._rows:
+            return None
+        start, stop = self._rows[kind]
+        wanted = rows(np.asarray(self._columns.columns[kind]["landmark_ids"][start:stop],
+                                 np.int64))
+        return self._columns.features(kind, start, stop, wanted) if len(wanted) else None
 
     @property
     def built_kinds(self) -> list[str]:

@@ -71,27 +71,28 @@ class LandmarkPool:
     @classmethod
     def gather_streamed(cls, keyframes: list[Keyframe], kind: str,
                         cancelled: Callable[[], bool] | None = None) -> LandmarkPool:
-        """:meth:`gather`'s pool, each keyframe's features read and dropped in turn: for a
-        whole map, where holding every keyframe's features until the end took about 1.5
-        times the pool at its peak (0.9 times this way: scripts/pool_build_peak.py on the
-        fleet template). Slower than :meth:`gather` on a few keyframes (a table of the ids
-        seen, one pass per keyframe)."""
+        """:meth:`gather`'s pool, each keyframe read in turn, and of a keyframe loaded from a
+        snapshot only the rows the pool keeps (the others are never decoded): for a whole
+        map, where holding every keyframe's features until the end took about 1.5 times the
+        pool at its peak (0.9 times this way: scripts/pool_build_peak.py on the fleet
+        template). Slower than :meth:`gather` on a few keyframes (a table of the ids seen,
+        one pass per keyframe)."""
         # each keyframe's rows of landmarks no better-ranked keyframe gave, as it is read
         seen = _SeenIds()
+
+        def new_rows(ids: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+            local = np.flatnonzero(ids >= 0)
+            local = local[first_occurrences(ids[local])]
+            return local[seen.take_new(ids[local])]
+
         parts: list[tuple[npt.NDArray[Any], npt.NDArray[np.int64], Array]] = []
         counts = np.zeros(len(keyframes), np.int64)
         for row, kf in enumerate(keyframes):
             stop_if(cancelled)
-            f = _peek(kf, kind)
-            if f is None:
-                continue
-            local = np.flatnonzero(f.landmark_ids >= 0)
-            local = local[first_occurrences(f.landmark_ids[local])]
-            local = local[seen.take_new(f.landmark_ids[local])]
-            if len(local):
-                parts.append((f.descriptors[local], f.landmark_ids[local],
-                              f.points_world[local]))
-                counts[row] = len(local)
+            f = _peek_rows(kf, kind, new_rows)
+            if f is not None and len(f):
+                parts.append((f.descriptors, f.landmark_ids, f.points_world))
+                counts[row] = len(f)
         if not parts:
             return cls.empty(kind)
         return cls(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
@@ -173,6 +174,22 @@ def peek_features(kf: Keyframe, kind: str) -> Features | None:
     """``kf``'s ``kind`` features, read as :meth:`LandmarkPool.gather` reads them (without
     keeping them built on a keyframe loaded from a snapshot)."""
     return _peek(kf, kind)
+
+
+def _peek_rows(kf: Keyframe, kind: str,
+               rows: Callable[[npt.NDArray[np.int64]], npt.NDArray[np.int64]]
+               ) -> Features | None:
+    """``kf``'s ``kind`` features at ``rows(landmark_ids)`` only, read as :func:`_peek` reads
+    them (decoding those rows alone from a snapshot); None where it has no ``kind`` or no
+    row is asked for."""
+    peek_rows = getattr(kf.features, "peek_rows", None)
+    if peek_rows is not None:
+        return peek_rows(kind, rows)   # type: ignore[no-any-return]
+    feats = kf.features.get(kind)
+    if feats is None:
+        return None
+    wanted = rows(feats.landmark_ids)
+    return feats.take(wanted) if len(wanted) else None
 
 
 def _peek(kf: Keyframe, kind: str) -> Features | None:
