@@ -253,6 +253,7 @@ def test_a_map_pool_read_keyframe_by_keyframe_is_the_pool_gathered_at_once(kind:
 
 @pytest.mark.parametrize("parts", [
     {}, {"descriptors": "per-landmark"}, {"descriptors": "landmarks", "descriptor_codec": "pq"},
+    {"descriptors": "landmarks", "descriptor_codec": "pq-hybrid"},
     {"descriptors": "per-landmark", "descriptor_codec": "pq-hybrid"}])
 def test_a_stored_maps_pool_decodes_its_landmark_rows_only_into_the_same_pool(
         tmp_path, parts) -> None:

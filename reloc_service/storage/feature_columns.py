@@ -301,8 +301,9 @@ class FeatureColumns:
         for name in shared:
             out[ROW_OF[name]] = cols[name][take(self._shared_rows(kind))]
         if EXACT_ROWS in cols:   # per row: its code row's mask, and the masked rows' exact
+            own_rows = np.arange(start, stop)
             code_rows = (take(self._shared_rows(kind)) if shared
-                         else take(np.arange(len(cols["levels"]))))
+                         else own_rows if rows is None else own_rows[rows])
             mask = cols[EXACT_ROWS][code_rows] != 0
             out[EXACT_ROWS] = mask
             out[EXACT] = cols[EXACT][self._exact_rows(kind)[code_rows[mask]]]
