@@ -195,9 +195,9 @@ def test_closing_an_engine_stops_the_pool_it_is_making(chain_template, monkeypat
     # it between two keyframes (a close that waited for the pool would wait for the test)
     reached, closed, test_over = threading.Event(), threading.Event(), threading.Event()
     sift_reads: list[int] = []
-    real_peek = landmark_pool._peek
+    real_peek = landmark_pool._peek_rows   # how a map's pool reads each keyframe
 
-    def held_peek(kf, kind):
+    def held_peek(kf, kind, rows):
         if kind != "orb":
             sift_reads.append(kf.id)
             if len(sift_reads) == 1:
@@ -205,9 +205,9 @@ def test_closing_an_engine_stops_the_pool_it_is_making(chain_template, monkeypat
                 closed.wait(60)
             else:
                 test_over.wait(120)
-        return real_peek(kf, kind)
+        return real_peek(kf, kind, rows)
 
-    monkeypatch.setattr(landmark_pool, "_peek", held_peek)
+    monkeypatch.setattr(landmark_pool, "_peek_rows", held_peek)
     before = set(threading.enumerate())
     try:
         engine = Engine.load(chain_template.directory / "map", EngineConf(methods=(CHAIN,)))
