@@ -50,9 +50,7 @@ class LandmarkPool:
         local = [np.zeros(0, np.int64) if f is None else np.flatnonzero(f.landmark_ids >= 0)
                  for f in feats]
         if not sum(len(i) for i in local):
-            width = 128 if kind == "sift" else 32     # both kinds are uint8 descriptors
-            return cls(np.zeros((0, width), np.uint8), np.zeros(0, np.int64), np.zeros((0, 3)),
-                       np.zeros(0, np.int64))
+            return cls.empty(kind)
         ids = np.concatenate([f.landmark_ids[i] for f, i in zip(feats, local, strict=True)
                               if f is not None])
         kf_rows = np.repeat(np.arange(len(feats)), [len(i) for i in local])
