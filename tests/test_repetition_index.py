@@ -5,6 +5,7 @@ when the map is prepared rather than by the first query."""
 from __future__ import annotations
 
 import functools
+import itertools
 
 import cv2
 import numpy as np
@@ -256,10 +257,13 @@ def test_a_map_pool_read_keyframe_by_keyframe_is_the_pool_gathered_at_once(kind:
     {"descriptors": "landmarks", "descriptor_codec": "pq-hybrid"},
     {"descriptors": "per-landmark", "descriptor_codec": "pq-hybrid"}])
 def test_a_stored_maps_pool_decodes_its_landmark_rows_only_into_the_same_pool(
-        tmp_path, parts) -> None:
+        tmp_path, monkeypatch, parts) -> None:
     """Of a map loaded from a snapshot (each way of storing descriptors), the pool that
-    decodes only the rows it keeps is the pool of every keyframe's features read whole, and
-    no keyframe's features are built by it."""
+    decodes only the rows it keeps, several keyframes at a time, is the pool of every
+    keyframe's features read whole: keyframes in any order, read in runs of any length,
+    with some keyframes' features built (read alone, between runs); no keyframe's features
+    are built by it."""
+    from reloc_service.algorithms.pose import landmark_pool
     from reloc_service.storage.keyframe_parts import StoredParts
     from reloc_service.storage.snapshot import load_map, save_map
     from reloc_service.tools.synth.planar import keyframe_grid, planar_scene
@@ -268,10 +272,22 @@ def test_a_stored_maps_pool_decodes_its_landmark_rows_only_into_the_same_pool(
     save_map(scene.map.snapshot(), tmp_path / "map", parts=StoredParts(**parts))
     state, _ = load_map(tmp_path / "map")
     keyframes = list(state.keyframes.values())
-    for kind in ("orb", "sift"):
-        at_once = LandmarkPool.gather(keyframes, kind)
-        streamed = LandmarkPool.gather_streamed(keyframes, kind)
-        assert len(at_once.landmark_ids) > 0
-        for field in ("descriptors", "landmark_ids", "points_world", "keyframe_rows"):
-            np.testing.assert_array_equal(getattr(streamed, field), getattr(at_once, field))
+    orders = (keyframes, keyframes[::-1], keyframes[2:] + keyframes[:2])
+
+    def same_pools() -> None:
+        for kind, order in itertools.product(("orb", "sift"), orders):
+            at_once = LandmarkPool.gather(order, kind)
+            streamed = LandmarkPool.gather_streamed(order, kind)
+            assert len(at_once.landmark_ids) > 0
+            for field in ("descriptors", "landmark_ids", "points_world", "keyframe_rows"):
+                np.testing.assert_array_equal(getattr(streamed, field),
+                                              getattr(at_once, field))
+
+    for run in (landmark_pool.STORED_RUN, 2, 1):
+        monkeypatch.setattr(landmark_pool, "STORED_RUN", run)
+        same_pools()
     assert not any(kf.features.built_kinds for kf in keyframes)
+    for kf in keyframes[1::3]:
+        kf.features["sift"]
+    monkeypatch.setattr(landmark_pool, "STORED_RUN", 2)
+    same_pools()

@@ -190,24 +190,27 @@ def test_a_map_counts_its_pools_reserve_while_they_are_made(chain_template, tmp_
 
 
 def test_closing_an_engine_stops_the_pool_it_is_making(chain_template, monkeypatch) -> None:
-    # the SIFT pool's gathering is held at its first keyframe until the engine is closed,
-    # then at every later one until the test ends: the build ends only if the close stops
-    # it between two keyframes (a close that waited for the pool would wait for the test)
+    # the SIFT pool's gathering is held at its first read (two keyframes at a time) until
+    # the engine is closed, then at every later one until the test ends: the build ends
+    # only if the close stops it between two reads (a close that waited for the pool would
+    # wait for the test)
     reached, closed, test_over = threading.Event(), threading.Event(), threading.Event()
     sift_reads: list[int] = []
-    real_peek = landmark_pool._peek_rows   # how a map's pool reads each keyframe
+    real_runs = landmark_pool._stored_runs   # how a map's pool reads its keyframes
 
-    def held_peek(kf, kind, rows):
-        if kind != "orb":
-            sift_reads.append(kf.id)
-            if len(sift_reads) == 1:
-                reached.set()
-                closed.wait(60)
-            else:
-                test_over.wait(120)
-        return real_peek(kf, kind, rows)
+    def held_runs(keyframes, kind):
+        for run in real_runs(keyframes, kind):
+            if kind != "orb":
+                sift_reads.append(run[0])
+                if len(sift_reads) == 1:
+                    reached.set()
+                    closed.wait(60)
+                else:
+                    test_over.wait(120)
+            yield run
 
-    monkeypatch.setattr(landmark_pool, "_peek_rows", held_peek)
+    monkeypatch.setattr(landmark_pool, "STORED_RUN", 2)
+    monkeypatch.setattr(landmark_pool, "_stored_runs", held_runs)
     before = set(threading.enumerate())
     try:
         engine = Engine.load(chain_template.directory / "map", EngineConf(methods=(CHAIN,)))
@@ -220,7 +223,8 @@ def test_closing_an_engine_stops_the_pool_it_is_making(chain_template, monkeypat
         builds[0].join(30)
         assert not builds[0].is_alive()
         assert engine.prepared.is_set()
-        assert len(sift_reads) == 1 < len(engine.map.snapshot().keyframes)
+        assert len(sift_reads) == 1
+        assert len(engine.map.snapshot().keyframes) > landmark_pool.STORED_RUN
         # the ORB pool made before the close is kept; nothing of the SIFT one
         assert [kind for kind, _, _ in pools_of(engine._published)] == ["orb"]
         assert engine.held_bytes() > 0

@@ -318,6 +318,27 @@ class FeatureColumns:
                                                      self.scales[kind])
         return out
 
+    def features_of_ranges(self, kind: str, ranges: npt.NDArray[np.int64],
+                           rows: Callable[[npt.NDArray[np.int64]], npt.NDArray[np.int64]]
+                           ) -> tuple[Features | None, npt.NDArray[np.int64]]:
+        """Some rows of several keyframes read at once: ``ranges`` (K, 2) their start and stop
+        rows of ``kind``; ``rows(landmark_ids)`` says which, from the landmark ids of all of
+        them in turn (read as stored, concatenated); the others are never decoded. The rows
+        as one :class:`Features` (None: none asked for) and how many of them each range
+        gave (K,). One decoding for all of them: a keyframe at a time, the per-call work
+        (the columns' slices, each field's conversion, the points' lookup) was most of a
+        whole map's pool."""
+        lengths = ranges[:, 1] - ranges[:, 0]
+        offsets = np.concatenate([[0], np.cumsum(lengths)])
+        # every range's rows, in turn: start + position within its range
+        index = np.repeat(ranges[:, 0] - offsets[:-1], lengths) + np.arange(offsets[-1])
+        wanted = rows(np.asarray(self.columns[kind]["landmark_ids"][index], np.int64))
+        counts = np.bincount(np.searchsorted(offsets, wanted, side="right") - 1,
+                             minlength=len(ranges)).astype(np.int64)
+        if not len(wanted):
+            return None, counts
+        return self.features(kind, 0, self.length(kind), index[wanted]), counts
+
     def _shared_rows(self, kind: str) -> npt.NDArray[np.int64]:
         """(N,) row of ``kind``'s shared descriptor column each of its rows reads (once)."""
         index = self._shared_index.get(kind)
@@ -442,6 +463,15 @@ class LazyFeatures(MutableMapping[str, Features]):
         wanted = rows(np.asarray(self._columns.columns[kind]["landmark_ids"][start:stop],
                                  np.int64))
         return self._columns.features(kind, start, stop, wanted) if len(wanted) else None
+
+    def stored_range(self, kind: str) -> tuple[FeatureColumns, int, int] | None:
+        """The snapshot's columns and the rows (start, stop) ``kind`` is read from, while it
+        is not built or set here (:meth:`FeatureColumns.features_of_ranges` reads several
+        keyframes' at once); None once it is, or when this keyframe has no ``kind``."""
+        if kind in self._built or kind not in self._rows:
+            return None
+        start, stop = self._rows[kind]
+        return self._columns, start, stop
 
     @property
     def built_kinds(self) -> list[str]:

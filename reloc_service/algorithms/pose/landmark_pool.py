@@ -4,7 +4,7 @@ matches a query against and what guided matching projects into it."""
 from __future__ import annotations
 
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -69,12 +69,14 @@ class LandmarkPool:
     @classmethod
     def gather_streamed(cls, keyframes: list[Keyframe], kind: str,
                         cancelled: Callable[[], bool] | None = None) -> LandmarkPool:
-        """:meth:`gather`'s pool, each keyframe read in turn, and of a keyframe loaded from a
-        snapshot only the rows the pool keeps (the others are never decoded): for a whole
-        map, where holding every keyframe's features until the end took about 1.5 times the
-        pool at its peak (0.9 times this way: scripts/pool_build_peak.py on the fleet
-        template). Slower than :meth:`gather` on a few keyframes (a table of the ids seen,
-        one pass per keyframe)."""
+        """:meth:`gather`'s pool, the keyframes read in turn, and of keyframes loaded from a
+        snapshot only the rows the pool keeps (the others are never decoded), up to
+        :data:`STORED_RUN` of them in one read: for a whole map, where holding every
+        keyframe's features until the end took about 1.5 times the pool at its peak (0.9-1.0
+        times this way: scripts/pool_build_peak.py on the fleet template), and one read per
+        keyframe spent most of its time in per-call work (the fleet template's ORB pool
+        0.077 -> 0.013 s, SIFT 0.20 -> 0.09 s in runs of 64). Slower than :meth:`gather` on a
+        few keyframes (a table of the ids seen, one pass per read)."""
         # each keyframe's rows of landmarks no better-ranked keyframe gave, as it is read
         seen = _SeenIds()
 
@@ -85,12 +87,18 @@ class LandmarkPool:
 
         parts: list[tuple[npt.NDArray[Any], npt.NDArray[np.int64], Array]] = []
         counts = np.zeros(len(keyframes), np.int64)
-        for row, kf in enumerate(keyframes):
+        for first, columns, ranges in _stored_runs(keyframes, kind):
             stop_if(cancelled)
-            f = _peek_rows(kf, kind, new_rows)
+            if columns is None:
+                f = _peek_rows(keyframes[first], kind, new_rows)
+                got = np.array([0 if f is None else len(f)])
+            else:
+                f, got = columns.features_of_ranges(kind, np.array(ranges, np.int64),
+                                                    new_rows)
+            stop = first + len(got)
             if f is not None and len(f):
                 parts.append((f.descriptors, f.landmark_ids, f.points_world))
-                counts[row] = len(f)
+                counts[first:stop] = got
         if not parts:
             return cls.empty(kind)
         return cls(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
@@ -172,6 +180,36 @@ def peek_features(kf: Keyframe, kind: str) -> Features | None:
     """``kf``'s ``kind`` features, read as :meth:`LandmarkPool.gather` reads them (without
     keeping them built on a keyframe loaded from a snapshot)."""
     return _peek(kf, kind)
+
+
+#: Keyframes read from one snapshot's columns at once by :meth:`LandmarkPool.gather_streamed`:
+#: most of the per-call work shared, the decoded rows of a few dozen keyframes held at a time
+#: (a few MB), and a cancellation seen within one such read.
+STORED_RUN = 64
+
+
+def _stored_runs(keyframes: list[Keyframe], kind: str
+                 ) -> Iterator[tuple[int, Any, list[tuple[int, int]]]]:
+    """``keyframes`` in turn as runs (first, columns, ranges): up to :data:`STORED_RUN`
+    consecutive keyframes whose ``kind`` is read from the same snapshot columns (not built:
+    ``LazyFeatures.stored_range``) and their rows (start, stop) there, or one keyframe read
+    alone (columns None, no ranges)."""
+    first, columns = 0, None
+    ranges: list[tuple[int, int]] = []
+    for row, kf in enumerate(keyframes):
+        stored_range = getattr(kf.features, "stored_range", None)
+        stored = None if stored_range is None else stored_range(kind)
+        if ranges and (stored is None or stored[0] is not columns or len(ranges) >= STORED_RUN):
+            yield first, columns, ranges
+            ranges = []
+        if stored is None:
+            yield row, None, []
+            continue
+        if not ranges:
+            first, columns = row, stored[0]
+        ranges.append(stored[1:])
+    if ranges:
+        yield first, columns, ranges
 
 
 def _peek_rows(kf: Keyframe, kind: str,

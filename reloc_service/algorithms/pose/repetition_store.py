@@ -1,7 +1,8 @@
 """A map pool's :class:`~.repetition_index.RepetitionIndex` kept beside a relocalizer's model
-in a snapshot, so that loading the map gathers the pool (about a second per 1000 keyframes)
-and reads its filing (about 3 MB) instead of training the tree again (3-20 s for the 491k
-SIFT landmarks of 1000 keyframes).
+in a snapshot, so that loading the map gathers the pool (0.1-0.3 s per 1000 keyframes:
+:meth:`LandmarkPool.gather_streamed`, the rows it keeps decoded) and reads its filing
+(about 3 MB) instead of training the tree again (3-20 s for the 491k SIFT landmarks of
+1000 keyframes).
 
 One ``<kind>.leaves.npz`` per feature kind whose pool is indexed (a pool scanned in full has
 nothing to store) under ``repetition/`` of the model directory: the tree and each pool row's
@@ -149,7 +150,7 @@ def load_index(directory: Path, state: MapState, kind: str, conf: IndexConf,
     if not np.array_equal(arrays["conf"], _conf_row(conf)):
         return None
     ids = list(state.keyframes)
-    pool = LandmarkPool.gather([state.keyframes[k] for k in ids], kind, cancelled)
+    pool = LandmarkPool.gather_streamed([state.keyframes[k] for k in ids], kind, cancelled)
     stop_if(cancelled)
     if not np.array_equal(arrays["digest"], pool_digest(pool.descriptors)):
         return None
