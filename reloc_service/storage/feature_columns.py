@@ -301,9 +301,8 @@ class FeatureColumns:
         for name in shared:
             out[ROW_OF[name]] = cols[name][take(self._shared_rows(kind))]
         if EXACT_ROWS in cols:   # per row: its code row's mask, and the masked rows' exact
-            own_rows = np.arange(start, stop)
             code_rows = (take(self._shared_rows(kind)) if shared
-                         else own_rows if rows is None else own_rows[rows])
+                         else np.arange(start, stop) if rows is None else start + rows)
             mask = cols[EXACT_ROWS][code_rows] != 0
             out[EXACT_ROWS] = mask
             out[EXACT] = cols[EXACT][self._exact_rows(kind)[code_rows[mask]]]
@@ -318,16 +317,13 @@ class FeatureColumns:
                                                      self.scales[kind])
         return out
 
-    def features_of_ranges(self, kind: str, ranges: npt.NDArray[np.int64],
-                           rows: Callable[[npt.NDArray[np.int64]], npt.NDArray[np.int64]]
-                           ) -> tuple[Features | None, npt.NDArray[np.int64]]:
-        """Some rows of several keyframes read at once: ``ranges`` (K, 2) their start and stop
-        rows of ``kind``; ``rows(landmark_ids)`` says which, from the landmark ids of all of
-        them in turn (read as stored, concatenated); the others are never decoded. The rows
-        as one :class:`Features` (None: none asked for) and how many of them each range
-        gave (K,). One decoding for all of them: a keyframe at a time, the per-call work
-        (the columns' slices, each field's conversion, the points' lookup) was most of a
-        whole map's pool."""
+    def rows_of_ranges(self, kind: str, ranges: npt.NDArray[np.int64],
+                       rows: Callable[[npt.NDArray[np.int64]], npt.NDArray[np.int64]]
+                       ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+        """Some rows of several keyframes, chosen at once: ``ranges`` (K, 2) their start and
+        stop rows of ``kind``; ``rows(landmark_ids)`` says which, from the landmark ids of
+        all of them in turn (read as stored, concatenated). Those rows of ``kind`` (M,), to
+        read with :meth:`features_at`, and how many of them each range gave (K,)."""
         lengths = ranges[:, 1] - ranges[:, 0]
         offsets = np.concatenate([[0], np.cumsum(lengths)])
         # every range's rows, in turn: start + position within its range
@@ -335,9 +331,12 @@ class FeatureColumns:
         wanted = rows(np.asarray(self.columns[kind]["landmark_ids"][index], np.int64))
         counts = np.bincount(np.searchsorted(offsets, wanted, side="right") - 1,
                              minlength=len(ranges)).astype(np.int64)
-        if not len(wanted):
-            return None, counts
-        return self.features(kind, 0, self.length(kind), index[wanted]), counts
+        return index[wanted], counts
+
+    def features_at(self, kind: str, rows: npt.NDArray[np.int64]) -> Features:
+        """Rows ``rows`` of ``kind`` (any keyframes', in that order) as :meth:`features`
+        reads them."""
+        return self.features(kind, 0, self.length(kind), rows)
 
     def _shared_rows(self, kind: str) -> npt.NDArray[np.int64]:
         """(N,) row of ``kind``'s shared descriptor column each of its rows reads (once)."""
@@ -447,27 +446,10 @@ class LazyFeatures(MutableMapping[str, Features]):
             return feats
         return self._columns.features(kind, *self._rows[kind])
 
-    def peek_rows(self, kind: str, rows: Callable[[npt.NDArray[np.int64]],
-                                                  npt.NDArray[np.int64]]) -> Features | None:
-        """Some of ``kind``'s rows as :meth:`peek` reads them: ``rows(landmark_ids)`` says
-        which, from the landmark id of every row (read as stored); the others are never
-        decoded (a pool reads a map's landmark rows only). None when this keyframe has no
-        ``kind`` or none of its rows is asked for."""
-        feats = self._built.get(kind)
-        if feats is not None:
-            wanted = rows(feats.landmark_ids)
-            return feats.take(wanted) if len(wanted) else None
-        if kind not in self._rows:
-            return None
-        start, stop = self._rows[kind]
-        wanted = rows(np.asarray(self._columns.columns[kind]["landmark_ids"][start:stop],
-                                 np.int64))
-        return self._columns.features(kind, start, stop, wanted) if len(wanted) else None
-
     def stored_range(self, kind: str) -> tuple[FeatureColumns, int, int] | None:
         """The snapshot's columns and the rows (start, stop) ``kind`` is read from, while it
-        is not built or set here (:meth:`FeatureColumns.features_of_ranges` reads several
-        keyframes' at once); None once it is, or when this keyframe has no ``kind``."""
+        is not built or set here (:meth:`FeatureColumns.rows_of_ranges` chooses rows of
+        several keyframes' at once); None once it is, or when this keyframe has no ``kind``."""
         if kind in self._built or kind not in self._rows:
             return None
         start, stop = self._rows[kind]

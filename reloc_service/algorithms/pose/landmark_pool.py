@@ -69,41 +69,68 @@ class LandmarkPool:
     @classmethod
     def gather_streamed(cls, keyframes: list[Keyframe], kind: str,
                         cancelled: Callable[[], bool] | None = None) -> LandmarkPool:
-        """:meth:`gather`'s pool, the keyframes read in turn, and of keyframes loaded from a
-        snapshot only the rows the pool keeps (the others are never decoded), up to
-        :data:`STORED_RUN` of them in one read: for a whole map, where holding every
-        keyframe's features until the end took about 1.5 times the pool at its peak (0.9-1.0
-        times this way: scripts/pool_build_peak.py on the fleet template), and one read per
-        keyframe spent most of its time in per-call work (the fleet template's ORB pool
-        0.077 -> 0.013 s, SIFT 0.20 -> 0.09 s in runs of 64). Slower than :meth:`gather` on a
-        few keyframes (a table of the ids seen, one pass per read)."""
-        # each keyframe's rows of landmarks no better-ranked keyframe gave, as it is read
+        """:meth:`gather`'s pool, for a whole map: the rows it keeps are chosen first from
+        the landmark ids alone, then read into the pool's arrays, made once at their final
+        size. Keyframes loaded from a snapshot are read up to :data:`STORED_RUN` at a time,
+        and only those rows of them are decoded. Holding every keyframe's features until the
+        end took about 1.5 times the pool at its peak, and the rows read keyframe by
+        keyframe then concatenated about 1.0 times (scripts/pool_build_peak.py on the fleet
+        template), the concatenated parts then held by the C heap until trimmed; reading
+        one keyframe at a time was most of the time. Slower than :meth:`gather` on a few
+        keyframes (a table of the ids seen, two passes)."""
         seen = _SeenIds()
 
         def new_rows(ids: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+            """The rows of ``ids`` (in turn) of landmarks no earlier row gave."""
             local = np.flatnonzero(ids >= 0)
             local = local[first_occurrences(ids[local])]
             return local[seen.take_new(ids[local])]
 
-        parts: list[tuple[npt.NDArray[Any], npt.NDArray[np.int64], Array]] = []
+        reads: list[tuple[Any, npt.NDArray[np.int64]]] = []   # (columns or Features, rows)
         counts = np.zeros(len(keyframes), np.int64)
         for first, columns, ranges in _stored_runs(keyframes, kind):
             stop_if(cancelled)
             if columns is None:
-                f = _peek_rows(keyframes[first], kind, new_rows)
-                got = np.array([0 if f is None else len(f)])
+                feats = _peek(keyframes[first], kind)
+                if feats is None:
+                    continue
+                source, wanted = feats, new_rows(feats.landmark_ids)
+                counts[first] = len(wanted)
             else:
-                f, got = columns.features_of_ranges(kind, np.array(ranges, np.int64),
-                                                    new_rows)
-            stop = first + len(got)
-            if f is not None and len(f):
-                parts.append((f.descriptors, f.landmark_ids, f.points_world))
-                counts[first:stop] = got
-        if not parts:
+                source = columns
+                wanted, got = columns.rows_of_ranges(kind, np.array(ranges, np.int64), new_rows)
+                counts[first:first + len(got)] = got
+            if len(wanted):
+                reads.append((source, wanted))
+        if not reads:
             return cls.empty(kind)
-        return cls(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
-                   np.concatenate([p[2] for p in parts]),
-                   np.repeat(np.arange(len(keyframes), dtype=np.int64), counts))
+        return cls._read(reads, kind, np.repeat(np.arange(len(keyframes), dtype=np.int64),
+                                                counts), cancelled)
+
+    @classmethod
+    def _read(cls, reads: list[tuple[Any, npt.NDArray[np.int64]]], kind: str,
+              keyframe_rows: npt.NDArray[np.int64],
+              cancelled: Callable[[], bool] | None) -> LandmarkPool:
+        """The pool of one row per ``keyframe_rows`` entry, read in turn from ``reads``:
+        (snapshot columns, their rows) or (built Features, their rows)."""
+        total = len(keyframe_rows)
+        pool = None
+        at = 0
+        for source, wanted in reads:
+            stop_if(cancelled)
+            f = (source.take(wanted) if isinstance(source, Features)
+                 else source.features_at(kind, wanted))
+            if pool is None:
+                pool = cls(np.empty((total, f.descriptors.shape[1]), f.descriptors.dtype),
+                           np.empty(total, np.int64), np.empty((total, 3)), keyframe_rows)
+            part = slice(at, at + len(f))
+            pool.descriptors[part] = f.descriptors
+            pool.landmark_ids[part] = f.landmark_ids
+            pool.points_world[part] = f.points_world
+            at += len(f)
+        if pool is None or at != total:
+            raise RuntimeError(f"expected {total} pool rows, read {at}")
+        return pool
 
     @classmethod
     def empty(cls, kind: str) -> LandmarkPool:
@@ -210,22 +237,6 @@ def _stored_runs(keyframes: list[Keyframe], kind: str
         ranges.append(stored[1:])
     if ranges:
         yield first, columns, ranges
-
-
-def _peek_rows(kf: Keyframe, kind: str,
-               rows: Callable[[npt.NDArray[np.int64]], npt.NDArray[np.int64]]
-               ) -> Features | None:
-    """``kf``'s ``kind`` features at ``rows(landmark_ids)`` only, read as :func:`_peek` reads
-    them (decoding those rows alone from a snapshot); None where it has no ``kind`` or no
-    row is asked for."""
-    peek_rows = getattr(kf.features, "peek_rows", None)
-    if peek_rows is not None:
-        return peek_rows(kind, rows)   # type: ignore[no-any-return]
-    feats = kf.features.get(kind)
-    if feats is None:
-        return None
-    wanted = rows(feats.landmark_ids)
-    return feats.take(wanted) if len(wanted) else None
 
 
 def _peek(kf: Keyframe, kind: str) -> Features | None:
