@@ -6,10 +6,10 @@ keyframes alone (the fleet bench had three 1000-keyframe maps counted in a share
 two, its resident memory 4 % over the budget).
 
 So until a map's pools are made it counts, beside its keyframes, a *reserve*: what its pools
-will hold once made, and what making them holds on top of that at its peak (the pool's rows
-gathered keyframe by keyframe, then concatenated; a stored index read into buffers before its
-arrays are made). The pools scale with the map's keyframes (a row per landmark observation,
-about as many per keyframe wherever a map was made), their making with the pools. The pools'
+will hold once made, and what making them holds on top of that at its peak (the rows being
+read; a stored index read into buffers before its arrays are made). The pools scale with the
+map's keyframes (a row per landmark observation, about as many per keyframe wherever a map
+was made), their making with the pools. The pools'
 rate per keyframe is measured by every map whose pools this service made (the largest rate
 seen; a map denser than those seen is corrected once its own pools are made, the count then
 being what they hold), before any by :data:`POOL_BYTES_PER_KEYFRAME`; the making's peak is
@@ -27,12 +27,12 @@ import threading
 #: landmark observations per keyframe), scripts/pool_build_peak.py.
 POOL_BYTES_PER_KEYFRAME = 85_800
 #: What making a map's pools holds at its peak beyond what stays once they are made, per byte
-#: the pools hold: 92.0 MB for the fleet template's 81.8 MB of pools (two runs of
-#: scripts/pool_build_peak.py, 91.9 and 92.0 MB: the peak of the resident memory while they
-#: were made above it after), measured when a pool held every keyframe's features until it
-#: was made; 76.2 MB since it drops each keyframe's once read (one run), which this bound
-#: covers.
-MAKING_PER_POOL_BYTE = 92.0 / 81.8
+#: the pools hold: 20.5 MB for the fleet template's 81.8 MB of pools (two runs of
+#: scripts/pool_build_peak.py, 20.5 MB each: the peak of the resident memory while they were
+#: made above it after), since a pool's rows are chosen first and read into arrays of their
+#: final size. It was 92.0 MB when a pool held every keyframe's features until it was made,
+#: then 76-86 MB while its rows were gathered keyframe by keyframe and concatenated.
+MAKING_PER_POOL_BYTE = 20.5 / 81.8
 
 
 class PoolReserve:
