@@ -1,0 +1,84 @@
+"""What a query holds in memory while it is answered, beyond what the process holds between
+queries: a stored map loaded with its pools made, then each of the fleet scene's queries
+(JPEG decoded, default method) answered alone with the heap trimmed before it, and the peak
+of the process's resident memory during it (sampled every 2 ms) above what it held before.
+Prints each query's step and peak, and their median and max (MB).
+
+    python scripts/query_working_memory.py T [--cache DIR]
+
+T: a template a fleet run stored (``reloc bench --only fleet --workdir W``:
+W/fleet/template/template); its map is read in place, not changed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+from reloc_client.result import RelocResult
+
+from reloc_service.core.frame import Frame
+from reloc_service.engine import Engine
+from reloc_service.service.memory import rss_bytes, trim_now
+from reloc_service.tools.bench import fleet
+
+MB = 1024 * 1024
+
+
+def peak_during(work: Callable[[], RelocResult]) -> tuple[int, int, RelocResult]:
+    """(resident bytes before, peak bytes during, result) of calling ``work()``."""
+    trim_now()
+    before = rss_bytes()
+    peak = [before]
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.wait(0.002):
+            peak[0] = max(peak[0], rss_bytes())
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    try:
+        result = work()
+    finally:
+        done.set()
+        sampler.join()
+    return before, max(peak[0], rss_bytes()), result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("template", type=Path)
+    parser.add_argument("--cache", type=Path, default=Path("out/bench-cache"),
+                        help="where the fleet's scene is rendered (or found rendered)")
+    args = parser.parse_args()
+    conf = fleet.FleetConf()
+    scene = fleet.render_scene(conf, args.cache)
+    engine = Engine.load(args.template / "map")
+    engine.prepared.wait()
+    try:
+        for jpeg in scene.queries.jpegs[:2]:   # the first answers' one-off work, not counted
+            engine.relocalize(Frame(cv2.imdecode(np.frombuffer(jpeg, np.uint8),
+                                                 cv2.IMREAD_GRAYSCALE), scene.camera))
+        steps = []
+        for i, jpeg in enumerate(scene.queries.jpegs):
+            def answer(jpeg: bytes = jpeg) -> RelocResult:
+                image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
+                return engine.relocalize(Frame(image, scene.camera))
+
+            before, peak, result = peak_during(answer)
+            steps.append(peak - before)
+            print(f"query {i}: {result.status.name} by {result.method}: "
+                  f"{(peak - before) / MB:.1f} MB above {before / MB:.1f} MB")
+        print(f"{len(steps)} queries: working memory median {np.median(steps) / MB:.1f} MB, "
+              f"max {max(steps) / MB:.1f} MB")
+    finally:
+        engine.close()
+
+
+if __name__ == "__main__":
+    main()
