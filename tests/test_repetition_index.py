@@ -291,3 +291,37 @@ def test_a_stored_maps_pool_decodes_its_landmark_rows_only_into_the_same_pool(
         kf.features["sift"]
     monkeypatch.setattr(landmark_pool, "STORED_RUN", 2)
     same_pools()
+
+
+def test_a_stored_maps_pool_holds_little_beyond_itself_while_it_is_read(tmp_path,
+                                                                         monkeypatch) -> None:
+    """Reading a stored map's pool one keyframe at a time holds, beyond the pool itself,
+    about one keyframe's rows at a time (tracemalloc, which numpy reports to), not the pool's
+    rows a second time (as parts concatenated at the end did)."""
+    import tracemalloc
+
+    from reloc_service.algorithms.pose import landmark_pool
+    from reloc_service.storage.snapshot import load_map, save_map
+    from reloc_service.tools.synth.planar import keyframe_grid, planar_scene
+
+    scene = planar_scene(keyframe_grid(5, 4), kinds=("sift",), max_features=300)
+    save_map(scene.map.snapshot(), tmp_path / "map")
+    state, _ = load_map(tmp_path / "map")
+    keyframes = list(state.keyframes.values())
+    monkeypatch.setattr(landmark_pool, "STORED_RUN", 1)
+    LandmarkPool.gather_streamed(keyframes, "sift")   # one-off work (shared indexes) first
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        pool = LandmarkPool.gather_streamed(keyframes, "sift")
+        held, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    pool_bytes = sum(a.nbytes for a in (pool.descriptors, pool.landmark_ids, pool.points_world,
+                                        pool.keyframe_rows))
+    assert held - before >= pool_bytes
+    # one keyframe's rows decoded (every field, and the copies decoding makes) and the rows
+    # chosen: 0.43 times the pool of these twenty keyframes; parts concatenated at the end
+    # held the pool's rows a second time (more than 1.0)
+    assert peak - held < 0.6 * pool_bytes, (peak - held, pool_bytes)
