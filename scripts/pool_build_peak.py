@@ -13,7 +13,6 @@ W/fleet/template/template/map after ``reloc bench --only fleet --workdir W``).
 from __future__ import annotations
 
 import argparse
-import threading
 import time
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from reloc_service.engine import Engine, EngineConf
 from reloc_service.service.memory import rss_bytes, trim_now
 from reloc_service.storage.snapshot import load_map
 from reloc_service.storage.snapshot_format import model_dir_name
+from reloc_service.tools.bench.fleet_memory import peak_during
 
 MB = 1024 * 1024
 
@@ -40,30 +40,17 @@ def main() -> None:
     if relocalizer is None:
         raise SystemExit(f"{args.map_dir}: expected method {args.method} in the map's engine")
     keyframes = len(state.keyframes)
-    trim_now()
-    before = rss_bytes()
-    peak = [before]
-    done = threading.Event()
-
-    def sample() -> None:
-        while not done.wait(0.005):
-            peak[0] = max(peak[0], rss_bytes())
-
-    sampler = threading.Thread(target=sample, daemon=True)
-    sampler.start()
-    start = time.perf_counter()
     directory = None if models_dir is None else models_dir / model_dir_name(args.method)
-    restore_pools(relocalizer, state, directory)
+    start = time.perf_counter()
+    before, peak, _ = peak_during(lambda: restore_pools(relocalizer, state, directory))
     seconds = time.perf_counter() - start
-    done.set()
-    sampler.join()
     held = pool_bytes(state)
     trim_now()
     after = rss_bytes()
-    transient = peak[0] - after
+    transient = peak - after
     print(f"{keyframes} keyframes, pools made in {seconds:.2f} s: they hold {held / MB:.1f} MB "
           f"({held / keyframes:.0f} B per keyframe); resident memory {before / MB:.1f} MB "
-          f"before, peak {peak[0] / MB:.1f} MB, {after / MB:.1f} MB after (the heap's free "
+          f"before, peak {peak / MB:.1f} MB, {after / MB:.1f} MB after (the heap's free "
           f"pages given back); the making's peak above what stays: {transient / MB:.1f} MB "
           f"({transient / keyframes:.0f} B per keyframe, {transient / held:.3f} times the pools)")
 

@@ -13,41 +13,25 @@ W/fleet/template/template); its map is read in place, not changed.
 from __future__ import annotations
 
 import argparse
-import threading
-from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 from reloc_client.result import RelocResult
 
 from reloc_service.core.frame import Frame
 from reloc_service.engine import Engine
-from reloc_service.service.memory import rss_bytes, trim_now
 from reloc_service.tools.bench import fleet
+from reloc_service.tools.bench.fleet_memory import peak_during
 
 MB = 1024 * 1024
 
 
-def peak_during(work: Callable[[], RelocResult]) -> tuple[int, int, RelocResult]:
-    """(resident bytes before, peak bytes during, result) of calling ``work()``."""
-    trim_now()
-    before = rss_bytes()
-    peak = [before]
-    done = threading.Event()
-
-    def sample() -> None:
-        while not done.wait(0.002):
-            peak[0] = max(peak[0], rss_bytes())
-
-    sampler = threading.Thread(target=sample, daemon=True)
-    sampler.start()
-    try:
-        result = work()
-    finally:
-        done.set()
-        sampler.join()
-    return before, max(peak[0], rss_bytes()), result
+def _grey(jpeg: bytes) -> npt.NDArray[np.uint8]:
+    """The query's JPEG decoded to grey, as the service decodes it."""
+    return np.asarray(cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE),
+                      np.uint8)
 
 
 def main() -> None:
@@ -62,13 +46,11 @@ def main() -> None:
     engine.prepared.wait()
     try:
         for jpeg in scene.queries.jpegs[:2]:   # the first answers' one-off work, not counted
-            engine.relocalize(Frame(cv2.imdecode(np.frombuffer(jpeg, np.uint8),
-                                                 cv2.IMREAD_GRAYSCALE), scene.camera))
+            engine.relocalize(Frame(_grey(jpeg), scene.camera))
         steps = []
         for i, jpeg in enumerate(scene.queries.jpegs):
             def answer(jpeg: bytes = jpeg) -> RelocResult:
-                image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
-                return engine.relocalize(Frame(image, scene.camera))
+                return engine.relocalize(Frame(_grey(jpeg), scene.camera))
 
             before, peak, result = peak_during(answer)
             steps.append(peak - before)

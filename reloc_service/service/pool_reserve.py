@@ -27,12 +27,15 @@ import threading
 #: landmark observations per keyframe), scripts/pool_build_peak.py.
 POOL_BYTES_PER_KEYFRAME = 85_800
 #: What making a map's pools holds at its peak beyond what stays once they are made, per byte
-#: the pools hold: 20.5 MB for the fleet template's 81.8 MB of pools (two runs of
-#: scripts/pool_build_peak.py, 20.5 MB each: the peak of the resident memory while they were
-#: made above it after), since a pool's rows are chosen first and read into arrays of their
-#: final size. It was 92.0 MB when a pool held every keyframe's features until it was made,
-#: then 76-86 MB while its rows were gathered keyframe by keyframe and concatenated.
-MAKING_PER_POOL_BYTE = 20.5 / 81.8
+#: the pools hold: up to 52.2 MB for the fleet template's 81.8 MB of pools (runs of
+#: scripts/pool_build_peak.py: the peak of the resident memory while they were made above it
+#: after, the heap trimmed; the peak was 503-505 MB in every run, but what stayed after it
+#: was 452 MB in the five runs of its current form and 484-488 MB in four of its first, so
+#: 20.3-20.5 MB there: the larger is counted), since a pool's rows are chosen first and read
+#: into arrays of their final size.
+#: It was 92.0 MB when a pool held every keyframe's features until it was made, then 76-86 MB
+#: while its rows were gathered keyframe by keyframe and concatenated.
+MAKING_PER_POOL_BYTE = 52.2 / 81.8
 
 
 class PoolReserve:

@@ -8,20 +8,45 @@ import contextlib
 import re
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-from ...service.memory import descendants, total_rss_bytes
+from ...service.memory import descendants, rss_bytes, total_rss_bytes, trim_now
+
+T = TypeVar("T")
 
 
 def tree_rss_mb(pid: int) -> float:
     """Resident memory (MiB) of process ``pid`` and its descendants (worker processes,
     their forkserver): the sum of their ``VmRSS``; 0 once they are gone."""
     return total_rss_bytes([pid, *descendants(pid)]) / (1024 * 1024)
+
+
+def peak_during(work: Callable[[], T], period_s: float = 0.002) -> tuple[int, int, T]:
+    """(resident bytes of this process before, their peak while ``work()`` ran, sampled
+    every ``period_s`` on a thread, and its result); the heap's free pages are given back
+    first, so that what ``work`` reuses of them is not missed."""
+    trim_now()
+    before = rss_bytes()
+    peak = [before]
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.wait(period_s):
+            peak[0] = max(peak[0], rss_bytes())
+
+    sampler = threading.Thread(target=sample, name="rss-peak", daemon=True)
+    sampler.start()
+    try:
+        result = work()
+    finally:
+        done.set()
+        sampler.join()
+    return before, max(peak[0], rss_bytes()), result
 
 
 @dataclass(eq=False)
