@@ -9,12 +9,11 @@ So until a map's pools are made it counts, beside its keyframes, a *reserve*: wh
 will hold once made, and what making them holds on top of that at its peak (the rows being
 read; a stored index read into buffers before its arrays are made). The pools scale with the
 map's keyframes (a row per landmark observation, about as many per keyframe wherever a map
-was made), their making with the pools. The pools'
-rate per keyframe is measured by every map whose pools this service made (the largest rate
-seen; a map denser than those seen is corrected once its own pools are made, the count then
-being what they hold), before any by :data:`POOL_BYTES_PER_KEYFRAME`; the making's peak is
-:data:`MAKING_PER_POOL_BYTE` times the pools (the making frees it: the count then drops to
-what the pools hold).
+was made), their making with the pools. The pools' rate per keyframe is measured by every map
+whose pools this service made (the largest rate seen; a map denser than those seen is
+corrected once its own pools are made, the count then being what they hold), before any by
+:data:`POOL_BYTES_PER_KEYFRAME`; the making's peak is :data:`MAKING_PER_POOL_BYTE` times the
+pools (the making frees it: the count then drops to what the pools hold).
 """
 
 from __future__ import annotations
