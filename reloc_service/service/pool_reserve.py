@@ -30,8 +30,9 @@ POOL_BYTES_PER_KEYFRAME = 85_800
 #: scripts/pool_build_peak.py: the peak of the resident memory while they were made above it
 #: after, the heap trimmed; the peak was 503-505 MB in every run, but what stayed after it
 #: was 452 MB in the five runs of its current form and 484-488 MB in four of its first, so
-#: 20.3-20.5 MB there: the larger is counted), since a pool's rows are chosen first and read
-#: into arrays of their final size.
+#: 20.3-20.5 MB there: heap the trim could not give back, RssAnon 249 against 218 MB; the
+#: larger difference is counted), since a pool's rows are chosen first and read into arrays
+#: of their final size.
 #: It was 92.0 MB when a pool held every keyframe's features until it was made, then 76-86 MB
 #: while its rows were gathered keyframe by keyframe and concatenated.
 MAKING_PER_POOL_BYTE = 52.2 / 81.8
