@@ -1,7 +1,9 @@
 """What a query holds in memory while it is answered, beyond what the process holds between
 queries: a stored map loaded with its pools made, then each of the fleet scene's queries
-(JPEG decoded, default method) answered alone with the heap trimmed before it, and the peak
-of the process's resident memory during it (sampled every 2 ms) above what it held before.
+(JPEG decoded, default method) answered alone with the heap trimmed before it, then one
+image of no map's scene (a random texture, same size: every step of the method runs and none
+verifies), and the peak of the process's resident memory during each (sampled every 2 ms)
+above what it held before.
 Prints each query's step and peak, and their median and max (MB).
 
     python scripts/query_working_memory.py T [--cache DIR]
@@ -34,6 +36,20 @@ def _grey(jpeg: bytes) -> npt.NDArray[np.uint8]:
                       np.uint8)
 
 
+def _texture(camera: object) -> bytes:
+    """A JPEG of random texture at ``camera``'s size (blurred noise at a few scales)."""
+    width, height = camera.width, camera.height   # type: ignore[attr-defined]
+    rng = np.random.default_rng(0)
+    image = np.zeros((height, width), np.float32)
+    for sigma in (1.0, 3.0, 9.0):
+        image += cv2.GaussianBlur(rng.random((height, width), np.float32), (0, 0), sigma)
+    image = (255 * (image - image.min()) / np.ptp(image)).astype(np.uint8)
+    ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    if not ok:
+        raise RuntimeError("could not encode the texture as JPEG")
+    return jpeg.tobytes()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("template", type=Path)
@@ -48,7 +64,7 @@ def main() -> None:
         for jpeg in scene.queries.jpegs[:2]:   # the first answers' one-off work, not counted
             engine.relocalize(Frame(_grey(jpeg), scene.camera))
         steps = []
-        for i, jpeg in enumerate(scene.queries.jpegs):
+        for i, jpeg in enumerate([*scene.queries.jpegs, _texture(scene.camera)]):
             def answer(jpeg: bytes = jpeg) -> RelocResult:
                 return engine.relocalize(Frame(_grey(jpeg), scene.camera))
 
