@@ -201,8 +201,8 @@ def _run_jobs(jobs: list[_Job], state: tuple[Any, ...], *, workers: int, show: b
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
                              initargs=(state, True)) as pool:
-        futures = [pool.submit(_render_job, job) for job in jobs]
-        try:
+        try:   # a worker that dies while the jobs are still being submitted breaks submit too
+            futures = [pool.submit(_render_job, job) for job in jobs]
             _drain((f.result() for f in as_completed(futures)), len(jobs),
                    f"synth {state[2].name}", show)
         except BrokenProcessPool as exc:
