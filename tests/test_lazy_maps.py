@@ -33,6 +33,7 @@ from reloc_service.core.errors import ConfigError
 from reloc_service.engine import Engine, EngineConf
 from reloc_service.service.app import Service
 from reloc_service.service.memory import rss_bytes, trim_now
+from reloc_service.service.memory_baseline import QUERY_WORKING_BYTES
 from reloc_service.service.residency import MB, counted_bytes
 from reloc_service.service.workers import Lane
 from reloc_service.tools.bench.stored_map import (
@@ -388,8 +389,11 @@ def test_a_budget_below_the_services_own_memory_refuses_to_start(template, tmp_p
         Service(conf(free_port(), storage, max_resident_mb=1)).start()
     message = str(refused.value)
     assert "service.max_resident_mb = 1 MB" in message
-    measured = re.search(r"resident memory with no map, (\d+) MB", message)
-    assert measured is not None and int(measured[1]) >= int(own_mb)
+    measured = re.search(r"resident memory with no map and its workers' queries, (\d+) MB",
+                         message)
+    queries = re.search(r"(\d+) MB of it for the queries", message)
+    assert queries is not None and int(queries[1]) > 0
+    assert measured is not None and int(measured[1]) >= int(own_mb) + int(queries[1])
     # refused, it let go of the storage: a service with a budget above it starts there
     service = Service(conf(free_port(), storage, max_resident_mb=AMPLE_MB)).start()
     service.stop()
@@ -415,7 +419,11 @@ def test_the_maps_get_the_budget_minus_the_measured_baseline(template, synthetic
         # this process's own memory, measured before the map was loaded
         assert before <= memory["memory_baseline_service_bytes"] <= rss_bytes()
         assert memory["memory_baseline_workers_bytes"] == 0   # thread mode: no worker process
-        assert memory["memory_baseline_bytes"] == memory["memory_baseline_service_bytes"]
+        # each worker's query, answered on a thread of this process
+        assert memory["memory_baseline_queries_bytes"] == (service.conf.service.workers
+                                                           * QUERY_WORKING_BYTES) > 0
+        assert memory["memory_baseline_bytes"] == (memory["memory_baseline_service_bytes"]
+                                                   + memory["memory_baseline_queries_bytes"])
         assert memory["memory_maps_budget_bytes"] == (AMPLE_MB * MB
                                                       - memory["memory_baseline_bytes"])
         assert memory["memory_maps_bytes"] == counted > 0
@@ -438,8 +446,10 @@ def test_worker_processes_own_memory_counts_against_the_budget(template, synthet
             wait_until(lambda: client.status().counters["memory_baseline_workers_bytes"] > 0,
                        timeout=60)
             memory = client.status().counters
+        assert memory["memory_baseline_queries_bytes"] == QUERY_WORKING_BYTES   # one worker
         assert memory["memory_baseline_bytes"] == (memory["memory_baseline_service_bytes"]
-                                                   + memory["memory_baseline_workers_bytes"])
+                                                   + memory["memory_baseline_workers_bytes"]
+                                                   + memory["memory_baseline_queries_bytes"])
         assert memory["memory_maps_budget_bytes"] == (AMPLE_MB * MB
                                                       - memory["memory_baseline_bytes"])
     finally:

@@ -13,6 +13,10 @@ growth is recorded for the next start); else the estimate stays. With ``worker_m
 up and before it holds any replica. The maps get ``max_resident_mb`` minus the baseline. A
 budget the baseline at declaration fills refuses to start (ConfigError naming both); one that
 only the warmed-up baseline fills is logged as an error, and every idle map is closed.
+
+The queries count too: each worker (thread or process) holds a query's working memory while
+it answers one (the decoded image, its features and scale space, the candidates' matches),
+freed when it ends, so the baseline keeps :data:`QUERY_WORKING_BYTES` per worker.
 """
 
 from __future__ import annotations
@@ -29,6 +33,14 @@ from .warm import record_growth
 log = logging.getLogger(__name__)
 
 MB = 1024 * 1024
+
+#: What a query holds in memory while it is answered, above what the process holds between
+#: queries: 77.0 MB for a 640x480 query that the default method runs through all its steps
+#: and refuses (full-size SIFT twice; 4.5-5.1 MB when the ORB step answers, 19.6-21.0 MB when
+#: the half-size SIFT step does), python scripts/query_working_memory.py on the fleet
+#: template, rounded up to the next MB. A larger image holds more (SIFT's scale space grows
+#: with its pixels).
+QUERY_WORKING_BYTES = 78 * MB
 
 
 class ServedMaps(Protocol):
@@ -47,6 +59,7 @@ class ProcessBaseline:
     total_budget: int
     baseline_service: int
     baseline_workers: int
+    baseline_queries: int
     budget: int
     declared_rss: int
     growth_estimate: int
@@ -63,8 +76,9 @@ class ProcessBaseline:
 
     @property
     def baseline(self) -> int:
-        """The processes' own resident memory, counted against the budget (bytes)."""
-        return self.baseline_service + self.baseline_workers
+        """The processes' own resident memory and their queries' working memory, counted
+        against the budget (bytes)."""
+        return self.baseline_service + self.baseline_workers + self.baseline_queries
 
     def count_service_baseline(self, warm_up_growth: int = 0) -> None:
         """Measure this process's resident memory (no map resident yet) and count it, with
@@ -81,8 +95,9 @@ class ProcessBaseline:
         if self.baseline >= self.total_budget:
             raise ConfigError(
                 f"service.max_resident_mb = {self.total_budget / MB:.0f} MB: expected more "
-                f"than the service's own resident memory with no map, "
-                f"{self.baseline / MB:.0f} MB (the budget counts the whole service)")
+                f"than the service's own resident memory with no map and its workers' "
+                f"queries, {self.baseline / MB:.0f} MB (the budget counts the whole service: "
+                f"{self.baseline_queries / MB:.0f} MB of it for the queries)")
         self._set_maps_budget()
 
     def settle_service_baseline(self) -> None:
@@ -138,19 +153,21 @@ class ProcessBaseline:
         # at least one byte: a budget of 0 would mean "no budget" to the checks below
         self.budget = max(1, self.total_budget - self.baseline)
         log.info("memory budget %.1f MB: processes' baseline %.1f MB (service %.1f MB, workers "
-                 "%.1f MB), maps %.1f MB", self.total_budget / MB, self.baseline / MB,
-                 self.baseline_service / MB, self.baseline_workers / MB, self.budget / MB)
+                 "%.1f MB, queries %.1f MB), maps %.1f MB", self.total_budget / MB,
+                 self.baseline / MB, self.baseline_service / MB, self.baseline_workers / MB,
+                 self.baseline_queries / MB, self.budget / MB)
 
     def memory_counters(self) -> dict[str, int]:
         """The budget, the processes' baseline and the maps' count and share, in bytes, as
         every map's status counters carry them:
         ``memory_budget_bytes`` (``max_resident_mb``), ``memory_baseline_bytes`` (the
-        processes' own, with its ``_service`` and ``_workers`` parts),
+        processes' own, with its ``_service``, ``_workers`` and ``_queries`` parts),
         ``memory_maps_budget_bytes`` (the maps' share) and ``memory_maps_bytes`` (what the
         resident maps count)."""
         return {"memory_budget_bytes": self.total_budget, "memory_baseline_bytes": self.baseline,
                 "memory_baseline_service_bytes": self.baseline_service,
                 "memory_baseline_workers_bytes": self.baseline_workers,
+                "memory_baseline_queries_bytes": self.baseline_queries,
                 "memory_maps_budget_bytes": self.budget,
                 "memory_maps_bytes": self.resident_bytes()}
 

@@ -85,7 +85,8 @@ class MapRegistry:
             self.residency = Residency(self, budget_mb=conf.service.max_resident_mb,
                                        stop_timeout_s=conf.service.stop_timeout_s,
                                        copies=resident_copies(conf.service.worker_mode,
-                                                              conf.service.workers))
+                                                              conf.service.workers),
+                                       workers=conf.service.workers)
         self._lock = threading.Lock()
         self._loading: set[str] = set()      # being restored: not declared yet
         self._ready = threading.Event()      # every stored and configured map is up (or failed)

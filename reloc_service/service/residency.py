@@ -17,8 +17,8 @@ at most 350 MB while the pools are made (docs/performance.md). With ``worker_mod
 "process"`` every worker process holds a replica of each resident map (its own engine, pools
 included), so a resident map counts once per copy: ``1 + workers`` times.
 
-The processes' own memory counts too (:mod:`.memory_baseline`): the maps get
-``max_resident_mb`` minus the processes' baseline.
+The processes' own memory counts too, and what their workers' queries hold while they run
+(:mod:`.memory_baseline`): the maps get ``max_resident_mb`` minus that baseline.
 
 A map is never closed while it is in use: a query or a write holds it (:meth:`Residency.acquire`
 ... :meth:`Residency.release`), puts wait in its writer lane, a training job, snapshot or
@@ -45,7 +45,7 @@ from ..core.errors import StorageError
 from .durability import read_service_file
 from .map_dirs import map_dirname
 from .memory import release_memory, rss_bytes, trim_now
-from .memory_baseline import ProcessBaseline
+from .memory_baseline import QUERY_WORKING_BYTES, ProcessBaseline
 from .pool_reserve import PoolReserve
 from .quotas import MapUsage
 
@@ -85,7 +85,8 @@ class Residency(ProcessBaseline):
     registry: MapRegistry
 
     def __init__(self, registry: MapRegistry, *, budget_mb: float, stop_timeout_s: float,
-                 copies: int = 1, pending_writes: Callable[[str], int] | None = None) -> None:
+                 copies: int = 1, workers: int = 0,
+                 pending_writes: Callable[[str], int] | None = None) -> None:
         if copies < 1:
             raise ValueError(f"expected copies >= 1 of each resident map, got {copies}")
         self.registry = registry
@@ -95,8 +96,10 @@ class Residency(ProcessBaseline):
         #: processes and their forkserver once they start (bytes; 0 until measured).
         self.baseline_service = 0
         self.baseline_workers = 0
+        #: What the ``workers`` queries answered at once hold while they run (bytes).
+        self.baseline_queries = max(0, workers) * QUERY_WORKING_BYTES
         #: What the resident maps may count: the total budget minus the baseline.
-        self.budget = self.total_budget
+        self.budget = max(1, self.total_budget - self.baseline_queries)
         #: How many processes hold each resident map: the service's, and one replica per
         #: worker process (worker_mode "process"); each copy counts against the budget.
         self.copies = copies
