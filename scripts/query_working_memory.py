@@ -3,10 +3,12 @@ queries: a stored map loaded with its pools made, then each of the fleet scene's
 (JPEG decoded, default method) answered alone with the heap trimmed before it, then one
 image of no map's scene (a random texture, same size: every step of the method runs and none
 verifies), and the peak of the process's resident memory during each (sampled every 2 ms)
-above what it held before.
+above what it held before. ``--scales``: the random texture again at those multiples of
+the camera's width and height (its camera scaled alike), two textures each: what the
+largest image a service accepts may hold.
 Prints each query's step and peak, and their median and max (MB).
 
-    python scripts/query_working_memory.py T [--cache DIR]
+    python scripts/query_working_memory.py T [--cache DIR] [--scales 1 1.5 2]
 
 T: a template a fleet run stored (``reloc bench --only fleet --workdir W``:
 W/fleet/template/template); its map is read in place, not changed.
@@ -36,10 +38,10 @@ def _grey(jpeg: bytes) -> npt.NDArray[np.uint8]:
                       np.uint8)
 
 
-def _texture(camera: object) -> bytes:
+def _texture(camera: object, seed: int = 0) -> bytes:
     """A JPEG of random texture at ``camera``'s size (blurred noise at a few scales)."""
     width, height = camera.width, camera.height   # type: ignore[attr-defined]
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     image = np.zeros((height, width), np.float32)
     for sigma in (1.0, 3.0, 9.0):
         image += cv2.GaussianBlur(rng.random((height, width), np.float32), (0, 0), sigma)
@@ -55,6 +57,8 @@ def main() -> None:
     parser.add_argument("template", type=Path)
     parser.add_argument("--cache", type=Path, default=Path("out/bench-cache"),
                         help="where the fleet's scene is rendered (or found rendered)")
+    parser.add_argument("--scales", type=float, nargs="*", default=[],
+                        help="the random texture at these multiples of the camera's size too")
     args = parser.parse_args()
     conf = fleet.FleetConf()
     scene = fleet.render_scene(conf, args.cache)
@@ -74,6 +78,17 @@ def main() -> None:
                   f"{(peak - before) / MB:.1f} MB above {before / MB:.1f} MB")
         print(f"{len(steps)} queries: working memory median {np.median(steps) / MB:.1f} MB, "
               f"max {max(steps) / MB:.1f} MB")
+        for scale in args.scales:
+            camera = scene.camera.scaled(scale)
+            for seed in (0, 1):
+                texture = _texture(camera, seed)
+
+                def refused(jpeg: bytes = texture, camera: object = camera) -> RelocResult:
+                    return engine.relocalize(Frame(_grey(jpeg), camera))  # type: ignore[arg-type]
+
+                before, peak, result = peak_during(refused)
+                print(f"random texture {camera.width}x{camera.height} ({seed}): "
+                      f"{result.status.name}: {(peak - before) / MB:.1f} MB")
     finally:
         engine.close()
 

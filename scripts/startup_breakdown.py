@@ -36,6 +36,7 @@ import cv2
 import reloc_client
 
 import reloc_service
+from reloc_service.service.config import LimitsConf
 from reloc_service.tools.bench.fleet import FleetConf
 from reloc_service.tools.bench.fleet_service import first_answer, serve
 from reloc_service.tools.bench.stored_map import StoredMap, copies
@@ -68,7 +69,9 @@ def one_run(template: Path, jpeg: bytes, work: Path, mode: str, maps: int
     names = [f"site{i:03d}" for i in range(maps)]
     copies(StoredMap(template, 0, 0), storage, names)
     conf = FleetConf(maps=maps, worker_mode=mode)
-    with serve(conf, storage, 100000.0, work / "service") as served:
+    # an ample budget and the service's default image size limit
+    with serve(conf, storage, 100000.0, work / "service",
+               LimitsConf().max_image_pixels) as served:
         wall_start = time.time() - (time.monotonic() - served.started)
         total = first_answer(served, names[-1], jpeg, 300.0)
         cpu = _cpu_seconds(served.process.pid)

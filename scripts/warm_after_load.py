@@ -47,7 +47,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="reloc-warm-") as tmp:
         storage = Path(tmp) / "storage"
         copies(template, storage, names)
-        with serve(conf, storage, 1000.0, Path(tmp) / "service") as served:
+        with serve(conf, storage, 1000.0, Path(tmp) / "service",
+                   scene.camera.width * scene.camera.height) as served:
             first_answer(served, names[0], queries.jpegs[0], conf.startup_timeout_s)
             with RelocClient(served.endpoint, map=names[0], timeout=conf.query_timeout_s) as c:
                 for k in range(conf.queries):

@@ -33,7 +33,7 @@ from reloc_service.core.errors import ConfigError
 from reloc_service.engine import Engine, EngineConf
 from reloc_service.service.app import Service
 from reloc_service.service.memory import rss_bytes, trim_now
-from reloc_service.service.memory_baseline import QUERY_WORKING_BYTES
+from reloc_service.service.memory_baseline import query_working_bytes
 from reloc_service.service.residency import MB, counted_bytes
 from reloc_service.service.workers import Lane
 from reloc_service.tools.bench.stored_map import (
@@ -405,7 +405,10 @@ def test_the_maps_get_the_budget_minus_the_measured_baseline(template, synthetic
     port = free_port()
     trim_now()   # as the service measures: the heap's free pages given back first
     before = rss_bytes()
-    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB)).start()
+    camera = synthetic_scene.camera
+    pixels = camera.width * camera.height   # queries no larger than the scene's camera
+    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB,
+                           limits={"max_image_pixels": pixels})).start()
     try:
         residency = service.registry.residency
         assert residency is not None
@@ -419,9 +422,9 @@ def test_the_maps_get_the_budget_minus_the_measured_baseline(template, synthetic
         # this process's own memory, measured before the map was loaded
         assert before <= memory["memory_baseline_service_bytes"] <= rss_bytes()
         assert memory["memory_baseline_workers_bytes"] == 0   # thread mode: no worker process
-        # each worker's query, answered on a thread of this process
-        assert memory["memory_baseline_queries_bytes"] == (service.conf.service.workers
-                                                           * QUERY_WORKING_BYTES) > 0
+        # each worker's query, answered on a thread of this process, at most that size
+        assert memory["memory_baseline_queries_bytes"] == 2 * query_working_bytes(pixels)
+        assert query_working_bytes(pixels) < query_working_bytes(1280 * 960)   # the default
         assert memory["memory_baseline_bytes"] == (memory["memory_baseline_service_bytes"]
                                                    + memory["memory_baseline_queries_bytes"])
         assert memory["memory_maps_budget_bytes"] == (AMPLE_MB * MB
@@ -446,7 +449,8 @@ def test_worker_processes_own_memory_counts_against_the_budget(template, synthet
             wait_until(lambda: client.status().counters["memory_baseline_workers_bytes"] > 0,
                        timeout=60)
             memory = client.status().counters
-        assert memory["memory_baseline_queries_bytes"] == QUERY_WORKING_BYTES   # one worker
+        assert memory["memory_baseline_queries_bytes"] == query_working_bytes(   # one worker
+            1280 * 960)   # the default limits.max_image_pixels
         assert memory["memory_baseline_bytes"] == (memory["memory_baseline_service_bytes"]
                                                    + memory["memory_baseline_workers_bytes"]
                                                    + memory["memory_baseline_queries_bytes"])

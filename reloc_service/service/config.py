@@ -71,10 +71,10 @@ class LimitsConf:
     """Sizes above which a request is refused before it is parsed (docs/protocol.md)."""
 
     max_payload_bytes: int = 32 * 1024 * 1024
-    #: 1280 x 960. A query costs about 215 bytes of peak memory per pixel (measured: sbi and
-    #: bow on the default methods, 1.2 Mpx -> +260 MB, 3.1 Mpx -> +690 MB), so this keeps one
-    #: request under +300 MB on a 4-8 GB companion computer while covering VGA, 720p and
-    #: 1280x960 cameras. Larger cameras: raise it knowing the cost.
+    #: 1280 x 960: a query holds up to 12 MB + 224 B a pixel (275 MB here; 3.1 Mpx took +690
+    #: MB), so one request stays under +300 MB on a 4-8 GB companion computer with VGA to
+    #: 1280x960 cameras. ``max_resident_mb`` keeps that much per worker out of the maps'
+    #: share (:func:`.memory_baseline.query_working_bytes`): set it to the cameras' size.
     max_image_pixels: int = 1280 * 960
     max_features: int = 50_000
     max_hypotheses: int = 32

@@ -16,7 +16,8 @@ only the warmed-up baseline fills is logged as an error, and every idle map is c
 
 The queries count too: each worker (thread or process) holds a query's working memory while
 it answers one (the decoded image, its features and scale space, the candidates' matches),
-freed when it ends, so the baseline keeps :data:`QUERY_WORKING_BYTES` per worker.
+freed when it ends, so the baseline keeps :func:`query_working_bytes` of the largest image a
+query may carry (``limits.max_image_pixels``) per worker.
 """
 
 from __future__ import annotations
@@ -35,12 +36,23 @@ log = logging.getLogger(__name__)
 MB = 1024 * 1024
 
 #: What a query holds in memory while it is answered, above what the process holds between
-#: queries: 77.0 MB for a 640x480 query that the default method runs through all its steps
-#: and refuses (full-size SIFT twice; 4.5-5.1 MB when the ORB step answers, 19.6-21.0 MB when
-#: the half-size SIFT step does), python scripts/query_working_memory.py on the fleet
-#: template, rounded up to the next MB. A larger image holds more (SIFT's scale space grows
-#: with its pixels).
-QUERY_WORKING_BYTES = 78 * MB
+#: queries, grows with its pixels (SIFT's scale space, on an image doubled in size): an image
+#: of no map's scene, which the default method runs through all its steps (full-size SIFT
+#: included) and refuses, held 77.0 MB at 640x480, 150.8 MB at 960x720 and 272.4 MB at
+#: 1280x960 (python scripts/query_working_memory.py T --scales 1 1.5 2, on the fleet
+#: template; 4.5-5.1 MB when the ORB step answers, 19.6-21.0 MB when the half-size SIFT step
+#: does, at 640x480). A fixed part and a part per pixel, the line through the two ends
+#: rounded up, bound all three: 77.6, 159.7 and 274.5 MB.
+QUERY_WORKING_FIXED_BYTES = 12 * MB
+QUERY_WORKING_BYTES_PER_PIXEL = 224
+
+
+def query_working_bytes(max_image_pixels: int) -> int:
+    """What one query of at most ``max_image_pixels`` pixels may hold while it is answered
+    (bytes)."""
+    if max_image_pixels < 1:
+        raise ValueError(f"expected max_image_pixels >= 1, got {max_image_pixels}")
+    return QUERY_WORKING_FIXED_BYTES + QUERY_WORKING_BYTES_PER_PIXEL * max_image_pixels
 
 
 class ServedMaps(Protocol):
@@ -97,7 +109,8 @@ class ProcessBaseline:
                 f"service.max_resident_mb = {self.total_budget / MB:.0f} MB: expected more "
                 f"than the service's own resident memory with no map and its workers' "
                 f"queries, {self.baseline / MB:.0f} MB (the budget counts the whole service: "
-                f"{self.baseline_queries / MB:.0f} MB of it for the queries)")
+                f"{self.baseline_queries / MB:.0f} MB of it for the queries, each of up to "
+                f"limits.max_image_pixels)")
         self._set_maps_budget()
 
     def settle_service_baseline(self) -> None:

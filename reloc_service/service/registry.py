@@ -86,7 +86,8 @@ class MapRegistry:
                                        stop_timeout_s=conf.service.stop_timeout_s,
                                        copies=resident_copies(conf.service.worker_mode,
                                                               conf.service.workers),
-                                       workers=conf.service.workers)
+                                       workers=conf.service.workers,
+                                       max_image_pixels=conf.limits.max_image_pixels)
         self._lock = threading.Lock()
         self._loading: set[str] = set()      # being restored: not declared yet
         self._ready = threading.Event()      # every stored and configured map is up (or failed)

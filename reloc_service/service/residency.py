@@ -45,7 +45,7 @@ from ..core.errors import StorageError
 from .durability import read_service_file
 from .map_dirs import map_dirname
 from .memory import release_memory, rss_bytes, trim_now
-from .memory_baseline import QUERY_WORKING_BYTES, ProcessBaseline
+from .memory_baseline import ProcessBaseline, query_working_bytes
 from .pool_reserve import PoolReserve
 from .quotas import MapUsage
 
@@ -85,7 +85,7 @@ class Residency(ProcessBaseline):
     registry: MapRegistry
 
     def __init__(self, registry: MapRegistry, *, budget_mb: float, stop_timeout_s: float,
-                 copies: int = 1, workers: int = 0,
+                 copies: int = 1, workers: int = 0, max_image_pixels: int = 1280 * 960,
                  pending_writes: Callable[[str], int] | None = None) -> None:
         if copies < 1:
             raise ValueError(f"expected copies >= 1 of each resident map, got {copies}")
@@ -96,8 +96,9 @@ class Residency(ProcessBaseline):
         #: processes and their forkserver once they start (bytes; 0 until measured).
         self.baseline_service = 0
         self.baseline_workers = 0
-        #: What the ``workers`` queries answered at once hold while they run (bytes).
-        self.baseline_queries = max(0, workers) * QUERY_WORKING_BYTES
+        #: What the ``workers`` queries answered at once, each of at most
+        #: ``max_image_pixels``, hold while they run (bytes).
+        self.baseline_queries = max(0, workers) * query_working_bytes(max_image_pixels)
         #: What the resident maps may count: the total budget minus the baseline.
         self.budget = max(1, self.total_budget - self.baseline_queries)
         #: How many processes hold each resident map: the service's, and one replica per

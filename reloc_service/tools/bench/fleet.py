@@ -267,7 +267,8 @@ def run_baseline(conf: FleetConf, template: StoredMap, queries: QuerySet, work: 
     storage = work / "baseline-storage"
     copies(template, storage, ["site000"])
     tally = Tally()
-    with serve(conf, storage, AMPLE_MB, work / "baseline") as served:
+    pixels = queries.camera.width * queries.camera.height
+    with serve(conf, storage, AMPLE_MB, work / "baseline", pixels) as served:
         startup = first_answer(served, "site000", queries.jpegs[0], conf.startup_timeout_s)
         with RelocClient(served.endpoint, map="site000", timeout=conf.query_timeout_s) as c:
             for k in range(conf.baseline_queries):
@@ -285,7 +286,8 @@ def run_spread(conf: FleetConf, storage: Path, names: list[str], queries: QueryS
 
     rng = random.Random(conf.seed)
     tally = Tally()
-    with serve(conf, storage, budget_mb, work / "fleet") as served:
+    pixels = queries.camera.width * queries.camera.height
+    with serve(conf, storage, budget_mb, work / "fleet", pixels) as served:
         sampler = RssSampler(served.process.pid, conf.rss_period_s)
         with sampler.running():
             startup = first_answer(served, rng.choice(names), queries.jpegs[0],

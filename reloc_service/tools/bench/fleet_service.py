@@ -31,9 +31,11 @@ class FleetConf(Protocol):
     def cold_load_wait_s(self) -> float: ...
 
 
-def service_doc(conf: FleetConf, storage: Path, endpoint: str, budget_mb: float
-                ) -> dict[str, Any]:
-    """``reloc serve``'s configuration for ``storage`` with ``max_resident_mb = budget_mb``."""
+def service_doc(conf: FleetConf, storage: Path, endpoint: str, budget_mb: float,
+                max_image_pixels: int) -> dict[str, Any]:
+    """``reloc serve``'s configuration for ``storage`` with ``max_resident_mb = budget_mb``,
+    accepting query images of at most ``max_image_pixels`` (the fleet's camera: the budget
+    keeps what a query of that size may hold for each worker)."""
     return {"zenoh": {"mode": "peer", "listen": [endpoint], "multicast_scouting": False},
             "service": {"instance": f"fleet-{endpoint.rsplit(':', 1)[1]}",
                         "storage": str(storage), "methods": [conf.method],
@@ -41,6 +43,7 @@ def service_doc(conf: FleetConf, storage: Path, endpoint: str, budget_mb: float
                         "worker_mode": conf.worker_mode, "opencv_threads": 1,
                         "allow_new_maps": False, "snapshot_every": 0, "fsync": False,
                         "max_resident_mb": budget_mb, "cold_load_wait_s": conf.cold_load_wait_s},
+            "limits": {"max_image_pixels": max_image_pixels},
             "quotas": {"max_maps": max(16, conf.maps), "max_total_bytes": 2**50}}
 
 
@@ -55,13 +58,14 @@ class Served:
 
 
 @contextlib.contextmanager
-def serve(conf: FleetConf, storage: Path, budget_mb: float, folder: Path) -> Iterator[Served]:
-    """``reloc serve`` of ``storage`` in a child process (config and log in ``folder``);
-    SIGTERM on exit (kill after 60 s)."""
+def serve(conf: FleetConf, storage: Path, budget_mb: float, folder: Path,
+          max_image_pixels: int) -> Iterator[Served]:
+    """``reloc serve`` of ``storage`` in a child process (config and log in ``folder``), see
+    :func:`service_doc`; SIGTERM on exit (kill after 60 s)."""
     from ...service.config import parse_config
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    doc = service_doc(conf, storage, endpoint, budget_mb)
+    doc = service_doc(conf, storage, endpoint, budget_mb, max_image_pixels)
     parse_config(doc)   # a ConfigError here, not in the child's log
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "service.toml").write_text(toml_text(doc))
