@@ -191,3 +191,13 @@ def test_the_repetition_pool_figure_compares_the_index_with_a_full_scan(syntheti
     rows = _pool_rows(figures)
     assert [r[0].split(",")[1].split()[0] for r in rows] == ["ORB", "SIFT"]
     assert all("scanned in full" not in r[2] for r in rows)
+
+
+def test_warm_queries_are_compared_with_the_baseline_image_by_image() -> None:
+    # image 1 costs ten times image 0 in both services; the fleet's warm queries are twice
+    # the baseline's on images 0 and 1 and the same on the other image-1 query (the p50s
+    # of the two mixes, 5.5 against 15 s, would say 2.7 times)
+    baseline = {"images": [0, 1, 0, 1], "seconds": [1.0, 10.0, 1.0, 10.0]}
+    fleet_warm = {"images": [0, 1, 1, 7], "seconds": [2.0, 20.0, 10.0, 99.0]}
+    assert fleet.paired_ratio(fleet_warm, baseline) == 2.0   # image 7: not in the baseline
+    assert fleet.paired_ratio({"images": [7], "seconds": [1.0]}, baseline) is None

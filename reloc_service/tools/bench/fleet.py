@@ -196,6 +196,9 @@ class Tally:
 
     seconds: dict[str, list[float]] = dataclasses.field(
         default_factory=lambda: {"cold": [], "warm": []})
+    #: The query image of each round trip in ``seconds``, by kind.
+    images: dict[str, list[int]] = dataclasses.field(
+        default_factory=lambda: {"cold": [], "warm": []})
     answers: list[tuple[int, Any]] = dataclasses.field(default_factory=list)
     busy: int = 0
     lost: int = 0
@@ -206,8 +209,23 @@ class Tally:
                                "lost": self.lost, "errors": self.errors[:5]}
         for kind, values in self.seconds.items():
             out[kind] = {"n": len(values), "p50_ms": pct_ms(values, 50),
-                         "p99_ms": pct_ms(values, 99), "max_ms": pct_ms(values, 100)}
+                         "p99_ms": pct_ms(values, 99), "max_ms": pct_ms(values, 100),
+                         "seconds": values, "images": self.images[kind]}
         return {**out, **score(self.answers, queries)}
+
+
+def paired_ratio(fleet: dict[str, Any], baseline: dict[str, Any]) -> float | None:
+    """The median, over the fleet's warm queries, of each one's round trip over the
+    baseline's median round trip for the same query image: the two services' p50s compare
+    different random mixes of images (some answered by the ORB step, some by SIFT at several
+    times the cost), this compares like with like."""
+    by_image: dict[int, list[float]] = {}
+    for image, seconds in zip(baseline["images"], baseline["seconds"], strict=True):
+        by_image.setdefault(image, []).append(seconds)
+    ratios = [seconds / float(np.median(by_image[image]))
+              for image, seconds in zip(fleet["images"], fleet["seconds"], strict=True)
+              if image in by_image]
+    return float(np.median(ratios)) if ratios else None
 
 
 def ask(client: Any, tally: Tally, kind: str, jpeg: bytes, index: int, attempts: int = 10
@@ -230,6 +248,7 @@ def ask(client: Any, tally: Tally, kind: str, jpeg: bytes, index: int, attempts:
             tally.errors.append(f"{client.map}: {type(exc).__name__}: {exc}")
             return
         tally.seconds[kind].append(time.perf_counter() - start)
+        tally.images[kind].append(index)
         tally.answers.append((index, result))
         return
     tally.errors.append(f"{client.map}: busy {attempts} times")
@@ -362,6 +381,7 @@ def run_fleet(conf: FleetConf, *, workdir: Path | None = None, cache: Path,
                         "hard_links": True, "removed": not storage.exists()},
             "baseline": baseline, "fleet": fleet,
             "warm_p50_over_baseline": warm / base if base and warm else None,
+            "warm_over_baseline_by_image": paired_ratio(fleet["warm"], baseline["warm"]),
             "repetition_pool": pool,
             "seconds": time.perf_counter() - start})
 

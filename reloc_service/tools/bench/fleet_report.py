@@ -57,7 +57,8 @@ def table_lines(section: Mapping[str, Any]) -> list[str]:
          f"{base['warm']['n']}, {_f(base['warm']['p50_ms'])}, {_f(base['warm']['p99_ms'])}",
          f"{fleet['warm']['n']}, {_f(fleet['warm']['p50_ms'])}, "
          f"{_f(fleet['warm']['p99_ms'])} ({_f(section.get('warm_p50_over_baseline'), 2)}x "
-         "the baseline's p50)"),
+         f"the baseline's p50; {_f(section.get('warm_over_baseline_by_image'), 2)}x the "
+         "baseline's time for the same image, median)"),
         ("cold queries: n, p50, p99, max (ms)", "-",
          f"{fleet['cold']['n']}, {_f(fleet['cold']['p50_ms'])}, {_f(fleet['cold']['p99_ms'])}, "
          f"{_f(fleet['cold']['max_ms'])}"),
