@@ -28,6 +28,7 @@ from reloc_service.core.frame import Frame
 from reloc_service.engine import Engine
 from reloc_service.tools.bench import fleet
 from reloc_service.tools.bench.fleet_memory import peak_during
+from reloc_service.tools.bench.samples import random_texture_jpeg
 
 MB = 1024 * 1024
 
@@ -36,20 +37,6 @@ def _grey(jpeg: bytes) -> npt.NDArray[np.uint8]:
     """The query's JPEG decoded to grey, as the service decodes it."""
     return np.asarray(cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE),
                       np.uint8)
-
-
-def _texture(camera: object, seed: int = 0) -> bytes:
-    """A JPEG of random texture at ``camera``'s size (blurred noise at a few scales)."""
-    width, height = camera.width, camera.height   # type: ignore[attr-defined]
-    rng = np.random.default_rng(seed)
-    image = np.zeros((height, width), np.float32)
-    for sigma in (1.0, 3.0, 9.0):
-        image += cv2.GaussianBlur(rng.random((height, width), np.float32), (0, 0), sigma)
-    image = (255 * (image - image.min()) / np.ptp(image)).astype(np.uint8)
-    ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 90])
-    if not ok:
-        raise RuntimeError("could not encode the texture as JPEG")
-    return jpeg.tobytes()
 
 
 def main() -> None:
@@ -68,7 +55,8 @@ def main() -> None:
         for jpeg in scene.queries.jpegs[:2]:   # the first answers' one-off work, not counted
             engine.relocalize(Frame(_grey(jpeg), scene.camera))
         steps = []
-        for i, jpeg in enumerate([*scene.queries.jpegs, _texture(scene.camera)]):
+        texture = random_texture_jpeg(scene.camera.width, scene.camera.height)
+        for i, jpeg in enumerate([*scene.queries.jpegs, texture]):
             def answer(jpeg: bytes = jpeg) -> RelocResult:
                 return engine.relocalize(Frame(_grey(jpeg), scene.camera))
 
@@ -81,7 +69,7 @@ def main() -> None:
         for scale in args.scales:
             camera = scene.camera.scaled(scale)
             for seed in (0, 1):
-                texture = _texture(camera, seed)
+                texture = random_texture_jpeg(camera.width, camera.height, seed)
 
                 def refused(jpeg: bytes = texture, camera: object = camera) -> RelocResult:
                     return engine.relocalize(Frame(_grey(jpeg), camera))  # type: ignore[arg-type]

@@ -22,29 +22,16 @@ import tempfile
 import threading
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from reloc_service.tools.bench import fleet
 from reloc_service.tools.bench.fleet_memory import RssSampler
 from reloc_service.tools.bench.fleet_service import Served, first_answer, serve
+from reloc_service.tools.bench.samples import random_texture_jpeg
 from reloc_service.tools.bench.stored_map import CAMERA_ID, copies
 
 BUDGET_MB = 1000.0
 TEXTURES = 8
-
-
-def texture(width: int, height: int, seed: int) -> bytes:
-    """A JPEG of random texture (blurred noise at a few scales)."""
-    rng = np.random.default_rng(seed)
-    image = np.zeros((height, width), np.float32)
-    for sigma in (1.0, 3.0, 9.0):
-        image += cv2.GaussianBlur(rng.random((height, width), np.float32), (0, 0), sigma)
-    image = (255 * (image - image.min()) / np.ptp(image)).astype(np.uint8)
-    ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 90])
-    if not ok:
-        raise RuntimeError("could not encode the texture as JPEG")
-    return jpeg.tobytes()
 
 
 def send(served: Served, names: list[str], images: list[bytes], garbage: list[bytes],
@@ -82,7 +69,7 @@ def main() -> None:
     scene = fleet.render_scene(conf, args.cache)
     template, _ = fleet.reuse_template(args.template, scene)
     camera = scene.camera
-    garbage = [texture(camera.width, camera.height, seed) for seed in range(TEXTURES)]
+    garbage = [random_texture_jpeg(camera.width, camera.height, seed) for seed in range(TEXTURES)]
     names = [f"site{i:03d}" for i in range(args.maps)]
     tally: dict[tuple[str, str], int] = {}
     lock = threading.Lock()

@@ -73,6 +73,21 @@ class QuerySet:
         return cls(camera, jpegs, gts)
 
 
+def random_texture_jpeg(width: int, height: int, seed: int = 0) -> bytes:
+    """A JPEG of random texture, blurred noise at a few scales: an image of no map's scene,
+    which the default method runs through all its steps (full-size SIFT included) and
+    refuses, so the costliest query of that size."""
+    rng = np.random.default_rng(seed)
+    image = np.zeros((height, width), np.float32)
+    for sigma in (1.0, 3.0, 9.0):
+        image += cv2.GaussianBlur(rng.random((height, width), np.float32), (0, 0), sigma)
+    image = (255 * (image - image.min()) / np.ptp(image)).astype(np.uint8)
+    ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    if not ok:
+        raise RuntimeError("could not encode the texture as JPEG")
+    return bytes(jpeg.tobytes())
+
+
 def decode_jpeg(jpeg: bytes) -> npt.NDArray[np.uint8]:
     image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
     if image is None:
