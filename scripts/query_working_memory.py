@@ -19,24 +19,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import cv2
 import numpy as np
-import numpy.typing as npt
 from reloc_client.result import RelocResult
 
 from reloc_service.core.frame import Frame
 from reloc_service.engine import Engine
 from reloc_service.tools.bench import fleet
 from reloc_service.tools.bench.fleet_memory import peak_during
-from reloc_service.tools.bench.samples import random_texture_jpeg
+from reloc_service.tools.bench.samples import decode_jpeg, random_texture_jpeg
 
 MB = 1024 * 1024
-
-
-def _grey(jpeg: bytes) -> npt.NDArray[np.uint8]:
-    """The query's JPEG decoded to grey, as the service decodes it."""
-    return np.asarray(cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE),
-                      np.uint8)
 
 
 def main() -> None:
@@ -53,12 +45,12 @@ def main() -> None:
     engine.prepared.wait()
     try:
         for jpeg in scene.queries.jpegs[:2]:   # the first answers' one-off work, not counted
-            engine.relocalize(Frame(_grey(jpeg), scene.camera))
+            engine.relocalize(Frame(decode_jpeg(jpeg), scene.camera))
         steps = []
         texture = random_texture_jpeg(scene.camera.width, scene.camera.height)
         for i, jpeg in enumerate([*scene.queries.jpegs, texture]):
             def answer(jpeg: bytes = jpeg) -> RelocResult:
-                return engine.relocalize(Frame(_grey(jpeg), scene.camera))
+                return engine.relocalize(Frame(decode_jpeg(jpeg), scene.camera))
 
             before, peak, result = peak_during(answer)
             steps.append(peak - before)
@@ -72,7 +64,7 @@ def main() -> None:
                 texture = random_texture_jpeg(camera.width, camera.height, seed)
 
                 def refused(jpeg: bytes = texture, camera: object = camera) -> RelocResult:
-                    return engine.relocalize(Frame(_grey(jpeg), camera))  # type: ignore[arg-type]
+                    return engine.relocalize(Frame(decode_jpeg(jpeg), camera))  # type: ignore[arg-type]
 
                 before, peak, result = peak_during(refused)
                 print(f"random texture {camera.width}x{camera.height} ({seed}): "

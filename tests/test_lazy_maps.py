@@ -8,12 +8,12 @@ waiting or a training job is never closed. Real services on loopback, real stora
 from __future__ import annotations
 
 import os
-import re
 import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
+from lazy_maps_support import METHOD, NAMES, conf, pose_of, scene_template, stored_maps
 from reloc_client import protocol as wire
 from reloc_client.client import RelocClient, ServiceBusy, to_wire_image
 from service_support import (
@@ -24,43 +24,25 @@ from service_support import (
     endpoint,
     free_port,
     limit_maps,
-    service_conf,
     wait_until,
     write_config,
 )
 
-from reloc_service.core.errors import ConfigError
 from reloc_service.engine import Engine, EngineConf
 from reloc_service.service.app import Service
-from reloc_service.service.memory import rss_bytes, trim_now
-from reloc_service.service.memory_baseline import query_working_bytes
 from reloc_service.service.residency import MB, counted_bytes
 from reloc_service.service.workers import Lane
 from reloc_service.tools.bench.stored_map import (
     StoredMap,
-    copy_map,
     engine_from_images,
     stored_template,
 )
 
-METHOD = "sbi+p3p"
-NAMES = ("alpha", "bravo", "charlie")
-
-
-def conf(port: int, storage: Path, **service):
-    return service_conf(port, storage, **{"methods": [METHOD], "default_method": METHOD,
-                                          "worker_mode": "thread", "workers": 2,
-                                          "snapshot_every": 0, **service})
-
 
 @pytest.fixture(scope="module")
 def template(synthetic_scene, tmp_path_factory) -> StoredMap:
-    """A stored map (camera cam0, the scene's 6 keyframes, trained, in a snapshot) and the
-    bytes it counts once loaded from its snapshot (its quota usage)."""
-    storage = tmp_path_factory.mktemp("lazy-template") / "storage"
-    engine = engine_from_images(synthetic_scene.camera, synthetic_scene.keyframe_images,
-                                synthetic_scene.keyframe_poses, EngineConf(methods=(METHOD,)))
-    return stored_template(storage, "template", engine)
+    """The scene's stored map (:func:`lazy_maps_support.scene_template`)."""
+    return scene_template(synthetic_scene, tmp_path_factory.mktemp("lazy-template") / "storage")
 
 
 def loaded_pool_bytes(stored: StoredMap) -> int:
@@ -88,13 +70,6 @@ def big_template(synthetic_scene, tmp_path_factory) -> StoredMap:
     return stored_template(storage, "template", engine)
 
 
-def stored_maps(template: StoredMap, storage: Path, names=NAMES) -> Path:
-    """``storage`` holding a copy of the template map under each of ``names``."""
-    for name in names:
-        copy_map(template, storage, name)
-    return storage
-
-
 def open_paths(directory: Path) -> set[str]:
     """Files under ``directory`` this process holds open."""
     out = set()
@@ -120,12 +95,6 @@ def maps_budget(client: RelocClient, maps: float, map_bytes: int) -> int:
         f"({map_bytes / MB:.2f} MB a map): the baseline moved between the probe and this "
         "start by more than the maps' margin")
     return share
-
-
-def pose_of(client: RelocClient, scene, i: int) -> np.ndarray:
-    result = client.relocalize(scene.query_images[i], camera_id="cam0")
-    assert result.ok, result.reason
-    return np.asarray(result.world_from_cam)
 
 
 def test_start_registers_stored_maps_without_loading_them(template, synthetic_scene,
@@ -377,85 +346,6 @@ def test_worker_processes_replicas_count_against_the_budget(template, synthetic_
         assert len(service.maps) < len(NAMES)
         assert residency.resident_bytes() == 2 * sum(one_copy)
         assert residency.peak_bytes <= share   # each load made room for both copies
-    finally:
-        service.stop()
-
-
-def test_a_budget_below_the_services_own_memory_refuses_to_start(template, tmp_path):
-    storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
-    trim_now()   # as the service measures: the heap's free pages given back first
-    own_mb = rss_bytes() / MB   # this process, before the service adds to it
-    with pytest.raises(ConfigError) as refused:
-        Service(conf(free_port(), storage, max_resident_mb=1)).start()
-    message = str(refused.value)
-    assert "service.max_resident_mb = 1 MB" in message
-    measured = re.search(r"resident memory with no map and its workers' queries, (\d+) MB",
-                         message)
-    queries = re.search(r"(\d+) MB of it for the queries", message)
-    assert queries is not None and int(queries[1]) > 0
-    assert measured is not None and int(measured[1]) >= int(own_mb) + int(queries[1])
-    # refused, it let go of the storage: a service with a budget above it starts there
-    service = Service(conf(free_port(), storage, max_resident_mb=AMPLE_MB)).start()
-    service.stop()
-
-
-def test_the_maps_get_the_budget_minus_the_measured_baseline(template, synthetic_scene,
-                                                             tmp_path):
-    storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
-    port = free_port()
-    trim_now()   # as the service measures: the heap's free pages given back first
-    before = rss_bytes()
-    camera = synthetic_scene.camera
-    pixels = camera.width * camera.height   # queries no larger than the scene's camera
-    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB,
-                           limits={"max_image_pixels": pixels})).start()
-    try:
-        residency = service.registry.residency
-        assert residency is not None
-        # measured at the warm-up's end (no map yet), in place of the estimate at declaration
-        assert residency.baseline_settled.wait(60)
-        with RelocClient(endpoint(port), map="alpha", timeout=30) as client:
-            pose_of(client, synthetic_scene, 0)
-            memory = client.status().counters
-            counted = counted_bytes(service.maps["alpha"])
-        assert memory["memory_budget_bytes"] == AMPLE_MB * MB
-        # this process's own memory, measured before the map was loaded
-        assert before <= memory["memory_baseline_service_bytes"] <= rss_bytes()
-        assert memory["memory_baseline_workers_bytes"] == 0   # thread mode: no worker process
-        # each worker's query, answered on a thread of this process, at most that size
-        assert memory["memory_baseline_queries_bytes"] == 2 * query_working_bytes(pixels)
-        assert query_working_bytes(pixels) < query_working_bytes(1280 * 960)   # the default
-        assert memory["memory_baseline_bytes"] == (memory["memory_baseline_service_bytes"]
-                                                   + memory["memory_baseline_queries_bytes"])
-        assert memory["memory_maps_budget_bytes"] == (AMPLE_MB * MB
-                                                      - memory["memory_baseline_bytes"])
-        assert memory["memory_maps_bytes"] == counted > 0
-    finally:
-        service.stop()
-
-
-def test_worker_processes_own_memory_counts_against_the_budget(template, synthetic_scene,
-                                                               tmp_path):
-    storage = stored_maps(template, tmp_path / "storage", names=("alpha",))
-    port = free_port()
-    service = Service(conf(port, storage, max_resident_mb=AMPLE_MB, worker_mode="process",
-                           workers=1)).start()
-    try:
-        with RelocClient(endpoint(port), map="alpha", timeout=60) as client:
-            assert client.status().counters["memory_baseline_workers_bytes"] == 0   # none yet
-            pose_of(client, synthetic_scene, 0)   # starts the worker (answered meanwhile here)
-            # the worker and the forkserver it was forked from, once it has warmed up and
-            # before it holds a replica
-            wait_until(lambda: client.status().counters["memory_baseline_workers_bytes"] > 0,
-                       timeout=60)
-            memory = client.status().counters
-        assert memory["memory_baseline_queries_bytes"] == query_working_bytes(   # one worker
-            1280 * 960)   # the default limits.max_image_pixels
-        assert memory["memory_baseline_bytes"] == (memory["memory_baseline_service_bytes"]
-                                                   + memory["memory_baseline_workers_bytes"]
-                                                   + memory["memory_baseline_queries_bytes"])
-        assert memory["memory_maps_budget_bytes"] == (AMPLE_MB * MB
-                                                      - memory["memory_baseline_bytes"])
     finally:
         service.stop()
 

@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 from reloc_client import protocol as wire
 
 from ..core.errors import StorageError
+from .config import LimitsConf
 from .durability import read_service_file
 from .map_dirs import map_dirname
 from .memory import release_memory, rss_bytes, trim_now
@@ -85,7 +86,8 @@ class Residency(ProcessBaseline):
     registry: MapRegistry
 
     def __init__(self, registry: MapRegistry, *, budget_mb: float, stop_timeout_s: float,
-                 copies: int = 1, workers: int = 0, max_image_pixels: int = 1280 * 960,
+                 copies: int = 1, workers: int = 0,
+                 max_image_pixels: int = LimitsConf.max_image_pixels,
                  pending_writes: Callable[[str], int] | None = None) -> None:
         if copies < 1:
             raise ValueError(f"expected copies >= 1 of each resident map, got {copies}")
