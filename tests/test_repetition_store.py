@@ -134,3 +134,20 @@ def test_an_engine_that_answers_no_query_starts_no_pool_work(saved) -> None:
     loaded = Engine.load(directory, conf(0), pools=False)   # a service's, with worker processes
     assert loaded.prepared.is_set()
     assert not pool_threads() - already
+
+
+def test_the_pool_digest_is_the_same_in_chunks_and_checks_its_cancel_between_them(
+        monkeypatch) -> None:
+    from reloc_service.algorithms.pose import repetition_store
+    from reloc_service.core.errors import Cancelled
+
+    rows = np.random.default_rng(0).integers(0, 256, (5000, 128), dtype=np.uint8)
+    whole = repetition_store.pool_digest(rows)
+    monkeypatch.setattr(repetition_store, "DIGEST_CHUNK_BYTES", 4096)
+    checks = []
+    assert np.array_equal(repetition_store.pool_digest(rows, lambda: checks.append(1) or False),
+                          whole)
+    assert len(checks) == rows.nbytes // 4096 + 1   # 640000 bytes in 157 chunks
+    assert not np.array_equal(repetition_store.pool_digest(rows[:-1]), whole)
+    with pytest.raises(Cancelled):
+        repetition_store.pool_digest(rows, lambda: True)

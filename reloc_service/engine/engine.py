@@ -59,6 +59,7 @@ from ..algorithms.relocalizers.map_statistics import restore_statistics, save_st
 from ..algorithms.relocalizers.tracking_fallback import relocalize_with_prior
 from ..core.background import LOWER_PRIORITY, lower_priority, start_background
 from ..core.cameras import Camera
+from ..core.foreground import answering, yielding
 from ..core.frame import EncodedImage, Frame, Keyframe
 from ..core.map import KeyframeMap, MapState
 from ..core.map_view import MapView
@@ -196,7 +197,7 @@ class Engine:
             self._build_and_swap(method, progress=False, only_if_missing=True)
             build = time.perf_counter() - start
         wait_start = time.perf_counter()
-        with self._rw.read():
+        with self._rw.read(), answering():
             waited = time.perf_counter() - wait_start
             live = self._live[method]
             version = live.view.version
@@ -436,7 +437,9 @@ class Engine:
         for it (:attr:`prepared` is set when all are made). The first method's first pool,
         which its first step reads (any query waits for it), is made at the queries'
         priority, the others below it: made below it too, it delayed a cold load's first
-        answer while the warm-up or other maps' queries ran."""
+        answer while the warm-up or other maps' queries ran. The others also step aside
+        while queries are answered (:mod:`..core.foreground`): made beside them, they
+        slowed the queries just after a cold load."""
         with self._rw.read():
             work = [(live.relocalizer, None if models_dir is None
                      else models_dir / model_dir_name(m)) for m, live in self._live.items()]
@@ -451,7 +454,7 @@ class Engine:
                 lower_priority(LOWER_PRIORITY)
                 for relocalizer, directory in work:
                     self.pools_read += restore_pools(relocalizer, state, directory,
-                                                     self._closed.is_set)
+                                                     yielding(self._closed.is_set))
             except Exception as exc:   # the first query makes what is missing
                 log.error("preparing the map's pools failed: %s", exc)
             finally:

@@ -22,6 +22,7 @@ from reloc_client.result import reply_from_result
 
 from ..algorithms.relocalizers.base import Prior, RelocResult
 from ..core.cameras import Camera
+from ..core.foreground import answering
 from ..core.frame import Frame
 from ..core.map import MapState
 from .codec import CameraRegistry, decode_image, pose_covariance_to_wire, resolve_camera
@@ -81,6 +82,12 @@ def relocalize_reply(rt: QueryMap, payload: bytes, *, queued_s: float = 0.0
     ``rt`` (a map runtime or a worker process's replica: name, limits, cameras, methods,
     map state, relocalize); ProtocolError for a bad request. Records no statistics (the
     service's map runtime keeps them)."""
+    with answering():   # from the decode on: background work steps aside for all of it
+        return _relocalize_reply(rt, payload, queued_s)
+
+
+def _relocalize_reply(rt: QueryMap, payload: bytes, queued_s: float
+                      ) -> tuple[bytes, bool, float]:
     start = time.perf_counter()
     request = wire.RelocalizeRequest.decode(payload, rt.limits)
     camera = resolve_camera(rt, request.camera_id, request.camera, "relocalize")

@@ -10,6 +10,7 @@ import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from ...core.foreground import waiting_for_background
 from ...core.map import MapState
 from .landmark_pool import LandmarkPool
 from .repetition_index import IndexConf, RepetitionIndex
@@ -67,7 +68,8 @@ def map_pool(state: MapState, kind: str, conf: IndexConf,
             if key not in _MAKING:
                 _MAKING.add(key)
                 break
-            _MADE.wait()
+            with waiting_for_background():   # the pool's maker must not step aside for us
+                _MADE.wait()
     try:
         made = make() if make is not None else MapPool.make(state, kind, conf)
         return keep_pool(state, kind, conf, made)

@@ -50,11 +50,21 @@ _FILING_FIELDS = {True: ("leaves",), False: ("order", "offsets")}
 _SUFFIXES = ((".leaves.npz", True), (".npz", False))
 
 
-def pool_digest(descriptors: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
-    """(32,) BLAKE2b digest of pool ``descriptors`` (N, D): their shape, type and bytes."""
+#: Bytes hashed between two cancel checks of :func:`pool_digest` (a few milliseconds).
+DIGEST_CHUNK_BYTES = 8 << 20
+
+
+def pool_digest(descriptors: npt.NDArray[Any], cancelled: Callable[[], bool] | None = None
+                ) -> npt.NDArray[np.uint8]:
+    """(32,) BLAKE2b digest of pool ``descriptors`` (N, D): their shape, type and bytes,
+    hashed in chunks with ``cancelled`` checked between them (:func:`stop_if`: a map's
+    pool takes about 100 ms to hash)."""
     h = hashlib.blake2b(digest_size=32)
     h.update(f"{descriptors.shape}{descriptors.dtype.str}".encode())
-    h.update(np.ascontiguousarray(descriptors).data)
+    data = np.ascontiguousarray(descriptors).reshape(-1).view(np.uint8).data
+    for start in range(0, len(data), DIGEST_CHUNK_BYTES):
+        stop_if(cancelled)
+        h.update(data[start:start + DIGEST_CHUNK_BYTES])
     return np.frombuffer(h.digest(), np.uint8).copy()
 
 
@@ -152,7 +162,7 @@ def load_index(directory: Path, state: MapState, kind: str, conf: IndexConf,
     ids = list(state.keyframes)
     pool = LandmarkPool.gather_streamed([state.keyframes[k] for k in ids], kind, cancelled)
     stop_if(cancelled)
-    if not np.array_equal(arrays["digest"], pool_digest(pool.descriptors)):
+    if not np.array_equal(arrays["digest"], pool_digest(pool.descriptors, cancelled)):
         return None
     index = _index(path, arrays, pool.descriptors, conf)
     return MapPool(pool, index, ids)
