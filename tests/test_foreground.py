@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from reloc_service.algorithms.pose.map_pool import map_pool, pools_of
+from reloc_service.algorithms.pose.map_pool import being_made, map_pool, pools_of
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
 from reloc_service.algorithms.relocalizers.map_pools import pool_finders
 from reloc_service.core import foreground
@@ -82,12 +82,16 @@ def test_a_stopped_background_work_does_not_wait_for_the_queries() -> None:
         timer.join()
 
 
+#: Every pool indexed, so that each is read from the map's stored index at load.
+CONF = EngineConf(methods=(METHOD,), options={"p3p": {"repetition_exact_rows": 0}})
+
+
 @pytest.fixture(scope="module")
 def stored(synthetic_scene, tmp_path_factory):
     """A stored trained map of the scene's keyframes whose method makes two pools or more."""
     storage = tmp_path_factory.mktemp("foreground") / "storage"
     engine = engine_from_images(synthetic_scene.camera, synthetic_scene.keyframe_images,
-                                synthetic_scene.keyframe_poses, EngineConf(methods=(METHOD,)))
+                                synthetic_scene.keyframe_poses, CONF)
     made = stored_template(storage, "template", engine)
     assert len(pool_finders(engine.relocalizer(METHOD))) >= 2
     return made
@@ -97,28 +101,38 @@ def kinds_made(engine: Engine) -> list[str]:
     return sorted(kind for kind, _, _ in pools_of(engine.map.snapshot()))
 
 
+def wait_for(condition, timeout_s: float = 30.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return condition()
+
+
 def test_a_loaded_maps_later_pools_wait_for_the_query_being_answered(stored) -> None:
     with foreground.answering():
-        engine = Engine.load(stored.directory / "map", EngineConf(methods=(METHOD,)))
+        engine = Engine.load(stored.directory / "map", CONF)
         finders = pool_finders(engine.relocalizer(METHOD))
-        deadline = time.monotonic() + 30
-        while kinds_made(engine) != [finders[0].conf.kind] and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert kinds_made(engine) == [finders[0].conf.kind]   # the first is made at once
-        assert not engine.prepared.wait(0.5)                  # the others wait
+        assert wait_for(lambda: kinds_made(engine) == [finders[0].conf.kind])  # made at once
+        assert not engine.prepared.wait(0.5)                                   # the others wait
     assert engine.prepared.wait(30)
     assert kinds_made(engine) == sorted({f.conf.kind for f in finders})
     engine.close()
 
 
-def test_a_query_that_needs_a_later_pool_gets_it_while_others_run(stored) -> None:
+def test_a_query_that_needs_a_later_pool_waits_for_its_maker_which_goes_on(stored) -> None:
     with foreground.answering():
-        engine = Engine.load(stored.directory / "map", EngineConf(methods=(METHOD,)))
+        engine = Engine.load(stored.directory / "map", CONF)
+        state = engine.map.snapshot()
         later = pool_finders(engine.relocalizer(METHOD))[1]
+        kind, conf = later.conf.kind, later.conf.repetition_index()
+        # the maker claims the pool, then waits for the query this thread answers
+        assert wait_for(lambda: being_made(state, kind, conf))
+        assert not engine.prepared.wait(0.3)
         got = []
-        thread = run_in_thread(lambda: got.append(map_pool(
-            engine.map.snapshot(), later.conf.kind, later.conf.repetition_index())))
+        thread = run_in_thread(lambda: got.append(map_pool(state, kind, conf)))
         thread.join(30)
         assert got, "the pool a query needs was not made while another query ran"
     assert engine.prepared.wait(30)
+    # made by the maker, from the index stored with the map, not built by the query
+    assert kind in engine.pools_read
     engine.close()

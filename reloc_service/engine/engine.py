@@ -59,7 +59,7 @@ from ..algorithms.relocalizers.map_statistics import restore_statistics, save_st
 from ..algorithms.relocalizers.tracking_fallback import relocalize_with_prior
 from ..core.background import LOWER_PRIORITY, lower_priority, start_background
 from ..core.cameras import Camera
-from ..core.foreground import answering, yielding
+from ..core.foreground import answering
 from ..core.frame import EncodedImage, Frame, Keyframe
 from ..core.map import KeyframeMap, MapState
 from ..core.map_view import MapView
@@ -454,7 +454,7 @@ class Engine:
                 lower_priority(LOWER_PRIORITY)
                 for relocalizer, directory in work:
                     self.pools_read += restore_pools(relocalizer, state, directory,
-                                                     yielding(self._closed.is_set))
+                                                     self._closed.is_set, step_aside=True)
             except Exception as exc:   # the first query makes what is missing
                 log.error("preparing the map's pools failed: %s", exc)
             finally:

@@ -79,6 +79,13 @@ def map_pool(state: MapState, kind: str, conf: IndexConf,
             _MADE.notify_all()
 
 
+def being_made(state: MapState, kind: str, conf: IndexConf) -> bool:
+    """Whether some thread is making the pool of ``state``'s ``kind`` landmarks (a request
+    for it now waits for that thread)."""
+    with _LOCK:
+        return (id(state), kind, conf) in _MAKING
+
+
 def held_pool(state: MapState, kind: str, conf: IndexConf) -> MapPool | None:
     """The pool of ``state``'s ``kind`` landmarks if one is made, else None (nothing made)."""
     with _LOCK:

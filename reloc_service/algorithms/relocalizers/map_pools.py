@@ -15,6 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ...core.errors import Cancelled, StorageError
+from ...core.foreground import yielding
 from ...core.map import MapState
 from ..pose.map_pool import MapPool, held_pool, map_pool
 from ..pose.p3p import P3PPoseFinder
@@ -68,15 +69,22 @@ def save_pools(relocalizer: Relocalizer, directory: Path, state: MapState,
 
 def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | None,
                   cancelled: Callable[[], bool] | None = None, *,
-                  first: bool = False) -> list[str]:
+                  first: bool = False, step_aside: bool = False) -> list[str]:
     """Make ``relocalizer``'s pools over ``state`` in the order its steps run (``first``:
     only the first step's), each with the index stored in model directory ``directory``
     where it fits (:func:`..pose.repetition_store.load_index`), else built, unless made
     already; the kinds whose index was read. Stops once ``cancelled()`` is true (the map
     was closed: a pool made for it would only hold its memory longer), in the middle of a
     pool too (between its keyframes and its index's chunks: what was made of it is
-    dropped, never kept for a query)."""
+    dropped, never kept for a query). ``step_aside``: between a pool's keyframes and chunks
+    (never between two pools) wait while queries are answered
+    (:func:`...core.foreground.step_aside`). A pool is claimed before it pauses: a query
+    that needs it meanwhile waits for this maker, which then goes on, rather than building
+    its own (without the stored index: seconds on a large map)."""
     read = []
+    checks = cancelled
+    if step_aside:
+        checks = yielding(cancelled if cancelled is not None else lambda: False)
     finders = pool_finders(relocalizer)
     for finder in finders[:1] if first else finders:
         if cancelled is not None and cancelled():
@@ -86,7 +94,7 @@ def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | N
             continue
         start = time.perf_counter()
         try:
-            if _make(finder, state, directory, cancelled):
+            if _make(finder, state, directory, checks):
                 read.append(finder.conf.kind)
         except Cancelled:
             log.debug("%s pool of %d keyframes: cancelled after %.2f s", finder.conf.kind,
