@@ -23,7 +23,6 @@ start. The bytecode stays: delete the ``__pycache__`` folders to measure that ag
 from __future__ import annotations
 
 import argparse
-import compileall
 import datetime as dt
 import os
 import re
@@ -33,12 +32,10 @@ import time
 from pathlib import Path
 
 import cv2
-import reloc_client
 
-import reloc_service
 from reloc_service.service.config import LimitsConf
 from reloc_service.tools.bench.fleet import FleetConf
-from reloc_service.tools.bench.fleet_service import first_answer, serve
+from reloc_service.tools.bench.fleet_service import compile_bytecode, first_answer, serve
 from reloc_service.tools.bench.stored_map import StoredMap, copies
 
 _STAMP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ")
@@ -99,9 +96,7 @@ def main() -> None:
                         help="compile the packages to bytecode first (see the docstring)")
     args = parser.parse_args()
     if args.compiled:
-        for package in (reloc_service, reloc_client):
-            for folder in package.__path__:
-                compileall.compile_dir(folder, quiet=1)
+        compile_bytecode()
     image = cv2.imread(str(args.query), cv2.IMREAD_GRAYSCALE)
     if image is None:
         raise SystemExit(f"{args.query}: expected an image file")

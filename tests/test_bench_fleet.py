@@ -5,10 +5,12 @@ resident memory is read from its process tree; the flags choose the sizes and ba
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -158,6 +160,10 @@ def test_a_small_fleet_answers_every_query_within_its_budget(synthetic_scene, tm
     assert result["template"]["keyframes"] == 12
     assert result["storage"]["removed"] and not (tmp_path / "fleet" / "storage").exists()
     assert result["baseline"]["answered"] == conf.baseline_queries
+    # the services started from bytecode, as an installed package's do
+    from reloc_service.service import serve as serve_module
+    assert result["bytecode"]["compiled"]
+    assert Path(importlib.util.cache_from_source(serve_module.__file__)).is_file()
     text = render_markdown({"suite": "fleet", "created_utc": "now", "machine": {},
                             "fleet": result})
     assert "## Many maps, bounded memory (fleet)" in text and "| cold queries" in text

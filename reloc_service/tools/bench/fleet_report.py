@@ -47,7 +47,7 @@ def table_lines(section: Mapping[str, Any]) -> list[str]:
         ("`max_resident_mb`", "0 (always resident)", _f(budget, 0)),
         ("start-up to the first answer", f"{_f(base['startup_to_first_answer_s'], 2)} s",
          f"{_f(fleet['startup_to_first_answer_s'], 2)} s (a cold load included; target "
-         f"<= {STARTUP_TARGET_S:g} s)"),
+         f"<= {STARTUP_TARGET_S:g} s{'; bytecode compiled' if 'bytecode' in section else ''})"),
         ("queries answered / busy replies / lost / errors",
          f"{base['answered']} / {base['busy_replies']} / {base['lost']} / "
          f"{len(base['errors'])}",
