@@ -1,6 +1,7 @@
 """Background work steps aside for the queries being answered (:mod:`reloc_service.core.
-foreground`): a loaded map's later pools wait while a query runs, never while a query waits
-for a pool. Real threads, a real stored map loaded by the engine."""
+foreground`): a loaded map's later pools wait while a query runs and a moment after it,
+never while a query waits for a pool. Real threads, a real stored map loaded by the
+engine."""
 
 from __future__ import annotations
 
@@ -25,7 +26,8 @@ def run_in_thread(target) -> threading.Thread:
     return thread
 
 
-def test_step_aside_returns_at_once_when_no_query_runs() -> None:
+def test_step_aside_returns_at_once_when_no_query_ran_for_the_grace() -> None:
+    time.sleep(foreground.GRACE_S)
     start = time.monotonic()
     foreground.step_aside()
     assert time.monotonic() - start < foreground.POLL_S
@@ -44,8 +46,11 @@ def test_step_aside_waits_until_the_query_ends() -> None:
     stepped = threading.Event()
     aside = run_in_thread(lambda: (foreground.step_aside(), stepped.set()))
     assert not stepped.wait(0.3)   # the query still runs
+    released = time.monotonic()
     release.set()
     assert stepped.wait(10)
+    # and a grace after it, for the next query a client sends on the answer
+    assert time.monotonic() - released >= foreground.GRACE_S * 0.9
     thread.join(10)
     aside.join(10)
 
