@@ -7,14 +7,16 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
 from reloc_service.algorithms.pose.map_pool import being_made, map_pool, pools_of
 from reloc_service.algorithms.relocalizers.factory import DEFAULT_METHOD
-from reloc_service.algorithms.relocalizers.map_pools import pool_finders
+from reloc_service.algorithms.relocalizers.map_pools import pool_finders, restore_pools
 from reloc_service.core import foreground
 from reloc_service.engine import Engine, EngineConf
+from reloc_service.storage.snapshot import current_snapshot, model_dir_name
 from reloc_service.tools.bench.stored_map import engine_from_images, stored_template
 
 METHOD = DEFAULT_METHOD
@@ -77,8 +79,8 @@ def test_step_aside_goes_on_while_a_query_waits_for_background_work() -> None:
 
 def test_a_stopped_background_work_does_not_wait_for_the_queries() -> None:
     stop = threading.Event()
-    with foreground.answering():
-        check = foreground.yielding(stop.is_set)
+    check = foreground.yielding(stop.is_set)
+    with foreground.answering():   # begun after the work: it would wait for it
         timer = threading.Timer(0.2, stop.set)
         timer.start()
         start = time.monotonic()
@@ -102,8 +104,83 @@ def stored(synthetic_scene, tmp_path_factory):
     return made
 
 
-def kinds_made(engine: Engine) -> list[str]:
-    return sorted(kind for kind, _, _ in pools_of(engine.map.snapshot()))
+def loaded(stored) -> tuple[Engine, Path]:
+    """The stored map loaded without its background pools, and its method's model folder."""
+    engine = Engine.load(stored.directory / "map", CONF, pools=False)
+    return engine, current_snapshot(stored.directory / "map") / "models" / model_dir_name(METHOD)
+
+
+class Gate:
+    """A cancel check that holds its first caller until :meth:`open` (never cancels)."""
+
+    def __init__(self) -> None:
+        self.reached, self._open = threading.Event(), threading.Event()
+
+    def __call__(self) -> bool:
+        self.reached.set()
+        self._open.wait(30)
+        return False
+
+    def open(self) -> None:
+        self._open.set()
+
+
+def make_pools(engine: Engine, models: Path, gate: Gate, out: list) -> threading.Thread:
+    state = engine.map.snapshot()
+    return run_in_thread(lambda: out.append(restore_pools(
+        engine.relocalizer(METHOD), state, models, gate, step_aside=True)))
+
+
+def test_pools_step_aside_for_a_query_begun_after_them_and_a_grace(stored) -> None:
+    engine, models = loaded(stored)
+    gate, read = Gate(), []
+    maker = make_pools(engine, models, gate, read)
+    assert gate.reached.wait(30)
+    with foreground.answering():   # begun after the pools' work
+        gate.open()
+        maker.join(0.5)
+        assert maker.is_alive() and not pools_of(engine.map.snapshot())
+        ended = time.monotonic()
+    maker.join(30)
+    assert read and time.monotonic() - ended >= foreground.GRACE_S * 0.9
+    assert sorted(kind for kind, _, _ in pools_of(engine.map.snapshot())) == sorted(
+        {f.conf.kind for f in pool_finders(engine.relocalizer(METHOD))})
+    engine.close()
+
+
+def test_pools_go_on_beside_a_query_begun_before_them(stored) -> None:
+    engine, models = loaded(stored)
+    with foreground.answering():   # the cold query whose map is being loaded
+        gate, read = Gate(), []
+        gate.open()
+        maker = make_pools(engine, models, gate, read)
+        maker.join(30)
+        assert not maker.is_alive() and read
+    engine.close()
+
+
+def test_a_query_that_needs_a_pool_waits_for_its_maker_which_goes_on(stored) -> None:
+    engine, models = loaded(stored)
+    state = engine.map.snapshot()
+    first = pool_finders(engine.relocalizer(METHOD))[0]
+    kind, conf = first.conf.kind, first.conf.repetition_index()
+    gate, read = Gate(), []
+    maker = make_pools(engine, models, gate, read)
+    assert gate.reached.wait(30)
+    with foreground.answering():   # another query, begun after the pools' work
+        gate.open()
+        # the maker claims the pool, then waits for the query this thread answers
+        assert wait_for(lambda: being_made(state, kind, conf))
+        maker.join(0.3)
+        assert maker.is_alive()
+        got = []
+        waiter = run_in_thread(lambda: got.append(map_pool(state, kind, conf)))
+        waiter.join(30)
+        assert got, "the pool a query needs was not made while another query ran"
+    maker.join(30)
+    # made by the maker, from the index stored with the map, not built by the query
+    assert read and kind in read[0]
+    engine.close()
 
 
 def wait_for(condition, timeout_s: float = 30.0) -> bool:
@@ -111,33 +188,3 @@ def wait_for(condition, timeout_s: float = 30.0) -> bool:
     while not condition() and time.monotonic() < deadline:
         time.sleep(0.01)
     return condition()
-
-
-def test_a_loaded_maps_later_pools_wait_for_the_query_being_answered(stored) -> None:
-    with foreground.answering():
-        engine = Engine.load(stored.directory / "map", CONF)
-        finders = pool_finders(engine.relocalizer(METHOD))
-        assert wait_for(lambda: kinds_made(engine) == [finders[0].conf.kind])  # made at once
-        assert not engine.prepared.wait(0.5)                                   # the others wait
-    assert engine.prepared.wait(30)
-    assert kinds_made(engine) == sorted({f.conf.kind for f in finders})
-    engine.close()
-
-
-def test_a_query_that_needs_a_later_pool_waits_for_its_maker_which_goes_on(stored) -> None:
-    with foreground.answering():
-        engine = Engine.load(stored.directory / "map", CONF)
-        state = engine.map.snapshot()
-        later = pool_finders(engine.relocalizer(METHOD))[1]
-        kind, conf = later.conf.kind, later.conf.repetition_index()
-        # the maker claims the pool, then waits for the query this thread answers
-        assert wait_for(lambda: being_made(state, kind, conf))
-        assert not engine.prepared.wait(0.3)
-        got = []
-        thread = run_in_thread(lambda: got.append(map_pool(state, kind, conf)))
-        thread.join(30)
-        assert got, "the pool a query needs was not made while another query ran"
-    assert engine.prepared.wait(30)
-    # made by the maker, from the index stored with the map, not built by the query
-    assert kind in engine.pools_read
-    engine.close()

@@ -10,15 +10,18 @@ from the start (40 picks, 30 ms more CPU in the service per query); sent once th
 pools were made, 0.90x.
 
 So background work checks :func:`step_aside` between its units (through a cancel check made
-by :func:`yielding`): it waits while any query is being answered, and for :data:`GRACE_S`
-after the last one ended, unless some query is waiting for background work itself (a pool
-being made that its next step reads). Then the background work is what the queries need,
-and it goes on at once: a query never waits for work that waits for queries.
+by :func:`yielding`): it waits while a query that began after the work did is being
+answered, and for :data:`GRACE_S` after the last query ended, unless some query is waiting
+for background work itself (a pool being made that its next step reads). Then the
+background work is what the queries need, and it goes on at once: a query never waits for
+work that waits for queries. The queries that began before it (the cold query whose map is
+being loaded) do not hold it: it went on beside their first steps before, and their later
+steps may need it (stepping aside for them too, a cold query answered by SIFT waited about
+0.1 s longer for the SIFT pool its first steps used to leave made).
 """
 
-from __future__ import annotations
-
 import contextlib
+import itertools
 import math
 import threading
 import time
@@ -35,7 +38,9 @@ POLL_S = 0.05
 GRACE_S = 0.1
 
 _changed = threading.Condition()
-_answering = 0
+#: Start times (monotonic seconds) of the queries being answered, by a token of each.
+_started: dict[int, float] = {}
+_tokens = itertools.count()
 _waiting = 0
 _last_end = -math.inf
 
@@ -44,16 +49,16 @@ _last_end = -math.inf
 def answering() -> Iterator[None]:
     """Count the calling thread as answering a query while the block runs (blocks may
     nest: a service's request around the engine's query)."""
-    global _answering, _last_end
+    global _last_end
+    token = next(_tokens)
     with _changed:
-        _answering += 1
+        _started[token] = time.monotonic()
     try:
         yield
     finally:
         with _changed:
-            _answering -= 1
-            if _answering == 0:
-                _last_end = time.monotonic()
+            del _started[token]
+            _last_end = time.monotonic()
 
 
 @contextlib.contextmanager
@@ -71,37 +76,43 @@ def waiting_for_background() -> Iterator[None]:
             _waiting -= 1
 
 
-def queries_running() -> bool:
-    """Whether some query is being answered and none waits for background work."""
-    return _answering > 0 and _waiting == 0
+def queries_running(since: float = -math.inf) -> bool:
+    """Whether some query that began at ``since`` or later (monotonic seconds) is being
+    answered and no query waits for background work."""
+    with _changed:
+        return _waiting == 0 and any(t >= since for t in _started.values())
 
 
-def _wait_needed() -> float:
-    """Under the lock: how long background work should still wait (0: go on)."""
+def _wait_needed(since: float) -> float:
+    """Under the lock: how long background work begun at ``since`` should still wait (0: go
+    on)."""
     if _waiting > 0:
         return 0.0
-    if _answering > 0:
+    if any(t >= since for t in _started.values()):
         return POLL_S
     return max(0.0, min(POLL_S, _last_end + GRACE_S - time.monotonic()))
 
 
-def step_aside(stop: Callable[[], bool] | None = None) -> None:
-    """Wait while :func:`queries_running` and :data:`GRACE_S` after the last query ended,
-    or until ``stop()`` is true (checked at least every :data:`POLL_S`)."""
-    with _changed:
-        while not (stop is not None and stop()):
-            wait = _wait_needed()
+def step_aside(stop: Callable[[], bool] | None = None, since: float = -math.inf) -> None:
+    """Wait while :func:`queries_running` (queries begun at ``since`` or later) and
+    :data:`GRACE_S` after the last query ended, or until ``stop()`` is true (checked at
+    least every :data:`POLL_S`)."""
+    while not (stop is not None and stop()):   # outside the lock: the caller's code
+        with _changed:
+            wait = _wait_needed(since)
             if wait <= 0.0:
                 return
             _changed.wait(wait)
 
 
 def yielding(stop: Callable[[], bool]) -> Callable[[], bool]:
-    """A cancel check for background work (called between its units): it first steps
-    aside for the queries running (:func:`step_aside`), then says whether ``stop()``."""
+    """A cancel check for background work begun now (called between its units): it first
+    steps aside for the queries begun since (:func:`step_aside`), then says whether
+    ``stop()``."""
+    since = time.monotonic()
 
     def check() -> bool:
-        step_aside(stop)
+        step_aside(stop, since)
         return stop()
 
     return check
