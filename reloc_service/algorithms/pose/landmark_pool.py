@@ -112,22 +112,25 @@ class LandmarkPool:
               keyframe_rows: npt.NDArray[np.int64],
               cancelled: Callable[[], bool] | None) -> LandmarkPool:
         """The pool of one row per ``keyframe_rows`` entry, read in turn from ``reads``:
-        (snapshot columns, their rows) or (built Features, their rows)."""
+        (snapshot columns, their rows) or (built Features, their rows), at most
+        :data:`READ_CHUNK_ROWS` rows between two cancel checks."""
         total = len(keyframe_rows)
         pool = None
         at = 0
-        for source, wanted in reads:
-            stop_if(cancelled)
-            f = (source.take(wanted) if isinstance(source, Features)
-                 else source.features_at(kind, wanted))
-            if pool is None:
-                pool = cls(np.empty((total, f.descriptors.shape[1]), f.descriptors.dtype),
-                           np.empty(total, np.int64), np.empty((total, 3)), keyframe_rows)
-            part = slice(at, at + len(f))
-            pool.descriptors[part] = f.descriptors
-            pool.landmark_ids[part] = f.landmark_ids
-            pool.points_world[part] = f.points_world
-            at += len(f)
+        for source, all_wanted in reads:
+            for begin in range(0, len(all_wanted), READ_CHUNK_ROWS):
+                stop_if(cancelled)
+                wanted = all_wanted[begin:begin + READ_CHUNK_ROWS]
+                f = (source.take(wanted) if isinstance(source, Features)
+                     else source.features_at(kind, wanted))
+                if pool is None:
+                    pool = cls(np.empty((total, f.descriptors.shape[1]), f.descriptors.dtype),
+                               np.empty(total, np.int64), np.empty((total, 3)), keyframe_rows)
+                part = slice(at, at + len(f))
+                pool.descriptors[part] = f.descriptors
+                pool.landmark_ids[part] = f.landmark_ids
+                pool.points_world[part] = f.points_world
+                at += len(f)
         if pool is None or at != total:
             raise RuntimeError(f"expected {total} pool rows, read {at}")
         return pool
@@ -213,6 +216,12 @@ def peek_features(kf: Keyframe, kind: str) -> Features | None:
 #: most of the per-call work shared, the decoded rows of a few dozen keyframes held at a time
 #: (a few MB), and a cancellation seen within one such read.
 STORED_RUN = 64
+
+#: Rows decoded between two cancel checks of :meth:`LandmarkPool._read`: a run of 64 stored
+#: keyframes holds about 30000 SIFT rows of the fleet template, 25 ms of decoding that a
+#: query arriving meanwhile shared the CPU with (the pools step aside only between units:
+#: :mod:`...core.foreground`); a chunk of this size is a few milliseconds.
+READ_CHUNK_ROWS = 4096
 
 
 def _stored_runs(keyframes: list[Keyframe], kind: str
