@@ -20,6 +20,8 @@ steps may need it (stepping aside for them too, a cold query answered by SIFT wa
 0.1 s longer for the SIFT pool its first steps used to leave made).
 """
 
+from __future__ import annotations
+
 import contextlib
 import itertools
 import math

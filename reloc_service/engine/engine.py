@@ -438,8 +438,8 @@ class Engine:
         which its first step reads (any query waits for it), is made at the queries'
         priority, the others below it: made below it too, it delayed a cold load's first
         answer while the warm-up or other maps' queries ran. The others also step aside
-        while queries are answered (:mod:`..core.foreground`): made beside them, they
-        slowed the queries just after a cold load."""
+        while queries begun after them are answered (:mod:`..core.foreground`): made
+        beside them, they slowed the queries just after a cold load."""
         with self._rw.read():
             work = [(live.relocalizer, None if models_dir is None
                      else models_dir / model_dir_name(m)) for m, live in self._live.items()]

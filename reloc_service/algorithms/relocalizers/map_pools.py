@@ -77,7 +77,7 @@ def restore_pools(relocalizer: Relocalizer, state: MapState, directory: Path | N
     was closed: a pool made for it would only hold its memory longer), in the middle of a
     pool too (between its keyframes and its index's chunks: what was made of it is
     dropped, never kept for a query). ``step_aside``: between a pool's keyframes and chunks
-    (never between two pools) wait while queries are answered
+    (never between two pools) wait while queries begun after this call are answered
     (:func:`...core.foreground.step_aside`). A pool is claimed before it pauses: a query
     that needs it meanwhile waits for this maker, which then goes on, rather than building
     its own (without the stored index: seconds on a large map)."""
