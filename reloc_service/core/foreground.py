@@ -82,7 +82,12 @@ def queries_running(since: float = -math.inf) -> bool:
     """Whether some query that began at ``since`` or later (monotonic seconds) is being
     answered and no query waits for background work."""
     with _changed:
-        return _waiting == 0 and any(t >= since for t in _started.values())
+        return _waiting == 0 and _begun_since(since)
+
+
+def _begun_since(since: float) -> bool:
+    """Under the lock: whether a query being answered began at ``since`` or later."""
+    return any(t >= since for t in _started.values())
 
 
 def _wait_needed(since: float) -> float:
@@ -90,7 +95,7 @@ def _wait_needed(since: float) -> float:
     on)."""
     if _waiting > 0:
         return 0.0
-    if any(t >= since for t in _started.values()):
+    if _begun_since(since):
         return POLL_S
     return max(0.0, min(POLL_S, _last_end + GRACE_S - time.monotonic()))
 
