@@ -146,7 +146,7 @@ class LandmarkTable(Mapping[int, Landmark]):
     ``Landmark`` objects are made on access; the hot paths use the vectorised
     :meth:`points`, :meth:`sigmas`, :meth:`contains` and :meth:`id_array` instead."""
 
-    __slots__ = ("_base", "_overlay", "_len", "_overlay_cols")
+    __slots__ = ("_base", "_overlay", "_len", "_overlay_cols", "_overlay_obs")
 
     def __init__(self, base: LandmarkColumns | None = None,
                  overlay: Mapping[int, Landmark | None] | None = None, *,
@@ -160,6 +160,7 @@ class LandmarkTable(Mapping[int, Landmark]):
         self._len = length
         self._overlay_cols: tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_], Array,
                                   Array] | None = None
+        self._overlay_obs: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None
 
     @classmethod
     def from_mapping(cls, landmarks: Mapping[int, Landmark]) -> LandmarkTable:
@@ -238,11 +239,13 @@ class LandmarkTable(Mapping[int, Landmark]):
         starts, counts = base.obs_offsets[rows], np.diff(base.obs_offsets)[rows]
         run = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
         pairs = [np.column_stack([np.repeat(rows, counts), base.obs_keyframe[run]])]
-        for lm_id in ids[hit].tolist():  # the overlay's landmarks only
-            lm = self._overlay[lm_id]
-            if lm is not None:
-                kfs = sorted({o[0] for o in lm.observations})
-                pairs.append(np.column_stack([np.full(len(kfs), -1 - lm_id), kfs]))
+        if len(hit):  # the overlay's landmarks, keyed apart from the base's rows
+            pair_ids, pair_kfs = self._overlay_observations()
+            wanted = ids[hit]
+            lo = np.searchsorted(pair_ids, wanted, "left")
+            n = np.searchsorted(pair_ids, wanted, "right") - lo
+            at = np.repeat(lo - np.cumsum(n) + n, n) + np.arange(n.sum())
+            pairs.append(np.column_stack([-1 - pair_ids[at], pair_kfs[at]]))
         both = np.concatenate(pairs).astype(np.int64)
         # Distinct (landmark, keyframe) pairs through one int64 key per pair: np.unique with
         # axis=0 sorts the rows as records, several times slower on a pose's inliers.
@@ -260,6 +263,15 @@ class LandmarkTable(Mapping[int, Landmark]):
         if cols is None:
             cols = self._overlay_cols = _overlay_columns(self._overlay)
         return cols
+
+    def _overlay_observations(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+        """The overlay's live landmarks' (landmark id, keyframe id) pairs, one per distinct
+        pair, as two (P,) columns sorted by landmark id (made once per table, as
+        :meth:`_overlay_arrays`)."""
+        pairs = self._overlay_obs
+        if pairs is None:
+            pairs = self._overlay_obs = _overlay_observation_pairs(self._overlay)
+        return pairs
 
     def _overlay_rows(self, ids: npt.NDArray[np.int64]
                       ) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
@@ -315,6 +327,14 @@ class LandmarkTable(Mapping[int, Landmark]):
         order = np.argsort(merged[0], kind="stable")
         table._overlay_cols = (merged[0][order], merged[1][order], merged[2][order],
                                merged[3][order])
+        if self._overlay_obs is not None:  # likewise the observation pairs, once made
+            (old_ids, old_kfs), (new_ids, new_kfs) = (self._overlay_obs,
+                                                      _overlay_observation_pairs(changes))
+            kept = ~np.isin(old_ids, ids)
+            pair_ids = np.concatenate([old_ids[kept], new_ids])
+            order = np.argsort(pair_ids, kind="stable")
+            table._overlay_obs = (pair_ids[order],
+                                  np.concatenate([old_kfs[kept], new_kfs])[order])
         return table
 
     def columns(self) -> LandmarkColumns:
@@ -342,6 +362,19 @@ def _overlay_columns(overlay: Mapping[int, Landmark | None]
     sigmas = np.array([lm.depth_sigma_m if lm is not None else np.nan for lm in lms],
                       np.float64)
     return ids[order], alive, points, sigmas
+
+
+def _overlay_observation_pairs(overlay: Mapping[int, Landmark | None]
+                               ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """(P,) landmark ids ascending and (P,) keyframe ids: one row per distinct keyframe
+    observing each live landmark of an overlay."""
+    per = [(lm_id, {o[0] for o in lm.observations}) for lm_id, lm in overlay.items()
+           if lm is not None]
+    lengths = np.fromiter((len(kfs) for _, kfs in per), np.int64, len(per))
+    lm_ids = np.repeat(np.fromiter((i for i, _ in per), np.int64, len(per)), lengths)
+    kf_ids = np.fromiter((kf for _, kfs in per for kf in kfs), np.int64, int(lengths.sum()))
+    order = np.argsort(lm_ids, kind="stable")
+    return lm_ids[order], kf_ids[order]
 
 
 class LandmarkEditor:
