@@ -170,3 +170,25 @@ def test_orb_keypoints_are_level_pixels_times_the_level_scale(synthetic_scene):
     i = int(np.flatnonzero(feats.levels == 5)[0])
     moved[i, 0] = np.nextafter(moved[i, 0], np.float32(1e9))
     assert level_pixels(moved, feats.levels, ORB_SCALE_FACTOR) is None
+
+
+def test_sift_two_nearest_take_the_product_of_minus_two_a_to_the_bit(image):
+    """The squared-L2 two nearest scale the query rows by -2 before the product, not the
+    (N, M) product after it: the same distances and indices to the bit as the product scaled
+    afterwards, on real SIFT descriptors, in one chunk and across several."""
+    from reloc_service.core.features import _knn2_squared
+
+    a = extract(image, FeatureConf("sift", 300)).descriptors.astype(np.float32)
+    b = extract(cv2.flip(image, 1), FeatureConf("sift", 500)).descriptors.astype(np.float32)
+    b = np.concatenate([b, a[::3]])   # some exact twins: distance 0 and ties broken by index
+    g = (a @ b.T) * np.float32(-2.0) + (b * b).sum(1)
+    i1 = g.argmin(1)
+    rows = np.arange(len(a))
+    d1 = g[rows, i1].copy()
+    g[rows, i1] = np.inf
+    i2 = g.argmin(1)
+    expected_d = np.maximum(np.stack([d1, g[rows, i2]], 1) + (a * a).sum(1)[:, None], 0.0)
+    for chunk in (1 << 22, 7 * len(b)):
+        d, idx = _knn2_squared(a, b, chunk_elems=chunk)
+        assert np.array_equal(idx, np.stack([i1, i2], 1)) and np.array_equal(d, expected_d)
+    assert np.all(d[::3][:len(a[::3]), 0] == 0.0)

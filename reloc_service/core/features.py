@@ -297,14 +297,16 @@ def _knn2_squared(a: npt.NDArray[np.float32], b: npt.NDArray[np.float32], *,
                   chunk_elems: int = 1 << 22
                   ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.int64]]:
     """Two nearest neighbours by squared L2: one BLAS product (|a|^2 + |b|^2 - 2 a.b), then two
-    argmin passes (cheaper than argpartition); query rows in chunks to bound memory."""
+    argmin passes (cheaper than argpartition); query rows in chunks to bound memory. The
+    product is taken of ``-2 a``: a power of two scales every partial sum exactly, so the
+    result is the product's times -2 to the bit, without a pass over the (N, M) result."""
     bb = (b * b).sum(1)
     out_d = np.empty((len(a), 2), np.float32)
     out_i = np.empty((len(a), 2), np.int64)
     step = max(1, chunk_elems // len(b))
+    scaled = a * np.float32(-2.0)
     for s in range(0, len(a), step):
-        g = a[s:s + step] @ b.T
-        g *= -2.0
+        g = scaled[s:s + step] @ b.T
         g += bb
         rows = np.arange(len(g))
         i1 = g.argmin(1)
