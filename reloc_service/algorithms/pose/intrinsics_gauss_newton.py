@@ -1,8 +1,9 @@
 """The intrinsics test's joint Gauss-Newton on the pose and ``theta`` (:mod:`.intrinsics`),
 run from every start at once: each round takes the steps of every start still running in
 one batched solve and exponential, projects their trials in one pass, and builds the normal
-equations of the trials taken from one pass of pose Jacobians, instead of a few dozen small
-numpy calls per start and step; each start's equations are kept, not rebuilt at the end.
+equations of the trials taken from one pass of pose Jacobians and the projections and
+residuals their gating computed, instead of a few dozen small numpy calls per start and step;
+each start's equations are kept, not rebuilt at the end.
 
 Each start follows the serial algorithm exactly (the same steps, halvings and stopping
 rule); the batched sums round differently from per-start ones, so estimates agree with a
@@ -104,12 +105,12 @@ def joint_estimates(world_from_cams: Array, thetas: Array, given_rows: npt.NDArr
     ``given_rows`` (at least :data:`MIN_ROWS`), the others on the correspondences they gate;
     those gating fewer than :data:`MIN_ROWS` are dropped. Returns the kept starts' final poses, ``theta`` and
     normal equations, in the starts' order."""
-    masks, costs = _gate(world_from_cams, thetas, problem)
+    masks, costs, trial = _gate(world_from_cams, thetas, problem)
     masks[0] = False
     masks[0, given_rows] = True
     kept = np.flatnonzero(masks.sum(axis=1) >= MIN_ROWS)
     poses, thetas, masks, costs = world_from_cams[kept], thetas[kept], masks[kept], costs[kept]
-    equations = _normal_equations(poses, thetas, masks, costs, problem)
+    equations = _normal_equations(thetas, masks, costs, problem, trial.take(kept))
     k = len(kept)
     state = _State(poses.copy(), thetas.copy(), costs,
                    np.stack([eq.normal for eq in equations]),
@@ -129,7 +130,7 @@ def _round(state: _State, running: npt.NDArray[np.int64], problem: Problem,
     steps = state.steps[running]
     poses = state.poses[running] @ se3_exp_many(steps[:, :6])
     thetas = state.thetas[running] + steps[:, 6:]
-    masks, costs = _gate(poses, thetas, problem)
+    masks, costs, trial = _gate(poses, thetas, problem)
     better = (costs < state.costs[running]) & (masks.sum(axis=1) >= MIN_ROWS)
     refused = running[~better]
     state.steps[refused] /= 2.0
@@ -137,8 +138,8 @@ def _round(state: _State, running: npt.NDArray[np.int64], problem: Problem,
     taken = running[better]
     state.poses[taken], state.thetas[taken] = poses[better], thetas[better]
     state.costs[taken] = costs[better]
-    equations = _normal_equations(poses[better], thetas[better], masks[better], costs[better],
-                                  problem)
+    equations = _normal_equations(thetas[better], masks[better], costs[better], problem,
+                                  trial.take(np.flatnonzero(better)))
     for k, eq in zip(taken, equations, strict=True):
         state.equations[k], state.normal[k], state.rhs[k] = eq, eq.normal, eq.rhs
     state.taken[taken] += 1
@@ -167,32 +168,51 @@ def _new_steps(state: _State, starts: npt.NDArray[np.int64]) -> npt.NDArray[np.i
     return starts[np.isfinite(steps).all(axis=1)]
 
 
-def _gate(world_from_cams: Array, thetas: Array, problem: Problem) -> tuple[BoolArray, Array]:
+@dataclass(frozen=True)
+class _Trial:
+    """What gating K estimates computed that their normal equations need again: (K, N, 2)
+    pixels, (K, N, 3) camera-frame points and (K, N, 2) residuals under each ``theta``."""
+
+    projected: Array
+    points_cam: Array
+    residuals: Array
+
+    def take(self, which: npt.NDArray[np.int64]) -> _Trial:
+        """The trial of the estimates ``which`` alone."""
+        return _Trial(self.projected[which], self.points_cam[which], self.residuals[which])
+
+
+def _gate(world_from_cams: Array, thetas: Array, problem: Problem
+          ) -> tuple[BoolArray, Array, _Trial]:
     """(K, N) correspondences within the threshold of their modelled pixels at each of K
-    poses and ``theta``, and (K,) the weighted truncated squared errors (MSAC). The
+    poses and ``theta``, (K,) the weighted truncated squared errors (MSAC), and the
+    projections and residuals, which the normal equations of the estimates taken reuse (a
+    row's values are its own: the same numbers for any subset of rows or estimates). The
     projections are one batched pass; the model runs per estimate (one compiled pass each
     where numba is installed: faster than numpy's temporaries over K x N rows)."""
-    projected, _ = problem.project.pixels_many(world_from_cams)
-    squared = np.empty(projected.shape[:2])
-    for k, theta in enumerate(thetas):
-        squared[k] = problem.model.residuals(projected[k], problem.px, theta)[1]
-    limit = problem.threshold_px**2
-    return squared < limit, (problem.weights * np.minimum(squared, limit)).sum(axis=1)
-
-
-def _normal_equations(world_from_cams: Array, thetas: Array, masks: BoolArray, costs: Array,
-                      problem: Problem) -> list[Equations]:
-    """The :class:`Equations` of K estimates (poses, ``theta``, (K, N) gated rows and (K,)
-    costs): the projections and the pose Jacobians of all gated rows in one pass each, the
-    model and the products per estimate."""
     projected, points_cam = problem.project.pixels_many(world_from_cams)
+    squared = np.empty(projected.shape[:2])
+    residuals = np.empty(projected.shape)
+    for k, theta in enumerate(thetas):
+        residuals[k], squared[k] = problem.model.residuals(projected[k], problem.px, theta)
+    limit = problem.threshold_px**2
+    return (squared < limit, (problem.weights * np.minimum(squared, limit)).sum(axis=1),
+            _Trial(projected, points_cam, residuals))
+
+
+def _normal_equations(thetas: Array, masks: BoolArray, costs: Array, problem: Problem,
+                      trial: _Trial) -> list[Equations]:
+    """The :class:`Equations` of K estimates (``theta``, (K, N) gated rows, (K,) costs and
+    the ``trial`` their poses' gating made): the pose Jacobians of all gated rows in one pass,
+    the model and the products per estimate."""
+    projected, points_cam = trial.projected, trial.points_cam
     which, rows = np.nonzero(masks)  # grouped by estimate
     jac = problem.project.jacobian(points_cam[which, rows])
     bounds = np.concatenate([[0], np.cumsum(masks.sum(axis=1))])
     out = []
     for k, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
         mine = rows[lo:hi]
-        residuals = problem.model.residuals(projected[k, mine], problem.px[mine], thetas[k])[0]
+        residuals = trial.residuals[k, mine]
         full = problem.model.jacobian_of(projected[k, mine], jac[lo:hi],
                                          np.arange(hi - lo), thetas[k])  # (M, 2, 8)
         weights = problem.weights[mine]
