@@ -28,6 +28,7 @@ from .base import (
     RelocResult,
     VerifyConf,
     note_map_calibration,
+    plausible_first_pose,
     refuses_the_query,
     register,
     result_from_estimate,
@@ -366,10 +367,14 @@ class MultiRelocalizer(SolutionWeighing, Relocalizer):
                         hypotheses: int) -> Callable[[PoseEstimate], bool] | None:
         """With ``conf.duplicates_early`` and a group verified, the test
         :meth:`_duplicates_a_solution` applies to a group's pose, for the pose finder to stop
-        at the first pose it passes; None otherwise."""
+        at the first pose it passes; None otherwise. Only a pose that is itself a first
+        consensus chance would not produce (:func:`.base.plausible_first_pose`) can pass: a
+        pose of a few inliers agrees with a verified one by chance as easily as not, and the
+        group's full pose may then lie elsewhere."""
         if not self.conf.duplicates_early or not any(e is not None for e in estimates):
             return None
-        return lambda est: self._duplicates_a_solution(query, est, estimates, hypotheses)
+        return lambda est: (plausible_first_pose(est, self.verify_conf)
+                            and self._duplicates_a_solution(query, est, estimates, hypotheses))
 
     def defer_unchecked_intrinsics(self) -> None:
         self.verify_conf = dataclasses.replace(self.verify_conf,
