@@ -5,7 +5,7 @@ alike: PnP solves per query, wall time, and whether every answer is the same (st
 reason, inliers, matches, pose, covariance and keyframes, bit for bit). Also the share of
 the step's time spent on candidate groups heard after one verified (the uniqueness check's
 cost) and how many of those the check then set aside as the same solution. With
-``--early``, this branch's default against ``multi.duplicates_early`` on (off by default).
+``--early``, ``multi.duplicates_early`` on (the default) against off.
 
     .venv/bin/python scripts/solve_count_ab.py ../shared/data/real/7scenes_redkitchen \\
         --keyframe-sigma 0.015,0.45 --step 0 --repeats 2
@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--step", type=int, default=0, help="chain step index; -1: the chain")
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--early", action="store_true",
-                        help="compare multi.duplicates_early on against this branch's default")
+                        help="compare multi.duplicates_early on against off")
     args = parser.parse_args(argv)
     sigma = tuple(float(v) for v in args.keyframe_sigma.split(","))
     dataset = read_dataset(args.dataset)
@@ -156,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
         backend.close()
     label = "chain" if args.step < 0 else step.method
     print(f"{args.dataset.name} {label}: {total} queries x repeats, same answer {same}")
-    names = ("this branch", "duplicates_early") if args.early else ("main (always solved)", "skip")
+    names = (("duplicates_early off", "duplicates_early on") if args.early
+             else ("main (always solved)", "skip"))
     for on, name in zip((False, True), names, strict=True):
         print(f"  {name}: solves per query mean {np.mean(solves[on]):.2f} "
               f"(total {sum(solves[on])}), p50 {np.median(ms[on]):.1f} ms, "

@@ -368,8 +368,8 @@ class CountsSettles(PoseFinder):
     def find_pose(self, query, candidates, state):
         return self.inner.find_pose(query, candidates, state)
 
-    def find_pose_deferred(self, query, candidates, state):
-        est = self.inner.find_pose_deferred(query, candidates, state)
+    def find_pose_deferred(self, query, candidates, state, *, known=None):
+        est = self.inner.find_pose_deferred(query, candidates, state, known=known)
         if est is not None and est.deferred_settling is not None:
             pending = est.deferred_settling
 

@@ -122,12 +122,15 @@ class MultiRelocalizer(SolutionWeighing, Relocalizer):
         skip_duplicate_settle: bool = True
         #: With ``skip_duplicate_settle``, set a candidate group heard after one verified
         #: aside at its first pose that agrees with the first pose of a verified solution
-        #: (its first pool's, or its group's before guided matching), without matching the
-        #: whole group or growing that pose: on 7scenes_redkitchen most groups heard for the
-        #: uniqueness check end so. Not answer-identical in principle: the full pose is not
-        #: computed, and could have moved beyond the agreement thresholds. Off: every
-        #: group's pose is found in full, then compared.
-        duplicates_early: bool = False
+        #: (its first pool's, or its group's before guided matching) and is itself a first
+        #: consensus chance would not produce, without matching the whole group or growing
+        #: that pose: on 7scenes_redkitchen most groups heard for the uniqueness check end
+        #: so (their share of the ORB step's time halves). Not answer-identical in
+        #: principle: the full pose is not computed, and can move a few centimetres across
+        #: the agreement thresholds (2 of 92 such groups on a fresh room-hard render, no
+        #: answer changed in 1253 queries; docs/step_census.md). Off: every group's pose is
+        #: found in full, then compared.
+        duplicates_early: bool = True
         #: With ``unique``, weigh the repetition alternatives whose intrinsics test refused
         #: the query's camera as rivals of the answer: the answer stands only where it
         #: explains significantly more of the query than each (:func:`.uniqueness.compare`
