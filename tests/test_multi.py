@@ -439,10 +439,10 @@ def test_alternatives_agreeing_with_a_verified_pose_are_not_settled(scene):
     assert np.array_equal(skipped.covariance, full.covariance)
 
 
-def test_duplicates_early_stops_a_later_group_at_its_first_agreeing_pose(scene, monkeypatch):
-    # One keyframe per group, each giving the query's pose; grown below 100 000 inliers (so
-    # always): with duplicates_early the second and third groups end at their pose before
-    # growth, which agrees with the first's, and the answer is the first group's as before.
+def _early_runs(scene, monkeypatch):
+    """{duplicates_early: (result, PnP solves)} of the query at pose 1, one keyframe per group
+    (three groups), each group's pose grown below 100 000 inliers (so always); each run must
+    find the query's pose."""
     import reloc_service.algorithms.pose.p3p as p3p
 
     solves: list[int] = []
@@ -461,6 +461,14 @@ def test_duplicates_early_stops_a_later_group_at_its_first_agreeing_pose(scene, 
             Frame(scene.render(query_at), CAMERA))
         assert result.ok and pose_error(result.world_from_cam, query_at)[0] < 0.02
         runs[early] = (result, len(solves))
+    return runs
+
+
+def test_duplicates_early_stops_a_later_group_at_its_first_agreeing_pose(scene, monkeypatch):
+    # Each group gives the query's pose: with duplicates_early the second and third groups
+    # end at their pose before growth, which agrees with the first's, and the answer is the
+    # first group's as before.
+    runs = _early_runs(scene, monkeypatch)
     (full, n_full), (early, n_early) = runs[False], runs[True]
     assert n_early == n_full - 2  # two later groups not grown
     assert np.array_equal(early.world_from_cam, full.world_from_cam)
@@ -470,26 +478,14 @@ def test_duplicates_early_stops_a_later_group_at_its_first_agreeing_pose(scene, 
 def test_duplicates_early_needs_an_early_pose_that_chance_would_not_produce(scene, monkeypatch):
     # As above, but no early pose passes as a first consensus (plausible_first_pose says
     # no, as it does for a pose of a few inliers): every later group is found in full.
-    import reloc_service.algorithms.pose.p3p as p3p
     import reloc_service.algorithms.relocalizers.multi as multi
 
-    solves: list[int] = []
-    real_solve = p3p.solve_pnp_indexed
-    monkeypatch.setattr(p3p, "solve_pnp_indexed",
-                        lambda px, *a, **k: solves.append(len(px)) or real_solve(px, *a, **k))
     asked: list[int] = []
-    monkeypatch.setattr(multi, "plausible_first_pose",
-                        lambda est, conf: asked.append(int(est.inliers or 0)) is not None)
-    place = create_place_finder({"name": "sbi"}, scene.map)
-    query_at = query_pose(1)
-    counts = {}
-    for early in (False, True):
-        pose = create_pose_finder({"name": "p3p", "guided_below_inliers": 100_000})
-        conf = MultiRelocalizer.Conf(num_candidates=1, max_groups=3, overlap=False,
-                                     duplicates_early=early)
-        solves.clear()
-        result = MultiRelocalizer(scene.map, place, pose, conf=conf).relocalize(
-            Frame(scene.render(query_at), CAMERA))
-        assert result.ok and pose_error(result.world_from_cam, query_at)[0] < 0.02
-        counts[early] = len(solves)
-    assert counts[True] == counts[False] and asked  # asked, refused: nothing skipped
+
+    def refuses(est, conf):
+        asked.append(int(est.inliers or 0))
+        return False
+
+    monkeypatch.setattr(multi, "plausible_first_pose", refuses)
+    runs = _early_runs(scene, monkeypatch)
+    assert runs[True][1] == runs[False][1] and asked  # asked, refused: nothing skipped
