@@ -171,3 +171,12 @@ def test_a_tracked_pose_sharper_than_its_prior_is_answered(synthetic_scene, synt
                   covariance=pose_covariance_from_sigmas(0.05, np.deg2rad(2.0)))
     tracked = create_tracker(kmap).relocalize(_query(synthetic_scene, 0), prior=prior)
     assert tracked.ok and tracked.method == TRACK, tracked.reason
+
+
+def test_an_unknown_answer_covariance_narrows_nothing():
+    """A tracked pose from a singular fit (an infinite covariance) is no better known than
+    its prior in any direction."""
+    prior = pose_covariance_from_sigmas(0.05, np.deg2rad(2.0))
+    unknown = np.full((6, 6), np.inf)
+    assert largest_variance_ratio(unknown, prior) == np.inf
+    assert not narrower_everywhere(unknown, prior)

@@ -181,3 +181,14 @@ def test_one_keyframe_leaves_nothing_to_compare():
     rng = np.random.default_rng(4)
     pose, px, points, clusters, _ = _two_keyframes(0.05, rng)
     assert cluster_robust_covariance(pose, px, points, CAMERA, np.zeros(len(px), int)) is None
+
+
+def test_an_unknown_covariance_stays_unknown_when_widened():
+    """A singular fit states an infinite covariance (every direction unknown); widening it
+    to the keyframes' spread leaves it so instead of failing in the eigen-solver."""
+    rng = np.random.default_rng(5)
+    pose, px, points, clusters, _ = _two_keyframes(0.05, rng)
+    robust = cluster_robust_covariance(pose, px, points, CAMERA, clusters)
+    assert robust is not None
+    unknown = np.full((6, 6), np.inf)
+    assert np.all(np.isinf(at_least(unknown, robust)))

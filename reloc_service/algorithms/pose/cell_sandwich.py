@@ -156,9 +156,11 @@ def widened(covariance: Array, sandwich: Array, cells: int,
             false_alarm: float = FALSE_ALARM) -> Array:
     """(6, 6) ``covariance`` with its whitened eigenvalues replaced by the ``sandwich``'s
     (whitened by ``covariance``) where those exceed :func:`spread_limit` (module docstring);
-    ``covariance`` itself where it is not positive definite or the sandwich is not finite."""
+    ``covariance`` itself where either is not finite or it is not positive definite."""
+    if not (np.all(np.isfinite(covariance)) and np.all(np.isfinite(sandwich))):
+        return covariance
     values, vectors = np.linalg.eigh(covariance)
-    if not np.all(values > 0) or not np.all(np.isfinite(sandwich)):
+    if not np.all(values > 0):
         return covariance
     root = vectors * np.sqrt(values)                                  # covariance = root root^T
     inv_root = np.linalg.inv(root)

@@ -50,9 +50,13 @@ def cluster_robust_covariance(world_from_cam: Array, px: Array, points_world: Ar
 def at_least(covariance: Array, other: Array) -> Array:
     """The smallest covariance (in the Loewner order, along the whitened axes of
     ``covariance``) that is at least ``covariance`` and at least ``other``: ``other``
-    whitened by ``covariance``, its eigenvalues below 1 raised to 1, coloured back."""
+    whitened by ``covariance``, its eigenvalues below 1 raised to 1, coloured back.
+    ``covariance`` itself where either is not finite (a singular fit states an infinite
+    covariance: unknown stays unknown) or ``covariance`` is not positive definite."""
+    if not (np.isfinite(covariance).all() and np.isfinite(other).all()):
+        return covariance
     values, vectors = np.linalg.eigh(covariance)
-    if not np.all(values > 0) or not np.isfinite(other).all():
+    if not np.all(values > 0):
         return covariance
     root = vectors * np.sqrt(values)                                  # covariance = root root^T
     inv_root = np.linalg.inv(root)

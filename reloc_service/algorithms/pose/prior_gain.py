@@ -96,13 +96,16 @@ def narrows_prior(camera: Camera, world_from_cam: Array, points_world: Array,
 def largest_variance_ratio(answer_covariance: Array, prior_covariance: Array) -> float:
     """``max_u (u^T C_answer u) / (u^T C_prior u)`` over pose directions ``u``: the largest
     eigenvalue of ``L^-1 C_answer L^-T`` with ``C_prior = L L^T`` (both (6, 6)); inf where
-    the prior's covariance is singular (a direction it knows exactly)."""
+    the prior's covariance is singular (a direction it knows exactly) or the answer's is not
+    finite (a singular fit: unknown)."""
     try:
         chol = np.linalg.cholesky(np.asarray(prior_covariance, np.float64))
     except np.linalg.LinAlgError:
         return float("inf")
     white = np.linalg.solve(chol, np.linalg.solve(chol, np.asarray(answer_covariance,
                                                                   np.float64)).T)
+    if not np.all(np.isfinite(white)):
+        return float("inf")
     return float(np.linalg.eigvalsh(0.5 * (white + white.T)).max())
 
 
