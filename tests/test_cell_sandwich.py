@@ -81,9 +81,16 @@ def test_widening_never_narrows_and_keeps_the_model_where_the_spread_is_small():
     out = widened(covariance, large, 16)
     assert np.linalg.eigvalsh(out - covariance).min() > -1e-9
     assert float(b[0] @ out @ b[0]) > 10.0 * float(b[0] @ covariance @ b[0])
-    # A singular fit's covariance (infinite: unknown) is left unknown, not taken apart.
+
+
+def test_an_unknown_covariance_is_left_unknown():
+    """A singular fit states an infinite covariance (every direction unknown): widening
+    returns it as it is instead of failing in the eigen-solver."""
+    rng = np.random.default_rng(6)
+    a = rng.normal(size=(6, 6))
+    sandwich = a @ a.T + 6 * np.eye(6)
     unknown = np.full((6, 6), np.inf)
-    assert np.all(np.isinf(widened(unknown, large, 16)))
+    assert np.all(np.isinf(widened(unknown, sandwich, 16)))
 
 
 def test_spread_limit_is_the_largest_eigenvalues_quantile_and_falls_with_more_cells():
