@@ -93,6 +93,34 @@ def test_a_wrong_prior_gives_the_right_pose_or_a_refusal(synthetic_scene, synthe
         assert result.reason.startswith("track: ")
 
 
+
+def test_any_prior_gives_a_right_pose_or_a_refusal_never_an_error(synthetic_scene,
+                                                                   synthetic_map):
+    """Priors off by 1 mm to 10 m and 0.01 to 100 deg that state 0.3 mm to 30 m and 0.001 to
+    100 deg (a VIO that is right, drifted or reset, and says so or not): tracking first, then
+    the method, answer each near the truth or refuse; nothing raises."""
+    kmap = _map_of(synthetic_map)
+    method = create_relocalizer("sbi+p3p", kmap)
+    method.train()
+    tracker = create_tracker(kmap)
+    rng = np.random.default_rng(11)
+    answered = 0
+    for _ in range(24):
+        i = int(rng.integers(len(synthetic_scene.query_poses)))
+        gt = synthetic_scene.query_poses[i]
+        xi = rng.normal(size=6)
+        xi[:3] *= 10 ** rng.uniform(-3, 1) / np.linalg.norm(xi[:3])
+        xi[3:] *= np.deg2rad(10 ** rng.uniform(-2, 2)) / np.linalg.norm(xi[3:])
+        covariance = pose_covariance_from_sigmas(10 ** rng.uniform(-3.5, 1.5),
+                                                 np.deg2rad(10 ** rng.uniform(-3, 2)))
+        result = relocalize_with_prior(method, tracker, _query(synthetic_scene, i),
+                                       prior=Prior(gt @ se3_exp(xi), covariance=covariance))
+        if result.ok:
+            answered += 1
+            dt, dr = pose_error(result.world_from_cam, gt)
+            assert dt < 0.05 and dr < np.deg2rad(5.0), (dt, np.rad2deg(dr), result.method)
+    assert answered > 0
+
 def test_a_huge_covariance_leaves_the_query_to_the_method(synthetic_scene, synthetic_map):
     tracker = create_tracker(_map_of(synthetic_map))
     gt = synthetic_scene.query_poses[2]
