@@ -120,6 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         step = chain if args.step < 0 else chain.steps[args.step]  # type: ignore[attr-defined]
         steps = [s for s in getattr(chain, "steps", [chain]) if hasattr(s.conf, "duplicates_early")]
         steps = steps if args.step < 0 else [step]
+        configured = [s.conf for s in steps]
         P3P.find_pose_deferred = timed_find  # type: ignore[method-assign]
         multi.result_from_estimate = group_result
         solution_weighing.SolutionWeighing._duplicates_a_solution = duplicates  # type: ignore[method-assign]
@@ -148,8 +149,9 @@ def main(argv: list[str] | None = None) -> int:
                     same += got[False] == got[True]
     finally:
         use_skip(True)
-        if args.early:
-            use_early(steps, False)
+        if args.early:  # each step's own setting back (on, the default, unless configured)
+            for s, conf in zip(steps, configured, strict=True):
+                s.conf = conf
         P3P.find_pose_deferred = FIND_DEFERRED  # type: ignore[method-assign]
         multi.result_from_estimate = RESULT_FROM_ESTIMATE
         solution_weighing.SolutionWeighing._duplicates_a_solution = DUPLICATES  # type: ignore[method-assign]
